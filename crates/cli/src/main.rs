@@ -1,0 +1,38 @@
+//! The `vcedit` binary: a thin command-line layer over the `splat`, `diffusion` and `edit` crates.
+//!
+//! Each subcommand lives in its own module under `cmd/` with an `Args` struct and a `run` function.
+//! Errors reach the user as one line (`error: ...` with its causes joined by ": ") and exit code 1;
+//! usage errors exit with 2 (clap's convention).
+
+use clap::{Parser, Subcommand};
+
+mod cmd;
+
+#[derive(Parser)]
+#[command(
+    name = "vcedit",
+    version,
+    about = "Text-driven, view-consistent editing of 3D Gaussian Splatting scenes",
+    long_about = None,
+    propagate_version = true
+)]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Subcommand)]
+enum Command {
+    // One line per subcommand; keep them in the order a user meets them.
+}
+
+fn main() {
+    let cli = Cli::parse();
+    let result: anyhow::Result<()> = match cli.command {};
+    if let Err(err) = result {
+        // One clear line, never a backtrace: the chain of contexts says which file and what is wrong.
+        let msg = err.chain().map(|c| c.to_string()).collect::<Vec<_>>().join(": ");
+        eprintln!("error: {msg}");
+        std::process::exit(1);
+    }
+}

@@ -1,0 +1,1 @@
+//! Stable Diffusion 1.x components on candle (CPU) with attention hooks, conformant with diffusers.

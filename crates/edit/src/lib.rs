@@ -1,0 +1,1 @@
+//! Editing: the InfEdit sampler, attention control, the VcEdit consistency modules and the editing loop.

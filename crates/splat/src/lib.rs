@@ -1,0 +1,15 @@
+//! Gaussian splatting engine: scenes, cameras, a differentiable CPU renderer, lifting of 2D maps onto
+//! Gaussians, and the optimiser that fits scenes to images.
+//!
+//! Conventions used everywhere in this crate (and by every crate above it):
+//! - Cameras are OpenCV cameras: x right, y down, z forward; `world_to_camera` maps world points into that
+//!   frame. Pixel (i, j) (column i, row j) covers [i, i+1) x [j, j+1); its centre is (i + 0.5, j + 0.5).
+//! - Images are row-major, channel-interleaved `f32` in [0, 1] unless said otherwise.
+//! - Scene parameters are stored as the INRIA trainer stores them: log-scales, logit-opacities,
+//!   unnormalised quaternions (w, x, y, z), and SH coefficients.
+
+pub mod camera;
+pub mod scene;
+
+pub use camera::Camera;
+pub use scene::GaussianScene;
