@@ -31,7 +31,11 @@ fn main() {
     let result: anyhow::Result<()> = match cli.command {};
     if let Err(err) = result {
         // One clear line, never a backtrace: the chain of contexts says which file and what is wrong.
-        let msg = err.chain().map(|c| c.to_string()).collect::<Vec<_>>().join(": ");
+        let msg = err
+            .chain()
+            .map(|c| c.to_string())
+            .collect::<Vec<_>>()
+            .join(": ");
         eprintln!("error: {msg}");
         std::process::exit(1);
     }

@@ -9,7 +9,9 @@
 //!   unnormalised quaternions (w, x, y, z), and SH coefficients.
 
 pub mod camera;
+pub mod image;
 pub mod scene;
 
 pub use camera::Camera;
+pub use image::{atomic_write, Image};
 pub use scene::GaussianScene;

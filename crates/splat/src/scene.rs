@@ -26,7 +26,10 @@ pub struct GaussianScene {
 impl GaussianScene {
     /// An empty scene with the given SH degree.
     pub fn new(sh_degree: u32) -> Self {
-        Self { sh_degree, ..Default::default() }
+        Self {
+            sh_degree,
+            ..Default::default()
+        }
     }
 
     pub fn len(&self) -> usize {
@@ -54,7 +57,9 @@ impl GaussianScene {
         ];
         for (name, got, want) in checks {
             if got != want {
-                return Err(format!("{name} has {got} values, expected {want} for {n} Gaussians"));
+                return Err(format!(
+                    "{name} has {got} values, expected {want} for {n} Gaussians"
+                ));
             }
         }
         Ok(())
@@ -62,7 +67,11 @@ impl GaussianScene {
 
     /// Position of Gaussian `i`.
     pub fn mean(&self, i: usize) -> [f32; 3] {
-        [self.means[3 * i], self.means[3 * i + 1], self.means[3 * i + 2]]
+        [
+            self.means[3 * i],
+            self.means[3 * i + 1],
+            self.means[3 * i + 2],
+        ]
     }
 
     /// Opacity in (0, 1) of Gaussian `i`.

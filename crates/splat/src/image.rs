@@ -1,0 +1,190 @@
+//! Float images and atomic PNG I/O.
+//!
+//! Every output file in vcedit goes through [`atomic_write`]: the bytes go to a temporary file next to the
+//! target, then a rename replaces the target, so an interrupted run never leaves a half-written file and
+//! never destroys the previous one.
+
+use image::ImageEncoder;
+use std::io::Write;
+use std::path::{Path, PathBuf};
+
+#[derive(Debug, thiserror::Error)]
+pub enum ImageError {
+    #[error("{path}: {msg}")]
+    Read { path: PathBuf, msg: String },
+    #[error("{path}: cannot write: {msg}")]
+    Write { path: PathBuf, msg: String },
+}
+
+/// A row-major, channel-interleaved float image; values nominally in [0, 1].
+#[derive(Clone, Debug, PartialEq)]
+pub struct Image {
+    pub width: u32,
+    pub height: u32,
+    pub channels: u32,
+    pub data: Vec<f32>,
+}
+
+impl Image {
+    pub fn new(width: u32, height: u32, channels: u32) -> Self {
+        Self {
+            width,
+            height,
+            channels,
+            data: vec![0.0; (width * height * channels) as usize],
+        }
+    }
+
+    pub fn from_data(width: u32, height: u32, channels: u32, data: Vec<f32>) -> Self {
+        assert_eq!(
+            data.len(),
+            (width * height * channels) as usize,
+            "image data length"
+        );
+        Self {
+            width,
+            height,
+            channels,
+            data,
+        }
+    }
+
+    pub fn pixel(&self, x: u32, y: u32) -> &[f32] {
+        let c = self.channels as usize;
+        let i = (y as usize * self.width as usize + x as usize) * c;
+        &self.data[i..i + c]
+    }
+
+    /// Loads a PNG/JPEG as RGB or RGBA floats in [0, 1] (8- or 16-bit inputs; grey is expanded to RGB).
+    pub fn load(path: &Path) -> Result<Image, ImageError> {
+        let err = |msg: String| ImageError::Read {
+            path: path.to_path_buf(),
+            msg,
+        };
+        let img = image::open(path).map_err(|e| err(e.to_string()))?;
+        let has_alpha = img.color().has_alpha();
+        let (w, h) = (img.width(), img.height());
+        if has_alpha {
+            let buf = img.into_rgba32f();
+            Ok(Image::from_data(w, h, 4, buf.into_raw()))
+        } else {
+            let buf = img.into_rgb32f();
+            Ok(Image::from_data(w, h, 3, buf.into_raw()))
+        }
+    }
+
+    /// Saves as an 8-bit PNG (1 = grey, 3 = RGB, 4 = RGBA), clamping to [0, 1]; written atomically.
+    pub fn save_png(&self, path: &Path) -> Result<(), ImageError> {
+        let bytes = self.encode_png().map_err(|msg| ImageError::Write {
+            path: path.to_path_buf(),
+            msg,
+        })?;
+        atomic_write(path, &bytes).map_err(|e| ImageError::Write {
+            path: path.to_path_buf(),
+            msg: e.to_string(),
+        })
+    }
+
+    /// PNG bytes of the image (8-bit).
+    pub fn encode_png(&self) -> Result<Vec<u8>, String> {
+        let color = match self.channels {
+            1 => image::ExtendedColorType::L8,
+            3 => image::ExtendedColorType::Rgb8,
+            4 => image::ExtendedColorType::Rgba8,
+            c => return Err(format!("cannot save an image with {c} channels as PNG")),
+        };
+        let bytes = self.to_u8();
+        let mut out = Vec::new();
+        image::codecs::png::PngEncoder::new(&mut out)
+            .write_image(&bytes, self.width, self.height, color)
+            .map_err(|e| e.to_string())?;
+        Ok(out)
+    }
+
+    /// Quantises to 8 bits per channel with rounding, clamping to [0, 1] (NaN becomes 0).
+    pub fn to_u8(&self) -> Vec<u8> {
+        self.data
+            .iter()
+            .map(|&v| {
+                if v.is_nan() {
+                    0
+                } else {
+                    (v.clamp(0.0, 1.0) * 255.0).round() as u8
+                }
+            })
+            .collect()
+    }
+}
+
+/// Writes `bytes` to `path` atomically: temporary file in the same directory, fsync, rename.
+/// Creates the parent directory if needed.
+pub fn atomic_write(path: &Path, bytes: &[u8]) -> std::io::Result<()> {
+    let dir = match path.parent() {
+        Some(p) if !p.as_os_str().is_empty() => p.to_path_buf(),
+        _ => PathBuf::from("."),
+    };
+    std::fs::create_dir_all(&dir)?;
+    let file_name = path
+        .file_name()
+        .map(|n| n.to_string_lossy().into_owned())
+        .unwrap_or_default();
+    let tmp = dir.join(format!(".{file_name}.tmp-{}", std::process::id()));
+    let result = (|| {
+        let mut f = std::fs::File::create(&tmp)?;
+        f.write_all(bytes)?;
+        f.sync_all()?;
+        std::fs::rename(&tmp, path)
+    })();
+    if result.is_err() {
+        let _ = std::fs::remove_file(&tmp);
+    }
+    result
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn png_roundtrip_rgb_and_grey() {
+        let dir = tempfile::tempdir().unwrap();
+        for channels in [1u32, 3, 4] {
+            let mut img = Image::new(5, 3, channels);
+            for (i, v) in img.data.iter_mut().enumerate() {
+                *v = (i % 7) as f32 / 6.0;
+            }
+            let p = dir.path().join(format!("x{channels}.png"));
+            img.save_png(&p).unwrap();
+            let back = Image::load(&p).unwrap();
+            assert_eq!((back.width, back.height), (5, 3));
+            // Grey loads as RGB; compare the first channel.
+            let bc = back.channels as usize;
+            for y in 0..3 {
+                for x in 0..5 {
+                    let a = img.pixel(x, y)[0];
+                    let b = back.data[(y as usize * 5 + x as usize) * bc];
+                    assert!((a - b).abs() <= 0.5 / 255.0 + 1e-6);
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn atomic_write_replaces_and_leaves_no_temp() {
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("sub").join("f.bin");
+        atomic_write(&p, b"one").unwrap();
+        atomic_write(&p, b"two").unwrap();
+        assert_eq!(std::fs::read(&p).unwrap(), b"two");
+        assert_eq!(std::fs::read_dir(p.parent().unwrap()).unwrap().count(), 1);
+    }
+
+    #[test]
+    fn load_reports_path_on_garbage() {
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("bad.png");
+        std::fs::write(&p, b"not a png").unwrap();
+        let e = Image::load(&p).unwrap_err().to_string();
+        assert!(e.contains("bad.png"), "{e}");
+    }
+}
