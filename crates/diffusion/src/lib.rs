@@ -1,1 +1,2 @@
 //! Stable Diffusion 1.x components on candle (CPU) with attention hooks, conformant with diffusers.
+pub mod layers;
