@@ -1,2 +1,5 @@
 //! Stable Diffusion 1.x components on candle (CPU) with attention hooks, conformant with diffusers.
+
 pub mod layers;
+pub mod loader;
+pub mod tokenizer;
