@@ -10,6 +10,7 @@
 
 pub mod camera;
 pub mod image;
+pub mod render;
 pub mod scene;
 
 pub use camera::Camera;

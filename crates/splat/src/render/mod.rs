@@ -1,0 +1,394 @@
+//! Differentiable CPU rasteriser for 3D Gaussians, following gsplat/3DGS exactly, in three stages that each
+//! have a hand-written backward:
+//!
+//! 1. [`project`]: EWA projection (0.3 px low-pass, near plane 0.01, 3σ radius), SH colour, opacity.
+//! 2. [`tiles`]: 16x16 tile binning, lists sorted front to back by camera depth.
+//! 3. [`raster`]: front-to-back alpha compositing per pixel (alpha ≤ 0.99, skip < 1/255, stop at T < 1e-4)
+//!    of RGB, alpha, depth and any number of extra per-Gaussian channels in the same pass;
+//!    [`raster_backward`] walks each pixel back to front from the saved final T and last contributor.
+//!
+//! The math is generic over [`real::Real`] so the gradient tests run the very same code in `f64`; the
+//! public API below is `f32`.
+
+// `!(a > b)` is deliberate throughout: it also rejects NaN. Index loops over 2/3/4-element arrays read
+// like the formulas they implement.
+#![allow(clippy::neg_cmp_op_on_partial_ord, clippy::needless_range_loop)]
+
+pub(crate) mod project;
+pub(crate) mod raster;
+pub(crate) mod raster_backward;
+pub(crate) mod real;
+pub(crate) mod sh;
+pub(crate) mod tiles;
+
+#[cfg(test)]
+mod gradcheck;
+
+use crate::{Camera, GaussianScene};
+use project::{CameraR, ParamGradsMut, Splat};
+use raster::RasterOut;
+use raster_backward::{ImageGrads, SavedPixels};
+use rayon::prelude::*;
+use real::Real;
+use tiles::TileBins;
+
+pub use project::{ALPHA_MAX, ALPHA_MIN, LOW_PASS, NEAR_PLANE, TILE, T_MIN};
+
+/// Options of [`render`].
+#[derive(Clone, Debug, PartialEq)]
+pub struct RenderSettings {
+    /// Colour composited behind the Gaussians with the final transmittance.
+    pub background: [f32; 3],
+}
+
+impl Default for RenderSettings {
+    fn default() -> Self {
+        Self {
+            background: [0.0; 3],
+        }
+    }
+}
+
+/// Extra per-Gaussian channels composited in the same pass as the colour (e.g. 24·L attention channels).
+#[derive(Clone, Copy, Debug)]
+pub struct ExtraChannels<'a> {
+    /// N*C values, Gaussian-major.
+    pub values: &'a [f32],
+    pub channels: usize,
+}
+
+/// Everything [`render`] produces, plus the state [`render_backward`] needs.
+#[derive(Clone, Debug)]
+pub struct RenderOutput {
+    pub width: u32,
+    pub height: u32,
+    /// H*W*3, background composited.
+    pub rgb: Vec<f32>,
+    /// H*W, 1 − final transmittance.
+    pub alpha: Vec<f32>,
+    /// H*W, expected camera z = Σ z_i α_i T_i (not divided by alpha).
+    pub depth: Vec<f32>,
+    /// H*W*C extra channels, composited over 0 (no background).
+    pub extra: Vec<f32>,
+    /// Number of extra channels C.
+    pub channels: usize,
+    /// Per Gaussian screen radius in pixels, 0 = not rendered.
+    pub radii: Vec<u32>,
+    state: SavedState,
+}
+
+#[derive(Clone, Debug)]
+struct SavedState {
+    splats: Vec<Splat<f32>>,
+    bins: TileBins,
+    t_final: Vec<f32>,
+    last: Vec<u32>,
+}
+
+impl RenderOutput {
+    /// The RGB image as an [`crate::Image`].
+    pub fn rgb_image(&self) -> crate::Image {
+        crate::Image::from_data(self.width, self.height, 3, self.rgb.clone())
+    }
+
+    /// Number of (tile, Gaussian) pairs the rasteriser visited: a measure of the work done.
+    pub fn tile_intersections(&self) -> usize {
+        self.state.bins.ids.len()
+    }
+}
+
+/// Gradients of a scalar loss with respect to the rendered images (same layouts as [`RenderOutput`]).
+#[derive(Clone, Copy, Debug)]
+pub struct OutputGrads<'a> {
+    pub rgb: &'a [f32],
+    pub alpha: Option<&'a [f32]>,
+    pub depth: Option<&'a [f32]>,
+    pub extra: Option<&'a [f32]>,
+}
+
+/// Gradients with respect to the scene parameters (same layouts as [`GaussianScene`]).
+#[derive(Clone, Debug, Default)]
+pub struct SceneGrads {
+    pub means: Vec<f32>,
+    pub log_scales: Vec<f32>,
+    pub quats: Vec<f32>,
+    pub opacity_logits: Vec<f32>,
+    pub sh: Vec<f32>,
+    /// N*C; empty when no extra channels or no extra-channel gradient were given.
+    pub extra: Vec<f32>,
+    /// dL/d(projected pixel centre) per Gaussian, for densification.
+    pub means2d: Vec<[f32; 2]>,
+}
+
+/// Renders `scene` from `camera`.
+///
+/// # Panics
+/// When the scene's arrays have inconsistent lengths ([`GaussianScene::check_shapes`]), its SH degree is
+/// above 3, or `extra.values` is not N*C long. These are programming errors: loaders validate files.
+pub fn render(
+    scene: &GaussianScene,
+    camera: &Camera,
+    settings: &RenderSettings,
+    extra: Option<ExtraChannels<'_>>,
+) -> RenderOutput {
+    let params = Params::from_scene(scene);
+    let extra = extra.map(|e| {
+        assert_eq!(
+            e.values.len(),
+            scene.len() * e.channels,
+            "extra channel values must be N*C"
+        );
+        (e.values, e.channels)
+    });
+    let fwd = forward(&params, camera, settings.background, extra);
+    let radii = fwd.splats.iter().map(|s| s.radius).collect();
+    let RasterOut {
+        rgb,
+        alpha,
+        depth,
+        extra: extra_img,
+        t_final,
+        last,
+    } = fwd.raster;
+    RenderOutput {
+        width: camera.width,
+        height: camera.height,
+        rgb,
+        alpha,
+        depth,
+        extra: extra_img,
+        channels: extra.map_or(0, |e| e.1),
+        radii,
+        state: SavedState {
+            splats: fwd.splats,
+            bins: fwd.bins,
+            t_final,
+            last,
+        },
+    }
+}
+
+/// Backward pass of [`render`]: gradients of the loss with respect to every parameter, given the gradients
+/// with respect to the outputs. `scene`, `camera`, `settings` and `extra` must be those `out` was rendered
+/// with.
+///
+/// # Panics
+/// When the gradient images or `out` do not match the scene/camera sizes (programming errors).
+pub fn render_backward(
+    scene: &GaussianScene,
+    camera: &Camera,
+    settings: &RenderSettings,
+    extra: Option<ExtraChannels<'_>>,
+    out: &RenderOutput,
+    grads: &OutputGrads<'_>,
+) -> SceneGrads {
+    let params = Params::from_scene(scene);
+    let npix = (camera.width * camera.height) as usize;
+    assert_eq!(
+        out.state.splats.len(),
+        scene.len(),
+        "output of another scene"
+    );
+    assert_eq!((out.width, out.height), (camera.width, camera.height));
+    assert_eq!(grads.rgb.len(), 3 * npix, "rgb gradient must be H*W*3");
+    if let Some(a) = grads.alpha {
+        assert_eq!(a.len(), npix, "alpha gradient must be H*W");
+    }
+    if let Some(d) = grads.depth {
+        assert_eq!(d.len(), npix, "depth gradient must be H*W");
+    }
+    let extra = extra.map(|e| (e.values, e.channels));
+    if let Some(e) = grads.extra {
+        assert_eq!(e.len(), npix * out.channels, "extra gradient must be H*W*C");
+    }
+    let g = backward(
+        &params,
+        camera,
+        settings.background,
+        extra,
+        &out.state.splats,
+        &out.state.bins,
+        SavedPixels {
+            t_final: &out.state.t_final,
+            last: &out.state.last,
+        },
+        &ImageGrads {
+            rgb: grads.rgb,
+            alpha: grads.alpha,
+            depth: grads.depth,
+            extra: grads.extra,
+        },
+    );
+    SceneGrads {
+        means: g.means,
+        log_scales: g.log_scales,
+        quats: g.quats,
+        opacity_logits: g.opacity_logits,
+        sh: g.sh,
+        extra: g.extra,
+        means2d: g.means2d,
+    }
+}
+
+/// SH coefficients per colour channel for a degree.
+#[inline]
+pub(crate) fn sh_coeffs_of(degree: u32) -> usize {
+    ((degree + 1) * (degree + 1)) as usize
+}
+
+/// Borrowed scene parameters in the working float type.
+#[derive(Clone, Copy, Debug)]
+pub(crate) struct Params<'a, R> {
+    pub sh_degree: u32,
+    pub means: &'a [R],
+    pub log_scales: &'a [R],
+    pub quats: &'a [R],
+    pub opacity_logits: &'a [R],
+    pub sh: &'a [R],
+}
+
+impl<'a> Params<'a, f32> {
+    pub fn from_scene(scene: &'a GaussianScene) -> Self {
+        if let Err(e) = scene.check_shapes() {
+            panic!("inconsistent scene: {e}");
+        }
+        assert!(
+            scene.sh_degree <= sh::MAX_DEGREE,
+            "SH degree {} is not supported (at most {})",
+            scene.sh_degree,
+            sh::MAX_DEGREE
+        );
+        Params {
+            sh_degree: scene.sh_degree,
+            means: &scene.means,
+            log_scales: &scene.log_scales,
+            quats: &scene.quats,
+            opacity_logits: &scene.opacity_logits,
+            sh: &scene.sh,
+        }
+    }
+}
+
+impl<R> Params<'_, R> {
+    pub fn len(&self) -> usize {
+        self.opacity_logits.len()
+    }
+}
+
+/// Forward pass in any float type.
+pub(crate) struct Forward<R> {
+    pub splats: Vec<Splat<R>>,
+    pub bins: TileBins,
+    pub raster: RasterOut<R>,
+}
+
+/// Stage (a) for all Gaussians in parallel.
+pub(crate) fn project_all<R: Real>(
+    params: &Params<'_, R>,
+    cam: &CameraR<R>,
+    with_color: bool,
+) -> Vec<Splat<R>> {
+    (0..params.len())
+        .into_par_iter()
+        .with_min_len(256)
+        .map(|i| project::project_one(params, i, cam, with_color))
+        .collect()
+}
+
+pub(crate) fn forward<R: Real>(
+    params: &Params<'_, R>,
+    camera: &Camera,
+    background: [f32; 3],
+    extra: Option<(&[R], usize)>,
+) -> Forward<R> {
+    let cam = CameraR::<R>::new(camera);
+    let splats = project_all(params, &cam, true);
+    let (tx, ty) = cam.tiles();
+    let bins = tiles::bin(&splats, tx, ty);
+    let raster = raster::rasterize(
+        &splats,
+        &bins,
+        camera.width,
+        camera.height,
+        background.map(R::from_f32),
+        extra,
+    );
+    Forward {
+        splats,
+        bins,
+        raster,
+    }
+}
+
+/// Parameter gradients in any float type.
+pub(crate) struct Grads<R> {
+    pub means: Vec<R>,
+    pub log_scales: Vec<R>,
+    pub quats: Vec<R>,
+    pub opacity_logits: Vec<R>,
+    pub sh: Vec<R>,
+    pub extra: Vec<R>,
+    pub means2d: Vec<[R; 2]>,
+}
+
+#[allow(clippy::too_many_arguments)]
+pub(crate) fn backward<R: Real>(
+    params: &Params<'_, R>,
+    camera: &Camera,
+    background: [f32; 3],
+    extra: Option<(&[R], usize)>,
+    splats: &[Splat<R>],
+    bins: &TileBins,
+    saved: SavedPixels<'_, R>,
+    grads: &ImageGrads<'_, R>,
+) -> Grads<R> {
+    let cam = CameraR::<R>::new(camera);
+    let n = params.len();
+    let rg = raster_backward::rasterize_backward(
+        splats,
+        bins,
+        camera.width,
+        camera.height,
+        background.map(R::from_f32),
+        extra,
+        saved,
+        grads,
+    );
+    let k3 = 3 * sh_coeffs_of(params.sh_degree);
+    let mut out = Grads {
+        means: vec![R::ZERO; 3 * n],
+        log_scales: vec![R::ZERO; 3 * n],
+        quats: vec![R::ZERO; 4 * n],
+        opacity_logits: vec![R::ZERO; n],
+        sh: vec![R::ZERO; k3 * n],
+        extra: rg.extra,
+        means2d: rg.splats.iter().map(|g| g.mean).collect(),
+    };
+    (
+        out.means.par_chunks_mut(3),
+        out.log_scales.par_chunks_mut(3),
+        out.quats.par_chunks_mut(4),
+        out.opacity_logits.par_iter_mut(),
+        out.sh.par_chunks_mut(k3),
+    )
+        .into_par_iter()
+        .with_min_len(256)
+        .enumerate()
+        .for_each(|(i, (mean, log_scale, quat, opacity_logit, sh))| {
+            project::project_one_backward(
+                params,
+                i,
+                &cam,
+                &splats[i],
+                &rg.splats[i],
+                ParamGradsMut {
+                    mean,
+                    log_scale,
+                    quat,
+                    opacity_logit,
+                    sh,
+                },
+            );
+        });
+    out
+}

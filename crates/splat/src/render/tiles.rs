@@ -1,0 +1,193 @@
+//! Stage (b): tile binning. Every drawable Gaussian is listed in each 16x16 tile its 3σ rectangle covers;
+//! each tile's list is sorted front to back by camera depth (ties by index, so results are deterministic).
+
+use super::project::Splat;
+use super::real::Real;
+use rayon::prelude::*;
+
+/// Per-tile Gaussian lists, concatenated: tile `t` owns `ids[offsets[t]..offsets[t+1]]`.
+#[derive(Clone, Debug, Default)]
+pub struct TileBins {
+    pub tiles_x: u32,
+    pub tiles_y: u32,
+    pub offsets: Vec<u32>,
+    pub ids: Vec<u32>,
+}
+
+impl TileBins {
+    #[inline]
+    pub fn list(&self, tile: usize) -> &[u32] {
+        &self.ids[self.offsets[tile] as usize..self.offsets[tile + 1] as usize]
+    }
+
+    pub fn num_tiles(&self) -> usize {
+        (self.tiles_x * self.tiles_y) as usize
+    }
+}
+
+/// Bins the drawable splats into tiles.
+///
+/// The splats are first sorted by depth once (a parallel sort of N keys instead of one sort per tile), then
+/// scattered into the tile lists in that order, so every list comes out sorted. The scatter runs over
+/// chunks of the sorted order in parallel, each chunk writing into its own precomputed slots.
+pub fn bin<R: Real>(splats: &[Splat<R>], tiles_x: u32, tiles_y: u32) -> TileBins {
+    let num_tiles = (tiles_x * tiles_y) as usize;
+    let mut order: Vec<(u64, u32)> = splats
+        .par_iter()
+        .enumerate()
+        .filter(|(_, s)| s.is_drawable())
+        // Depths are > 0, so the IEEE bit pattern orders like the value.
+        .map(|(i, s)| (s.depth.to_f64().to_bits(), i as u32))
+        .collect();
+    order.par_sort_unstable();
+
+    let chunks = rayon::current_num_threads().max(1) * 4;
+    let chunk_len = order.len().div_ceil(chunks).max(1);
+    // counts[chunk][tile]
+    let counts: Vec<Vec<u32>> = order
+        .par_chunks(chunk_len)
+        .map(|chunk| {
+            let mut counts = vec![0u32; num_tiles];
+            for &(_, i) in chunk {
+                let [x0, y0, x1, y1] = splats[i as usize].tiles;
+                for ty in y0..y1 {
+                    let row = (ty * tiles_x) as usize;
+                    for tx in x0..x1 {
+                        counts[row + tx as usize] += 1;
+                    }
+                }
+            }
+            counts
+        })
+        .collect();
+
+    // Tile offsets, and each chunk's starting slot within each tile.
+    let mut offsets = vec![0u32; num_tiles + 1];
+    let mut starts: Vec<Vec<u32>> = vec![vec![0u32; num_tiles]; counts.len()];
+    let mut total = 0u64;
+    for t in 0..num_tiles {
+        offsets[t] = total as u32;
+        for (ch, cnt) in counts.iter().enumerate() {
+            starts[ch][t] = total as u32;
+            total += cnt[t] as u64;
+        }
+    }
+    offsets[num_tiles] = total as u32;
+    assert!(total <= u32::MAX as u64, "too many tile intersections");
+
+    let mut ids = vec![0u32; total as usize];
+    let ids_ptr = SyncPtr(ids.as_mut_ptr());
+    order
+        .par_chunks(chunk_len)
+        .zip(starts.par_iter_mut())
+        .for_each(|(chunk, next)| {
+            let ptr = &ids_ptr;
+            for &(_, i) in chunk {
+                let [x0, y0, x1, y1] = splats[i as usize].tiles;
+                for ty in y0..y1 {
+                    let row = (ty * tiles_x) as usize;
+                    for tx in x0..x1 {
+                        let slot = &mut next[row + tx as usize];
+                        // SAFETY: every (chunk, tile) pair owns the disjoint slot range
+                        // [starts[chunk][tile], starts[chunk][tile] + counts[chunk][tile]), which lies
+                        // inside `ids`; each chunk advances only its own cursors.
+                        unsafe { ptr.write(*slot as usize, i) };
+                        *slot += 1;
+                    }
+                }
+            }
+        });
+    TileBins {
+        tiles_x,
+        tiles_y,
+        offsets,
+        ids,
+    }
+}
+
+/// A raw pointer that parallel workers may share when they provably write disjoint elements.
+pub(crate) struct SyncPtr<T>(pub *mut T);
+unsafe impl<T: Send> Send for SyncPtr<T> {}
+unsafe impl<T: Send> Sync for SyncPtr<T> {}
+
+impl<T> SyncPtr<T> {
+    /// # Safety
+    /// `idx` must be in bounds of the allocation and no other thread may access that element concurrently.
+    #[inline(always)]
+    pub unsafe fn write(&self, idx: usize, v: T) {
+        unsafe { self.0.add(idx).write(v) }
+    }
+
+    /// # Safety
+    /// `start..start+len` must be in bounds and not accessed by any other thread while the slice lives.
+    #[inline(always)]
+    #[allow(clippy::mut_from_ref)]
+    pub unsafe fn slice_mut(&self, start: usize, len: usize) -> &mut [T] {
+        unsafe { std::slice::from_raw_parts_mut(self.0.add(start), len) }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn splat(depth: f32, tiles: [u32; 4]) -> Splat<f32> {
+        Splat {
+            depth,
+            radius: 1,
+            tiles,
+            sigma_max: 1.0,
+            ..Default::default()
+        }
+    }
+
+    #[test]
+    fn lists_are_complete_and_sorted_by_depth() {
+        let splats = vec![
+            splat(3.0, [0, 0, 2, 1]),
+            splat(1.0, [1, 0, 2, 2]),
+            splat(2.0, [0, 0, 1, 2]),
+            Splat::default(), // culled
+            splat(0.5, [0, 1, 2, 2]),
+        ];
+        let bins = bin(&splats, 2, 2);
+        assert_eq!(bins.list(0), &[2, 0]);
+        assert_eq!(bins.list(1), &[1, 0]);
+        assert_eq!(bins.list(2), &[4, 2]);
+        assert_eq!(bins.list(3), &[4, 1]);
+    }
+
+    #[test]
+    fn many_splats_match_naive_binning() {
+        use rand::{Rng, SeedableRng};
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(3);
+        let splats: Vec<Splat<f32>> = (0..3000)
+            .map(|_| {
+                let x0 = rng.gen_range(0..7);
+                let y0 = rng.gen_range(0..5);
+                splat(
+                    rng.gen_range(0.1..10.0),
+                    [x0, y0, rng.gen_range(x0 + 1..=7), rng.gen_range(y0 + 1..=5)],
+                )
+            })
+            .collect();
+        let bins = bin(&splats, 7, 5);
+        for t in 0..35u32 {
+            let (tx, ty) = (t % 7, t / 7);
+            let mut want: Vec<u32> = (0..splats.len() as u32)
+                .filter(|&i| {
+                    let r = splats[i as usize].tiles;
+                    tx >= r[0] && tx < r[2] && ty >= r[1] && ty < r[3]
+                })
+                .collect();
+            want.sort_by(|&a, &b| {
+                splats[a as usize]
+                    .depth
+                    .partial_cmp(&splats[b as usize].depth)
+                    .unwrap()
+                    .then(a.cmp(&b))
+            });
+            assert_eq!(bins.list(t as usize), &want[..]);
+        }
+    }
+}
