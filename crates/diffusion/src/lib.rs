@@ -2,4 +2,5 @@
 
 pub mod layers;
 pub mod loader;
+pub mod taesd;
 pub mod tokenizer;
