@@ -9,10 +9,14 @@
 //!   unnormalised quaternions (w, x, y, z), and SH coefficients.
 
 pub mod camera;
+pub mod cameras;
 pub mod image;
+pub mod open;
+pub mod ply;
 pub mod render;
 pub mod scene;
 
 pub use camera::Camera;
 pub use image::{atomic_write, Image};
+pub use open::{open_scene, OpenError};
 pub use scene::GaussianScene;

@@ -1,0 +1,358 @@
+//! Generated cameras for a bare `.ply`: rings around the scene's bounds, all looking at the bounds' centre.
+//!
+//! Geometry: the bounds' enclosing sphere (centre c, radius r) must fit in the narrower field of view, so
+//! the orbit distance is `r * margin / sin(fov / 2)`. Cameras sit at an elevation above the horizontal
+//! plane (20° by default) and are spaced evenly in azimuth; with several rings the elevations are spread
+//! around the main one. Intrinsics: square pixels, principal point at the image centre, `fov_deg` across
+//! the shorter image side.
+//!
+//! Which way is up? A PLY does not say. [`Up::Auto`] looks at the bounds: scenes are usually flatter along
+//! their vertical axis, so whichever of y and z has the smaller extent is taken as vertical. z is taken as
+//! +z (Blender and most synthetic data are z-up); y is taken as -y (COLMAP-based scenes, which includes
+//! everything the INRIA trainer produces, inherit the y-down axis of their cameras). When the guess is
+//! wrong, pass the axis explicitly (`Up::PlusY`, `Up::MinusZ`, ... or any vector).
+
+use crate::{Camera, GaussianScene};
+
+/// The world's up direction for orbits.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub enum Up {
+    /// Guess from the bounds (see the module docs).
+    #[default]
+    Auto,
+    PlusY,
+    MinusY,
+    PlusZ,
+    MinusZ,
+    /// Any non-zero direction.
+    Vector([f64; 3]),
+}
+
+impl std::str::FromStr for Up {
+    type Err = String;
+
+    /// Parses `auto`, `y`, `+y`, `-y`, `z`, `+z`, `-z` or `X,Y,Z`.
+    fn from_str(s: &str) -> Result<Self, String> {
+        Ok(match s.trim() {
+            "auto" => Up::Auto,
+            "y" | "+y" => Up::PlusY,
+            "-y" => Up::MinusY,
+            "z" | "+z" => Up::PlusZ,
+            "-z" => Up::MinusZ,
+            other => {
+                let v: Vec<f64> = other
+                    .split(',')
+                    .map(|t| t.trim().parse::<f64>())
+                    .collect::<Result<_, _>>()
+                    .map_err(|_| format!("'{other}' is not auto, ±y, ±z or X,Y,Z"))?;
+                let v: [f64; 3] = v
+                    .try_into()
+                    .map_err(|_| format!("'{other}' is not auto, ±y, ±z or X,Y,Z"))?;
+                if !v.iter().all(|c| c.is_finite()) || v.iter().all(|&c| c == 0.0) {
+                    return Err(format!("up vector '{other}' must be finite and non-zero"));
+                }
+                Up::Vector(v)
+            }
+        })
+    }
+}
+
+impl Up {
+    /// The unit up direction for these bounds.
+    pub fn resolve(self, lo: [f32; 3], hi: [f32; 3]) -> [f64; 3] {
+        let v = match self {
+            Up::Auto => {
+                let (ey, ez) = (hi[1] - lo[1], hi[2] - lo[2]);
+                if ez <= ey {
+                    [0.0, 0.0, 1.0]
+                } else {
+                    [0.0, -1.0, 0.0]
+                }
+            }
+            Up::PlusY => [0.0, 1.0, 0.0],
+            Up::MinusY => [0.0, -1.0, 0.0],
+            Up::PlusZ => [0.0, 0.0, 1.0],
+            Up::MinusZ => [0.0, 0.0, -1.0],
+            Up::Vector(v) => v,
+        };
+        normalize(v).unwrap_or([0.0, 0.0, 1.0])
+    }
+}
+
+/// How orbits are laid out.
+#[derive(Clone, Debug, PartialEq)]
+pub struct OrbitSettings {
+    pub up: Up,
+    /// Elevation of the (middle) ring above the horizontal plane through the centre, degrees.
+    pub elevation_deg: f64,
+    /// Number of rings; cameras are shared out between them.
+    pub rings: usize,
+    /// Elevation step between rings, degrees.
+    pub ring_spacing_deg: f64,
+    /// Field of view across the shorter image side, degrees.
+    pub fov_deg: f64,
+    /// Extra room around the bounding sphere (1 = the sphere touches the image border).
+    pub margin: f64,
+}
+
+impl Default for OrbitSettings {
+    fn default() -> Self {
+        Self {
+            up: Up::Auto,
+            elevation_deg: 20.0,
+            rings: 1,
+            ring_spacing_deg: 20.0,
+            fov_deg: 50.0,
+            margin: 1.05,
+        }
+    }
+}
+
+/// `n` cameras of `width` x `height` on one ring around the bounds, with [`OrbitSettings::default`].
+pub fn orbit_cameras(lo: [f32; 3], hi: [f32; 3], n: usize, width: u32, height: u32) -> Vec<Camera> {
+    orbit_cameras_with(lo, hi, n, width, height, &OrbitSettings::default())
+}
+
+/// `n` cameras around the bounds laid out by `settings`. Non-finite or inverted bounds fall back to the unit
+/// cube; degenerate (flat or point) bounds get a small minimum radius so the cameras stay outside.
+pub fn orbit_cameras_with(
+    lo: [f32; 3],
+    hi: [f32; 3],
+    n: usize,
+    width: u32,
+    height: u32,
+    settings: &OrbitSettings,
+) -> Vec<Camera> {
+    let (lo, hi) = if lo.iter().chain(&hi).all(|v| v.is_finite()) && (0..3).all(|a| lo[a] <= hi[a])
+    {
+        (lo, hi)
+    } else {
+        ([-1.0; 3], [1.0; 3])
+    };
+    let center: [f64; 3] = std::array::from_fn(|a| 0.5 * (lo[a] as f64 + hi[a] as f64));
+    let diag = (0..3)
+        .map(|a| (hi[a] as f64 - lo[a] as f64).powi(2))
+        .sum::<f64>()
+        .sqrt();
+    let radius = (0.5 * diag).max(1e-3);
+    let fov = settings.fov_deg.clamp(1.0, 170.0).to_radians();
+    let distance = radius * settings.margin.max(1.0) / (0.5 * fov).sin();
+    let focal = 0.5 * width.min(height) as f64 / (0.5 * fov).tan();
+
+    let up = settings.up.resolve(lo, hi);
+    // A horizontal basis: e1 from the world axis least aligned with up, e2 completing it.
+    let least = (0..3)
+        .min_by(|&a, &b| up[a].abs().total_cmp(&up[b].abs()))
+        .unwrap_or(0);
+    let mut axis = [0.0; 3];
+    axis[least] = 1.0;
+    let e1 = normalize(cross(up, axis)).unwrap_or([1.0, 0.0, 0.0]);
+    let e2 = cross(up, e1);
+
+    let rings = settings.rings.clamp(1, n.max(1));
+    let mut cameras = Vec::with_capacity(n);
+    for ring in 0..rings {
+        let in_ring = n / rings + usize::from(ring < n % rings);
+        let offset = ring as f64 - (rings - 1) as f64 / 2.0;
+        let elevation = (settings.elevation_deg + offset * settings.ring_spacing_deg)
+            .clamp(-85.0, 85.0)
+            .to_radians();
+        for k in 0..in_ring {
+            // Stagger rings so their cameras do not line up.
+            let azimuth = std::f64::consts::TAU * (k as f64 + 0.5 * ring as f64) / in_ring as f64;
+            let dir: [f64; 3] = std::array::from_fn(|a| {
+                elevation.cos() * (azimuth.cos() * e1[a] + azimuth.sin() * e2[a])
+                    + elevation.sin() * up[a]
+            });
+            let position: [f64; 3] = std::array::from_fn(|a| center[a] + distance * dir[a]);
+            let name = format!("orbit_{:03}", cameras.len());
+            cameras.push(look_at(name, position, center, up, width, height, focal));
+        }
+    }
+    cameras
+}
+
+/// An OpenCV camera at `eye` looking at `target`, with `up` appearing upwards in the image.
+pub fn look_at(
+    name: String,
+    eye: [f64; 3],
+    target: [f64; 3],
+    up: [f64; 3],
+    width: u32,
+    height: u32,
+    focal: f64,
+) -> Camera {
+    let forward = normalize(std::array::from_fn(|a| target[a] - eye[a])).unwrap_or([0.0, 0.0, 1.0]);
+    let right = normalize(cross(forward, up))
+        .or_else(|| normalize(cross(forward, [1.0, 0.0, 0.0])))
+        .or_else(|| normalize(cross(forward, [0.0, 1.0, 0.0])))
+        .unwrap_or([1.0, 0.0, 0.0]);
+    let down = cross(forward, right);
+    let rotation = [right, down, forward];
+    let translation = std::array::from_fn(|a| {
+        -(rotation[a][0] * eye[0] + rotation[a][1] * eye[1] + rotation[a][2] * eye[2])
+    });
+    Camera {
+        name,
+        width,
+        height,
+        fx: focal,
+        fy: focal,
+        cx: width as f64 / 2.0,
+        cy: height as f64 / 2.0,
+        rotation,
+        translation,
+    }
+}
+
+/// Per-axis quantile bounds of the means: (q-quantile, (1-q)-quantile) with q in [0, 0.5), so a few
+/// floaters far from the scene do not blow up orbits or statistics. `None` for an empty scene.
+pub fn robust_bounds(scene: &GaussianScene, q: f64) -> Option<([f32; 3], [f32; 3])> {
+    let n = scene.len();
+    if n == 0 {
+        return None;
+    }
+    let q = q.clamp(0.0, 0.499);
+    let lo_i = ((n - 1) as f64 * q).round() as usize;
+    let hi_i = ((n - 1) as f64 * (1.0 - q)).round() as usize;
+    let mut lo = [0.0; 3];
+    let mut hi = [0.0; 3];
+    let mut column = Vec::with_capacity(n);
+    for a in 0..3 {
+        column.clear();
+        column.extend(scene.means.chunks_exact(3).map(|p| p[a]));
+        lo[a] = *column.select_nth_unstable_by(lo_i, f32::total_cmp).1;
+        hi[a] = *column.select_nth_unstable_by(hi_i, f32::total_cmp).1;
+    }
+    Some((lo, hi))
+}
+
+fn cross(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
+    [
+        a[1] * b[2] - a[2] * b[1],
+        a[2] * b[0] - a[0] * b[2],
+        a[0] * b[1] - a[1] * b[0],
+    ]
+}
+
+fn normalize(v: [f64; 3]) -> Option<[f64; 3]> {
+    let n = (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt();
+    (n.is_finite() && n > 1e-12).then(|| v.map(|c| c / n))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::super::test_util::project;
+    use super::*;
+
+    fn corners(lo: [f32; 3], hi: [f32; 3]) -> Vec<[f64; 3]> {
+        (0..8)
+            .map(|i| {
+                std::array::from_fn(|a| {
+                    if i >> a & 1 == 1 {
+                        hi[a] as f64
+                    } else {
+                        lo[a] as f64
+                    }
+                })
+            })
+            .collect()
+    }
+
+    #[test]
+    fn orbit_sees_all_bounds_and_keeps_up_upwards() {
+        let (lo, hi) = ([-1.0, -2.0, 0.0], [3.0, 1.0, 0.5]);
+        for (w, h) in [(64, 64), (96, 48), (40, 80)] {
+            let cams = orbit_cameras(lo, hi, 7, w, h);
+            assert_eq!(cams.len(), 7);
+            let center = [1.0, -0.5, 0.25];
+            for cam in &cams {
+                // The centre projects to the image centre.
+                let c = project(cam, center).unwrap();
+                assert!(
+                    (c[0] - w as f64 / 2.0).abs() < 1e-9 && (c[1] - h as f64 / 2.0).abs() < 1e-9
+                );
+                for p in corners(lo, hi) {
+                    let uv = project(cam, p).expect("corner in front of the camera");
+                    assert!(
+                        uv[0] > 0.0 && uv[0] < w as f64 && uv[1] > 0.0 && uv[1] < h as f64,
+                        "{uv:?}"
+                    );
+                }
+                // z is the flattest axis here, so up is +z: a point above the centre appears higher.
+                let above = project(cam, [1.0, -0.5, 1.0]).unwrap();
+                assert!(above[1] < c[1]);
+                // Elevated: the camera is above the centre.
+                assert!(cam.center()[2] > center[2]);
+            }
+            // Distinct positions all round.
+            let c0 = cams[0].center();
+            assert!(cams[1..].iter().all(|c| {
+                let d = c.center();
+                (0..3).map(|a| (d[a] - c0[a]).powi(2)).sum::<f64>() > 1e-6
+            }));
+        }
+    }
+
+    #[test]
+    fn up_guess_and_explicit_up() {
+        assert_eq!(Up::Auto.resolve([0.0; 3], [1.0, 1.0, 0.2]), [0.0, 0.0, 1.0]);
+        assert_eq!(
+            Up::Auto.resolve([0.0; 3], [1.0, 0.2, 1.0]),
+            [0.0, -1.0, 0.0]
+        );
+        assert_eq!("-z".parse::<Up>().unwrap(), Up::MinusZ);
+        assert_eq!(
+            "0,2,0".parse::<Up>().unwrap().resolve([0.0; 3], [1.0; 3]),
+            [0.0, 1.0, 0.0]
+        );
+        assert!("0,0,0".parse::<Up>().is_err());
+        assert!("sideways".parse::<Up>().is_err());
+        let settings = OrbitSettings {
+            up: Up::PlusY,
+            rings: 3,
+            ..Default::default()
+        };
+        let cams = orbit_cameras_with([-1.0; 3], [1.0; 3], 10, 32, 32, &settings);
+        assert_eq!(cams.len(), 10);
+        let heights: Vec<f64> = cams.iter().map(|c| c.center()[1]).collect();
+        // Ring elevations 0, 20 and 40 degrees: three distinct heights, all >= the centre.
+        let mut distinct = heights.clone();
+        distinct.sort_by(f64::total_cmp);
+        distinct.dedup_by(|a, b| (*a - *b).abs() < 1e-9);
+        assert_eq!(distinct.len(), 3);
+        assert!(heights.iter().all(|&y| y > -1e-9));
+    }
+
+    #[test]
+    fn degenerate_bounds_still_give_valid_cameras() {
+        for (lo, hi) in [
+            ([0.0; 3], [0.0; 3]),
+            ([f32::NAN; 3], [1.0; 3]),
+            ([1.0; 3], [-1.0; 3]),
+        ] {
+            for cam in orbit_cameras(lo, hi, 3, 16, 16) {
+                assert!(cam.rotation.iter().flatten().all(|v| v.is_finite()));
+                assert!(cam.translation.iter().all(|v| v.is_finite()));
+                assert!(cam.translation[2] > 0.0, "scene centre in front");
+            }
+        }
+        assert!(orbit_cameras([0.0; 3], [1.0; 3], 0, 16, 16).is_empty());
+    }
+
+    #[test]
+    fn robust_bounds_ignore_floaters() {
+        let n = 1000;
+        let mut scene = GaussianScene::new(0);
+        for i in 0..n {
+            let t = i as f32 / n as f32;
+            scene.means.extend_from_slice(&[t, -t, 2.0 * t]);
+            scene.opacity_logits.push(0.0);
+        }
+        scene.means[0] = 1e6;
+        let (lo, hi) = robust_bounds(&scene, 0.01).unwrap();
+        assert!(hi[0] < 1.0 && lo[0] > 0.0 && lo[1] > -1.0 && hi[2] < 2.0);
+        let (lo, hi) = robust_bounds(&scene, 0.0).unwrap();
+        assert_eq!((lo, hi), scene.bounds().unwrap());
+    }
+}

@@ -1,0 +1,137 @@
+//! Opening a scene the way a user names it: a `.ply` file, or an INRIA trainer output folder.
+
+use crate::cameras::{inria::load_inria_cameras, CameraError, CameraSet};
+use crate::ply::{read_ply, PlyError};
+use crate::GaussianScene;
+use std::path::{Path, PathBuf};
+
+#[derive(Debug, thiserror::Error)]
+pub enum OpenError {
+    #[error(transparent)]
+    Ply(#[from] PlyError),
+    #[error(transparent)]
+    Cameras(#[from] CameraError),
+    #[error("{}: no such file or folder", path.display())]
+    NotFound { path: PathBuf },
+    #[error(
+        "{}: not a scene: expected a .ply file or an INRIA output folder with point_cloud/iteration_*/point_cloud.ply",
+        path.display()
+    )]
+    NotAScene { path: PathBuf },
+}
+
+/// Opens a scene and, when the source has them, its cameras.
+///
+/// - A file is read as a PLY (no cameras).
+/// - A folder is read as the INRIA trainer's output: the highest `point_cloud/iteration_N/point_cloud.ply`
+///   plus `cameras.json` at the folder root when present.
+pub fn open_scene(path: &Path) -> Result<(GaussianScene, Option<CameraSet>), OpenError> {
+    if path.is_file() {
+        return Ok((read_ply(path)?, None));
+    }
+    if !path.is_dir() {
+        return Err(OpenError::NotFound {
+            path: path.to_path_buf(),
+        });
+    }
+    let ply = latest_iteration_ply(path).ok_or_else(|| OpenError::NotAScene {
+        path: path.to_path_buf(),
+    })?;
+    let scene = read_ply(&ply)?;
+    let cameras_json = path.join("cameras.json");
+    let cameras = if cameras_json.is_file() {
+        Some(load_inria_cameras(&cameras_json)?)
+    } else {
+        None
+    };
+    Ok((scene, cameras))
+}
+
+/// `point_cloud/iteration_N/point_cloud.ply` with the largest N that exists.
+pub fn latest_iteration_ply(dir: &Path) -> Option<PathBuf> {
+    let entries = std::fs::read_dir(dir.join("point_cloud")).ok()?;
+    entries
+        .filter_map(|e| e.ok())
+        .filter_map(|e| {
+            let name = e.file_name();
+            let n: u64 = name.to_str()?.strip_prefix("iteration_")?.parse().ok()?;
+            let ply = e.path().join("point_cloud.ply");
+            ply.is_file().then_some((n, ply))
+        })
+        .max_by_key(|(n, _)| *n)
+        .map(|(_, p)| p)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::ply::write_ply;
+
+    fn tiny(offset: f32) -> GaussianScene {
+        GaussianScene {
+            sh_degree: 0,
+            means: vec![offset, 0.0, 0.0],
+            log_scales: vec![-2.0; 3],
+            quats: vec![1.0, 0.0, 0.0, 0.0],
+            opacity_logits: vec![0.5],
+            sh: vec![0.1, 0.2, 0.3],
+        }
+    }
+
+    #[test]
+    fn opens_the_highest_iteration_with_cameras() {
+        let dir = tempfile::tempdir().unwrap();
+        let out = dir.path();
+        // 7000 < 30000 numerically though not as text; a folder without a ply is ignored.
+        write_ply(
+            &out.join("point_cloud/iteration_7000/point_cloud.ply"),
+            &tiny(1.0),
+        )
+        .unwrap();
+        write_ply(
+            &out.join("point_cloud/iteration_30000/point_cloud.ply"),
+            &tiny(2.0),
+        )
+        .unwrap();
+        std::fs::create_dir_all(out.join("point_cloud/iteration_90000")).unwrap();
+        std::fs::create_dir_all(out.join("point_cloud/iteration_x")).unwrap();
+        let (scene, cams) = open_scene(out).unwrap();
+        assert_eq!(scene, tiny(2.0));
+        assert!(cams.is_none());
+
+        std::fs::write(
+            out.join("cameras.json"),
+            r#"[{"id": 0, "img_name": "a", "width": 8, "height": 6, "position": [0, 0, -3],
+                "rotation": [[1,0,0],[0,1,0],[0,0,1]], "fx": 8, "fy": 8}]"#,
+        )
+        .unwrap();
+        let (_, cams) = open_scene(out).unwrap();
+        assert_eq!(cams.unwrap().cameras.len(), 1);
+
+        let (scene, cams) =
+            open_scene(&out.join("point_cloud/iteration_7000/point_cloud.ply")).unwrap();
+        assert_eq!(scene, tiny(1.0));
+        assert!(cams.is_none());
+    }
+
+    #[test]
+    fn errors_name_the_path() {
+        let dir = tempfile::tempdir().unwrap();
+        let e = open_scene(dir.path()).unwrap_err().to_string();
+        assert!(
+            e.contains("not a scene") && e.contains(&dir.path().display().to_string()),
+            "{e}"
+        );
+        let missing = dir.path().join("nope.ply");
+        let e = open_scene(&missing).unwrap_err().to_string();
+        assert!(e.contains("nope.ply") && e.contains("no such file"), "{e}");
+        std::fs::write(dir.path().join("cameras.json"), "[1]").unwrap();
+        write_ply(
+            &dir.path().join("point_cloud/iteration_1/point_cloud.ply"),
+            &tiny(0.0),
+        )
+        .unwrap();
+        let e = open_scene(dir.path()).unwrap_err().to_string();
+        assert!(e.contains("cameras.json"), "{e}");
+    }
+}
