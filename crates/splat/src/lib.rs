@@ -11,6 +11,7 @@
 pub mod camera;
 pub mod cameras;
 pub mod image;
+pub mod lift;
 pub mod open;
 pub mod ply;
 pub mod render;

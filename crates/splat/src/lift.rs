@@ -1,0 +1,291 @@
+//! Lifting 2D maps onto Gaussians: GaussianEditor's `apply_weights` (see algorithm.md §3.1).
+//!
+//! For every view, the scene is projected and binned exactly as for rendering; then per pixel, front to
+//! back with T = 1, each Gaussian is skipped when σ < 0 or alpha < 1/255, the pixel stops (this Gaussian
+//! not counted) when T·(1 − alpha) < 1e-4, and otherwise the Gaussian is *hit*: W_j += M(p) (all
+//! channels), C_j += 1, T ← T·(1 − alpha). The hit is unweighted by alpha·T, as in the reference.
+//! After all views: value_j = W_j / (C_j + 1e-7).
+//!
+//! Accumulation uses one dense buffer per worker thread (N·C floats each), summed at the end.
+
+use crate::render::project::{CameraR, Splat};
+use crate::render::raster::{traverse_tile, Sink, TileRect, TILE_PIXELS};
+use crate::render::{project_all, tiles, Params};
+use crate::{Camera, GaussianScene};
+use rayon::prelude::*;
+use std::sync::Mutex;
+
+/// Per-Gaussian averages of the lifted maps.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct Lifted {
+    /// N*C averages W/(C + 1e-7), Gaussian-major.
+    pub values: Vec<f32>,
+    /// N hit counts (pixels over all views).
+    pub counts: Vec<f32>,
+}
+
+struct Accum {
+    sums: Vec<f32>,
+    counts: Vec<u32>,
+}
+
+struct LiftSink<'a> {
+    acc: &'a mut Accum,
+    map: &'a [f32],
+    channels: usize,
+    rect: TileRect,
+    width: u32,
+}
+
+impl Sink<f32> for LiftSink<'_> {
+    #[inline(always)]
+    fn hit(&mut self, p: usize, g: u32, _splat: &Splat<f32>, _w: f32) {
+        let g = g as usize;
+        let ch = self.channels;
+        self.acc.counts[g] += 1;
+        let gp = self.rect.global(p, self.width);
+        let src = &self.map[gp * ch..(gp + 1) * ch];
+        for (d, &s) in self.acc.sums[g * ch..(g + 1) * ch].iter_mut().zip(src) {
+            *d += s;
+        }
+    }
+}
+
+/// Lifts per-view maps (`maps[v]` is H*W*C for `cameras[v]`, row-major, channel-interleaved) onto the
+/// Gaussians of `scene`.
+///
+/// # Panics
+/// When `maps` and `cameras` differ in length, a map has the wrong size, or the scene is inconsistent
+/// (programming errors).
+pub fn lift(scene: &GaussianScene, cameras: &[Camera], maps: &[&[f32]], channels: usize) -> Lifted {
+    assert_eq!(cameras.len(), maps.len(), "one map per camera");
+    let params = Params::from_scene(scene);
+    let n = scene.len();
+    let slots: Vec<Mutex<Option<Accum>>> = (0..rayon::current_num_threads().max(1))
+        .map(|_| Mutex::new(None))
+        .collect();
+    for (cam, map) in cameras.iter().zip(maps) {
+        let npix = (cam.width * cam.height) as usize;
+        assert_eq!(
+            map.len(),
+            npix * channels,
+            "map for camera {:?} must be H*W*C = {}x{}x{channels}",
+            cam.name,
+            cam.height,
+            cam.width
+        );
+        let camr = CameraR::<f32>::new(cam);
+        let splats = project_all(&params, &camr, false);
+        let (tx, ty) = camr.tiles();
+        let bins = tiles::bin(&splats, tx, ty);
+        (0..bins.num_tiles()).into_par_iter().for_each_init(
+            || (Box::new([0f32; TILE_PIXELS]), Box::new([0u32; TILE_PIXELS])),
+            |(trans, last), tile| {
+                let list = bins.list(tile);
+                if list.is_empty() {
+                    return;
+                }
+                let slot = rayon::current_thread_index().unwrap_or(0) % slots.len();
+                // Only this worker locks this slot: uncontended.
+                let mut guard = slots[slot].lock().unwrap_or_else(|e| e.into_inner());
+                let acc = guard.get_or_insert_with(|| Accum {
+                    sums: vec![0.0; n * channels],
+                    counts: vec![0; n],
+                });
+                let rect = TileRect::new(tile, &bins, cam.width, cam.height);
+                let mut sink = LiftSink {
+                    acc,
+                    map,
+                    channels,
+                    rect,
+                    width: cam.width,
+                };
+                traverse_tile(&splats, list, &rect, &mut sink, trans, last);
+            },
+        );
+    }
+    let mut parts: Vec<Accum> = slots
+        .into_iter()
+        .filter_map(|m| m.into_inner().unwrap_or_else(|e| e.into_inner()))
+        .collect();
+    let mut total = parts.pop().unwrap_or_else(|| Accum {
+        sums: vec![0.0; n * channels],
+        counts: vec![0; n],
+    });
+    for part in &parts {
+        total
+            .sums
+            .par_iter_mut()
+            .zip(part.sums.par_iter())
+            .for_each(|(a, b)| *a += b);
+        for (a, b) in total.counts.iter_mut().zip(&part.counts) {
+            *a += b;
+        }
+    }
+    let counts: Vec<f32> = total.counts.iter().map(|&c| c as f32).collect();
+    let mut values = total.sums;
+    if channels > 0 {
+        values
+            .par_chunks_mut(channels)
+            .zip(counts.par_iter())
+            .for_each(|(row, &c)| {
+                let inv = 1.0 / (c + 1e-7);
+                for v in row {
+                    *v *= inv;
+                }
+            });
+    }
+    Lifted { values, counts }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::render::raster::sigma_at;
+    use crate::render::{ALPHA_MAX, ALPHA_MIN};
+
+    /// A camera at the origin looking down +z.
+    fn cam(width: u32, height: u32, f: f64, tx: f64) -> Camera {
+        Camera {
+            name: "v".into(),
+            width,
+            height,
+            fx: f,
+            fy: f,
+            cx: width as f64 / 2.0,
+            cy: height as f64 / 2.0,
+            rotation: [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],
+            translation: [tx, 0.0, 0.0],
+        }
+    }
+
+    /// Adds an isotropic Gaussian at world position `m` with world std `s` and opacity `o`.
+    fn push(scene: &mut GaussianScene, m: [f32; 3], s: f32, o: f32) {
+        scene.means.extend_from_slice(&m);
+        scene.log_scales.extend_from_slice(&[s.ln(); 3]);
+        scene.quats.extend_from_slice(&[1.0, 0.0, 0.0, 0.0]);
+        scene.opacity_logits.push((o / (1.0 - o)).ln());
+        scene.sh.extend_from_slice(&[0.0; 3]);
+    }
+
+    /// Pixels of `cam` where a lone Gaussian `i` passes the alpha tests (what it must be hit on when
+    /// nothing occludes it), computed by brute force over all pixels and tiles.
+    fn brute_force_hits(scene: &GaussianScene, cam: &Camera, i: usize) -> u32 {
+        let camr = CameraR::<f32>::new(cam);
+        let s = crate::render::project::project_one(&Params::from_scene(scene), i, &camr, false);
+        if s.radius == 0 {
+            return 0;
+        }
+        let mut hits = 0;
+        for y in 0..cam.height {
+            for x in 0..cam.width {
+                let (tx, ty) = (x / 16, y / 16);
+                if tx < s.tiles[0] || tx >= s.tiles[2] || ty < s.tiles[1] || ty >= s.tiles[3] {
+                    continue;
+                }
+                let dx = s.mean[0] - (x as f32 + 0.5);
+                let dy = s.mean[1] - (y as f32 + 0.5);
+                let sigma = sigma_at(&s.conic, dx, dy);
+                let alpha = (s.opacity * (-sigma).exp()).min(ALPHA_MAX as f32);
+                if sigma >= 0.0 && alpha >= ALPHA_MIN as f32 {
+                    hits += 1;
+                }
+            }
+        }
+        hits
+    }
+
+    #[test]
+    fn left_and_right_gaussians_get_their_half_of_the_map() {
+        // 64x16 view; Gaussians at pixel x = 16 and x = 48 with a 3 px std: their support (alpha ≥ 1/255
+        // reaches ~3.3σ ≈ 10 px) stays inside their own half.
+        let c = cam(64, 16, 32.0, 0.0);
+        let mut scene = GaussianScene::new(0);
+        push(&mut scene, [-1.0, 0.0, 2.0], 3.0 * 2.0 / 32.0, 0.95);
+        push(&mut scene, [1.0, 0.0, 2.0], 3.0 * 2.0 / 32.0, 0.95);
+        let map: Vec<f32> = (0..64 * 16)
+            .map(|p| if p % 64 < 32 { 1.0 } else { 0.0 })
+            .collect();
+        let lifted = lift(&scene, &[c.clone()], &[&map], 1);
+        assert!((lifted.values[0] - 1.0).abs() < 1e-6, "{:?}", lifted.values);
+        assert_eq!(lifted.values[1], 0.0);
+        for i in 0..2 {
+            assert_eq!(lifted.counts[i] as u32, brute_force_hits(&scene, &c, i));
+            assert!(lifted.counts[i] > 50.0);
+        }
+    }
+
+    #[test]
+    fn occluded_gaussian_gets_no_hits() {
+        let c = cam(32, 32, 32.0, 0.0);
+        let mut scene = GaussianScene::new(0);
+        // Small Gaussian at the back (index 0), four wide near-opaque layers in front of it: where the small
+        // one reaches alpha ≥ 1/255 the layers leave T·(1 − alpha) < 1e-4, so every pixel stops first.
+        push(&mut scene, [0.0, 0.0, 4.0], 1.0 * 4.0 / 32.0, 0.9);
+        for k in 0..4 {
+            let z = 2.0 + 0.2 * k as f32;
+            push(&mut scene, [0.0, 0.0, z], 8.0 * z / 32.0, 0.999);
+        }
+        let map = vec![1.0f32; 32 * 32];
+        let lifted = lift(&scene, &[c.clone()], &[&map], 1);
+        assert_eq!(lifted.counts[0], 0.0, "{:?}", lifted.counts);
+        assert_eq!(lifted.values[0], 0.0);
+        assert!(
+            brute_force_hits(&scene, &c, 0) > 0,
+            "the back Gaussian is on screen"
+        );
+        assert!(lifted.counts[1] > 100.0);
+        assert!((lifted.values[1] - 1.0).abs() < 1e-6);
+    }
+
+    #[test]
+    fn two_views_average_weighted_by_pixel_counts() {
+        let mut scene = GaussianScene::new(0);
+        push(&mut scene, [0.0, 0.0, 3.0], 0.2, 0.8);
+        // Two views at different resolutions and positions see it with different pixel counts.
+        let v1 = cam(48, 40, 40.0, 0.1);
+        let v2 = cam(32, 32, 20.0, -0.3);
+        let n1 = brute_force_hits(&scene, &v1, 0) as f32;
+        let n2 = brute_force_hits(&scene, &v2, 0) as f32;
+        assert!(n1 > 0.0 && n2 > 0.0 && n1 != n2);
+        let ones = vec![1.0f32; 48 * 40];
+        let zeros = vec![0.0f32; 32 * 32];
+        let lifted = lift(&scene, &[v1, v2], &[&ones, &zeros], 1);
+        assert_eq!(lifted.counts[0], n1 + n2);
+        let want = n1 / (n1 + n2 + 1e-7);
+        assert!(
+            (lifted.values[0] - want).abs() < 1e-6,
+            "{} vs {want}",
+            lifted.values[0]
+        );
+    }
+
+    #[test]
+    fn many_channels_average_pixel_coordinates() {
+        // Channels: x, y of the pixel centre and a constant. A symmetric footprint averages to its centre.
+        let c = cam(40, 36, 30.0, 0.0);
+        let mut scene = GaussianScene::new(0);
+        push(&mut scene, [0.0, 0.0, 2.5], 0.25, 0.7);
+        let mut map = Vec::new();
+        for y in 0..36 {
+            for x in 0..40 {
+                map.extend_from_slice(&[x as f32 + 0.5, y as f32 + 0.5, 2.0]);
+            }
+        }
+        let lifted = lift(&scene, &[c], &[&map], 3);
+        assert!(
+            (lifted.values[0] - 20.0).abs() < 1e-3,
+            "{:?}",
+            lifted.values
+        );
+        assert!((lifted.values[1] - 18.0).abs() < 1e-3);
+        assert!((lifted.values[2] - 2.0).abs() < 1e-5);
+    }
+
+    #[test]
+    fn empty_scene_and_no_views() {
+        let scene = GaussianScene::new(0);
+        let lifted = lift(&scene, &[], &[], 4);
+        assert!(lifted.values.is_empty() && lifted.counts.is_empty());
+    }
+}
