@@ -1,1 +1,3 @@
 //! Editing: the InfEdit sampler, attention control, the VcEdit consistency modules and the editing loop.
+
+pub mod align;
