@@ -1,0 +1,165 @@
+//! Multi-head attention of the UNet transformer blocks and the attention hook interface.
+//!
+//! The hook is the one place where editing logic touches the UNet: every attention call reports its layer,
+//! whether it is self- or cross-attention, the spatial size of its queries and the batch/head counts, and
+//! the hook may replace Q/K/V before the softmax and read or replace the probabilities after it.
+
+use candle_core::{Module, Result, Tensor};
+use candle_nn::{Linear, VarBuilder};
+
+use crate::layers::{linear, scaled_dot_product_attention, softmax_last_dim};
+
+/// Self-attention (keys from the image tokens) or cross-attention (keys from the text embedding).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum AttnKind {
+    SelfAttn,
+    CrossAttn,
+}
+
+/// What one attention call tells its hook.
+#[derive(Debug, Clone, Copy)]
+pub struct AttnCall<'a> {
+    /// diffusers module path, e.g. `"down_blocks.1.attentions.0.transformer_blocks.0.attn2"`.
+    pub layer: &'a str,
+    pub kind: AttnKind,
+    /// Spatial size of the queries: `height * width` query tokens, row-major.
+    pub height: usize,
+    pub width: usize,
+    /// Batch size of the UNet call (the caller knows its layout, e.g. InfEdit's [S_u,T_u,M_u,S_c,T_c,M_c]).
+    pub batch: usize,
+    pub heads: usize,
+}
+
+/// Observes and rewrites attention inside the UNet. All methods have pass-through defaults.
+pub trait AttentionHook {
+    /// May replace Q, K, V (each [batch, heads, tokens, head_dim]) before the scores are computed.
+    fn qkv(
+        &mut self,
+        call: &AttnCall,
+        q: Tensor,
+        k: Tensor,
+        v: Tensor,
+    ) -> Result<(Tensor, Tensor, Tensor)> {
+        let _ = call;
+        Ok((q, k, v))
+    }
+
+    /// Whether [`AttentionHook::probs`] must see this call's probabilities. When false the memory-bounded
+    /// fused path runs (recommended for 64×64 self-attention, whose full maps take gigabytes).
+    fn wants_probs(&self, call: &AttnCall) -> bool {
+        let _ = call;
+        true
+    }
+
+    /// May read/replace the probabilities [batch, heads, q_len, k_len] after the softmax.
+    fn probs(&mut self, call: &AttnCall, probs: Tensor) -> Result<Tensor> {
+        let _ = call;
+        Ok(probs)
+    }
+}
+
+/// diffusers `Attention` inside `BasicTransformerBlock` (keys `to_q`, `to_k`, `to_v` without bias,
+/// `to_out.0` with bias).
+#[derive(Debug, Clone)]
+pub struct Attention {
+    to_q: Linear,
+    to_k: Linear,
+    to_v: Linear,
+    to_out: Linear,
+    heads: usize,
+    head_dim: usize,
+    kind: AttnKind,
+    name: String,
+}
+
+impl Attention {
+    /// `context_dim` is the cross-attention width (`None` for self-attention).
+    pub fn load(
+        query_dim: usize,
+        context_dim: Option<usize>,
+        heads: usize,
+        head_dim: usize,
+        vb: VarBuilder,
+    ) -> Result<Self> {
+        let inner = heads * head_dim;
+        let kv_dim = context_dim.unwrap_or(query_dim);
+        Ok(Self {
+            to_q: linear(query_dim, inner, false, vb.pp("to_q"))?,
+            to_k: linear(kv_dim, inner, false, vb.pp("to_k"))?,
+            to_v: linear(kv_dim, inner, false, vb.pp("to_v"))?,
+            to_out: linear(inner, query_dim, true, vb.pp("to_out.0"))?,
+            heads,
+            head_dim,
+            kind: if context_dim.is_some() {
+                AttnKind::CrossAttn
+            } else {
+                AttnKind::SelfAttn
+            },
+            name: vb.prefix(),
+        })
+    }
+
+    /// The diffusers module path this layer was loaded from.
+    pub fn name(&self) -> &str {
+        &self.name
+    }
+
+    pub fn kind(&self) -> AttnKind {
+        self.kind
+    }
+
+    /// `x` [batch, h·w, query_dim]; `context` [batch, tokens, context_dim] for cross-attention.
+    pub fn forward(
+        &self,
+        x: &Tensor,
+        context: Option<&Tensor>,
+        (height, width): (usize, usize),
+        hook: Option<&mut (dyn AttentionHook + '_)>,
+    ) -> Result<Tensor> {
+        let (batch, tokens, _) = x.dims3()?;
+        let kv_source = match self.kind {
+            AttnKind::CrossAttn => context.ok_or_else(|| {
+                candle_core::Error::Msg(format!(
+                    "{}: cross-attention called without encoder hidden states",
+                    self.name
+                ))
+            })?,
+            AttnKind::SelfAttn => x,
+        };
+        let split = |t: Tensor| -> Result<Tensor> {
+            let n = t.dim(1)?;
+            t.reshape((batch, n, self.heads, self.head_dim))?
+                .transpose(1, 2)?
+                .contiguous()
+        };
+        let q = split(self.to_q.forward(x)?)?;
+        let k = split(self.to_k.forward(kv_source)?)?;
+        let v = split(self.to_v.forward(kv_source)?)?;
+        let scale = 1.0 / (self.head_dim as f64).sqrt();
+        let out = match hook {
+            None => scaled_dot_product_attention(&q, &k, &v, scale)?,
+            Some(hook) => {
+                let call = AttnCall {
+                    layer: &self.name,
+                    kind: self.kind,
+                    height,
+                    width,
+                    batch,
+                    heads: self.heads,
+                };
+                let (q, k, v) = hook.qkv(&call, q, k, v)?;
+                if hook.wants_probs(&call) {
+                    let scores = (q.matmul(&k.t()?)? * scale)?;
+                    let probs = hook.probs(&call, softmax_last_dim(&scores)?)?;
+                    probs.matmul(&v)?
+                } else {
+                    scaled_dot_product_attention(&q, &k, &v, scale)?
+                }
+            }
+        };
+        let out = out
+            .transpose(1, 2)?
+            .reshape((batch, tokens, self.heads * self.head_dim))?;
+        self.to_out.forward(&out)
+    }
+}

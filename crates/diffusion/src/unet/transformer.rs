@@ -1,0 +1,183 @@
+//! diffusers `Transformer2DModel` (continuous input) and `BasicTransformerBlock`.
+
+use candle_core::{Module, Result, Tensor, D};
+use candle_nn::{Conv2d, Linear, VarBuilder};
+
+use super::attention::{Attention, AttentionHook};
+use crate::layers::{conv2d, linear, GroupNorm, LayerNorm};
+
+/// diffusers `GEGLU` + output linear (`ff.net.0.proj`, `ff.net.2`): `W2 (h ⊙ gelu(g))` with `[h, g] = W1 x`.
+#[derive(Debug, Clone)]
+pub struct FeedForward {
+    proj: Linear,
+    out: Linear,
+    inner: usize,
+}
+
+impl FeedForward {
+    pub fn load(dim: usize, mult: usize, vb: VarBuilder) -> Result<Self> {
+        let inner = dim * mult;
+        Ok(Self {
+            proj: linear(dim, inner * 2, true, vb.pp("net.0.proj"))?,
+            out: linear(inner, dim, true, vb.pp("net.2"))?,
+            inner,
+        })
+    }
+
+    pub fn forward(&self, x: &Tensor) -> Result<Tensor> {
+        let projected = self.proj.forward(x)?;
+        let hidden = projected.narrow(D::Minus1, 0, self.inner)?;
+        let gate = projected.narrow(D::Minus1, self.inner, self.inner)?;
+        // diffusers uses the exact (erf) GELU here.
+        self.out.forward(&(hidden * gate.gelu_erf()?)?)
+    }
+}
+
+/// Self-attention, cross-attention and GEGLU feed-forward, each pre-normed with a residual.
+#[derive(Debug, Clone)]
+pub struct BasicTransformerBlock {
+    norm1: LayerNorm,
+    attn1: Attention,
+    norm2: LayerNorm,
+    attn2: Attention,
+    norm3: LayerNorm,
+    ff: FeedForward,
+    only_cross_attention: bool,
+}
+
+impl BasicTransformerBlock {
+    pub fn load(
+        dim: usize,
+        heads: usize,
+        head_dim: usize,
+        context_dim: usize,
+        only_cross_attention: bool,
+        vb: VarBuilder,
+    ) -> Result<Self> {
+        let attn1_context = only_cross_attention.then_some(context_dim);
+        Ok(Self {
+            norm1: LayerNorm::load(dim, 1e-5, vb.pp("norm1"))?,
+            attn1: Attention::load(dim, attn1_context, heads, head_dim, vb.pp("attn1"))?,
+            norm2: LayerNorm::load(dim, 1e-5, vb.pp("norm2"))?,
+            attn2: Attention::load(dim, Some(context_dim), heads, head_dim, vb.pp("attn2"))?,
+            norm3: LayerNorm::load(dim, 1e-5, vb.pp("norm3"))?,
+            ff: FeedForward::load(dim, 4, vb.pp("ff"))?,
+            only_cross_attention,
+        })
+    }
+
+    pub fn forward(
+        &self,
+        x: &Tensor,
+        context: &Tensor,
+        size: (usize, usize),
+        mut hook: Option<&mut (dyn AttentionHook + '_)>,
+    ) -> Result<Tensor> {
+        let attn1_context = self.only_cross_attention.then_some(context);
+        let h = self.attn1.forward(
+            &self.norm1.forward(x)?,
+            attn1_context,
+            size,
+            hook.as_deref_mut(),
+        )?;
+        let x = (h + x)?;
+        let h = self.attn2.forward(
+            &self.norm2.forward(&x)?,
+            Some(context),
+            size,
+            hook.as_deref_mut(),
+        )?;
+        let x = (h + x)?;
+        let h = self.ff.forward(&self.norm3.forward(&x)?)?;
+        h + x
+    }
+}
+
+#[derive(Debug, Clone)]
+enum Projection {
+    Conv(Conv2d),
+    Linear(Linear),
+}
+
+/// diffusers `Transformer2DModel` for image latents: group norm, `proj_in` (1x1 conv or linear per
+/// `use_linear_projection`), transformer blocks, `proj_out`, residual.
+#[derive(Debug, Clone)]
+pub struct Transformer2D {
+    norm: GroupNorm,
+    proj_in: Projection,
+    blocks: Vec<BasicTransformerBlock>,
+    proj_out: Projection,
+}
+
+/// Shape and options of one [`Transformer2D`].
+#[derive(Debug, Clone, Copy)]
+pub struct Transformer2DConfig {
+    pub channels: usize,
+    pub heads: usize,
+    pub layers: usize,
+    pub context_dim: usize,
+    pub groups: usize,
+    pub linear_projection: bool,
+    pub only_cross_attention: bool,
+}
+
+impl Transformer2D {
+    pub fn load(cfg: &Transformer2DConfig, vb: VarBuilder) -> Result<Self> {
+        let c = cfg.channels;
+        let head_dim = c / cfg.heads;
+        let projection = |vb: VarBuilder| -> Result<Projection> {
+            Ok(if cfg.linear_projection {
+                Projection::Linear(linear(c, c, true, vb)?)
+            } else {
+                Projection::Conv(conv2d(c, c, 1, 1, 0, vb)?)
+            })
+        };
+        let blocks = (0..cfg.layers)
+            .map(|i| {
+                BasicTransformerBlock::load(
+                    c,
+                    cfg.heads,
+                    head_dim,
+                    cfg.context_dim,
+                    cfg.only_cross_attention,
+                    vb.pp(format!("transformer_blocks.{i}")),
+                )
+            })
+            .collect::<Result<Vec<_>>>()?;
+        Ok(Self {
+            norm: GroupNorm::load(cfg.groups, c, 1e-6, vb.pp("norm"))?,
+            proj_in: projection(vb.pp("proj_in"))?,
+            blocks,
+            proj_out: projection(vb.pp("proj_out"))?,
+        })
+    }
+
+    /// `x` [batch, channels, h, w]; `context` [batch, tokens, context_dim].
+    pub fn forward(
+        &self,
+        x: &Tensor,
+        context: &Tensor,
+        mut hook: Option<&mut (dyn AttentionHook + '_)>,
+    ) -> Result<Tensor> {
+        let (b, c, h, w) = x.dims4()?;
+        let normed = self.norm.forward(x)?;
+        let to_tokens = |t: &Tensor| -> Result<Tensor> {
+            t.reshape((b, c, h * w))?.transpose(1, 2)?.contiguous()
+        };
+        let mut tokens = match &self.proj_in {
+            Projection::Conv(conv) => to_tokens(&conv.forward(&normed)?)?,
+            Projection::Linear(lin) => lin.forward(&to_tokens(&normed)?)?,
+        };
+        for block in &self.blocks {
+            tokens = block.forward(&tokens, context, (h, w), hook.as_deref_mut())?;
+        }
+        let to_image = |t: &Tensor| -> Result<Tensor> {
+            t.transpose(1, 2)?.contiguous()?.reshape((b, c, h, w))
+        };
+        let out = match &self.proj_out {
+            Projection::Conv(conv) => conv.forward(&to_image(&tokens)?)?,
+            Projection::Linear(lin) => to_image(&lin.forward(&tokens)?)?,
+        };
+        out + x
+    }
+}

@@ -1,0 +1,236 @@
+//! UNet conformance against diffusers (fixtures from tools/make_unet_fixtures.py) and the hook interface.
+
+use std::collections::{HashMap, HashSet};
+use std::path::PathBuf;
+
+use candle_core::{Device, Result, Tensor};
+use diffusion::unet::{AttentionHook, AttnCall, AttnKind, UNet2DConditionModel};
+
+fn repo() -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../..")
+}
+
+fn load_model(name: &str) -> UNet2DConditionModel {
+    let dir = repo().join("fixtures/models").join(name).join("unet");
+    UNet2DConditionModel::from_files(
+        &dir.join("config.json"),
+        &[dir.join("diffusion_pytorch_model.safetensors")],
+    )
+    .unwrap_or_else(|e| panic!("{name}: {e}"))
+}
+
+fn load_fixture(name: &str) -> HashMap<String, Tensor> {
+    let path = repo()
+        .join("fixtures/unet")
+        .join(format!("{name}.safetensors"));
+    candle_core::safetensors::load(&path, &Device::Cpu)
+        .unwrap_or_else(|e| panic!("{}: {e}", path.display()))
+}
+
+fn max_abs_diff(a: &Tensor, b: &Tensor) -> f32 {
+    assert_eq!(a.dims(), b.dims());
+    (a - b)
+        .unwrap()
+        .abs()
+        .unwrap()
+        .flatten_all()
+        .unwrap()
+        .max(0)
+        .unwrap()
+        .to_scalar::<f32>()
+        .unwrap()
+}
+
+fn run(
+    model: &UNet2DConditionModel,
+    fx: &HashMap<String, Tensor>,
+    hook: Option<&mut dyn AttentionHook>,
+) -> Tensor {
+    model
+        .forward(
+            &fx["sample"],
+            &fx["timesteps"],
+            &fx["encoder_hidden_states"],
+            fx.get("timestep_cond"),
+            hook,
+        )
+        .unwrap()
+}
+
+fn layers_with_prefix(fx: &HashMap<String, Tensor>, prefix: &str) -> Vec<String> {
+    let mut names: Vec<String> = fx
+        .keys()
+        .filter_map(|k| k.strip_prefix(prefix).map(String::from))
+        .collect();
+    names.sort();
+    names
+}
+
+/// Records the probabilities of the named layers (and only asks for those).
+struct Capture {
+    wanted: HashSet<String>,
+    seen: HashMap<String, (AttnKind, Tensor)>,
+    calls: Vec<(String, AttnKind, usize, usize)>,
+}
+
+impl AttentionHook for Capture {
+    fn qkv(
+        &mut self,
+        call: &AttnCall,
+        q: Tensor,
+        k: Tensor,
+        v: Tensor,
+    ) -> Result<(Tensor, Tensor, Tensor)> {
+        self.calls
+            .push((call.layer.to_string(), call.kind, call.height, call.width));
+        assert_eq!(q.dims()[0], call.batch);
+        assert_eq!(q.dims()[1], call.heads);
+        assert_eq!(q.dims()[2], call.height * call.width);
+        Ok((q, k, v))
+    }
+    fn wants_probs(&self, call: &AttnCall) -> bool {
+        self.wanted.contains(call.layer)
+    }
+    fn probs(&mut self, call: &AttnCall, probs: Tensor) -> Result<Tensor> {
+        self.seen
+            .insert(call.layer.to_string(), (call.kind, probs.clone()));
+        Ok(probs)
+    }
+}
+
+/// Replaces the probabilities of batch items 1.. with given maps in the named layers.
+struct ReplaceMaps(HashMap<String, Tensor>);
+
+impl AttentionHook for ReplaceMaps {
+    fn wants_probs(&self, call: &AttnCall) -> bool {
+        self.0.contains_key(call.layer)
+    }
+    fn probs(&mut self, call: &AttnCall, probs: Tensor) -> Result<Tensor> {
+        let maps = &self.0[call.layer];
+        let rest = maps.narrow(0, 1, call.batch - 1)?;
+        Tensor::cat(&[&probs.narrow(0, 0, 1)?, &rest], 0)
+    }
+}
+
+/// In self-attention, the last batch item attends with item 0's keys and values.
+struct SwapLastKv;
+
+impl AttentionHook for SwapLastKv {
+    fn qkv(
+        &mut self,
+        call: &AttnCall,
+        q: Tensor,
+        k: Tensor,
+        v: Tensor,
+    ) -> Result<(Tensor, Tensor, Tensor)> {
+        if call.kind != AttnKind::SelfAttn {
+            return Ok((q, k, v));
+        }
+        let swap = |t: &Tensor| -> Result<Tensor> {
+            Tensor::cat(&[&t.narrow(0, 0, call.batch - 1)?, &t.narrow(0, 0, 1)?], 0)
+        };
+        Ok((q, swap(&k)?, swap(&v)?))
+    }
+    fn wants_probs(&self, _call: &AttnCall) -> bool {
+        false
+    }
+}
+
+fn check_model(name: &str) {
+    let model = load_model(name);
+    let fx = load_fixture(name);
+    let plain = run(&model, &fx, None);
+    let err = max_abs_diff(&plain, &fx["noise_pred"]);
+    println!("{name}: noise_pred max abs error {err:e}");
+    assert!(
+        err <= 1e-4,
+        "{name}: noise prediction differs from diffusers by {err}"
+    );
+
+    // A pass-through hook that captures maps must not change the output.
+    let wanted: HashSet<String> = layers_with_prefix(&fx, "probs.").into_iter().collect();
+    let mut capture = Capture {
+        wanted: wanted.clone(),
+        seen: HashMap::new(),
+        calls: Vec::new(),
+    };
+    let hooked = run(&model, &fx, Some(&mut capture));
+    assert!(max_abs_diff(&hooked, &plain) <= 1e-5);
+    for layer in &wanted {
+        let (kind, probs) = capture
+            .seen
+            .get(layer)
+            .unwrap_or_else(|| panic!("{name}: {layer} never called"));
+        let want_kind = if layer.ends_with("attn1") {
+            AttnKind::SelfAttn
+        } else {
+            AttnKind::CrossAttn
+        };
+        assert_eq!(*kind, want_kind, "{layer}");
+        let err = max_abs_diff(probs, &fx[&format!("probs.{layer}")]);
+        println!("{name}: {layer} probs max abs error {err:e}");
+        assert!(err <= 1e-4, "{name}: {layer} probabilities differ by {err}");
+    }
+    // Every transformer block reports one self- and one cross-attention call with its latent size.
+    let (h, w) = (fx["sample"].dims()[2], fx["sample"].dims()[3]);
+    let first = &capture.calls[0];
+    assert_eq!(
+        first.0,
+        "down_blocks.0.attentions.0.transformer_blocks.0.attn1"
+    );
+    assert_eq!((first.2, first.3), (h, w));
+    let selfs = capture
+        .calls
+        .iter()
+        .filter(|c| c.1 == AttnKind::SelfAttn)
+        .count();
+    assert_eq!(selfs * 2, capture.calls.len());
+
+    let maps: HashMap<String, Tensor> = layers_with_prefix(&fx, "hook.maps.")
+        .into_iter()
+        .map(|l| (l.clone(), fx[&format!("hook.maps.{l}")].clone()))
+        .collect();
+    assert!(!maps.is_empty());
+    let replaced = run(&model, &fx, Some(&mut ReplaceMaps(maps)));
+    let err = max_abs_diff(&replaced, &fx["hook.noise_pred"]);
+    let effect = max_abs_diff(&replaced, &plain);
+    println!("{name}: replaced-maps output max abs error {err:e} (change from plain {effect:.3})");
+    assert!(effect > 1e-2, "replacing maps should change the output");
+    assert!(
+        err <= 1e-4,
+        "{name}: hook output differs from diffusers' processor by {err}"
+    );
+
+    let swapped = run(&model, &fx, Some(&mut SwapLastKv));
+    let err = max_abs_diff(&swapped, &fx["swap.noise_pred"]);
+    println!("{name}: swapped-kv output max abs error {err:e}");
+    assert!(max_abs_diff(&swapped, &plain) > 1e-2);
+    assert!(
+        err <= 1e-4,
+        "{name}: K/V swap differs from diffusers' processor by {err}"
+    );
+}
+
+#[test]
+fn tiny_lcm_matches_diffusers() {
+    check_model("tiny-lcm");
+}
+
+#[test]
+fn tiny_ip2p_from_f16_matches_diffusers() {
+    check_model("tiny-ip2p");
+}
+
+#[test]
+fn missing_lcm_condition_is_an_error() {
+    let model = load_model("tiny-lcm");
+    let fx = load_fixture("tiny-lcm");
+    let err = model.forward(
+        &fx["sample"],
+        &fx["timesteps"],
+        &fx["encoder_hidden_states"],
+        None,
+        None,
+    );
+    assert!(err.is_err());
+}
