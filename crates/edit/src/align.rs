@@ -328,13 +328,15 @@ mod tests {
         })
         .unwrap();
         let g = global_align(&src, &tgt);
-        assert_eq!(g.iter().filter(|m| m.is_none()).count(), 2, "{g:?}");
+        // With a zero gap cost "cat" is skipped and the three new target tokens are gaps.
+        assert_eq!(g.iter().filter(|m| m.is_none()).count(), 3, "{g:?}");
         assert_eq!(
             a.alphas[..6].iter().sum::<f32>(),
-            5.0,
+            4.0,
             "{:?}",
             &a.alphas[..6]
         );
+        assert_eq!((a.alphas[3], a.alphas[4]), (0.0, 0.0));
         assert_eq!(a.mapper[2], Some(2));
         assert_eq!(a.mapper[5], Some(3), "EOT stays aligned");
     }
