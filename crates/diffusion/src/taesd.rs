@@ -1017,7 +1017,7 @@ mod tests {
         let analytic = grads.get(&var).unwrap().to_vec1::<f64>().unwrap()[0];
         let base = var.as_tensor().to_vec1::<f64>().unwrap();
         let eps = 1e-6;
-        let mut eval_at = |delta: f64| {
+        let eval_at = |delta: f64| {
             let mut v = base.clone();
             v[0] += delta;
             var.set(&Tensor::new(v.as_slice(), &dev).unwrap()).unwrap();

@@ -1,0 +1,96 @@
+//! AutoencoderKL against diffusers references made by tools/make_vae_fixtures.py on the tiny models.
+
+use std::collections::HashMap;
+use std::path::{Path, PathBuf};
+
+use candle_core::{Device, Tensor};
+use diffusion::vae::{Autoencoder, AutoencoderKL};
+
+fn repo() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("../..")
+}
+
+fn fixture(name: &str) -> HashMap<String, Tensor> {
+    let path = repo().join("fixtures/vae").join(name);
+    candle_core::safetensors::load(&path, &Device::Cpu)
+        .unwrap_or_else(|e| panic!("{}: {e}", path.display()))
+}
+
+fn max_abs_diff(a: &Tensor, b: &Tensor) -> f32 {
+    assert_eq!(a.dims(), b.dims());
+    (a - b)
+        .unwrap()
+        .abs()
+        .unwrap()
+        .flatten_all()
+        .unwrap()
+        .max(0)
+        .unwrap()
+        .to_scalar::<f32>()
+        .unwrap()
+}
+
+/// Posterior mean/logvar, the sample for diffusers' noise, and decode, all within 1e-4.
+fn check_model(model: &str) {
+    let vae = AutoencoderKL::load(&repo().join("fixtures/models").join(model).join("vae")).unwrap();
+    let refs = fixture(&format!("kl-{model}.safetensors"));
+    let post = vae.encode(&refs["image"]).unwrap();
+    let errs = [
+        ("mean", max_abs_diff(&post.mean, &refs["mean"])),
+        ("logvar", max_abs_diff(&post.logvar, &refs["logvar"])),
+        (
+            "sample",
+            max_abs_diff(
+                &vae.encode_sample(&refs["image"], &refs["noise"]).unwrap(),
+                &refs["sample"],
+            ),
+        ),
+        (
+            "decode",
+            max_abs_diff(&vae.decode(&refs["latents"]).unwrap(), &refs["decoded"]),
+        ),
+    ];
+    println!("{model}: {errs:?}");
+    for (what, err) in errs {
+        assert!(err <= 1e-4, "{model} {what}: max abs err {err}");
+    }
+
+    // Scaled variants are the raw ones times the config's scaling factor.
+    let s = vae.config().scaling_factor;
+    let scaled = vae.encode_mean_scaled(&refs["image"]).unwrap();
+    assert!(max_abs_diff(&scaled, &(&refs["mean"] * s).unwrap()) <= 1e-4 * s as f32);
+    let z_scaled = (&refs["latents"] * s).unwrap();
+    let decoded = vae.decode_scaled(&z_scaled).unwrap();
+    assert!(max_abs_diff(&decoded, &refs["decoded"]) <= 1e-4);
+}
+
+#[test]
+fn tiny_lcm_vae_matches_diffusers() {
+    check_model("tiny-lcm");
+}
+
+/// tiny-ip2p stores f16 weights; diffusers and we both upcast them to f32 exactly, so the f32 bound holds.
+#[test]
+fn tiny_ip2p_vae_f16_weights_match_diffusers() {
+    check_model("tiny-ip2p");
+}
+
+#[test]
+fn autoencoder_enum_picks_the_right_model() {
+    let kl = Autoencoder::load(&repo().join("fixtures/models/tiny-lcm/vae")).unwrap();
+    assert!(matches!(kl, Autoencoder::Kl(_)));
+    assert_eq!((kl.latent_channels(), kl.spatial_factor()), (4, 4));
+    let refs = fixture("kl-tiny-lcm.safetensors");
+    let z = kl.encode_scaled(&refs["image"]).unwrap();
+    assert!(max_abs_diff(&z, &(&refs["mean"] * 0.18215).unwrap()) <= 1e-4);
+
+    for dir in ["tiny-taesd", "tiny-taesd-original"] {
+        let tiny = Autoencoder::load(&repo().join("fixtures/vae").join(dir)).unwrap();
+        assert!(matches!(tiny, Autoencoder::Tiny(_)), "{dir}");
+        assert_eq!(tiny.spatial_factor(), 4);
+    }
+    let tiny = Autoencoder::load(&repo().join("fixtures/vae/tiny-taesd")).unwrap();
+    let refs = fixture("taesd-tiny.safetensors");
+    let out = tiny.decode_scaled(&refs["decode_in"]).unwrap();
+    assert!(max_abs_diff(&out, &refs["decoded"]) <= 1e-4);
+}
