@@ -1,3 +1,6 @@
 //! Editing: the InfEdit sampler, attention control, the VcEdit consistency modules and the editing loop.
 
 pub mod align;
+pub mod blend;
+pub mod control;
+pub mod noise;

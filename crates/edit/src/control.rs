@@ -1,0 +1,421 @@
+//! InfEdit's unified attention control, as one [`AttentionHook`] per view.
+//!
+//! The UNet runs the three latent branches as one batch, `[S_u, T_u, M_u, S_c, T_c, M_c]` with classifier-free
+//! guidance (or `[S, T, M]` without). The controller
+//! - rewrites self-attention Q/K/V in every layer and both CFG halves: early steps give all branches the
+//!   source's queries and keys (the target keeps its own values); late steps let the layout branch M query
+//!   with the target's queries into the source's keys/values ("mutual self-attention");
+//! - refines the conditional cross-attention probabilities: target token j takes the source map of its aligned
+//!   token (`mapper`, `alphas`) while the progress is within `cross_replace`; the layout branch is untouched;
+//! - accumulates, over steps, the refined maps of the blend layers for the local blend;
+//! - for VcEdit's CCM, records the conditional maps of the small layers during a recording pass, and replaces
+//!   them with the 3D-consistent maps during the following real pass.
+//!
+//! The step counter is explicit: the sampler calls [`EditController::end_step`] after each real UNet pass.
+
+use std::collections::HashMap;
+
+use candle_core::{DType, Device, IndexOp, Result, Tensor, D};
+use diffusion::unet::{AttentionHook, AttnCall, AttnKind};
+
+use crate::align::TokenAlignment;
+
+/// Which attention maps count as "small" for CCM recording (query length ≤ this); the reference's 32².
+pub const DEFAULT_STORE_MAX_TOKENS: usize = 32 * 32;
+
+/// Schedules and shapes of one controller.
+#[derive(Clone, Debug)]
+pub struct ControlSettings {
+    /// Total number of steps of the schedule (before strength truncation).
+    pub num_steps: usize,
+    /// Steps skipped at the start (denoise mode with strength < 1).
+    pub start_steps: usize,
+    /// Progress ≤ this: the target's cross-attention is refined from the source's.
+    pub cross_replace: f64,
+    /// Progress < this: source Q/K for every branch; else mutual self-attention.
+    pub self_replace: f64,
+    /// Spatial size (h, w) of the down/up cross-attention layers used for blending.
+    pub blend_size: (usize, usize),
+    /// CCM records/replaces cross-attention layers whose query count is at most this.
+    pub store_max_tokens: usize,
+}
+
+/// Cross-attention maps of one layer as recorded for CCM: `[3 branches, heads, h*w, tokens]`.
+#[derive(Clone, Debug)]
+pub struct RecordedMaps {
+    pub layer: String,
+    pub size: (usize, usize),
+    pub maps: Tensor,
+}
+
+/// The attention controller of one view.
+pub struct EditController {
+    settings: ControlSettings,
+    /// `mapper` as gather indices over the source's token axis (unmatched → 0, weight 0).
+    mapper: Tensor,
+    /// `alphas` as a [tokens] tensor.
+    alphas: Tensor,
+    cur_step: usize,
+    /// Σ over steps of [refine(A_S), refine(A_M)] per blend layer, `[2, heads, h*w, tokens]`, in call order.
+    blend_store: Vec<(String, Tensor)>,
+    /// True during CCM's recording pass: nothing is accumulated, maps are recorded instead.
+    recording: Option<Vec<RecordedMaps>>,
+    /// 3D-consistent conditional maps to substitute in the next real pass (CCM).
+    consistent: Option<HashMap<String, Tensor>>,
+}
+
+impl EditController {
+    pub fn new(
+        settings: ControlSettings,
+        alignment: &TokenAlignment,
+        device: &Device,
+    ) -> Result<Self> {
+        let mapper: Vec<u32> = alignment
+            .mapper
+            .iter()
+            .map(|m| m.unwrap_or(0) as u32)
+            .collect();
+        let n = mapper.len();
+        Ok(Self {
+            settings,
+            mapper: Tensor::from_vec(mapper, n, device)?,
+            alphas: Tensor::from_vec(alignment.alphas.clone(), n, device)?,
+            cur_step: 0,
+            blend_store: Vec::new(),
+            recording: None,
+            consistent: None,
+        })
+    }
+
+    pub fn settings(&self) -> &ControlSettings {
+        &self.settings
+    }
+
+    /// Steps completed so far (real passes).
+    pub fn cur_step(&self) -> usize {
+        self.cur_step
+    }
+
+    /// Progress of the current pass as the reference defines it: (step + start + 1) / num_steps.
+    pub fn progress(&self) -> f64 {
+        (self.cur_step + self.settings.start_steps + 1) as f64 / self.settings.num_steps as f64
+    }
+
+    /// Marks the end of a real UNet pass.
+    pub fn end_step(&mut self) {
+        self.cur_step += 1;
+        // Consistent maps hold for one step only.
+        self.consistent = None;
+    }
+
+    /// The accumulated blend-layer maps: (layer, `[2, heads, h*w, tokens]`).
+    pub fn blend_store(&self) -> &[(String, Tensor)] {
+        &self.blend_store
+    }
+
+    /// Starts a recording pass (CCM): the next UNet pass records the small layers' conditional maps and
+    /// changes no state.
+    pub fn start_recording(&mut self) {
+        self.recording = Some(Vec::new());
+    }
+
+    /// Ends the recording pass and returns what it recorded, in call order.
+    pub fn finish_recording(&mut self) -> Vec<RecordedMaps> {
+        self.recording.take().unwrap_or_default()
+    }
+
+    /// Sets the 3D-consistent conditional maps (`[3, heads, h*w, tokens]` per layer) for the next real pass.
+    pub fn set_consistent_maps(&mut self, maps: HashMap<String, Tensor>) {
+        self.consistent = Some(maps);
+    }
+
+    /// A copy that shares nothing mutable (for a view's independent controller).
+    pub fn duplicate(&self) -> Self {
+        Self {
+            settings: self.settings.clone(),
+            mapper: self.mapper.clone(),
+            alphas: self.alphas.clone(),
+            cur_step: self.cur_step,
+            blend_store: self.blend_store.clone(),
+            recording: None,
+            consistent: None,
+        }
+    }
+
+    /// `refine(base → target)`: A'[.., j] = α_j · base[.., mapper_j] + (1 − α_j) · target[.., j].
+    fn refine(&self, base: &Tensor, target: &Tensor) -> Result<Tensor> {
+        let tokens = base.dim(D::Minus1)?;
+        let (mapper, alphas) = if tokens == self.mapper.dim(0)? {
+            (self.mapper.clone(), self.alphas.clone())
+        } else {
+            // The encoder length differs from the alignment's: align the overlap, keep the rest.
+            let n = tokens.min(self.mapper.dim(0)?);
+            let mut m: Vec<u32> = self.mapper.narrow(0, 0, n)?.to_vec1()?;
+            let mut a: Vec<f32> = self.alphas.narrow(0, 0, n)?.to_vec1()?;
+            m.extend((n..tokens).map(|j| j as u32));
+            a.extend(std::iter::repeat_n(0.0, tokens - n));
+            (
+                Tensor::new(m, base.device())?,
+                Tensor::new(a, base.device())?,
+            )
+        };
+        let gathered = base.index_select(&mapper, base.rank() - 1)?;
+        let one_minus = alphas.affine(-1.0, 1.0)?;
+        gathered
+            .broadcast_mul(&alphas)?
+            .add(&target.broadcast_mul(&one_minus)?)
+    }
+
+    /// Index along the batch axis for the self-attention swap, for one CFG half starting at `o`.
+    fn self_swap_indices(&self, o: u32) -> ([u32; 3], [u32; 3], [u32; 3]) {
+        let (s, t) = (o, o + 1);
+        if self.progress() >= self.settings.self_replace {
+            // Mutual self-attention: M queries with T's queries into S's keys/values.
+            ([s, t, t], [s, t, s], [s, t, s])
+        } else {
+            // Early: every branch uses the source's queries and keys; T keeps its own values.
+            ([s, s, s], [s, s, s], [s, t, s])
+        }
+    }
+}
+
+fn gather_batch(x: &Tensor, idx: &[u32]) -> Result<Tensor> {
+    let i = Tensor::new(idx, x.device())?;
+    x.index_select(&i, 0)
+}
+
+impl AttentionHook for EditController {
+    fn qkv(
+        &mut self,
+        call: &AttnCall,
+        q: Tensor,
+        k: Tensor,
+        v: Tensor,
+    ) -> Result<(Tensor, Tensor, Tensor)> {
+        if call.kind != AttnKind::SelfAttn || (call.batch != 6 && call.batch != 3) {
+            return Ok((q, k, v));
+        }
+        let halves: &[u32] = if call.batch == 6 { &[0, 3] } else { &[0] };
+        let (mut qi, mut ki, mut vi) = (Vec::new(), Vec::new(), Vec::new());
+        for &o in halves {
+            let (a, b, c) = self.self_swap_indices(o);
+            qi.extend(a);
+            ki.extend(b);
+            vi.extend(c);
+        }
+        Ok((
+            gather_batch(&q, &qi)?,
+            gather_batch(&k, &ki)?,
+            gather_batch(&v, &vi)?,
+        ))
+    }
+
+    fn wants_probs(&self, call: &AttnCall) -> bool {
+        call.kind == AttnKind::CrossAttn
+    }
+
+    fn probs(&mut self, call: &AttnCall, probs: Tensor) -> Result<Tensor> {
+        if call.kind != AttnKind::CrossAttn || (call.batch != 6 && call.batch != 3) {
+            return Ok(probs);
+        }
+        // The reference only edits the conditional half; without CFG (batch 3, which the reference does not
+        // support correctly) the whole batch is conditional.
+        let cond_start = if call.batch == 6 { 3 } else { 0 };
+        let n_q = call.height * call.width;
+        let small = n_q <= self.settings.store_max_tokens;
+        let mut cond = probs.narrow(0, cond_start, 3)?;
+        if small {
+            if let Some(maps) = self.consistent.as_ref().and_then(|m| m.get(call.layer)) {
+                cond = maps.to_dtype(cond.dtype())?;
+            }
+        }
+        let (a_s, a_t, a_m) = (cond.i(0)?, cond.i(1)?, cond.i(2)?);
+        let refined_s = self.refine(&a_s, &a_t)?;
+        let new_t = if self.settings.cross_replace >= self.progress() {
+            refined_s.clone()
+        } else {
+            a_t.clone()
+        };
+        let cond = Tensor::stack(&[&a_s, &new_t, &a_m], 0)?;
+
+        if let Some(rec) = self.recording.as_mut() {
+            if small {
+                rec.push(RecordedMaps {
+                    layer: call.layer.to_string(),
+                    size: (call.height, call.width),
+                    maps: cond.clone(),
+                });
+            }
+        } else if (call.height, call.width) == self.settings.blend_size
+            && !call.layer.starts_with("mid")
+        {
+            let refined_m = self.refine(&a_m, &a_t)?;
+            let both = Tensor::stack(&[&refined_s, &refined_m], 0)?.to_dtype(DType::F32)?;
+            match self
+                .blend_store
+                .iter_mut()
+                .find(|(name, _)| name == call.layer)
+            {
+                Some((_, acc)) => *acc = acc.add(&both)?,
+                None => self.blend_store.push((call.layer.to_string(), both)),
+            }
+        }
+
+        if cond_start == 0 {
+            Ok(cond)
+        } else {
+            Tensor::cat(&[&probs.narrow(0, 0, 3)?, &cond], 0)
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn alignment(mapper: Vec<Option<usize>>, alphas: Vec<f32>) -> TokenAlignment {
+        let n = mapper.len();
+        TokenAlignment {
+            mapper,
+            alphas,
+            alpha_e: vec![0.0; n],
+            alpha_m: vec![0.0; n],
+            target_len: n,
+        }
+    }
+
+    fn settings(cross: f64, selfr: f64) -> ControlSettings {
+        ControlSettings {
+            num_steps: 4,
+            start_steps: 0,
+            cross_replace: cross,
+            self_replace: selfr,
+            blend_size: (2, 2),
+            store_max_tokens: 1024,
+        }
+    }
+
+    fn call(kind: AttnKind, batch: usize) -> AttnCall<'static> {
+        AttnCall {
+            layer: "down_blocks.0.attentions.0.transformer_blocks.0.attn2",
+            kind,
+            height: 2,
+            width: 2,
+            batch,
+            heads: 1,
+        }
+    }
+
+    /// [6, 1, 4, 3] probabilities whose value encodes (batch, query, token).
+    fn probs() -> Tensor {
+        let v: Vec<f32> = (0..6 * 4 * 3).map(|i| i as f32).collect();
+        Tensor::from_vec(v, (6, 1, 4, 3), &Device::Cpu).unwrap()
+    }
+
+    #[test]
+    fn cross_replace_maps_source_onto_target_tokens() {
+        // Target token 1 takes source token 2; token 2 is new (alpha 0) and keeps its own map.
+        let al = alignment(vec![Some(0), Some(2), None], vec![1.0, 1.0, 0.0]);
+        let mut c = EditController::new(settings(1.0, 0.0), &al, &Device::Cpu).unwrap();
+        let p = probs();
+        let out = c.probs(&call(AttnKind::CrossAttn, 6), p.clone()).unwrap();
+        let src = p.i((3, 0)).unwrap().to_vec2::<f32>().unwrap();
+        let tgt = p.i((4, 0)).unwrap().to_vec2::<f32>().unwrap();
+        let new_t = out.i((4, 0)).unwrap().to_vec2::<f32>().unwrap();
+        for q in 0..4 {
+            assert_eq!(new_t[q], vec![src[q][0], src[q][2], tgt[q][2]]);
+        }
+        // Layout branch untouched, unconditional half untouched.
+        assert_eq!(
+            out.i(5).unwrap().to_vec3::<f32>().unwrap(),
+            p.i(5).unwrap().to_vec3::<f32>().unwrap()
+        );
+        assert_eq!(
+            out.i(1).unwrap().to_vec3::<f32>().unwrap(),
+            p.i(1).unwrap().to_vec3::<f32>().unwrap()
+        );
+        // Stored for blending: [refine(S), refine(M)].
+        assert_eq!(c.blend_store().len(), 1);
+        let stored = &c.blend_store()[0].1;
+        assert_eq!(stored.dims(), &[2, 1, 4, 3]);
+        assert_eq!(stored.i((0, 0)).unwrap().to_vec2::<f32>().unwrap(), new_t);
+    }
+
+    #[test]
+    fn after_cross_replace_the_target_keeps_its_maps() {
+        let al = alignment(vec![Some(0), Some(2), None], vec![1.0, 1.0, 0.0]);
+        let mut c = EditController::new(settings(0.5, 0.0), &al, &Device::Cpu).unwrap();
+        let p = probs();
+        c.end_step();
+        c.end_step(); // progress 3/4 > 0.5
+        let out = c.probs(&call(AttnKind::CrossAttn, 6), p.clone()).unwrap();
+        assert_eq!(
+            out.i(4).unwrap().to_vec3::<f32>().unwrap(),
+            p.i(4).unwrap().to_vec3::<f32>().unwrap()
+        );
+    }
+
+    #[test]
+    fn self_attention_swaps_follow_the_schedule() {
+        let al = alignment(vec![Some(0)], vec![1.0]);
+        let mut c = EditController::new(settings(1.0, 0.5), &al, &Device::Cpu).unwrap();
+        let x = Tensor::arange(0f32, 6.0, &Device::Cpu)
+            .unwrap()
+            .reshape((6, 1, 1, 1))
+            .unwrap();
+        let flat = |t: &Tensor| t.flatten_all().unwrap().to_vec1::<f32>().unwrap();
+        // progress 1/4 < 0.5: early.
+        let (q, k, v) = c
+            .qkv(
+                &call(AttnKind::SelfAttn, 6),
+                x.clone(),
+                x.clone(),
+                x.clone(),
+            )
+            .unwrap();
+        assert_eq!(flat(&q), vec![0., 0., 0., 3., 3., 3.]);
+        assert_eq!(flat(&k), vec![0., 0., 0., 3., 3., 3.]);
+        assert_eq!(flat(&v), vec![0., 1., 0., 3., 4., 3.]);
+        c.end_step(); // progress 2/4 >= 0.5: mutual.
+        let (q, k, v) = c
+            .qkv(
+                &call(AttnKind::SelfAttn, 6),
+                x.clone(),
+                x.clone(),
+                x.clone(),
+            )
+            .unwrap();
+        assert_eq!(flat(&q), vec![0., 1., 1., 3., 4., 4.]);
+        assert_eq!(flat(&k), vec![0., 1., 0., 3., 4., 3.]);
+        assert_eq!(flat(&v), vec![0., 1., 0., 3., 4., 3.]);
+    }
+
+    #[test]
+    fn recording_and_consistent_replacement() {
+        let al = alignment(vec![Some(0), Some(1), Some(2)], vec![1.0, 1.0, 1.0]);
+        let mut c = EditController::new(settings(0.0, 0.0), &al, &Device::Cpu).unwrap();
+        c.start_recording();
+        let p = probs();
+        c.probs(&call(AttnKind::CrossAttn, 6), p.clone()).unwrap();
+        let rec = c.finish_recording();
+        assert_eq!(rec.len(), 1);
+        assert_eq!(rec[0].maps.dims(), &[3, 1, 4, 3]);
+        assert!(c.blend_store().is_empty(), "recording must not accumulate");
+        // Replace with constant maps: the conditional half becomes them (cross_replace 0 → no refine).
+        let ones = Tensor::ones((3, 1, 4, 3), DType::F32, &Device::Cpu).unwrap();
+        let mut m = HashMap::new();
+        m.insert(call(AttnKind::CrossAttn, 6).layer.to_string(), ones);
+        c.set_consistent_maps(m);
+        let out = c.probs(&call(AttnKind::CrossAttn, 6), p).unwrap();
+        let cond = out
+            .narrow(0, 3, 3)
+            .unwrap()
+            .flatten_all()
+            .unwrap()
+            .to_vec1::<f32>()
+            .unwrap();
+        assert!(cond.iter().all(|&v| v == 1.0));
+        c.end_step();
+        assert!(c.consistent.is_none());
+    }
+}
