@@ -140,7 +140,7 @@ pub fn render(
         );
         (e.values, e.channels)
     });
-    let fwd = forward(&params, camera, settings.background, extra);
+    let fwd = forward(&params, camera, settings.background.map(f64::from), extra);
     let radii = fwd.splats.iter().map(|s| s.radius).collect();
     let RasterOut {
         rgb,
@@ -204,7 +204,7 @@ pub fn render_backward(
     let g = backward(
         &params,
         camera,
-        settings.background,
+        settings.background.map(f64::from),
         extra,
         &out.state.splats,
         &out.state.bins,
@@ -298,7 +298,7 @@ pub(crate) fn project_all<R: Real>(
 pub(crate) fn forward<R: Real>(
     params: &Params<'_, R>,
     camera: &Camera,
-    background: [f32; 3],
+    background: [f64; 3],
     extra: Option<(&[R], usize)>,
 ) -> Forward<R> {
     let cam = CameraR::<R>::new(camera);
@@ -310,7 +310,7 @@ pub(crate) fn forward<R: Real>(
         &bins,
         camera.width,
         camera.height,
-        background.map(R::from_f32),
+        background.map(R::from_f64),
         extra,
     );
     Forward {
@@ -335,7 +335,7 @@ pub(crate) struct Grads<R> {
 pub(crate) fn backward<R: Real>(
     params: &Params<'_, R>,
     camera: &Camera,
-    background: [f32; 3],
+    background: [f64; 3],
     extra: Option<(&[R], usize)>,
     splats: &[Splat<R>],
     bins: &TileBins,
@@ -349,7 +349,7 @@ pub(crate) fn backward<R: Real>(
         bins,
         camera.width,
         camera.height,
-        background.map(R::from_f32),
+        background.map(R::from_f64),
         extra,
         saved,
         grads,

@@ -26,7 +26,6 @@ pub trait Real:
     const ZERO: Self;
     const ONE: Self;
     fn from_f64(v: f64) -> Self;
-    fn from_f32(v: f32) -> Self;
     fn to_f64(self) -> f64;
     fn exp(self) -> Self;
     fn ln(self) -> Self;
@@ -59,10 +58,6 @@ macro_rules! impl_real {
             const ONE: Self = 1.0;
             #[inline(always)]
             fn from_f64(v: f64) -> Self {
-                v as $t
-            }
-            #[inline(always)]
-            fn from_f32(v: f32) -> Self {
                 v as $t
             }
             #[inline(always)]
