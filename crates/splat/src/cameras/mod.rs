@@ -369,20 +369,6 @@ pub(crate) mod test_util {
         let q = cam.world_to_camera(p);
         (q[2] > 0.0).then(|| [cam.fx * q[0] / q[2] + cam.cx, cam.fy * q[1] / q[2] + cam.cy])
     }
-
-    pub fn assert_cameras_close(a: &Camera, b: &Camera, tol: f64) {
-        assert_eq!((a.width, a.height), (b.width, b.height), "{a:?} vs {b:?}");
-        let close = |x: f64, y: f64| (x - y).abs() <= tol * (1.0 + x.abs().max(y.abs()));
-        for (x, y) in [(a.fx, b.fx), (a.fy, b.fy), (a.cx, b.cx), (a.cy, b.cy)] {
-            assert!(close(x, y), "intrinsics differ: {a:?} vs {b:?}");
-        }
-        for i in 0..3 {
-            assert!(close(a.translation[i], b.translation[i]), "{a:?} vs {b:?}");
-            for j in 0..3 {
-                assert!(close(a.rotation[i][j], b.rotation[i][j]), "{a:?} vs {b:?}");
-            }
-        }
-    }
 }
 
 #[cfg(test)]
