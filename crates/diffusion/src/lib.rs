@@ -1,7 +1,9 @@
 //! Stable Diffusion 1.x components on candle (CPU) with attention hooks, conformant with diffusers.
 
+pub mod clip;
 pub mod layers;
 pub mod loader;
+pub mod scheduler;
 pub mod taesd;
 pub mod tokenizer;
 pub mod unet;

@@ -7,7 +7,9 @@
 //! 2. each remaining piece is normalised: Unicode NFC, every whitespace run becomes one space, lowercase
 //!    (char by char, so a final Σ becomes σ, not ς);
 //! 3. it is split with CLIP's pattern (contractions, letter runs, single digits, punctuation runs; spaces
-//!    are dropped);
+//!    are dropped), then each piece again with the byte-level pre-tokenizer's GPT-2 pattern (this only
+//!    matters for the special-token alternatives: a lowercased `<|ENDOFTEXT|>` ends up as `<|`,
+//!    `endoftext`, `|>`);
 //! 4. every piece's UTF-8 bytes are mapped to printable characters (the GPT-2/CLIP byte table) and merged
 //!    with BPE, the last symbol of a word carrying the `</w>` suffix;
 //! 5. `<|startoftext|>` and `<|endoftext|>` surround the ids; the text encoder's positions (77) bound the
@@ -103,6 +105,7 @@ pub struct ClipTokenizer {
     byte_to_char: [char; 256],
     char_to_byte: HashMap<char, u8>,
     split_pattern: Regex,
+    byte_level_pattern: Regex,
     whitespace: Regex,
     bos_id: u32,
     eos_id: u32,
@@ -118,6 +121,9 @@ pub const DEFAULT_MAX_LENGTH: usize = 77;
 const END_OF_WORD: &str = "</w>";
 const CLIP_SPLIT: &str =
     r"<\|startoftext\|>|<\|endoftext\|>|'s|'t|'re|'ve|'m|'ll|'d|[\p{L}]+|[\p{N}]|[^\s\p{L}\p{N}]+";
+/// GPT-2's pattern as the ByteLevel pre-tokenizer applies it, without its whitespace alternatives (the
+/// pieces it sees never contain whitespace, and the lookahead they use is not supported by `regex`).
+const BYTE_LEVEL_SPLIT: &str = r"'s|'t|'re|'ve|'m|'ll|'d|\p{L}+|\p{N}+|[^\s\p{L}\p{N}]+";
 
 /// Special token names of `tokenizer_config.json`; each is a string or `{"content": ...}`.
 #[derive(Deserialize, Default)]
@@ -441,6 +447,7 @@ impl ClipTokenizer {
             byte_to_char,
             char_to_byte,
             split_pattern: Regex::new(CLIP_SPLIT).expect("CLIP split pattern is valid"),
+            byte_level_pattern: Regex::new(BYTE_LEVEL_SPLIT).expect("byte-level pattern is valid"),
             whitespace: Regex::new(r"\s+").expect("whitespace pattern is valid"),
             bos_id,
             eos_id,
@@ -644,9 +651,11 @@ impl ClipTokenizer {
 
     fn tokenize_normalized(&self, text: &str, ids: &mut Vec<u32>) {
         let mut symbols = Vec::new();
-        for word in self.split_pattern.find_iter(text) {
-            self.bpe_word(word.as_str(), &mut symbols);
-            ids.extend_from_slice(&symbols);
+        for piece in self.split_pattern.find_iter(text) {
+            for word in self.byte_level_pattern.find_iter(piece.as_str()) {
+                self.bpe_word(word.as_str(), &mut symbols);
+                ids.extend_from_slice(&symbols);
+            }
         }
     }
 

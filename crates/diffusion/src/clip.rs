@@ -1,0 +1,464 @@
+//! CLIP text encoder (`transformers.CLIPTextModel`): token + position embeddings, pre-LayerNorm
+//! transformer blocks with a causal mask, final LayerNorm. Output `last_hidden_state` [B, S, D] is the
+//! UNet's cross-attention context.
+//!
+//! Weights use transformers' key names, with or without the `text_model.` prefix (transformers 4 saved
+//! it, transformers 5 does not).
+
+use candle_core::{DType, Device, Module, Tensor, D};
+use candle_nn::{
+    embedding, layer_norm, linear, Embedding, LayerNorm, LayerNormConfig, Linear, VarBuilder,
+};
+use serde::Deserialize;
+
+use crate::loader::{Component, LoadError, ModelDir};
+use crate::tokenizer::{ClipTokenizer, Encoding};
+
+/// Errors from building or running the text encoder.
+#[derive(Debug, thiserror::Error)]
+pub enum ClipError {
+    #[error(transparent)]
+    Load(#[from] LoadError),
+    #[error("text encoder weights in {path}: {source}")]
+    Weights {
+        path: String,
+        #[source]
+        source: candle_core::Error,
+    },
+    #[error("text encoder config: {0}")]
+    Config(String),
+    #[error(transparent)]
+    Candle(#[from] candle_core::Error),
+}
+
+/// `hidden_act` of the config.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum ClipActivation {
+    /// x·σ(1.702x), OpenAI CLIP's approximation (SD 1.x).
+    QuickGelu,
+    /// Exact erf GELU (SD 2.x / OpenCLIP).
+    Gelu,
+    /// tanh-approximated GELU.
+    GeluNew,
+    GeluPytorchTanh,
+    Relu,
+}
+
+impl ClipActivation {
+    fn apply(self, x: &Tensor) -> candle_core::Result<Tensor> {
+        match self {
+            ClipActivation::QuickGelu => x * candle_nn::ops::sigmoid(&(x * 1.702)?)?,
+            ClipActivation::Gelu => x.gelu_erf(),
+            ClipActivation::GeluNew | ClipActivation::GeluPytorchTanh => x.gelu(),
+            ClipActivation::Relu => x.relu(),
+        }
+    }
+}
+
+fn d_max_pos() -> usize {
+    77
+}
+fn d_act() -> ClipActivation {
+    ClipActivation::QuickGelu
+}
+fn d_eps() -> f64 {
+    1e-5
+}
+fn d_eos() -> u32 {
+    2
+}
+
+/// `text_encoder/config.json` (the keys the model needs; others are ignored).
+#[derive(Debug, Clone, Deserialize)]
+pub struct ClipTextConfig {
+    pub vocab_size: usize,
+    pub hidden_size: usize,
+    pub intermediate_size: usize,
+    pub num_hidden_layers: usize,
+    pub num_attention_heads: usize,
+    #[serde(default = "d_max_pos")]
+    pub max_position_embeddings: usize,
+    #[serde(default = "d_act")]
+    pub hidden_act: ClipActivation,
+    #[serde(default = "d_eps")]
+    pub layer_norm_eps: f64,
+    #[serde(default = "d_eos")]
+    pub eos_token_id: u32,
+    #[serde(default)]
+    pub projection_dim: Option<usize>,
+}
+
+impl ClipTextConfig {
+    fn validate(&self) -> Result<(), ClipError> {
+        if self.num_attention_heads == 0 || self.hidden_size % self.num_attention_heads != 0 {
+            return Err(ClipError::Config(format!(
+                "hidden_size {} is not divisible by num_attention_heads {}",
+                self.hidden_size, self.num_attention_heads
+            )));
+        }
+        if self.max_position_embeddings < 2 || self.vocab_size == 0 {
+            return Err(ClipError::Config(format!(
+                "max_position_embeddings {} / vocab_size {} too small",
+                self.max_position_embeddings, self.vocab_size
+            )));
+        }
+        Ok(())
+    }
+}
+
+#[derive(Debug, Clone)]
+struct Attention {
+    q_proj: Linear,
+    k_proj: Linear,
+    v_proj: Linear,
+    out_proj: Linear,
+    heads: usize,
+    head_dim: usize,
+    scale: f64,
+}
+
+impl Attention {
+    fn new(vb: VarBuilder, c: &ClipTextConfig) -> candle_core::Result<Self> {
+        let d = c.hidden_size;
+        let head_dim = d / c.num_attention_heads;
+        Ok(Attention {
+            q_proj: linear(d, d, vb.pp("q_proj"))?,
+            k_proj: linear(d, d, vb.pp("k_proj"))?,
+            v_proj: linear(d, d, vb.pp("v_proj"))?,
+            out_proj: linear(d, d, vb.pp("out_proj"))?,
+            heads: c.num_attention_heads,
+            head_dim,
+            scale: (head_dim as f64).powf(-0.5),
+        })
+    }
+
+    /// x [B, S, D], mask [S, S] additive (−∞ above the diagonal).
+    fn forward(&self, x: &Tensor, mask: &Tensor) -> candle_core::Result<Tensor> {
+        let (b, s, d) = x.dims3()?;
+        let split = |t: Tensor| -> candle_core::Result<Tensor> {
+            t.reshape((b, s, self.heads, self.head_dim))?
+                .transpose(1, 2)?
+                .contiguous()
+        };
+        let q = split((self.q_proj.forward(x)? * self.scale)?)?;
+        let k = split(self.k_proj.forward(x)?)?;
+        let v = split(self.v_proj.forward(x)?)?;
+        let scores = q.matmul(&k.t()?)?.broadcast_add(mask)?;
+        let probs = candle_nn::ops::softmax_last_dim(&scores)?;
+        let out = probs.matmul(&v)?.transpose(1, 2)?.reshape((b, s, d))?;
+        self.out_proj.forward(&out)
+    }
+}
+
+#[derive(Debug, Clone)]
+struct EncoderLayer {
+    layer_norm1: LayerNorm,
+    self_attn: Attention,
+    layer_norm2: LayerNorm,
+    fc1: Linear,
+    fc2: Linear,
+    act: ClipActivation,
+}
+
+impl EncoderLayer {
+    fn new(vb: VarBuilder, c: &ClipTextConfig) -> candle_core::Result<Self> {
+        let ln = LayerNormConfig {
+            eps: c.layer_norm_eps,
+            ..Default::default()
+        };
+        Ok(EncoderLayer {
+            layer_norm1: layer_norm(c.hidden_size, ln, vb.pp("layer_norm1"))?,
+            self_attn: Attention::new(vb.pp("self_attn"), c)?,
+            layer_norm2: layer_norm(c.hidden_size, ln, vb.pp("layer_norm2"))?,
+            fc1: linear(c.hidden_size, c.intermediate_size, vb.pp("mlp").pp("fc1"))?,
+            fc2: linear(c.intermediate_size, c.hidden_size, vb.pp("mlp").pp("fc2"))?,
+            act: c.hidden_act,
+        })
+    }
+
+    fn forward(&self, x: &Tensor, mask: &Tensor) -> candle_core::Result<Tensor> {
+        let h = self
+            .self_attn
+            .forward(&self.layer_norm1.forward(x)?, mask)?;
+        let x = (x + h)?;
+        let h = self.fc1.forward(&self.layer_norm2.forward(&x)?)?;
+        let h = self.fc2.forward(&self.act.apply(&h)?)?;
+        x + h
+    }
+}
+
+/// The CLIP text transformer.
+#[derive(Debug, Clone)]
+pub struct ClipTextModel {
+    token_embedding: Embedding,
+    position_embedding: Tensor,
+    layers: Vec<EncoderLayer>,
+    final_layer_norm: LayerNorm,
+    config: ClipTextConfig,
+}
+
+impl ClipTextModel {
+    /// Builds the model from a `VarBuilder` rooted at the weight file (prefix detected automatically).
+    pub fn new(vb: VarBuilder, config: ClipTextConfig) -> Result<Self, ClipError> {
+        config.validate()?;
+        let vb = if vb.contains_tensor("text_model.embeddings.token_embedding.weight") {
+            vb.pp("text_model")
+        } else {
+            vb
+        };
+        let c = &config;
+        let emb = vb.pp("embeddings");
+        let token_embedding = embedding(c.vocab_size, c.hidden_size, emb.pp("token_embedding"))?;
+        let position_embedding = emb
+            .pp("position_embedding")
+            .get((c.max_position_embeddings, c.hidden_size), "weight")?;
+        let layers = (0..c.num_hidden_layers)
+            .map(|i| EncoderLayer::new(vb.pp("encoder").pp("layers").pp(i), c))
+            .collect::<candle_core::Result<Vec<_>>>()?;
+        let final_layer_norm = layer_norm(
+            c.hidden_size,
+            LayerNormConfig {
+                eps: c.layer_norm_eps,
+                ..Default::default()
+            },
+            vb.pp("final_layer_norm"),
+        )?;
+        Ok(ClipTextModel {
+            token_embedding,
+            position_embedding,
+            layers,
+            final_layer_norm,
+            config,
+        })
+    }
+
+    /// Loads `text_encoder/` of a model folder in `dtype` (weights converted on load).
+    pub fn load(model: &ModelDir, dtype: DType, device: &Device) -> Result<Self, ClipError> {
+        let config: ClipTextConfig = model.read_config(Component::TextEncoder)?;
+        let vb = model.var_builder(Component::TextEncoder, dtype, device)?;
+        Self::new(vb, config).map_err(|e| match e {
+            ClipError::Candle(source) => ClipError::Weights {
+                path: model
+                    .component_dir(Component::TextEncoder)
+                    .display()
+                    .to_string(),
+                source,
+            },
+            other => other,
+        })
+    }
+
+    pub fn config(&self) -> &ClipTextConfig {
+        &self.config
+    }
+
+    /// Number of positions, i.e. the padded prompt length (77 for SD).
+    pub fn max_positions(&self) -> usize {
+        self.config.max_position_embeddings
+    }
+
+    pub fn dtype(&self) -> DType {
+        self.position_embedding.dtype()
+    }
+
+    pub fn device(&self) -> &Device {
+        self.position_embedding.device()
+    }
+
+    /// The input embedding of each id (token-embedding lookup, no position): [B, S, D]. This is
+    /// `text_encoder.get_input_embeddings()(ids)`.
+    pub fn token_embeddings(&self, input_ids: &Tensor) -> candle_core::Result<Tensor> {
+        self.token_embedding.forward(input_ids)
+    }
+
+    /// `last_hidden_state` for ids [B, S] (u32), S ≤ max positions: [B, S, D].
+    pub fn forward(&self, input_ids: &Tensor) -> candle_core::Result<Tensor> {
+        self.forward_skip(input_ids, 0)
+    }
+
+    /// Like [`Self::forward`] but stops `clip_skip` layers early (then applies the final LayerNorm), as
+    /// diffusers' `clip_skip` does.
+    pub fn forward_skip(
+        &self,
+        input_ids: &Tensor,
+        clip_skip: usize,
+    ) -> candle_core::Result<Tensor> {
+        let (_, s) = input_ids.dims2()?;
+        if s > self.config.max_position_embeddings {
+            candle_core::bail!(
+                "sequence length {s} exceeds the text encoder's {} positions",
+                self.config.max_position_embeddings
+            );
+        }
+        let positions = self.position_embedding.narrow(0, 0, s)?;
+        let mut x = self
+            .token_embedding
+            .forward(input_ids)?
+            .broadcast_add(&positions)?;
+        let mask = causal_mask(s, x.dtype(), x.device())?;
+        let used = self.layers.len().saturating_sub(clip_skip);
+        for layer in &self.layers[..used] {
+            x = layer.forward(&x, &mask)?;
+        }
+        self.final_layer_norm.forward(&x)
+    }
+
+    /// The pooled output: the final hidden state at each sequence's first end token (transformers' rule;
+    /// configs with the legacy `eos_token_id` 2 use the position of the largest id instead).
+    pub fn pooled_output(
+        &self,
+        last_hidden_state: &Tensor,
+        input_ids: &Tensor,
+    ) -> candle_core::Result<Tensor> {
+        let ids = input_ids.to_dtype(DType::U32)?.to_vec2::<u32>()?;
+        let rows = ids
+            .iter()
+            .enumerate()
+            .map(|(b, row)| {
+                let pos = if self.config.eos_token_id == 2 {
+                    row.iter()
+                        .enumerate()
+                        .max_by_key(|(i, &v)| (v, std::cmp::Reverse(*i)))
+                        .map_or(0, |(i, _)| i)
+                } else {
+                    row.iter()
+                        .position(|&v| v == self.config.eos_token_id)
+                        .unwrap_or(0)
+                };
+                last_hidden_state.get(b)?.get(pos)
+            })
+            .collect::<candle_core::Result<Vec<_>>>()?;
+        Tensor::stack(&rows, 0)
+    }
+
+    /// Tokenises and encodes prompts in one batch: the context [B, S, D] and each prompt's encoding
+    /// (which tells about truncation).
+    pub fn encode_prompts(
+        &self,
+        tokenizer: &ClipTokenizer,
+        prompts: &[&str],
+    ) -> candle_core::Result<(Tensor, Vec<Encoding>)> {
+        let encodings: Vec<Encoding> = prompts.iter().map(|p| tokenizer.encode(p)).collect();
+        let ids = ids_tensor(&encodings, self.device())?;
+        Ok((self.forward(&ids)?, encodings))
+    }
+}
+
+/// Stacks encodings' ids into a [B, S] u32 tensor.
+pub fn ids_tensor(encodings: &[Encoding], device: &Device) -> candle_core::Result<Tensor> {
+    let len = encodings.first().map_or(0, |e| e.ids.len());
+    if encodings.iter().any(|e| e.ids.len() != len) {
+        candle_core::bail!("encodings of different lengths cannot form one batch");
+    }
+    let flat: Vec<u32> = encodings
+        .iter()
+        .flat_map(|e| e.ids.iter().copied())
+        .collect();
+    Tensor::from_vec(flat, (encodings.len(), len), device)
+}
+
+/// Additive causal mask [S, S]: 0 on and below the diagonal, −∞ above.
+fn causal_mask(s: usize, dtype: DType, device: &Device) -> candle_core::Result<Tensor> {
+    let data: Vec<f32> = (0..s)
+        .flat_map(|i| (0..s).map(move |j| if j > i { f32::NEG_INFINITY } else { 0.0 }))
+        .collect();
+    Tensor::from_vec(data, (s, s), device)?.to_dtype(dtype)
+}
+
+/// Cosine similarity of two vectors along their last dimension (used for InfEdit's token alignment).
+pub fn cosine_similarity(a: &Tensor, b: &Tensor) -> candle_core::Result<Tensor> {
+    let dot = (a * b)?.sum(D::Minus1)?;
+    let na = a.sqr()?.sum(D::Minus1)?.sqrt()?;
+    let nb = b.sqr()?.sum(D::Minus1)?.sqrt()?;
+    // torch clamps each norm at eps = 1e-8.
+    dot / (na.clamp(1e-8, f64::MAX)? * nb.clamp(1e-8, f64::MAX)?)?
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn random_model(act: ClipActivation) -> ClipTextModel {
+        let dev = Device::Cpu;
+        let cfg = ClipTextConfig {
+            vocab_size: 10,
+            hidden_size: 8,
+            intermediate_size: 16,
+            num_hidden_layers: 2,
+            num_attention_heads: 2,
+            max_position_embeddings: 6,
+            hidden_act: act,
+            layer_norm_eps: 1e-5,
+            eos_token_id: 9,
+            projection_dim: None,
+        };
+        let vm = candle_nn::VarMap::new();
+        let vb = VarBuilder::from_varmap(&vm, DType::F32, &dev);
+        ClipTextModel::new(vb, cfg).unwrap()
+    }
+
+    #[test]
+    fn causal_mask_hides_later_positions() {
+        // Changing a later token must not change earlier hidden states.
+        let m = random_model(ClipActivation::QuickGelu);
+        let a = Tensor::new(&[[8u32, 1, 2, 3, 9, 9]], &Device::Cpu).unwrap();
+        let b = Tensor::new(&[[8u32, 1, 2, 5, 9, 9]], &Device::Cpu).unwrap();
+        let ha = m.forward(&a).unwrap();
+        let hb = m.forward(&b).unwrap();
+        let early = (ha.narrow(1, 0, 3).unwrap() - hb.narrow(1, 0, 3).unwrap())
+            .unwrap()
+            .abs()
+            .unwrap()
+            .max_all()
+            .unwrap()
+            .to_scalar::<f32>()
+            .unwrap();
+        assert_eq!(early, 0.0);
+        let late = (ha.narrow(1, 3, 1).unwrap() - hb.narrow(1, 3, 1).unwrap())
+            .unwrap()
+            .abs()
+            .unwrap()
+            .max_all()
+            .unwrap()
+            .to_scalar::<f32>()
+            .unwrap();
+        assert!(late > 0.0);
+    }
+
+    #[test]
+    fn pooled_output_takes_first_end_token() {
+        let m = random_model(ClipActivation::Gelu);
+        let ids = Tensor::new(&[[8u32, 1, 9, 9, 9, 9]], &Device::Cpu).unwrap();
+        let h = m.forward(&ids).unwrap();
+        let pooled = m.pooled_output(&h, &ids).unwrap();
+        let expected = h.get(0).unwrap().get(2).unwrap();
+        let diff = (pooled.get(0).unwrap() - expected)
+            .unwrap()
+            .abs()
+            .unwrap()
+            .max_all()
+            .unwrap()
+            .to_scalar::<f32>()
+            .unwrap();
+        assert_eq!(diff, 0.0);
+    }
+
+    #[test]
+    fn too_long_input_is_an_error() {
+        let m = random_model(ClipActivation::QuickGelu);
+        let ids = Tensor::zeros((1, 7), DType::U32, &Device::Cpu).unwrap();
+        assert!(m.forward(&ids).is_err());
+    }
+
+    #[test]
+    fn cosine_similarity_of_parallel_vectors_is_one() {
+        let a = Tensor::new(&[1.0f32, 2.0, 3.0], &Device::Cpu).unwrap();
+        let b = (&a * 2.5).unwrap();
+        let c = cosine_similarity(&a, &b)
+            .unwrap()
+            .to_scalar::<f32>()
+            .unwrap();
+        assert!((c - 1.0).abs() < 1e-6);
+    }
+}

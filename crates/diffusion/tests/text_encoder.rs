@@ -1,0 +1,88 @@
+//! The CLIP text encoder against `transformers.CLIPTextModel` outputs recorded by
+//! tools/make_text_fixtures.py for both tiny models (f32 weights, and f16 weights loaded as f32).
+
+use std::path::{Path, PathBuf};
+
+use candle_core::{DType, Device, Tensor};
+use diffusion::clip::{ids_tensor, ClipTextModel};
+use diffusion::loader::ModelDir;
+use diffusion::tokenizer::ClipTokenizer;
+
+fn repo() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("../..")
+}
+
+fn max_abs_diff(a: &Tensor, b: &Tensor) -> f32 {
+    assert_eq!(a.dims(), b.dims());
+    (a - b)
+        .unwrap()
+        .abs()
+        .unwrap()
+        .flatten_all()
+        .unwrap()
+        .max(0)
+        .unwrap()
+        .to_scalar::<f32>()
+        .unwrap()
+}
+
+fn check_model(name: &str) {
+    let dev = Device::Cpu;
+    let model_dir = ModelDir::open(repo().join("fixtures/models").join(name)).unwrap();
+    let model = ClipTextModel::load(&model_dir, DType::F32, &dev).unwrap();
+    let reference = candle_core::safetensors::load(
+        repo().join(format!("fixtures/text/encoder-{name}.safetensors")),
+        &dev,
+    )
+    .unwrap();
+    let ids = reference["input_ids"].to_dtype(DType::U32).unwrap();
+
+    // The tokenizer produces the same ids as transformers for the recorded prompts.
+    let tokenizer =
+        ClipTokenizer::from_dir(model_dir.component_dir(diffusion::loader::Component::Tokenizer))
+            .unwrap()
+            .with_max_length(model.max_positions());
+    let prompts: Vec<String> = {
+        let (_, meta) = safetensors::SafeTensors::read_metadata(
+            &std::fs::read(repo().join(format!("fixtures/text/encoder-{name}.safetensors")))
+                .unwrap(),
+        )
+        .unwrap();
+        serde_json::from_str(&meta.metadata().as_ref().unwrap()["prompts"]).unwrap()
+    };
+    let encodings: Vec<_> = prompts.iter().map(|p| tokenizer.encode(p)).collect();
+    assert!(
+        encodings.last().unwrap().truncated(),
+        "the last recorded prompt is the long one"
+    );
+    let our_ids = ids_tensor(&encodings, &dev).unwrap();
+    assert_eq!(
+        our_ids.to_vec2::<u32>().unwrap(),
+        ids.to_vec2::<u32>().unwrap()
+    );
+
+    let hidden = model.forward(&ids).unwrap();
+    let err = max_abs_diff(&hidden, &reference["last_hidden_state"]);
+    println!("{name}: last_hidden_state max abs error {err:.2e}");
+    assert!(err <= 1e-4, "{name}: last_hidden_state error {err}");
+
+    let pooled = model.pooled_output(&hidden, &ids).unwrap();
+    assert!(max_abs_diff(&pooled, &reference["pooler_output"]) <= 1e-4);
+
+    let skip = model.forward_skip(&ids, 1).unwrap();
+    let err = max_abs_diff(&skip, &reference["clip_skip_1"]);
+    assert!(err <= 1e-4, "{name}: clip_skip error {err}");
+
+    let emb = model.token_embeddings(&ids).unwrap();
+    assert_eq!(max_abs_diff(&emb, &reference["token_embeddings"]), 0.0);
+}
+
+#[test]
+fn tiny_lcm_text_encoder_matches_transformers() {
+    check_model("tiny-lcm");
+}
+
+#[test]
+fn tiny_ip2p_f16_text_encoder_matches_transformers() {
+    check_model("tiny-ip2p");
+}
