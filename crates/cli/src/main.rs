@@ -24,11 +24,15 @@ struct Cli {
 #[derive(Subcommand)]
 enum Command {
     // One line per subcommand; keep them in the order a user meets them.
+    /// Print statistics of a 3DGS scene (count, SH degree, bounds, opacities, scales, cameras).
+    Inspect(cmd::inspect::Args),
 }
 
 fn main() {
     let cli = Cli::parse();
-    let result: anyhow::Result<()> = match cli.command {};
+    let result: anyhow::Result<()> = match cli.command {
+        Command::Inspect(a) => cmd::inspect::run(a),
+    };
     if let Err(err) = result {
         // One clear line, never a backtrace: the chain of contexts says which file and what is wrong.
         let msg = err
