@@ -3,4 +3,6 @@
 pub mod align;
 pub mod blend;
 pub mod control;
+pub mod infedit;
+pub mod model;
 pub mod noise;

@@ -1,0 +1,538 @@
+//! InfEdit: inversion-free editing with an LCM, three latent branches and unified attention control.
+//!
+//! An [`EditPlan`] holds everything fixed during an edit (text conditioning, token alignment, timesteps);
+//! a [`ViewState`] holds one view's per-step state (clean latents x0, the three branch latents, the last
+//! predictions and the view's attention controller). The single-image sampler ([`edit_image`]) and VcEdit's
+//! multi-view sampler both drive these two types, step by step, so the per-step state is always explicit.
+//!
+//! Equations (algorithm.md §2.3, with ᾱ_t and ᾱ_prev of the current and next timestep):
+//! ε_c = (z_S − √ᾱ_t x0)/√(1−ᾱ_t);  x̂0_B = x0 + [(z_B − z_S) − √(1−ᾱ_t)(ε_B − ε_S)]/√ᾱ_t;
+//! σ² = η(1−ᾱ_prev);  dir = √(1−ᾱ_prev−σ²)(ε_B − ε_S + ε_c);
+//! z_B ← √ᾱ_prev x̂0_B + dir + σ n;  z_S ← √ᾱ_prev x0 + dir + σ n   (the same n for every branch).
+
+use candle_core::{DType, Device, Tensor};
+use diffusion::scheduler::{LcmScheduler, LcmVariant};
+
+use crate::align::{align_prompts, AlignError, AlignInputs, TokenAlignment};
+use crate::blend::{apply_local_blend, blend_maps, blend_masks, BlendThresholds};
+use crate::control::{ControlSettings, EditController, DEFAULT_STORE_MAX_TOKENS};
+use crate::model::EditModel;
+use crate::noise::NoiseSource;
+
+/// InfEdit's knobs; defaults are the reference app's (15 LCM steps, guidance 1/2, cross 0.7, self 0.3,
+/// thresholds 0.6/0.6, η = 1, pure-noise start).
+#[derive(Clone, Debug, serde::Serialize)]
+pub struct InfEditSettings {
+    pub steps: usize,
+    /// LCM's original schedule length (timesteps are picked from it).
+    pub original_steps: usize,
+    #[serde(skip)]
+    pub lcm_variant: LcmVariant,
+    pub guidance_source: f64,
+    pub guidance_target: f64,
+    pub cross_replace: f64,
+    pub self_replace: f64,
+    pub thresh_e: f64,
+    pub thresh_m: f64,
+    pub eta: f64,
+    /// `Some(strength)`: start from the source latents noised to the strength-truncated first timestep
+    /// ("denoise" mode); `None`: start from pure noise (the reference default).
+    pub denoise_strength: Option<f64>,
+}
+
+impl Default for InfEditSettings {
+    fn default() -> Self {
+        Self {
+            steps: 15,
+            original_steps: 50,
+            lcm_variant: LcmVariant::Diffusers022,
+            guidance_source: 1.0,
+            guidance_target: 2.0,
+            cross_replace: 0.7,
+            self_replace: 0.3,
+            thresh_e: 0.6,
+            thresh_m: 0.6,
+            eta: 1.0,
+            denoise_strength: None,
+        }
+    }
+}
+
+/// The prompts of an edit.
+#[derive(Clone, Debug, Default, serde::Serialize)]
+pub struct EditPrompts {
+    pub source: String,
+    pub target: String,
+    /// Target-blend ("local") words: the region the edit may change. VcEdit uses the whole target prompt.
+    pub target_blend: String,
+    /// Source-blend ("mutual") words: regions kept from the source. Must appear in both prompts.
+    pub source_blend: String,
+    /// Unconditional text of the source and layout branches.
+    pub positive: String,
+    /// Unconditional text of the target branch.
+    pub negative: String,
+}
+
+impl EditPrompts {
+    /// Source → target with the whole target prompt as blend words (VcEdit's choice).
+    pub fn new(source: &str, target: &str) -> Self {
+        Self {
+            source: source.into(),
+            target: target.into(),
+            target_blend: target.into(),
+            ..Default::default()
+        }
+    }
+}
+
+#[derive(Debug, thiserror::Error)]
+pub enum EditError {
+    #[error("{which} prompt: {source}")]
+    Prompt {
+        which: &'static str,
+        source: diffusion::tokenizer::TokenizerError,
+    },
+    #[error(transparent)]
+    Align(#[from] AlignError),
+    #[error("{0}")]
+    Scheduler(#[from] diffusion::scheduler::SchedulerError),
+    #[error("{0}")]
+    Settings(String),
+    #[error("{0}")]
+    Candle(#[from] candle_core::Error),
+}
+
+/// Everything fixed during an edit.
+pub struct EditPlan {
+    pub settings: InfEditSettings,
+    pub prompts: EditPrompts,
+    /// Text conditioning in batch order [S_u, T_u, M_u, S_c, T_c, M_c] (CFG) or [S, T, M].
+    pub embeddings: Tensor,
+    pub cfg: bool,
+    pub alignment: TokenAlignment,
+    /// Executed timesteps (after strength truncation).
+    pub timesteps: Vec<usize>,
+    /// ᾱ of each executed timestep, and of the one after it (the last repeats its own, as the reference).
+    pub alpha: Vec<f64>,
+    pub alpha_prev: Vec<f64>,
+    /// Steps skipped by strength truncation; the schedule's full length.
+    pub start_steps: usize,
+    pub num_steps: usize,
+    pub latent_size: (usize, usize),
+    pub latent_channels: usize,
+    /// Spatial size of the cross-attention layers used by the local blend.
+    pub blend_size: (usize, usize),
+    /// Target prompt tokens (SOT .. EOT) as strings, for per-word attention maps.
+    pub target_tokens: Vec<String>,
+    pub thresholds: BlendThresholds,
+}
+
+/// Spatial size of the down/up cross-attention layers at the coarsest resolution that has them (SD 1.x:
+/// latent/4, the reference's "16×16 layers" at 512²).
+pub fn blend_layer_size(down_block_types: &[String], latent: (usize, usize)) -> (usize, usize) {
+    let (mut h, mut w) = latent;
+    let mut size = latent;
+    for (i, kind) in down_block_types.iter().enumerate() {
+        if kind.contains("CrossAttn") {
+            size = (h, w);
+        }
+        if i + 1 < down_block_types.len() {
+            // A stride-2 conv with padding 1: ceil(n / 2).
+            h = h.div_ceil(2);
+            w = w.div_ceil(2);
+        }
+    }
+    size
+}
+
+impl EditPlan {
+    /// Prepares an edit of images of `image_size` (width, height) pixels.
+    pub fn new(
+        model: &EditModel,
+        prompts: &EditPrompts,
+        settings: &InfEditSettings,
+        image_size: (usize, usize),
+    ) -> Result<Self, EditError> {
+        let f = model.downscale();
+        let (iw, ih) = image_size;
+        if iw % f != 0 || ih % f != 0 || iw == 0 || ih == 0 {
+            return Err(EditError::Settings(format!(
+                "image size {iw}x{ih} must be a positive multiple of {f} (the codec's downscale)"
+            )));
+        }
+        let latent_size = (ih / f, iw / f);
+        let tok = &model.tokenizer;
+        let strict = |which: &'static str, text: &str| {
+            tok.encode_strict(text)
+                .map_err(|source| EditError::Prompt { which, source })
+        };
+        let enc_source = strict("source", &prompts.source)?;
+        let enc_target = strict("target", &prompts.target)?;
+        let enc_pos = strict("positive", &prompts.positive)?;
+        let enc_neg = strict("negative", &prompts.negative)?;
+        strict("target blend words", &prompts.target_blend)?;
+        strict("source blend words", &prompts.source_blend)?;
+
+        let device = Device::Cpu;
+        let ids =
+            diffusion::clip::ids_tensor(&[enc_pos, enc_neg, enc_source, enc_target], &device)?;
+        let hidden = model.text_encoder.forward(&ids)?.to_dtype(DType::F32)?;
+        let (pos, neg, src, tgt) = (
+            hidden.get(0)?,
+            hidden.get(1)?,
+            hidden.get(2)?,
+            hidden.get(3)?,
+        );
+        let cfg = settings.guidance_target > 1.0;
+        let embeddings = if cfg {
+            Tensor::stack(&[&pos, &neg, &pos, &src, &tgt, &src], 0)?
+        } else {
+            Tensor::stack(&[&src, &tgt, &src], 0)?
+        };
+
+        let rows = |t: &Tensor| -> candle_core::Result<Vec<Vec<f32>>> { t.to_vec2::<f32>() };
+        let source_ids = tok.encode_unpadded(&prompts.source);
+        let target_ids = tok.encode_unpadded(&prompts.target);
+        let alignment = align_prompts(&AlignInputs {
+            source_ids: &source_ids,
+            target_ids: &target_ids,
+            local_ids: &tok.encode_unpadded(&prompts.target_blend),
+            mutual_ids: &tok.encode_unpadded(&prompts.source_blend),
+            source_hidden: &rows(&src)?,
+            target_hidden: &rows(&tgt)?,
+            max_len: model.text_encoder.max_positions(),
+        })?;
+
+        let mut sched = LcmScheduler::new(model.scheduler_config.clone(), settings.lcm_variant)?;
+        let full: Vec<usize> = sched
+            .set_timesteps(settings.steps, Some(settings.original_steps), 1.0)?
+            .to_vec();
+        let (start_steps, timesteps) = match settings.denoise_strength {
+            None => (0, full.clone()),
+            Some(s) => {
+                if !(s > 0.0 && s <= 1.0) {
+                    return Err(EditError::Settings(format!(
+                        "strength {s} must be in (0, 1]"
+                    )));
+                }
+                let init = ((settings.steps as f64 * s) as usize).min(settings.steps);
+                if init == 0 {
+                    return Err(EditError::Settings(format!(
+                        "strength {s} × {} steps leaves no step to run",
+                        settings.steps
+                    )));
+                }
+                let start = settings.steps - init;
+                (start, full[start..].to_vec())
+            }
+        };
+        let sched_alpha = |t: usize| sched.alpha_cumprod(t);
+        let mut alpha = Vec::new();
+        let mut alpha_prev = Vec::new();
+        for (i, &t) in timesteps.iter().enumerate() {
+            alpha.push(sched_alpha(t)?);
+            alpha_prev.push(sched_alpha(*timesteps.get(i + 1).unwrap_or(&t))?);
+        }
+
+        let blend_size = blend_layer_size(&model.unet.config().down_block_types, latent_size);
+        let target_tokens = tok.token_strings(&target_ids);
+        Ok(Self {
+            settings: settings.clone(),
+            prompts: prompts.clone(),
+            embeddings,
+            cfg,
+            alignment,
+            timesteps,
+            alpha,
+            alpha_prev,
+            start_steps,
+            num_steps: settings.steps,
+            latent_size,
+            latent_channels: model.latent_channels(),
+            blend_size,
+            target_tokens,
+            thresholds: BlendThresholds {
+                thresh_e: settings.thresh_e,
+                thresh_m: settings.thresh_m,
+                temperature: 0.15,
+                dynamic_me: false,
+            },
+        })
+    }
+
+    /// A fresh attention controller for one view.
+    pub fn controller(&self) -> candle_core::Result<EditController> {
+        EditController::new(
+            ControlSettings {
+                num_steps: self.num_steps,
+                start_steps: self.start_steps,
+                cross_replace: self.settings.cross_replace,
+                self_replace: self.settings.self_replace,
+                blend_size: self.blend_size,
+                store_max_tokens: DEFAULT_STORE_MAX_TOKENS,
+            },
+            &self.alignment,
+            &Device::Cpu,
+        )
+    }
+
+    /// Shape of one view's latents.
+    pub fn latent_shape(&self) -> [usize; 4] {
+        [
+            1,
+            self.latent_channels,
+            self.latent_size.0,
+            self.latent_size.1,
+        ]
+    }
+
+    /// Initial state of a view from its clean latents and the initial noise (shared by all views).
+    pub fn initial_state(&self, x0: Tensor, init_noise: &Tensor) -> candle_core::Result<ViewState> {
+        let z = match self.settings.denoise_strength {
+            None => init_noise.clone(),
+            Some(_) => {
+                let a = self.alpha[0];
+                x0.affine(a.sqrt(), 0.0)?
+                    .add(&init_noise.affine((1.0 - a).sqrt(), 0.0)?)?
+            }
+        };
+        Ok(ViewState {
+            x0,
+            z_s: z.clone(),
+            z_t: z.clone(),
+            z_m: z,
+            pred_t: None,
+            pred_m: None,
+            controller: self.controller()?,
+        })
+    }
+
+    /// One UNet pass of a view at step `i` with the view's controller as hook; returns the guided noise
+    /// predictions (ε_S, ε_T, ε_M). Does not advance the controller's step.
+    pub fn predict(
+        &self,
+        model: &EditModel,
+        view: &mut ViewState,
+        i: usize,
+    ) -> candle_core::Result<[Tensor; 3]> {
+        let (zs, zt, zm) = (&view.z_s, &view.z_t, &view.z_m);
+        let input = if self.cfg {
+            Tensor::cat(&[zs, zt, zm, zs, zt, zm], 0)?
+        } else {
+            Tensor::cat(&[zs, zt, zm], 0)?
+        };
+        let t = Tensor::new(&[self.timesteps[i] as f32], &Device::Cpu)?;
+        // The reference does not pass LCM's guidance embedding (timestep_cond); classic CFG is done here.
+        let out = model.unet.forward(
+            &input,
+            &t,
+            &self.embeddings,
+            None,
+            Some(&mut view.controller),
+        )?;
+        if !self.cfg {
+            return Ok([
+                out.get(0)?.unsqueeze(0)?,
+                out.get(1)?.unsqueeze(0)?,
+                out.get(2)?.unsqueeze(0)?,
+            ]);
+        }
+        let part = |k: usize| -> candle_core::Result<Tensor> { out.narrow(0, k, 1) };
+        let guide = |u: Tensor, c: Tensor, g: f64| -> candle_core::Result<Tensor> {
+            u.add(&(c - &u)?.affine(g, 0.0)?)
+        };
+        let gs = self.settings.guidance_source;
+        let gt = self.settings.guidance_target;
+        Ok([
+            guide(part(0)?, part(3)?, gs)?,
+            guide(part(1)?, part(4)?, gt)?,
+            guide(part(2)?, part(5)?, gs)?,
+        ])
+    }
+
+    /// The DDCM (virtual inversion) step for one branch B against the source: returns (z_S', z_B', x̂0_B).
+    #[allow(clippy::too_many_arguments)]
+    pub fn ddcm(
+        &self,
+        i: usize,
+        z_s: &Tensor,
+        z_b: &Tensor,
+        eps_s: &Tensor,
+        eps_b: &Tensor,
+        x0: &Tensor,
+        noise: &Tensor,
+    ) -> candle_core::Result<(Tensor, Tensor, Tensor)> {
+        let (a_t, a_prev) = (self.alpha[i], self.alpha_prev[i]);
+        let (b_t, b_prev) = (1.0 - a_t, 1.0 - a_prev);
+        let var = self.settings.eta * b_prev;
+        let diff = (eps_b - eps_s)?;
+        let pred = x0
+            .add(&((z_b - z_s)? - diff.affine(b_t.sqrt(), 0.0)?)?.affine(1.0 / a_t.sqrt(), 0.0)?)?;
+        if self.num_steps <= 1 {
+            return Ok((x0.clone(), pred.clone(), pred));
+        }
+        let dir_noise = self.dir_and_noise(i, z_s, &diff, x0, noise, var)?;
+        let z_b_next = pred.affine(a_prev.sqrt(), 0.0)?.add(&dir_noise)?;
+        let z_s_next = x0.affine(a_prev.sqrt(), 0.0)?.add(&dir_noise)?;
+        Ok((z_s_next, z_b_next, pred))
+    }
+
+    /// `dir + σ n` of the DDCM step (shared by both branches' updates).
+    fn dir_and_noise(
+        &self,
+        i: usize,
+        z_s: &Tensor,
+        eps_diff: &Tensor,
+        x0: &Tensor,
+        noise: &Tensor,
+        var: f64,
+    ) -> candle_core::Result<Tensor> {
+        let (a_t, a_prev) = (self.alpha[i], self.alpha_prev[i]);
+        let eps_c = (z_s - x0.affine(a_t.sqrt(), 0.0)?)?.affine(1.0 / (1.0 - a_t).sqrt(), 0.0)?;
+        let dir_scale = ((1.0 - a_prev) - var).max(0.0).sqrt();
+        let dir = (eps_diff + eps_c)?.affine(dir_scale, 0.0)?;
+        dir.add(&noise.affine(var.sqrt(), 0.0)?)
+    }
+
+    /// Runs the DDCM update of step `i` for a view from its guided predictions, without blending: both
+    /// branch pairs (S,T) and (S,M) with the same noise; z_S comes from the (S,M) pair as in the reference.
+    pub fn update(
+        &self,
+        view: &mut ViewState,
+        i: usize,
+        eps: &[Tensor; 3],
+        noise: &Tensor,
+    ) -> candle_core::Result<()> {
+        let (zs_t, zt, pt) =
+            self.ddcm(i, &view.z_s, &view.z_t, &eps[0], &eps[1], &view.x0, noise)?;
+        let (zs, zm, pm) = self.ddcm(i, &view.z_s, &view.z_m, &eps[0], &eps[2], &view.x0, noise)?;
+        let _ = zs_t;
+        view.z_s = zs;
+        view.z_t = zt;
+        view.z_m = zm;
+        view.pred_t = Some(pt);
+        view.pred_m = Some(pm);
+        Ok(())
+    }
+
+    /// Whether the local blend of step `i` (called after the controller's `end_step`) takes the layout
+    /// branch in the `me` region: the reference's second-to-last step.
+    pub fn use_layout_branch(&self, view: &ViewState) -> bool {
+        view.controller.cur_step() + self.start_steps + 1 == self.num_steps
+    }
+
+    /// The local blend of step `i` from the view's own attention store (InfEdit's single-image path).
+    pub fn local_blend(&self, view: &mut ViewState, i: usize) -> candle_core::Result<Tensor> {
+        let maps = blend_maps(
+            view.controller.blend_store(),
+            self.blend_size,
+            &self.alignment,
+            self.latent_size,
+            0.0,
+        )?;
+        self.blend_with_maps(view, i, &maps)?;
+        Ok(maps)
+    }
+
+    /// Applies the local blend with given maps `[3, H, W]` (VcEdit passes 3D-consistent maps).
+    pub fn blend_with_maps(
+        &self,
+        view: &mut ViewState,
+        i: usize,
+        maps: &Tensor,
+    ) -> candle_core::Result<()> {
+        let masks = blend_masks(maps, self.thresholds.at(self.alpha[i]))?;
+        let has_e = self.alignment.alpha_e.iter().any(|&a| a > 0.0);
+        view.z_t = apply_local_blend(
+            &view.z_s,
+            &view.z_t,
+            &view.z_m,
+            &masks,
+            has_e,
+            self.use_layout_branch(view),
+        )?;
+        Ok(())
+    }
+}
+
+/// One view's per-step state.
+pub struct ViewState {
+    /// Clean latents of the source image.
+    pub x0: Tensor,
+    pub z_s: Tensor,
+    pub z_t: Tensor,
+    pub z_m: Tensor,
+    /// Last x̂0 of the target and layout branches.
+    pub pred_t: Option<Tensor>,
+    pub pred_m: Option<Tensor>,
+    pub controller: EditController,
+}
+
+/// Result of a single-image edit.
+pub struct EditOutcome {
+    /// Edited image `[1, 3, H, W]` in [0, 1].
+    pub image: Tensor,
+    /// The final state (controller with its attention store, last predictions).
+    pub state: ViewState,
+    /// The last local-blend maps `[3, H, W]` (e, m, me), if a blend ran.
+    pub blend_maps: Option<Tensor>,
+}
+
+/// Edits one image `[1, 3, H, W]` in [-1, 1]. Noise is drawn in the reference's order: the codec's posterior
+/// sample (VAE only), the initial latents, then one tensor per step. `on_step(i)` is called after each step.
+pub fn edit_image(
+    model: &EditModel,
+    plan: &EditPlan,
+    image: &Tensor,
+    noise: &mut dyn NoiseSource,
+    on_step: &mut dyn FnMut(usize),
+) -> candle_core::Result<EditOutcome> {
+    let x0 = model.encode(image, noise)?;
+    let shape = plan.latent_shape();
+    let init = noise.sample(&shape)?;
+    let mut view = plan.initial_state(x0, &init)?;
+    let mut last_maps = None;
+    for i in 0..plan.timesteps.len() {
+        let eps = plan.predict(model, &mut view, i)?;
+        view.controller.end_step();
+        let n = noise.sample(&shape)?;
+        plan.update(&mut view, i, &eps, &n)?;
+        if i > 0 {
+            last_maps = Some(plan.local_blend(&mut view, i)?);
+        }
+        on_step(i);
+    }
+    let pred = view.pred_t.clone().expect("at least one step ran");
+    let image = model.decode(&pred)?.affine(0.5, 0.5)?.clamp(0f32, 1f32)?;
+    Ok(EditOutcome {
+        image,
+        state: view,
+        blend_maps: last_maps,
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn blend_layers_are_the_coarsest_cross_attention_resolution() {
+        let sd = [
+            "CrossAttnDownBlock2D",
+            "CrossAttnDownBlock2D",
+            "CrossAttnDownBlock2D",
+            "DownBlock2D",
+        ]
+        .map(String::from);
+        assert_eq!(blend_layer_size(&sd, (64, 64)), (16, 16));
+        assert_eq!(blend_layer_size(&sd, (32, 48)), (8, 12));
+        let tiny = [
+            "CrossAttnDownBlock2D",
+            "CrossAttnDownBlock2D",
+            "DownBlock2D",
+        ]
+        .map(String::from);
+        assert_eq!(blend_layer_size(&tiny, (16, 16)), (8, 8));
+        assert_eq!(blend_layer_size(&sd, (9, 9)), (3, 3));
+    }
+}

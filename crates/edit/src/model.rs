@@ -1,0 +1,132 @@
+//! The diffusion model an edit runs on: tokenizer, text encoder, UNet, latent codec and noise schedule,
+//! loaded from a user-given folder (diffusers layout or a hub-cache snapshot), optionally with TAESD as codec.
+
+use std::path::{Path, PathBuf};
+
+use candle_core::{DType, Device, Tensor};
+use diffusion::clip::ClipTextModel;
+use diffusion::loader::{Component, ModelDir};
+use diffusion::scheduler::LcmConfig;
+use diffusion::tokenizer::ClipTokenizer;
+use diffusion::unet::UNet2DConditionModel;
+use diffusion::vae::Autoencoder;
+
+use crate::noise::NoiseSource;
+
+#[derive(Debug, thiserror::Error)]
+pub enum ModelError {
+    #[error(transparent)]
+    Load(#[from] diffusion::loader::LoadError),
+    #[error(transparent)]
+    Tokenizer(#[from] diffusion::tokenizer::TokenizerError),
+    #[error(transparent)]
+    TextEncoder(#[from] diffusion::clip::ClipError),
+    #[error("{}: {source}", .path.display())]
+    Unet {
+        path: PathBuf,
+        source: diffusion::unet::UNetError,
+    },
+    #[error("{}: {source}", .path.display())]
+    Codec {
+        path: PathBuf,
+        source: diffusion::vae::VaeError,
+    },
+    #[error("{0}")]
+    Candle(#[from] candle_core::Error),
+}
+
+/// A loaded latent diffusion model.
+pub struct EditModel {
+    pub root: PathBuf,
+    pub tokenizer: ClipTokenizer,
+    pub text_encoder: ClipTextModel,
+    pub unet: UNet2DConditionModel,
+    pub codec: Autoencoder,
+    /// Whether the codec is the pipeline's own VAE (false when TAESD replaced it).
+    pub codec_is_vae: bool,
+    /// The beta schedule (read from the scheduler config whatever its class; LCM selects the timesteps).
+    pub scheduler_config: LcmConfig,
+}
+
+impl EditModel {
+    /// Loads every component of `path`. With `taesd`, that folder's TAESD replaces the VAE (and the pipeline's
+    /// `vae/` folder is not needed).
+    pub fn load(path: &Path, taesd: Option<&Path>) -> Result<Self, ModelError> {
+        let components: &[Component] = if taesd.is_some() {
+            &[
+                Component::Unet,
+                Component::TextEncoder,
+                Component::Tokenizer,
+                Component::Scheduler,
+            ]
+        } else {
+            &Component::ALL
+        };
+        let dir = ModelDir::open_components(path, components)?;
+        let device = Device::Cpu;
+        let text_encoder = ClipTextModel::load(&dir, DType::F32, &device)?;
+        let tokenizer = ClipTokenizer::from_dir(dir.component_dir(Component::Tokenizer))?
+            .with_max_length(text_encoder.max_positions());
+        let unet_dir = dir.component_dir(Component::Unet);
+        let weights = dir.weight_files(Component::Unet)?;
+        let unet =
+            UNet2DConditionModel::from_files(&dir.config_path(Component::Unet), &weights.files)
+                .map_err(|source| ModelError::Unet {
+                    path: unet_dir,
+                    source,
+                })?;
+        let codec_dir = taesd
+            .map(Path::to_path_buf)
+            .unwrap_or_else(|| dir.component_dir(Component::Vae));
+        let codec = Autoencoder::load(&codec_dir).map_err(|source| ModelError::Codec {
+            path: codec_dir.clone(),
+            source,
+        })?;
+        let scheduler_config: LcmConfig = dir.read_config(Component::Scheduler)?;
+        Ok(Self {
+            root: dir.root().to_path_buf(),
+            tokenizer,
+            text_encoder,
+            unet,
+            codec,
+            codec_is_vae: taesd.is_none(),
+            scheduler_config,
+        })
+    }
+
+    /// Latent channels of the UNet input (4 for SD; 8-channel InstructPix2Pix UNets take image latents too).
+    pub fn latent_channels(&self) -> usize {
+        self.codec.latent_channels()
+    }
+
+    /// Pixels per latent pixel.
+    pub fn downscale(&self) -> usize {
+        self.codec.spatial_factor()
+    }
+
+    /// Encodes images `[B, 3, H, W]` in [-1, 1] to UNet latents. The KL autoencoder samples its posterior
+    /// (as the reference does) with noise from `noise`; TAESD is deterministic and draws nothing.
+    pub fn encode(
+        &self,
+        image: &Tensor,
+        noise: &mut dyn NoiseSource,
+    ) -> candle_core::Result<Tensor> {
+        let err = |e: diffusion::vae::VaeError| candle_core::Error::Msg(e.to_string());
+        match &self.codec {
+            Autoencoder::Kl(vae) => {
+                let (b, _, h, w) = image.dims4()?;
+                let f = self.downscale();
+                let n = noise.sample(&[b, vae.config().latent_channels, h / f, w / f])?;
+                vae.encode_sample_scaled(image, &n).map_err(err)
+            }
+            Autoencoder::Tiny(_) => self.codec.encode_scaled(image).map_err(err),
+        }
+    }
+
+    /// Decodes UNet latents to images in [-1, 1] (unclamped).
+    pub fn decode(&self, latents: &Tensor) -> candle_core::Result<Tensor> {
+        self.codec
+            .decode_scaled(latents)
+            .map_err(|e| candle_core::Error::Msg(e.to_string()))
+    }
+}
