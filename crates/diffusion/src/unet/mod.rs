@@ -229,12 +229,8 @@ impl UNet2DConditionModel {
                 timesteps.elem_count()
             );
         }
-        if self.expects_timestep_cond() && timestep_cond.is_none() {
-            // diffusers silently skips cond_proj; LCM checkpoints then produce wrong predictions, so say so.
-            candle_core::bail!(
-                "unet: this model has time_cond_proj_dim; pass timestep_cond (LCM w-embedding)"
-            );
-        }
+        // Without `timestep_cond` an LCM checkpoint runs without its guidance embedding, as diffusers does
+        // when none is passed; InfEdit relies on this (it does classifier-free guidance explicitly).
         let ch0 = self.config.block_out_channels[0];
         let t_emb = timestep_embedding(
             &timesteps,
@@ -242,7 +238,8 @@ impl UNet2DConditionModel {
             self.config.flip_sin_to_cos,
             self.config.freq_shift,
         )?
-        .to_device(sample.device())?;
+        .to_device(sample.device())?
+        .to_dtype(sample.dtype())?;
         let emb = self.time_embedding.forward(&t_emb, timestep_cond)?;
 
         let sample = if self.config.center_input_sample {
