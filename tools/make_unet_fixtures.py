@@ -11,6 +11,7 @@ writes fixtures/unet/<model>.safetensors with:
   captured by a custom attention processor;
 - `hook.maps.<layer>` + `hook.noise_pred`: a processor that replaces the cross-attention probabilities of
   those layers for batch items 1.. with the given maps (item 0 untouched), and the resulting output;
+- `nocond.noise_pred` (LCM model only): the output without `timestep_cond`;
 - `swap.noise_pred`: a processor that, in every self-attention layer, replaces K and V of the last batch
   item with those of item 0 (InfEdit-style mutual self-attention), and the resulting output.
 
@@ -104,17 +105,20 @@ def record(models_dir, out_dir, model_name):
     if cfg.time_cond_proj_dim is not None:
         inputs["timestep_cond"] = torch.randn(batch, cfg.time_cond_proj_dim, generator=g)
 
-    def run():
+    def run(with_cond=True):
         with torch.no_grad():
             return unet(
                 inputs["sample"],
                 inputs["timesteps"].long(),
                 encoder_hidden_states=inputs["encoder_hidden_states"],
-                timestep_cond=inputs.get("timestep_cond"),
+                timestep_cond=inputs.get("timestep_cond") if with_cond else None,
             ).sample
 
     tensors = dict(inputs)
     tensors["noise_pred"] = run()
+    if "timestep_cond" in inputs:
+        # diffusers skips cond_proj when no condition is given (InfEdit calls the LCM UNet that way).
+        tensors["nocond.noise_pred"] = run(with_cond=False)
 
     captured = {name: None for name in self_layers + cross_layers}
     set_processors(unet, lambda name: Processor(name, captured))
