@@ -146,8 +146,14 @@ impl GroupNorm {
             return x.apply_op1_no_bwd(&op);
         }
         let (batch, channels) = (dims[0], dims[1]);
-        let x32 = x.to_dtype(DType::F32)?;
-        let grouped = x32.reshape((batch, self.num_groups, ()))?;
+        // Half-precision inputs are normalised in f32; f32/f64 stay as they are.
+        let internal = match x.dtype() {
+            DType::F16 | DType::BF16 => DType::F32,
+            other => other,
+        };
+        let grouped = x
+            .to_dtype(internal)?
+            .reshape((batch, self.num_groups, ()))?;
         let n = grouped.dim(2)? as f64;
         let mean = (grouped.sum_keepdim(2)? / n)?;
         let centred = grouped.broadcast_sub(&mean)?;
@@ -157,8 +163,8 @@ impl GroupNorm {
         wshape[1] = channels;
         let out = normed
             .reshape(dims.as_slice())?
-            .broadcast_mul(&self.weight.reshape(wshape.as_slice())?)?
-            .broadcast_add(&self.bias.reshape(wshape.as_slice())?)?;
+            .broadcast_mul(&self.weight.to_dtype(internal)?.reshape(wshape.as_slice())?)?
+            .broadcast_add(&self.bias.to_dtype(internal)?.reshape(wshape.as_slice())?)?;
         let out = if with_silu { out.silu()? } else { out };
         out.to_dtype(x.dtype())
     }

@@ -1,6 +1,5 @@
 //! Stable Diffusion 1.x components on candle (CPU) with attention hooks, conformant with diffusers.
 
-crates/diffusion/src/layers.rs
 pub mod clip;
 pub mod layers;
 pub mod loader;
