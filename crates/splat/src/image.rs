@@ -55,6 +55,65 @@ impl Image {
         &self.data[i..i + c]
     }
 
+    /// Composites an RGBA image over a background colour (RGB images are returned unchanged).
+    pub fn over_background(&self, bg: [f32; 3]) -> Image {
+        if self.channels != 4 {
+            return self.clone();
+        }
+        let mut data = Vec::with_capacity((self.width * self.height * 3) as usize);
+        for p in self.data.chunks_exact(4) {
+            let a = p[3];
+            for c in 0..3 {
+                data.push(p[c] * a + bg[c] * (1.0 - a));
+            }
+        }
+        Image::from_data(self.width, self.height, 3, data)
+    }
+
+    /// The largest centred crop with the aspect ratio `width : height`.
+    pub fn center_crop_to_aspect(&self, width: u32, height: u32) -> Image {
+        let (w, h) = (self.width as u64, self.height as u64);
+        // Crop width if the image is wider than the target aspect, else crop height.
+        let (cw, ch) = if w * height as u64 > h * width as u64 {
+            (((h * width as u64) / height as u64).max(1), h)
+        } else {
+            (w, ((w * height as u64) / width as u64).max(1))
+        };
+        let (x0, y0) = ((w - cw) / 2, (h - ch) / 2);
+        let c = self.channels as usize;
+        let mut data = Vec::with_capacity((cw * ch) as usize * c);
+        for y in y0..y0 + ch {
+            let row = (y * w + x0) as usize * c;
+            data.extend_from_slice(&self.data[row..row + cw as usize * c]);
+        }
+        Image::from_data(cw as u32, ch as u32, self.channels, data)
+    }
+
+    /// Resamples to `width x height` with a Lanczos-3 filter (as PIL's LANCZOS). Values are not clamped.
+    pub fn resize(&self, width: u32, height: u32) -> Image {
+        if (width, height) == (self.width, self.height) {
+            return self.clone();
+        }
+        let c = self.channels as usize;
+        let mut out = Image::new(width, height, self.channels);
+        // Resample each channel as a 32-bit float luma image so no precision is lost.
+        for ch in 0..c {
+            let plane: Vec<f32> = self.data.iter().skip(ch).step_by(c).copied().collect();
+            let buf = image::ImageBuffer::<image::Luma<f32>, Vec<f32>>::from_raw(
+                self.width,
+                self.height,
+                plane,
+            )
+            .expect("plane size");
+            let r =
+                image::imageops::resize(&buf, width, height, image::imageops::FilterType::Lanczos3);
+            for (i, v) in r.into_raw().into_iter().enumerate() {
+                out.data[i * c + ch] = v;
+            }
+        }
+        out
+    }
+
     /// Loads a PNG/JPEG as RGB or RGBA floats in [0, 1] (8- or 16-bit inputs; grey is expanded to RGB).
     pub fn load(path: &Path) -> Result<Image, ImageError> {
         let err = |msg: String| ImageError::Read {
@@ -167,6 +226,27 @@ mod tests {
                 }
             }
         }
+    }
+
+    #[test]
+    fn crop_resize_and_composite() {
+        let mut img = Image::new(8, 4, 4);
+        for (i, v) in img.data.iter_mut().enumerate() {
+            *v = if i % 4 == 3 { 0.5 } else { 1.0 };
+        }
+        let sq = img.center_crop_to_aspect(1, 1);
+        assert_eq!((sq.width, sq.height), (4, 4));
+        let r = sq.resize(2, 2);
+        assert_eq!((r.width, r.height, r.channels), (2, 2, 4));
+        assert!(r
+            .data
+            .iter()
+            .all(|v| (v - if *v > 0.75 { 1.0 } else { 0.5 }).abs() < 1e-4));
+        let rgb = r.over_background([0.0, 0.0, 0.0]);
+        assert_eq!(rgb.channels, 3);
+        assert!(rgb.data.iter().all(|v| (v - 0.5).abs() < 1e-4));
+        let tall = Image::new(3, 9, 3).center_crop_to_aspect(1, 1);
+        assert_eq!((tall.width, tall.height), (3, 3));
     }
 
     #[test]
