@@ -1,6 +1,7 @@
 //! Stable Diffusion 1.x components on candle (CPU) with attention hooks, conformant with diffusers.
 
 pub mod clip;
+pub mod conv;
 pub mod layers;
 pub mod loader;
 pub mod scheduler;

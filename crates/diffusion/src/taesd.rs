@@ -25,7 +25,9 @@ use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
 use candle_core::{DType, Device, Module, Tensor};
-use candle_nn::{Activation, Conv2d, Conv2dConfig, VarBuilder};
+use candle_nn::{Activation, VarBuilder};
+
+use crate::conv::Conv2d;
 use serde::Deserialize;
 
 /// diffusers' file names for a single-component folder.
@@ -197,16 +199,7 @@ fn conv3x3(
     bias: bool,
     vb: VarBuilder,
 ) -> candle_core::Result<Conv2d> {
-    let cfg = Conv2dConfig {
-        padding: 1,
-        stride,
-        ..Default::default()
-    };
-    if bias {
-        candle_nn::conv2d(in_c, out_c, 3, cfg, vb)
-    } else {
-        candle_nn::conv2d_no_bias(in_c, out_c, 3, cfg, vb)
-    }
+    Conv2d::load(in_c, out_c, 3, stride, 1, bias, vb)
 }
 
 /// `AutoencoderTinyBlock`: three 3×3 convs with the activation between them, identity skip, ReLU fuse.
@@ -953,13 +946,15 @@ mod tests {
         let a = model.encode(&image).unwrap();
         let b = loaded.encode(&image).unwrap();
         assert_eq!(a.dims(), &[2, 3, 3, 3]);
+        // The VarMap model runs candle's differentiable conv, the loaded one the fast inference conv: same
+        // values up to f32 summation order.
         let diff = (a - &b).unwrap().abs().unwrap().max_all().unwrap();
-        assert_eq!(diff.to_scalar::<f32>().unwrap(), 0.0);
+        assert!(diff.to_scalar::<f32>().unwrap() <= 1e-5);
         let x = model.decode(&b).unwrap();
         let y = loaded.decode(&b).unwrap();
         assert_eq!(x.dims(), &[2, 3, 12, 12]);
         let diff = (x - y).unwrap().abs().unwrap().max_all().unwrap();
-        assert_eq!(diff.to_scalar::<f32>().unwrap(), 0.0);
+        assert!(diff.to_scalar::<f32>().unwrap() <= 1e-5);
     }
 
     #[test]
