@@ -9,8 +9,10 @@
 //! The choice is automatic (see [`needs_grad`]), so the same model code serves both.
 
 use candle_core::{CpuStorage, CustomOp1, DType, Device, Layout, Module, Result, Shape, Tensor, D};
-use candle_nn::{Conv2d, Conv2dConfig, Linear, VarBuilder};
+use candle_nn::{Linear, VarBuilder};
 use rayon::prelude::*;
+
+use crate::conv::Conv2d;
 
 /// True when the computation must stay differentiable: any of the given tensors is a variable or was
 /// computed from one. Fused kernels have no backward pass, so they are used only when this is false.
@@ -36,12 +38,8 @@ pub fn conv2d(
     padding: usize,
     vb: VarBuilder,
 ) -> Result<Conv2d> {
-    let cfg = Conv2dConfig {
-        padding,
-        stride,
-        ..Default::default()
-    };
-    candle_nn::conv2d(in_channels, out_channels, kernel, cfg, vb)
+    // crate::conv::Conv2d: candle's conv when differentiating, a faster im2col+GEMM kernel otherwise.
+    Conv2d::load(in_channels, out_channels, kernel, stride, padding, true, vb)
 }
 
 /// Applies SiLU, `x * sigmoid(x)` (candle's unary op has a backward pass).

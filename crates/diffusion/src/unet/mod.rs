@@ -12,7 +12,7 @@ pub mod transformer;
 use std::path::{Path, PathBuf};
 
 use candle_core::{DType, Module, Tensor};
-use candle_nn::{Conv2d, VarBuilder};
+use candle_nn::VarBuilder;
 
 pub use attention::{AttentionHook, AttnCall, AttnKind};
 use blocks::{BlockAttention, DownBlock, MidBlock, ResnetShared, UpBlock};
@@ -20,6 +20,7 @@ pub use config::UNetConfig;
 use config::{BlockKind, ResolvedBlocks};
 use embeddings::{timestep_embedding, TimestepEmbedding};
 
+use crate::conv::Conv2d;
 use crate::layers::{conv2d, GroupNorm, TimeEmbeddingNorm};
 
 /// Errors from building a UNet.

@@ -1,9 +1,10 @@
 //! diffusers `Transformer2DModel` (continuous input) and `BasicTransformerBlock`.
 
 use candle_core::{Module, Result, Tensor, D};
-use candle_nn::{Conv2d, Linear, VarBuilder};
+use candle_nn::{Linear, VarBuilder};
 
 use super::attention::{Attention, AttentionHook};
+use crate::conv::Conv2d;
 use crate::layers::{conv2d, linear, GroupNorm, LayerNorm};
 
 /// diffusers `GEGLU` + output linear (`ff.net.0.proj`, `ff.net.2`): `W2 (h ⊙ gelu(g))` with `[h, g] = W1 x`.
