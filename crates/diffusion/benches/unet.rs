@@ -1,0 +1,235 @@
+//! UNet forward benchmark with the SD 1.5 config and random weights (no files needed), plus the peak
+//! memory of loading SD 1.5 weights stored in f16.
+//!
+//! `cargo bench -p vcedit-diffusion --bench unet [-- --batches 1,6 --runs 2 --size 64]`
+//! Prints one `RESULT {json}` line per measurement (tools/bench_unet_torch.py --compare parses them).
+//! Thread count: RAYON_NUM_THREADS (candle's matmul and our kernels use the rayon pool).
+//!
+//! `-- --load-rss FILE` (internal): loads an SD 1.5 UNet from FILE and prints the process's peak RSS.
+
+use std::collections::HashMap;
+use std::time::Instant;
+
+use std::sync::Mutex;
+
+use candle_core::{DType, Device, Result, Shape, Tensor};
+use candle_nn::var_builder::SimpleBackend;
+use candle_nn::VarBuilder;
+use diffusion::unet::{UNet2DConditionModel, UNetConfig};
+
+/// `unet/config.json` of runwayml/stable-diffusion-v1-5 (diffusers 0.6 era, as published).
+const SD15_UNET_CONFIG: &str = r#"{
+  "_class_name": "UNet2DConditionModel",
+  "_diffusers_version": "0.6.0",
+  "act_fn": "silu",
+  "attention_head_dim": 8,
+  "block_out_channels": [320, 640, 1280, 1280],
+  "center_input_sample": false,
+  "cross_attention_dim": 768,
+  "down_block_types": ["CrossAttnDownBlock2D", "CrossAttnDownBlock2D", "CrossAttnDownBlock2D", "DownBlock2D"],
+  "downsample_padding": 1,
+  "flip_sin_to_cos": true,
+  "freq_shift": 0,
+  "in_channels": 4,
+  "layers_per_block": 2,
+  "mid_block_scale_factor": 1,
+  "norm_eps": 1e-05,
+  "norm_num_groups": 32,
+  "out_channels": 4,
+  "sample_size": 64,
+  "up_block_types": ["UpBlock2D", "CrossAttnUpBlock2D", "CrossAttnUpBlock2D", "CrossAttnUpBlock2D"]
+}"#;
+
+fn config() -> UNetConfig {
+    UNetConfig::from_json(SD15_UNET_CONFIG).expect("embedded SD 1.5 config parses")
+}
+
+/// Hands out deterministic pseudo-random weights (uniform, variance 1/fan_in; norm weights near 1) by name,
+/// as plain tensors so the inference path runs, and remembers them (for saving in f16).
+struct RandomWeights {
+    made: Mutex<HashMap<String, Tensor>>,
+}
+
+impl SimpleBackend for RandomWeights {
+    fn get(
+        &self,
+        shape: Shape,
+        name: &str,
+        _: candle_nn::Init,
+        dtype: DType,
+        dev: &Device,
+    ) -> Result<Tensor> {
+        let n = shape.elem_count();
+        let fan_in: usize = shape.dims().iter().skip(1).product::<usize>().max(1);
+        let is_norm_weight = name.ends_with("weight") && shape.rank() == 1;
+        let bound = if is_norm_weight {
+            0.1
+        } else {
+            (3.0 / fan_in as f32).sqrt()
+        };
+        let offset = if is_norm_weight { 1.0 } else { 0.0 };
+        // xorshift64*, seeded from the name so every tensor differs.
+        let mut state = name.bytes().fold(0x9E37_79B9_7F4A_7C15u64, |h, b| {
+            (h ^ b as u64).wrapping_mul(0x100_0000_01B3)
+        });
+        let data: Vec<f32> = (0..n)
+            .map(|_| {
+                state ^= state >> 12;
+                state ^= state << 25;
+                state ^= state >> 27;
+                let unit =
+                    (state.wrapping_mul(0x2545_F491_4F6C_DD1D) >> 40) as f32 / (1u64 << 24) as f32;
+                offset + bound * (2.0 * unit - 1.0)
+            })
+            .collect();
+        let t = Tensor::from_vec(data, shape, dev)?.to_dtype(dtype)?;
+        self.made
+            .lock()
+            .unwrap()
+            .insert(name.to_string(), t.clone());
+        Ok(t)
+    }
+
+    fn get_unchecked(&self, name: &str, _: DType, _: &Device) -> Result<Tensor> {
+        candle_core::bail!("random weights: {name} requested without a shape")
+    }
+
+    fn contains_tensor(&self, _name: &str) -> bool {
+        false
+    }
+}
+
+/// Builds the SD 1.5 UNet with random weights; also returns the weights by name.
+fn random_model() -> (UNet2DConditionModel, HashMap<String, Tensor>) {
+    let backend = std::sync::Arc::new(RandomWeights {
+        made: Mutex::new(HashMap::new()),
+    });
+    let vb = VarBuilder::from_backend(
+        Box::new(SharedBackend(backend.clone())),
+        DType::F32,
+        Device::Cpu,
+    );
+    let model = UNet2DConditionModel::load(&config(), vb).expect("SD 1.5 UNet builds");
+    let weights = std::mem::take(&mut *backend.made.lock().unwrap());
+    (model, weights)
+}
+
+struct SharedBackend(std::sync::Arc<RandomWeights>);
+
+impl SimpleBackend for SharedBackend {
+    fn get(
+        &self,
+        s: Shape,
+        name: &str,
+        h: candle_nn::Init,
+        dtype: DType,
+        dev: &Device,
+    ) -> Result<Tensor> {
+        self.0.get(s, name, h, dtype, dev)
+    }
+    fn get_unchecked(&self, name: &str, dtype: DType, dev: &Device) -> Result<Tensor> {
+        self.0.get_unchecked(name, dtype, dev)
+    }
+    fn contains_tensor(&self, name: &str) -> bool {
+        self.0.contains_tensor(name)
+    }
+}
+
+fn peak_rss_mb() -> f64 {
+    let status = std::fs::read_to_string("/proc/self/status").unwrap_or_default();
+    status
+        .lines()
+        .find_map(|l| l.strip_prefix("VmHWM:"))
+        .and_then(|v| v.trim().trim_end_matches("kB").trim().parse::<f64>().ok())
+        .map(|kb| kb / 1024.0)
+        .unwrap_or(f64::NAN)
+}
+
+fn arg_value(args: &[String], name: &str) -> Option<String> {
+    args.iter()
+        .position(|a| a == name)
+        .and_then(|i| args.get(i + 1).cloned())
+}
+
+fn main() {
+    let args: Vec<String> = std::env::args().collect();
+    if let Some(path) = arg_value(&args, "--load-rss") {
+        let before = peak_rss_mb();
+        let start = Instant::now();
+        let vb = unsafe { VarBuilder::from_mmaped_safetensors(&[&path], DType::F32, &Device::Cpu) }
+            .unwrap();
+        let model = UNet2DConditionModel::load(&config(), vb).unwrap();
+        let secs = start.elapsed().as_secs_f64();
+        println!(
+            "RESULT {{\"impl\":\"candle\",\"what\":\"load_f16\",\"seconds\":{secs:.3},\"peak_rss_mb\":{:.0},\"rss_before_mb\":{before:.0}}}",
+            peak_rss_mb()
+        );
+        drop(model);
+        return;
+    }
+    let batches: Vec<usize> = arg_value(&args, "--batches")
+        .unwrap_or_else(|| "1,6".into())
+        .split(',')
+        .map(|b| b.parse().expect("--batches takes a comma-separated list"))
+        .collect();
+    let runs: usize = arg_value(&args, "--runs")
+        .map(|r| r.parse().unwrap())
+        .unwrap_or(2);
+    let size: usize = arg_value(&args, "--size")
+        .map(|r| r.parse().unwrap())
+        .unwrap_or(64);
+    let threads = candle_core::utils::get_num_threads();
+    eprintln!(
+        "unet bench: SD 1.5 config, {size}x{size} latents, {threads} threads, {runs} timed runs"
+    );
+
+    let start = Instant::now();
+    let (model, weights) = random_model();
+    eprintln!("  random weights: {:.1} s", start.elapsed().as_secs_f64());
+    for &batch in &batches {
+        let sample = Tensor::randn(0f32, 1.0, (batch, 4, size, size), &Device::Cpu).unwrap();
+        let context = Tensor::randn(0f32, 1.0, (batch, 77, 768), &Device::Cpu).unwrap();
+        let t = Tensor::new(&[500f32], &Device::Cpu).unwrap();
+        let mut times = Vec::new();
+        for run in 0..=runs {
+            let start = Instant::now();
+            let out = model.forward(&sample, &t, &context, None, None).unwrap();
+            let secs = start.elapsed().as_secs_f64();
+            assert_eq!(out.dims(), &[batch, 4, size, size]);
+            eprintln!(
+                "  batch {batch} run {run}: {secs:.3} s{}",
+                if run == 0 { " (warm-up)" } else { "" }
+            );
+            if run > 0 {
+                times.push(secs);
+            }
+        }
+        times.sort_by(|a, b| a.partial_cmp(b).unwrap());
+        println!(
+            "RESULT {{\"impl\":\"candle\",\"what\":\"forward\",\"batch\":{batch},\"size\":{size},\"threads\":{threads},\"seconds\":{:.3},\"peak_rss_mb\":{:.0}}}",
+            times[0],
+            peak_rss_mb()
+        );
+    }
+    drop(model);
+
+    if args.iter().any(|a| a == "--skip-load") {
+        drop(weights);
+        return;
+    }
+    // Peak memory of loading SD 1.5 stored in f16, measured in a fresh process.
+    let path = std::env::temp_dir().join("vcedit-bench-sd15-unet-f16.safetensors");
+    if !path.exists() {
+        let half: HashMap<String, Tensor> = weights
+            .iter()
+            .map(|(k, v)| (k.clone(), v.to_dtype(DType::F16).unwrap()))
+            .collect();
+        candle_core::safetensors::save(&half, &path).unwrap();
+    }
+    let status = std::process::Command::new(std::env::current_exe().unwrap())
+        .arg("--load-rss")
+        .arg(&path)
+        .status()
+        .unwrap();
+    assert!(status.success());
+}

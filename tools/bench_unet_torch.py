@@ -1,0 +1,103 @@
+#!/usr/bin/env python3
+"""PyTorch/diffusers side of the UNet benchmark, and the runner that compares it with ours.
+
+Runs diffusers' UNet2DConditionModel with the SD 1.5 config and random weights at 64x64 latents (batch 1 and
+6 by default), `torch.no_grad()`, f32, default attention processor (SDPA), on the given thread count.
+
+  python tools/bench_unet_torch.py                 # PyTorch only
+  python tools/bench_unet_torch.py --compare       # also `cargo bench --bench unet` (same threads), ratio table
+
+Timings are the best of --runs runs after one warm-up. Both sides print `RESULT {json}` lines.
+"""
+import argparse
+import json
+import os
+import resource
+import subprocess
+import sys
+import time
+
+SD15_UNET = dict(
+    sample_size=64,
+    in_channels=4,
+    out_channels=4,
+    down_block_types=("CrossAttnDownBlock2D", "CrossAttnDownBlock2D", "CrossAttnDownBlock2D", "DownBlock2D"),
+    up_block_types=("UpBlock2D", "CrossAttnUpBlock2D", "CrossAttnUpBlock2D", "CrossAttnUpBlock2D"),
+    block_out_channels=(320, 640, 1280, 1280),
+    layers_per_block=2,
+    cross_attention_dim=768,
+    attention_head_dim=8,
+    norm_num_groups=32,
+    norm_eps=1e-5,
+    downsample_padding=1,
+    flip_sin_to_cos=True,
+    freq_shift=0,
+)
+
+
+def torch_results(batches, runs, size, threads):
+    import torch
+    from diffusers import UNet2DConditionModel
+
+    torch.set_num_threads(threads)
+    torch.manual_seed(0)
+    unet = UNet2DConditionModel(**SD15_UNET).eval()
+    results = []
+    for batch in batches:
+        sample = torch.randn(batch, 4, size, size)
+        context = torch.randn(batch, 77, 768)
+        t = torch.tensor([500] * batch)
+        times = []
+        for run in range(runs + 1):
+            start = time.perf_counter()
+            with torch.no_grad():
+                out = unet(sample, t, encoder_hidden_states=context).sample
+            secs = time.perf_counter() - start
+            assert out.shape == (batch, 4, size, size)
+            print(f"  torch batch {batch} run {run}: {secs:.3f} s{' (warm-up)' if run == 0 else ''}", file=sys.stderr)
+            if run > 0:
+                times.append(secs)
+        peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+        results.append(dict(impl="torch", what="forward", batch=batch, size=size, threads=threads,
+                            seconds=round(min(times), 3), peak_rss_mb=round(peak)))
+        print("RESULT " + json.dumps(results[-1]), flush=True)
+    return results
+
+
+def candle_results(batches, runs, size, threads):
+    repo = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..")
+    env = dict(os.environ, RAYON_NUM_THREADS=str(threads))
+    cmd = ["cargo", "bench", "-p", "vcedit-diffusion", "--bench", "unet", "--",
+           "--batches", ",".join(map(str, batches)), "--runs", str(runs), "--size", str(size)]
+    proc = subprocess.run(cmd, cwd=repo, env=env, stdout=subprocess.PIPE, text=True, check=True)
+    results = [json.loads(line[len("RESULT "):]) for line in proc.stdout.splitlines() if line.startswith("RESULT ")]
+    for r in results:
+        print("RESULT " + json.dumps(r), flush=True)
+    return results
+
+
+def main():
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--batches", default="1,6")
+    ap.add_argument("--runs", type=int, default=2)
+    ap.add_argument("--size", type=int, default=64)
+    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--compare", action="store_true", help="also run the candle benchmark and print ratios")
+    args = ap.parse_args()
+    batches = [int(b) for b in args.batches.split(",")]
+    ours = candle_results(batches, args.runs, args.size, args.threads) if args.compare else []
+    theirs = torch_results(batches, args.runs, args.size, args.threads)
+    if not ours:
+        return
+    print(f"\nUNet forward, SD 1.5 config, {args.size}x{args.size} latents, {args.threads} threads (best of {args.runs})")
+    print(f"{'batch':>5} {'candle s':>9} {'torch s':>9} {'candle/torch':>13}")
+    for t in theirs:
+        c = next(r for r in ours if r["what"] == "forward" and r["batch"] == t["batch"])
+        print(f"{t['batch']:>5} {c['seconds']:>9.2f} {t['seconds']:>9.2f} {c['seconds'] / t['seconds']:>13.2f}")
+    for r in ours:
+        if r["what"] == "load_f16":
+            print(f"loading SD 1.5 UNet from f16 safetensors: {r['seconds']:.1f} s, peak RSS {r['peak_rss_mb']} MB")
+
+
+if __name__ == "__main__":
+    main()
