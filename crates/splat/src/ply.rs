@@ -17,14 +17,17 @@
 //! the file size before anything is allocated, so a corrupt count cannot exhaust memory.
 
 use crate::scene::{sh_coeffs, GaussianScene};
+use rayon::prelude::*;
 use std::fs::File;
 use std::io::{BufRead, BufReader, Read};
 use std::path::{Path, PathBuf};
 
 /// A header longer than this is garbage (real headers are a few KiB even with many comments).
 const MAX_HEADER_BYTES: u64 = 1 << 20;
-/// Rows decoded per read in the fixed-row-size binary path.
-const ROWS_PER_CHUNK: usize = 4096;
+/// Rows read at once in the fixed-row-size binary path (a few MiB for typical rows).
+const ROWS_PER_CHUNK: usize = 16384;
+/// Rows decoded (or encoded) per parallel task.
+const ROWS_PER_BLOCK: usize = 1024;
 
 #[derive(Debug, thiserror::Error)]
 pub enum PlyError {
@@ -497,10 +500,7 @@ impl SceneBuilder {
     #[inline]
     fn set(&mut self, n: usize, slot: Slot, value: f32) -> Result<(), Problem> {
         if !value.is_finite() {
-            return Err(Problem::Data(format!(
-                "vertex {n}: property '{}' is {value}",
-                slot_name(slot)
-            )));
+            return Err(non_finite(n, slot, value));
         }
         let s = &mut self.scene;
         match slot {
@@ -519,16 +519,7 @@ impl SceneBuilder {
 
     /// Checks what only makes sense for the whole row.
     fn finish_row(&self, n: usize) -> Result<(), Problem> {
-        let q = &self.scene.quats[4 * n..4 * n + 4];
-        let norm2: f32 = q.iter().map(|v| v * v).sum();
-        // Squared norms below the smallest normal f32 cannot be normalised reliably in f32.
-        if !norm2.is_normal() {
-            return Err(Problem::Data(format!(
-                "vertex {n}: rotation quaternion ({}, {}, {}, {}) is zero or too small to normalise",
-                q[0], q[1], q[2], q[3]
-            )));
-        }
-        Ok(())
+        check_quaternion(n, &self.scene.quats[4 * n..4 * n + 4])
     }
 }
 
@@ -537,6 +528,107 @@ impl SceneBuilder {
 fn to_f32(v: f64, ty: ScalarType) -> f32 {
     debug_assert!(ty.is_float());
     v as f32
+}
+
+/// Where a needed property lands inside one row's slice of a scene array.
+#[derive(Clone, Copy)]
+enum Dest {
+    Mean,
+    Scale,
+    Quat,
+    Opacity,
+    Sh,
+}
+
+/// A needed property of a fixed-size binary row: its byte offset and where its value goes.
+#[derive(Clone, Copy)]
+struct RowField {
+    offset: usize,
+    ty: ScalarType,
+    slot: Slot,
+    dest: Dest,
+    /// Index inside the row's slice of the destination array.
+    pos: usize,
+}
+
+impl RowField {
+    fn new(offset: usize, slot: Slot, ty: ScalarType, coeffs: usize) -> Self {
+        let (dest, pos) = match slot {
+            Slot::Mean(a) => (Dest::Mean, a),
+            Slot::Scale(a) => (Dest::Scale, a),
+            Slot::Rot(a) => (Dest::Quat, a),
+            Slot::Opacity => (Dest::Opacity, 0),
+            Slot::Dc(c) => (Dest::Sh, c),
+            Slot::Rest(i) => {
+                let rest = coeffs - 1;
+                (Dest::Sh, 3 * (i % rest + 1) + i / rest)
+            }
+        };
+        Self {
+            offset,
+            ty,
+            slot,
+            dest,
+            pos,
+        }
+    }
+}
+
+/// The scene arrays' slices for a block of consecutive rows.
+struct RowsMut<'a> {
+    means: &'a mut [f32],
+    scales: &'a mut [f32],
+    quats: &'a mut [f32],
+    opacity: &'a mut [f32],
+    sh: &'a mut [f32],
+}
+
+/// Decodes consecutive fixed-size rows into `out`, checking values as `SceneBuilder` does.
+fn decode_rows(
+    bytes: &[u8],
+    row_size: usize,
+    fields: &[RowField],
+    big_endian: bool,
+    k3: usize,
+    first_row: usize,
+    out: RowsMut<'_>,
+) -> Result<(), Problem> {
+    for (r, row) in bytes.chunks_exact(row_size).enumerate() {
+        for f in fields {
+            let v = to_f32(f.ty.decode(&row[f.offset..], big_endian), f.ty);
+            if !v.is_finite() {
+                return Err(non_finite(first_row + r, f.slot, v));
+            }
+            match f.dest {
+                Dest::Mean => out.means[3 * r + f.pos] = v,
+                Dest::Scale => out.scales[3 * r + f.pos] = v,
+                Dest::Quat => out.quats[4 * r + f.pos] = v,
+                Dest::Opacity => out.opacity[r] = v,
+                Dest::Sh => out.sh[k3 * r + f.pos] = v,
+            }
+        }
+        check_quaternion(first_row + r, &out.quats[4 * r..4 * r + 4])?;
+    }
+    Ok(())
+}
+
+fn non_finite(n: usize, slot: Slot, value: f32) -> Problem {
+    Problem::Data(format!(
+        "vertex {n}: property '{}' is {value}",
+        slot_name(slot)
+    ))
+}
+
+fn check_quaternion(n: usize, q: &[f32]) -> Result<(), Problem> {
+    let norm2: f32 = q.iter().map(|v| v * v).sum();
+    // Squared norms below the smallest normal f32 cannot be normalised reliably in f32.
+    if !norm2.is_normal() {
+        return Err(Problem::Data(format!(
+            "vertex {n}: rotation quaternion ({}, {}, {}, {}) is zero or too small to normalise",
+            q[0], q[1], q[2], q[3]
+        )));
+    }
+    Ok(())
 }
 
 // ---------------------------------------------------------------------------------------------------------
@@ -707,27 +799,49 @@ fn read_binary(
                     at += t.size();
                 }
             }
-            let fields: Vec<(usize, Slot, ScalarType)> = layout
+            let fields: Vec<RowField> = layout
                 .fields
                 .iter()
-                .map(|&(i, slot, ty)| (offsets[i], slot, ty))
+                .map(|&(i, slot, ty)| RowField::new(offsets[i], slot, ty, builder.coeffs))
                 .collect();
+            let k3 = 3 * builder.coeffs;
             let mut buf = vec![0u8; row_size * ROWS_PER_CHUNK.min(count.max(1))];
-            let mut n = 0;
-            while n < count {
-                let rows = ROWS_PER_CHUNK.min(count - n);
+            let mut n0 = 0;
+            while n0 < count {
+                let rows = ROWS_PER_CHUNK.min(count - n0);
                 let chunk = &mut buf[..rows * row_size];
                 fill(reader, chunk, || {
-                    format!("the 'vertex' element (rows {n}..{} of {count})", n + rows)
+                    format!("the 'vertex' element (rows {n0}..{} of {count})", n0 + rows)
                 })?;
-                for r in chunk.chunks_exact(row_size) {
-                    for &(offset, slot, ty) in &fields {
-                        let v = ty.decode(&r[offset..], big_endian);
-                        builder.set(n, slot, to_f32(v, ty))?;
-                    }
-                    builder.finish_row(n)?;
-                    n += 1;
+                let s = &mut builder.scene;
+                let range = |width: usize| width * n0..width * (n0 + rows);
+                // Decode blocks of rows in parallel; report the first bad row in file order.
+                let first_error = chunk
+                    .par_chunks(ROWS_PER_BLOCK * row_size)
+                    .zip(s.means[range(3)].par_chunks_mut(3 * ROWS_PER_BLOCK))
+                    .zip(s.log_scales[range(3)].par_chunks_mut(3 * ROWS_PER_BLOCK))
+                    .zip(s.quats[range(4)].par_chunks_mut(4 * ROWS_PER_BLOCK))
+                    .zip(s.opacity_logits[range(1)].par_chunks_mut(ROWS_PER_BLOCK))
+                    .zip(s.sh[range(k3)].par_chunks_mut(k3 * ROWS_PER_BLOCK))
+                    .enumerate()
+                    .map(|(j, (((((bytes, means), scales), quats), opacity), sh))| {
+                        let block = RowsMut {
+                            means,
+                            scales,
+                            quats,
+                            opacity,
+                            sh,
+                        };
+                        let first_row = n0 + j * ROWS_PER_BLOCK;
+                        decode_rows(bytes, row_size, &fields, big_endian, k3, first_row, block)
+                    })
+                    .collect::<Vec<_>>()
+                    .into_iter()
+                    .find_map(Result::err);
+                if let Some(problem) = first_error {
+                    return Err(problem);
                 }
+                n0 += rows;
             }
         }
         None => {
@@ -965,25 +1079,38 @@ pub fn encode_ply(scene: &GaussianScene) -> Result<Vec<u8>, String> {
     }
     header.push_str("end_header\n");
 
-    let mut out = Vec::with_capacity(header.len() + n * names.len() * 4);
-    out.extend_from_slice(header.as_bytes());
-    let mut put = |v: f32| out.extend_from_slice(&v.to_le_bytes());
-    for i in 0..n {
-        scene.means[3 * i..3 * i + 3].iter().for_each(|&v| put(v));
-        (0..3).for_each(|_| put(0.0));
-        let sh = &scene.sh[3 * k * i..3 * k * (i + 1)];
-        (0..3).for_each(|c| put(sh[c]));
-        for c in 0..3 {
-            for kk in 1..k {
-                put(sh[3 * kk + c]);
+    let row_bytes = names.len() * 4;
+    let mut out = vec![0u8; header.len() + n * row_bytes];
+    out[..header.len()].copy_from_slice(header.as_bytes());
+    out[header.len()..]
+        .par_chunks_mut(ROWS_PER_BLOCK * row_bytes)
+        .enumerate()
+        .for_each(|(j, block)| {
+            for (r, row) in block.chunks_exact_mut(row_bytes).enumerate() {
+                let i = j * ROWS_PER_BLOCK + r;
+                let mut values = row.chunks_exact_mut(4);
+                let mut put = |v: f32| {
+                    if let Some(slot) = values.next() {
+                        slot.copy_from_slice(&v.to_le_bytes());
+                    }
+                };
+                scene.means[3 * i..3 * i + 3].iter().for_each(|&v| put(v));
+                (0..3).for_each(|_| put(0.0));
+                let sh = &scene.sh[3 * k * i..3 * k * (i + 1)];
+                (0..3).for_each(|c| put(sh[c]));
+                // INRIA order: channel-major rest coefficients.
+                for c in 0..3 {
+                    for kk in 1..k {
+                        put(sh[3 * kk + c]);
+                    }
+                }
+                put(scene.opacity_logits[i]);
+                scene.log_scales[3 * i..3 * i + 3]
+                    .iter()
+                    .for_each(|&v| put(v));
+                scene.quats[4 * i..4 * i + 4].iter().for_each(|&v| put(v));
             }
-        }
-        put(scene.opacity_logits[i]);
-        scene.log_scales[3 * i..3 * i + 3]
-            .iter()
-            .for_each(|&v| put(v));
-        scene.quats[4 * i..4 * i + 4].iter().for_each(|&v| put(v));
-    }
+        });
     Ok(out)
 }
 
