@@ -26,12 +26,15 @@ enum Command {
     // One line per subcommand; keep them in the order a user meets them.
     /// Print statistics of a 3DGS scene (count, SH degree, bounds, opacities, scales, cameras).
     Inspect(cmd::inspect::Args),
+    /// Inspect a Stable Diffusion model folder (`vcedit model check DIR`).
+    Model(cmd::model::Args),
 }
 
 fn main() {
     let cli = Cli::parse();
     let result: anyhow::Result<()> = match cli.command {
         Command::Inspect(a) => cmd::inspect::run(a),
+        Command::Model(a) => cmd::model::run(a),
     };
     if let Err(err) = result {
         // One clear line, never a backtrace: the chain of contexts says which file and what is wrong.

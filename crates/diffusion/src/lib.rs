@@ -4,6 +4,7 @@ pub mod clip;
 pub mod conv;
 pub mod layers;
 pub mod loader;
+pub mod model_check;
 pub mod scheduler;
 pub mod taesd;
 pub mod tokenizer;

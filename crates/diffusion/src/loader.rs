@@ -34,6 +34,11 @@ pub enum LoadError {
         root: PathBuf,
         problems: Vec<Problem>,
     },
+    #[error("model folder {} has inconsistent files: {}", .root.display(), ProblemList(.problems))]
+    Inconsistent {
+        root: PathBuf,
+        problems: Vec<Problem>,
+    },
     #[error("{}: {message}", .path.display())]
     BadFile { path: PathBuf, message: String },
     #[error("{}: {source}", .path.display())]
