@@ -1,7 +1,7 @@
 //! VAE / TAESD timing with random weights (SD 1.x configs), f32 on the CPU.
 //!
 //! `cargo bench -p vcedit-diffusion --bench vae [-- SIZE]` (SIZE = image side in pixels, default 256).
-//! `tools/bench_vae.py SIZE` times diffusers on the same shapes for comparison.
+//! `python tools/bench_vae.py SIZE` times diffusers on the same shapes for comparison. Threads: RAYON_NUM_THREADS.
 
 use std::collections::HashMap;
 use std::time::Instant;

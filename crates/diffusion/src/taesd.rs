@@ -33,6 +33,8 @@ use serde::Deserialize;
 /// diffusers' file names for a single-component folder.
 pub const DIFFUSERS_CONFIG: &str = "config.json";
 pub const DIFFUSERS_WEIGHTS: &str = "diffusion_pytorch_model.safetensors";
+/// The half-precision variant diffusers writes with `variant="fp16"`; used when the plain file is absent.
+pub const DIFFUSERS_WEIGHTS_FP16: &str = "diffusion_pytorch_model.fp16.safetensors";
 /// taesd.py's file names (SD 1.x/2.x TAESD).
 pub const ORIGINAL_ENCODER: &str = "taesd_encoder.safetensors";
 pub const ORIGINAL_DECODER: &str = "taesd_decoder.safetensors";
@@ -429,7 +431,10 @@ impl AutoencoderTiny {
         } else {
             TaesdConfig::default()
         };
-        let weights = dir.join(DIFFUSERS_WEIGHTS);
+        let weights = diffusers_weights(dir).ok_or_else(|| TaesdError::MissingFiles {
+            dir: dir.to_path_buf(),
+            missing: format!("missing {DIFFUSERS_WEIGHTS}"),
+        })?;
         let vb = mmap_var_builder(&weights)?;
         Self::new(&cfg, vb).map_err(|source| TaesdError::Weights {
             path: weights,
@@ -552,9 +557,17 @@ pub(crate) fn unscale_latents(z: &Tensor, scale: f64, shift: f64) -> candle_core
     }
 }
 
+/// The diffusers weight file in `dir`: the plain one, else its fp16 variant.
+pub(crate) fn diffusers_weights(dir: &Path) -> Option<PathBuf> {
+    [DIFFUSERS_WEIGHTS, DIFFUSERS_WEIGHTS_FP16]
+        .iter()
+        .map(|name| dir.join(name))
+        .find(|p| p.is_file())
+}
+
 /// Finds which layout `dir` holds; the error names every file that was looked for.
 pub fn detect_layout(dir: &Path) -> Result<TaesdLayout> {
-    if dir.join(DIFFUSERS_WEIGHTS).is_file() {
+    if diffusers_weights(dir).is_some() {
         return Ok(TaesdLayout::Diffusers);
     }
     let enc = dir.join(ORIGINAL_ENCODER).is_file();

@@ -513,22 +513,24 @@ impl AutoencoderKL {
         })
     }
 
-    /// Loads a diffusers `vae/` folder (`config.json` + `diffusion_pytorch_model.safetensors`, weights in
-    /// f32/f16/bf16, computed in f32 on the CPU).
+    /// Loads a diffusers `vae/` folder (`config.json` + `diffusion_pytorch_model.safetensors` or its `.fp16`
+    /// variant; weights in f32/f16/bf16, computed in f32 on the CPU).
     pub fn load(dir: &Path) -> Result<Self> {
         let config_path = dir.join(CONFIG_FILE);
-        let weights = dir.join(WEIGHTS_FILE);
-        let missing: Vec<&str> = [(CONFIG_FILE, &config_path), (WEIGHTS_FILE, &weights)]
-            .into_iter()
-            .filter(|(_, p)| !p.is_file())
-            .map(|(name, _)| name)
-            .collect();
-        if !missing.is_empty() {
+        let weights = taesd::diffusers_weights(dir);
+        let mut missing = Vec::new();
+        if !config_path.is_file() {
+            missing.push(CONFIG_FILE);
+        }
+        if weights.is_none() {
+            missing.push("diffusion_pytorch_model.safetensors (or its .fp16 variant)");
+        }
+        let Some(weights) = weights.filter(|_| missing.is_empty()) else {
             return Err(VaeError::MissingFiles {
                 dir: dir.to_path_buf(),
                 missing: format!("missing {}", missing.join(", ")),
             });
-        }
+        };
         let cfg = AutoencoderKLConfig::from_file(&config_path)?;
         let weights_err = |source| VaeError::Weights {
             path: weights.clone(),

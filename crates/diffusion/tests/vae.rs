@@ -75,6 +75,22 @@ fn tiny_ip2p_vae_f16_weights_match_diffusers() {
     check_model("tiny-ip2p");
 }
 
+/// A folder holding only diffusers' `fp16` variant file loads the same model.
+#[test]
+fn fp16_variant_file_is_accepted() {
+    let src = repo().join("fixtures/models/tiny-ip2p/vae");
+    let dir = tempfile::tempdir().unwrap();
+    std::fs::copy(src.join("config.json"), dir.path().join("config.json")).unwrap();
+    std::fs::copy(
+        src.join("diffusion_pytorch_model.safetensors"),
+        dir.path().join("diffusion_pytorch_model.fp16.safetensors"),
+    )
+    .unwrap();
+    let vae = AutoencoderKL::load(dir.path()).unwrap();
+    let refs = fixture("kl-tiny-ip2p.safetensors");
+    assert!(max_abs_diff(&vae.decode(&refs["latents"]).unwrap(), &refs["decoded"]) <= 1e-4);
+}
+
 #[test]
 fn autoencoder_enum_picks_the_right_model() {
     let kl = Autoencoder::load(&repo().join("fixtures/models/tiny-lcm/vae")).unwrap();
