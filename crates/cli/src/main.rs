@@ -26,6 +26,8 @@ enum Command {
     // One line per subcommand; keep them in the order a user meets them.
     /// Print statistics of a 3DGS scene (count, SH degree, bounds, opacities, scales, cameras).
     Inspect(cmd::inspect::Args),
+    /// Edit one image from a source prompt to a target prompt (InfEdit).
+    EditImage(cmd::edit_image::Args),
     /// Inspect a Stable Diffusion model folder (`vcedit model check DIR`).
     Model(cmd::model::Args),
 }
@@ -34,6 +36,7 @@ fn main() {
     let cli = Cli::parse();
     let result: anyhow::Result<()> = match cli.command {
         Command::Inspect(a) => cmd::inspect::run(a),
+        Command::EditImage(a) => cmd::edit_image::run(a),
         Command::Model(a) => cmd::model::run(a),
     };
     if let Err(err) = result {

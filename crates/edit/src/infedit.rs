@@ -124,6 +124,8 @@ pub struct EditPlan {
     pub blend_size: (usize, usize),
     /// Target prompt tokens (SOT .. EOT) as strings, for per-word attention maps.
     pub target_tokens: Vec<String>,
+    /// Real tokens (with SOT/EOT) of the source prompt.
+    pub source_len: usize,
     pub thresholds: BlendThresholds,
 }
 
@@ -161,6 +163,15 @@ impl EditPlan {
             )));
         }
         let latent_size = (ih / f, iw / f);
+        // Each down block but the last halves the latents; odd sizes would not line up with the up path.
+        let levels = model.unet.config().down_block_types.len().saturating_sub(1) as u32;
+        let multiple = f * 2usize.pow(levels);
+        if iw % multiple != 0 || ih % multiple != 0 {
+            return Err(EditError::Settings(format!(
+                "image size {iw}x{ih} must be a multiple of {multiple} for this model \
+                 ({f}x codec, {levels} UNet downsamplings)"
+            )));
+        }
         let tok = &model.tokenizer;
         let strict = |which: &'static str, text: &str| {
             tok.encode_strict(text)
@@ -251,6 +262,7 @@ impl EditPlan {
             latent_channels: model.latent_channels(),
             blend_size,
             target_tokens,
+            source_len: source_ids.len(),
             thresholds: BlendThresholds {
                 thresh_e: settings.thresh_e,
                 thresh_m: settings.thresh_m,
@@ -303,6 +315,8 @@ impl EditPlan {
             z_m: z,
             pred_t: None,
             pred_m: None,
+            offset_t: None,
+            offset_m: None,
             controller: self.controller()?,
         })
     }
@@ -350,7 +364,9 @@ impl EditPlan {
         ])
     }
 
-    /// The DDCM (virtual inversion) step for one branch B against the source: returns (z_S', z_B', x̂0_B).
+    /// The DDCM (virtual inversion) step for one branch B against the source: returns (z_S', z_B', x̂0_B,
+    /// offset) where z_B' = √ᾱ_prev x̂0_B + offset (the offset is `dir + σ n`, or `None` for a one-step
+    /// schedule where z_B' = x̂0_B).
     #[allow(clippy::too_many_arguments)]
     pub fn ddcm(
         &self,
@@ -361,7 +377,7 @@ impl EditPlan {
         eps_b: &Tensor,
         x0: &Tensor,
         noise: &Tensor,
-    ) -> candle_core::Result<(Tensor, Tensor, Tensor)> {
+    ) -> candle_core::Result<(Tensor, Tensor, Tensor, Option<Tensor>)> {
         let (a_t, a_prev) = (self.alpha[i], self.alpha_prev[i]);
         let (b_t, b_prev) = (1.0 - a_t, 1.0 - a_prev);
         let var = self.settings.eta * b_prev;
@@ -369,12 +385,12 @@ impl EditPlan {
         let pred = x0
             .add(&((z_b - z_s)? - diff.affine(b_t.sqrt(), 0.0)?)?.affine(1.0 / a_t.sqrt(), 0.0)?)?;
         if self.num_steps <= 1 {
-            return Ok((x0.clone(), pred.clone(), pred));
+            return Ok((x0.clone(), pred.clone(), pred, None));
         }
         let dir_noise = self.dir_and_noise(i, z_s, &diff, x0, noise, var)?;
         let z_b_next = pred.affine(a_prev.sqrt(), 0.0)?.add(&dir_noise)?;
         let z_s_next = x0.affine(a_prev.sqrt(), 0.0)?.add(&dir_noise)?;
-        Ok((z_s_next, z_b_next, pred))
+        Ok((z_s_next, z_b_next, pred, Some(dir_noise)))
     }
 
     /// `dir + σ n` of the DDCM step (shared by both branches' updates).
@@ -403,15 +419,40 @@ impl EditPlan {
         eps: &[Tensor; 3],
         noise: &Tensor,
     ) -> candle_core::Result<()> {
-        let (zs_t, zt, pt) =
+        let (_, zt, pt, ot) =
             self.ddcm(i, &view.z_s, &view.z_t, &eps[0], &eps[1], &view.x0, noise)?;
-        let (zs, zm, pm) = self.ddcm(i, &view.z_s, &view.z_m, &eps[0], &eps[2], &view.x0, noise)?;
-        let _ = zs_t;
+        let (zs, zm, pm, om) =
+            self.ddcm(i, &view.z_s, &view.z_m, &eps[0], &eps[2], &view.x0, noise)?;
         view.z_s = zs;
         view.z_t = zt;
         view.z_m = zm;
         view.pred_t = Some(pt);
         view.pred_m = Some(pm);
+        view.offset_t = ot;
+        view.offset_m = om;
+        Ok(())
+    }
+
+    /// Replaces the step's predictions x̂0_T, x̂0_M (VcEdit's ECM) and recomputes the branch latents from
+    /// them with the step's own direction and noise terms.
+    pub fn rebase(
+        &self,
+        view: &mut ViewState,
+        i: usize,
+        pred_t: Tensor,
+        pred_m: Tensor,
+    ) -> candle_core::Result<()> {
+        let a_prev = self.alpha_prev[i].sqrt();
+        let next = |pred: &Tensor, offset: &Option<Tensor>| -> candle_core::Result<Tensor> {
+            match offset {
+                Some(o) => pred.affine(a_prev, 0.0)?.add(o),
+                None => Ok(pred.clone()),
+            }
+        };
+        view.z_t = next(&pred_t, &view.offset_t)?;
+        view.z_m = next(&pred_m, &view.offset_m)?;
+        view.pred_t = Some(pred_t);
+        view.pred_m = Some(pred_m);
         Ok(())
     }
 
@@ -465,6 +506,9 @@ pub struct ViewState {
     /// Last x̂0 of the target and layout branches.
     pub pred_t: Option<Tensor>,
     pub pred_m: Option<Tensor>,
+    /// The last step's `dir + σ n` of each branch (z = √ᾱ_prev x̂0 + offset).
+    pub offset_t: Option<Tensor>,
+    pub offset_m: Option<Tensor>,
     pub controller: EditController,
 }
 

@@ -2,7 +2,10 @@
 
 pub mod align;
 pub mod blend;
+pub mod consistency;
 pub mod control;
 pub mod infedit;
 pub mod model;
+pub mod multiview;
 pub mod noise;
+pub mod viz;

@@ -1,3 +1,5 @@
 //! One module per subcommand.
+pub mod edit_image;
+pub mod edit_opts;
 pub mod inspect;
 pub mod model;

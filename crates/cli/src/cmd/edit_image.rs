@@ -1,0 +1,124 @@
+//! `vcedit edit-image`: InfEdit on one image.
+
+use std::path::PathBuf;
+use std::time::Instant;
+
+use anyhow::{bail, Context};
+use edit::infedit::{edit_image, EditPlan};
+use edit::model::EditModel;
+use edit::noise::SeededNoise;
+use edit::viz;
+use indicatif::{ProgressBar, ProgressStyle};
+use splat::Image;
+
+use super::edit_opts::{ModelArgs, PromptArgs, SamplerArgs};
+
+/// Edit one image from a source prompt to a target prompt (InfEdit: inversion-free, LCM, attention control).
+#[derive(clap::Args, Debug)]
+#[command(after_help = "Examples:
+  vcedit edit-image --model ./LCM_Dreamshaper_v7 --image man.png --source \"a man\" --target \"a clown\" --out clown.png
+  vcedit edit-image --model ./sd15 --taesd ./taesd --image cat.png --source \"a photo of a cat\" \\
+      --target \"a photo of a dog\" --blend-words dog --save-attention attn/ --out dog.png")]
+pub struct Args {
+    #[command(flatten)]
+    pub model: ModelArgs,
+    /// Input image (PNG/JPEG; transparency is composited over white).
+    #[arg(long, value_name = "FILE")]
+    pub image: PathBuf,
+    #[command(flatten)]
+    pub prompts: PromptArgs,
+    /// Output PNG.
+    #[arg(long, value_name = "FILE")]
+    pub out: PathBuf,
+    /// Also write one attention heat map per target word and the local-blend mask into this folder.
+    #[arg(long, value_name = "DIR")]
+    pub save_attention: Option<PathBuf>,
+    #[command(flatten)]
+    pub sampler: SamplerArgs,
+}
+
+pub fn run(args: Args) -> anyhow::Result<()> {
+    let settings = args.sampler.settings()?;
+    let (w, h) = args.sampler.size()?;
+    if args
+        .out
+        .extension()
+        .and_then(|e| e.to_str())
+        .map(str::to_ascii_lowercase)
+        .as_deref()
+        != Some("png")
+    {
+        bail!("{}: the output must be a .png file", args.out.display());
+    }
+    let input = Image::load(&args.image)?;
+    let input = input
+        .over_background([1.0, 1.0, 1.0])
+        .center_crop_to_aspect(w, h)
+        .resize(w, h);
+
+    let t0 = Instant::now();
+    let model = EditModel::load(&args.model.model, args.model.taesd.as_deref())
+        .with_context(|| format!("loading model {}", args.model.model.display()))?;
+    let load_time = t0.elapsed();
+    let prompts = args.prompts.prompts();
+    let plan = EditPlan::new(&model, &prompts, &settings, (w as usize, h as usize))?;
+
+    let bar = ProgressBar::new(plan.timesteps.len() as u64);
+    bar.set_style(
+        ProgressStyle::with_template(
+            "{prefix} [{bar:30}] {pos}/{len} steps, {elapsed} elapsed, ETA {eta}",
+        )
+        .expect("valid template")
+        .progress_chars("=> "),
+    );
+    bar.set_prefix("editing");
+    let image = viz::image_to_tensor(&input)?;
+    let mut noise = SeededNoise::new(args.sampler.seed);
+    let t1 = Instant::now();
+    let outcome = edit_image(&model, &plan, &image, &mut noise, &mut |_| bar.inc(1))?;
+    bar.finish_and_clear();
+    let edit_time = t1.elapsed();
+
+    let out = viz::tensor_to_images(&outcome.image)?.remove(0);
+    out.save_png(&args.out)?;
+
+    if let Some(dir) = &args.save_attention {
+        std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+        let maps = viz::word_maps(
+            outcome.state.controller.blend_store(),
+            plan.blend_size,
+            &plan.target_tokens,
+            (h as usize, w as usize),
+        )?;
+        for m in &maps {
+            let path = dir.join(format!("attn_{}.png", viz::file_safe(&m.word)));
+            viz::heat_image(&m.map, w, h).save_png(&path)?;
+        }
+        if let Some(bm) = &outcome.blend_maps {
+            // The target-word region of the last step, thresholded as the blend did.
+            let e = bm.get(0)?;
+            let (tau_e, _, _) = plan.thresholds.at(*plan.alpha.last().expect("steps"));
+            let mask: Vec<f32> = viz::resize_map(&e, h as usize, w as usize)?
+                .into_iter()
+                .map(|v| if v as f64 > tau_e { 1.0 } else { 0.0 })
+                .collect();
+            viz::mask_image(&mask, w, h).save_png(&dir.join("mask.png"))?;
+        }
+        println!(
+            "attention maps: {} words and the blend mask in {}",
+            maps.len(),
+            dir.display()
+        );
+    }
+    let steps = plan.timesteps.len();
+    println!(
+        "wrote {} ({}x{}, {} steps, {:.2} s/step; model load {:.1} s)",
+        args.out.display(),
+        w,
+        h,
+        steps,
+        edit_time.as_secs_f64() / steps as f64,
+        load_time.as_secs_f64()
+    );
+    Ok(())
+}
