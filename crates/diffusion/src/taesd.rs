@@ -19,7 +19,8 @@
 //!   and shapes, so taesd.py variants with other widths or latent channels load as well (activation ReLU,
 //!   nearest ×2 upsampling, as taesd.py hard-codes).
 //!
-//! Everything is plain differentiable candle ops (conv, relu, tanh, nearest upsampling).
+//! Every op is differentiable (relu, tanh, nearest upsampling, and [`crate::conv::Conv2d`], which falls back
+//! to candle's conv whenever gradients are needed), so a TAESD can be trained or fine-tuned.
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};

@@ -630,8 +630,8 @@ fn check_nchw(x: &Tensor, channels: usize, what: &'static str) -> Result<()> {
 /// Either autoencoder, behind the interface an editing pipeline needs (UNet-scale latents, [-1, 1] images).
 #[derive(Debug, Clone)]
 pub enum Autoencoder {
-    Kl(AutoencoderKL),
-    Tiny(AutoencoderTiny),
+    Kl(Box<AutoencoderKL>),
+    Tiny(Box<AutoencoderTiny>),
 }
 
 impl Autoencoder {
@@ -659,9 +659,9 @@ impl Autoencoder {
             true
         };
         if is_tiny {
-            Ok(Self::Tiny(AutoencoderTiny::load(dir)?))
+            Ok(Self::Tiny(Box::new(AutoencoderTiny::load(dir)?)))
         } else {
-            Ok(Self::Kl(AutoencoderKL::load(dir)?))
+            Ok(Self::Kl(Box::new(AutoencoderKL::load(dir)?)))
         }
     }
 
