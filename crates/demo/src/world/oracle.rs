@@ -1,0 +1,726 @@
+//! An oracle for edit fidelity that needs no CLIP: the world is procedural, so for every camera we know
+//! exactly which pixels show the edited object and what colour each should have before and after the edit.
+//!
+//! For a source spec, a target spec with the same geometry (only colours/pattern changed), cameras, and
+//! images of an edited result, [`Oracle::score`] reports:
+//!
+//! - **fidelity** (layout-aware): over the main object's patterned pixels where the source and target
+//!   renders differ clearly (the target colour is at least `min_contrast` CIELAB units from every source
+//!   colour within `tolerance_px` pixels, and vice versa), the fraction whose edited colour is closer to
+//!   the target render than to the source render. Distances are taken to the best match within
+//!   `tolerance_px` pixels, so a pattern edge off by a pixel is not punished; ties count one half.
+//!   Optionally the target pattern's phase is searched (`phase_steps`), since a caption fixes the pattern
+//!   family but not where the stripes start: the best phase for all views together is kept, which still
+//!   rewards edits that agree across views and punishes ones that do not.
+//! - **colour fidelity** (layout-free): over the same object pixels, each edited colour is matched to the
+//!   nearest of the source and target pattern colours (only when clearly nearer to it than to any other,
+//!   so blends at pattern edges abstain); the fraction matched to a target-only colour among those
+//!   matched to a colour that changed.
+//! - **preservation**: PSNR between the edited images and the source renders outside the main object
+//!   (its coverage dilated by `margin_px`), i.e. the table, floor and background.
+//!
+//! 3DGS renders carry no lighting, so colours are compared directly (CIELAB, so distances follow what the
+//! eye sees); expected images come from the same renderer as the edited ones.
+
+use super::build::{
+    build_scene, BuildSettings, BuiltScene, Slot, LABEL_CHANNELS, MAIN, OBJECT_IDS,
+};
+use super::palette::srgb_to_lab;
+use super::pattern::PatternKind;
+use super::spec::SceneSpec;
+use super::WorldError;
+use rayon::prelude::*;
+use serde::{Deserialize, Serialize};
+use splat::render::{render, ExtraChannels, RenderSettings};
+use splat::{Camera, Image};
+
+/// Label of pixels no Gaussian covers (alpha < 0.5).
+pub const BACKGROUND: u8 = u8::MAX;
+
+/// Per-pixel labels of a view, from the Gaussian labels composited like colours.
+#[derive(Clone, Debug, PartialEq)]
+pub struct LabelImage {
+    pub width: u32,
+    pub height: u32,
+    /// Object id ([`MAIN`], [`super::build::SUPPORT`], [`super::build::FLOOR`]) with the largest weight,
+    /// or [`BACKGROUND`].
+    pub object: Vec<u8>,
+    /// [`Slot`] (as u8) with the largest weight, or [`BACKGROUND`].
+    pub slot: Vec<u8>,
+    /// H*W*3 weights of the object ids (they sum to the pixel's alpha).
+    pub object_weights: Vec<f32>,
+    /// H*W*3 weights of the slots (first, second, fixed).
+    pub slot_weights: Vec<f32>,
+    pub alpha: Vec<f32>,
+}
+
+/// Renders the label image of a built scene.
+pub fn render_labels(built: &BuiltScene, camera: &Camera) -> LabelImage {
+    let channels = built.label_channels();
+    let out = render(
+        &built.scene,
+        camera,
+        &RenderSettings::default(),
+        Some(ExtraChannels {
+            values: &channels,
+            channels: LABEL_CHANNELS,
+        }),
+    );
+    let npix = out.alpha.len();
+    let mut object = vec![BACKGROUND; npix];
+    let mut slot = vec![BACKGROUND; npix];
+    let mut object_weights = Vec::with_capacity(npix * OBJECT_IDS);
+    let mut slot_weights = Vec::with_capacity(npix * 3);
+    let argmax = |w: &[f32]| {
+        (0..w.len())
+            .max_by(|&a, &b| w[a].total_cmp(&w[b]))
+            .unwrap_or(0) as u8
+    };
+    for (p, px) in out.extra.chunks_exact(LABEL_CHANNELS).enumerate() {
+        let (objects, slots) = px.split_at(OBJECT_IDS);
+        object_weights.extend_from_slice(objects);
+        slot_weights.extend_from_slice(slots);
+        if out.alpha[p] >= 0.5 {
+            object[p] = argmax(objects);
+            slot[p] = argmax(slots);
+        }
+    }
+    LabelImage {
+        width: out.width,
+        height: out.height,
+        object,
+        slot,
+        object_weights,
+        slot_weights,
+        alpha: out.alpha,
+    }
+}
+
+/// Knobs of the oracle.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct OracleSettings {
+    /// Misalignment tolerated, pixels (radius of the neighbourhood searched for the best match).
+    pub tolerance_px: u32,
+    /// Smallest CIELAB distance between source and target colour for a pixel to count.
+    pub min_contrast: f32,
+    /// Smallest coverage by the main object's patterned parts for a pixel to count (excludes silhouettes).
+    pub min_coverage: f32,
+    /// Dilation of the object mask excluded from preservation, pixels.
+    pub margin_px: u32,
+    /// Phase candidates per axis for the target pattern (1 = the target spec's exact layout only).
+    pub phase_steps: u32,
+    /// Density of the scenes the oracle renders.
+    pub build: BuildSettings,
+}
+
+impl Default for OracleSettings {
+    fn default() -> Self {
+        Self {
+            tolerance_px: 1,
+            min_contrast: 20.0,
+            min_coverage: 0.9,
+            margin_px: 2,
+            phase_steps: 1,
+            build: BuildSettings::default(),
+        }
+    }
+}
+
+/// Scores of one view.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct ViewScore {
+    /// Layout-aware fidelity; `None` when no pixel of this view is informative.
+    pub fidelity: Option<f64>,
+    pub informative_pixels: usize,
+    /// Layout-free colour fidelity; `None` when no pixel matched a changed colour.
+    pub color_fidelity: Option<f64>,
+    pub color_votes: usize,
+    /// PSNR outside the object, dB (capped at 100).
+    pub preservation_psnr: f64,
+    pub outside_pixels: usize,
+}
+
+/// Scores of a set of views (pooled over pixels of all views).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct EditScore {
+    pub fidelity: Option<f64>,
+    pub color_fidelity: Option<f64>,
+    pub preservation_psnr: f64,
+    /// Offset added to the target pattern's phase that matched best (zero without phase search).
+    pub phase_offset: [f32; 2],
+    pub per_view: Vec<ViewScore>,
+}
+
+/// Expected appearance of one view.
+#[derive(Clone, Debug)]
+pub struct ExpectedView {
+    /// Render of the source spec.
+    pub source: Image,
+    /// Render of the target spec.
+    pub target: Image,
+    /// H*W coverage by the main object.
+    pub main: Vec<f32>,
+    /// H*W coverage by the main object's patterned parts.
+    pub patterned: Vec<f32>,
+}
+
+/// The oracle for one source → target edit.
+pub struct Oracle {
+    source: SceneSpec,
+    target: SceneSpec,
+    built: BuiltScene,
+    settings: OracleSettings,
+}
+
+const PSNR_CAP: f64 = 100.0;
+
+impl Oracle {
+    /// Fails when the target does not share the source's geometry.
+    pub fn new(
+        source: &SceneSpec,
+        target: &SceneSpec,
+        settings: OracleSettings,
+    ) -> Result<Self, WorldError> {
+        if !source.same_geometry(target) {
+            return Err(WorldError::Incompatible(format!(
+                "oracle: \"{}\" and \"{}\" differ in more than colour and pattern",
+                source.caption(),
+                target.caption()
+            )));
+        }
+        let built = build_scene(source, &settings.build);
+        Ok(Self {
+            source: source.clone(),
+            target: target.clone(),
+            built,
+            settings,
+        })
+    }
+
+    /// Target specs to try: the target itself, or its pattern at every phase offset of the search grid.
+    fn candidates(&self) -> Vec<([f32; 2], SceneSpec)> {
+        let steps = self.settings.phase_steps.max(1);
+        if steps == 1 || self.target.main.pattern.kind == PatternKind::Solid {
+            return vec![([0.0; 2], self.target.clone())];
+        }
+        let mut out = Vec::new();
+        for i in 0..steps {
+            for j in 0..steps {
+                let offset = [i as f32 / steps as f32, j as f32 / steps as f32];
+                let mut spec = self.target.clone();
+                spec.main.pattern.phase[0] += offset[0];
+                spec.main.pattern.phase[1] += offset[1];
+                out.push((offset, spec));
+            }
+        }
+        out
+    }
+
+    /// Per-Gaussian extra channels: main indicator, patterned indicator, then RGB under each candidate.
+    fn channels(
+        &self,
+        candidates: &[([f32; 2], SceneSpec)],
+    ) -> Result<(Vec<f32>, usize), WorldError> {
+        let n = self.built.len();
+        let c = 2 + 3 * candidates.len();
+        let colors: Vec<Vec<f32>> = candidates
+            .iter()
+            .map(|(_, spec)| self.built.colors_for(spec))
+            .collect::<Result<_, _>>()?;
+        let mut values = vec![0.0; n * c];
+        for (i, px) in values.chunks_exact_mut(c).enumerate() {
+            let main = self.built.labels.object[i] == MAIN;
+            px[0] = main as u8 as f32;
+            px[1] = (main && self.built.labels.slot[i] != Slot::Fixed) as u8 as f32;
+            for (k, col) in colors.iter().enumerate() {
+                px[2 + 3 * k..5 + 3 * k].copy_from_slice(&col[3 * i..3 * i + 3]);
+            }
+        }
+        Ok((values, c))
+    }
+
+    /// The expected source and target renders of a view, with the object coverage.
+    pub fn expected(&self, camera: &Camera) -> Result<ExpectedView, WorldError> {
+        let candidates = vec![([0.0; 2], self.target.clone())];
+        let (values, c) = self.channels(&candidates)?;
+        let r = self.render_view(camera, &values, c);
+        Ok(ExpectedView {
+            source: Image::from_data(r.width, r.height, 3, r.source),
+            target: Image::from_data(
+                r.width,
+                r.height,
+                3,
+                r.targets.into_iter().next().unwrap_or_default(),
+            ),
+            main: r.main,
+            patterned: r.patterned,
+        })
+    }
+
+    fn render_view(&self, camera: &Camera, values: &[f32], c: usize) -> RenderedView {
+        let bg = self.source.background;
+        let out = render(
+            &self.built.scene,
+            camera,
+            &RenderSettings { background: bg },
+            Some(ExtraChannels {
+                values,
+                channels: c,
+            }),
+        );
+        let npix = out.alpha.len();
+        let ncand = (c - 2) / 3;
+        let mut main = Vec::with_capacity(npix);
+        let mut patterned = Vec::with_capacity(npix);
+        let mut targets = vec![Vec::with_capacity(3 * npix); ncand];
+        for (p, px) in out.extra.chunks_exact(c).enumerate() {
+            main.push(px[0]);
+            patterned.push(px[1]);
+            let t = 1.0 - out.alpha[p];
+            for (k, target) in targets.iter_mut().enumerate() {
+                for ch in 0..3 {
+                    target.push(px[2 + 3 * k + ch] + t * bg[ch]);
+                }
+            }
+        }
+        RenderedView {
+            width: out.width,
+            height: out.height,
+            source: out.rgb,
+            targets,
+            main,
+            patterned,
+        }
+    }
+
+    /// Scores images of an edited result seen from `cameras` (one image per camera, same size, RGB or
+    /// RGBA; alpha is ignored).
+    pub fn score(&self, cameras: &[Camera], images: &[Image]) -> Result<EditScore, WorldError> {
+        if cameras.len() != images.len() {
+            return Err(WorldError::Input(format!(
+                "oracle: {} cameras but {} images",
+                cameras.len(),
+                images.len()
+            )));
+        }
+        for (k, (cam, img)) in cameras.iter().zip(images).enumerate() {
+            if (cam.width, cam.height) != (img.width, img.height) || img.channels < 3 {
+                return Err(WorldError::Input(format!(
+                    "oracle: image {k} is {}x{}x{}, camera {} expects {}x{} RGB",
+                    img.width, img.height, img.channels, cam.name, cam.width, cam.height
+                )));
+            }
+        }
+        let candidates = self.candidates();
+        let (values, c) = self.channels(&candidates)?;
+        let colour_sets = ColourSets::new(&self.source, &self.target);
+        let views: Vec<Vec<ViewTally>> = cameras
+            .par_iter()
+            .zip(images.par_iter())
+            .map(|(cam, img)| {
+                let r = self.render_view(cam, &values, c);
+                self.tally(&r, img, &colour_sets)
+            })
+            .collect();
+        // Best candidate over all views together.
+        let best = (0..candidates.len())
+            .max_by(|&a, &b| {
+                let score = |k: usize| {
+                    let (votes, n) = views.iter().fold((0.0, 0usize), |acc, v| {
+                        (acc.0 + v[k].votes, acc.1 + v[k].informative)
+                    });
+                    if n == 0 {
+                        0.0
+                    } else {
+                        votes / n as f64
+                    }
+                };
+                // On equal scores prefer the earlier candidate (the exact target layout comes first).
+                score(a).total_cmp(&score(b)).then(b.cmp(&a))
+            })
+            .unwrap_or(0);
+        let per_view: Vec<ViewScore> = views.iter().map(|v| v[best].score()).collect();
+        let mut total = ViewTally::default();
+        for v in &views {
+            total.add(&v[best]);
+        }
+        let pooled = total.score();
+        Ok(EditScore {
+            fidelity: pooled.fidelity,
+            color_fidelity: pooled.color_fidelity,
+            preservation_psnr: pooled.preservation_psnr,
+            phase_offset: candidates[best].0,
+            per_view,
+        })
+    }
+
+    /// Vote counts of one view for every candidate.
+    fn tally(&self, r: &RenderedView, img: &Image, sets: &ColourSets) -> Vec<ViewTally> {
+        let (w, h) = (r.width as usize, r.height as usize);
+        let npix = w * h;
+        let ch = img.channels as usize;
+        let lab = |rgb: &[f32], p: usize| srgb_to_lab([rgb[3 * p], rgb[3 * p + 1], rgb[3 * p + 2]]);
+        let edited: Vec<[f32; 3]> = (0..npix)
+            .map(|p| srgb_to_lab([img.data[ch * p], img.data[ch * p + 1], img.data[ch * p + 2]]))
+            .collect();
+        let source: Vec<[f32; 3]> = (0..npix).map(|p| lab(&r.source, p)).collect();
+        let counted: Vec<bool> = r
+            .main
+            .iter()
+            .zip(&r.patterned)
+            .map(|(&m, &pat)| m >= self.settings.min_coverage && pat >= self.settings.min_coverage)
+            .collect();
+
+        // Preservation and colour votes do not depend on the candidate.
+        let mut base = ViewTally::default();
+        let margin = self.settings.margin_px as i64;
+        for y in 0..h as i64 {
+            for x in 0..w as i64 {
+                let near_object = (-margin..=margin).any(|dy| {
+                    (-margin..=margin).any(|dx| {
+                        let (xx, yy) = (x + dx, y + dy);
+                        xx >= 0
+                            && yy >= 0
+                            && xx < w as i64
+                            && yy < h as i64
+                            && r.main[yy as usize * w + xx as usize] > 0.02
+                    })
+                });
+                if !near_object {
+                    let p = y as usize * w + x as usize;
+                    base.outside += 1;
+                    for k in 0..3 {
+                        let d = (img.data[ch * p + k].clamp(0.0, 1.0)
+                            - r.source[3 * p + k].clamp(0.0, 1.0))
+                            as f64;
+                        base.squared_error += d * d;
+                    }
+                }
+            }
+        }
+        for p in (0..npix).filter(|&p| counted[p]) {
+            match sets.nearest(edited[p]) {
+                Some(true) => {
+                    base.color_target += 1;
+                }
+                Some(false) => {
+                    base.color_source += 1;
+                }
+                None => {}
+            }
+        }
+
+        let tol = self.settings.tolerance_px as i64;
+        r.targets
+            .iter()
+            .map(|target| {
+                let target: Vec<[f32; 3]> = (0..npix).map(|p| lab(target, p)).collect();
+                let mut t = base.clone();
+                for p in (0..npix).filter(|&p| counted[p]) {
+                    let (x, y) = ((p % w) as i64, (p / w) as i64);
+                    let mut d_target = f32::INFINITY;
+                    let mut d_source = f32::INFINITY;
+                    // A pixel only tells source from target when its expected target colour appears
+                    // nowhere near it in the source render and vice versa; otherwise a shift by the
+                    // tolerance would explain either.
+                    let mut separable = true;
+                    for yy in (y - tol).max(0)..=(y + tol).min(h as i64 - 1) {
+                        for xx in (x - tol).max(0)..=(x + tol).min(w as i64 - 1) {
+                            let q = yy as usize * w + xx as usize;
+                            separable &= dist(target[p], source[q]) >= self.settings.min_contrast
+                                && dist(source[p], target[q]) >= self.settings.min_contrast;
+                            d_target = d_target.min(dist(edited[p], target[q]));
+                            d_source = d_source.min(dist(edited[p], source[q]));
+                        }
+                    }
+                    if !separable {
+                        continue;
+                    }
+                    t.informative += 1;
+                    t.votes += if (d_target - d_source).abs() < 1.0 {
+                        0.5
+                    } else if d_target < d_source {
+                        1.0
+                    } else {
+                        0.0
+                    };
+                }
+                t
+            })
+            .collect()
+    }
+}
+
+/// Scores an edit in one call (see [`Oracle`]).
+pub fn score_edit(
+    source: &SceneSpec,
+    target: &SceneSpec,
+    cameras: &[Camera],
+    images: &[Image],
+    settings: OracleSettings,
+) -> Result<EditScore, WorldError> {
+    Oracle::new(source, target, settings)?.score(cameras, images)
+}
+
+struct RenderedView {
+    width: u32,
+    height: u32,
+    source: Vec<f32>,
+    targets: Vec<Vec<f32>>,
+    main: Vec<f32>,
+    patterned: Vec<f32>,
+}
+
+#[derive(Clone, Debug, Default)]
+struct ViewTally {
+    votes: f64,
+    informative: usize,
+    color_target: usize,
+    color_source: usize,
+    squared_error: f64,
+    outside: usize,
+}
+
+impl ViewTally {
+    fn add(&mut self, o: &ViewTally) {
+        self.votes += o.votes;
+        self.informative += o.informative;
+        self.color_target += o.color_target;
+        self.color_source += o.color_source;
+        self.squared_error += o.squared_error;
+        self.outside += o.outside;
+    }
+
+    fn score(&self) -> ViewScore {
+        let color_votes = self.color_target + self.color_source;
+        let mse = self.squared_error / (3 * self.outside.max(1)) as f64;
+        ViewScore {
+            fidelity: (self.informative > 0).then(|| self.votes / self.informative as f64),
+            informative_pixels: self.informative,
+            color_fidelity: (color_votes > 0)
+                .then(|| self.color_target as f64 / color_votes as f64),
+            color_votes,
+            preservation_psnr: if mse > 0.0 {
+                (10.0 * (1.0 / mse).log10()).min(PSNR_CAP)
+            } else {
+                PSNR_CAP
+            },
+            outside_pixels: self.outside,
+        }
+    }
+}
+
+/// The pattern colours of source and target, for the layout-free colour vote.
+struct ColourSets {
+    /// (Lab, is a target colour, is a source colour)
+    colours: Vec<([f32; 3], bool, bool)>,
+}
+
+impl ColourSets {
+    fn new(source: &SceneSpec, target: &SceneSpec) -> Self {
+        let used = |s: &SceneSpec| {
+            let n = if s.main.pattern.kind.uses_second_color() {
+                2
+            } else {
+                1
+            };
+            s.main.colors[..n].to_vec()
+        };
+        let (src, tgt) = (used(source), used(target));
+        let mut colours = Vec::new();
+        for c in &src {
+            colours.push((
+                srgb_to_lab(c.rgb),
+                tgt.iter().any(|t| t.name == c.name),
+                true,
+            ));
+        }
+        for c in &tgt {
+            if !src.iter().any(|s| s.name == c.name) {
+                colours.push((srgb_to_lab(c.rgb), true, false));
+            }
+        }
+        Self { colours }
+    }
+
+    /// `Some(true)` when the nearest colour is target-only, `Some(false)` when source-only, `None` when
+    /// it is shared.
+    fn nearest(&self, lab: [f32; 3]) -> Option<bool> {
+        let mut ranked: Vec<(f32, bool, bool)> = self
+            .colours
+            .iter()
+            .map(|&(c, t, s)| (dist(lab, c), t, s))
+            .collect();
+        ranked.sort_by(|a, b| a.0.total_cmp(&b.0));
+        let &(nearest, is_target, is_source) = ranked.first()?;
+        // Blends of two pattern colours (pattern edges, blur) match neither clearly: no vote.
+        if ranked.get(1).is_some_and(|second| nearest > 0.5 * second.0) {
+            return None;
+        }
+        match (is_target, is_source) {
+            (true, false) => Some(true),
+            (false, true) => Some(false),
+            _ => None,
+        }
+    }
+}
+
+fn dist(a: [f32; 3], b: [f32; 3]) -> f32 {
+    ((a[0] - b[0]).powi(2) + (a[1] - b[1]).powi(2) + (a[2] - b[2]).powi(2)).sqrt()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::world::build::{FLOOR, SUPPORT};
+    use crate::world::dataset::{render_view, ring_views};
+    use crate::world::spec::GeneratorSettings;
+
+    fn renders(spec: &SceneSpec, cams: &[Camera]) -> Vec<Image> {
+        let built = build_scene(spec, &BuildSettings::default());
+        cams.iter().map(|c| render_view(&built, c)).collect()
+    }
+
+    fn shifted(img: &Image, dx: i64) -> Image {
+        let mut out = img.clone();
+        let w = img.width as i64;
+        for y in 0..img.height as usize {
+            for x in 0..w {
+                let sx = (x - dx).clamp(0, w - 1);
+                let (d, s) = (
+                    (y * w as usize + x as usize) * 3,
+                    (y * w as usize + sx as usize) * 3,
+                );
+                out.data[d..d + 3].copy_from_slice(&img.data[s..s + 3]);
+            }
+        }
+        out
+    }
+
+    #[test]
+    fn source_scores_zero_and_target_scores_one() {
+        let gen = GeneratorSettings::default();
+        for (src, tgt) in [
+            ("a red sphere", "a blue sphere"),
+            (
+                "a red striped vase on a table",
+                "a green striped vase on a table",
+            ),
+            ("a yellow checkered cube", "a purple checkered cube"),
+            (
+                "an orange dotted mushroom",
+                "an orange and blue dotted mushroom",
+            ),
+        ] {
+            let source = SceneSpec::from_caption(src, 21, &gen).unwrap();
+            let target = source.with_caption(tgt).unwrap();
+            let cams = ring_views(&source, 3, 64, 64, 25.0, 10.0);
+            let oracle = Oracle::new(&source, &target, OracleSettings::default()).unwrap();
+            let s = oracle.score(&cams, &renders(&source, &cams)).unwrap();
+            let t = oracle.score(&cams, &renders(&target, &cams)).unwrap();
+            let (sf, tf) = (s.fidelity.unwrap(), t.fidelity.unwrap());
+            assert!(sf < 0.05, "{src} -> {tgt}: source fidelity {sf}");
+            assert!(tf > 0.95, "{src} -> {tgt}: target fidelity {tf}");
+            assert!(
+                s.color_fidelity.unwrap() < 0.05 && t.color_fidelity.unwrap() > 0.95,
+                "{s:?} {t:?}"
+            );
+            // Only the object changed: outside it, both match the source.
+            assert_eq!(s.preservation_psnr, PSNR_CAP);
+            assert!(t.preservation_psnr > 40.0, "{}", t.preservation_psnr);
+            assert!(s.per_view.iter().all(|v| v.informative_pixels > 50));
+        }
+    }
+
+    #[test]
+    fn small_misalignment_and_outside_damage_are_told_apart() {
+        let gen = GeneratorSettings::default();
+        let source = SceneSpec::from_caption("a red striped cylinder", 4, &gen).unwrap();
+        let target = source.with_caption("a blue striped cylinder").unwrap();
+        let cams = ring_views(&source, 2, 64, 64, 20.0, 0.0);
+        let oracle = Oracle::new(&source, &target, OracleSettings::default()).unwrap();
+        let moved: Vec<Image> = renders(&target, &cams)
+            .iter()
+            .map(|i| shifted(i, 1))
+            .collect();
+        let s = oracle.score(&cams, &moved).unwrap();
+        assert!(s.fidelity.unwrap() > 0.9, "{s:?}");
+        // Shifting the whole image also moves the floor's tiles: preservation drops but stays finite.
+        assert!(s.preservation_psnr < 60.0);
+        // Painting the background changes preservation only.
+        let mut painted = renders(&target, &cams);
+        for img in &mut painted {
+            for v in img.data[..64 * 3 * 4].iter_mut() {
+                *v = 1.0 - *v;
+            }
+        }
+        let p = oracle.score(&cams, &painted).unwrap();
+        assert!(p.fidelity.unwrap() > 0.95);
+        assert!(p.preservation_psnr < 30.0, "{}", p.preservation_psnr);
+    }
+
+    #[test]
+    fn phase_search_accepts_a_shifted_pattern_but_not_the_source() {
+        let gen = GeneratorSettings::default();
+        let source = SceneSpec::from_caption("a red striped sphere", 8, &gen).unwrap();
+        let target = source.with_caption("a red dotted sphere").unwrap();
+        let mut elsewhere = target.clone();
+        elsewhere.main.pattern.phase[0] += 0.5;
+        elsewhere.main.pattern.phase[1] += 0.5;
+        let cams = ring_views(&source, 3, 64, 64, 25.0, 0.0);
+        let images = renders(&elsewhere, &cams);
+        let exact = Oracle::new(&source, &target, OracleSettings::default()).unwrap();
+        let searched = Oracle::new(
+            &source,
+            &target,
+            OracleSettings {
+                phase_steps: 4,
+                ..Default::default()
+            },
+        )
+        .unwrap();
+        let e = exact.score(&cams, &images).unwrap().fidelity.unwrap();
+        let s = searched.score(&cams, &images).unwrap();
+        assert!(
+            e < 0.8,
+            "exact layout should see the shifted dots as wrong: {e}"
+        );
+        assert!(s.fidelity.unwrap() > 0.95, "{s:?}");
+        assert_eq!(s.phase_offset, [0.5, 0.5]);
+        let src = searched.score(&cams, &renders(&source, &cams)).unwrap();
+        assert!(src.fidelity.unwrap() < 0.5, "{src:?}");
+    }
+
+    #[test]
+    fn label_image_and_input_errors() {
+        let gen = GeneratorSettings::default();
+        let spec = SceneSpec::from_caption("a green cube on a table", 2, &gen).unwrap();
+        let built = build_scene(&spec, &BuildSettings::default());
+        let cam = &ring_views(&spec, 1, 64, 64, 30.0, 0.0)[0];
+        let labels = render_labels(&built, cam);
+        let at = |x: usize, y: usize| labels.object[y * 64 + x];
+        assert_eq!(at(32, 18), MAIN, "the cube is above the centre");
+        assert_eq!(at(32, 48), SUPPORT, "the table below it");
+        assert_eq!(at(1, 62), FLOOR);
+        assert_eq!(at(1, 1), BACKGROUND);
+        assert_eq!(labels.slot[18 * 64 + 32], Slot::First as u8);
+        for p in 0..64 * 64 {
+            let sum: f32 = labels.object_weights[3 * p..3 * p + 3].iter().sum();
+            assert!((sum - labels.alpha[p]).abs() < 1e-3);
+        }
+        let other = SceneSpec::from_caption("a green cube on a table", 3, &gen).unwrap();
+        assert!(Oracle::new(&spec, &other, OracleSettings::default()).is_err());
+        let oracle = Oracle::new(
+            &spec,
+            &spec.with_caption("a red cube on a table").unwrap(),
+            OracleSettings::default(),
+        )
+        .unwrap();
+        assert!(oracle.score(std::slice::from_ref(cam), &[]).is_err());
+        assert!(oracle
+            .score(std::slice::from_ref(cam), &[Image::new(32, 32, 3)])
+            .is_err());
+        let expected = oracle.expected(cam).unwrap();
+        assert_eq!(expected.source, render_view(&built, cam));
+    }
+}
