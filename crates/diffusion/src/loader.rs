@@ -188,7 +188,7 @@ pub struct WeightFiles {
 pub struct ModelDir {
     root: PathBuf,
     /// Component folder names with their `[library, class]` from `model_index.json`.
-    index: BTreeMap<String, (Option<String>, Option<String>)>,
+    index: DeclaredClasses,
     pipeline_class: Option<String>,
 }
 
@@ -393,12 +393,10 @@ fn short_reason(err: &LoadError) -> String {
     }
 }
 
-fn parse_model_index(
-    value: &serde_json::Value,
-) -> (
-    Option<String>,
-    BTreeMap<String, (Option<String>, Option<String>)>,
-) {
+/// `[library, class]` per component name, as `model_index.json` declares them.
+type DeclaredClasses = BTreeMap<String, (Option<String>, Option<String>)>;
+
+fn parse_model_index(value: &serde_json::Value) -> (Option<String>, DeclaredClasses) {
     let mut entries = BTreeMap::new();
     let mut class = None;
     if let Some(obj) = value.as_object() {

@@ -398,6 +398,14 @@ impl ClipTokenizer {
             vocab.entry(a.content.clone()).or_insert(a.id);
         }
         let size = vocab.values().copied().max().map_or(0, |m| m as usize + 1);
+        // Ids index a table; a vocabulary with huge gaps is malformed (and would exhaust memory).
+        if size > 2 * vocab.len() + 1024 {
+            return Err(format_err(format!(
+                "token ids go up to {} for {} tokens; the vocabulary is malformed",
+                size - 1,
+                vocab.len()
+            )));
+        }
         let mut tokens = vec![String::new(); size];
         for (tok, &id) in &vocab {
             tokens[id as usize] = tok.clone();
@@ -677,20 +685,71 @@ impl ClipTokenizer {
                 None => symbols.extend(self.unk_id),
             }
         }
-        loop {
-            let best = symbols
-                .windows(2)
-                .enumerate()
-                .filter_map(|(pos, pair)| {
-                    self.merges
-                        .get(&(pair[0], pair[1]))
-                        .map(|&(rank, merged)| (rank, pos, merged))
-                })
-                .min();
-            let Some((_, pos, merged)) = best else { break };
-            symbols[pos] = merged;
-            symbols.remove(pos + 1);
+        self.merge_symbols(symbols);
+    }
+
+    /// Applies merges lowest rank first, leftmost first among equal ranks (`tokenizers`' order), with a
+    /// priority queue over a linked list so long words stay O(n log n).
+    fn merge_symbols(&self, symbols: &mut Vec<u32>) {
+        use std::cmp::Reverse;
+        use std::collections::BinaryHeap;
+        let n = symbols.len();
+        if n < 2 {
+            return;
         }
+        // Neighbour links over the original positions; usize::MAX marks "none", `alive` merged-away ones.
+        let mut next: Vec<usize> = (1..=n)
+            .map(|i| if i == n { usize::MAX } else { i })
+            .collect();
+        let mut prev: Vec<usize> = (0..n)
+            .map(|i| i.checked_sub(1).unwrap_or(usize::MAX))
+            .collect();
+        let mut alive = vec![true; n];
+        let mut heap = BinaryHeap::new();
+        for pos in 0..n - 1 {
+            if let Some(&(rank, _)) = self.merges.get(&(symbols[pos], symbols[pos + 1])) {
+                heap.push(Reverse((rank, pos)));
+            }
+        }
+        while let Some(Reverse((rank, pos))) = heap.pop() {
+            let right = next[pos];
+            if !alive[pos] || right == usize::MAX {
+                continue;
+            }
+            // The pair may have changed since this entry was queued.
+            let Some(&(current_rank, merged)) = self.merges.get(&(symbols[pos], symbols[right]))
+            else {
+                continue;
+            };
+            if current_rank != rank {
+                continue;
+            }
+            symbols[pos] = merged;
+            alive[right] = false;
+            next[pos] = next[right];
+            if next[pos] != usize::MAX {
+                prev[next[pos]] = pos;
+            }
+            if prev[pos] != usize::MAX {
+                let left = prev[pos];
+                if let Some(&(r, _)) = self.merges.get(&(symbols[left], symbols[pos])) {
+                    heap.push(Reverse((r, left)));
+                }
+            }
+            if next[pos] != usize::MAX {
+                if let Some(&(r, _)) = self.merges.get(&(symbols[pos], symbols[next[pos]])) {
+                    heap.push(Reverse((r, pos)));
+                }
+            }
+        }
+        let mut out = 0;
+        for i in 0..n {
+            if alive[i] {
+                symbols[out] = symbols[i];
+                out += 1;
+            }
+        }
+        symbols.truncate(out);
     }
 }
 
@@ -779,6 +838,44 @@ mod tests {
         assert_eq!(short.num_tokens, 3);
         assert!(!short.truncated());
         assert!(short.ids[3..].iter().all(|&i| i == t.pad_id()));
+    }
+
+    #[test]
+    fn long_words_merge_like_the_quadratic_definition() {
+        let t = tiny();
+        // Reference: repeatedly merge the leftmost lowest-ranked pair.
+        let naive = |mut s: Vec<u32>| loop {
+            let best = s
+                .windows(2)
+                .enumerate()
+                .filter_map(|(p, w)| t.merges.get(&(w[0], w[1])).map(|&(r, m)| (r, p, m)))
+                .min();
+            let Some((_, p, m)) = best else { break s };
+            s[p] = m;
+            s.remove(p + 1);
+        };
+        for word in ["a", "aa", "aaaaaaa", "cacacatcat", "caaat", "acatcaaaat"] {
+            let mut fast = Vec::new();
+            t.bpe_word(word, &mut fast);
+            let start: Vec<u32> = word
+                .bytes()
+                .enumerate()
+                .map(|(i, b)| {
+                    let mut s = t.byte_to_char[b as usize].to_string();
+                    if i + 1 == word.len() {
+                        s.push_str(END_OF_WORD);
+                    }
+                    t.token_to_id(&s).unwrap()
+                })
+                .collect();
+            assert_eq!(fast, naive(start), "{word}");
+        }
+        // A 200k-letter word finishes quickly (the naive loop would take minutes).
+        let long = "a".repeat(200_000);
+        let started = std::time::Instant::now();
+        // 99 999 "aa" pairs, then "a" and "a</w>" (no merge joins those two).
+        assert_eq!(t.tokenize(&long).len(), 100_001);
+        assert!(started.elapsed().as_secs_f64() < 5.0);
     }
 
     #[test]
