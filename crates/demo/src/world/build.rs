@@ -149,7 +149,7 @@ pub fn build_scene(spec: &SceneSpec, settings: &BuildSettings) -> BuiltScene {
     let far = (reach + 2.5).clamp(medium, spec.floor.radius);
     let coarse = floor_spacing / spacing;
     let floor = Profile::start([spec.floor.radius, 0.0])
-        .line_spaced([far, 0.0], Part::Floor, 2.5 * coarse)
+        .line_spaced([far, 0.0], Part::Floor, 4.0 * coarse)
         .line_spaced([medium, 0.0], Part::Floor, coarse)
         .line_spaced([fine, 0.0], Part::Floor, 2.0_f32.min(coarse))
         .line([0.0, 0.0], Part::Floor);

@@ -151,8 +151,17 @@ pub(crate) fn revolve<R: Rng>(
     rng: &mut R,
     out: &mut Vec<Element>,
 ) {
+    // Rows at an open end of the profile (one off the axis and not closing a loop, such as a cylinder's
+    // foot) are made half as wide along the profile, so their tails do not reach past the edge and smear
+    // onto what is behind (the floor below an object's foot).
+    let first = profile.pieces.first().and_then(|p| p.0.first().copied());
+    let last = profile.pieces.last().and_then(|p| p.0.last().copied());
+    let closed = first.is_some() && first == last;
+    let open_start = !closed && first.is_some_and(|p| p[0] > 1e-6);
+    let open_end = !closed && last.is_some_and(|p| p[0] > 1e-6);
+    let pieces = profile.pieces.len();
     let mut arc_offset = 0.0;
-    for (pts, part, relative) in &profile.pieces {
+    for (index, (pts, part, relative)) in profile.pieces.iter().enumerate() {
         let spacing = spacing * relative;
         let seg_len: Vec<f32> = pts.windows(2).map(|w| dist2(w[0], w[1])).collect();
         let length: f32 = seg_len.iter().sum();
@@ -181,6 +190,9 @@ pub(crate) fn revolve<R: Rng>(
             let count = ((TAU * r / spacing).round() as usize).max(3);
             let around = TAU * r / count as f32;
             let offset: f32 = rng.gen_range(0.0..1.0);
+            let at_open_end = (open_start && index == 0 && row == 0)
+                || (open_end && index + 1 == pieces && row + 1 == rows);
+            let along = if at_open_end { 0.5 * step } else { step };
             let v = match measure {
                 VMeasure::ArcLength => arc_offset + s,
                 VMeasure::Height => z,
@@ -193,7 +205,7 @@ pub(crate) fn revolve<R: Rng>(
                     normal: [n_rz[0] * cos, n_rz[0] * sin, n_rz[1]],
                     tangent: [-sin, cos, 0.0],
                     // Near the axis the row is tiny; keep elements at least a fraction of the spacing wide.
-                    extent: [around.max(0.25 * spacing), step],
+                    extent: [around.max(0.25 * spacing), along],
                     surface: SurfacePoint { turn, v },
                     part: *part,
                 });
@@ -239,11 +251,13 @@ pub(crate) fn box_faces(
             let xy = [start[0] + dir[0] * u, start[1] + dir[1] * u];
             for k in 0..nz {
                 let zz = z0 + (k as f32 + 0.5) * dz;
+                // Without a bottom face the lowest row is an open edge: keep its tails above it.
+                let along = if !bottom && k == 0 { 0.5 * dz } else { dz };
                 out.push(Element {
                     pos: [xy[0], xy[1], zz],
                     normal: [normal[0], normal[1], 0.0],
                     tangent: [dir[0], dir[1], 0.0],
-                    extent: [du, dz],
+                    extent: [du, along],
                     surface: SurfacePoint {
                         turn: (along_start + u) / perimeter,
                         v: zz,
