@@ -1,9 +1,9 @@
 //! Generated cameras for a bare `.ply`: rings around the scene's bounds, all looking at the bounds' centre.
 //!
-//! Geometry: the bounds' enclosing sphere (centre c, radius r) must fit in the narrower field of view, so
-//! the orbit distance is `r * margin / sin(fov / 2)`. Cameras sit at an elevation above the horizontal
-//! plane (20° by default) and are spaced evenly in azimuth; with several rings the elevations are spread
-//! around the main one. Intrinsics: square pixels, principal point at the image centre, `fov_deg` across
+//! Geometry: cameras sit at an elevation above the horizontal plane through the bounds' centre (20° by
+//! default), spaced evenly in azimuth; with several rings the elevations are spread around the main one.
+//! All share one distance: the smallest at which all eight corners of the bounds project inside every
+//! view, shrunk by `margin`, so the scene fills the frame as far as the orbit allows. Intrinsics: square pixels, principal point at the image centre, `fov_deg` across
 //! the shorter image side.
 //!
 //! Which way is up? A PLY does not say. [`Up::Auto`] looks at the bounds: scenes are usually flatter along
@@ -91,7 +91,7 @@ pub struct OrbitSettings {
     pub ring_spacing_deg: f64,
     /// Field of view across the shorter image side, degrees.
     pub fov_deg: f64,
-    /// Extra room around the bounding sphere (1 = the sphere touches the image border).
+    /// Extra room around the bounds (1 = the outermost corner touches the image border).
     pub margin: f64,
 }
 
@@ -103,7 +103,7 @@ impl Default for OrbitSettings {
             rings: 1,
             ring_spacing_deg: 20.0,
             fov_deg: 50.0,
-            margin: 1.05,
+            margin: 1.1,
         }
     }
 }
@@ -113,8 +113,8 @@ pub fn orbit_cameras(lo: [f32; 3], hi: [f32; 3], n: usize, width: u32, height: u
     orbit_cameras_with(lo, hi, n, width, height, &OrbitSettings::default())
 }
 
-/// `n` cameras around the bounds laid out by `settings`. Non-finite or inverted bounds fall back to the unit
-/// cube; degenerate (flat or point) bounds get a small minimum radius so the cameras stay outside.
+/// `n` cameras around the bounds laid out by `settings`. Non-finite or inverted bounds fall back to the
+/// cube [-1, 1]³; degenerate (flat or point) bounds get a small minimum size so the cameras stay outside.
 pub fn orbit_cameras_with(
     lo: [f32; 3],
     hi: [f32; 3],
@@ -130,14 +130,15 @@ pub fn orbit_cameras_with(
         ([-1.0; 3], [1.0; 3])
     };
     let center: [f64; 3] = std::array::from_fn(|a| 0.5 * (lo[a] as f64 + hi[a] as f64));
-    let diag = (0..3)
-        .map(|a| (hi[a] as f64 - lo[a] as f64).powi(2))
-        .sum::<f64>()
-        .sqrt();
-    let radius = (0.5 * diag).max(1e-3);
     let fov = settings.fov_deg.clamp(1.0, 170.0).to_radians();
-    let distance = radius * settings.margin.max(1.0) / (0.5 * fov).sin();
     let focal = 0.5 * width.min(height) as f64 / (0.5 * fov).tan();
+    let margin = settings.margin.max(1.0);
+    // Bounds corners relative to the centre; flat or point bounds get a small minimum size.
+    let half: [f64; 3] = std::array::from_fn(|a| (0.5 * (hi[a] as f64 - lo[a] as f64)).max(1e-3));
+    let corners: Vec<[f64; 3]> = (0..8)
+        .map(|i| std::array::from_fn(|a| if i >> a & 1 == 1 { half[a] } else { -half[a] }))
+        .collect();
+    let radius = half.iter().map(|h| h * h).sum::<f64>().sqrt();
 
     let up = settings.up.resolve(lo, hi);
     // A horizontal basis: e1 from the world axis least aligned with up, e2 completing it.
@@ -150,7 +151,7 @@ pub fn orbit_cameras_with(
     let e2 = cross(up, e1);
 
     let rings = settings.rings.clamp(1, n.max(1));
-    let mut cameras = Vec::with_capacity(n);
+    let mut directions = Vec::with_capacity(n);
     for ring in 0..rings {
         let in_ring = n / rings + usize::from(ring < n % rings);
         let offset = ring as f64 - (rings - 1) as f64 / 2.0;
@@ -160,16 +161,60 @@ pub fn orbit_cameras_with(
         for k in 0..in_ring {
             // Stagger rings so their cameras do not line up.
             let azimuth = std::f64::consts::TAU * (k as f64 + 0.5 * ring as f64) / in_ring as f64;
-            let dir: [f64; 3] = std::array::from_fn(|a| {
+            directions.push(std::array::from_fn(|a| {
                 elevation.cos() * (azimuth.cos() * e1[a] + azimuth.sin() * e2[a])
                     + elevation.sin() * up[a]
-            });
-            let position: [f64; 3] = std::array::from_fn(|a| center[a] + distance * dir[a]);
-            let name = format!("orbit_{:03}", cameras.len());
-            cameras.push(look_at(name, position, center, up, width, height, focal));
+            }));
         }
     }
-    cameras
+
+    // One distance for the whole orbit: the smallest at which every corner projects inside every view
+    // with `margin` to spare (and stays well in front of the camera).
+    let (tan_x, tan_y) = (0.5 * width as f64 / focal, 0.5 * height as f64 / focal);
+    let mut distance: f64 = 0.0;
+    for dir in &directions {
+        let probe = look_at(
+            String::new(),
+            add(center, *dir),
+            center,
+            up,
+            width,
+            height,
+            focal,
+        );
+        let [right, down, _] = probe.rotation;
+        for o in &corners {
+            let toward = dot(*o, *dir);
+            let need =
+                (margin * dot(*o, right).abs() / tan_x).max(margin * dot(*o, down).abs() / tan_y);
+            distance = distance.max(toward + need).max(toward + 0.1 * radius);
+        }
+    }
+
+    directions
+        .iter()
+        .enumerate()
+        .map(|(i, dir)| {
+            let eye = add(center, dir.map(|v| v * distance));
+            look_at(
+                format!("orbit_{i:03}"),
+                eye,
+                center,
+                up,
+                width,
+                height,
+                focal,
+            )
+        })
+        .collect()
+}
+
+fn add(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
+    [a[0] + b[0], a[1] + b[1], a[2] + b[2]]
+}
+
+fn dot(a: [f64; 3], b: [f64; 3]) -> f64 {
+    a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
 }
 
 /// An OpenCV camera at `eye` looking at `target`, with `up` appearing upwards in the image.
@@ -285,6 +330,22 @@ mod tests {
                 // Elevated: the camera is above the centre.
                 assert!(cam.center()[2] > center[2]);
             }
+            // Tight framing: the outermost corner sits exactly at 1/margin of the half-size.
+            let settings = OrbitSettings::default();
+            let extent = cams
+                .iter()
+                .flat_map(|cam| {
+                    corners(lo, hi)
+                        .into_iter()
+                        .map(move |p| project(cam, p).unwrap())
+                })
+                .map(|uv| {
+                    (2.0 * uv[0] / w as f64 - 1.0)
+                        .abs()
+                        .max((2.0 * uv[1] / h as f64 - 1.0).abs())
+                })
+                .fold(0.0, f64::max);
+            assert!((extent - 1.0 / settings.margin).abs() < 1e-9, "{extent}");
             // Distinct positions all round.
             let c0 = cams[0].center();
             assert!(cams[1..].iter().all(|c| {
