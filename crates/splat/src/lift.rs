@@ -9,7 +9,7 @@
 //! Accumulation uses one dense buffer per worker thread (N·C floats each), summed at the end.
 
 use crate::render::project::{CameraR, Splat};
-use crate::render::raster::{traverse_tile, Sink, TileRect, TILE_PIXELS};
+use crate::render::raster::{traverse_tile, Sink, TileRect, SEG, TILE_PIXELS};
 use crate::render::{project_all, tiles, Params};
 use crate::{Camera, GaussianScene};
 use rayon::prelude::*;
@@ -39,14 +39,19 @@ struct LiftSink<'a> {
 
 impl Sink<f32> for LiftSink<'_> {
     #[inline(always)]
-    fn hit(&mut self, p: usize, g: u32, _splat: &Splat<f32>, _w: f32) {
+    fn segment(&mut self, p0: usize, g: u32, _splat: &Splat<f32>, _w: &[f32; SEG], hits: u32) {
         let g = g as usize;
         let ch = self.channels;
-        self.acc.counts[g] += 1;
-        let gp = self.rect.global(p, self.width);
-        let src = &self.map[gp * ch..(gp + 1) * ch];
-        for (d, &s) in self.acc.sums[g * ch..(g + 1) * ch].iter_mut().zip(src) {
-            *d += s;
+        self.acc.counts[g] += hits.count_ones();
+        let sums = &mut self.acc.sums[g * ch..(g + 1) * ch];
+        let mut bits = hits;
+        while bits != 0 {
+            let l = bits.trailing_zeros() as usize;
+            bits &= bits - 1;
+            let gp = self.rect.global(p0 + l, self.width);
+            for (d, &s) in sums.iter_mut().zip(&self.map[gp * ch..(gp + 1) * ch]) {
+                *d += s;
+            }
         }
     }
 }
@@ -59,12 +64,40 @@ impl Sink<f32> for LiftSink<'_> {
 /// (programming errors).
 pub fn lift(scene: &GaussianScene, cameras: &[Camera], maps: &[&[f32]], channels: usize) -> Lifted {
     assert_eq!(cameras.len(), maps.len(), "one map per camera");
-    let params = Params::from_scene(scene);
-    let n = scene.len();
-    let slots: Vec<Mutex<Option<Accum>>> = (0..rayon::current_num_threads().max(1))
-        .map(|_| Mutex::new(None))
-        .collect();
+    let mut acc = LiftAccumulator::new(scene, channels);
     for (cam, map) in cameras.iter().zip(maps) {
+        acc.add_view(cam, map);
+    }
+    acc.finish()
+}
+
+/// [`lift`] one view at a time, so callers never hold every view's (possibly many-channel, full-resolution)
+/// map at once: the sums and counts are accumulated as views are added.
+pub struct LiftAccumulator<'s> {
+    scene: &'s GaussianScene,
+    params: Params<'s, f32>,
+    channels: usize,
+    slots: Vec<Mutex<Option<Accum>>>,
+}
+
+impl<'s> LiftAccumulator<'s> {
+    pub fn new(scene: &'s GaussianScene, channels: usize) -> Self {
+        Self {
+            scene,
+            params: Params::from_scene(scene),
+            channels,
+            slots: (0..rayon::current_num_threads().max(1))
+                .map(|_| Mutex::new(None))
+                .collect(),
+        }
+    }
+
+    /// Adds one view's map (H*W*C for `cam`).
+    ///
+    /// # Panics
+    /// When the map has the wrong size (a programming error).
+    pub fn add_view(&mut self, cam: &Camera, map: &[f32]) {
+        let (n, channels) = (self.scene.len(), self.channels);
         let npix = (cam.width * cam.height) as usize;
         assert_eq!(
             map.len(),
@@ -75,9 +108,10 @@ pub fn lift(scene: &GaussianScene, cameras: &[Camera], maps: &[&[f32]], channels
             cam.width
         );
         let camr = CameraR::<f32>::new(cam);
-        let splats = project_all(&params, &camr, false);
+        let splats = project_all(&self.params, &camr, false);
         let (tx, ty) = camr.tiles();
         let bins = tiles::bin(&splats, tx, ty);
+        let slots = &self.slots;
         (0..bins.num_tiles()).into_par_iter().for_each_init(
             || (Box::new([0f32; TILE_PIXELS]), Box::new([0u32; TILE_PIXELS])),
             |(trans, last), tile| {
@@ -104,44 +138,51 @@ pub fn lift(scene: &GaussianScene, cameras: &[Camera], maps: &[&[f32]], channels
             },
         );
     }
-    let mut parts: Vec<Accum> = slots
-        .into_iter()
-        .filter_map(|m| m.into_inner().unwrap_or_else(|e| e.into_inner()))
-        .collect();
-    let mut total = parts.pop().unwrap_or_else(|| Accum {
-        sums: vec![0.0; n * channels],
-        counts: vec![0; n],
-    });
-    for part in &parts {
-        total
-            .sums
-            .par_iter_mut()
-            .zip(part.sums.par_iter())
-            .for_each(|(a, b)| *a += b);
-        for (a, b) in total.counts.iter_mut().zip(&part.counts) {
-            *a += b;
+
+    /// The per-Gaussian averages W / (C + 1e-7) and counts over all views added.
+    pub fn finish(self) -> Lifted {
+        let (n, channels) = (self.scene.len(), self.channels);
+        let mut parts: Vec<Accum> = self
+            .slots
+            .into_iter()
+            .filter_map(|m| m.into_inner().unwrap_or_else(|e| e.into_inner()))
+            .collect();
+        let mut total = parts.pop().unwrap_or_else(|| Accum {
+            sums: vec![0.0; n * channels],
+            counts: vec![0; n],
+        });
+        for part in &parts {
+            total
+                .sums
+                .par_iter_mut()
+                .zip(part.sums.par_iter())
+                .for_each(|(a, b)| *a += b);
+            for (a, b) in total.counts.iter_mut().zip(&part.counts) {
+                *a += b;
+            }
         }
+        let counts: Vec<f32> = total.counts.iter().map(|&c| c as f32).collect();
+        let mut values = total.sums;
+        if channels > 0 {
+            values
+                .par_chunks_mut(channels)
+                .zip(counts.par_iter())
+                .for_each(|(row, &c)| {
+                    let inv = 1.0 / (c + 1e-7);
+                    for v in row {
+                        *v *= inv;
+                    }
+                });
+        }
+        Lifted { values, counts }
     }
-    let counts: Vec<f32> = total.counts.iter().map(|&c| c as f32).collect();
-    let mut values = total.sums;
-    if channels > 0 {
-        values
-            .par_chunks_mut(channels)
-            .zip(counts.par_iter())
-            .for_each(|(row, &c)| {
-                let inv = 1.0 / (c + 1e-7);
-                for v in row {
-                    *v *= inv;
-                }
-            });
-    }
-    Lifted { values, counts }
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
     use crate::render::raster::sigma_at;
+    use crate::render::real::Real;
     use crate::render::{ALPHA_MAX, ALPHA_MIN};
 
     /// A camera at the origin looking down +z.
@@ -180,13 +221,14 @@ mod tests {
         for y in 0..cam.height {
             for x in 0..cam.width {
                 let (tx, ty) = (x / 16, y / 16);
-                if tx < s.tiles[0] || tx >= s.tiles[2] || ty < s.tiles[1] || ty >= s.tiles[3] {
+                let [x0, y0, x1, y1] = s.tile_rect();
+                if tx < x0 || tx >= x1 || ty < y0 || ty >= y1 {
                     continue;
                 }
                 let dx = s.mean[0] - (x as f32 + 0.5);
                 let dy = s.mean[1] - (y as f32 + 0.5);
                 let sigma = sigma_at(&s.conic, dx, dy);
-                let alpha = (s.opacity * (-sigma).exp()).min(ALPHA_MAX as f32);
+                let alpha = (s.opacity * (-sigma).exp_fast()).min(ALPHA_MAX as f32);
                 if sigma >= 0.0 && alpha >= ALPHA_MIN as f32 {
                     hits += 1;
                 }
@@ -206,7 +248,7 @@ mod tests {
         let map: Vec<f32> = (0..64 * 16)
             .map(|p| if p % 64 < 32 { 1.0 } else { 0.0 })
             .collect();
-        let lifted = lift(&scene, &[c.clone()], &[&map], 1);
+        let lifted = lift(&scene, std::slice::from_ref(&c), &[&map], 1);
         assert!((lifted.values[0] - 1.0).abs() < 1e-6, "{:?}", lifted.values);
         assert_eq!(lifted.values[1], 0.0);
         for i in 0..2 {
@@ -227,7 +269,7 @@ mod tests {
             push(&mut scene, [0.0, 0.0, z], 8.0 * z / 32.0, 0.999);
         }
         let map = vec![1.0f32; 32 * 32];
-        let lifted = lift(&scene, &[c.clone()], &[&map], 1);
+        let lifted = lift(&scene, std::slice::from_ref(&c), &[&map], 1);
         assert_eq!(lifted.counts[0], 0.0, "{:?}", lifted.counts);
         assert_eq!(lifted.values[0], 0.0);
         assert!(

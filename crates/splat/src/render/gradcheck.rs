@@ -177,7 +177,7 @@ fn assert_fd_safe(scene: &Scene64, cam: &Camera, allow_clamped_color: bool) {
     for (i, s) in splats.iter().enumerate() {
         assert!(s.radius > 0, "Gaussian {i} culled");
         assert_eq!(
-            s.tiles,
+            s.tile_rect(),
             [0, 0, tx, ty],
             "Gaussian {i} does not cover all tiles"
         );

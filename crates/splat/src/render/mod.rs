@@ -302,6 +302,12 @@ pub(crate) fn forward<R: Real>(
     extra: Option<(&[R], usize)>,
 ) -> Forward<R> {
     let cam = CameraR::<R>::new(camera);
+    assert!(
+        cam.tiles().0 <= u16::MAX as u32 && cam.tiles().1 <= u16::MAX as u32,
+        "image too large: {}x{}",
+        camera.width,
+        camera.height
+    );
     let splats = project_all(params, &cam, true);
     let (tx, ty) = cam.tiles();
     let bins = tiles::bin(&splats, tx, ty);
@@ -354,16 +360,36 @@ pub(crate) fn backward<R: Real>(
         saved,
         grads,
     );
+    let mut out = Grads::zeros(n, params.sh_degree);
+    out.extra = rg.extra;
+    out.means2d = rg.splats.iter().map(|g| g.mean).collect();
+    project_backward_all(params, &cam, splats, &rg.splats, &mut out);
+    out
+}
+
+impl<R: Real> Grads<R> {
+    fn zeros(n: usize, sh_degree: u32) -> Self {
+        Grads {
+            means: vec![R::ZERO; 3 * n],
+            log_scales: vec![R::ZERO; 3 * n],
+            quats: vec![R::ZERO; 4 * n],
+            opacity_logits: vec![R::ZERO; n],
+            sh: vec![R::ZERO; 3 * sh_coeffs_of(sh_degree) * n],
+            extra: vec![],
+            means2d: vec![],
+        }
+    }
+}
+
+/// Backward of stage (a) for all Gaussians in parallel, writing the parameter gradients of `out`.
+fn project_backward_all<R: Real>(
+    params: &Params<'_, R>,
+    cam: &CameraR<R>,
+    splats: &[Splat<R>],
+    splat_grads: &[project::SplatGrad<R>],
+    out: &mut Grads<R>,
+) {
     let k3 = 3 * sh_coeffs_of(params.sh_degree);
-    let mut out = Grads {
-        means: vec![R::ZERO; 3 * n],
-        log_scales: vec![R::ZERO; 3 * n],
-        quats: vec![R::ZERO; 4 * n],
-        opacity_logits: vec![R::ZERO; n],
-        sh: vec![R::ZERO; k3 * n],
-        extra: rg.extra,
-        means2d: rg.splats.iter().map(|g| g.mean).collect(),
-    };
     (
         out.means.par_chunks_mut(3),
         out.log_scales.par_chunks_mut(3),
@@ -378,9 +404,9 @@ pub(crate) fn backward<R: Real>(
             project::project_one_backward(
                 params,
                 i,
-                &cam,
+                cam,
                 &splats[i],
-                &rg.splats[i],
+                &splat_grads[i],
                 ParamGradsMut {
                     mean,
                     log_scale,
@@ -390,5 +416,54 @@ pub(crate) fn backward<R: Real>(
                 },
             );
         });
-    out
+}
+
+/// Wall-clock time of each stage of one forward + backward pass (for benchmarks and profiling).
+#[doc(hidden)]
+pub fn profile_stages(
+    scene: &GaussianScene,
+    camera: &Camera,
+    settings: &RenderSettings,
+) -> Vec<(&'static str, std::time::Duration)> {
+    use std::time::Instant;
+    let params = Params::from_scene(scene);
+    let cam = CameraR::<f32>::new(camera);
+    let bg = settings.background;
+    let mut times = vec![];
+    let t = Instant::now();
+    let splats = project_all(&params, &cam, true);
+    times.push(("project", t.elapsed()));
+    let t = Instant::now();
+    let (tx, ty) = cam.tiles();
+    let bins = tiles::bin(&splats, tx, ty);
+    times.push(("bin", t.elapsed()));
+    let t = Instant::now();
+    let raster = raster::rasterize(&splats, &bins, camera.width, camera.height, bg, None);
+    times.push(("rasterize", t.elapsed()));
+    let grad_rgb: Vec<f32> = raster.rgb.iter().map(|v| v - 0.5).collect();
+    let t = Instant::now();
+    let rg = raster_backward::rasterize_backward(
+        &splats,
+        &bins,
+        camera.width,
+        camera.height,
+        bg,
+        None,
+        SavedPixels {
+            t_final: &raster.t_final,
+            last: &raster.last,
+        },
+        &ImageGrads {
+            rgb: &grad_rgb,
+            alpha: None,
+            depth: None,
+            extra: None,
+        },
+    );
+    times.push(("rasterize backward", t.elapsed()));
+    let t = Instant::now();
+    let mut grads = Grads::zeros(params.len(), params.sh_degree);
+    project_backward_all(&params, &cam, &splats, &rg.splats, &mut grads);
+    times.push(("project backward", t.elapsed()));
+    times
 }

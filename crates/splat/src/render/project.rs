@@ -76,26 +76,27 @@ impl<R: Real> CameraR<R> {
     }
 }
 
-/// One Gaussian projected to the screen: everything the rasteriser needs, in one contiguous record.
+/// One Gaussian projected to the screen: everything the rasteriser needs, in one record that fills
+/// exactly one 64-byte cache line in f32.
 #[derive(Clone, Copy, Debug, Default)]
+#[repr(C, align(64))]
 pub struct Splat<R> {
     /// Pixel coordinates of the projected mean.
     pub mean: [R; 2],
     /// Upper triangle of the inverse 2D covariance (a, b, c): σ = ½(a dx² + c dy²) + b dx dy.
     pub conic: [R; 3],
     pub opacity: R,
-    /// Largest σ at which alpha can still reach 1/255, slightly enlarged so it is conservative under
-    /// rounding. Negative when the Gaussian can never reach 1/255.
-    pub sigma_max: R,
-    /// Half height in pixels of the region σ ≤ `sigma_max` (used to skip rows quickly).
+    /// Half height and half width in pixels of the bounding box of the region where alpha can reach
+    /// 1/255 (σ ≤ ln(255·o), slightly enlarged), used to skip rows and column groups.
     pub half_height: R,
+    pub half_width: R,
     pub color: [R; 3],
     /// Camera-space z.
     pub depth: R,
     /// Screen radius in pixels; 0 = culled.
     pub radius: u32,
     /// Covered tiles: x0, y0, x1, y1 (exclusive ends).
-    pub tiles: [u32; 4],
+    pub tiles: [u16; 4],
     /// Bit k set when colour channel k was clamped at 0 (its gradient is then zero).
     pub clamped: u8,
 }
@@ -104,7 +105,14 @@ impl<R: Real> Splat<R> {
     /// Whether this Gaussian can contribute to any pixel.
     #[inline]
     pub fn is_drawable(&self) -> bool {
-        self.radius > 0 && self.sigma_max >= R::ZERO
+        // Below 1/255 opacity no pixel can pass the alpha test.
+        self.radius > 0 && self.opacity >= c(ALPHA_MIN)
+    }
+
+    /// Covered tiles as x0, y0, x1, y1 (exclusive ends).
+    #[inline]
+    pub fn tile_rect(&self) -> [u32; 4] {
+        self.tiles.map(u32::from)
     }
 }
 
@@ -324,21 +332,24 @@ pub fn project_one<R: Real>(
     } else {
         sm
     };
-    let half_height = if sigma_max >= R::ZERO {
-        (c::<R>(2.0) * sigma_max * cc).sqrt()
+    let (half_width, half_height) = if sigma_max >= R::ZERO {
+        (
+            (c::<R>(2.0) * sigma_max * a).sqrt(),
+            (c::<R>(2.0) * sigma_max * cc).sqrt(),
+        )
     } else {
-        R::ZERO
+        (R::ZERO, R::ZERO)
     };
     let mut splat = Splat {
         mean,
         conic,
         opacity,
-        sigma_max,
         half_height,
+        half_width,
         color: [R::ZERO; 3],
         depth: z,
         radius,
-        tiles: [x0, y0, x1, y1],
+        tiles: [x0, y0, x1, y1].map(|t| t as u16),
         clamped: 0,
     };
     if with_color {

@@ -4,10 +4,11 @@
 //! - a pixel is finished (this Gaussian not counted) when T·(1 − alpha) < 1e-4;
 //! - otherwise the Gaussian contributes with weight alpha·T and T ← T·(1 − alpha).
 //!
-//! The traversal is Gaussian-major within a tile: for each Gaussian (front to back) only the rows and,
-//! per row, only the span of columns where alpha can reach 1/255 are visited (solved from the conic in
-//! closed form, padded by a pixel, then every pixel applies the exact test), and finished pixels drop out
-//! of per-row bit masks. The work is thus proportional to the pixel/Gaussian pairs that matter.
+//! The traversal is Gaussian-major within a tile: for each Gaussian (front to back) only the rows and
+//! half-rows ("segments" of 8 pixels) inside the bounding box of its alpha ≥ 1/255 region (padded by a
+//! pixel; every pixel then applies the exact test) and still unfinished are visited. A segment is
+//! processed branch-free over its 8 lanes so the compiler vectorises it (the tile loops are compiled a
+//! second time for AVX2+FMA and picked at run time). Finished pixels drop out of per-row bit masks.
 //! [`traverse_tile`] is shared by rendering and lifting through the [`Sink`] trait.
 
 use super::project::{Splat, ALPHA_MAX, ALPHA_MIN, TILE, T_MIN};
@@ -16,6 +17,36 @@ use super::tiles::{SyncPtr, TileBins};
 use rayon::prelude::*;
 
 pub const TILE_PIXELS: usize = (TILE * TILE) as usize;
+/// Pixels processed together: half a tile row. 8 f32 lanes fill one AVX2 register.
+pub const SEG: usize = 8;
+
+/// Whether the CPU has AVX2 and FMA (checked once; the hot tile loops are compiled for it as well).
+#[inline]
+pub fn has_avx2() -> bool {
+    #[cfg(target_arch = "x86_64")]
+    {
+        std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("fma")
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    {
+        false
+    }
+}
+
+/// How many list entries ahead the tile loops prefetch splat records (their order in memory is random).
+pub const PREFETCH_AHEAD: usize = 8;
+
+/// Hints the CPU to start loading `v` into cache.
+#[inline(always)]
+pub fn prefetch<T>(v: &T) {
+    #[cfg(target_arch = "x86_64")]
+    // SAFETY: prefetching is a hint without side effects; the address comes from a valid reference.
+    unsafe {
+        std::arch::x86_64::_mm_prefetch(v as *const T as *const i8, std::arch::x86_64::_MM_HINT_T0);
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    let _ = v;
+}
 
 /// The pixels of one tile inside the image.
 #[derive(Clone, Copy, Debug)]
@@ -47,12 +78,21 @@ impl TileRect {
         let i = (p % TILE as usize) as u32;
         ((self.y0 + r) * width + self.x0 + i) as usize
     }
+
+    /// Pixel-centre x coordinates of the two segments of a row.
+    #[inline(always)]
+    pub fn segment_xs<R: Real>(&self) -> [[R; SEG]; 2] {
+        std::array::from_fn(|h| {
+            std::array::from_fn(|l| c((self.x0 + (h * SEG + l) as u32) as f64 + 0.5))
+        })
+    }
 }
 
-/// Receives every (pixel, Gaussian) pair that contributes, in front-to-back order per pixel.
+/// Receives the contributions of one Gaussian to one segment (8 pixels of a tile row), front to back.
 pub trait Sink<R: Real> {
-    /// Gaussian `g` contributes to tile pixel `p` (row * 16 + column) with weight `w = alpha * T`.
-    fn hit(&mut self, p: usize, g: u32, splat: &Splat<R>, w: R);
+    /// Tile pixels `p0..p0+8`: lane `l` got weight `w[l] = alpha·T` where bit `l` of `hits` is set
+    /// (`w` is 0 elsewhere).
+    fn segment(&mut self, p0: usize, g: u32, splat: &Splat<R>, w: &[R; SEG], hits: u32);
 }
 
 /// Bits lo..=hi set (both < 32, lo <= hi).
@@ -66,47 +106,70 @@ pub fn bit_range(lo: u32, hi: u32) -> u32 {
     upper & !((1u32 << lo) - 1)
 }
 
-/// Rows of the tile (a bit mask) whose pixel centres may lie in the support of `s`.
+/// Indices `i` in `0..n` with |centre − (base + i)| ≤ half + 1, as a bit mask (the extra pixel absorbs
+/// rounding: the per-pixel test decides exactly).
+#[inline(always)]
+fn window_bits<R: Real>(centre: R, half: R, base: u32, n: u32) -> u32 {
+    let base: R = c(base as f64 + 0.5);
+    let lo = (centre - half - R::ONE - base).ceil().max(R::ZERO);
+    let hi = (centre + half + R::ONE - base)
+        .floor()
+        .min(c((n - 1) as f64));
+    if !(lo <= hi) {
+        return 0;
+    }
+    bit_range(lo.to_f64() as u32, hi.to_f64() as u32)
+}
+
+/// Rows of the tile (bit mask) whose pixel centres may lie in the support of `s`.
 #[inline(always)]
 pub fn row_mask<R: Real>(s: &Splat<R>, rect: &TileRect) -> u32 {
-    let y_base = rect.y0 as f64 + 0.5;
-    let my = s.mean[1].to_f64();
-    let hh = s.half_height.to_f64() + 1.0;
-    let lo = (my - hh - y_base).ceil().max(0.0);
-    let hi = (my + hh - y_base).floor().min(rect.h as f64 - 1.0);
-    if !(lo <= hi) {
-        return 0;
-    }
-    bit_range(lo as u32, hi as u32)
+    window_bits(s.mean[1], s.half_height, rect.y0, rect.h)
 }
 
-/// Columns (a bit mask) of the row at vertical offset `dy = mean_y − py` where σ ≤ sigma_max may hold.
+/// Columns of the tile (bit mask) whose pixel centres may lie in the support of `s`.
 #[inline(always)]
-pub fn column_mask<R: Real>(s: &Splat<R>, dy: R, rect: &TileRect) -> u32 {
-    let [a, b, cc] = s.conic;
-    // ½a dx² + b dy dx + ½c dy² ≤ σm  ⇔  a dx² + 2 b dy dx + (c dy² − 2σm) ≤ 0.
-    let bdy = b * dy;
-    let disc = bdy * bdy - a * (cc * dy * dy - c::<R>(2.0) * s.sigma_max);
-    if !(disc >= R::ZERO) {
-        return 0;
-    }
-    let sq = disc.sqrt();
-    // px = mean_x − dx, column i has px = x0 + i + 0.5.
-    let base = s.mean[0] - c::<R>(rect.x0 as f64 + 0.5);
-    let lo = (base + (bdy - sq) / a).to_f64() - 1.0;
-    let hi = (base + (bdy + sq) / a).to_f64() + 1.0;
-    let lo = lo.ceil().max(0.0);
-    let hi = hi.floor().min(rect.w as f64 - 1.0);
-    if !(lo <= hi) {
-        return 0;
-    }
-    bit_range(lo as u32, hi as u32)
+pub fn column_mask<R: Real>(s: &Splat<R>, rect: &TileRect) -> u32 {
+    window_bits(s.mean[0], s.half_width, rect.x0, rect.w)
 }
 
-/// σ at pixel offset (dx, dy) = mean − pixel centre.
+/// σ at pixel offset (dx, dy) = mean − pixel centre. The one definition used by every pass.
 #[inline(always)]
 pub fn sigma_at<R: Real>(conic: &[R; 3], dx: R, dy: R) -> R {
     c::<R>(0.5) * (conic[0] * dx * dx + conic[2] * dy * dy) + conic[1] * dx * dy
+}
+
+/// Front-to-back step of one Gaussian over one segment. Updates `trans` and writes the weights; returns
+/// (contributing lanes, lanes that just finished).
+#[inline(always)]
+fn forward_segment<R: Real>(
+    s: &Splat<R>,
+    dy: R,
+    xs: &[R; SEG],
+    trans: &mut [R; SEG],
+    live: u32,
+    w: &mut [R; SEG],
+) -> (u32, u32) {
+    let alpha_max: R = c(ALPHA_MAX);
+    let alpha_min: R = c(ALPHA_MIN);
+    let t_min: R = c(T_MIN);
+    let mut hits = 0u32;
+    let mut stops = 0u32;
+    for l in 0..SEG {
+        let dx = s.mean[0] - xs[l];
+        let sigma = sigma_at(&s.conic, dx, dy);
+        let alpha = (s.opacity * (-sigma).exp_fast()).min(alpha_max);
+        let valid = (live >> l) & 1 != 0 && sigma >= R::ZERO && alpha >= alpha_min;
+        let t = trans[l];
+        let next = t * (R::ONE - alpha);
+        let stop = valid && next < t_min;
+        let hit = valid && !stop;
+        w[l] = if hit { alpha * t } else { R::ZERO };
+        trans[l] = if hit { next } else { t };
+        hits |= (hit as u32) << l;
+        stops |= (stop as u32) << l;
+    }
+    (hits, stops)
 }
 
 /// Composites one tile front to back, reporting contributions to `sink`.
@@ -114,6 +177,36 @@ pub fn sigma_at<R: Real>(conic: &[R; 3], dx: R, dy: R) -> R {
 /// On return `trans[p]` holds the final transmittance of tile pixel `p` and `last[p]` the number of list
 /// entries up to and including its last contributor (0 when nothing contributed).
 pub fn traverse_tile<R: Real, S: Sink<R>>(
+    splats: &[Splat<R>],
+    list: &[u32],
+    rect: &TileRect,
+    sink: &mut S,
+    trans: &mut [R; TILE_PIXELS],
+    last: &mut [u32; TILE_PIXELS],
+) {
+    #[cfg(target_arch = "x86_64")]
+    if has_avx2() {
+        // SAFETY: the CPU supports the features `traverse_tile_avx2` is compiled for.
+        return unsafe { traverse_tile_avx2(splats, list, rect, sink, trans, last) };
+    }
+    traverse_tile_impl(splats, list, rect, sink, trans, last)
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma")]
+unsafe fn traverse_tile_avx2<R: Real, S: Sink<R>>(
+    splats: &[Splat<R>],
+    list: &[u32],
+    rect: &TileRect,
+    sink: &mut S,
+    trans: &mut [R; TILE_PIXELS],
+    last: &mut [u32; TILE_PIXELS],
+) {
+    traverse_tile_impl(splats, list, rect, sink, trans, last)
+}
+
+#[inline(always)]
+fn traverse_tile_impl<R: Real, S: Sink<R>>(
     splats: &[Splat<R>],
     list: &[u32],
     rect: &TileRect,
@@ -129,43 +222,44 @@ pub fn traverse_tile<R: Real, S: Sink<R>>(
         *row = full_row;
     }
     let mut rows_live = bit_range(0, rect.h - 1);
-    let x_base = rect.x0 as f64 + 0.5;
-    let y_base = rect.y0 as f64 + 0.5;
-    let alpha_max: R = c(ALPHA_MAX);
-    let alpha_min: R = c(ALPHA_MIN);
-    let t_min: R = c(T_MIN);
+    let xs = rect.segment_xs::<R>();
+    let mut w = [R::ZERO; SEG];
     for (k, &g) in list.iter().enumerate() {
+        if let Some(&ahead) = list.get(k + PREFETCH_AHEAD) {
+            prefetch(&splats[ahead as usize]);
+        }
         let s = &splats[g as usize];
         let mut rows = row_mask(s, rect) & rows_live;
+        if rows == 0 {
+            continue;
+        }
+        let cols = column_mask(s, rect);
         while rows != 0 {
-            let r = rows.trailing_zeros();
+            let r = rows.trailing_zeros() as usize;
             rows &= rows - 1;
-            let dy = s.mean[1] - c(y_base + r as f64);
-            let mut cols = column_mask(s, dy, rect) & live[r as usize];
-            while cols != 0 {
-                let i = cols.trailing_zeros();
-                cols &= cols - 1;
-                let dx = s.mean[0] - c(x_base + i as f64);
-                let sigma = sigma_at(&s.conic, dx, dy);
-                if sigma < R::ZERO {
+            let dy = s.mean[1] - c((rect.y0 as usize + r) as f64 + 0.5);
+            for h in 0..2 {
+                let seg_live = (live[r] & cols) >> (h * SEG) & 0xff;
+                if seg_live == 0 {
                     continue;
                 }
-                let alpha = (s.opacity * (-sigma).exp()).min(alpha_max);
-                if alpha < alpha_min {
-                    continue;
+                let p0 = r * TILE as usize + h * SEG;
+                let t: &mut [R; SEG] = (&mut trans[p0..p0 + SEG]).try_into().unwrap();
+                let (hits, stops) = forward_segment(s, dy, &xs[h], t, seg_live, &mut w);
+                live[r] &= !(stops << (h * SEG));
+                if hits != 0 {
+                    let lst: &mut [u32; SEG] = (&mut last[p0..p0 + SEG]).try_into().unwrap();
+                    for l in 0..SEG {
+                        lst[l] = if (hits >> l) & 1 != 0 {
+                            k as u32 + 1
+                        } else {
+                            lst[l]
+                        };
+                    }
+                    sink.segment(p0, g, s, &w, hits);
                 }
-                let p = (r * TILE + i) as usize;
-                let t = trans[p];
-                let next = t * (R::ONE - alpha);
-                if next < t_min {
-                    live[r as usize] &= !(1 << i);
-                    continue;
-                }
-                sink.hit(p, g, s, alpha * t);
-                trans[p] = next;
-                last[p] = k as u32 + 1;
             }
-            if live[r as usize] == 0 {
+            if live[r] == 0 {
                 rows_live &= !(1 << r);
             }
         }
@@ -188,9 +282,12 @@ pub struct RasterOut<R> {
     pub last: Vec<u32>,
 }
 
+/// Accumulates colour, depth (structure of arrays over the tile) and extra channels.
 struct ColorSink<'a, R> {
-    rgb: [R; 3 * TILE_PIXELS],
-    depth: [R; TILE_PIXELS],
+    r: [R; TILE_PIXELS],
+    g: [R; TILE_PIXELS],
+    b: [R; TILE_PIXELS],
+    d: [R; TILE_PIXELS],
     /// Extra channels: values (N*C), channel count, and the output image written in place.
     values: &'a [R],
     channels: usize,
@@ -201,19 +298,26 @@ struct ColorSink<'a, R> {
 
 impl<R: Real> Sink<R> for ColorSink<'_, R> {
     #[inline(always)]
-    fn hit(&mut self, p: usize, g: u32, s: &Splat<R>, w: R) {
-        self.rgb[3 * p] += w * s.color[0];
-        self.rgb[3 * p + 1] += w * s.color[1];
-        self.rgb[3 * p + 2] += w * s.color[2];
-        self.depth[p] += w * s.depth;
+    fn segment(&mut self, p0: usize, g: u32, s: &Splat<R>, w: &[R; SEG], hits: u32) {
+        for l in 0..SEG {
+            self.r[p0 + l] += w[l] * s.color[0];
+            self.g[p0 + l] += w[l] * s.color[1];
+            self.b[p0 + l] += w[l] * s.color[2];
+            self.d[p0 + l] += w[l] * s.depth;
+        }
         let ch = self.channels;
         if ch > 0 {
-            let gp = self.rect.global(p, self.width);
-            // SAFETY: tile pixels are disjoint between tiles, and one tile is handled by one thread.
-            let out = unsafe { self.extra_out.slice_mut(gp * ch, ch) };
             let vals = &self.values[g as usize * ch..(g as usize + 1) * ch];
-            for (o, &v) in out.iter_mut().zip(vals) {
-                *o += w * v;
+            let mut bits = hits;
+            while bits != 0 {
+                let l = bits.trailing_zeros() as usize;
+                bits &= bits - 1;
+                let gp = self.rect.global(p0 + l, self.width);
+                // SAFETY: tile pixels are disjoint between tiles, and one tile is handled by one thread.
+                let out = unsafe { self.extra_out.slice_mut(gp * ch, ch) };
+                for (o, &v) in out.iter_mut().zip(vals) {
+                    *o += w[l] * v;
+                }
             }
         }
     }
@@ -246,23 +350,36 @@ pub fn rasterize<R: Real>(
     let last_ptr = SyncPtr(out.last.as_mut_ptr());
     (0..bins.num_tiles()).into_par_iter().for_each_init(
         || {
-            (
-                Box::new([R::ZERO; TILE_PIXELS]),
-                Box::new([0u32; TILE_PIXELS]),
-            )
+            Box::new((
+                [R::ZERO; TILE_PIXELS],
+                [0u32; TILE_PIXELS],
+                ColorSink {
+                    r: [R::ZERO; TILE_PIXELS],
+                    g: [R::ZERO; TILE_PIXELS],
+                    b: [R::ZERO; TILE_PIXELS],
+                    d: [R::ZERO; TILE_PIXELS],
+                    values,
+                    channels,
+                    extra_out: &extra_ptr,
+                    rect: TileRect {
+                        x0: 0,
+                        y0: 0,
+                        w: 0,
+                        h: 0,
+                    },
+                    width,
+                },
+            ))
         },
-        |(trans, last), tile| {
+        |scratch, tile| {
+            let (trans, last, sink) = &mut **scratch;
             let rect = TileRect::new(tile, bins, width, height);
-            let mut sink = ColorSink {
-                rgb: [R::ZERO; 3 * TILE_PIXELS],
-                depth: [R::ZERO; TILE_PIXELS],
-                values,
-                channels,
-                extra_out: &extra_ptr,
-                rect,
-                width,
-            };
-            traverse_tile(splats, bins.list(tile), &rect, &mut sink, trans, last);
+            sink.rect = rect;
+            sink.r.fill(R::ZERO);
+            sink.g.fill(R::ZERO);
+            sink.b.fill(R::ZERO);
+            sink.d.fill(R::ZERO);
+            traverse_tile(splats, bins.list(tile), &rect, sink, trans, last);
             for r in 0..rect.h as usize {
                 for i in 0..rect.w as usize {
                     let p = r * TILE as usize + i;
@@ -270,11 +387,11 @@ pub fn rasterize<R: Real>(
                     let t = trans[p];
                     // SAFETY: pixel `gp` belongs to this tile only.
                     unsafe {
-                        for ch in 0..3 {
-                            rgb_ptr.write(3 * gp + ch, sink.rgb[3 * p + ch] + t * background[ch]);
-                        }
+                        rgb_ptr.write(3 * gp, sink.r[p] + t * background[0]);
+                        rgb_ptr.write(3 * gp + 1, sink.g[p] + t * background[1]);
+                        rgb_ptr.write(3 * gp + 2, sink.b[p] + t * background[2]);
                         alpha_ptr.write(gp, R::ONE - t);
-                        depth_ptr.write(gp, sink.depth[p]);
+                        depth_ptr.write(gp, sink.d[p]);
                         t_ptr.write(gp, t);
                         last_ptr.write(gp, last[p]);
                     }
@@ -365,14 +482,15 @@ mod tests {
                 let mut k = 0;
                 for &i in &order {
                     let s = &splats[i];
-                    if tx < s.tiles[0] || tx >= s.tiles[2] || ty < s.tiles[1] || ty >= s.tiles[3] {
+                    let [x0, y0, x1, y1] = s.tile_rect();
+                    if tx < x0 || tx >= x1 || ty < y0 || ty >= y1 {
                         continue;
                     }
                     k += 1;
                     let dx = s.mean[0] - (x as f64 + 0.5);
                     let dy = s.mean[1] - (y as f64 + 0.5);
                     let sigma = sigma_at(&s.conic, dx, dy);
-                    let alpha = (s.opacity * (-sigma).exp()).min(ALPHA_MAX);
+                    let alpha = (s.opacity * (-sigma).exp_fast()).min(ALPHA_MAX);
                     if sigma < 0.0 || alpha < ALPHA_MIN {
                         continue;
                     }

@@ -6,7 +6,9 @@
 //! worker thread (no atomics, no contention); the buffers are summed at the end.
 
 use super::project::{Splat, SplatGrad, ALPHA_MAX, ALPHA_MIN, TILE};
-use super::raster::{column_mask, row_mask, sigma_at, TileRect, TILE_PIXELS};
+use super::raster::{
+    column_mask, has_avx2, prefetch, row_mask, sigma_at, TileRect, PREFETCH_AHEAD, SEG, TILE_PIXELS,
+};
 use super::real::{c, Real};
 use super::tiles::TileBins;
 use rayon::prelude::*;
@@ -39,11 +41,15 @@ struct ThreadGrads<R> {
     extra: Vec<R>,
 }
 
-/// Per-tile scratch reused across tiles of one worker.
+/// Per-tile scratch reused across tiles of one worker (structure of arrays over the 256 tile pixels).
 struct Scratch<R> {
     trans: [R; TILE_PIXELS],
-    buf_rgb: [R; 3 * TILE_PIXELS],
-    buf_depth: [R; TILE_PIXELS],
+    /// Colour (3) and depth composited behind the current Gaussian.
+    behind: [[R; TILE_PIXELS]; 4],
+    v_color: [[R; TILE_PIXELS]; 3],
+    v_depth: [R; TILE_PIXELS],
+    /// T_final · dL/dT_final per pixel: each alpha enters the final T.
+    v_final: [R; TILE_PIXELS],
     buf_extra: Vec<R>,
     order: Vec<(u32, u16)>,
 }
@@ -75,8 +81,10 @@ pub fn rasterize_backward<R: Real>(
         || {
             Box::new(Scratch {
                 trans: [R::ZERO; TILE_PIXELS],
-                buf_rgb: [R::ZERO; 3 * TILE_PIXELS],
-                buf_depth: [R::ZERO; TILE_PIXELS],
+                behind: [[R::ZERO; TILE_PIXELS]; 4],
+                v_color: [[R::ZERO; TILE_PIXELS]; 3],
+                v_depth: [R::ZERO; TILE_PIXELS],
+                v_final: [R::ZERO; TILE_PIXELS],
                 buf_extra: vec![
                     R::ZERO;
                     if extra_grad.is_some() {
@@ -151,8 +159,38 @@ pub fn rasterize_backward<R: Real>(
     }
 }
 
+/// Per-lane sums of one Gaussian's gradients over the segments it touches in a tile.
+#[derive(Clone, Copy)]
+struct LaneGrads<R> {
+    color: [[R; SEG]; 3],
+    depth: [R; SEG],
+    conic: [[R; SEG]; 3],
+    mean: [[R; SEG]; 2],
+    opacity: [R; SEG],
+}
+
+impl<R: Real> LaneGrads<R> {
+    fn zero() -> Self {
+        Self {
+            color: [[R::ZERO; SEG]; 3],
+            depth: [R::ZERO; SEG],
+            conic: [[R::ZERO; SEG]; 3],
+            mean: [[R::ZERO; SEG]; 2],
+            opacity: [R::ZERO; SEG],
+        }
+    }
+}
+
+#[inline(always)]
+fn lane_sum<R: Real>(v: &[R; SEG]) -> R {
+    let mut s = R::ZERO;
+    for x in v {
+        s += *x;
+    }
+    s
+}
+
 #[allow(clippy::too_many_arguments)]
-#[inline(never)]
 fn backward_tile<R: Real>(
     splats: &[Splat<R>],
     list: &[u32],
@@ -167,17 +205,94 @@ fn backward_tile<R: Real>(
     s: &mut Scratch<R>,
     acc: &mut ThreadGrads<R>,
 ) {
-    // Pixels in decreasing order of their last contributor: a pixel joins the backward walk when the walk
-    // reaches its last contributor.
+    #[cfg(target_arch = "x86_64")]
+    if has_avx2() {
+        // SAFETY: the CPU supports the features `backward_tile_avx2` is compiled for.
+        return unsafe {
+            backward_tile_avx2(
+                splats, list, rect, width, background, values, channels, extra_grad, fwd, grads, s,
+                acc,
+            )
+        };
+    }
+    backward_tile_impl(
+        splats, list, rect, width, background, values, channels, extra_grad, fwd, grads, s, acc,
+    )
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma")]
+#[allow(clippy::too_many_arguments)]
+unsafe fn backward_tile_avx2<R: Real>(
+    splats: &[Splat<R>],
+    list: &[u32],
+    rect: &TileRect,
+    width: u32,
+    background: [R; 3],
+    values: &[R],
+    channels: usize,
+    extra_grad: Option<&[R]>,
+    fwd: SavedPixels<'_, R>,
+    grads: &ImageGrads<'_, R>,
+    s: &mut Scratch<R>,
+    acc: &mut ThreadGrads<R>,
+) {
+    backward_tile_impl(
+        splats, list, rect, width, background, values, channels, extra_grad, fwd, grads, s, acc,
+    )
+}
+
+#[allow(clippy::too_many_arguments)]
+#[inline(always)]
+fn backward_tile_impl<R: Real>(
+    splats: &[Splat<R>],
+    list: &[u32],
+    rect: &TileRect,
+    width: u32,
+    background: [R; 3],
+    values: &[R],
+    channels: usize,
+    extra_grad: Option<&[R]>,
+    fwd: SavedPixels<'_, R>,
+    grads: &ImageGrads<'_, R>,
+    s: &mut Scratch<R>,
+    acc: &mut ThreadGrads<R>,
+) {
+    // Per-pixel state in structure-of-arrays form. Pixels join the backward walk when it reaches their
+    // last contributor, so they are ordered by decreasing last index.
     s.order.clear();
-    for r in 0..rect.h as usize {
-        for i in 0..rect.w as usize {
+    for r in 0..TILE as usize {
+        for i in 0..TILE as usize {
             let p = r * TILE as usize + i;
+            s.behind[0][p] = R::ZERO;
+            s.behind[1][p] = R::ZERO;
+            s.behind[2][p] = R::ZERO;
+            s.behind[3][p] = R::ZERO;
+            if r >= rect.h as usize || i >= rect.w as usize {
+                s.trans[p] = R::ONE;
+                s.v_color[0][p] = R::ZERO;
+                s.v_color[1][p] = R::ZERO;
+                s.v_color[2][p] = R::ZERO;
+                s.v_depth[p] = R::ZERO;
+                s.v_final[p] = R::ZERO;
+                continue;
+            }
             let gp = rect.global(p, width);
+            let t_final = fwd.t_final[gp];
+            s.trans[p] = t_final;
+            let v = &grads.rgb[3 * gp..3 * gp + 3];
+            s.v_color[0][p] = v[0];
+            s.v_color[1][p] = v[1];
+            s.v_color[2][p] = v[2];
+            s.v_depth[p] = grads.depth.map_or(R::ZERO, |d| d[gp]);
+            // Every alpha also changes the final T: d out/d T_final = background·v_rgb − v_alpha.
+            let v_alpha_out = grads.alpha.map_or(R::ZERO, |a| a[gp]);
+            s.v_final[p] = t_final
+                * (v_alpha_out
+                    - background[0] * v[0]
+                    - background[1] * v[1]
+                    - background[2] * v[2]);
             let last = fwd.last[gp];
-            s.trans[p] = fwd.t_final[gp];
-            s.buf_rgb[3 * p..3 * p + 3].fill(R::ZERO);
-            s.buf_depth[p] = R::ZERO;
             if last > 0 {
                 s.order.push((last, p as u16));
             }
@@ -193,8 +308,7 @@ fn backward_tile<R: Real>(
     let mut next_join = 0;
     let mut active = [0u32; TILE as usize];
     let mut rows_active = 0u32;
-    let x_base = rect.x0 as f64 + 0.5;
-    let y_base = rect.y0 as f64 + 0.5;
+    let xs = rect.segment_xs::<R>();
     let alpha_max: R = c(ALPHA_MAX);
     let alpha_min: R = c(ALPHA_MIN);
     let half: R = c(0.5);
@@ -207,100 +321,126 @@ fn backward_tile<R: Real>(
             rows_active |= 1 << (p / TILE);
             next_join += 1;
         }
+        if k >= PREFETCH_AHEAD {
+            prefetch(&splats[list[k - PREFETCH_AHEAD] as usize]);
+        }
         let g = list[k] as usize;
         let sp = &splats[g];
         let mut rows = row_mask(sp, rect) & rows_active;
         if rows == 0 {
             continue;
         }
+        let cols = column_mask(sp, rect);
         let [ca, cb, cc] = sp.conic;
         let o = sp.opacity;
-        let mut gr = SplatGrad::<R>::default();
+        let mut lg = LaneGrads::<R>::zero();
         let mut touched = false;
         while rows != 0 {
-            let r = rows.trailing_zeros();
+            let r = rows.trailing_zeros() as usize;
             rows &= rows - 1;
-            let dy = sp.mean[1] - c(y_base + r as f64);
-            let mut cols = column_mask(sp, dy, rect) & active[r as usize];
-            while cols != 0 {
-                let i = cols.trailing_zeros();
-                cols &= cols - 1;
-                let dx = sp.mean[0] - c(x_base + i as f64);
-                let sigma = sigma_at(&sp.conic, dx, dy);
-                if sigma < R::ZERO {
+            let dy = sp.mean[1] - c((rect.y0 as usize + r) as f64 + 0.5);
+            for h in 0..2 {
+                let seg_active = (active[r] & cols) >> (h * SEG) & 0xff;
+                if seg_active == 0 {
                     continue;
                 }
-                let vis = (-sigma).exp();
-                let raw_alpha = o * vis;
-                let alpha = raw_alpha.min(alpha_max);
-                if alpha < alpha_min {
+                let p0 = r * TILE as usize + h * SEG;
+                let x = &xs[h];
+                // Pass 1: alphas, recovered T and the colour/depth/background part of dL/dalpha.
+                let mut dx = [R::ZERO; SEG];
+                let mut vis = [R::ZERO; SEG];
+                let mut alpha = [R::ZERO; SEG];
+                let mut ra = [R::ZERO; SEG];
+                let mut t_new = [R::ZERO; SEG];
+                let mut v_alpha = [R::ZERO; SEG];
+                let mut act_bits = 0u32;
+                for l in 0..SEG {
+                    let p = p0 + l;
+                    dx[l] = sp.mean[0] - x[l];
+                    let sigma = sigma_at(&sp.conic, dx[l], dy);
+                    vis[l] = (-sigma).exp_fast();
+                    alpha[l] = (o * vis[l]).min(alpha_max);
+                    let act =
+                        (seg_active >> l) & 1 != 0 && sigma >= R::ZERO && alpha[l] >= alpha_min;
+                    act_bits |= (act as u32) << l;
+                    ra[l] = R::ONE / (R::ONE - alpha[l]);
+                    t_new[l] = s.trans[p] * ra[l];
+                    v_alpha[l] = (sp.color[0] * t_new[l] - s.behind[0][p] * ra[l])
+                        * s.v_color[0][p]
+                        + (sp.color[1] * t_new[l] - s.behind[1][p] * ra[l]) * s.v_color[1][p]
+                        + (sp.color[2] * t_new[l] - s.behind[2][p] * ra[l]) * s.v_color[2][p]
+                        + (sp.depth * t_new[l] - s.behind[3][p] * ra[l]) * s.v_depth[p]
+                        + s.v_final[p] * ra[l];
+                }
+                if act_bits == 0 {
                     continue;
                 }
                 touched = true;
-                let p = (r * TILE + i) as usize;
-                let gp = rect.global(p, width);
-                let ra = R::ONE / (R::ONE - alpha);
-                let t = s.trans[p] * ra;
-                s.trans[p] = t;
-                let fac = alpha * t;
-
-                let v_rgb = &grads.rgb[3 * gp..3 * gp + 3];
-                let mut v_alpha = R::ZERO;
-                for ch in 0..3 {
-                    gr.color[ch] += fac * v_rgb[ch];
-                    v_alpha += (sp.color[ch] * t - s.buf_rgb[3 * p + ch] * ra) * v_rgb[ch];
-                    s.buf_rgb[3 * p + ch] += sp.color[ch] * fac;
-                }
-                if let Some(vd) = grads.depth {
-                    let vd = vd[gp];
-                    gr.depth += fac * vd;
-                    v_alpha += (sp.depth * t - s.buf_depth[p] * ra) * vd;
-                    s.buf_depth[p] += sp.depth * fac;
-                }
+                // Pass 2 (only with extra channels): their part of dL/dalpha and their gradients.
                 if let Some(ve) = extra_grad {
-                    let ve = &ve[gp * channels..(gp + 1) * channels];
                     let vals = &values[g * channels..(g + 1) * channels];
-                    let buf = &mut s.buf_extra[p * channels..(p + 1) * channels];
-                    let out = &mut acc.extra[g * channels..(g + 1) * channels];
-                    let mut va = R::ZERO;
-                    for ch in 0..channels {
-                        let v = ve[ch];
-                        out[ch] += fac * v;
-                        va += (vals[ch] * t - buf[ch] * ra) * v;
-                        buf[ch] += vals[ch] * fac;
+                    let mut bits = act_bits;
+                    while bits != 0 {
+                        let l = bits.trailing_zeros() as usize;
+                        bits &= bits - 1;
+                        let p = p0 + l;
+                        let gp = rect.global(p, width);
+                        let ve = &ve[gp * channels..(gp + 1) * channels];
+                        let buf = &mut s.buf_extra[p * channels..(p + 1) * channels];
+                        let out = &mut acc.extra[g * channels..(g + 1) * channels];
+                        let fac = alpha[l] * t_new[l];
+                        let mut va = R::ZERO;
+                        for ch in 0..channels {
+                            let v = ve[ch];
+                            out[ch] += fac * v;
+                            va += (vals[ch] * t_new[l] - buf[ch] * ra[l]) * v;
+                            buf[ch] += vals[ch] * fac;
+                        }
+                        v_alpha[l] += va;
                     }
-                    v_alpha += va;
                 }
-                // The final transmittance (alpha output and background) depends on this alpha too.
-                let t_final = fwd.t_final[gp];
-                let mut v_t_final =
-                    background[0] * v_rgb[0] + background[1] * v_rgb[1] + background[2] * v_rgb[2];
-                if let Some(va) = grads.alpha {
-                    v_t_final -= va[gp];
-                }
-                v_alpha -= t_final * ra * v_t_final;
-
-                if raw_alpha <= alpha_max {
-                    let v_sigma = -raw_alpha * v_alpha;
-                    gr.conic[0] += half * v_sigma * dx * dx;
-                    gr.conic[1] += v_sigma * dx * dy;
-                    gr.conic[2] += half * v_sigma * dy * dy;
-                    gr.mean[0] += v_sigma * (ca * dx + cb * dy);
-                    gr.mean[1] += v_sigma * (cb * dx + cc * dy);
-                    gr.opacity += vis * v_alpha;
+                // Pass 3: state updates and gradient sums, masked to the active lanes.
+                for l in 0..SEG {
+                    let p = p0 + l;
+                    let act = (act_bits >> l) & 1 != 0;
+                    let fac = alpha[l] * t_new[l];
+                    s.trans[p] = if act { t_new[l] } else { s.trans[p] };
+                    let fac = if act { fac } else { R::ZERO };
+                    for ch in 0..3 {
+                        s.behind[ch][p] += sp.color[ch] * fac;
+                        lg.color[ch][l] += fac * s.v_color[ch][p];
+                    }
+                    s.behind[3][p] += sp.depth * fac;
+                    lg.depth[l] += fac * s.v_depth[p];
+                    // Where alpha was clamped at 0.99 it does not depend on σ or the opacity.
+                    let free = act && o * vis[l] <= alpha_max;
+                    let v_sigma = if free {
+                        -(o * vis[l]) * v_alpha[l]
+                    } else {
+                        R::ZERO
+                    };
+                    let d = dx[l];
+                    lg.conic[0][l] += v_sigma * d * d;
+                    lg.conic[1][l] += v_sigma * d * dy;
+                    lg.conic[2][l] += v_sigma * dy * dy;
+                    lg.mean[0][l] += v_sigma * (ca * d + cb * dy);
+                    lg.mean[1][l] += v_sigma * (cb * d + cc * dy);
+                    lg.opacity[l] += if free { vis[l] * v_alpha[l] } else { R::ZERO };
                 }
             }
         }
         if touched {
             let a = &mut acc.splats[g];
             for ch in 0..3 {
-                a.color[ch] += gr.color[ch];
-                a.conic[ch] += gr.conic[ch];
+                a.color[ch] += lane_sum(&lg.color[ch]);
             }
-            a.mean[0] += gr.mean[0];
-            a.mean[1] += gr.mean[1];
-            a.opacity += gr.opacity;
-            a.depth += gr.depth;
+            a.depth += lane_sum(&lg.depth);
+            a.conic[0] += half * lane_sum(&lg.conic[0]);
+            a.conic[1] += lane_sum(&lg.conic[1]);
+            a.conic[2] += half * lane_sum(&lg.conic[2]);
+            a.mean[0] += lane_sum(&lg.mean[0]);
+            a.mean[1] += lane_sum(&lg.mean[1]);
+            a.opacity += lane_sum(&lg.opacity);
         }
     }
 }

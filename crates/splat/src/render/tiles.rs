@@ -49,7 +49,7 @@ pub fn bin<R: Real>(splats: &[Splat<R>], tiles_x: u32, tiles_y: u32) -> TileBins
         .map(|chunk| {
             let mut counts = vec![0u32; num_tiles];
             for &(_, i) in chunk {
-                let [x0, y0, x1, y1] = splats[i as usize].tiles;
+                let [x0, y0, x1, y1] = splats[i as usize].tile_rect();
                 for ty in y0..y1 {
                     let row = (ty * tiles_x) as usize;
                     for tx in x0..x1 {
@@ -83,7 +83,7 @@ pub fn bin<R: Real>(splats: &[Splat<R>], tiles_x: u32, tiles_y: u32) -> TileBins
         .for_each(|(chunk, next)| {
             let ptr = &ids_ptr;
             for &(_, i) in chunk {
-                let [x0, y0, x1, y1] = splats[i as usize].tiles;
+                let [x0, y0, x1, y1] = splats[i as usize].tile_rect();
                 for ty in y0..y1 {
                     let row = (ty * tiles_x) as usize;
                     for tx in x0..x1 {
@@ -135,8 +135,8 @@ mod tests {
         Splat {
             depth,
             radius: 1,
-            tiles,
-            sigma_max: 1.0,
+            tiles: tiles.map(|t| t as u16),
+            opacity: 0.5,
             ..Default::default()
         }
     }
@@ -176,7 +176,7 @@ mod tests {
             let (tx, ty) = (t % 7, t / 7);
             let mut want: Vec<u32> = (0..splats.len() as u32)
                 .filter(|&i| {
-                    let r = splats[i as usize].tiles;
+                    let r = splats[i as usize].tile_rect();
                     tx >= r[0] && tx < r[2] && ty >= r[1] && ty < r[3]
                 })
                 .collect();
