@@ -38,6 +38,25 @@ pub struct CameraSet {
     pub points: Option<PointCloud>,
 }
 
+impl CameraSet {
+    /// The INRIA trainer's scene normalisation ("nerf++ norm"): the mean camera centre and 1.1 times the
+    /// largest distance of a camera centre from it. The radius scales position learning rates and
+    /// densification thresholds. `None` without cameras.
+    pub fn camera_extent(&self) -> Option<([f64; 3], f64)> {
+        if self.cameras.is_empty() {
+            return None;
+        }
+        let centers: Vec<[f64; 3]> = self.cameras.iter().map(Camera::center).collect();
+        let n = centers.len() as f64;
+        let mean: [f64; 3] = std::array::from_fn(|a| centers.iter().map(|c| c[a]).sum::<f64>() / n);
+        let farthest = centers
+            .iter()
+            .map(|c| (0..3).map(|a| (c[a] - mean[a]).powi(2)).sum::<f64>().sqrt())
+            .fold(0.0, f64::max);
+        Some((mean, 1.1 * farthest))
+    }
+}
+
 /// A sparse coloured point cloud (e.g. COLMAP's `points3D`), for initialising a scene.
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct PointCloud {
@@ -459,6 +478,28 @@ mod tests {
             .map(|i| (0..3).map(|j| r[i][j] * x[j]).sum())
             .collect();
         assert!((rx[0]).abs() < 1e-12 && (rx[1] - 1.0).abs() < 1e-12 && rx[2].abs() < 1e-12);
+    }
+
+    #[test]
+    fn camera_extent_is_the_inria_normalisation() {
+        let at = |c: [f64; 3]| {
+            crate::cameras::orbit::look_at(String::new(), c, [0.0; 3], [0.0, 0.0, 1.0], 8, 8, 8.0)
+        };
+        let set = CameraSet {
+            cameras: vec![
+                at([2.0, 0.0, 1.0]),
+                at([-2.0, 0.0, 1.0]),
+                at([0.0, 4.0, 1.0]),
+            ],
+            ..Default::default()
+        };
+        let (mean, radius) = set.camera_extent().unwrap();
+        let want = [0.0, 4.0 / 3.0, 1.0];
+        for a in 0..3 {
+            assert!((mean[a] - want[a]).abs() < 1e-12);
+        }
+        assert!((radius - 1.1 * (8.0f64 / 3.0)).abs() < 1e-12);
+        assert!(CameraSet::default().camera_extent().is_none());
     }
 
     #[test]
