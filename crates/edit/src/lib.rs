@@ -2,6 +2,8 @@
 
 pub mod align;
 pub mod blend;
+pub mod clip_score;
+pub mod clip_vision;
 pub mod consistency;
 pub mod control;
 pub mod infedit;
