@@ -7,6 +7,7 @@ pub mod clip_vision;
 pub mod consistency;
 pub mod control;
 pub mod infedit;
+pub mod lpips;
 pub mod model;
 pub mod multiview;
 pub mod noise;
