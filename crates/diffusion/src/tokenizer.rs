@@ -571,6 +571,24 @@ impl ClipTokenizer {
         Ok(self.encode(text))
     }
 
+    /// A one-line warning naming the words cut off when `text` does not fit, for callers that print
+    /// warnings (the default, non-strict path); `None` when it fits.
+    pub fn truncation_warning(&self, text: &str) -> Option<String> {
+        match self.encode_strict(text) {
+            Ok(_) => None,
+            Err(TokenizerError::PromptTooLong {
+                tokens,
+                max,
+                dropped,
+                dropped_text,
+            }) => Some(format!(
+                "prompt has {tokens} tokens but the text encoder takes {max}; the last {dropped} \
+                 are ignored: \"{dropped_text}\""
+            )),
+            Err(other) => Some(other.to_string()),
+        }
+    }
+
     /// Each id as its own text, as `tokenizer.decode([id])` gives it (no `</w>`, specials verbatim; a
     /// byte token that is part of a longer UTF-8 character shows as U+FFFD).
     pub fn token_strings(&self, ids: &[u32]) -> Vec<String> {
@@ -834,6 +852,14 @@ mod tests {
             .encode_strict("cat cat cat cat cat cat cat cat")
             .unwrap_err();
         assert!(err.to_string().contains("2 would be cut off"), "{err}");
+        let warning = t
+            .truncation_warning("cat cat cat cat cat cat cat aaa")
+            .unwrap();
+        assert!(
+            warning.contains("the last 3 are ignored: \"cat aaa\""),
+            "{warning}"
+        );
+        assert!(t.truncation_warning("cat").is_none());
         let short = t.encode("cat");
         assert_eq!(short.num_tokens, 3);
         assert!(!short.truncated());
