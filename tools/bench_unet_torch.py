@@ -47,19 +47,21 @@ def torch_results(batches, runs, size, threads):
         sample = torch.randn(batch, 4, size, size)
         context = torch.randn(batch, 77, 768)
         t = torch.tensor([500] * batch)
-        times = []
+        times, cpu_times = [], []
         for run in range(runs + 1):
-            start = time.perf_counter()
+            start, cpu_start = time.perf_counter(), time.process_time()
             with torch.no_grad():
                 out = unet(sample, t, encoder_hidden_states=context).sample
-            secs = time.perf_counter() - start
+            secs, cpu = time.perf_counter() - start, time.process_time() - cpu_start
             assert out.shape == (batch, 4, size, size)
-            print(f"  torch batch {batch} run {run}: {secs:.3f} s{' (warm-up)' if run == 0 else ''}", file=sys.stderr)
+            note = " (warm-up)" if run == 0 else ""
+            print(f"  torch batch {batch} run {run}: {secs:.3f} s wall, {cpu:.2f} s cpu{note}", file=sys.stderr)
             if run > 0:
                 times.append(secs)
+                cpu_times.append(cpu)
         peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
         results.append(dict(impl="torch", what="forward", batch=batch, size=size, threads=threads,
-                            seconds=round(min(times), 3), peak_rss_mb=round(peak)))
+                            seconds=round(min(times), 3), cpu_seconds=round(min(cpu_times), 2), peak_rss_mb=round(peak)))
         print("RESULT " + json.dumps(results[-1]), flush=True)
     return results
 
@@ -90,10 +92,13 @@ def main():
     if not ours:
         return
     print(f"\nUNet forward, SD 1.5 config, {args.size}x{args.size} latents, {args.threads} threads (best of {args.runs})")
-    print(f"{'batch':>5} {'candle s':>9} {'torch s':>9} {'candle/torch':>13}")
+    print("(wall = elapsed seconds; cpu = process CPU seconds, less sensitive to other load on the machine)")
+    print(f"{'batch':>5} {'candle wall':>12} {'torch wall':>11} {'ratio':>6} {'candle cpu':>11} {'torch cpu':>10} {'ratio':>6}")
     for t in theirs:
         c = next(r for r in ours if r["what"] == "forward" and r["batch"] == t["batch"])
-        print(f"{t['batch']:>5} {c['seconds']:>9.2f} {t['seconds']:>9.2f} {c['seconds'] / t['seconds']:>13.2f}")
+        print(f"{t['batch']:>5} {c['seconds']:>12.2f} {t['seconds']:>11.2f} {c['seconds'] / t['seconds']:>6.2f}"
+              f" {c['cpu_seconds']:>11.2f} {t['cpu_seconds']:>10.2f} {c['cpu_seconds'] / t['cpu_seconds']:>6.2f}")
+    print(f"load average at the end: {os.getloadavg()[0]:.1f} (on {os.cpu_count()} CPUs)")
     for r in ours:
         if r["what"] == "load_f16":
             print(f"loading SD 1.5 UNet from f16 safetensors: {r['seconds']:.1f} s, peak RSS {r['peak_rss_mb']} MB")

@@ -145,6 +145,22 @@ fn peak_rss_mb() -> f64 {
         .unwrap_or(f64::NAN)
 }
 
+/// User + system CPU seconds of this process (from /proc/self/stat, 100 Hz ticks), to judge runs on a
+/// machine shared with other work: wall time inflates under contention, CPU time much less.
+fn cpu_seconds() -> f64 {
+    let stat = std::fs::read_to_string("/proc/self/stat").unwrap_or_default();
+    // Fields after the parenthesised command name; utime and stime are fields 14 and 15 overall.
+    let rest = stat.rsplit_once(')').map(|(_, r)| r).unwrap_or("");
+    let fields: Vec<&str> = rest.split_whitespace().collect();
+    let ticks = |i: usize| {
+        fields
+            .get(i)
+            .and_then(|v| v.parse::<f64>().ok())
+            .unwrap_or(f64::NAN)
+    };
+    (ticks(11) + ticks(12)) / 100.0
+}
+
 fn arg_value(args: &[String], name: &str) -> Option<String> {
     args.iter()
         .position(|a| a == name)
@@ -191,23 +207,25 @@ fn main() {
         let context = Tensor::randn(0f32, 1.0, (batch, 77, 768), &Device::Cpu).unwrap();
         let t = Tensor::new(&[500f32], &Device::Cpu).unwrap();
         let mut times = Vec::new();
+        let mut cpu_times = Vec::new();
         for run in 0..=runs {
-            let start = Instant::now();
+            let (start, cpu_start) = (Instant::now(), cpu_seconds());
             let out = model.forward(&sample, &t, &context, None, None).unwrap();
-            let secs = start.elapsed().as_secs_f64();
+            let (secs, cpu) = (start.elapsed().as_secs_f64(), cpu_seconds() - cpu_start);
             assert_eq!(out.dims(), &[batch, 4, size, size]);
-            eprintln!(
-                "  batch {batch} run {run}: {secs:.3} s{}",
-                if run == 0 { " (warm-up)" } else { "" }
-            );
+            let note = if run == 0 { " (warm-up)" } else { "" };
+            eprintln!("  batch {batch} run {run}: {secs:.3} s wall, {cpu:.2} s cpu{note}");
             if run > 0 {
                 times.push(secs);
+                cpu_times.push(cpu);
             }
         }
+        cpu_times.sort_by(|a, b| a.partial_cmp(b).unwrap());
         times.sort_by(|a, b| a.partial_cmp(b).unwrap());
         println!(
-            "RESULT {{\"impl\":\"candle\",\"what\":\"forward\",\"batch\":{batch},\"size\":{size},\"threads\":{threads},\"seconds\":{:.3},\"peak_rss_mb\":{:.0}}}",
+            "RESULT {{\"impl\":\"candle\",\"what\":\"forward\",\"batch\":{batch},\"size\":{size},\"threads\":{threads},\"seconds\":{:.3},\"cpu_seconds\":{:.2},\"peak_rss_mb\":{:.0}}}",
             times[0],
+            cpu_times[0],
             peak_rss_mb()
         );
     }
