@@ -8,6 +8,7 @@ pub mod consistency;
 pub mod control;
 pub mod infedit;
 pub mod lpips;
+pub mod masks;
 pub mod model;
 pub mod multiview;
 pub mod noise;
