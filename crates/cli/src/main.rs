@@ -26,6 +26,8 @@ enum Command {
     // One line per subcommand; keep them in the order a user meets them.
     /// Print statistics of a 3DGS scene (count, SH degree, bounds, opacities, scales, cameras).
     Inspect(cmd::inspect::Args),
+    /// Render a scene to one PNG per view (optionally depth and alpha).
+    Render(cmd::render::Args),
     /// Edit one image from a source prompt to a target prompt (InfEdit).
     EditImage(cmd::edit_image::Args),
     /// Inspect a Stable Diffusion model folder (`vcedit model check DIR`).
@@ -36,6 +38,7 @@ fn main() {
     let cli = Cli::parse();
     let result: anyhow::Result<()> = match cli.command {
         Command::Inspect(a) => cmd::inspect::run(a),
+        Command::Render(a) => cmd::render::run(a),
         Command::EditImage(a) => cmd::edit_image::run(a),
         Command::Model(a) => cmd::model::run(a),
     };

@@ -3,3 +3,4 @@ pub mod edit_image;
 pub mod edit_opts;
 pub mod inspect;
 pub mod model;
+pub mod render;

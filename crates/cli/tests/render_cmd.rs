@@ -1,0 +1,104 @@
+//! `vcedit render` end to end: the real binary on a generated scene with orbit and file cameras.
+
+use splat::ply::write_ply;
+use splat::{GaussianScene, Image};
+use std::process::{Command, Output};
+
+fn vcedit(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_vcedit"))
+        .arg("render")
+        .args(args)
+        .output()
+        .expect("run vcedit")
+}
+
+/// A red Gaussian ball of 64 Gaussians around the origin.
+fn ball_scene() -> GaussianScene {
+    let mut s = GaussianScene::new(0);
+    for i in 0..64 {
+        let t = i as f32 * 0.7;
+        s.means
+            .extend_from_slice(&[0.3 * t.sin(), 0.3 * (1.3 * t).cos(), 0.3 * (0.7 * t).sin()]);
+        s.log_scales.extend_from_slice(&[-2.0; 3]);
+        s.quats.extend_from_slice(&[1.0, 0.0, 0.0, 0.0]);
+        s.opacity_logits.push(3.0);
+        // DC so that colour = 0.5 + 0.282·dc: red 1, green/blue 0.
+        s.sh.extend_from_slice(&[1.8, -1.8, -1.8]);
+    }
+    s
+}
+
+#[test]
+fn renders_an_orbit_with_depth_and_alpha() {
+    let dir = tempfile::tempdir().unwrap();
+    let ply = dir.path().join("ball.ply");
+    write_ply(&ply, &ball_scene()).unwrap();
+    let out = dir.path().join("out");
+    let o = vcedit(&[
+        ply.to_str().unwrap(),
+        "--orbit",
+        "3",
+        "--size",
+        "48x32",
+        "--depth",
+        "--alpha",
+        "--background",
+        "0,0,1",
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let mut names: Vec<String> = std::fs::read_dir(&out)
+        .unwrap()
+        .map(|e| e.unwrap().file_name().into_string().unwrap())
+        .collect();
+    names.sort();
+    assert_eq!(names.len(), 9, "{names:?}");
+    let rgb = Image::load(&out.join(&names[0])).unwrap();
+    assert_eq!((rgb.width, rgb.height), (48, 32));
+    // The centre is the red ball, the corner the blue background.
+    let c = rgb.pixel(24, 16);
+    assert!(c[0] > 0.8 && c[2] < 0.2, "{c:?}");
+    let corner = rgb.pixel(0, 0);
+    assert!(corner[2] > 0.9 && corner[0] < 0.1, "{corner:?}");
+    let alpha =
+        Image::load(&out.join(names.iter().find(|n| n.ends_with("_alpha.png")).unwrap())).unwrap();
+    assert!(alpha.pixel(24, 16)[0] > 0.9 && alpha.pixel(0, 0)[0] < 0.05);
+}
+
+#[test]
+fn renders_from_a_camera_file_and_reports_bad_input() {
+    let dir = tempfile::tempdir().unwrap();
+    let ply = dir.path().join("ball.ply");
+    write_ply(&ply, &ball_scene()).unwrap();
+    // Two Blender-convention cameras on the z axis looking at the origin.
+    let transforms = r#"{"camera_angle_x": 0.8, "w": 40, "h": 40, "frames": [
+        {"file_path": "a", "transform_matrix": [[1,0,0,0],[0,1,0,0],[0,0,1,3],[0,0,0,1]]},
+        {"file_path": "b", "transform_matrix": [[1,0,0,0],[0,1,0,0],[0,0,1,4],[0,0,0,1]]}]}"#;
+    let cams = dir.path().join("transforms.json");
+    std::fs::write(&cams, transforms).unwrap();
+    let out = dir.path().join("out");
+    let o = vcedit(&[
+        ply.to_str().unwrap(),
+        "--cameras",
+        cams.to_str().unwrap(),
+        "--size",
+        "20",
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    assert_eq!(std::fs::read_dir(&out).unwrap().count(), 2);
+
+    let o = vcedit(&[
+        dir.path().join("missing.ply").to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    assert!(!o.status.success());
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        err.contains("missing.ply") && err.lines().count() == 1,
+        "{err}"
+    );
+}
