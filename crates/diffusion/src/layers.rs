@@ -223,16 +223,7 @@ impl CustomOp1 for GroupNormOp {
                     let shift = self.bias[channel] - mean * scale;
                     let range = c * per_channel..(c + 1) * per_channel;
                     let (o, i) = (&mut out[range.clone()], &inp[range]);
-                    if self.with_silu {
-                        for (o, &i) in o.iter_mut().zip(i) {
-                            let y = i * scale + shift;
-                            *o = y / (1.0 + (-y).exp());
-                        }
-                    } else {
-                        for (o, &i) in o.iter_mut().zip(i) {
-                            *o = i * scale + shift;
-                        }
-                    }
+                    affine_silu(o, i, scale, shift, self.with_silu);
                 }
             });
         Ok((CpuStorage::F32(dst), shape))
@@ -459,6 +450,124 @@ fn attention_block(
     }
 }
 
+/// Runs `$kernel($args)` compiled for AVX-512 or AVX2+FMA when the CPU has them (the kernels are
+/// `#[inline(always)]` loops, so each instantiation is vectorised for its instruction set).
+macro_rules! simd_dispatch {
+    (fn $name:ident($($arg:ident: $ty:ty),*) => $kernel:ident) => {
+        fn $name($($arg: $ty),*) {
+            #[cfg(target_arch = "x86_64")]
+            {
+                #[target_feature(enable = "avx512f")]
+                unsafe fn avx512($($arg: $ty),*) {
+                    $kernel($($arg),*)
+                }
+                #[target_feature(enable = "avx2,fma")]
+                unsafe fn avx2($($arg: $ty),*) {
+                    $kernel($($arg),*)
+                }
+                if std::is_x86_feature_detected!("avx512f") {
+                    // SAFETY: the CPU supports the enabled features (checked just above).
+                    return unsafe { avx512($($arg),*) };
+                }
+                if std::is_x86_feature_detected!("avx2") && std::is_x86_feature_detected!("fma") {
+                    // SAFETY: as above.
+                    return unsafe { avx2($($arg),*) };
+                }
+            }
+            $kernel($($arg),*)
+        }
+    };
+}
+
+#[inline(always)]
+fn affine_silu_kernel(out: &mut [f32], inp: &[f32], scale: f32, shift: f32, with_silu: bool) {
+    if with_silu {
+        for (o, &i) in out.iter_mut().zip(inp) {
+            let y = i * scale + shift;
+            *o = y / (1.0 + exp_fast(-y));
+        }
+    } else {
+        for (o, &i) in out.iter_mut().zip(inp) {
+            *o = i * scale + shift;
+        }
+    }
+}
+
+simd_dispatch!(fn affine_silu(out: &mut [f32], inp: &[f32], scale: f32, shift: f32, with_silu: bool) => affine_silu_kernel);
+
+/// `erfc(x)` with relative error below 1.2e-7 (Numerical Recipes' Chebyshev-fitted `erfcc`), branch-free
+/// so it vectorises.
+#[inline(always)]
+fn erfc_fast(x: f32) -> f32 {
+    let z = x.abs();
+    let t = 1.0 / (1.0 + 0.5 * z);
+    let mut p = 0.170_872_77f32;
+    p = p * t - 0.822_152_23;
+    p = p * t + 1.488_515_87;
+    p = p * t - 1.135_203_98;
+    p = p * t + 0.278_868_07;
+    p = p * t - 0.186_288_06;
+    p = p * t + 0.096_784_18;
+    p = p * t + 0.374_091_96;
+    p = p * t + 1.000_023_68;
+    p = p * t - 1.265_512_23;
+    let ans = t * exp_fast(-z * z + p);
+    if x >= 0.0 {
+        ans
+    } else {
+        2.0 - ans
+    }
+}
+
+/// GEGLU on one row `[hidden | gate]` → `hidden · gelu(gate)` with the exact (erf) GELU.
+#[inline(always)]
+fn geglu_kernel(out: &mut [f32], hidden: &[f32], gate: &[f32]) {
+    for ((o, &h), &g) in out.iter_mut().zip(hidden).zip(gate) {
+        *o = h * 0.5 * g * erfc_fast(-g * std::f32::consts::FRAC_1_SQRT_2);
+    }
+}
+
+simd_dispatch!(fn geglu_row(out: &mut [f32], hidden: &[f32], gate: &[f32]) => geglu_kernel);
+
+/// `hidden * gelu_erf(gate)` where `x` = [..., 2·inner] holds `[hidden | gate]` (diffusers `GEGLU`);
+/// fused on the inference path, composite (differentiable) otherwise.
+pub fn geglu(x: &Tensor) -> Result<Tensor> {
+    let width = x.dim(D::Minus1)?;
+    if width % 2 != 0 {
+        candle_core::bail!("geglu: last dimension {width} is odd");
+    }
+    let inner = width / 2;
+    if needs_grad(&[x]) || x.dtype() != DType::F32 || !x.device().is_cpu() {
+        let hidden = x.narrow(D::Minus1, 0, inner)?;
+        let gate = x.narrow(D::Minus1, inner, inner)?;
+        return hidden * gate.gelu_erf()?;
+    }
+    x.contiguous()?.apply_op1_no_bwd(&GegluOp)
+}
+
+struct GegluOp;
+
+impl CustomOp1 for GegluOp {
+    fn name(&self) -> &'static str {
+        "geglu"
+    }
+
+    fn cpu_fwd(&self, storage: &CpuStorage, layout: &Layout) -> Result<(CpuStorage, Shape)> {
+        let src = f32_slice(storage, layout, "geglu input")?;
+        let mut dims = layout.shape().dims().to_vec();
+        let width = dims[dims.len() - 1];
+        let inner = width / 2;
+        *dims.last_mut().unwrap() = inner;
+        let mut dst = vec![0f32; src.len() / 2];
+        if inner > 0 {
+            dst.par_chunks_mut(inner)
+                .zip(src.par_chunks(width))
+                .for_each(|(o, row)| geglu_row(o, &row[..inner], &row[inner..]));
+        }
+        Ok((CpuStorage::F32(dst), Shape::from(dims)))
+    }
+}
+
 /// `exp(x)` for x ≤ 0.. moderate positive values, written so loops over it vectorise: Cody–Waite range
 /// reduction to r ∈ [-ln2/2, ln2/2] and a degree-6 polynomial (Cephes `expf` coefficients, ~1 ulp);
 /// inputs below -87 flush to ~1e-38 instead of 0, harmless for softmax/SiLU.
@@ -517,29 +626,8 @@ fn softmax_row(row: &mut [f32]) {
     }
 }
 
-/// Numerically stable softmax of one row, vectorised for the CPU it runs on.
-fn softmax_in_place(row: &mut [f32]) {
-    #[cfg(target_arch = "x86_64")]
-    {
-        #[target_feature(enable = "avx512f")]
-        unsafe fn avx512(row: &mut [f32]) {
-            softmax_row(row)
-        }
-        #[target_feature(enable = "avx2,fma")]
-        unsafe fn avx2(row: &mut [f32]) {
-            softmax_row(row)
-        }
-        if std::is_x86_feature_detected!("avx512f") {
-            // SAFETY: the CPU supports the enabled features (checked just above).
-            return unsafe { avx512(row) };
-        }
-        if std::is_x86_feature_detected!("avx2") && std::is_x86_feature_detected!("fma") {
-            // SAFETY: as above.
-            return unsafe { avx2(row) };
-        }
-    }
-    softmax_row(row)
-}
+// Numerically stable softmax of one row, vectorised for the CPU it runs on.
+simd_dispatch!(fn softmax_in_place(row: &mut [f32]) => softmax_row);
 
 /// Configuration of a [`ResnetBlock2D`] (diffusers `ResnetBlock2D` arguments that SD 1.x uses).
 #[derive(Debug, Clone)]
@@ -913,6 +1001,14 @@ mod tests {
                 .unwrap();
             assert!(max_diff(&got, &want) < 1e-5, "{q_len}x{k_len}x{d}x{dv}");
         }
+    }
+
+    #[test]
+    fn fused_geglu_matches_exact_gelu() {
+        let x = Tensor::randn(0f32, 3.0, (2, 5, 24), &Device::Cpu).unwrap();
+        let want = (x.narrow(2, 0, 12).unwrap() * x.narrow(2, 12, 12).unwrap().gelu_erf().unwrap())
+            .unwrap();
+        assert!(max_diff(&geglu(&x).unwrap(), &want) < 1e-5);
     }
 
     #[test]

@@ -1,18 +1,17 @@
 //! diffusers `Transformer2DModel` (continuous input) and `BasicTransformerBlock`.
 
-use candle_core::{Module, Result, Tensor, D};
+use candle_core::{Module, Result, Tensor};
 use candle_nn::{Linear, VarBuilder};
 
 use super::attention::{Attention, AttentionHook};
 use crate::conv::Conv2d;
-use crate::layers::{conv2d, linear, GroupNorm, LayerNorm};
+use crate::layers::{conv2d, geglu, linear, GroupNorm, LayerNorm};
 
 /// diffusers `GEGLU` + output linear (`ff.net.0.proj`, `ff.net.2`): `W2 (h ⊙ gelu(g))` with `[h, g] = W1 x`.
 #[derive(Debug, Clone)]
 pub struct FeedForward {
     proj: Linear,
     out: Linear,
-    inner: usize,
 }
 
 impl FeedForward {
@@ -21,16 +20,12 @@ impl FeedForward {
         Ok(Self {
             proj: linear(dim, inner * 2, true, vb.pp("net.0.proj"))?,
             out: linear(inner, dim, true, vb.pp("net.2"))?,
-            inner,
         })
     }
 
     pub fn forward(&self, x: &Tensor) -> Result<Tensor> {
-        let projected = self.proj.forward(x)?;
-        let hidden = projected.narrow(D::Minus1, 0, self.inner)?;
-        let gate = projected.narrow(D::Minus1, self.inner, self.inner)?;
         // diffusers uses the exact (erf) GELU here.
-        self.out.forward(&(hidden * gate.gelu_erf()?)?)
+        self.out.forward(&geglu(&self.proj.forward(x)?)?)
     }
 }
 
