@@ -450,6 +450,17 @@ pub fn resolve_model_path(path: &Path) -> Result<PathBuf, LoadError> {
     if !path.is_dir() {
         return Err(LoadError::NotFound(path.to_path_buf()));
     }
+    // `models--org--name/snapshots` itself: resolve from its parent.
+    if path.file_name().is_some_and(|n| n == "snapshots")
+        && !path.join("model_index.json").exists()
+        && path
+            .parent()
+            .is_some_and(|p| p.join("refs").is_dir() || p.join("blobs").is_dir())
+    {
+        if let Some(parent) = path.parent() {
+            return resolve_model_path(parent);
+        }
+    }
     let snapshots = path.join("snapshots");
     // A folder that has the pipeline files itself is taken as is, even if it happens to hold `snapshots/`.
     if path.join("model_index.json").exists() || !snapshots.is_dir() {
@@ -933,6 +944,10 @@ mod tests {
         fs::write(repo.join("refs/main"), "aaa\n").unwrap();
         assert_eq!(
             resolve_model_path(&repo).unwrap(),
+            repo.join("snapshots/aaa")
+        );
+        assert_eq!(
+            resolve_model_path(&repo.join("snapshots")).unwrap(),
             repo.join("snapshots/aaa")
         );
         fs::remove_file(repo.join("refs/main")).unwrap();

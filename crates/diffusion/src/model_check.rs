@@ -88,7 +88,8 @@ impl ModelReport {
     }
 }
 
-fn class_of(config: &Value) -> String {
+/// The config's class, else the one `model_index.json` declares for the component.
+fn class_of(config: &Value, declared: Option<&str>) -> String {
     config
         .get("_class_name")
         .and_then(Value::as_str)
@@ -98,6 +99,7 @@ fn class_of(config: &Value) -> String {
                 .and_then(|a| a.get(0))
                 .and_then(Value::as_str)
         })
+        .or(declared)
         .unwrap_or("?")
         .to_string()
 }
@@ -186,7 +188,7 @@ fn read_headers(dir: &ModelDir, component: Component) -> Result<Headers, LoadErr
     }
     let report = WeightsReport {
         component,
-        class: class_of(&config),
+        class: class_of(&config, dir.declared_class(component).map(|(_, c)| c)),
         files: weights.files.iter().map(|f| rel(dir.root(), f)).collect(),
         variant: weights.variant.clone(),
         sharded: weights.sharded,
@@ -348,7 +350,7 @@ pub fn check_model(path: &Path, depth: CheckDepth) -> Result<ModelReport, LoadEr
             break;
         }
     }
-    let vae_class = class_of(&vae.config);
+    let vae_class = vae.report.class.clone();
     let latent = usize_key(&vae.config, "latent_channels").unwrap_or(4);
     if unet_out != latent {
         problems.push(Problem::Invalid {
