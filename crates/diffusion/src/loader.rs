@@ -670,8 +670,18 @@ fn find_weight_files_inner(dir: &Path) -> Result<WeightFiles, WeightSearchError>
             sharded: true,
         });
     }
+    // The file diffusers/transformers write wins over stray extra files; otherwise all are merged.
+    let standard = singles.iter().find(|p| {
+        let name = file_name(p);
+        let stem = name.strip_suffix(".safetensors").unwrap_or(&name);
+        matches!(split_variant(stem).0, "diffusion_pytorch_model" | "model")
+    });
+    let files = match standard {
+        Some(p) => vec![p.clone()],
+        None => singles,
+    };
     Ok(WeightFiles {
-        files: singles,
+        files,
         variant,
         sharded: false,
     })
@@ -860,6 +870,23 @@ mod tests {
         fs::remove_file(dir.path().join("diffusion_pytorch_model.safetensors")).unwrap();
         let w = find_weight_files(dir.path()).unwrap();
         assert_eq!(w.variant.as_deref(), Some("fp16"));
+    }
+
+    #[test]
+    fn standard_name_wins_over_extra_files_and_others_merge() {
+        let dir = tempfile::tempdir().unwrap();
+        let d = dir.path();
+        write_safetensors(&d.join("taesd_encoder.safetensors"), &[("a", &[2])]);
+        write_safetensors(&d.join("taesd_decoder.safetensors"), &[("b", &[2])]);
+        assert_eq!(find_weight_files(d).unwrap().files.len(), 2);
+        write_safetensors(
+            &d.join("diffusion_pytorch_model.safetensors"),
+            &[("c", &[2])],
+        );
+        assert_eq!(
+            find_weight_files(d).unwrap().files,
+            vec![d.join("diffusion_pytorch_model.safetensors")]
+        );
     }
 
     #[test]
