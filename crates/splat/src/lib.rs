@@ -12,6 +12,7 @@ pub mod camera;
 pub mod cameras;
 pub mod image;
 pub mod lift;
+pub mod loss;
 pub mod open;
 pub mod ply;
 pub mod render;
