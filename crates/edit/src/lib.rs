@@ -9,6 +9,7 @@ pub mod control;
 pub mod infedit;
 pub mod lpips;
 pub mod masks;
+pub mod metrics;
 pub mod model;
 pub mod multiview;
 pub mod noise;
