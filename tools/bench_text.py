@@ -22,7 +22,7 @@ def timed(label, runs, fn):
     start = time.perf_counter()
     for _ in range(runs):
         fn()
-    print(f"{label}: {(time.perf_counter() - start) / runs:.4f} s")
+    print(f"{label}: {1e3 * (time.perf_counter() - start) / runs:.3f} ms")
 
 
 timed("tokenizer encode (one prompt)", 1000,
