@@ -19,8 +19,8 @@ fn time<T>(label: &str, runs: usize, mut f: impl FnMut() -> T) {
         std::hint::black_box(f());
     }
     println!(
-        "{label}: {:.4} s",
-        start.elapsed().as_secs_f64() / runs as f64
+        "{label}: {:.3} ms",
+        1e3 * start.elapsed().as_secs_f64() / runs as f64
     );
 }
 
