@@ -101,7 +101,8 @@ def main():
     print(f"load average at the end: {os.getloadavg()[0]:.1f} (on {os.cpu_count()} CPUs)")
     for r in ours:
         if r["what"] == "load_f16":
-            print(f"loading SD 1.5 UNet from f16 safetensors: {r['seconds']:.1f} s, peak RSS {r['peak_rss_mb']} MB")
+            print(f"loading SD 1.5 UNet from f16 safetensors: {r['seconds']:.1f} s, peak RSS {r['peak_rss_mb']} MB"
+                  f" (after load: {r.get('anon_mb', '?')} MB f32 weights/heap + {r.get('file_mb', '?')} MB mapped file pages)")
 
 
 if __name__ == "__main__":

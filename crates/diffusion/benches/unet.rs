@@ -135,14 +135,19 @@ impl SimpleBackend for SharedBackend {
     }
 }
 
-fn peak_rss_mb() -> f64 {
+/// A `/proc/self/status` memory field in MB (`VmHWM` = peak RSS, `RssAnon` = heap, `RssFile` = mapped files).
+fn status_mb(field: &str) -> f64 {
     let status = std::fs::read_to_string("/proc/self/status").unwrap_or_default();
     status
         .lines()
-        .find_map(|l| l.strip_prefix("VmHWM:"))
+        .find_map(|l| l.strip_prefix(field).and_then(|v| v.strip_prefix(':')))
         .and_then(|v| v.trim().trim_end_matches("kB").trim().parse::<f64>().ok())
         .map(|kb| kb / 1024.0)
         .unwrap_or(f64::NAN)
+}
+
+fn peak_rss_mb() -> f64 {
+    status_mb("VmHWM")
 }
 
 /// User + system CPU seconds of this process (from /proc/self/stat, 100 Hz ticks), to judge runs on a
@@ -177,8 +182,10 @@ fn main() {
         let model = UNet2DConditionModel::load(&config(), vb).unwrap();
         let secs = start.elapsed().as_secs_f64();
         println!(
-            "RESULT {{\"impl\":\"candle\",\"what\":\"load_f16\",\"seconds\":{secs:.3},\"peak_rss_mb\":{:.0},\"rss_before_mb\":{before:.0}}}",
-            peak_rss_mb()
+            "RESULT {{\"impl\":\"candle\",\"what\":\"load_f16\",\"seconds\":{secs:.3},\"peak_rss_mb\":{:.0},\"anon_mb\":{:.0},\"file_mb\":{:.0},\"rss_before_mb\":{before:.0}}}",
+            peak_rss_mb(),
+            status_mb("RssAnon"),
+            status_mb("RssFile")
         );
         drop(model);
         return;
@@ -194,6 +201,8 @@ fn main() {
     let size: usize = arg_value(&args, "--size")
         .map(|r| r.parse().unwrap())
         .unwrap_or(64);
+    // Recommended for any inference binary (see its doc comment).
+    diffusion::layers::tune_allocator_for_inference();
     let threads = candle_core::utils::get_num_threads();
     eprintln!(
         "unet bench: SD 1.5 config, {size}x{size} latents, {threads} threads, {runs} timed runs"

@@ -3,8 +3,9 @@
 //! Every layer has two execution paths chosen per call:
 //! - **inference** (no operand tracks gradients): fused CPU kernels (group norm + SiLU, softmax, layer norm)
 //!   that avoid intermediate tensors;
-//! - **training** (an input or a weight is a `Var` or depends on one): composite candle ops only, so
-//!   `Tensor::backward` works through the whole network.
+//! - **training** (an input or a weight is a `Var` or depends on one): kernels with backward passes
+//!   ([`crate::train_ops`]: conv, group norm (+ SiLU), layer norm, softmax for f32 on the CPU) and composite
+//!   candle ops elsewhere, so `Tensor::backward` works through the whole network.
 //!
 //! The choice is automatic (see [`needs_grad`]), so the same model code serves both.
 
@@ -18,6 +19,29 @@ use crate::conv::Conv2d;
 /// computed from one. Fused kernels have no backward pass, so they are used only when this is false.
 pub fn needs_grad(tensors: &[&Tensor]) -> bool {
     tensors.iter().any(|t| t.track_op())
+}
+
+/// Makes glibc's allocator keep large blocks in the heap instead of `mmap`ing and unmapping them per
+/// allocation. UNet activations at batch 6 are 30–250 MB each; with glibc's defaults every one is a fresh
+/// mapping that the kernel must fault in and zero (about 13% of a batch-6 SD 1.5 forward). After this
+/// call freed memory is reused instead (the process keeps its peak heap until exit, which suits a CLI).
+/// Process-wide; a no-op on other platforms. Call once at startup, before heavy work.
+pub fn tune_allocator_for_inference() {
+    #[cfg(all(target_os = "linux", target_env = "gnu"))]
+    {
+        extern "C" {
+            fn mallopt(param: i32, value: i32) -> i32;
+        }
+        const M_TRIM_THRESHOLD: i32 = -1;
+        const M_TOP_PAD: i32 = -2;
+        const M_MMAP_MAX: i32 = -4;
+        // SAFETY: mallopt only changes allocator tuning parameters; these values are valid for glibc.
+        unsafe {
+            mallopt(M_MMAP_MAX, 0);
+            mallopt(M_TRIM_THRESHOLD, i32::MAX);
+            mallopt(M_TOP_PAD, 256 << 20);
+        }
+    }
 }
 
 /// Loads a `nn.Linear` (`weight` [out, in], optional `bias` [out]) under `vb`.
@@ -47,9 +71,12 @@ pub fn silu(x: &Tensor) -> Result<Tensor> {
     x.silu()
 }
 
-/// Softmax over the last dimension: fused kernel for inference, composite ops when differentiating.
+/// Softmax over the last dimension: fused kernel for inference; when differentiating, the fused training
+/// kernel (f32 CPU) or composite ops.
 pub fn softmax_last_dim(x: &Tensor) -> Result<Tensor> {
-    if needs_grad(&[x]) || !x.device().is_cpu() {
+    if needs_grad(&[x]) && crate::train_ops::supported(&[x]) {
+        crate::train_ops::softmax_last_dim(x)
+    } else if needs_grad(&[x]) || !x.device().is_cpu() {
         candle_nn::ops::softmax(x, D::Minus1)
     } else {
         candle_nn::ops::softmax_last_dim(x)
@@ -77,6 +104,9 @@ impl LayerNorm {
         if !needs_grad(&[x, &self.weight, &self.bias]) && x.device().is_cpu() {
             let x = x.contiguous()?;
             return candle_nn::ops::layer_norm(&x, &self.weight, &self.bias, self.eps as f32);
+        }
+        if crate::train_ops::supported(&[x, &self.weight, &self.bias]) {
+            return crate::train_ops::layer_norm(x, &self.weight, &self.bias, self.eps);
         }
         let dim = x.dim(D::Minus1)? as f64;
         let mean = (x.sum_keepdim(D::Minus1)? / dim)?;
@@ -142,6 +172,16 @@ impl GroupNorm {
                 channels: dims[1],
             };
             return x.apply_op1_no_bwd(&op);
+        }
+        if crate::train_ops::supported(&[x, &self.weight, &self.bias]) {
+            return crate::train_ops::group_norm(
+                x,
+                &self.weight,
+                &self.bias,
+                self.num_groups,
+                self.eps,
+                with_silu,
+            );
         }
         let (batch, channels) = (dims[0], dims[1]);
         // Half-precision inputs are normalised in f32; f32/f64 stay as they are.
