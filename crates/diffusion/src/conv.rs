@@ -5,8 +5,8 @@
 //! (f32, CPU), the input stays NCHW: each im2col row (input channel × kernel tap) is a run of contiguous
 //! copies, built in parallel for a band of output rows, and a single GEMM per band writes straight into the
 //! NCHW output, whose rows were pre-filled with the bias. The weight [out, in, kh, kw] is already the GEMM's
-//! left operand [out, in·kh·kw], so nothing is re-laid out. With gradients (training) the plain candle op
-//! runs, which has a backward pass.
+//! left operand [out, in·kh·kw], so nothing is re-laid out. With gradients (training) the fused kernel of
+//! [`crate::train_ops::conv2d`] runs (it has a backward pass), or candle's own op where that does not apply.
 
 use candle_core::{CpuStorage, CustomOp2, DType, Layout, Module, Result, Shape, Tensor, WithDType};
 use candle_nn::VarBuilder;
@@ -95,6 +95,18 @@ impl Module for Conv2d {
                 .all(|t| t.dtype() == DType::F32 && !t.track_op())
             && x.rank() == 4;
         if !fast {
+            // Training: the fused kernel with its own backward pass when it applies (f32, CPU, bias).
+            if let Some(bias) = &self.bias {
+                if x.rank() == 4 && crate::train_ops::supported(&[x, &self.weight, bias]) {
+                    return crate::train_ops::conv2d(
+                        x,
+                        &self.weight,
+                        bias,
+                        self.stride,
+                        self.padding,
+                    );
+                }
+            }
             return self.forward_candle(x);
         }
         let bias = match &self.bias {

@@ -8,5 +8,6 @@ pub mod model_check;
 pub mod scheduler;
 pub mod taesd;
 pub mod tokenizer;
+pub mod train_ops;
 pub mod unet;
 pub mod vae;
