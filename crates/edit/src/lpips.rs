@@ -596,7 +596,7 @@ impl Lpips {
                 }
             }
             let shape = match weight.map(|w| w.dims()) {
-                Some(&[c_out, c_in, 3, 3]) => Some((c_out, c_in)),
+                Some(&[c_out, c_in, 3, 3]) if c_out > 0 && c_in > 0 => Some((c_out, c_in)),
                 Some(dims) => {
                     problems.push(format!(
                         "{} {weight_key} has shape {dims:?}, expected [c_out, c_in, 3, 3]",
