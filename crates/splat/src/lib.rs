@@ -8,15 +8,21 @@
 //! - Scene parameters are stored as the INRIA trainer stores them: log-scales, logit-opacities,
 //!   unnormalised quaternions (w, x, y, z), and SH coefficients.
 
+pub mod anchor;
 pub mod camera;
 pub mod cameras;
+pub mod checkpoint;
+pub mod densify;
+pub mod fit;
 pub mod image;
 pub mod lift;
 pub mod loss;
 pub mod open;
+pub mod optim;
 pub mod ply;
 pub mod render;
 pub mod scene;
+pub mod train;
 
 pub use camera::Camera;
 pub use image::{atomic_write, Image};
