@@ -11,7 +11,6 @@
 pub mod anchor;
 pub mod camera;
 pub mod cameras;
-pub mod checkpoint;
 pub mod densify;
 pub mod fit;
 pub mod image;
