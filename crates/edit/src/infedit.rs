@@ -122,7 +122,7 @@ pub struct EditPlan {
     pub latent_channels: usize,
     /// Spatial size of the cross-attention layers used by the local blend.
     pub blend_size: (usize, usize),
-    /// Target prompt tokens (SOT .. EOT) as strings, for per-word attention maps.
+    /// Target prompt tokens (SOT .. EOT) as raw BPE pieces, for per-word attention maps.
     pub target_tokens: Vec<String>,
     /// Real tokens (with SOT/EOT) of the source prompt.
     pub source_len: usize,
@@ -246,7 +246,11 @@ impl EditPlan {
         }
 
         let blend_size = blend_layer_size(&model.unet.config().down_block_types, latent_size);
-        let target_tokens = tok.token_strings(&target_ids);
+        // Raw BPE pieces (with their `</w>` word ends) so per-word maps can group sub-word tokens.
+        let target_tokens = target_ids
+            .iter()
+            .map(|&id| tok.id_to_token(id).unwrap_or("").to_string())
+            .collect();
         Ok(Self {
             settings: settings.clone(),
             prompts: prompts.clone(),

@@ -46,6 +46,8 @@ pub struct EditModel {
     pub codec_is_vae: bool,
     /// The beta schedule (read from the scheduler config whatever its class; LCM selects the timesteps).
     pub scheduler_config: LcmConfig,
+    /// Parameters of the UNet, text encoder and codec (held in f32).
+    pub parameters: u64,
 }
 
 impl EditModel {
@@ -83,6 +85,17 @@ impl EditModel {
             source,
         })?;
         let scheduler_config: LcmConfig = dir.read_config(Component::Scheduler)?;
+        let mut parameters = 0u64;
+        for component in [Component::Unet, Component::TextEncoder, Component::Vae] {
+            if component == Component::Vae && taesd.is_some() {
+                continue;
+            }
+            for f in dir.weight_files(component)?.files {
+                for t in diffusion::loader::read_safetensors_header(&f)? {
+                    parameters += t.num_elements() as u64;
+                }
+            }
+        }
         Ok(Self {
             root: dir.root().to_path_buf(),
             tokenizer,
@@ -91,6 +104,7 @@ impl EditModel {
             codec,
             codec_is_vae: taesd.is_none(),
             scheduler_config,
+            parameters,
         })
     }
 

@@ -161,7 +161,7 @@ impl MultiView<'_> {
             return Err(MultiViewError::Input("ECM needs a scene fitter".into()));
         }
         let mut times = StageTimes::default();
-        let mut timed =
+        let timed =
             |stage: Stage, t: Instant, times: &mut StageTimes| times.add(stage, t.elapsed());
 
         let t = Instant::now();

@@ -69,12 +69,12 @@ pub struct SamplerArgs {
     /// LCM steps.
     #[arg(long, default_value_t = 15)]
     pub steps: usize,
-    /// Classifier-free guidance of the target branch.
+    /// Classifier-free guidance scale of the target branch.
     #[arg(long, default_value_t = 2.0)]
-    pub guidance: f64,
-    /// Guidance of the source and layout branches.
+    pub guidance_scale: f64,
+    /// Guidance scale of the source and layout branches.
     #[arg(long, default_value_t = 1.0)]
-    pub guidance_source: f64,
+    pub guidance_scale_source: f64,
     /// Fraction of steps whose target cross-attention is taken from the source.
     #[arg(long = "cross", default_value_t = 0.7, value_name = "FRACTION")]
     pub cross_replace: f64,
@@ -112,8 +112,8 @@ impl SamplerArgs {
             }
         }
         for (name, v) in [
-            ("--guidance", self.guidance),
-            ("--guidance-source", self.guidance_source),
+            ("--guidance-scale", self.guidance_scale),
+            ("--guidance-scale-source", self.guidance_scale_source),
             ("--eta", self.eta),
         ] {
             if !v.is_finite() || v < 0.0 {
@@ -123,16 +123,19 @@ impl SamplerArgs {
         if self.eta > 1.0 {
             bail!("--eta {} must be at most 1", self.eta);
         }
-        if self.guidance <= 1.0 {
-            bail!("--guidance {} must be above 1 (the sampler needs classifier-free guidance on the target)", self.guidance);
+        if self.guidance_scale <= 1.0 {
+            bail!(
+                "--guidance-scale {} must be above 1 (the sampler needs classifier-free guidance on the target)",
+                self.guidance_scale
+            );
         }
         if self.steps == 0 {
             bail!("--steps must be at least 1");
         }
         Ok(InfEditSettings {
             steps: self.steps,
-            guidance_source: self.guidance_source,
-            guidance_target: self.guidance,
+            guidance_source: self.guidance_scale_source,
+            guidance_target: self.guidance_scale,
             cross_replace: self.cross_replace,
             self_replace: self.self_replace,
             thresh_e: self.thresh_e,

@@ -1,0 +1,276 @@
+//! Everything a finished edit writes besides the per-iteration guidance: the edited scene, before/after
+//! renders, mask images, a turntable GIF, metrics, `run.json` and `report.html`.
+
+use std::path::{Path, PathBuf};
+
+use serde::Serialize;
+use splat::render::{render, RenderOutput, RenderSettings};
+use splat::{Camera, GaussianScene, Image};
+
+use crate::gif::{write_gif, GifOptions};
+use crate::metrics::{self, ConsistencySettings, MetricsError};
+use crate::pipeline::{guidance_path, render_mask, EditJob, EditResult, PipelineError, Progress};
+use crate::report::{
+    self, IterationInfo, MetricsSummary, ReportData, ReportOptions, StageTiming, ViewPair,
+    WordImage,
+};
+
+/// Where the main outputs went.
+pub struct Written {
+    pub scene: PathBuf,
+    pub report: PathBuf,
+    pub metrics: MetricsSummary,
+}
+
+/// Describes the inputs for the report and run.json.
+pub struct RunInputs<'a> {
+    pub scene: &'a str,
+    pub cameras: &'a str,
+    pub model: &'a str,
+    pub loss: String,
+    pub notes: Vec<String>,
+}
+
+fn io_err(path: &Path, e: impl std::fmt::Display) -> PipelineError {
+    PipelineError::Io {
+        path: path.to_path_buf(),
+        msg: e.to_string(),
+    }
+}
+
+fn metrics_err(e: MetricsError) -> PipelineError {
+    PipelineError::Input(e.to_string())
+}
+
+fn rel(out: &Path, p: &Path) -> PathBuf {
+    p.strip_prefix(out)
+        .map(Path::to_path_buf)
+        .unwrap_or_else(|_| p.to_path_buf())
+}
+
+/// Side-by-side frame: `a` | `b`.
+fn side_by_side(a: &Image, b: &Image) -> Image {
+    let (w, h) = (a.width as usize, a.height as usize);
+    let mut data = Vec::with_capacity(2 * w * h * 3);
+    for y in 0..h {
+        data.extend_from_slice(&a.data[y * w * 3..(y + 1) * w * 3]);
+        data.extend_from_slice(&b.data[y * w * 3..(y + 1) * w * 3]);
+    }
+    Image::from_data(2 * w as u32, h as u32, 3, data)
+}
+
+/// Writes the outputs of a finished run into `out` and returns the main paths.
+#[allow(clippy::too_many_arguments)]
+pub fn write_outputs(
+    out: &Path,
+    job: &EditJob,
+    inputs: &RunInputs<'_>,
+    source: &GaussianScene,
+    cameras: &[Camera],
+    result: &EditResult,
+    progress: &mut dyn Progress,
+) -> Result<Written, PipelineError> {
+    let cams: Vec<Camera> = result.views.iter().map(|&i| cameras[i].clone()).collect();
+    let settings = RenderSettings::default();
+
+    progress.stage("writing outputs", (2 * cams.len() + 24) as u64);
+    let scene_path = out.join("edited.ply");
+    splat::ply::write_ply(&scene_path, &result.scene).map_err(|e| io_err(&scene_path, e))?;
+
+    // Before/after renders (with depth and alpha for the metrics).
+    let before: Vec<RenderOutput> = cams
+        .iter()
+        .map(|c| render(source, c, &settings, None))
+        .collect();
+    let after: Vec<RenderOutput> = cams
+        .iter()
+        .map(|c| render(&result.scene, c, &settings, None))
+        .collect();
+    let mut pairs = Vec::new();
+    for (v, (b, a)) in before.iter().zip(&after).enumerate() {
+        let pb = out.join("before").join(format!("view_{v:03}.png"));
+        let pa = out.join("after").join(format!("view_{v:03}.png"));
+        b.rgb_image().save_png(&pb).map_err(|e| io_err(&pb, e))?;
+        a.rgb_image().save_png(&pa).map_err(|e| io_err(&pa, e))?;
+        pairs.push(ViewPair {
+            name: cams[v].name.clone(),
+            before: rel(out, &pb),
+            after: rel(out, &pa),
+        });
+        progress.advance(2);
+    }
+
+    // The editable mask as images (white = editable).
+    let mut mask_paths = Vec::new();
+    let mut mask_maps = Vec::new();
+    if let Some(mask) = &result.mask {
+        for (v, c) in cams.iter().enumerate() {
+            let m = render_mask(source, mask, c);
+            let p = out.join("mask").join(format!("view_{v:03}.png"));
+            crate::viz::mask_image(&m, c.width, c.height)
+                .save_png(&p)
+                .map_err(|e| io_err(&p, e))?;
+            mask_paths.push(rel(out, &p));
+            mask_maps.push(m);
+        }
+    }
+
+    // Turntable: before | after around the scene.
+    let turntable = {
+        let (lo, hi) = splat::cameras::robust_bounds(source, 0.01).unwrap_or(([-1.0; 3], [1.0; 3]));
+        let size = job.size.0.min(256);
+        let orbit = splat::cameras::orbit_cameras(lo, hi, 24, size, size);
+        let frames: Vec<Image> = orbit
+            .iter()
+            .map(|c| {
+                let b = render(source, c, &settings, None).rgb_image();
+                let a = render(&result.scene, c, &settings, None).rgb_image();
+                side_by_side(&b, &a)
+            })
+            .collect();
+        progress.advance(24);
+        let p = out.join("turntable.gif");
+        write_gif(&p, &frames, &GifOptions::default()).map_err(|e| io_err(&p, e))?;
+        rel(out, &p)
+    };
+
+    // Metrics.
+    let cs = ConsistencySettings::default();
+    let source_consistency = metrics::render_consistency(&cams, &before, &cs)
+        .map_err(metrics_err)?
+        .summary;
+    let final_consistency = metrics::render_consistency(&cams, &after, &cs)
+        .map_err(metrics_err)?
+        .summary;
+    let b_imgs: Vec<Image> = before.iter().map(|r| r.rgb_image()).collect();
+    let a_imgs: Vec<Image> = after.iter().map(|r| r.rgb_image()).collect();
+    let b_refs: Vec<&Image> = b_imgs.iter().collect();
+    let a_refs: Vec<&Image> = a_imgs.iter().collect();
+    let whole = metrics::preservation(&b_refs, &a_refs, None).map_err(metrics_err)?;
+    let outside = if mask_maps.is_empty() {
+        None
+    } else {
+        let refs: Vec<&[f32]> = mask_maps.iter().map(|m| m.as_slice()).collect();
+        Some(metrics::preservation(&b_refs, &a_refs, Some(&refs)).map_err(metrics_err)?)
+    };
+    let metrics = MetricsSummary {
+        source_consistency: Some(source_consistency),
+        guidance_consistency: result.guidance_consistency.last().cloned().flatten(),
+        final_consistency: Some(final_consistency),
+        preservation_outside_mask: outside,
+        preservation_whole: Some(whole),
+        clip: None,
+        extra: Default::default(),
+    };
+
+    // Iterations for the report.
+    let iterations: Vec<IterationInfo> = (0..result.guidance.len())
+        .map(|k| IterationInfo {
+            index: k,
+            source_prompt: Some(if k == 0 {
+                job.prompts.source.clone()
+            } else {
+                job.prompts.target.clone()
+            }),
+            guidance: (0..cams.len())
+                .map(|v| rel(out, &guidance_path(out, k, v)))
+                .collect(),
+            renders: Vec::new(),
+            guidance_consistency: result.guidance_consistency.get(k).cloned().flatten(),
+            seconds: result.times.get(k).map(|t| {
+                let s = &t.sampler;
+                t.render + s.encode + s.ccm + s.unet + s.ecm + s.blend + s.decode + t.fit
+            }),
+        })
+        .collect();
+    let mut timings = Vec::new();
+    let sum = |f: &dyn Fn(&crate::pipeline::IterationTimes) -> f64| {
+        result.times.iter().map(f).sum::<f64>()
+    };
+    for (name, v) in [
+        ("render", sum(&|t| t.render)),
+        ("encode", sum(&|t| t.sampler.encode)),
+        ("CCM", sum(&|t| t.sampler.ccm)),
+        ("UNet passes", sum(&|t| t.sampler.unet)),
+        ("ECM", sum(&|t| t.sampler.ecm)),
+        ("blend-map consistency", sum(&|t| t.sampler.blend)),
+        ("decode", sum(&|t| t.sampler.decode)),
+        ("fit", sum(&|t| t.fit)),
+    ] {
+        timings.push(StageTiming {
+            stage: name.into(),
+            seconds: v,
+        });
+    }
+    let settings_json = serde_json::to_value(job).unwrap_or_default();
+    let mut notes = inputs.notes.clone();
+    notes.push(format!("fit loss: {}", inputs.loss));
+    if let Some(k) = result.resumed_from {
+        notes.push(format!("resumed after iteration {k}"));
+    }
+    let data = ReportData {
+        title: format!("vcedit: {} → {}", job.prompts.source, job.prompts.target),
+        source_prompt: job.prompts.source.clone(),
+        target_prompt: job.prompts.target.clone(),
+        scene: Some(inputs.scene.to_string()),
+        cameras: Some(inputs.cameras.to_string()),
+        edited_scene: Some(rel(out, &scene_path)),
+        settings: settings_json.clone(),
+        notes,
+        views: pairs,
+        iterations,
+        attention: result
+            .word_maps
+            .iter()
+            .map(|(w, p)| WordImage {
+                word: w.clone(),
+                path: rel(out, p),
+            })
+            .collect(),
+        masks: mask_paths,
+        metrics: metrics.clone(),
+        runs: Vec::new(),
+        timings: timings.clone(),
+        turntable: Some(turntable),
+    };
+    let report_path =
+        report::write_report(out, &data, &ReportOptions::default()).map_err(|e| io_err(out, e))?;
+
+    #[derive(Serialize)]
+    struct RunJson<'a> {
+        vcedit_version: &'static str,
+        model: &'a str,
+        scene: &'a str,
+        cameras: &'a str,
+        views: &'a [usize],
+        gaussians_before: usize,
+        gaussians_after: usize,
+        settings: serde_json::Value,
+        loss: &'a str,
+        metrics: &'a MetricsSummary,
+        timings: &'a [StageTiming],
+        iterations: &'a [crate::pipeline::IterationTimes],
+    }
+    let run = RunJson {
+        vcedit_version: env!("CARGO_PKG_VERSION"),
+        model: inputs.model,
+        scene: inputs.scene,
+        cameras: inputs.cameras,
+        views: &result.views,
+        gaussians_before: source.len(),
+        gaussians_after: result.scene.len(),
+        settings: settings_json,
+        loss: &inputs.loss,
+        metrics: &metrics,
+        timings: &timings,
+        iterations: &result.times,
+    };
+    let p = out.join("run.json");
+    splat::atomic_write(&p, &serde_json::to_vec_pretty(&run).expect("serialisable"))
+        .map_err(|e| io_err(&p, e))?;
+    Ok(Written {
+        scene: scene_path,
+        report: report_path,
+        metrics,
+    })
+}
