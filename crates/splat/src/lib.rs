@@ -11,6 +11,7 @@
 pub mod anchor;
 pub mod camera;
 pub mod cameras;
+pub mod checkpoint;
 pub mod densify;
 pub mod fit;
 pub mod image;
