@@ -1,0 +1,336 @@
+//! The report opens in headless Chromium from disk: every linked image loads (no console messages, which
+//! would include "Failed to load resource"), no script errors, and the screenshot shows the images.
+//! Skips (with the reason printed) when /usr/bin/chromium is absent; Debian: `apt-get install -y chromium`.
+
+use std::io::Read;
+use std::path::{Path, PathBuf};
+use std::process::{Command, Stdio};
+use std::time::{Duration, Instant};
+
+use edit::gif::{write_gif, GifOptions};
+use edit::metrics::{ConsistencySummary, PreservationReport};
+use edit::report::{
+    write_report, IterationInfo, MetricsSummary, ReportData, ReportOptions, RunSummary,
+    StageTiming, ViewPair, WordImage,
+};
+use splat::Image;
+
+const CHROMIUM: &str = "/usr/bin/chromium";
+
+fn solid(w: u32, h: u32, rgb: [f32; 3], k: usize) -> Image {
+    let mut img = Image::new(w, h, 3);
+    for (i, px) in img.data.chunks_exact_mut(3).enumerate() {
+        // A faint diagonal pattern so images are not flat, but the dominant colour stays recognisable.
+        let stripe = if (i as u32 % w + i as u32 / w + k as u32) % 16 < 2 {
+            0.1
+        } else {
+            0.0
+        };
+        for c in 0..3 {
+            px[c] = (rgb[c] - stripe).max(0.0);
+        }
+    }
+    img
+}
+
+fn consistency(e: f64) -> ConsistencySummary {
+    ConsistencySummary {
+        mean_abs_error: Some(e),
+        psnr: Some(-20.0 * e.log10()),
+        pairs: 24,
+        covisible_fraction: 0.61,
+        covisible_pixels: 123_456,
+    }
+}
+
+/// A complete run folder with dummy images, and its report.
+fn write_dummy_run(dir: &Path) -> PathBuf {
+    let (w, h) = (128, 96);
+    let mut views = Vec::new();
+    let mut guidance = Vec::new();
+    for k in 0..10 {
+        let before = PathBuf::from(format!("renders/source view {k}.png"));
+        let after = PathBuf::from(format!("renders/edited_{k:03}.png"));
+        solid(w, h, [0.9, 0.1, 0.1], k)
+            .save_png(&dir.join(&before))
+            .unwrap();
+        solid(w, h, [0.1, 0.8, 0.2], k)
+            .save_png(&dir.join(&after))
+            .unwrap();
+        views.push(ViewPair {
+            name: format!("view {k}"),
+            before,
+            after,
+        });
+        let g = PathBuf::from(format!("iter_0/guidance/{k:03}.png"));
+        solid(w, h, [0.1, 0.2, 0.9], k)
+            .save_png(&dir.join(&g))
+            .unwrap();
+        guidance.push(g);
+    }
+    let heat: Vec<f32> = (0..w * h).map(|i| (i % w) as f32 / w as f32).collect();
+    let att = PathBuf::from("attention/clown.png");
+    edit::viz::heat_image(&heat, w, h)
+        .save_png(&dir.join(&att))
+        .unwrap();
+    let mask = PathBuf::from("mask/000.png");
+    edit::viz::mask_image(&heat, w, h)
+        .save_png(&dir.join(&mask))
+        .unwrap();
+    let frames: Vec<Image> = (0..6)
+        .map(|k| solid(w, h, [0.2, 0.6, 0.9], k * 3))
+        .collect();
+    write_gif(&dir.join("turntable.gif"), &frames, &GifOptions::default()).unwrap();
+
+    let metrics = MetricsSummary {
+        source_consistency: Some(consistency(0.004)),
+        guidance_consistency: Some(consistency(0.031)),
+        final_consistency: Some(consistency(0.009)),
+        preservation_outside_mask: Some(PreservationReport {
+            psnr: Some(41.2),
+            ssim: Some(0.991),
+            pixels: 1000,
+            fraction: 0.7,
+            views: 10,
+        }),
+        ..Default::default()
+    };
+    let data = ReportData {
+        title: "Turn the man into a clown".into(),
+        source_prompt: "a photo of a man <b>".into(),
+        target_prompt: "a photo of a clown & \"friends\"".into(),
+        scene: Some("scenes/man.ply".into()),
+        cameras: Some("scenes/cameras.json".into()),
+        edited_scene: Some("edited.ply".into()),
+        settings: serde_json::json!({"steps": 15, "guidance": 2.0, "ccm": [6, 13], "taesd": null}),
+        notes: vec!["No LPIPS weights given: fitted with 10·L1 + D-SSIM.".into()],
+        views,
+        iterations: vec![IterationInfo {
+            index: 0,
+            source_prompt: Some("a photo of a man <b>".into()),
+            guidance,
+            renders: Vec::new(),
+            guidance_consistency: Some(consistency(0.031)),
+            seconds: Some(75.5),
+        }],
+        attention: vec![WordImage {
+            word: "clown".into(),
+            path: att,
+        }],
+        masks: vec![mask],
+        metrics: metrics.clone(),
+        runs: vec![
+            RunSummary {
+                name: "VcEdit".into(),
+                metrics: metrics.clone(),
+                report: None,
+            },
+            RunSummary {
+                name: "per-view guidance".into(),
+                metrics: MetricsSummary {
+                    guidance_consistency: Some(consistency(0.08)),
+                    ..metrics
+                },
+                report: None,
+            },
+        ],
+        timings: vec![
+            StageTiming {
+                stage: "render".into(),
+                seconds: 3.2,
+            },
+            StageTiming {
+                stage: "edit (UNet)".into(),
+                seconds: 312.0,
+            },
+            StageTiming {
+                stage: "fit".into(),
+                seconds: 95.0,
+            },
+        ],
+        turntable: Some("turntable.gif".into()),
+    };
+    std::fs::write(dir.join("edited.ply"), b"ply\n").unwrap();
+    write_report(dir, &data, &ReportOptions::default()).unwrap()
+}
+
+/// Every `src="..."` / `href="..."` of the page resolves to an existing file.
+fn check_links(report: &Path) {
+    let html = std::fs::read_to_string(report).unwrap();
+    let dir = report.parent().unwrap();
+    let mut n = 0;
+    for attr in ["src=\"", "href=\""] {
+        for part in html.split(attr).skip(1) {
+            let url = &part[..part.find('"').unwrap()];
+            assert!(!url.contains("://"), "external or absolute link {url}");
+            let mut bytes = Vec::new();
+            let b = url.as_bytes();
+            let mut i = 0;
+            while i < b.len() {
+                if b[i] == b'%' {
+                    bytes.push(u8::from_str_radix(&url[i + 1..i + 3], 16).unwrap());
+                    i += 3;
+                } else {
+                    bytes.push(b[i]);
+                    i += 1;
+                }
+            }
+            let rel = String::from_utf8(bytes).unwrap();
+            assert!(dir.join(&rel).is_file(), "link {url} does not resolve");
+            n += 1;
+        }
+    }
+    assert!(n > 20, "only {n} links");
+}
+
+#[test]
+fn report_links_resolve() {
+    let tmp = tempfile::tempdir().unwrap();
+    let report = write_dummy_run(tmp.path());
+    check_links(&report);
+    let html = std::fs::read_to_string(&report).unwrap();
+    assert!(html.contains("a photo of a man &lt;b&gt;"));
+    // The one script of the page (the broken-image check); user text never becomes markup.
+    assert_eq!(html.matches("<script").count(), 1);
+    // 8 of 10 views in the grid (evenly spaced, first and last included).
+    assert!(html.contains("8 of 10 views"));
+    assert!(html.contains("source%20view%209.png"));
+}
+
+/// Runs headless Chromium on `report`; returns its console lines (and "Uncaught" errors) and the
+/// screenshot.
+fn open_in_chromium(report: &Path, work: &Path) -> (Vec<String>, image::RgbImage) {
+    let shot = work.join("shot.png");
+    let profile = work.join("profile");
+    let url = format!(
+        "file://{}",
+        report
+            .to_string_lossy()
+            .replace('%', "%25")
+            .replace(' ', "%20")
+    );
+    let mut child = Command::new(CHROMIUM)
+        .args([
+            "--headless",
+            "--no-sandbox",
+            "--disable-gpu",
+            "--disable-background-networking",
+            "--disable-component-update",
+            "--disable-sync",
+            "--no-first-run",
+            "--enable-logging=stderr",
+            "--v=0",
+            "--window-size=1280,2000",
+        ])
+        .arg(format!("--user-data-dir={}", profile.display()))
+        .arg(format!("--screenshot={}", shot.display()))
+        .arg(&url)
+        .stdout(Stdio::null())
+        .stderr(Stdio::piped())
+        .spawn()
+        .expect("start chromium");
+    // Read stderr on a thread so a chatty browser cannot block on a full pipe.
+    let mut pipe = child.stderr.take().unwrap();
+    let reader = std::thread::spawn(move || {
+        let mut s = String::new();
+        let _ = pipe.read_to_string(&mut s);
+        s
+    });
+    let start = Instant::now();
+    let status = loop {
+        if let Some(st) = child.try_wait().unwrap() {
+            break st;
+        }
+        if start.elapsed() > Duration::from_secs(120) {
+            let _ = child.kill();
+            let _ = child.wait();
+            panic!("chromium did not finish within 120 s");
+        }
+        std::thread::sleep(Duration::from_millis(100));
+    };
+    let stderr = reader.join().unwrap();
+    assert!(status.success(), "chromium failed: {status}\n{stderr}");
+    let console = stderr
+        .lines()
+        .filter(|l| l.contains(":CONSOLE") || l.contains("Uncaught"))
+        .map(str::to_string)
+        .collect();
+    if let Ok(keep) = std::env::var("VCEDIT_KEEP_SCREENSHOT") {
+        std::fs::copy(&shot, keep).unwrap();
+    }
+    let img = image::open(&shot).expect("screenshot").to_rgb8();
+    (console, img)
+}
+
+#[test]
+fn report_renders_in_headless_chromium() {
+    if !Path::new(CHROMIUM).exists() {
+        println!("SKIP: {CHROMIUM} not installed (Debian: apt-get install -y chromium)");
+        return;
+    }
+    let tmp = tempfile::tempdir().unwrap();
+    let run = tmp.path().join("run dir");
+    std::fs::create_dir_all(&run).unwrap();
+    let report = write_dummy_run(&run);
+    let (console, img) = open_in_chromium(&report, tmp.path());
+    assert!(
+        console.is_empty(),
+        "console messages:\n{}",
+        console.join("\n")
+    );
+    assert_eq!(img.dimensions(), (1280, 2000));
+    let mut colours = std::collections::HashSet::new();
+    let (mut red, mut green, mut turntable) = (0usize, 0usize, 0usize);
+    for p in img.pixels() {
+        colours.insert(p.0);
+        let [r, g, b] = p.0.map(|v| v as i32);
+        if r > 200 && g < 60 && b < 60 {
+            red += 1;
+        }
+        if g > 170 && r < 60 && b < 80 {
+            green += 1;
+        }
+        // The GIF's (0.2, 0.6, 0.9), give or take its palette.
+        if (r - 51).abs() < 12 && (g - 153).abs() < 12 && (b - 230).abs() < 12 {
+            turntable += 1;
+        }
+    }
+    println!(
+        "screenshot: {} colours, red {red}, green {green}, turntable {turntable} px",
+        colours.len()
+    );
+    assert!(colours.len() > 50, "screenshot looks blank");
+    // Before (red) and after (green) thumbnails: 8 views of 200x150 px each, minus the stripes.
+    assert!(red > 8 * 200 * 150 / 2, "before images missing ({red} px)");
+    assert!(
+        green > 8 * 200 * 150 / 2,
+        "after images missing ({green} px)"
+    );
+    // The turntable is shown 400x300.
+    assert!(
+        turntable > 400 * 300 / 2,
+        "turntable missing ({turntable} px)"
+    );
+}
+
+#[test]
+fn chromium_check_sees_a_file_that_fails_to_load() {
+    // The console check above is meaningful: a linked image that is gone (deleted after the report was
+    // written) shows up as a console message.
+    if !Path::new(CHROMIUM).exists() {
+        println!("SKIP: {CHROMIUM} not installed (Debian: apt-get install -y chromium)");
+        return;
+    }
+    let tmp = tempfile::tempdir().unwrap();
+    let run = tmp.path().join("run");
+    std::fs::create_dir_all(&run).unwrap();
+    let report = write_dummy_run(&run);
+    std::fs::remove_file(run.join("renders/edited_000.png")).unwrap();
+    let (console, _) = open_in_chromium(&report, tmp.path());
+    assert!(
+        console
+            .iter()
+            .any(|l| l.contains("edited_000.png") || l.contains("Failed to load")),
+        "no console message for the missing file: {console:?}"
+    );
+}
