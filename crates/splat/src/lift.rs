@@ -86,7 +86,8 @@ impl<'s> LiftAccumulator<'s> {
             scene,
             params: Params::from_scene(scene),
             channels,
-            slots: (0..rayon::current_num_threads().max(1))
+            // More slots than threads balance the interleaved tile sets; each costs N*C floats.
+            slots: (0..2 * rayon::current_num_threads().max(1))
                 .map(|_| Mutex::new(None))
                 .collect(),
         }
@@ -111,21 +112,24 @@ impl<'s> LiftAccumulator<'s> {
         let splats = project_all(&self.params, &camr, false);
         let (tx, ty) = camr.tiles();
         let bins = tiles::bin(&splats, tx, ty);
+        // Each slot owns a fixed, interleaved subset of the tiles and walks it in order, so the sums do not
+        // depend on thread scheduling: the same inputs give bit-identical results (resumable runs rely on it).
         let slots = &self.slots;
-        (0..bins.num_tiles()).into_par_iter().for_each_init(
-            || (Box::new([0f32; TILE_PIXELS]), Box::new([0u32; TILE_PIXELS])),
-            |(trans, last), tile| {
+        let stride = slots.len();
+        let tiles = bins.num_tiles();
+        (0..stride).into_par_iter().for_each(|slot| {
+            let mut trans = Box::new([0f32; TILE_PIXELS]);
+            let mut last = Box::new([0u32; TILE_PIXELS]);
+            let mut guard = slots[slot].lock().unwrap_or_else(|e| e.into_inner());
+            let acc = guard.get_or_insert_with(|| Accum {
+                sums: vec![0.0; n * channels],
+                counts: vec![0; n],
+            });
+            for tile in (slot..tiles).step_by(stride) {
                 let list = bins.list(tile);
                 if list.is_empty() {
-                    return;
+                    continue;
                 }
-                let slot = rayon::current_thread_index().unwrap_or(0) % slots.len();
-                // Only this worker locks this slot: uncontended.
-                let mut guard = slots[slot].lock().unwrap_or_else(|e| e.into_inner());
-                let acc = guard.get_or_insert_with(|| Accum {
-                    sums: vec![0.0; n * channels],
-                    counts: vec![0; n],
-                });
                 let rect = TileRect::new(tile, &bins, cam.width, cam.height);
                 let mut sink = LiftSink {
                     acc,
@@ -134,9 +138,9 @@ impl<'s> LiftAccumulator<'s> {
                     rect,
                     width: cam.width,
                 };
-                traverse_tile(&splats, list, &rect, &mut sink, trans, last);
-            },
-        );
+                traverse_tile(&splats, list, &rect, &mut sink, &mut trans, &mut last);
+            }
+        });
     }
 
     /// The per-Gaussian averages W / (C + 1e-7) and counts over all views added.
