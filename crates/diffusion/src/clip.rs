@@ -6,11 +6,10 @@
 //! it, transformers 5 does not).
 
 use candle_core::{DType, Device, Module, Tensor, D};
-use candle_nn::{
-    embedding, layer_norm, linear, Embedding, LayerNorm, LayerNormConfig, Linear, VarBuilder,
-};
+use candle_nn::{embedding, linear, Embedding, Linear, VarBuilder};
 use serde::Deserialize;
 
+use crate::layers::{softmax_last_dim, LayerNorm};
 use crate::loader::{Component, LoadError, ModelDir};
 use crate::tokenizer::{ClipTokenizer, Encoding};
 
@@ -147,7 +146,8 @@ impl Attention {
         let k = split(self.k_proj.forward(x)?)?;
         let v = split(self.v_proj.forward(x)?)?;
         let scores = q.matmul(&k.t()?)?.broadcast_add(mask)?;
-        let probs = candle_nn::ops::softmax_last_dim(&scores)?;
+        // The shared softmax has a backward pass, so the encoder can be trained (the demo model is).
+        let probs = softmax_last_dim(&scores)?;
         let out = probs.matmul(&v)?.transpose(1, 2)?.reshape((b, s, d))?;
         self.out_proj.forward(&out)
     }
@@ -165,14 +165,11 @@ struct EncoderLayer {
 
 impl EncoderLayer {
     fn new(vb: VarBuilder, c: &ClipTextConfig) -> candle_core::Result<Self> {
-        let ln = LayerNormConfig {
-            eps: c.layer_norm_eps,
-            ..Default::default()
-        };
+        let eps = c.layer_norm_eps;
         Ok(EncoderLayer {
-            layer_norm1: layer_norm(c.hidden_size, ln, vb.pp("layer_norm1"))?,
+            layer_norm1: LayerNorm::load(c.hidden_size, eps, vb.pp("layer_norm1"))?,
             self_attn: Attention::new(vb.pp("self_attn"), c)?,
-            layer_norm2: layer_norm(c.hidden_size, ln, vb.pp("layer_norm2"))?,
+            layer_norm2: LayerNorm::load(c.hidden_size, eps, vb.pp("layer_norm2"))?,
             fc1: linear(c.hidden_size, c.intermediate_size, vb.pp("mlp").pp("fc1"))?,
             fc2: linear(c.intermediate_size, c.hidden_size, vb.pp("mlp").pp("fc2"))?,
             act: c.hidden_act,
@@ -212,20 +209,20 @@ impl ClipTextModel {
         let c = &config;
         let emb = vb.pp("embeddings");
         let token_embedding = embedding(c.vocab_size, c.hidden_size, emb.pp("token_embedding"))?;
-        let position_embedding = emb
-            .pp("position_embedding")
-            .get((c.max_position_embeddings, c.hidden_size), "weight")?;
+        let position_embedding = emb.pp("position_embedding").get_with_hints(
+            (c.max_position_embeddings, c.hidden_size),
+            "weight",
+            // transformers' initialisation; only used when training from scratch.
+            candle_nn::Init::Randn {
+                mean: 0.0,
+                stdev: 0.02,
+            },
+        )?;
         let layers = (0..c.num_hidden_layers)
             .map(|i| EncoderLayer::new(vb.pp("encoder").pp("layers").pp(i), c))
             .collect::<candle_core::Result<Vec<_>>>()?;
-        let final_layer_norm = layer_norm(
-            c.hidden_size,
-            LayerNormConfig {
-                eps: c.layer_norm_eps,
-                ..Default::default()
-            },
-            vb.pp("final_layer_norm"),
-        )?;
+        let final_layer_norm =
+            LayerNorm::load(c.hidden_size, c.layer_norm_eps, vb.pp("final_layer_norm"))?;
         Ok(ClipTextModel {
             token_embedding,
             position_embedding,
@@ -444,6 +441,47 @@ mod tests {
             .to_scalar::<f32>()
             .unwrap();
         assert_eq!(diff, 0.0);
+    }
+
+    #[test]
+    fn every_parameter_gets_a_gradient() {
+        let dev = Device::Cpu;
+        let cfg = ClipTextConfig {
+            vocab_size: 10,
+            hidden_size: 8,
+            intermediate_size: 16,
+            num_hidden_layers: 2,
+            num_attention_heads: 2,
+            max_position_embeddings: 6,
+            hidden_act: ClipActivation::QuickGelu,
+            layer_norm_eps: 1e-5,
+            eos_token_id: 9,
+            projection_dim: None,
+        };
+        let vm = candle_nn::VarMap::new();
+        let m = ClipTextModel::new(VarBuilder::from_varmap(&vm, DType::F32, &dev), cfg).unwrap();
+        let ids = Tensor::new(&[[8u32, 1, 2, 3, 9, 9], [8, 4, 9, 9, 9, 9]], &dev).unwrap();
+        let out = m.forward(&ids).unwrap();
+        let weighting = Tensor::randn(0f32, 1.0, out.dims(), &dev).unwrap();
+        let grads = (out * weighting)
+            .unwrap()
+            .sum_all()
+            .unwrap()
+            .backward()
+            .unwrap();
+        for (name, var) in vm.data().lock().unwrap().iter() {
+            let g = grads.get(var.as_tensor());
+            let norm = g.map_or(0.0, |g| {
+                g.abs()
+                    .unwrap()
+                    .sum_all()
+                    .unwrap()
+                    .to_scalar::<f32>()
+                    .unwrap()
+            });
+            // Token 0 and later positions may legitimately be unused; everything else must learn.
+            assert!(norm > 0.0 && norm.is_finite(), "{name}: gradient {norm}");
+        }
     }
 
     #[test]

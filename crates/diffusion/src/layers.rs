@@ -94,8 +94,9 @@ pub struct LayerNorm {
 impl LayerNorm {
     pub fn load(dim: usize, eps: f64, vb: VarBuilder) -> Result<Self> {
         Ok(Self {
-            weight: vb.get(dim, "weight")?,
-            bias: vb.get(dim, "bias")?,
+            // The hints only matter when training from scratch (a VarMap): identity affine map.
+            weight: vb.get_with_hints(dim, "weight", candle_nn::Init::Const(1.0))?,
+            bias: vb.get_with_hints(dim, "bias", candle_nn::Init::Const(0.0))?,
             eps,
         })
     }
@@ -137,8 +138,9 @@ impl GroupNorm {
             );
         }
         Ok(Self {
-            weight: vb.get(channels, "weight")?,
-            bias: vb.get(channels, "bias")?,
+            // The hints only matter when training from scratch (a VarMap): identity affine map.
+            weight: vb.get_with_hints(channels, "weight", candle_nn::Init::Const(1.0))?,
+            bias: vb.get_with_hints(channels, "bias", candle_nn::Init::Const(0.0))?,
             num_groups,
             eps,
         })
