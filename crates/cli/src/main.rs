@@ -30,6 +30,8 @@ enum Command {
     Render(cmd::render::Args),
     /// Edit one image from a source prompt to a target prompt (InfEdit).
     EditImage(cmd::edit_image::Args),
+    /// Compare two scenes: cross-view consistency, preservation (PSNR/SSIM), CLIP directional similarity.
+    Metrics(cmd::metrics::Args),
     /// Inspect a Stable Diffusion model folder (`vcedit model check DIR`).
     Model(cmd::model::Args),
 }
@@ -40,6 +42,7 @@ fn main() {
         Command::Inspect(a) => cmd::inspect::run(a),
         Command::Render(a) => cmd::render::run(a),
         Command::EditImage(a) => cmd::edit_image::run(a),
+        Command::Metrics(a) => cmd::metrics::run(a),
         Command::Model(a) => cmd::model::run(a),
     };
     if let Err(err) = result {

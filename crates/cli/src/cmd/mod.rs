@@ -2,5 +2,6 @@
 pub mod edit_image;
 pub mod edit_opts;
 pub mod inspect;
+pub mod metrics;
 pub mod model;
 pub mod render;

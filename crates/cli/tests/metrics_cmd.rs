@@ -1,0 +1,227 @@
+//! `vcedit metrics` end to end on two generated scenes: a textured sphere, and the same sphere recoloured
+//! inside a box.
+
+use splat::ply::write_ply;
+use splat::GaussianScene;
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+
+const SH_C0: f32 = 0.282_094_8;
+
+fn vcedit(args: &[&std::ffi::OsStr]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_vcedit"))
+        .arg("metrics")
+        .args(args)
+        .output()
+        .expect("run vcedit")
+}
+
+/// Opaque Gaussians covering a unit sphere with a smooth texture; `recolour` changes those with x > 0.3.
+fn sphere(recolour: bool) -> GaussianScene {
+    let n = 3000;
+    let mut s = GaussianScene::new(0);
+    let golden = std::f32::consts::PI * (3.0 - 5f32.sqrt());
+    let spacing = (4.0 * std::f32::consts::PI / n as f32).sqrt();
+    for i in 0..n {
+        let y = 1.0 - 2.0 * (i as f32 + 0.5) / n as f32;
+        let r = (1.0 - y * y).sqrt();
+        let t = golden * i as f32;
+        let p = [r * t.cos(), y, r * t.sin()];
+        s.means.extend_from_slice(&p);
+        s.log_scales.extend_from_slice(&[(0.7 * spacing).ln(); 3]);
+        s.quats.extend_from_slice(&[1.0, 0.0, 0.0, 0.0]);
+        s.opacity_logits.push(5.0);
+        let mut c = [
+            0.5 + 0.2 * (1.5 * p[0]).sin(),
+            0.5 + 0.2 * (1.2 * p[1]).cos(),
+            0.5 + 0.15 * (2.0 * p[2]).sin(),
+        ];
+        if recolour && p[0] > 0.3 {
+            c = [0.9, 0.2, 0.1];
+        }
+        s.sh.extend(c.iter().map(|v| (v - 0.5) / SH_C0));
+    }
+    s
+}
+
+fn scenes(dir: &Path) -> (PathBuf, PathBuf) {
+    let a = dir.join("source.ply");
+    let b = dir.join("edited.ply");
+    write_ply(&a, &sphere(false)).unwrap();
+    write_ply(&b, &sphere(true)).unwrap();
+    (a, b)
+}
+
+fn ok(out: &Output) -> String {
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    String::from_utf8(out.stdout.clone()).unwrap()
+}
+
+#[test]
+fn compares_two_scenes_with_a_mask_box() {
+    let dir = tempfile::tempdir().unwrap();
+    let (a, b) = scenes(dir.path());
+    let json = dir.path().join("m.json");
+    let text = ok(&vcedit(&[
+        "--source".as_ref(),
+        a.as_os_str(),
+        "--edited".as_ref(),
+        b.as_os_str(),
+        "--orbit".as_ref(),
+        "8".as_ref(),
+        "--size".as_ref(),
+        "64".as_ref(),
+        "--mask-box".as_ref(),
+        "0.3,-2,-2,2,2,2".as_ref(),
+        "--json".as_ref(),
+        json.as_os_str(),
+    ]));
+    assert!(text.contains("cross-view error, source renders"), "{text}");
+    assert!(text.contains("preservation, outside the mask"), "{text}");
+    let v: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
+    assert_eq!(v["views"], 8);
+    assert_eq!(
+        (v["width"].as_u64(), v["height"].as_u64()),
+        (Some(64), Some(64))
+    );
+    let m = &v["metrics"];
+    // Both scenes are real 3D scenes, so their renders are consistent with themselves.
+    for key in ["source_consistency", "final_consistency"] {
+        let e = m[key]["mean_abs_error"].as_f64().unwrap();
+        assert!(e < 0.02, "{key}: {e}");
+        assert_eq!(m[key]["pairs"], 24);
+    }
+    // The recolouring shows over whole images but hardly outside the box.
+    let whole = m["preservation_whole"]["psnr"].as_f64().unwrap();
+    let outside = m["preservation_outside_mask"]["psnr"].as_f64().unwrap();
+    let outside_ssim = m["preservation_outside_mask"]["ssim"].as_f64().unwrap();
+    println!("whole {whole} dB, outside {outside} dB (SSIM {outside_ssim})");
+    assert!(whole < 25.0, "whole-image PSNR {whole}");
+    assert!(outside > whole + 8.0, "outside {outside} vs whole {whole}");
+    assert!(outside_ssim > 0.95);
+    let frac = m["preservation_outside_mask"]["fraction"].as_f64().unwrap();
+    assert!(frac > 0.5 && frac < 0.98, "{frac}");
+    assert!(m["clip"].is_null());
+}
+
+#[test]
+fn identical_scenes_are_perfectly_preserved() {
+    let dir = tempfile::tempdir().unwrap();
+    let (a, _) = scenes(dir.path());
+    let json = dir.path().join("m.json");
+    ok(&vcedit(&[
+        "--source".as_ref(),
+        a.as_os_str(),
+        "--edited".as_ref(),
+        a.as_os_str(),
+        "--orbit".as_ref(),
+        "4".as_ref(),
+        "--size".as_ref(),
+        "48".as_ref(),
+        "--json".as_ref(),
+        json.as_os_str(),
+    ]));
+    let v: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
+    let m = &v["metrics"];
+    assert_eq!(m["preservation_whole"]["psnr"].as_f64(), Some(100.0));
+    assert_eq!(m["preservation_whole"]["ssim"].as_f64(), Some(1.0));
+    assert!(m["preservation_outside_mask"].is_null());
+    assert_eq!(m["source_consistency"], m["final_consistency"]);
+}
+
+#[test]
+fn clip_directional_similarity_with_the_tiny_fixture() {
+    let dir = tempfile::tempdir().unwrap();
+    let (a, b) = scenes(dir.path());
+    let clip = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../fixtures/clip/tiny-clip");
+    let json = dir.path().join("m.json");
+    let text = ok(&vcedit(&[
+        "--source".as_ref(),
+        a.as_os_str(),
+        "--edited".as_ref(),
+        b.as_os_str(),
+        "--orbit".as_ref(),
+        "3".as_ref(),
+        "--size".as_ref(),
+        "40".as_ref(),
+        "--clip".as_ref(),
+        clip.as_os_str(),
+        "--source-prompt".as_ref(),
+        "a photo of a man".as_ref(),
+        "--target-prompt".as_ref(),
+        "a red cat".as_ref(),
+        "--json".as_ref(),
+        json.as_os_str(),
+    ]));
+    assert!(text.contains("CLIP directional similarity"), "{text}");
+    let v: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
+    let c = &v["metrics"]["clip"];
+    let d = c["directional"].as_f64().unwrap();
+    assert!(d.is_finite() && d.abs() <= 1.0 && d != 0.0, "{d}");
+    assert_eq!(c["per_view"].as_array().unwrap().len(), 3);
+    assert_eq!(c["target_prompt"], "a red cat");
+}
+
+#[test]
+fn bad_inputs_fail_with_one_clear_line() {
+    let dir = tempfile::tempdir().unwrap();
+    let (a, _) = scenes(dir.path());
+    let missing = dir.path().join("nope.ply");
+    let out = vcedit(&[
+        "--source".as_ref(),
+        a.as_os_str(),
+        "--edited".as_ref(),
+        missing.as_os_str(),
+        "--orbit".as_ref(),
+        "4".as_ref(),
+    ]);
+    assert_eq!(out.status.code(), Some(1));
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("nope.ply"), "{err}");
+
+    // CLIP without prompts is a usage error.
+    let out = vcedit(&[
+        "--source".as_ref(),
+        a.as_os_str(),
+        "--edited".as_ref(),
+        a.as_os_str(),
+        "--clip".as_ref(),
+        dir.path().as_os_str(),
+    ]);
+    assert_eq!(out.status.code(), Some(2));
+
+    // A folder that is not a CLIP model is reported before any rendering.
+    let out = vcedit(&[
+        "--source".as_ref(),
+        a.as_os_str(),
+        "--edited".as_ref(),
+        a.as_os_str(),
+        "--clip".as_ref(),
+        dir.path().as_os_str(),
+        "--source-prompt".as_ref(),
+        "x".as_ref(),
+        "--target-prompt".as_ref(),
+        "y".as_ref(),
+    ]);
+    assert_eq!(out.status.code(), Some(1));
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("CLIP") && err.contains("config.json"), "{err}");
+    assert!(!err.contains("rendering"), "{err}");
+
+    let out = vcedit(&[
+        "--source".as_ref(),
+        a.as_os_str(),
+        "--edited".as_ref(),
+        a.as_os_str(),
+        "--mask-box".as_ref(),
+        "1,2,3".as_ref(),
+    ]);
+    assert_eq!(out.status.code(), Some(2));
+}
