@@ -500,6 +500,17 @@ pub fn run_edit(
             k + 1,
             trainer.scene().len()
         ));
+        // Stops the run here as a kill right after the checkpoint would (for testing resume).
+        if std::env::var("VCEDIT_STOP_AFTER_ITERATION")
+            .ok()
+            .and_then(|v| v.parse::<usize>().ok())
+            == Some(k + 1)
+        {
+            return Err(PipelineError::Input(format!(
+                "stopped after iteration {} (VCEDIT_STOP_AFTER_ITERATION)",
+                k + 1
+            )));
+        }
     }
 
     Ok(EditResult {

@@ -1,0 +1,221 @@
+//! End to end: `vcedit edit` on the tiny conformance model and a small self-made scene.
+
+use std::collections::HashSet;
+use std::path::{Path, PathBuf};
+use std::process::Command;
+
+use splat::GaussianScene;
+
+fn fixtures() -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../fixtures")
+}
+
+/// Two blobs of small Gaussians: one at the origin (to edit), one at x = 1.6 (to keep).
+fn two_blobs() -> GaussianScene {
+    let mut s = GaussianScene::new(1);
+    let mut k = 0u32;
+    let mut rnd = || {
+        k = k.wrapping_mul(1_664_525).wrapping_add(1_013_904_223);
+        (k >> 8) as f32 / (1u32 << 24) as f32
+    };
+    for centre in [[0.0f32, 0.0, 0.0], [1.6, 0.0, 0.0]] {
+        for _ in 0..600 {
+            let (u, v, w) = (rnd() * 2.0 - 1.0, rnd() * 2.0 - 1.0, rnd() * 2.0 - 1.0);
+            s.means.extend_from_slice(&[
+                centre[0] + 0.5 * u,
+                centre[1] + 0.5 * v,
+                centre[2] + 0.5 * w,
+            ]);
+            s.log_scales.extend_from_slice(&[(0.06f32).ln(); 3]);
+            s.quats.extend_from_slice(&[1.0, 0.1 * rnd(), 0.0, 0.0]);
+            s.opacity_logits.push(2.0);
+            s.sh.extend_from_slice(&[rnd() - 0.5, rnd() - 0.5, rnd() - 0.5]);
+            s.sh.extend(std::iter::repeat_n(0.0, 9));
+        }
+    }
+    s
+}
+
+fn inside(p: &[f32]) -> bool {
+    p.iter().all(|v| v.abs() <= 0.8)
+}
+
+fn gaussian_key(s: &GaussianScene, i: usize) -> Vec<u32> {
+    let k = s.sh_coeffs() * 3;
+    s.means[3 * i..3 * i + 3]
+        .iter()
+        .chain(&s.log_scales[3 * i..3 * i + 3])
+        .chain(&s.quats[4 * i..4 * i + 4])
+        .chain(std::iter::once(&s.opacity_logits[i]))
+        .chain(&s.sh[k * i..k * (i + 1)])
+        .map(|v| v.to_bits())
+        .collect()
+}
+
+fn run_edit(scene: &Path, out: &Path, extra: &[&str]) -> std::process::Output {
+    Command::new(env!("CARGO_BIN_EXE_vcedit"))
+        .args(["edit", "--scene"])
+        .arg(scene)
+        .args(["--orbit", "6", "--model"])
+        .arg(fixtures().join("models/tiny-lcm"))
+        .args(["--source", "a ball", "--target", "a red ball", "--out"])
+        .arg(out)
+        .args([
+            "--size",
+            "64",
+            "--steps",
+            "4",
+            "--max-views",
+            "4",
+            "--iterations",
+            "2",
+            "--fit-steps",
+            "30",
+            "--ccm-steps",
+            "1",
+            "--ecm-steps",
+            "2",
+            "--mask-box=-0.8,-0.8,-0.8,0.8,0.8,0.8",
+        ])
+        .args(extra)
+        .output()
+        .expect("run vcedit")
+}
+
+#[test]
+fn edit_writes_every_output_and_changes_only_the_mask() {
+    let dir = tempfile::tempdir().unwrap();
+    let scene_path = dir.path().join("blobs.ply");
+    let scene = two_blobs();
+    splat::ply::write_ply(&scene_path, &scene).unwrap();
+    let before_bytes = std::fs::read(&scene_path).unwrap();
+    let out = dir.path().join("out");
+    let t = std::time::Instant::now();
+    let o = run_edit(&scene_path, &out, &[]);
+    let stderr = String::from_utf8_lossy(&o.stderr);
+    assert!(o.status.success(), "vcedit edit failed: {stderr}");
+    assert!(t.elapsed().as_secs() < 60, "took {:?}", t.elapsed());
+    let stdout = String::from_utf8_lossy(&o.stdout);
+    assert!(
+        stdout.contains(&out.join("edited.ply").display().to_string()),
+        "{stdout}"
+    );
+    assert!(
+        stderr.contains("UNet calls") && stderr.contains("memory needed"),
+        "work plan printed: {stderr}"
+    );
+    assert_eq!(
+        std::fs::read(&scene_path).unwrap(),
+        before_bytes,
+        "the input must not be modified"
+    );
+
+    // Outputs exist and are valid.
+    let edited = splat::ply::read_ply(&out.join("edited.ply")).unwrap();
+    for k in 0..2 {
+        for v in 0..4 {
+            let img = splat::Image::load(&out.join(format!("iter_{k}/guidance/view_{v:03}.png")))
+                .unwrap();
+            assert_eq!((img.width, img.height), (64, 64));
+        }
+    }
+    for sub in [
+        "before/view_000.png",
+        "after/view_003.png",
+        "mask/view_000.png",
+        "turntable.gif",
+        "report.html",
+    ] {
+        let p = out.join(sub);
+        assert!(
+            p.is_file() && std::fs::metadata(&p).unwrap().len() > 0,
+            "{sub} missing"
+        );
+    }
+    assert!(
+        std::fs::read_dir(out.join("attention")).unwrap().count() >= 2,
+        "per-word attention maps"
+    );
+    let run: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(out.join("run.json")).unwrap()).unwrap();
+    assert!(
+        run["metrics"]["final_consistency"]["mean_abs_error"].is_number(),
+        "{run}"
+    );
+    assert!(run["metrics"]["preservation_outside_mask"]["psnr"].is_number());
+    let html = std::fs::read_to_string(out.join("report.html")).unwrap();
+    assert!(html.contains("a red ball") && html.contains("edited.ply"));
+
+    // Everything outside the box is bit-for-bit the input; something inside changed.
+    let kept: HashSet<Vec<u32>> = (0..edited.len())
+        .map(|i| gaussian_key(&edited, i))
+        .collect();
+    let mut outside = 0;
+    let mut changed_inside = 0;
+    for i in 0..scene.len() {
+        let found = kept.contains(&gaussian_key(&scene, i));
+        if inside(&scene.means[3 * i..3 * i + 3]) {
+            changed_inside += usize::from(!found);
+        } else {
+            outside += 1;
+            assert!(found, "Gaussian {i} outside the mask changed");
+        }
+    }
+    assert!(outside >= 600, "{outside}");
+    assert!(
+        changed_inside > 100,
+        "the edit changed {changed_inside} Gaussians inside the mask"
+    );
+}
+
+#[test]
+fn resume_after_an_interruption_equals_an_uninterrupted_run() {
+    let dir = tempfile::tempdir().unwrap();
+    let scene_path = dir.path().join("blobs.ply");
+    splat::ply::write_ply(&scene_path, &two_blobs()).unwrap();
+    let full = dir.path().join("full");
+    assert!(run_edit(&scene_path, &full, &[]).status.success());
+
+    // Interrupt after the first iteration's checkpoint, then resume.
+    let part = dir.path().join("part");
+    let o = Command::new(env!("CARGO_BIN_EXE_vcedit"))
+        .env("VCEDIT_STOP_AFTER_ITERATION", "1")
+        .args(["edit", "--scene"])
+        .arg(&scene_path)
+        .args(["--orbit", "6", "--model"])
+        .arg(fixtures().join("models/tiny-lcm"))
+        .args(["--source", "a ball", "--target", "a red ball", "--out"])
+        .arg(&part)
+        .args([
+            "--size",
+            "64",
+            "--steps",
+            "4",
+            "--max-views",
+            "4",
+            "--iterations",
+            "2",
+            "--fit-steps",
+            "30",
+            "--ccm-steps",
+            "1",
+            "--ecm-steps",
+            "2",
+            "--mask-box=-0.8,-0.8,-0.8,0.8,0.8,0.8",
+        ])
+        .output()
+        .unwrap();
+    assert!(
+        !o.status.success(),
+        "the simulated interruption must stop the run"
+    );
+    assert!(!part.join("edited.ply").exists());
+    let o = run_edit(&scene_path, &part, &["--resume"]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    assert!(String::from_utf8_lossy(&o.stderr).contains("resuming after iteration 1"));
+    let (a, b) = (
+        std::fs::read(full.join("edited.ply")).unwrap(),
+        std::fs::read(part.join("edited.ply")).unwrap(),
+    );
+    assert!(a == b, "resumed result differs from the uninterrupted one");
+}
