@@ -131,7 +131,7 @@ pub struct GroupNorm {
 
 impl GroupNorm {
     pub fn load(num_groups: usize, channels: usize, eps: f64, vb: VarBuilder) -> Result<Self> {
-        if num_groups == 0 || channels % num_groups != 0 {
+        if num_groups == 0 || !channels.is_multiple_of(num_groups) {
             candle_core::bail!(
                 "group norm {}: {channels} channels are not divisible into {num_groups} groups",
                 vb.prefix()
@@ -540,6 +540,7 @@ simd_dispatch!(fn affine_silu(out: &mut [f32], inp: &[f32], scale: f32, shift: f
 /// `erfc(x)` with relative error below 1.2e-7 (Numerical Recipes' Chebyshev-fitted `erfcc`), branch-free
 /// so it vectorises.
 #[inline(always)]
+#[allow(clippy::excessive_precision)] // the published coefficients, kept verbatim
 fn erfc_fast(x: f32) -> f32 {
     let z = x.abs();
     let t = 1.0 / (1.0 + 0.5 * z);
@@ -614,6 +615,7 @@ impl CustomOp1 for GegluOp {
 /// reduction to r ∈ [-ln2/2, ln2/2] and a degree-6 polynomial (Cephes `expf` coefficients, ~1 ulp);
 /// inputs below -87 flush to ~1e-38 instead of 0, harmless for softmax/SiLU.
 #[inline(always)]
+#[allow(clippy::excessive_precision)] // the published coefficients, kept verbatim
 pub(crate) fn exp_fast(x: f32) -> f32 {
     let x = x.clamp(-87.0, 88.0);
     let n = (x * std::f32::consts::LOG2_E).round_ties_even();
@@ -879,7 +881,7 @@ impl SpatialSelfAttention {
         eps: f64,
         vb: VarBuilder,
     ) -> Result<Self> {
-        if head_dim == 0 || channels % head_dim != 0 {
+        if head_dim == 0 || !channels.is_multiple_of(head_dim) {
             candle_core::bail!(
                 "attention {}: {channels} channels not divisible by head dim {head_dim}",
                 vb.prefix()

@@ -38,7 +38,8 @@ fn gradients_flow_to_every_parameter_and_match_finite_differences() {
     let config_path = dir.join("config.json");
     let weights = dir.join("diffusion_pytorch_model.safetensors");
     let config = UNetConfig::from_json(&std::fs::read_to_string(&config_path).unwrap()).unwrap();
-    let frozen = UNet2DConditionModel::from_files(&config_path, &[weights.clone()]).unwrap();
+    let frozen =
+        UNet2DConditionModel::from_files(&config_path, std::slice::from_ref(&weights)).unwrap();
 
     // The trainable copy runs in f64 so finite differences are not drowned by f32 rounding.
     let varmap = VarMap::new();

@@ -120,11 +120,11 @@ impl UNet2DConditionModel {
 
         let mut down_blocks = Vec::with_capacity(n);
         let mut prev = ch[0];
-        for i in 0..n {
+        for (i, &out) in ch.iter().enumerate() {
             let is_final = i + 1 == n;
             down_blocks.push(DownBlock::load(
                 prev,
-                ch[i],
+                out,
                 r.layers[i],
                 &shared,
                 cfg.resnet_out_scale_factor,
@@ -132,7 +132,7 @@ impl UNet2DConditionModel {
                 (!is_final).then_some(cfg.downsample_padding),
                 vb.pp(format!("down_blocks.{i}")),
             )?);
-            prev = ch[i];
+            prev = out;
         }
 
         let mid_attention = BlockAttention {
@@ -196,7 +196,8 @@ impl UNet2DConditionModel {
         &self.config
     }
 
-    /// Whether the model needs `timestep_cond` (LCM's guidance-scale embedding of width `time_cond_proj_dim`).
+    /// Whether the model has LCM's `cond_proj`, i.e. accepts a `timestep_cond` (guidance-scale embedding of
+    /// width `time_cond_proj_dim`). Passing none is allowed, as in diffusers (InfEdit does so).
     pub fn expects_timestep_cond(&self) -> bool {
         self.time_embedding.has_condition()
     }
@@ -205,8 +206,8 @@ impl UNet2DConditionModel {
     ///
     /// - `timesteps`: a scalar, `[1]` or `[batch]` (one timestep per sample), any float or integer dtype;
     /// - `encoder_hidden_states`: [batch, tokens, cross_attention_dim];
-    /// - `timestep_cond`: [batch, time_cond_proj_dim] for LCM checkpoints, else `None` (ignored if the model
-    ///   has no `cond_proj`);
+    /// - `timestep_cond`: [batch, time_cond_proj_dim] for LCM checkpoints, or `None` (then `cond_proj` is
+    ///   skipped, as diffusers does; ignored for models without `cond_proj`);
     /// - `hook`: sees every attention call (see [`AttentionHook`]); `None` runs the plain fast path.
     ///
     /// Differentiable when the input or the weights are `Var`s (composite ops are then used throughout).

@@ -77,12 +77,9 @@ impl BasicTransformerBlock {
             hook.as_deref_mut(),
         )?;
         let x = (h + x)?;
-        let h = self.attn2.forward(
-            &self.norm2.forward(&x)?,
-            Some(context),
-            size,
-            hook.as_deref_mut(),
-        )?;
+        let h = self
+            .attn2
+            .forward(&self.norm2.forward(&x)?, Some(context), size, hook)?;
         let x = (h + x)?;
         let h = self.ff.forward(&self.norm3.forward(&x)?)?;
         h + x
