@@ -28,6 +28,8 @@ enum Command {
     Inspect(cmd::inspect::Args),
     /// Render a scene to one PNG per view (optionally depth and alpha).
     Render(cmd::render::Args),
+    /// Train a 3DGS scene from posed images (COLMAP or transforms.json).
+    Fit(cmd::fit::Args),
     /// Edit one image from a source prompt to a target prompt (InfEdit).
     EditImage(cmd::edit_image::Args),
     /// Compare two scenes: cross-view consistency, preservation (PSNR/SSIM), CLIP directional similarity.
@@ -41,6 +43,7 @@ fn main() {
     let result: anyhow::Result<()> = match cli.command {
         Command::Inspect(a) => cmd::inspect::run(a),
         Command::Render(a) => cmd::render::run(a),
+        Command::Fit(a) => cmd::fit::run(a),
         Command::EditImage(a) => cmd::edit_image::run(a),
         Command::Metrics(a) => cmd::metrics::run(a),
         Command::Model(a) => cmd::model::run(a),

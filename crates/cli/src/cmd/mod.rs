@@ -1,6 +1,7 @@
 //! One module per subcommand.
 pub mod edit_image;
 pub mod edit_opts;
+pub mod fit;
 pub mod inspect;
 pub mod metrics;
 pub mod model;
