@@ -1,0 +1,167 @@
+//! The consistency modules do their job on constructed cases.
+
+use edit::metrics::{multiview_consistency, ConsistencySettings, ViewGeometry};
+use edit::multiview::SceneFitter;
+use edit::train::{EcmFitter, EcmScope, EditTrainer, ImageLoss, TrainSettings};
+use splat::render::{render, RenderSettings};
+use splat::{Camera, GaussianScene, Image};
+
+/// A textured box of small Gaussians (colour varies with position, so views have structure).
+fn textured_blob() -> GaussianScene {
+    let mut s = GaussianScene::new(0);
+    let n = 14;
+    for i in 0..n {
+        for j in 0..n {
+            for k in 0..n {
+                let p = [
+                    i as f32 / (n - 1) as f32 - 0.5,
+                    j as f32 / (n - 1) as f32 - 0.5,
+                    k as f32 / (n - 1) as f32 - 0.5,
+                ];
+                s.means.extend_from_slice(&p);
+                s.log_scales.extend_from_slice(&[(0.05f32).ln(); 3]);
+                s.quats.extend_from_slice(&[1.0, 0.0, 0.0, 0.0]);
+                s.opacity_logits.push(3.0);
+                let c = [
+                    0.5 + 0.4 * (6.0 * p[0]).sin(),
+                    0.5 + 0.4 * (5.0 * p[1]).cos(),
+                    0.5 + 0.4 * p[2],
+                ];
+                s.sh.extend(c.iter().map(|v| (v - 0.5) / 0.282_094_8));
+            }
+        }
+    }
+    s
+}
+
+fn cameras(size: u32) -> Vec<Camera> {
+    splat::cameras::orbit_cameras([-0.5; 3], [0.5; 3], 8, size, size)
+}
+
+fn consistency(images: &[Image], cams: &[Camera], scene: &GaussianScene) -> f64 {
+    let renders: Vec<_> = cams
+        .iter()
+        .map(|c| render(scene, c, &RenderSettings::default(), None))
+        .collect();
+    let geometry: Vec<ViewGeometry> = cams
+        .iter()
+        .zip(&renders)
+        .map(|(c, r)| ViewGeometry::from_render(c, r))
+        .collect();
+    let refs: Vec<&Image> = images.iter().collect();
+    multiview_consistency(&refs, &geometry, &ConsistencySettings::default())
+        .unwrap()
+        .summary
+        .mean_abs_error
+        .unwrap()
+}
+
+#[test]
+fn ecm_makes_inconsistent_images_consistent() {
+    let scene = textured_blob();
+    let cams = cameras(48);
+    // Deliberately inconsistent targets: each view's render with its own colour shift.
+    let targets: Vec<Image> = cams
+        .iter()
+        .enumerate()
+        .map(|(v, c)| {
+            let mut img = render(&scene, c, &RenderSettings::default(), None).rgb_image();
+            let shift = [
+                0.25 * ((v as f32) * 1.3).sin(),
+                0.25 * ((v as f32) * 2.1).cos(),
+                -0.2 * ((v % 3) as f32 - 1.0),
+            ];
+            for p in img.data.chunks_exact_mut(3) {
+                for ch in 0..3 {
+                    p[ch] = (p[ch] + shift[ch]).clamp(0.0, 1.0);
+                }
+            }
+            img
+        })
+        .collect();
+    let before = consistency(&targets, &cams, &scene);
+
+    let trainer = EditTrainer::new(&scene, None, TrainSettings::new(100), 2.0);
+    let loss = ImageLoss::dssim();
+    let fitter = EcmFitter::new(&trainer, &loss, EcmScope::All);
+    let fitted = fitter.fit(&scene, &cams, &targets, 7).unwrap();
+    let renders: Vec<Image> = cams
+        .iter()
+        .map(|c| render(&fitted, c, &RenderSettings::default(), None).rgb_image())
+        .collect();
+    let after = consistency(&renders, &cams, &scene);
+    eprintln!("ECM: cross-view error {before:.4} → {after:.4}");
+    assert!(before > 0.08, "targets must disagree: {before}");
+    assert!(
+        after < 0.5 * before,
+        "ECM renders disagree by {after}, the targets by {before}"
+    );
+    // The fit follows the targets on average (it is not just the source scene again).
+    let source_renders: Vec<Image> = cams
+        .iter()
+        .map(|c| render(&scene, c, &RenderSettings::default(), None).rgb_image())
+        .collect();
+    let moved: f32 = renders
+        .iter()
+        .zip(&source_renders)
+        .map(|(a, b)| splat::loss::l1(&a.data, &b.data).value)
+        .sum();
+    assert!(
+        moved > 0.01 * cams.len() as f32,
+        "the fit changed the scene ({moved})"
+    );
+}
+
+#[test]
+fn blend_map_consistency_makes_masks_agree() {
+    use edit::consistency::{make_consistent, Resample};
+    let scene = textured_blob();
+    let cams = cameras(32);
+    let n = 32 * 32;
+    // Per-view "blend maps": a different noisy region in each view.
+    let maps: Vec<Vec<f32>> = (0..cams.len())
+        .map(|v| {
+            (0..n)
+                .map(|p| {
+                    if ((p * 31 + v * 977) % 7) < 3 {
+                        1.0
+                    } else {
+                        0.0
+                    }
+                })
+                .collect()
+        })
+        .collect();
+    let as_images = |m: &[Vec<f32>]| -> Vec<Image> {
+        m.iter()
+            .map(|x| Image::from_data(32, 32, 3, x.iter().flat_map(|&v| [v, v, v]).collect()))
+            .collect()
+    };
+    let before = consistency(&as_images(&maps), &cams, &scene);
+    let mut back = vec![Vec::new(); cams.len()];
+    make_consistent(
+        &scene,
+        &cams,
+        (32, 32),
+        1,
+        Resample::Nearest,
+        Resample::Nearest,
+        &mut |v| Ok(maps[v].clone()),
+        &mut |v, m| {
+            // Threshold as the local blend does.
+            let max = m.iter().copied().fold(0.0f32, f32::max).max(1e-6);
+            back[v] = m
+                .iter()
+                .map(|&x| if x / max > 0.5 { 1.0 } else { 0.0 })
+                .collect();
+            Ok(())
+        },
+    )
+    .unwrap();
+    let after = consistency(&as_images(&back), &cams, &scene);
+    eprintln!("blend masks: cross-view error {before:.4} → {after:.4}");
+    assert!(
+        after < 0.5 * before,
+        "masks disagree by {after} after, {before} before"
+    );
+}
