@@ -137,6 +137,8 @@ pub struct MultiView<'a> {
     pub fitter: Option<&'a dyn SceneFitter>,
     /// Seed for the ECM fits' view order.
     pub seed: u64,
+    /// Background of ECM's renders.
+    pub background: [f32; 3],
 }
 
 impl MultiView<'_> {
@@ -331,7 +333,9 @@ impl MultiView<'_> {
         let fit_m = fitter
             .fit(self.scene, self.cameras, &layouts, seed + 1)
             .map_err(MultiViewError::Fit)?;
-        let settings = RenderSettings::default();
+        let settings = RenderSettings {
+            background: self.background,
+        };
         for (v, view) in views.iter_mut().enumerate() {
             let cam = &self.cameras[v];
             let mut encode = |scene: &GaussianScene| -> candle_core::Result<Tensor> {

@@ -71,7 +71,9 @@ pub fn write_outputs(
     progress: &mut dyn Progress,
 ) -> Result<Written, PipelineError> {
     let cams: Vec<Camera> = result.views.iter().map(|&i| cameras[i].clone()).collect();
-    let settings = RenderSettings::default();
+    let settings = RenderSettings {
+        background: job.background,
+    };
 
     progress.stage("writing outputs", (2 * cams.len() + 24) as u64);
     let scene_path = out.join("edited.ply");

@@ -49,6 +49,23 @@ pub enum MaskSource {
     Dir(PathBuf),
     /// The source prompt's attention to this word, lifted onto the Gaussians.
     Word(String),
+    /// One flag per Gaussian, given by the caller (e.g. the demo's object labels).
+    Given(#[serde(serialize_with = "count_editable", deserialize_with = "no_given")] Vec<bool>),
+}
+
+/// run.json shows how many Gaussians a given mask selects, not the flags themselves.
+fn count_editable<S: serde::Serializer>(mask: &[bool], s: S) -> Result<S::Ok, S::Error> {
+    s.serialize_str(&format!(
+        "{} of {} Gaussians",
+        mask.iter().filter(|&&m| m).count(),
+        mask.len()
+    ))
+}
+
+fn no_given<'de, D: serde::Deserializer<'de>>(_: D) -> Result<Vec<bool>, D::Error> {
+    Err(serde::de::Error::custom(
+        "a given mask cannot be read back from JSON",
+    ))
 }
 
 /// Everything an edit run is configured with (written to run.json).
@@ -68,6 +85,8 @@ pub struct EditJob {
     pub train: TrainSettings,
     /// Working resolution (width, height).
     pub size: (u32, u32),
+    /// Background of every render (the reference uses black).
+    pub background: [f32; 3],
 }
 
 /// Progress reporting: stages with a known amount of work.
@@ -142,9 +161,9 @@ const PURPOSE_FIT: u64 = 2;
 const PURPOSE_ECM: u64 = 3;
 const PURPOSE_MASK: u64 = 4;
 
-/// Renders `scene` from every camera (black background) as RGB images.
-pub fn render_views(scene: &GaussianScene, cameras: &[Camera]) -> Vec<Image> {
-    let settings = RenderSettings::default();
+/// Renders `scene` from every camera over `background` as RGB images.
+pub fn render_views(scene: &GaussianScene, cameras: &[Camera], background: [f32; 3]) -> Vec<Image> {
+    let settings = RenderSettings { background };
     cameras
         .iter()
         .map(|c| Image::from_data(c.width, c.height, 3, render(scene, c, &settings, None).rgb))
@@ -356,7 +375,7 @@ pub fn run_edit(
     };
 
     let mut guidance_all = Vec::new();
-    let before = render_views(scene, &cams);
+    let before = render_views(scene, &cams, job.background);
     let (w, h) = job.size;
     // Guidance of already completed iterations (for the report) from disk.
     for k in 0..meta.iterations_done {
@@ -375,7 +394,9 @@ pub fn run_edit(
             &format!("iteration {}/{}: rendering", k + 1, job.iterations),
             cams.len() as u64,
         );
-        let settings = RenderSettings::default();
+        let settings = RenderSettings {
+            background: job.background,
+        };
         let renders: Vec<splat::render::RenderOutput> = cams
             .iter()
             .map(|c| render(trainer.scene(), c, &settings, None))
@@ -406,6 +427,7 @@ pub fn run_edit(
             consistency: &consistency,
             fitter: Some(&fitter),
             seed: derive_seed(job.seed, k, PURPOSE_ECM),
+            background: job.background,
         };
         let steps = plan.timesteps.len() as u64;
         progress.stage(
@@ -685,13 +707,23 @@ fn compute_mask(
                 max: *max,
             },
         ),
+        MaskSource::Given(mask) => {
+            if mask.len() != scene.len() {
+                return Err(PipelineError::Input(format!(
+                    "the mask has {} flags for {} Gaussians",
+                    mask.len(),
+                    scene.len()
+                )));
+            }
+            mask.clone()
+        }
         MaskSource::Dir(dir) => {
             let maps = masks::load_mask_images(dir, cams)?;
             masks::threshold(&masks::lift_maps(scene, cams, &maps), job.mask_threshold)
         }
         MaskSource::Word(word) => {
             progress.stage("mask: attention to the mask word", cams.len() as u64);
-            let images = render_views(scene, cams);
+            let images = render_views(scene, cams, job.background);
             let (w, h) = job.size;
             let plan = EditPlan::new(model, &job.prompts, &job.infedit, (w as usize, h as usize))?;
             let mut noise = SeededNoise::new(derive_seed(job.seed, 0, PURPOSE_MASK));

@@ -134,6 +134,8 @@ pub struct TrainSettings {
     /// ECM: epochs over the views, and the epochs after which the rates halve.
     pub ecm_epochs: usize,
     pub ecm_halve_every: usize,
+    /// Background of the fits' renders (the reference uses black).
+    pub background: [f32; 3],
 }
 
 impl TrainSettings {
@@ -150,6 +152,7 @@ impl TrainSettings {
             },
             ecm_epochs: 6,
             ecm_halve_every: 2,
+            background: [0.0; 3],
         }
     }
 }
@@ -180,8 +183,9 @@ fn loss_and_grads(
     v: usize,
     targets: &mut Targets<'_>,
     loss: &ImageLoss,
+    background: [f32; 3],
 ) -> Result<(f32, splat::render::SceneGrads, Vec<u32>), TrainError> {
-    let settings = RenderSettings::default();
+    let settings = RenderSettings { background };
     let out = render(scene, cam, &settings, None);
     let (value, grad) = loss.eval(&out.rgb, v, targets)?;
     let grads = render_backward(
@@ -279,8 +283,14 @@ impl EditTrainer {
             }
             let v = order.pop().expect("refilled");
             self.state.adam.set_iteration(self.global_step);
-            let (_, mut grads, radii) =
-                loss_and_grads(&self.state.scene, &cameras[v], v, &mut prepared, loss)?;
+            let (_, mut grads, radii) = loss_and_grads(
+                &self.state.scene,
+                &cameras[v],
+                v,
+                &mut prepared,
+                loss,
+                self.settings.background,
+            )?;
             if let Some(anchor) = &self.state.anchor {
                 anchor.loss(
                     &self.state.scene,
@@ -353,6 +363,7 @@ pub struct EcmFitter<'a> {
     scope: EcmScope,
     epochs: usize,
     halve_every: usize,
+    background: [f32; 3],
 }
 
 impl<'a> EcmFitter<'a> {
@@ -363,6 +374,7 @@ impl<'a> EcmFitter<'a> {
             scope,
             epochs: trainer.settings.ecm_epochs,
             halve_every: trainer.settings.ecm_halve_every.max(1),
+            background: trainer.settings.background,
         }
     }
 }
@@ -396,9 +408,15 @@ impl SceneFitter for EcmFitter<'_> {
             let mut order: Vec<usize> = (0..cameras.len()).collect();
             order.shuffle(&mut rng);
             for v in order {
-                let (_, grads, _) =
-                    loss_and_grads(&state.scene, &cameras[v], v, &mut prepared, self.loss)
-                        .map_err(|e| e.to_string())?;
+                let (_, grads, _) = loss_and_grads(
+                    &state.scene,
+                    &cameras[v],
+                    v,
+                    &mut prepared,
+                    self.loss,
+                    self.background,
+                )
+                .map_err(|e| e.to_string())?;
                 state.step(&grads);
             }
         }

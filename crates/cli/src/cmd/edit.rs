@@ -113,6 +113,9 @@ pub struct Args {
     /// Without them the fits use L1 + D-SSIM.
     #[arg(long, value_name = "DIR")]
     pub lpips: Option<PathBuf>,
+    /// Background colour of every render, R,G,B in [0, 1] (the reference renders over black).
+    #[arg(long, default_value = "0,0,0", value_parser = parse_rgb, allow_hyphen_values = true)]
+    pub background: [f32; 3],
     /// Continue an interrupted run in --out.
     #[arg(long)]
     pub resume: bool,
@@ -121,8 +124,22 @@ pub struct Args {
     pub ignore_memory_check: bool,
 }
 
-struct Bars {
+/// Progress bars, one per stage, for the editing pipeline.
+pub struct Bars {
     bar: Option<ProgressBar>,
+}
+
+impl Bars {
+    pub fn new() -> Self {
+        Self { bar: None }
+    }
+
+    /// Clears the last bar.
+    pub fn finish(&mut self) {
+        if let Some(b) = self.bar.take() {
+            b.finish_and_clear();
+        }
+    }
 }
 
 impl edit::pipeline::Progress for Bars {
@@ -154,7 +171,31 @@ impl edit::pipeline::Progress for Bars {
     }
 }
 
+/// Parses "R,G,B" with components in [0, 1], or the names black / white.
+pub fn parse_rgb(s: &str) -> Result<[f32; 3], String> {
+    match s {
+        "black" => return Ok([0.0; 3]),
+        "white" => return Ok([1.0; 3]),
+        _ => {}
+    }
+    let v: Vec<f32> = s
+        .split(',')
+        .map(|x| {
+            x.trim()
+                .parse::<f32>()
+                .map_err(|_| format!("'{x}' is not a number"))
+        })
+        .collect::<Result<_, _>>()?;
+    match v.as_slice() {
+        [r, g, b] if v.iter().all(|c| (0.0..=1.0).contains(c)) => Ok([*r, *g, *b]),
+        _ => Err(format!(
+            "expected R,G,B with components in [0, 1] (or black/white), got '{s}'"
+        )),
+    }
+}
+
 pub fn run(args: Args) -> anyhow::Result<()> {
+    diffusion::layers::tune_allocator_for_inference();
     let t0 = Instant::now();
     let infedit = args.sampler.settings()?;
     let (w, h) = args.sampler.size()?;
@@ -249,8 +290,12 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             EcmScopeArg::Masked => EcmScope::Masked,
             EcmScopeArg::All => EcmScope::All,
         },
-        train: TrainSettings::new((args.iterations * args.fit_steps) as u64),
+        train: TrainSettings {
+            background: args.background,
+            ..TrainSettings::new((args.iterations * args.fit_steps) as u64)
+        },
         size: (w, h),
+        background: args.background,
     };
 
     let model = EditModel::load(&args.model.model, args.model.taesd.as_deref())
@@ -284,7 +329,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
 
     std::fs::create_dir_all(&args.out)
         .with_context(|| format!("creating {}", args.out.display()))?;
-    let mut bars = Bars { bar: None };
+    let mut bars = Bars::new();
     let result = run_edit(
         &job,
         &model,
@@ -310,9 +355,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     let written = write_outputs(
         &args.out, &job, &inputs, &scene, &cameras, &result, &mut bars,
     )?;
-    if let Some(b) = bars.bar.take() {
-        b.finish_and_clear();
-    }
+    bars.finish();
     println!("edited scene: {}", written.scene.display());
     println!("report: {}", written.report.display());
     println!("done in {:.1} min", t0.elapsed().as_secs_f64() / 60.0);

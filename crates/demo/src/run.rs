@@ -1,0 +1,313 @@
+//! `vcedit demo`: the whole mission on a procedural scene with the self-made model, no downloads.
+//!
+//! A built-in prompt pair picks a procedural object ("a red sphere" → "a blue sphere"); its Gaussians are
+//! built directly (no fitting), viewed from a ring of cameras, and edited with the regular `vcedit edit`
+//! pipeline and the demo model in `models/demo`. The object's own Gaussians are the editable mask. Because
+//! the world is procedural, an oracle scores the edit without CLIP: the fraction of object pixels whose
+//! colour matches the target (fidelity) and PSNR outside the object (preservation).
+
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use edit::infedit::{EditPrompts, InfEditSettings};
+use edit::model::EditModel;
+use edit::multiview::ConsistencySettings;
+use edit::outputs::{write_outputs, RunInputs};
+use edit::pipeline::{run_edit, EditJob, GuidanceMode, MaskSource, Progress};
+use edit::train::{EcmScope, ImageLoss, TrainSettings};
+use serde::Serialize;
+
+use crate::world::{
+    self, build_scene, BuildSettings, GeneratorSettings, Oracle, OracleSettings, SceneSpec,
+};
+
+/// The built-in edits: (source caption, target caption, scene seed). All change colour or pattern only, so
+/// the oracle can score them.
+pub const PAIRS: [(&str, &str, u64); 4] = [
+    ("a red sphere", "a blue sphere", 3),
+    ("a yellow striped vase", "a green striped vase", 5),
+    ("an orange cube", "a purple cube", 11),
+    ("a white dotted mushroom", "a pink dotted mushroom", 2),
+];
+
+#[derive(Debug, thiserror::Error)]
+pub enum DemoError {
+    #[error("{0}")]
+    Setup(String),
+    #[error(transparent)]
+    World(#[from] world::WorldError),
+    #[error(transparent)]
+    Caption(#[from] world::CaptionError),
+    #[error(transparent)]
+    Model(#[from] edit::model::ModelError),
+    #[error(transparent)]
+    Pipeline(#[from] edit::pipeline::PipelineError),
+}
+
+/// Knobs of a demo run.
+#[derive(Clone, Debug)]
+pub struct DemoOptions {
+    pub model: PathBuf,
+    pub out: PathBuf,
+    /// Index into [`PAIRS`].
+    pub pair: usize,
+    pub views: usize,
+    pub size: u32,
+    pub steps: usize,
+    pub iterations: usize,
+    pub fit_steps: usize,
+    pub seed: u64,
+}
+
+impl DemoOptions {
+    pub fn new(model: PathBuf, out: PathBuf) -> Self {
+        Self {
+            model,
+            out,
+            pair: 0,
+            views: 16,
+            size: 128,
+            steps: 15,
+            iterations: 2,
+            fit_steps: 300,
+            seed: 0,
+        }
+    }
+}
+
+/// One configuration of the comparison.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
+pub enum Variant {
+    PerView,
+    NoCcm,
+    NoEcm,
+    Full,
+}
+
+impl Variant {
+    pub const ALL: [Variant; 4] = [
+        Variant::PerView,
+        Variant::NoCcm,
+        Variant::NoEcm,
+        Variant::Full,
+    ];
+
+    pub fn name(self) -> &'static str {
+        match self {
+            Variant::PerView => "per-view guidance",
+            Variant::NoCcm => "VcEdit without CCM",
+            Variant::NoEcm => "VcEdit without ECM",
+            Variant::Full => "VcEdit (full)",
+        }
+    }
+
+    fn folder(self) -> &'static str {
+        match self {
+            Variant::PerView => "per-view",
+            Variant::NoCcm => "no-ccm",
+            Variant::NoEcm => "no-ecm",
+            Variant::Full => "full",
+        }
+    }
+}
+
+/// Measured outcome of one run.
+#[derive(Clone, Debug, Serialize)]
+pub struct DemoScores {
+    pub variant: Variant,
+    /// Cross-view error (mean absolute colour difference on co-visible pixels) of the last guidance.
+    pub guidance_consistency: Option<f64>,
+    /// The same for the final renders.
+    pub final_consistency: Option<f64>,
+    /// Oracle fidelity of the final renders (fraction of object pixels showing the target colour).
+    pub fidelity: Option<f64>,
+    /// Oracle fidelity of the last guidance images.
+    pub guidance_fidelity: Option<f64>,
+    /// PSNR of the final renders against the source outside the object.
+    pub preservation_psnr: f64,
+    pub seconds: f64,
+    pub report: PathBuf,
+}
+
+/// Everything one demo scene needs.
+pub struct DemoScene {
+    pub source: SceneSpec,
+    pub target: SceneSpec,
+    pub built: world::BuiltScene,
+    pub cameras: Vec<splat::Camera>,
+    pub mask: Vec<bool>,
+    pub prompts: EditPrompts,
+}
+
+/// Builds the scene of a built-in pair.
+pub fn demo_scene(opts: &DemoOptions) -> Result<DemoScene, DemoError> {
+    let (src, tgt, seed) = *PAIRS.get(opts.pair).ok_or_else(|| {
+        DemoError::Setup(format!(
+            "--pair {} does not exist (0..{})",
+            opts.pair,
+            PAIRS.len()
+        ))
+    })?;
+    let source = SceneSpec::from_caption(src, seed, &GeneratorSettings::default())?;
+    let target = source.with_caption(tgt)?;
+    let built = build_scene(&source, &BuildSettings::default());
+    let cameras = world::dataset::ring_views(&source, opts.views, opts.size, opts.size, 25.0, 15.0);
+    let mask = built
+        .labels
+        .object
+        .iter()
+        .map(|&o| o == world::build::MAIN)
+        .collect();
+    Ok(DemoScene {
+        source,
+        target,
+        built,
+        cameras,
+        mask,
+        prompts: EditPrompts::new(src, tgt),
+    })
+}
+
+fn job(opts: &DemoOptions, scene: &DemoScene, variant: Variant) -> EditJob {
+    let infedit = InfEditSettings {
+        steps: opts.steps,
+        ..InfEditSettings::default()
+    };
+    let mut consistency = ConsistencySettings::reference(opts.steps);
+    match variant {
+        Variant::NoCcm => consistency.ccm_steps.clear(),
+        Variant::NoEcm => consistency.ecm_steps.clear(),
+        _ => {}
+    }
+    let background = scene.source.background;
+    EditJob {
+        prompts: scene.prompts.clone(),
+        infedit,
+        consistency,
+        guidance: if variant == Variant::PerView {
+            GuidanceMode::PerView
+        } else {
+            GuidanceMode::Joint
+        },
+        iterations: opts.iterations,
+        fit_steps: opts.fit_steps,
+        max_views: opts.views,
+        seed: opts.seed,
+        mask: MaskSource::Given(scene.mask.clone()),
+        mask_threshold: 0.5,
+        ecm_scope: EcmScope::Masked,
+        train: TrainSettings {
+            background,
+            ..TrainSettings::new((opts.iterations * opts.fit_steps) as u64)
+        },
+        size: (opts.size, opts.size),
+        background,
+    }
+}
+
+/// Runs one variant into `out` and scores it.
+pub fn run_variant(
+    opts: &DemoOptions,
+    model: &EditModel,
+    scene: &DemoScene,
+    variant: Variant,
+    out: &Path,
+    progress: &mut dyn Progress,
+) -> Result<DemoScores, DemoError> {
+    let t = Instant::now();
+    let job = job(opts, scene, variant);
+    let loss = ImageLoss::dssim();
+    let result = run_edit(
+        &job,
+        model,
+        &loss,
+        &scene.built.scene,
+        &scene.cameras,
+        out,
+        false,
+        progress,
+    )?;
+    let inputs = RunInputs {
+        scene: &format!("procedural: {}", scene.source.caption()),
+        cameras: &format!("{} ring views", scene.cameras.len()),
+        model: &opts.model.display().to_string(),
+        loss: loss.describe(),
+        notes: vec![format!("vcedit demo, {}", variant.name())],
+    };
+    let written = write_outputs(
+        out,
+        &job,
+        &inputs,
+        &scene.built.scene,
+        &scene.cameras,
+        &result,
+        progress,
+    )?;
+    let oracle = Oracle::new(&scene.source, &scene.target, OracleSettings::default())?;
+    let cams: Vec<splat::Camera> = result
+        .views
+        .iter()
+        .map(|&i| scene.cameras[i].clone())
+        .collect();
+    let renders = edit::pipeline::render_views(&result.scene, &cams, job.background);
+    let final_score = oracle.score(&cams, &renders)?;
+    let guidance_score = match result.guidance.last() {
+        Some(g) => oracle.score(&cams, g)?.color_fidelity,
+        None => None,
+    };
+    Ok(DemoScores {
+        variant,
+        guidance_consistency: written
+            .metrics
+            .guidance_consistency
+            .as_ref()
+            .and_then(|c| c.mean_abs_error),
+        final_consistency: written
+            .metrics
+            .final_consistency
+            .as_ref()
+            .and_then(|c| c.mean_abs_error),
+        fidelity: final_score.color_fidelity,
+        guidance_fidelity: guidance_score,
+        preservation_psnr: final_score.preservation_psnr,
+        seconds: t.elapsed().as_secs_f64(),
+        report: written.report,
+    })
+}
+
+/// Loads the demo model.
+pub fn load_model(path: &Path) -> Result<EditModel, DemoError> {
+    if !path.join("model_index.json").is_file() {
+        return Err(DemoError::Setup(format!(
+            "{}: the demo model is missing; run from a vcedit checkout (models/demo) or pass --model",
+            path.display()
+        )));
+    }
+    Ok(EditModel::load(path, None)?)
+}
+
+/// The comparison table as Markdown.
+pub fn table(scores: &[DemoScores]) -> String {
+    let f = |v: Option<f64>| v.map_or("–".to_string(), |x| format!("{x:.3}"));
+    let mut s = String::from(
+        "| run | guidance cross-view error ↓ | final cross-view error ↓ | fidelity (final) ↑ | fidelity (guidance) ↑ | preservation PSNR ↑ | time |\n|---|---|---|---|---|---|---|\n",
+    );
+    for r in scores {
+        s.push_str(&format!(
+            "| {} | {} | {} | {} | {} | {:.1} dB | {:.0} s |\n",
+            r.variant.name(),
+            f(r.guidance_consistency),
+            f(r.final_consistency),
+            f(r.fidelity),
+            f(r.guidance_fidelity),
+            r.preservation_psnr,
+            r.seconds
+        ));
+    }
+    s
+}
+
+/// Where each variant of a comparison writes.
+pub fn variant_dir(out: &Path, variant: Variant) -> PathBuf {
+    out.join(variant.folder())
+}
