@@ -35,7 +35,7 @@ use crate::clip_vision::{ClipVisionConfig, ClipVisionModel};
 
 /// OpenAI CLIP's normalisation constants (`OPENAI_CLIP_MEAN` / `OPENAI_CLIP_STD`).
 pub const CLIP_MEAN: [f32; 3] = [0.481_454_66, 0.457_827_5, 0.408_210_73];
-pub const CLIP_STD: [f32; 3] = [0.268_629_54, 0.261_302_58, 0.275_777_1];
+pub const CLIP_STD: [f32; 3] = [0.268_629_54, 0.261_302_6, 0.275_777_1];
 
 /// Images per forward pass of the image tower (bounds the activation memory).
 const IMAGE_BATCH: usize = 8;
@@ -149,7 +149,10 @@ impl ClipPreprocess {
                 dst.copy_from_slice(&vals);
             }
         }
-        if p.std.iter().any(|s| !(s.abs() > 0.0)) {
+        if p.std
+            .iter()
+            .any(|s| s.abs().partial_cmp(&0.0) != Some(std::cmp::Ordering::Greater))
+        {
             return Err("\"image_std\" has a zero".into());
         }
         match p.resize {

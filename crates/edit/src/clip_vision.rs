@@ -66,13 +66,15 @@ pub struct ClipVisionConfig {
 impl ClipVisionConfig {
     /// A description of the first inconsistency, if any.
     pub fn problem(&self) -> Option<String> {
-        if self.num_attention_heads == 0 || self.hidden_size % self.num_attention_heads != 0 {
+        if self.num_attention_heads == 0
+            || !self.hidden_size.is_multiple_of(self.num_attention_heads)
+        {
             return Some(format!(
                 "vision hidden_size {} is not divisible by num_attention_heads {}",
                 self.hidden_size, self.num_attention_heads
             ));
         }
-        if self.patch_size == 0 || self.image_size % self.patch_size != 0 {
+        if self.patch_size == 0 || !self.image_size.is_multiple_of(self.patch_size) {
             return Some(format!(
                 "vision image_size {} is not a multiple of patch_size {}",
                 self.image_size, self.patch_size

@@ -10,6 +10,9 @@
 //!
 //! All images are RGB in [0, 1] (extra channels are ignored); errors are per channel, averaged.
 
+// `!(a > b)` is deliberate: it also rejects NaN. Index loops over 3-element arrays read like the formulas.
+#![allow(clippy::neg_cmp_op_on_partial_ord, clippy::needless_range_loop)]
+
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 use splat::render::RenderOutput;

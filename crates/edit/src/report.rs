@@ -369,9 +369,9 @@ impl Writer<'_> {
             escape_html(title),
             escape_html(title)
         );
-        let _ = write!(
+        let _ = writeln!(
             self.out,
-            "<div class=\"prompts\">“{}”<span class=\"arrow\">→</span>“{}”</div>\n",
+            "<div class=\"prompts\">“{}”<span class=\"arrow\">→</span>“{}”</div>",
             escape_html(&d.source_prompt),
             escape_html(&d.target_prompt)
         );
@@ -404,9 +404,9 @@ impl Writer<'_> {
     fn settings(&mut self, settings: &serde_json::Value) {
         let Some(map) = settings.as_object() else {
             if !settings.is_null() {
-                let _ = write!(
+                let _ = writeln!(
                     self.out,
-                    "<h2>Settings</h2><pre>{}</pre>\n",
+                    "<h2>Settings</h2><pre>{}</pre>",
                     escape_html(&settings.to_string())
                 );
             }
