@@ -36,6 +36,8 @@ enum Command {
     Metrics(cmd::metrics::Args),
     /// Inspect a Stable Diffusion model folder (`vcedit model check DIR`).
     Model(cmd::model::Args),
+    /// Train the self-made demo model (`train --out DIR`) or sample images from a model (`sample`).
+    DemoModel(cmd::demo_model::Args),
 }
 
 fn main() {
@@ -47,6 +49,7 @@ fn main() {
         Command::EditImage(a) => cmd::edit_image::run(a),
         Command::Metrics(a) => cmd::metrics::run(a),
         Command::Model(a) => cmd::model::run(a),
+        Command::DemoModel(a) => cmd::demo_model::run(a),
     };
     if let Err(err) = result {
         // One clear line, never a backtrace: the chain of contexts says which file and what is wrong.

@@ -1,4 +1,5 @@
 //! One module per subcommand.
+pub mod demo_model;
 pub mod edit_image;
 pub mod edit_opts;
 pub mod fit;

@@ -1,0 +1,286 @@
+//! `vcedit demo-model`: train the self-made demo model (`train`) and draw samples from a model (`sample`).
+
+use std::io::IsTerminal;
+use std::path::PathBuf;
+use std::time::Instant;
+
+use anyhow::{bail, Context};
+use demo::sample::{generate, SampleSettings};
+use demo::train::{train, Event, TrainConfig, TrainOptions};
+use edit::model::EditModel;
+use indicatif::{ProgressBar, ProgressStyle};
+
+/// Train the demo model or sample from a model.
+#[derive(clap::Args, Debug)]
+pub struct Args {
+    #[command(subcommand)]
+    pub command: DemoModelCommand,
+}
+
+#[derive(clap::Subcommand, Debug)]
+pub enum DemoModelCommand {
+    /// Train the small SD-architecture demo model on the procedural world (resumable).
+    Train(TrainArgs),
+    /// Generate images from prompts with a model (DDIM + classifier-free guidance) into a grid PNG.
+    Sample(SampleArgs),
+}
+
+#[derive(Clone, Copy, Debug, clap::ValueEnum)]
+pub enum Preset {
+    /// The committed demo model: 128² images, ~3M-parameter UNet (about 2-3 hours on 2 cores).
+    Demo,
+    /// A minute-scale model for tests (32² images, tiny networks).
+    Tiny,
+}
+
+#[derive(clap::Args, Debug)]
+#[command(after_help = "Examples:
+  vcedit demo-model train --out models/demo
+  vcedit demo-model train --out /tmp/tiny --preset tiny --unet-steps 50
+Rerunning the same command continues from OUT/checkpoints; --restart discards them.")]
+pub struct TrainArgs {
+    /// Output folder (diffusers layout; checkpoints go to OUT/checkpoints).
+    #[arg(long, value_name = "DIR")]
+    pub out: PathBuf,
+    #[arg(long, value_enum, default_value = "demo")]
+    pub preset: Preset,
+    /// Random seed (world samples, initialisation, batches).
+    #[arg(long)]
+    pub seed: Option<u64>,
+    /// Number of world samples to render and train on.
+    #[arg(long)]
+    pub samples: Option<usize>,
+    /// Codec training steps.
+    #[arg(long)]
+    pub codec_steps: Option<u64>,
+    /// UNet + text encoder training steps.
+    #[arg(long)]
+    pub unet_steps: Option<u64>,
+    /// Minutes between checkpoints.
+    #[arg(long)]
+    pub checkpoint_minutes: Option<f64>,
+    /// Discard existing checkpoints and start over.
+    #[arg(long)]
+    pub restart: bool,
+}
+
+#[derive(clap::Args, Debug)]
+#[command(after_help = "Example:
+  vcedit demo-model sample --model models/demo --prompt \"a red sphere\" --prompt \"a blue striped cube\" \\
+      --per-prompt 4 --out grid.png")]
+pub struct SampleArgs {
+    /// Model folder (diffusers layout).
+    #[arg(long, value_name = "DIR")]
+    pub model: PathBuf,
+    /// A prompt (repeat for several); one grid row per prompt.
+    #[arg(long = "prompt", required = true)]
+    pub prompts: Vec<String>,
+    /// Images per prompt (the grid's columns).
+    #[arg(long, default_value_t = 4)]
+    pub per_prompt: usize,
+    /// DDIM steps.
+    #[arg(long, default_value_t = 30)]
+    pub steps: usize,
+    /// Classifier-free guidance scale.
+    #[arg(long, default_value_t = 4.0)]
+    pub guidance: f64,
+    /// DDIM eta (0 = deterministic).
+    #[arg(long, default_value_t = 0.0)]
+    pub eta: f64,
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+    /// Output PNG (the prompts go to the same path with extension .txt).
+    #[arg(long, value_name = "FILE")]
+    pub out: PathBuf,
+}
+
+pub fn run(args: Args) -> anyhow::Result<()> {
+    match args.command {
+        DemoModelCommand::Train(a) => run_train(a),
+        DemoModelCommand::Sample(a) => run_sample(a),
+    }
+}
+
+fn run_train(args: TrainArgs) -> anyhow::Result<()> {
+    let mut config = match args.preset {
+        Preset::Demo => TrainConfig::demo(),
+        Preset::Tiny => TrainConfig::tiny(),
+    };
+    if let Some(v) = args.seed {
+        config.seed = v;
+    }
+    if let Some(v) = args.samples {
+        config.samples = v;
+    }
+    if let Some(v) = args.codec_steps {
+        config.codec.steps = v;
+    }
+    if let Some(v) = args.unet_steps {
+        config.unet.steps = v;
+    }
+    if let Some(v) = args.checkpoint_minutes {
+        config.checkpoint_minutes = v;
+    }
+    // The exact command, for the model's README (without --restart, so rerunning it resumes).
+    let command = std::iter::once("vcedit".to_string())
+        .chain(std::env::args().skip(1).filter(|a| a != "--restart"))
+        .map(|a| {
+            if a.contains(' ') {
+                format!("\"{a}\"")
+            } else {
+                a
+            }
+        })
+        .collect::<Vec<_>>()
+        .join(" ");
+    println!("{command}");
+    // Threading: candle's own CPU thread pool spin-waits at a barrier after every op; on a busy 2-core
+    // machine that made training steps 2-3x slower, so candle runs its elementwise ops on the calling
+    // thread while rayon (the fused kernels, GEMMs) uses every core. Both read these variables when
+    // their pools start, i.e. later than this point; a user's own settings win.
+    for (key, value) in [
+        ("CANDLE_NUM_THREADS", "1".to_string()),
+        ("RAYON_NUM_THREADS", cores()),
+    ] {
+        if std::env::var_os(key).is_none() {
+            std::env::set_var(key, value);
+        }
+    }
+    // Training allocates and frees activations every step; keep them in the heap.
+    diffusion::layers::tune_allocator_for_inference();
+
+    // Without a terminal (a log file), one plain line per stage step every 30 s instead of a bar.
+    let plain = !std::io::stderr().is_terminal();
+    let mut last_line = Instant::now();
+    let mut stage: (&'static str, u64, u64, Instant) = ("", 0, 0, Instant::now());
+    let bar = ProgressBar::hidden();
+    let style = ProgressStyle::with_template(
+        "{prefix:>7} [{bar:30}] {pos}/{len} {msg} {elapsed} elapsed, ETA {eta}",
+    )
+    .expect("valid template")
+    .progress_chars("=> ");
+    let started = Instant::now();
+    let options = TrainOptions {
+        restart: args.restart,
+        command: Some(command),
+    };
+    let summary = train(&args.out, &config, &options, &mut |event| match event {
+        Event::Stage { name, total, done } if plain => {
+            eprintln!("[{}] {name}: {done}/{total}", clock(started));
+            stage = (name, total, done, Instant::now());
+        }
+        Event::Progress { done, loss } if plain => {
+            let (name, total, start, since) = stage;
+            if last_line.elapsed().as_secs() >= 30 || done == total {
+                last_line = Instant::now();
+                let rate =
+                    (done - start.min(done)) as f64 / since.elapsed().as_secs_f64().max(1e-9);
+                let eta = total.saturating_sub(done) as f64 / rate.max(1e-9);
+                let loss = loss.map_or(String::new(), |l| format!(" loss {l:.4}"));
+                eprintln!(
+                    "[{}] {name}: {done}/{total}{loss}, {:.2} s/step, ETA {:.1} min",
+                    clock(started),
+                    1.0 / rate.max(1e-9),
+                    eta / 60.0
+                );
+            }
+        }
+        Event::Note(text) if plain => eprintln!("[{}] {text}", clock(started)),
+        Event::Stage { name, total, done } => {
+            bar.finish();
+            bar.set_draw_target(indicatif::ProgressDrawTarget::stderr());
+            bar.set_style(style.clone());
+            bar.set_prefix(name);
+            bar.set_length(total);
+            bar.reset();
+            bar.set_position(done);
+            bar.set_message("");
+        }
+        Event::Progress { done, loss } => {
+            bar.set_position(done);
+            if let Some(l) = loss {
+                bar.set_message(format!("loss {l:.4}"));
+            }
+        }
+        Event::Note(text) => bar.println(text),
+    })
+    .with_context(|| format!("training into {}", args.out.display()))?;
+    bar.finish();
+    let s = &summary.state;
+    println!(
+        "done in {:.1} min: codec {} steps, unet {} steps, scaling_factor {:.5}, weights {:.1} MB -> {}",
+        started.elapsed().as_secs_f64() / 60.0,
+        s.codec_step,
+        s.unet_step,
+        s.scaling_factor.unwrap_or(f64::NAN),
+        summary.weight_bytes as f64 / 1e6,
+        args.out.display()
+    );
+    Ok(())
+}
+
+/// Logical cores (rayon's default), as a string for the environment.
+fn cores() -> String {
+    std::thread::available_parallelism()
+        .map_or(1, |n| n.get())
+        .to_string()
+}
+
+/// Elapsed time as h:mm:ss for log lines.
+fn clock(started: Instant) -> String {
+    let s = started.elapsed().as_secs();
+    format!("{}:{:02}:{:02}", s / 3600, (s / 60) % 60, s % 60)
+}
+
+fn run_sample(args: SampleArgs) -> anyhow::Result<()> {
+    if args.per_prompt == 0 || args.steps == 0 {
+        bail!("--per-prompt and --steps must be positive");
+    }
+    if !args.guidance.is_finite() || !args.eta.is_finite() || args.eta < 0.0 {
+        bail!("--guidance and --eta must be finite (eta non-negative)");
+    }
+    let model = EditModel::load(&args.model, None)
+        .with_context(|| format!("loading model {}", args.model.display()))?;
+    let t0 = Instant::now();
+    // Column k of every row shares its starting noise (seed + k), so rows differ only by prompt.
+    let mut columns = Vec::with_capacity(args.per_prompt);
+    for k in 0..args.per_prompt {
+        let settings = SampleSettings {
+            steps: args.steps,
+            guidance: args.guidance,
+            eta: args.eta,
+            seed: args.seed.wrapping_add(1000 * k as u64),
+            size: None,
+        };
+        // One batch per column; generate() offsets the seed by the prompt's index, undo that so every
+        // row of a column starts from the same noise.
+        let mut col = Vec::with_capacity(args.prompts.len());
+        for p in &args.prompts {
+            let mut images = generate(&model, std::slice::from_ref(p), &settings)
+                .with_context(|| format!("sampling \"{p}\""))?;
+            col.push(images.remove(0));
+        }
+        columns.push(col);
+    }
+    let mut tiles = Vec::with_capacity(args.prompts.len() * args.per_prompt);
+    for row in 0..args.prompts.len() {
+        for col in &columns {
+            tiles.push(col[row].clone());
+        }
+    }
+    let grid = demo::world::dataset::tile_grid(&tiles, args.per_prompt);
+    grid.save_png(&args.out)
+        .with_context(|| format!("writing {}", args.out.display()))?;
+    let mut text = args.prompts.join("\n");
+    text.push('\n');
+    let txt = args.out.with_extension("txt");
+    splat::atomic_write(&txt, text.as_bytes())
+        .with_context(|| format!("writing {}", txt.display()))?;
+    println!(
+        "{} images in {:.1} s -> {}",
+        tiles.len(),
+        t0.elapsed().as_secs_f64(),
+        args.out.display()
+    );
+    Ok(())
+}

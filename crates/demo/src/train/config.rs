@@ -1,0 +1,450 @@
+//! What a demo-model training run builds: the architecture of each component (written out as the
+//! diffusers/transformers `config.json` the exported folder carries) and the optimisation settings.
+
+use serde::{Deserialize, Serialize};
+use serde_json::{json, Value};
+
+use crate::world::dataset::DatasetConfig;
+use crate::world::{GeneratorSettings, PatternKind};
+
+/// The latent codec: a diffusers `AutoencoderKL`, trained on random crops with L1 + edge + KL losses.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct CodecConfig {
+    /// One `DownEncoderBlock2D`/`UpDecoderBlock2D` per entry; n entries downscale by 2^(n−1).
+    pub block_out_channels: Vec<usize>,
+    pub layers_per_block: usize,
+    pub norm_num_groups: usize,
+    pub latent_channels: usize,
+    pub steps: u64,
+    pub batch: usize,
+    /// Square crop side the codec trains on (fully convolutional: it runs on the whole image later).
+    pub crop: usize,
+    pub lr: f64,
+    pub warmup: u64,
+    /// Weight of the L1 loss on horizontal/vertical pixel differences (keeps edges and patterns sharp).
+    pub edge_weight: f64,
+    /// Weight of the posterior's KL divergence (summed over the latent) per image pixel value.
+    pub kl_weight: f64,
+    pub ema_decay: f64,
+}
+
+/// The text encoder: a transformers `CLIPTextModel` (quick-GELU, causal), trained with the UNet.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct TextConfig {
+    pub hidden_size: usize,
+    pub intermediate_size: usize,
+    pub layers: usize,
+    pub heads: usize,
+    /// The padded prompt length (SD's 77; the edit pipeline pads to it).
+    pub max_positions: usize,
+}
+
+/// The denoiser: a diffusers `UNet2DConditionModel` (ε-prediction).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct UnetConfig {
+    pub block_out_channels: Vec<usize>,
+    /// Per down block: cross-attention (`CrossAttnDownBlock2D`) or not (`DownBlock2D`); mirrored on the
+    /// way up. The mid block always has cross-attention.
+    pub cross_attention: Vec<bool>,
+    pub layers_per_block: usize,
+    /// Attention heads per transformer (SD 1.x's `attention_head_dim` key, which counts heads).
+    pub heads: usize,
+    pub norm_num_groups: usize,
+    pub steps: u64,
+    pub batch: usize,
+    pub lr: f64,
+    pub warmup: u64,
+    /// Fraction of captions replaced by the empty prompt (classifier-free guidance needs both).
+    pub caption_dropout: f64,
+    /// Min-SNR-γ loss weighting (Hang et al. 2023): weight min(SNR, γ)/SNR per timestep.
+    pub min_snr_gamma: f64,
+    pub ema_decay: f64,
+}
+
+/// Everything a run depends on besides its output folder.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct TrainConfig {
+    pub seed: u64,
+    pub image_size: u32,
+    /// World samples rendered once and reused by both stages.
+    pub samples: usize,
+    /// Pattern families drawn by the generator (listing one twice doubles its share).
+    pub patterns: Vec<PatternKind>,
+    pub codec: CodecConfig,
+    pub text: TextConfig,
+    pub unet: UnetConfig,
+    /// Minutes between checkpoints.
+    pub checkpoint_minutes: f64,
+}
+
+/// The noise schedule of SD 1.x (and of the exported scheduler config).
+pub const TRAIN_TIMESTEPS: usize = 1000;
+pub const BETA_START: f64 = 0.00085;
+pub const BETA_END: f64 = 0.012;
+
+impl TrainConfig {
+    /// The committed demo model (see the module docs of [`crate::train`] for the reasoning).
+    pub fn demo() -> Self {
+        Self {
+            seed: 0,
+            image_size: 128,
+            samples: 24_000,
+            patterns: vec![
+                PatternKind::Solid,
+                PatternKind::Solid,
+                PatternKind::Stripes,
+                PatternKind::Checker,
+                PatternKind::Dots,
+                PatternKind::Gradient,
+            ],
+            codec: CodecConfig {
+                block_out_channels: vec![16, 32, 64, 64],
+                layers_per_block: 1,
+                norm_num_groups: 8,
+                latent_channels: 4,
+                steps: 2500,
+                batch: 16,
+                crop: 64,
+                lr: 1e-3,
+                warmup: 100,
+                edge_weight: 0.5,
+                kl_weight: 1e-6,
+                ema_decay: 0.999,
+            },
+            text: TextConfig {
+                hidden_size: 64,
+                intermediate_size: 256,
+                layers: 2,
+                heads: 4,
+                max_positions: 77,
+            },
+            unet: UnetConfig {
+                block_out_channels: vec![32, 64, 128],
+                cross_attention: vec![true, true, false],
+                layers_per_block: 1,
+                heads: 4,
+                norm_num_groups: 16,
+                steps: 6000,
+                batch: 32,
+                lr: 5e-4,
+                warmup: 200,
+                caption_dropout: 0.1,
+                min_snr_gamma: 5.0,
+                ema_decay: 0.999,
+            },
+            checkpoint_minutes: 5.0,
+        }
+    }
+
+    /// A minute-scale configuration for tests: 32×32 images, tiny networks, a few steps.
+    pub fn tiny() -> Self {
+        let mut c = Self::demo();
+        c.image_size = 32;
+        c.samples = 48;
+        c.codec = CodecConfig {
+            block_out_channels: vec![8, 8, 8, 8],
+            norm_num_groups: 4,
+            steps: 30,
+            batch: 4,
+            crop: 32,
+            lr: 2e-3,
+            warmup: 5,
+            ..c.codec
+        };
+        c.text = TextConfig {
+            hidden_size: 16,
+            intermediate_size: 32,
+            layers: 1,
+            heads: 2,
+            max_positions: 77,
+        };
+        c.unet = UnetConfig {
+            block_out_channels: vec![16, 16],
+            cross_attention: vec![true, true],
+            heads: 2,
+            norm_num_groups: 8,
+            steps: 30,
+            batch: 8,
+            lr: 2e-3,
+            warmup: 5,
+            ..c.unet
+        };
+        c.checkpoint_minutes = 60.0;
+        c
+    }
+
+    /// The world's dataset settings for this run.
+    pub fn dataset(&self) -> DatasetConfig {
+        DatasetConfig {
+            width: self.image_size,
+            height: self.image_size,
+            generator: GeneratorSettings {
+                patterns: self.patterns.clone(),
+                ..Default::default()
+            },
+            ..Default::default()
+        }
+    }
+
+    /// Latent side length.
+    pub fn latent_size(&self) -> usize {
+        self.image_size as usize >> (self.codec.block_out_channels.len() - 1)
+    }
+
+    /// Whether a run with `other` can continue this one's checkpoints (only step counts and the
+    /// checkpoint interval may differ).
+    pub fn compatible_with(&self, other: &TrainConfig) -> bool {
+        let strip = |c: &TrainConfig| {
+            let mut c = c.clone();
+            c.codec.steps = 0;
+            c.unet.steps = 0;
+            c.checkpoint_minutes = 0.0;
+            c
+        };
+        strip(self) == strip(other)
+    }
+
+    /// Checks the numbers fit together; the message names the offending setting.
+    pub fn validate(&self) -> Result<(), String> {
+        let n = self.codec.block_out_channels.len();
+        if n < 2 || self.image_size as usize % (1 << (n - 1)) != 0 {
+            return Err(format!(
+                "image size {} is not divisible by the codec's downscale {}",
+                self.image_size,
+                1usize << n.saturating_sub(1)
+            ));
+        }
+        if self.codec.crop == 0
+            || self.codec.crop > self.image_size as usize
+            || self.codec.crop % (1 << (n - 1)) != 0
+        {
+            return Err(format!(
+                "codec crop {} must divide into latents and fit the image",
+                self.codec.crop
+            ));
+        }
+        let u = &self.unet;
+        if u.cross_attention.len() != u.block_out_channels.len()
+            || !u.cross_attention.contains(&true)
+        {
+            return Err(
+                "unet.cross_attention needs one entry per block and at least one true".into(),
+            );
+        }
+        if self.latent_size() % (1 << (u.block_out_channels.len() - 1)) != 0 {
+            return Err(format!(
+                "latent size {} is not divisible by the UNet's downscale",
+                self.latent_size()
+            ));
+        }
+        if self.text.hidden_size % self.text.heads != 0 {
+            return Err("text hidden size must be divisible by its heads".into());
+        }
+        if self.samples == 0 || self.codec.batch == 0 || u.batch == 0 {
+            return Err("samples and batch sizes must be positive".into());
+        }
+        if !(0.0..1.0).contains(&u.caption_dropout) {
+            return Err("caption dropout must be in [0, 1)".into());
+        }
+        Ok(())
+    }
+
+    /// `vae/config.json`.
+    pub fn vae_config_json(&self, scaling_factor: f64) -> Value {
+        let c = &self.codec;
+        let n = c.block_out_channels.len();
+        json!({
+            "_class_name": "AutoencoderKL",
+            "_diffusers_version": "0.42.1",
+            "act_fn": "silu",
+            "block_out_channels": c.block_out_channels,
+            "down_block_types": vec!["DownEncoderBlock2D"; n],
+            "up_block_types": vec!["UpDecoderBlock2D"; n],
+            "force_upcast": false,
+            "in_channels": 3,
+            "out_channels": 3,
+            "latent_channels": c.latent_channels,
+            "latents_mean": null,
+            "latents_std": null,
+            "layers_per_block": c.layers_per_block,
+            "mid_block_add_attention": true,
+            "norm_num_groups": c.norm_num_groups,
+            "sample_size": self.image_size,
+            "scaling_factor": scaling_factor,
+            "shift_factor": null,
+            "use_quant_conv": true,
+            "use_post_quant_conv": true,
+        })
+    }
+
+    /// `unet/config.json`.
+    pub fn unet_config_json(&self) -> Value {
+        let u = &self.unet;
+        let down: Vec<&str> = u
+            .cross_attention
+            .iter()
+            .map(|&x| {
+                if x {
+                    "CrossAttnDownBlock2D"
+                } else {
+                    "DownBlock2D"
+                }
+            })
+            .collect();
+        let up: Vec<&str> = u
+            .cross_attention
+            .iter()
+            .rev()
+            .map(|&x| if x { "CrossAttnUpBlock2D" } else { "UpBlock2D" })
+            .collect();
+        json!({
+            "_class_name": "UNet2DConditionModel",
+            "_diffusers_version": "0.42.1",
+            "act_fn": "silu",
+            "attention_head_dim": u.heads,
+            "block_out_channels": u.block_out_channels,
+            "center_input_sample": false,
+            "cross_attention_dim": self.text.hidden_size,
+            "down_block_types": down,
+            "downsample_padding": 1,
+            "dual_cross_attention": false,
+            "flip_sin_to_cos": true,
+            "freq_shift": 0,
+            "in_channels": self.codec.latent_channels,
+            "layers_per_block": u.layers_per_block,
+            "mid_block_scale_factor": 1,
+            "mid_block_type": "UNetMidBlock2DCrossAttn",
+            "norm_eps": 1e-5,
+            "norm_num_groups": u.norm_num_groups,
+            "num_attention_heads": null,
+            "only_cross_attention": false,
+            "out_channels": self.codec.latent_channels,
+            "sample_size": self.latent_size(),
+            "time_cond_proj_dim": null,
+            "transformer_layers_per_block": 1,
+            "up_block_types": up,
+            "upcast_attention": false,
+            "use_linear_projection": false,
+        })
+    }
+
+    /// `text_encoder/config.json` for a vocabulary of `vocab_size` tokens whose last two are the start
+    /// and end tokens.
+    pub fn text_config_json(&self, vocab_size: usize) -> Value {
+        let t = &self.text;
+        json!({
+            "architectures": ["CLIPTextModel"],
+            "model_type": "clip_text_model",
+            "attention_dropout": 0.0,
+            "bos_token_id": vocab_size - 2,
+            "eos_token_id": vocab_size - 1,
+            "pad_token_id": vocab_size - 1,
+            "hidden_act": "quick_gelu",
+            "hidden_size": t.hidden_size,
+            "initializer_factor": 1.0,
+            "initializer_range": 0.02,
+            "intermediate_size": t.intermediate_size,
+            "layer_norm_eps": 1e-5,
+            "max_position_embeddings": t.max_positions,
+            "num_attention_heads": t.heads,
+            "num_hidden_layers": t.layers,
+            "projection_dim": t.hidden_size,
+            "torch_dtype": "float32",
+            "vocab_size": vocab_size,
+        })
+    }
+
+    /// `scheduler/scheduler_config.json`: an `LCMScheduler` over SD 1.x's schedule, so the editor's LCM
+    /// step selection (15 of 50 "original" steps) applies; DDIM reads the same betas.
+    pub fn scheduler_config_json() -> Value {
+        json!({
+            "_class_name": "LCMScheduler",
+            "_diffusers_version": "0.42.1",
+            "beta_end": BETA_END,
+            "beta_schedule": "scaled_linear",
+            "beta_start": BETA_START,
+            "clip_sample": false,
+            "clip_sample_range": 1.0,
+            "dynamic_thresholding_ratio": 0.995,
+            "num_train_timesteps": TRAIN_TIMESTEPS,
+            "original_inference_steps": 50,
+            "prediction_type": "epsilon",
+            "rescale_betas_zero_snr": false,
+            "sample_max_value": 1.0,
+            "set_alpha_to_one": true,
+            "steps_offset": 1,
+            "thresholding": false,
+            "timestep_scaling": 10.0,
+            "timestep_spacing": "leading",
+            "trained_betas": null,
+        })
+    }
+
+    /// `model_index.json`.
+    pub fn model_index_json() -> Value {
+        json!({
+            "_class_name": "StableDiffusionPipeline",
+            "_diffusers_version": "0.42.1",
+            "feature_extractor": [null, null],
+            "image_encoder": [null, null],
+            "requires_safety_checker": false,
+            "safety_checker": [null, null],
+            "scheduler": ["diffusers", "LCMScheduler"],
+            "text_encoder": ["transformers", "CLIPTextModel"],
+            "tokenizer": ["transformers", "CLIPTokenizer"],
+            "unet": ["diffusers", "UNet2DConditionModel"],
+            "vae": ["diffusers", "AutoencoderKL"],
+        })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use diffusion::clip::ClipTextConfig;
+    use diffusion::unet::UNetConfig;
+    use diffusion::vae::AutoencoderKLConfig;
+
+    #[test]
+    fn configs_validate_and_parse_with_the_model_code() {
+        for c in [TrainConfig::demo(), TrainConfig::tiny()] {
+            c.validate().unwrap();
+            let unet = UNetConfig::from_json(&c.unet_config_json().to_string()).unwrap();
+            let resolved = unet.resolve().unwrap();
+            assert_eq!(resolved.heads[0], c.unet.heads);
+            let vae: AutoencoderKLConfig = serde_json::from_value(c.vae_config_json(0.5)).unwrap();
+            vae.validate().unwrap();
+            assert_eq!(
+                vae.spatial_factor() * c.latent_size(),
+                c.image_size as usize
+            );
+            let text: ClipTextConfig = serde_json::from_value(c.text_config_json(600)).unwrap();
+            assert_eq!((text.eos_token_id, text.max_position_embeddings), (599, 77));
+        }
+        let demo = TrainConfig::demo();
+        assert_eq!(demo.latent_size(), 16);
+        // Cross-attention at two resolutions (16×16 and 8×8): the editor's blend and CCM need maps.
+        assert!(demo.unet.cross_attention.iter().filter(|&&x| x).count() >= 2);
+    }
+
+    #[test]
+    fn compatibility_ignores_only_step_counts() {
+        let a = TrainConfig::demo();
+        let mut b = a.clone();
+        b.unet.steps += 1000;
+        b.codec.steps += 5;
+        assert!(a.compatible_with(&b));
+        b.unet.lr *= 2.0;
+        assert!(!a.compatible_with(&b));
+    }
+
+    #[test]
+    fn invalid_settings_are_named() {
+        let mut c = TrainConfig::demo();
+        c.image_size = 100;
+        assert!(c.validate().unwrap_err().contains("image size"));
+        let mut c = TrainConfig::demo();
+        c.unet.cross_attention = vec![false, false, false];
+        assert!(c.validate().unwrap_err().contains("cross_attention"));
+    }
+}

@@ -1,0 +1,747 @@
+//! Training the demo model: a small Stable-Diffusion-architecture model learnt from the procedural world by
+//! vcedit's own code (candle autograd on the CPU), saved in diffusers layout so every command loads it like
+//! any SD checkpoint (`EditModel::load`, `vcedit model check`, `vcedit edit-image`, ...).
+//!
+//! # What gets built ([`TrainConfig::demo`])
+//!
+//! | part | architecture | why |
+//! | --- | --- | --- |
+//! | tokenizer | CLIP BPE learnt on the caption words ([`crate::bpe`]) | one token per word: one cross-attention map per word |
+//! | codec | `AutoencoderKL`, channels 16/32/64/64, 1 resnet per block, 4 latent channels | 128² images → 16×16×4 latents (8×, as SD); the narrow high-resolution stages keep training affordable |
+//! | text encoder | `CLIPTextModel`, hidden 64, 2 layers, 4 heads, 77 positions | the demo grammar needs little capacity; 77 positions because the edit pipeline pads to SD's length |
+//! | UNet | `UNet2DConditionModel`, channels 32/64/128, cross-attention at 16×16 and 8×8 (+ mid block), 4 heads | ~3M parameters: trainable in about two hours here; two cross-attention resolutions for the local blend and CCM |
+//! | scheduler | `LCMScheduler` config over SD's scaled-linear betas (0.00085 → 0.012, 1000 steps) | the editor's 15-step LCM schedule runs on it; DDIM reads the same betas |
+//!
+//! The UNet is an ordinary ε-prediction model (no LCM distillation): InfEdit only needs ε and the x₀ it
+//! implies at each of its steps.
+//!
+//! # Stages (all resumable)
+//!
+//! 1. **Tokenizer** written to `OUT/tokenizer` (deterministic, instant).
+//! 2. **Render** `samples` world views once into memory (8-bit RGB; ~17 ms per 128² view).
+//! 3. **Codec** ([`codec`]): AdamW on random 64² crops, L1 + edge + tiny KL loss; the EMA weights are exported
+//!    to `OUT/vae` with `scaling_factor` = 1/std of the posterior samples (SD's recipe).
+//! 4. **Encode** every sample with the codec (posterior mean and std cached in the checkpoint folder).
+//! 5. **Denoiser** ([`denoiser`]): text encoder + UNet jointly, ε-prediction, min-SNR-5 weighting,
+//!    stratified timesteps, 10 % empty captions; the EMA weights go to `OUT/unet` and `OUT/text_encoder`.
+//!
+//! Randomness is a pure function of (seed, stage, step) (see [`step_rng`]), so a run resumed from a checkpoint
+//! draws exactly the batches it would have drawn. Checkpoints (`OUT/checkpoints/`: weights, AdamW moments,
+//! EMA weights, `state.json` with the step) are written every `checkpoint_minutes` and at the end of each
+//! stage; rerunning the same command continues from them. Parallel reductions make runs agree to float
+//! rounding, not bit for bit.
+//!
+//! Training speed came from [`diffusion::train_ops`]: fused conv/norm/softmax kernels with backward passes
+//! (candle's composite ops were 10-40× slower on these shapes).
+
+pub mod codec;
+pub mod config;
+pub mod data;
+pub mod denoiser;
+pub mod optim;
+
+use std::collections::HashMap;
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use candle_core::{DType, Device, Tensor};
+use candle_nn::VarBuilder;
+use diffusion::tokenizer::ClipTokenizer;
+use diffusion::vae::AutoencoderKL;
+use rand::SeedableRng;
+use rand_chacha::ChaCha8Rng;
+use serde::{Deserialize, Serialize};
+
+pub use config::{CodecConfig, TextConfig, TrainConfig, UnetConfig};
+use data::RenderedSet;
+use denoiser::LatentSet;
+use optim::{learning_rate, AdamSettings, AdamW, Ema};
+
+#[derive(Debug, thiserror::Error)]
+pub enum TrainError {
+    #[error("{}: {source}", .path.display())]
+    Io {
+        path: PathBuf,
+        source: std::io::Error,
+    },
+    #[error("{}: {msg}", .path.display())]
+    File { path: PathBuf, msg: String },
+    #[error("invalid training config: {0}")]
+    Config(String),
+    #[error(
+        "{}: the checkpoints there come from a different training config; pass --restart to discard \
+         them or use another output folder",
+        .0.display()
+    )]
+    Incompatible(PathBuf),
+    #[error(transparent)]
+    Tokenizer(#[from] diffusion::tokenizer::TokenizerError),
+    #[error(transparent)]
+    Bpe(#[from] crate::bpe::BpeError),
+    #[error("{0}")]
+    Candle(#[from] candle_core::Error),
+    #[error("training diverged at {stage} step {step}: loss {loss}")]
+    Diverged {
+        stage: &'static str,
+        step: u64,
+        loss: f64,
+    },
+}
+
+/// What the trainer reports while it works.
+#[derive(Clone, Debug)]
+pub enum Event {
+    /// A stage with `total` units of work begins, `done` of them already finished (when resuming).
+    Stage {
+        name: &'static str,
+        total: u64,
+        done: u64,
+    },
+    /// Work units finished so far in the current stage, with the running loss when there is one.
+    Progress { done: u64, loss: Option<f64> },
+    /// A one-line message (checkpoint written, numbers measured, ...).
+    Note(String),
+}
+
+/// Progress of a run, persisted as `checkpoints/state.json`.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct TrainState {
+    pub config: TrainConfig,
+    pub codec_step: u64,
+    /// Set once the codec was exported; the codec step it was exported at.
+    pub codec_exported_at: Option<u64>,
+    pub scaling_factor: Option<f64>,
+    /// Codec step the cached latents were encoded with.
+    pub latents_from_codec_step: Option<u64>,
+    pub unet_step: u64,
+    pub unet_exported_at: Option<u64>,
+    /// Mean losses over windows of steps: (stage, last step of the window, loss).
+    pub loss_history: Vec<(String, u64, f64)>,
+    /// Wall-clock seconds spent per stage (summed over resumed runs).
+    pub seconds: HashMap<String, f64>,
+}
+
+/// A summary of a finished run.
+#[derive(Clone, Debug)]
+pub struct TrainSummary {
+    pub state: TrainState,
+    pub weight_bytes: u64,
+}
+
+const CODEC_TAG: u64 = 0xc0dec;
+const UNET_TAG: u64 = 0x0e7;
+const HISTORY_WINDOW: u64 = 100;
+
+/// The random generator of step `step` of stage `tag` (see the module docs).
+pub fn step_rng(seed: u64, tag: u64, step: u64) -> ChaCha8Rng {
+    let mix = |mut z: u64| {
+        z = z.wrapping_add(0x9e37_79b9_7f4a_7c15);
+        z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
+        z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
+        z ^ (z >> 31)
+    };
+    ChaCha8Rng::seed_from_u64(mix(seed ^ mix(tag ^ mix(step))))
+}
+
+fn io_err(path: &Path) -> impl FnOnce(std::io::Error) -> TrainError + '_ {
+    move |source| TrainError::Io {
+        path: path.to_path_buf(),
+        source,
+    }
+}
+
+/// Saves named tensors as safetensors atomically (temporary file, then rename).
+fn save_tensors(tensors: &HashMap<String, Tensor>, path: &Path) -> Result<(), TrainError> {
+    let tmp = path.with_extension("safetensors.tmp");
+    candle_core::safetensors::save(tensors, &tmp)?;
+    std::fs::rename(&tmp, path).map_err(io_err(path))
+}
+
+fn load_tensors(path: &Path) -> Result<HashMap<String, Tensor>, TrainError> {
+    candle_core::safetensors::load(path, &Device::Cpu).map_err(|e| TrainError::File {
+        path: path.to_path_buf(),
+        msg: e.to_string(),
+    })
+}
+
+fn write_json(path: &Path, value: &impl Serialize) -> Result<(), TrainError> {
+    let mut text = serde_json::to_string_pretty(value).expect("serialisable");
+    text.push('\n');
+    splat::atomic_write(path, text.as_bytes()).map_err(io_err(path))
+}
+
+/// A trainable model's weights, optimiser and EMA, checkpointed together.
+struct Trainable {
+    varmap: candle_nn::VarMap,
+    optimizer: AdamW,
+    ema: Ema,
+}
+
+impl Trainable {
+    fn new(varmap: candle_nn::VarMap, ema_decay: f64) -> Result<Self, TrainError> {
+        let optimizer = AdamW::new(&varmap, AdamSettings::default())?;
+        let ema = Ema::new(&varmap, ema_decay)?;
+        Ok(Self {
+            varmap,
+            optimizer,
+            ema,
+        })
+    }
+
+    fn save(&self, path: &Path) -> Result<(), TrainError> {
+        let mut all: HashMap<String, Tensor> = optim::named_vars(&self.varmap)
+            .into_iter()
+            .map(|(k, v)| (format!("param.{k}"), v.as_tensor().clone()))
+            .collect();
+        all.extend(self.optimizer.state());
+        all.extend(self.ema.state());
+        save_tensors(&all, path)
+    }
+
+    fn load(&mut self, path: &Path, steps: u64) -> Result<(), TrainError> {
+        let all = load_tensors(path)?;
+        let bad = |msg: String| TrainError::File {
+            path: path.to_path_buf(),
+            msg,
+        };
+        for (name, var) in optim::named_vars(&self.varmap) {
+            let t = all
+                .get(&format!("param.{name}"))
+                .ok_or_else(|| bad(format!("missing parameter {name}")))?;
+            var.set(t).map_err(|e| bad(format!("{name}: {e}")))?;
+        }
+        self.optimizer
+            .load_state(&all, steps)
+            .map_err(|e| bad(e.to_string()))?;
+        self.ema.load_state(&all).map_err(|e| bad(e.to_string()))
+    }
+
+    /// One optimiser step on `loss`; returns the gradient norm.
+    fn step(&mut self, loss: &Tensor, lr: f64) -> Result<f64, TrainError> {
+        let grads = loss.backward()?;
+        let norm = self.optimizer.step(&grads, lr)?;
+        self.ema.update(self.optimizer.steps)?;
+        Ok(norm)
+    }
+}
+
+/// The paths of a run.
+struct Layout {
+    out: PathBuf,
+    checkpoints: PathBuf,
+}
+
+impl Layout {
+    fn new(out: &Path) -> Self {
+        Self {
+            out: out.to_path_buf(),
+            checkpoints: out.join("checkpoints"),
+        }
+    }
+    fn state(&self) -> PathBuf {
+        self.checkpoints.join("state.json")
+    }
+    fn codec(&self) -> PathBuf {
+        self.checkpoints.join("codec.safetensors")
+    }
+    fn denoiser(&self) -> PathBuf {
+        self.checkpoints.join("denoiser.safetensors")
+    }
+    fn latents(&self) -> PathBuf {
+        self.checkpoints.join("latents.safetensors")
+    }
+}
+
+/// Options of [`train`] besides the config.
+#[derive(Clone, Debug, Default)]
+pub struct TrainOptions {
+    /// Discard existing checkpoints instead of continuing them.
+    pub restart: bool,
+    /// The command line that started the run (written into the model's README).
+    pub command: Option<String>,
+}
+
+/// Trains (or continues training) the demo model into `out`. See the module docs.
+pub fn train(
+    out: &Path,
+    config: &TrainConfig,
+    options: &TrainOptions,
+    events: &mut dyn FnMut(Event),
+) -> Result<TrainSummary, TrainError> {
+    config.validate().map_err(TrainError::Config)?;
+    let paths = Layout::new(out);
+    if options.restart && paths.checkpoints.exists() {
+        std::fs::remove_dir_all(&paths.checkpoints).map_err(io_err(&paths.checkpoints))?;
+    }
+    std::fs::create_dir_all(&paths.checkpoints).map_err(io_err(&paths.checkpoints))?;
+    // Checkpoints are large and local: keep them out of version control wherever OUT lives.
+    let ignore = paths.checkpoints.join(".gitignore");
+    splat::atomic_write(&ignore, b"*\n").map_err(io_err(&ignore))?;
+
+    let mut state = match std::fs::read_to_string(paths.state()) {
+        Ok(text) => {
+            let saved: TrainState = serde_json::from_str(&text).map_err(|e| TrainError::File {
+                path: paths.state(),
+                msg: e.to_string(),
+            })?;
+            if !saved.config.compatible_with(config) {
+                return Err(TrainError::Incompatible(paths.checkpoints.clone()));
+            }
+            events(Event::Note(format!(
+                "resuming from {} (codec step {}, unet step {})",
+                paths.checkpoints.display(),
+                saved.codec_step,
+                saved.unet_step
+            )));
+            TrainState {
+                config: config.clone(),
+                ..saved
+            }
+        }
+        Err(_) => TrainState {
+            config: config.clone(),
+            codec_step: 0,
+            codec_exported_at: None,
+            scaling_factor: None,
+            latents_from_codec_step: None,
+            unet_step: 0,
+            unet_exported_at: None,
+            loss_history: Vec::new(),
+            seconds: HashMap::new(),
+        },
+    };
+
+    let bpe = crate::bpe::demo_bpe();
+    let tokenizer_dir = out.join("tokenizer");
+    bpe.write_tokenizer(&tokenizer_dir, config.text.max_positions)?;
+    let tokenizer =
+        ClipTokenizer::from_dir(&tokenizer_dir)?.with_max_length(config.text.max_positions);
+
+    let mut rendered: Option<RenderedSet> = None;
+    let render = |events: &mut dyn FnMut(Event)| -> RenderedSet {
+        events(Event::Stage {
+            name: "render",
+            total: config.samples as u64,
+            done: 0,
+        });
+        RenderedSet::render(
+            &config.dataset(),
+            config.seed,
+            config.samples,
+            &mut |done| {
+                events(Event::Progress {
+                    done: done as u64,
+                    loss: None,
+                })
+            },
+        )
+    };
+
+    let codec_current = state.codec_exported_at == Some(config.codec.steps)
+        && out.join("vae/config.json").is_file();
+    if !codec_current {
+        let data = rendered.get_or_insert_with(|| render(events));
+        train_codec(&paths, config, &mut state, data, events)?;
+    }
+
+    let latents_current =
+        state.latents_from_codec_step == Some(config.codec.steps) && paths.latents().is_file();
+    let latents = if latents_current {
+        load_latents(&paths, &state, &tokenizer)?
+    } else {
+        let data = rendered.get_or_insert_with(|| render(events));
+        encode_latents(&paths, config, &mut state, data, &tokenizer, events)?
+    };
+    drop(rendered);
+
+    if state.unet_exported_at != Some(config.unet.steps) || !out.join("unet/config.json").is_file()
+    {
+        train_denoiser(
+            &paths,
+            config,
+            &mut state,
+            &latents,
+            bpe.vocab_size(),
+            events,
+        )?;
+        write_json(
+            &out.join("scheduler/scheduler_config.json"),
+            &TrainConfig::scheduler_config_json(),
+        )?;
+        write_json(
+            &out.join("model_index.json"),
+            &TrainConfig::model_index_json(),
+        )?;
+    }
+    let weight_bytes = weight_bytes(out);
+    write_readme(out, &state, options.command.as_deref(), weight_bytes)?;
+    Ok(TrainSummary {
+        state,
+        weight_bytes,
+    })
+}
+
+fn save_state(paths: &Layout, state: &TrainState) -> Result<(), TrainError> {
+    write_json(&paths.state(), state)
+}
+
+/// Keeps a running loss and the stage's share of the history.
+struct LossWindow {
+    sum: f64,
+    count: u64,
+}
+
+impl LossWindow {
+    fn push(&mut self, state: &mut TrainState, stage: &str, step: u64, loss: f64) {
+        self.sum += loss;
+        self.count += 1;
+        if step.is_multiple_of(HISTORY_WINDOW) {
+            state
+                .loss_history
+                .push((stage.to_string(), step, self.sum / self.count as f64));
+            self.sum = 0.0;
+            self.count = 0;
+        }
+    }
+}
+
+fn train_codec(
+    paths: &Layout,
+    config: &TrainConfig,
+    state: &mut TrainState,
+    data: &RenderedSet,
+    events: &mut dyn FnMut(Event),
+) -> Result<(), TrainError> {
+    let c = &config.codec;
+    let trainer = codec::CodecTrainer::new(config)?;
+    let mut trainable = Trainable::new(trainer.varmap.clone(), c.ema_decay)?;
+    if state.codec_step > 0 {
+        trainable.load(&paths.codec(), state.codec_step)?;
+    }
+    events(Event::Stage {
+        name: "codec",
+        total: c.steps,
+        done: state.codec_step.min(c.steps),
+    });
+    let started = Instant::now();
+    let mut last_checkpoint = Instant::now();
+    let mut window = LossWindow { sum: 0.0, count: 0 };
+    let mut running: Option<f64> = None;
+    while state.codec_step < c.steps {
+        let step = state.codec_step;
+        let mut rng = step_rng(config.seed, CODEC_TAG, step);
+        let (loss, parts) = trainer.loss(config, data, &mut rng)?;
+        if !parts.total.is_finite() {
+            return Err(TrainError::Diverged {
+                stage: "codec",
+                step,
+                loss: parts.total,
+            });
+        }
+        let lr = learning_rate(step, c.steps, c.warmup, c.lr, 0.1);
+        trainable.step(&loss, lr)?;
+        state.codec_step += 1;
+        window.push(state, "codec", state.codec_step, parts.l1);
+        let r = running.map_or(parts.l1, |r| 0.98 * r + 0.02 * parts.l1);
+        running = Some(r);
+        events(Event::Progress {
+            done: state.codec_step,
+            loss: Some(r),
+        });
+        if last_checkpoint.elapsed().as_secs_f64() > 60.0 * config.checkpoint_minutes {
+            add_seconds(state, "codec", &mut last_checkpoint, started);
+            trainable.save(&paths.codec())?;
+            save_state(paths, state)?;
+            events(Event::Note(format!(
+                "checkpoint at codec step {}",
+                state.codec_step
+            )));
+        }
+    }
+    add_seconds(state, "codec", &mut last_checkpoint, started);
+    trainable.save(&paths.codec())?;
+
+    // Export the EMA weights with the measured scaling factor.
+    let weights = trainable.ema.weights();
+    let vb = VarBuilder::from_tensors(weights.clone(), DType::F32, &Device::Cpu);
+    let model = AutoencoderKL::new(&codec::vae_config(config, 1.0), vb)?;
+    let mut rng = step_rng(config.seed, CODEC_TAG, u64::MAX);
+    let scaling = codec::measure_scaling_factor(&model, data, 1024, &mut rng)?;
+    events(Event::Note(format!("codec scaling_factor {scaling:.5}")));
+    let dir = paths.out.join("vae");
+    std::fs::create_dir_all(&dir).map_err(io_err(&dir))?;
+    save_tensors(&weights, &dir.join("diffusion_pytorch_model.safetensors"))?;
+    write_json(&dir.join("config.json"), &config.vae_config_json(scaling))?;
+    state.scaling_factor = Some(scaling);
+    state.codec_exported_at = Some(state.codec_step);
+    save_state(paths, state)
+}
+
+fn add_seconds(state: &mut TrainState, stage: &str, since: &mut Instant, _started: Instant) {
+    *state.seconds.entry(stage.to_string()).or_default() += since.elapsed().as_secs_f64();
+    *since = Instant::now();
+}
+
+/// Token ids of every caption and of the empty prompt.
+fn caption_ids(
+    captions: &[String],
+    tokenizer: &ClipTokenizer,
+) -> Result<(Tensor, Tensor), TrainError> {
+    let dev = Device::Cpu;
+    let mut flat = Vec::new();
+    for c in captions {
+        let enc = tokenizer.encode_strict(c)?;
+        flat.extend(enc.ids);
+    }
+    let len = tokenizer.max_length();
+    let ids = Tensor::from_vec(flat, (captions.len(), len), &dev)?;
+    let empty = Tensor::new(tokenizer.encode("").ids, &dev)?;
+    Ok((ids, empty))
+}
+
+fn encode_latents(
+    paths: &Layout,
+    config: &TrainConfig,
+    state: &mut TrainState,
+    data: &RenderedSet,
+    tokenizer: &ClipTokenizer,
+    events: &mut dyn FnMut(Event),
+) -> Result<LatentSet, TrainError> {
+    let vae = AutoencoderKL::load(&paths.out.join("vae")).map_err(|e| TrainError::File {
+        path: paths.out.join("vae"),
+        msg: e.to_string(),
+    })?;
+    events(Event::Stage {
+        name: "encode",
+        total: data.len() as u64,
+        done: 0,
+    });
+    let (mean, std) = codec::encode_all(&vae, data, &mut |done| {
+        events(Event::Progress {
+            done: done as u64,
+            loss: None,
+        })
+    })?;
+    let captions = serde_json::to_string(&data.captions).expect("json");
+    let caption_path = paths.checkpoints.join("captions.json");
+    splat::atomic_write(&caption_path, captions.as_bytes()).map_err(io_err(&caption_path))?;
+    let tensors = HashMap::from([
+        ("mean".to_string(), mean.clone()),
+        ("std".to_string(), std.clone()),
+    ]);
+    save_tensors(&tensors, &paths.latents())?;
+    state.latents_from_codec_step = Some(config.codec.steps);
+    save_state(paths, state)?;
+    let (ids, empty_ids) = caption_ids(&data.captions, tokenizer)?;
+    Ok(LatentSet {
+        mean,
+        std,
+        ids,
+        empty_ids,
+        scaling_factor: state.scaling_factor.unwrap_or(1.0),
+    })
+}
+
+fn load_latents(
+    paths: &Layout,
+    state: &TrainState,
+    tokenizer: &ClipTokenizer,
+) -> Result<LatentSet, TrainError> {
+    let mut tensors = load_tensors(&paths.latents())?;
+    let caption_path = paths.checkpoints.join("captions.json");
+    let text = std::fs::read_to_string(&caption_path).map_err(io_err(&caption_path))?;
+    let captions: Vec<String> = serde_json::from_str(&text).map_err(|e| TrainError::File {
+        path: caption_path.clone(),
+        msg: e.to_string(),
+    })?;
+    let missing = |what: &str| TrainError::File {
+        path: paths.latents(),
+        msg: format!("missing tensor {what}"),
+    };
+    let mean = tensors.remove("mean").ok_or_else(|| missing("mean"))?;
+    let std = tensors.remove("std").ok_or_else(|| missing("std"))?;
+    if mean.dim(0)? != captions.len() {
+        return Err(TrainError::File {
+            path: caption_path,
+            msg: format!("{} captions for {} latents", captions.len(), mean.dim(0)?),
+        });
+    }
+    let (ids, empty_ids) = caption_ids(&captions, tokenizer)?;
+    Ok(LatentSet {
+        mean,
+        std,
+        ids,
+        empty_ids,
+        scaling_factor: state.scaling_factor.unwrap_or(1.0),
+    })
+}
+
+fn train_denoiser(
+    paths: &Layout,
+    config: &TrainConfig,
+    state: &mut TrainState,
+    latents: &LatentSet,
+    vocab_size: usize,
+    events: &mut dyn FnMut(Event),
+) -> Result<(), TrainError> {
+    let u = &config.unet;
+    let trainer = denoiser::DenoiserTrainer::new(config, vocab_size)?;
+    let mut trainable = Trainable::new(trainer.varmap.clone(), u.ema_decay)?;
+    if state.unet_step > 0 {
+        trainable.load(&paths.denoiser(), state.unet_step)?;
+    }
+    events(Event::Stage {
+        name: "unet",
+        total: u.steps,
+        done: state.unet_step.min(u.steps),
+    });
+    let started = Instant::now();
+    let mut last_checkpoint = Instant::now();
+    let mut window = LossWindow { sum: 0.0, count: 0 };
+    let mut running: Option<f64> = None;
+    while state.unet_step < u.steps {
+        let step = state.unet_step;
+        let mut rng = step_rng(config.seed, UNET_TAG, step);
+        let (loss, parts) = trainer.loss(config, latents, &mut rng)?;
+        if !parts.total.is_finite() {
+            return Err(TrainError::Diverged {
+                stage: "unet",
+                step,
+                loss: parts.total,
+            });
+        }
+        let lr = learning_rate(step, u.steps, u.warmup, u.lr, 0.1);
+        trainable.step(&loss, lr)?;
+        state.unet_step += 1;
+        window.push(state, "unet", state.unet_step, parts.mse);
+        let r = running.map_or(parts.mse, |r| 0.98 * r + 0.02 * parts.mse);
+        running = Some(r);
+        events(Event::Progress {
+            done: state.unet_step,
+            loss: Some(r),
+        });
+        if last_checkpoint.elapsed().as_secs_f64() > 60.0 * config.checkpoint_minutes {
+            add_seconds(state, "unet", &mut last_checkpoint, started);
+            trainable.save(&paths.denoiser())?;
+            save_state(paths, state)?;
+            events(Event::Note(format!(
+                "checkpoint at unet step {}",
+                state.unet_step
+            )));
+        }
+    }
+    add_seconds(state, "unet", &mut last_checkpoint, started);
+    trainable.save(&paths.denoiser())?;
+
+    // Export the EMA weights: the UNet as diffusers names it, the text encoder with transformers 4's
+    // `text_model.` prefix (what SD checkpoints on the hub carry; both loaders accept it).
+    let mut unet = HashMap::new();
+    let mut text = HashMap::new();
+    for (name, t) in trainable.ema.weights() {
+        if let Some(rest) = name.strip_prefix("unet.") {
+            unet.insert(rest.to_string(), t);
+        } else if let Some(rest) = name.strip_prefix("text_encoder.") {
+            text.insert(format!("text_model.{rest}"), t);
+        }
+    }
+    let unet_dir = paths.out.join("unet");
+    let text_dir = paths.out.join("text_encoder");
+    for dir in [&unet_dir, &text_dir] {
+        std::fs::create_dir_all(dir).map_err(io_err(dir))?;
+    }
+    save_tensors(&unet, &unet_dir.join("diffusion_pytorch_model.safetensors"))?;
+    write_json(&unet_dir.join("config.json"), &config.unet_config_json())?;
+    save_tensors(&text, &text_dir.join("model.safetensors"))?;
+    write_json(
+        &text_dir.join("config.json"),
+        &config.text_config_json(vocab_size),
+    )?;
+    state.unet_exported_at = Some(state.unet_step);
+    save_state(paths, state)
+}
+
+/// Total size of the exported weight files.
+fn weight_bytes(out: &Path) -> u64 {
+    [
+        "unet/diffusion_pytorch_model.safetensors",
+        "vae/diffusion_pytorch_model.safetensors",
+        "text_encoder/model.safetensors",
+    ]
+    .iter()
+    .filter_map(|p| std::fs::metadata(out.join(p)).ok())
+    .map(|m| m.len())
+    .sum()
+}
+
+/// Writes `OUT/README.md`: what the folder is, the command that made it and the run's numbers.
+fn write_readme(
+    out: &Path,
+    state: &TrainState,
+    command: Option<&str>,
+    weight_bytes: u64,
+) -> Result<(), TrainError> {
+    let c = &state.config;
+    let mean_of = |stage: &str, first: bool| -> Option<(u64, f64)> {
+        let mut it = state.loss_history.iter().filter(|(s, _, _)| s == stage);
+        let pick = if first { it.next() } else { it.last() };
+        pick.map(|(_, step, loss)| (*step, *loss))
+    };
+    let loss_line = |stage: &str, what: &str| -> String {
+        match (mean_of(stage, true), mean_of(stage, false)) {
+            (Some((s0, l0)), Some((s1, l1))) => {
+                format!("{what}: {l0:.4} (steps ≤ {s0}) → {l1:.4} (steps ≤ {s1})")
+            }
+            _ => format!("{what}: not recorded"),
+        }
+    };
+    let secs = |stage: &str| state.seconds.get(stage).copied().unwrap_or(0.0);
+    let text = format!(
+        "# vcedit demo model\n\n\
+         A small Stable-Diffusion-architecture model (diffusers layout) trained by vcedit itself on its\n\
+         procedural world (`crates/demo/src/world`). It loads like any SD checkpoint:\n\
+         `vcedit model check {dir}`, `vcedit edit-image --model {dir} ...`.\n\n\
+         Produced by:\n\n```\n{cmd}\n```\n\n\
+         Rerunning that command continues from `checkpoints/` (not committed) or, when complete, only\n\
+         rewrites the tokenizer and this README.\n\n\
+         | part | architecture |\n| --- | --- |\n\
+         | tokenizer | CLIP BPE, {vocab} tokens, one per caption word |\n\
+         | text encoder | CLIPTextModel, hidden {th}, {tl} layers, {thd} heads, {tp} positions |\n\
+         | UNet | UNet2DConditionModel, channels {uc:?}, cross-attention {ua:?}, {uh} heads, ε-prediction |\n\
+         | VAE | AutoencoderKL, channels {vc:?}, {lat} latent channels, scaling_factor {sf:.5} |\n\
+         | scheduler | LCMScheduler config, scaled-linear betas {bs} → {be}, 1000 steps |\n\n\
+         Training: seed {seed}, {n} rendered {size}×{size} samples; codec {cs} steps × {cb} crops of {cc}²\n\
+         ({cmin:.1} min); UNet + text encoder {us} steps × {ub} ({umin:.1} min). Exported weights are EMA\n\
+         averages, {mb:.1} MB in all (f32 safetensors).\n\n\
+         - {codec_loss}\n- {unet_loss}\n",
+        dir = out.display(),
+        cmd = command.unwrap_or("vcedit demo-model train (command not recorded)"),
+        vocab = crate::bpe::demo_bpe().vocab_size(),
+        th = c.text.hidden_size,
+        tl = c.text.layers,
+        thd = c.text.heads,
+        tp = c.text.max_positions,
+        uc = c.unet.block_out_channels,
+        ua = c.unet.cross_attention,
+        uh = c.unet.heads,
+        vc = c.codec.block_out_channels,
+        lat = c.codec.latent_channels,
+        sf = state.scaling_factor.unwrap_or(f64::NAN),
+        bs = config::BETA_START,
+        be = config::BETA_END,
+        seed = c.seed,
+        n = c.samples,
+        size = c.image_size,
+        cs = state.codec_step,
+        cb = c.codec.batch,
+        cc = c.codec.crop,
+        cmin = secs("codec") / 60.0,
+        us = state.unet_step,
+        ub = c.unet.batch,
+        umin = secs("unet") / 60.0,
+        mb = weight_bytes as f64 / 1e6,
+        codec_loss = loss_line("codec", "codec L1 reconstruction error (images in [-1, 1])"),
+        unet_loss = loss_line("unet", "UNet noise-prediction MSE"),
+    );
+    let path = out.join("README.md");
+    splat::atomic_write(&path, text.as_bytes()).map_err(io_err(&path))
+}
