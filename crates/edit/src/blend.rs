@@ -184,7 +184,7 @@ mod tests {
         // 2x2 map, 4 tokens; token 1 attends to the top-left cell in the layout branch.
         let tokens = 4;
         let mut v = vec![0.0f32; 2 * 4 * tokens];
-        v[4 * tokens + 0 * tokens + 1] = 1.0; // branch 1 (layout), cell 0, token 1
+        v[4 * tokens + 1] = 1.0; // branch 1 (layout), cell 0, token 1
         v[4 * tokens + 3 * tokens + 1] = 0.5; // cell 3
         let store = vec![(
             "up".to_string(),
