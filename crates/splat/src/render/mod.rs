@@ -19,6 +19,8 @@ pub(crate) mod raster;
 pub(crate) mod raster_backward;
 pub(crate) mod real;
 pub(crate) mod sh;
+#[cfg(target_arch = "x86_64")]
+mod simd;
 pub(crate) mod tiles;
 
 #[cfg(test)]
@@ -288,11 +290,48 @@ pub(crate) fn project_all<R: Real>(
     cam: &CameraR<R>,
     with_color: bool,
 ) -> Vec<Splat<R>> {
-    (0..params.len())
-        .into_par_iter()
-        .with_min_len(256)
-        .map(|i| project::project_one(params, i, cam, with_color))
-        .collect()
+    let mut out = vec![Splat::default(); params.len()];
+    out.par_chunks_mut(PROJECT_CHUNK)
+        .enumerate()
+        .for_each(|(c, chunk)| {
+            let start = c * PROJECT_CHUNK;
+            #[cfg(target_arch = "x86_64")]
+            if raster::has_avx2() {
+                // SAFETY: the CPU supports the features the function is compiled for.
+                return unsafe { project_chunk_avx2(params, cam, with_color, start, chunk) };
+            }
+            project_chunk(params, cam, with_color, start, chunk)
+        });
+    out
+}
+
+/// Gaussians per parallel work item of the per-Gaussian stages.
+const PROJECT_CHUNK: usize = 512;
+
+#[inline(always)]
+fn project_chunk<R: Real>(
+    params: &Params<'_, R>,
+    cam: &CameraR<R>,
+    with_color: bool,
+    start: usize,
+    chunk: &mut [Splat<R>],
+) {
+    for (j, s) in chunk.iter_mut().enumerate() {
+        *s = project::project_one(params, start + j, cam, with_color);
+    }
+}
+
+/// [`project_chunk`] compiled for AVX2+FMA (inline rounding and square roots, wider registers).
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma")]
+unsafe fn project_chunk_avx2<R: Real>(
+    params: &Params<'_, R>,
+    cam: &CameraR<R>,
+    with_color: bool,
+    start: usize,
+    chunk: &mut [Splat<R>],
+) {
+    project_chunk(params, cam, with_color, start, chunk)
 }
 
 pub(crate) fn forward<R: Real>(
@@ -390,32 +429,82 @@ fn project_backward_all<R: Real>(
     out: &mut Grads<R>,
 ) {
     let k3 = 3 * sh_coeffs_of(params.sh_degree);
+    let n = PROJECT_CHUNK;
     (
-        out.means.par_chunks_mut(3),
-        out.log_scales.par_chunks_mut(3),
-        out.quats.par_chunks_mut(4),
-        out.opacity_logits.par_iter_mut(),
-        out.sh.par_chunks_mut(k3),
+        out.means.par_chunks_mut(3 * n),
+        out.log_scales.par_chunks_mut(3 * n),
+        out.quats.par_chunks_mut(4 * n),
+        out.opacity_logits.par_chunks_mut(n),
+        out.sh.par_chunks_mut(k3 * n),
     )
         .into_par_iter()
-        .with_min_len(256)
         .enumerate()
-        .for_each(|(i, (mean, log_scale, quat, opacity_logit, sh))| {
-            project::project_one_backward(
-                params,
-                i,
-                cam,
-                &splats[i],
-                &splat_grads[i],
-                ParamGradsMut {
-                    mean,
-                    log_scale,
-                    quat,
-                    opacity_logit,
-                    sh,
-                },
-            );
+        .for_each(|(c, (mean, log_scale, quat, opacity_logit, sh))| {
+            let chunk = GradChunk {
+                start: c * n,
+                mean,
+                log_scale,
+                quat,
+                opacity_logit,
+                sh,
+            };
+            #[cfg(target_arch = "x86_64")]
+            if raster::has_avx2() {
+                // SAFETY: the CPU supports the features the function is compiled for.
+                return unsafe { backward_chunk_avx2(params, cam, splats, splat_grads, chunk) };
+            }
+            backward_chunk(params, cam, splats, splat_grads, chunk)
         });
+}
+
+/// Output slices of one chunk of Gaussians, starting at Gaussian `start`.
+struct GradChunk<'a, R> {
+    start: usize,
+    mean: &'a mut [R],
+    log_scale: &'a mut [R],
+    quat: &'a mut [R],
+    opacity_logit: &'a mut [R],
+    sh: &'a mut [R],
+}
+
+#[inline(always)]
+fn backward_chunk<R: Real>(
+    params: &Params<'_, R>,
+    cam: &CameraR<R>,
+    splats: &[Splat<R>],
+    splat_grads: &[project::SplatGrad<R>],
+    c: GradChunk<'_, R>,
+) {
+    let k3 = 3 * sh_coeffs_of(params.sh_degree);
+    for (j, opacity_logit) in c.opacity_logit.iter_mut().enumerate() {
+        let i = c.start + j;
+        project::project_one_backward(
+            params,
+            i,
+            cam,
+            &splats[i],
+            &splat_grads[i],
+            ParamGradsMut {
+                mean: &mut c.mean[3 * j..3 * j + 3],
+                log_scale: &mut c.log_scale[3 * j..3 * j + 3],
+                quat: &mut c.quat[4 * j..4 * j + 4],
+                opacity_logit,
+                sh: &mut c.sh[k3 * j..k3 * (j + 1)],
+            },
+        );
+    }
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma")]
+unsafe fn backward_chunk_avx2<R: Real>(
+    params: &Params<'_, R>,
+    cam: &CameraR<R>,
+    splats: &[Splat<R>],
+    splat_grads: &[project::SplatGrad<R>],
+    c: GradChunk<'_, R>,
+) {
+    backward_chunk(params, cam, splats, splat_grads, c)
 }
 
 /// Wall-clock time of each stage of one forward + backward pass (for benchmarks and profiling).

@@ -110,13 +110,13 @@ impl<R: Real> Splat<R> {
     }
 
     /// Covered tiles as x0, y0, x1, y1 (exclusive ends).
-    #[inline]
+    #[cfg(test)]
     pub fn tile_rect(&self) -> [u32; 4] {
         self.tiles.map(u32::from)
     }
 }
 
-#[inline]
+#[inline(always)]
 fn matmul3<R: Real>(a: &[[R; 3]; 3], b: &[[R; 3]; 3]) -> [[R; 3]; 3] {
     let mut o = [[R::ZERO; 3]; 3];
     for i in 0..3 {
@@ -127,7 +127,7 @@ fn matmul3<R: Real>(a: &[[R; 3]; 3], b: &[[R; 3]; 3]) -> [[R; 3]; 3] {
     o
 }
 
-#[inline]
+#[inline(always)]
 fn transpose3<R: Real>(a: &[[R; 3]; 3]) -> [[R; 3]; 3] {
     let mut o = [[R::ZERO; 3]; 3];
     for i in 0..3 {
@@ -139,7 +139,7 @@ fn transpose3<R: Real>(a: &[[R; 3]; 3]) -> [[R; 3]; 3] {
 }
 
 /// Rotation matrix of a unit quaternion (w, x, y, z).
-#[inline]
+#[inline(always)]
 pub fn quat_to_rot<R: Real>(q: [R; 4]) -> [[R; 3]; 3] {
     let [w, x, y, z] = q;
     let one = R::ONE;
@@ -164,7 +164,7 @@ pub fn quat_to_rot<R: Real>(q: [R; 4]) -> [[R; 3]; 3] {
 }
 
 /// Gradient with respect to the unit quaternion given the gradient `v` of its rotation matrix.
-#[inline]
+#[inline(always)]
 fn quat_to_rot_vjp<R: Real>(q: [R; 4], v: &[[R; 3]; 3]) -> [R; 4] {
     let [w, x, y, z] = q;
     let two: R = c(2.0);
@@ -184,7 +184,7 @@ fn quat_to_rot_vjp<R: Real>(q: [R; 4], v: &[[R; 3]; 3]) -> [R; 4] {
     [two * gw, two * gx, two * gy, two * gz]
 }
 
-#[inline]
+#[inline(always)]
 pub fn sigmoid<R: Real>(x: R) -> R {
     R::ONE / (R::ONE + (-x).exp())
 }
@@ -209,7 +209,7 @@ struct Geometry<R> {
     cov2d: [R; 3],
 }
 
-#[inline]
+#[inline(always)]
 fn geometry<R: Real>(p: &Params<'_, R>, i: usize, cam: &CameraR<R>) -> Option<Geometry<R>> {
     let m = [p.means[3 * i], p.means[3 * i + 1], p.means[3 * i + 2]];
     let r = &cam.rot;
@@ -287,7 +287,7 @@ fn geometry<R: Real>(p: &Params<'_, R>, i: usize, cam: &CameraR<R>) -> Option<Ge
 
 /// Projects Gaussian `i`. Returns a culled splat (`radius == 0`) when it is behind the near plane,
 /// degenerate, off screen or non-finite. Colours are computed only when `with_color` is set.
-#[inline]
+#[inline(always)]
 pub fn project_one<R: Real>(
     p: &Params<'_, R>,
     i: usize,
@@ -361,7 +361,7 @@ pub fn project_one<R: Real>(
 }
 
 /// Unit direction from the camera centre to the mean, and the length it was divided by.
-#[inline]
+#[inline(always)]
 fn view_dir<R: Real>(p: &Params<'_, R>, i: usize, cam: &CameraR<R>) -> ([R; 3], R) {
     let d = [
         p.means[3 * i] - cam.center[0],
@@ -376,7 +376,7 @@ fn view_dir<R: Real>(p: &Params<'_, R>, i: usize, cam: &CameraR<R>) -> ([R; 3], 
     }
 }
 
-#[inline]
+#[inline(always)]
 fn eval_color<R: Real>(p: &Params<'_, R>, i: usize, cam: &CameraR<R>) -> ([R; 3], u8) {
     let k = super::sh_coeffs_of(p.sh_degree);
     let coeffs = &p.sh[i * k * 3..(i + 1) * k * 3];
@@ -419,6 +419,7 @@ pub struct ParamGradsMut<'a, R> {
 }
 
 /// Backward of [`project_one`] for Gaussian `i`: overwrites `out` with the parameter gradients.
+#[inline(always)]
 pub fn project_one_backward<R: Real>(
     p: &Params<'_, R>,
     i: usize,

@@ -20,9 +20,21 @@ pub const TILE_PIXELS: usize = (TILE * TILE) as usize;
 /// Pixels processed together: half a tile row. 8 f32 lanes fill one AVX2 register.
 pub const SEG: usize = 8;
 
+/// Set by tests to compare the portable kernels with the AVX2 ones on the same machine.
+static FORCE_PORTABLE: std::sync::atomic::AtomicBool = std::sync::atomic::AtomicBool::new(false);
+
+/// Makes [`has_avx2`] report false (or restores detection).
+#[cfg(test)]
+pub(crate) fn force_portable(on: bool) {
+    FORCE_PORTABLE.store(on, std::sync::atomic::Ordering::SeqCst);
+}
+
 /// Whether the CPU has AVX2 and FMA (checked once; the hot tile loops are compiled for it as well).
 #[inline]
 pub fn has_avx2() -> bool {
+    if FORCE_PORTABLE.load(std::sync::atomic::Ordering::Relaxed) {
+        return false;
+    }
     #[cfg(target_arch = "x86_64")]
     {
         std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("fma")
@@ -142,7 +154,7 @@ pub fn sigma_at<R: Real>(conic: &[R; 3], dx: R, dy: R) -> R {
 /// Front-to-back step of one Gaussian over one segment. Updates `trans` and writes the weights; returns
 /// (contributing lanes, lanes that just finished).
 #[inline(always)]
-fn forward_segment<R: Real>(
+fn forward_segment<R: Real, const SIMD: bool>(
     s: &Splat<R>,
     dy: R,
     xs: &[R; SEG],
@@ -150,6 +162,21 @@ fn forward_segment<R: Real>(
     live: u32,
     w: &mut [R; SEG],
 ) -> (u32, u32) {
+    #[cfg(target_arch = "x86_64")]
+    if SIMD && super::raster_backward::is_f32::<R>() {
+        // SAFETY: R is f32, so the casts are between identical types; SIMD is only set in code compiled
+        // for AVX2+FMA that runs after the CPU check.
+        unsafe {
+            return super::simd::forward_segment(
+                &*(s as *const Splat<R> as *const Splat<f32>),
+                dy.to_f64() as f32,
+                &*(xs as *const [R; SEG] as *const [f32; SEG]),
+                &mut *(trans as *mut [R; SEG] as *mut [f32; SEG]),
+                live,
+                &mut *(w as *mut [R; SEG] as *mut [f32; SEG]),
+            );
+        }
+    }
     let alpha_max: R = c(ALPHA_MAX);
     let alpha_min: R = c(ALPHA_MIN);
     let t_min: R = c(T_MIN);
@@ -189,7 +216,7 @@ pub fn traverse_tile<R: Real, S: Sink<R>>(
         // SAFETY: the CPU supports the features `traverse_tile_avx2` is compiled for.
         return unsafe { traverse_tile_avx2(splats, list, rect, sink, trans, last) };
     }
-    traverse_tile_impl(splats, list, rect, sink, trans, last)
+    traverse_tile_impl::<R, S, false>(splats, list, rect, sink, trans, last)
 }
 
 #[cfg(target_arch = "x86_64")]
@@ -202,11 +229,12 @@ unsafe fn traverse_tile_avx2<R: Real, S: Sink<R>>(
     trans: &mut [R; TILE_PIXELS],
     last: &mut [u32; TILE_PIXELS],
 ) {
-    traverse_tile_impl(splats, list, rect, sink, trans, last)
+    traverse_tile_impl::<R, S, true>(splats, list, rect, sink, trans, last)
 }
 
+/// `SIMD`: compiled for AVX2+FMA, so the f32 segment kernel of `simd.rs` may be used.
 #[inline(always)]
-fn traverse_tile_impl<R: Real, S: Sink<R>>(
+fn traverse_tile_impl<R: Real, S: Sink<R>, const SIMD: bool>(
     splats: &[Splat<R>],
     list: &[u32],
     rect: &TileRect,
@@ -245,16 +273,15 @@ fn traverse_tile_impl<R: Real, S: Sink<R>>(
                 }
                 let p0 = r * TILE as usize + h * SEG;
                 let t: &mut [R; SEG] = (&mut trans[p0..p0 + SEG]).try_into().unwrap();
-                let (hits, stops) = forward_segment(s, dy, &xs[h], t, seg_live, &mut w);
+                let (hits, stops) = forward_segment::<R, SIMD>(s, dy, &xs[h], t, seg_live, &mut w);
                 live[r] &= !(stops << (h * SEG));
                 if hits != 0 {
                     let lst: &mut [u32; SEG] = (&mut last[p0..p0 + SEG]).try_into().unwrap();
+                    let kk = k as u32 + 1;
                     for l in 0..SEG {
-                        lst[l] = if (hits >> l) & 1 != 0 {
-                            k as u32 + 1
-                        } else {
-                            lst[l]
-                        };
+                        // Branch-free select (all ones where lane l missed) so this vectorises.
+                        let keep = ((hits >> l) & 1).wrapping_sub(1);
+                        lst[l] = (lst[l] & keep) | (kk & !keep);
                     }
                     sink.segment(p0, g, s, &w, hits);
                 }

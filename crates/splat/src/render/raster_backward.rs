@@ -73,48 +73,57 @@ pub fn rasterize_backward<R: Real>(
     } else {
         0
     };
-    let slots: Vec<Mutex<Option<ThreadGrads<R>>>> = (0..rayon::current_num_threads().max(1))
-        .map(|_| Mutex::new(None))
-        .collect();
+    // Each slot owns a fixed, interleaved set of tiles walked in order and the slots are summed in order,
+    // so gradients do not depend on thread scheduling (bit-identical reruns; resumable edits rely on it).
+    // Twice as many slots as threads keep the interleaved sets balanced.
+    let stride = 2 * rayon::current_num_threads().max(1);
+    let slots: Vec<Mutex<Option<ThreadGrads<R>>>> = (0..stride).map(|_| Mutex::new(None)).collect();
+    let tiles = bins.num_tiles();
 
-    (0..bins.num_tiles()).into_par_iter().for_each_init(
-        || {
-            Box::new(Scratch {
-                trans: [R::ZERO; TILE_PIXELS],
-                behind: [[R::ZERO; TILE_PIXELS]; 4],
-                v_color: [[R::ZERO; TILE_PIXELS]; 3],
-                v_depth: [R::ZERO; TILE_PIXELS],
-                v_final: [R::ZERO; TILE_PIXELS],
-                buf_extra: vec![
-                    R::ZERO;
-                    if extra_grad.is_some() {
-                        channels * TILE_PIXELS
-                    } else {
-                        0
-                    }
-                ],
-                order: Vec::with_capacity(TILE_PIXELS),
-            })
-        },
-        |scratch, tile| {
+    (0..stride).into_par_iter().for_each(|slot| {
+        let mut scratch = Box::new(Scratch {
+            trans: [R::ZERO; TILE_PIXELS],
+            behind: [[R::ZERO; TILE_PIXELS]; 4],
+            v_color: [[R::ZERO; TILE_PIXELS]; 3],
+            v_depth: [R::ZERO; TILE_PIXELS],
+            v_final: [R::ZERO; TILE_PIXELS],
+            buf_extra: vec![
+                R::ZERO;
+                if extra_grad.is_some() {
+                    channels * TILE_PIXELS
+                } else {
+                    0
+                }
+            ],
+            order: Vec::with_capacity(TILE_PIXELS),
+        });
+        let mut guard = slots[slot].lock().unwrap_or_else(|e| e.into_inner());
+        for tile in (slot..tiles).step_by(stride) {
             let list = bins.list(tile);
             if list.is_empty() {
-                return;
+                continue;
             }
-            let slot = rayon::current_thread_index().unwrap_or(0) % slots.len();
-            // Only this worker ever locks this slot, so the lock is uncontended.
-            let mut guard = slots[slot].lock().unwrap_or_else(|e| e.into_inner());
             let acc = guard.get_or_insert_with(|| ThreadGrads {
                 splats: vec![SplatGrad::default(); n],
                 extra: vec![R::ZERO; extra_len],
             });
             let rect = TileRect::new(tile, bins, width, height);
             backward_tile(
-                splats, list, &rect, width, background, values, channels, extra_grad, fwd, grads,
-                scratch, acc,
+                splats,
+                list,
+                &rect,
+                width,
+                background,
+                values,
+                channels,
+                extra_grad,
+                fwd,
+                grads,
+                &mut scratch,
+                acc,
             );
-        },
-    );
+        }
+    });
 
     // Sum the per-thread buffers.
     let mut parts: Vec<ThreadGrads<R>> = slots
@@ -159,18 +168,41 @@ pub fn rasterize_backward<R: Real>(
     }
 }
 
-/// Per-lane sums of one Gaussian's gradients over the segments it touches in a tile.
+/// Per-lane intermediate values of one backward segment, shared between its passes.
+#[derive(Clone, Copy, Default)]
+pub struct SegTemps<R> {
+    pub dx: [R; SEG],
+    pub vis: [R; SEG],
+    pub alpha: [R; SEG],
+    /// 1 / (1 − alpha).
+    pub ra: [R; SEG],
+    /// T before this Gaussian.
+    pub t_new: [R; SEG],
+    /// dL/dalpha (without the extra channels' part).
+    pub v_alpha: [R; SEG],
+}
+
+/// Per-pixel backward state of the 8 pixels of a segment (views into the tile scratch).
+pub struct SegState<'a, R> {
+    pub trans: &'a mut [R; SEG],
+    pub behind: [&'a mut [R; SEG]; 4],
+    pub v_color: [&'a [R; SEG]; 3],
+    pub v_depth: &'a [R; SEG],
+    pub v_final: &'a [R; SEG],
+}
+
+/// Per-lane gradient sums of one Gaussian.
 #[derive(Clone, Copy)]
-struct LaneGrads<R> {
-    color: [[R; SEG]; 3],
-    depth: [R; SEG],
-    conic: [[R; SEG]; 3],
-    mean: [[R; SEG]; 2],
-    opacity: [R; SEG],
+pub struct LaneGrads<R> {
+    pub color: [[R; SEG]; 3],
+    pub depth: [R; SEG],
+    pub conic: [[R; SEG]; 3],
+    pub mean: [[R; SEG]; 2],
+    pub opacity: [R; SEG],
 }
 
 impl<R: Real> LaneGrads<R> {
-    fn zero() -> Self {
+    pub fn zero() -> Self {
         Self {
             color: [[R::ZERO; SEG]; 3],
             depth: [R::ZERO; SEG],
@@ -178,6 +210,150 @@ impl<R: Real> LaneGrads<R> {
             mean: [[R::ZERO; SEG]; 2],
             opacity: [R::ZERO; SEG],
         }
+    }
+}
+
+/// Whether `R` is `f32` (decided at compile time after monomorphisation).
+#[inline(always)]
+pub(crate) fn is_f32<R: 'static>() -> bool {
+    std::any::TypeId::of::<R>() == std::any::TypeId::of::<f32>()
+}
+
+/// Views of the tile scratch for the segment starting at tile pixel `p0`.
+#[inline(always)]
+fn seg_state<R: Real>(s: &mut Scratch<R>, p0: usize) -> SegState<'_, R> {
+    fn arr<R>(v: &[R; TILE_PIXELS], p0: usize) -> &[R; SEG] {
+        v[p0..p0 + SEG].try_into().unwrap()
+    }
+    fn arr_mut<R>(v: &mut [R; TILE_PIXELS], p0: usize) -> &mut [R; SEG] {
+        (&mut v[p0..p0 + SEG]).try_into().unwrap()
+    }
+    let [b0, b1, b2, b3] = &mut s.behind;
+    SegState {
+        trans: arr_mut(&mut s.trans, p0),
+        behind: [
+            arr_mut(b0, p0),
+            arr_mut(b1, p0),
+            arr_mut(b2, p0),
+            arr_mut(b3, p0),
+        ],
+        v_color: [
+            arr(&s.v_color[0], p0),
+            arr(&s.v_color[1], p0),
+            arr(&s.v_color[2], p0),
+        ],
+        v_depth: arr(&s.v_depth, p0),
+        v_final: arr(&s.v_final, p0),
+    }
+}
+
+/// Pass 1 of a backward segment: alphas, the recovered T before this Gaussian and the colour, depth and
+/// final-T part of dL/dalpha. Returns the lanes where this Gaussian contributed in the forward pass.
+#[inline(always)]
+fn pass1<R: Real, const SIMD: bool>(
+    sp: &Splat<R>,
+    dy: R,
+    xs: &[R; SEG],
+    active: u32,
+    st8: &SegState<'_, R>,
+    tmp: &mut SegTemps<R>,
+) -> u32 {
+    #[cfg(target_arch = "x86_64")]
+    if SIMD && is_f32::<R>() {
+        // SAFETY: R is f32, so these are the same types; SIMD is only set in code compiled for AVX2+FMA
+        // that runs after the CPU check.
+        unsafe {
+            return super::simd::backward_pass1(
+                &*(sp as *const Splat<R> as *const Splat<f32>),
+                dy.to_f64() as f32,
+                &*(xs as *const [R; SEG] as *const [f32; SEG]),
+                active,
+                &*(st8 as *const SegState<'_, R> as *const SegState<'_, f32>),
+                &mut *(tmp as *mut SegTemps<R> as *mut SegTemps<f32>),
+            );
+        }
+    }
+    let alpha_max: R = c(ALPHA_MAX);
+    let alpha_min: R = c(ALPHA_MIN);
+    let o = sp.opacity;
+    let mut act_bits = 0u32;
+    for l in 0..SEG {
+        tmp.dx[l] = sp.mean[0] - xs[l];
+        let sigma = sigma_at(&sp.conic, tmp.dx[l], dy);
+        tmp.vis[l] = (-sigma).exp_fast();
+        tmp.alpha[l] = (o * tmp.vis[l]).min(alpha_max);
+        let act = (active >> l) & 1 != 0 && sigma >= R::ZERO && tmp.alpha[l] >= alpha_min;
+        act_bits |= (act as u32) << l;
+        tmp.ra[l] = R::ONE / (R::ONE - tmp.alpha[l]);
+        let t = st8.trans[l] * tmp.ra[l];
+        tmp.t_new[l] = t;
+        let ra = tmp.ra[l];
+        tmp.v_alpha[l] = (sp.color[0] * t - st8.behind[0][l] * ra) * st8.v_color[0][l]
+            + (sp.color[1] * t - st8.behind[1][l] * ra) * st8.v_color[1][l]
+            + (sp.color[2] * t - st8.behind[2][l] * ra) * st8.v_color[2][l]
+            + (sp.depth * t - st8.behind[3][l] * ra) * st8.v_depth[l]
+            + st8.v_final[l] * ra;
+    }
+    act_bits
+}
+
+/// Pass 3 of a backward segment: state updates (T, what lies behind) and the Gaussian's gradient sums,
+/// masked to the contributing lanes.
+#[inline(always)]
+fn pass3<R: Real, const SIMD: bool>(
+    sp: &Splat<R>,
+    dy: R,
+    act_bits: u32,
+    st8: &mut SegState<'_, R>,
+    tmp: &SegTemps<R>,
+    lg: &mut LaneGrads<R>,
+) {
+    #[cfg(target_arch = "x86_64")]
+    if SIMD && is_f32::<R>() {
+        // SAFETY: as in `pass1`.
+        unsafe {
+            return super::simd::backward_pass3(
+                &*(sp as *const Splat<R> as *const Splat<f32>),
+                dy.to_f64() as f32,
+                act_bits,
+                &mut *(st8 as *mut SegState<'_, R> as *mut SegState<'_, f32>),
+                &*(tmp as *const SegTemps<R> as *const SegTemps<f32>),
+                &mut *(lg as *mut LaneGrads<R> as *mut LaneGrads<f32>),
+            );
+        }
+    }
+    let alpha_max: R = c(ALPHA_MAX);
+    let o = sp.opacity;
+    let [ca, cb, cc] = sp.conic;
+    for l in 0..SEG {
+        let act = (act_bits >> l) & 1 != 0;
+        let fac = tmp.alpha[l] * tmp.t_new[l];
+        st8.trans[l] = if act { tmp.t_new[l] } else { st8.trans[l] };
+        let fac = if act { fac } else { R::ZERO };
+        for ch in 0..3 {
+            st8.behind[ch][l] += sp.color[ch] * fac;
+            lg.color[ch][l] += fac * st8.v_color[ch][l];
+        }
+        st8.behind[3][l] += sp.depth * fac;
+        lg.depth[l] += fac * st8.v_depth[l];
+        // Where alpha was clamped at 0.99 it depends on neither σ nor the opacity.
+        let free = act && o * tmp.vis[l] <= alpha_max;
+        let v_sigma = if free {
+            -(o * tmp.vis[l]) * tmp.v_alpha[l]
+        } else {
+            R::ZERO
+        };
+        let d = tmp.dx[l];
+        lg.conic[0][l] += v_sigma * d * d;
+        lg.conic[1][l] += v_sigma * d * dy;
+        lg.conic[2][l] += v_sigma * dy * dy;
+        lg.mean[0][l] += v_sigma * (ca * d + cb * dy);
+        lg.mean[1][l] += v_sigma * (cb * d + cc * dy);
+        lg.opacity[l] += if free {
+            tmp.vis[l] * tmp.v_alpha[l]
+        } else {
+            R::ZERO
+        };
     }
 }
 
@@ -215,7 +391,7 @@ fn backward_tile<R: Real>(
             )
         };
     }
-    backward_tile_impl(
+    backward_tile_impl::<R, false>(
         splats, list, rect, width, background, values, channels, extra_grad, fwd, grads, s, acc,
     )
 }
@@ -237,14 +413,15 @@ unsafe fn backward_tile_avx2<R: Real>(
     s: &mut Scratch<R>,
     acc: &mut ThreadGrads<R>,
 ) {
-    backward_tile_impl(
+    backward_tile_impl::<R, true>(
         splats, list, rect, width, background, values, channels, extra_grad, fwd, grads, s, acc,
     )
 }
 
+/// `SIMD`: compiled for AVX2+FMA, so the f32 segment kernels of `simd.rs` may be used.
 #[allow(clippy::too_many_arguments)]
 #[inline(always)]
-fn backward_tile_impl<R: Real>(
+fn backward_tile_impl<R: Real, const SIMD: bool>(
     splats: &[Splat<R>],
     list: &[u32],
     rect: &TileRect,
@@ -309,10 +486,9 @@ fn backward_tile_impl<R: Real>(
     let mut active = [0u32; TILE as usize];
     let mut rows_active = 0u32;
     let xs = rect.segment_xs::<R>();
-    let alpha_max: R = c(ALPHA_MAX);
-    let alpha_min: R = c(ALPHA_MIN);
     let half: R = c(0.5);
     let max_last = s.order[0].0 as usize;
+    let mut tmp = SegTemps::<R>::default();
 
     for k in (0..max_last).rev() {
         while next_join < s.order.len() && s.order[next_join].0 as usize > k {
@@ -331,8 +507,6 @@ fn backward_tile_impl<R: Real>(
             continue;
         }
         let cols = column_mask(sp, rect);
-        let [ca, cb, cc] = sp.conic;
-        let o = sp.opacity;
         let mut lg = LaneGrads::<R>::zero();
         let mut touched = false;
         while rows != 0 {
@@ -345,33 +519,10 @@ fn backward_tile_impl<R: Real>(
                     continue;
                 }
                 let p0 = r * TILE as usize + h * SEG;
-                let x = &xs[h];
-                // Pass 1: alphas, recovered T and the colour/depth/background part of dL/dalpha.
-                let mut dx = [R::ZERO; SEG];
-                let mut vis = [R::ZERO; SEG];
-                let mut alpha = [R::ZERO; SEG];
-                let mut ra = [R::ZERO; SEG];
-                let mut t_new = [R::ZERO; SEG];
-                let mut v_alpha = [R::ZERO; SEG];
-                let mut act_bits = 0u32;
-                for l in 0..SEG {
-                    let p = p0 + l;
-                    dx[l] = sp.mean[0] - x[l];
-                    let sigma = sigma_at(&sp.conic, dx[l], dy);
-                    vis[l] = (-sigma).exp_fast();
-                    alpha[l] = (o * vis[l]).min(alpha_max);
-                    let act =
-                        (seg_active >> l) & 1 != 0 && sigma >= R::ZERO && alpha[l] >= alpha_min;
-                    act_bits |= (act as u32) << l;
-                    ra[l] = R::ONE / (R::ONE - alpha[l]);
-                    t_new[l] = s.trans[p] * ra[l];
-                    v_alpha[l] = (sp.color[0] * t_new[l] - s.behind[0][p] * ra[l])
-                        * s.v_color[0][p]
-                        + (sp.color[1] * t_new[l] - s.behind[1][p] * ra[l]) * s.v_color[1][p]
-                        + (sp.color[2] * t_new[l] - s.behind[2][p] * ra[l]) * s.v_color[2][p]
-                        + (sp.depth * t_new[l] - s.behind[3][p] * ra[l]) * s.v_depth[p]
-                        + s.v_final[p] * ra[l];
-                }
+                let act_bits = {
+                    let st8 = seg_state(s, p0);
+                    pass1::<R, SIMD>(sp, dy, &xs[h], seg_active, &st8, &mut tmp)
+                };
                 if act_bits == 0 {
                     continue;
                 }
@@ -388,45 +539,20 @@ fn backward_tile_impl<R: Real>(
                         let ve = &ve[gp * channels..(gp + 1) * channels];
                         let buf = &mut s.buf_extra[p * channels..(p + 1) * channels];
                         let out = &mut acc.extra[g * channels..(g + 1) * channels];
-                        let fac = alpha[l] * t_new[l];
+                        let (t_new, ra) = (tmp.t_new[l], tmp.ra[l]);
+                        let fac = tmp.alpha[l] * t_new;
                         let mut va = R::ZERO;
                         for ch in 0..channels {
                             let v = ve[ch];
                             out[ch] += fac * v;
-                            va += (vals[ch] * t_new[l] - buf[ch] * ra[l]) * v;
+                            va += (vals[ch] * t_new - buf[ch] * ra) * v;
                             buf[ch] += vals[ch] * fac;
                         }
-                        v_alpha[l] += va;
+                        tmp.v_alpha[l] += va;
                     }
                 }
-                // Pass 3: state updates and gradient sums, masked to the active lanes.
-                for l in 0..SEG {
-                    let p = p0 + l;
-                    let act = (act_bits >> l) & 1 != 0;
-                    let fac = alpha[l] * t_new[l];
-                    s.trans[p] = if act { t_new[l] } else { s.trans[p] };
-                    let fac = if act { fac } else { R::ZERO };
-                    for ch in 0..3 {
-                        s.behind[ch][p] += sp.color[ch] * fac;
-                        lg.color[ch][l] += fac * s.v_color[ch][p];
-                    }
-                    s.behind[3][p] += sp.depth * fac;
-                    lg.depth[l] += fac * s.v_depth[p];
-                    // Where alpha was clamped at 0.99 it does not depend on σ or the opacity.
-                    let free = act && o * vis[l] <= alpha_max;
-                    let v_sigma = if free {
-                        -(o * vis[l]) * v_alpha[l]
-                    } else {
-                        R::ZERO
-                    };
-                    let d = dx[l];
-                    lg.conic[0][l] += v_sigma * d * d;
-                    lg.conic[1][l] += v_sigma * d * dy;
-                    lg.conic[2][l] += v_sigma * dy * dy;
-                    lg.mean[0][l] += v_sigma * (ca * d + cb * dy);
-                    lg.mean[1][l] += v_sigma * (cb * d + cc * dy);
-                    lg.opacity[l] += if free { vis[l] * v_alpha[l] } else { R::ZERO };
-                }
+                let mut st8 = seg_state(s, p0);
+                pass3::<R, SIMD>(sp, dy, act_bits, &mut st8, &tmp, &mut lg);
             }
         }
         if touched {

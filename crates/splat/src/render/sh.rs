@@ -32,7 +32,7 @@ const C3: [f64; 7] = [
 
 /// Evaluates the basis functions for `degree` at the unit direction `d`; entries beyond
 /// `(degree+1)^2` are left untouched.
-#[inline]
+#[inline(always)]
 pub fn basis<R: Real>(degree: u32, d: [R; 3], out: &mut [R; MAX_COEFFS]) {
     let [x, y, z] = d;
     out[0] = c(C0);
@@ -64,7 +64,7 @@ pub fn basis<R: Real>(degree: u32, d: [R; 3], out: &mut [R; MAX_COEFFS]) {
 }
 
 /// Gradient with respect to the (unit) direction of `sum_k v_basis[k] * basis_k(d)`.
-#[inline]
+#[inline(always)]
 pub fn basis_vjp<R: Real>(degree: u32, d: [R; 3], v: &[R; MAX_COEFFS]) -> [R; 3] {
     let [x, y, z] = d;
     let mut g = [R::ZERO; 3];

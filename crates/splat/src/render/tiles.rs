@@ -25,35 +25,49 @@ impl TileBins {
     }
 }
 
+/// A drawable splat in the depth order, with its tile rectangle inline so binning never goes back to the
+/// (large, randomly ordered) splat records.
+#[derive(Clone, Copy)]
+struct Entry {
+    /// Depth bits (depths are > 0, so the IEEE bit pattern orders like the value).
+    key: u64,
+    index: u32,
+    /// x0, y0, x1, y1 in tiles.
+    rect: [u16; 4],
+}
+
 /// Bins the drawable splats into tiles.
 ///
-/// The splats are first sorted by depth once (a parallel sort of N keys instead of one sort per tile), then
-/// scattered into the tile lists in that order, so every list comes out sorted. The scatter runs over
-/// chunks of the sorted order in parallel, each chunk writing into its own precomputed slots.
+/// The splats are sorted by depth once (a parallel sort of N keys instead of one sort per tile), then
+/// appended to the tile lists in that order, so every list comes out sorted.
 pub fn bin<R: Real>(splats: &[Splat<R>], tiles_x: u32, tiles_y: u32) -> TileBins {
     let num_tiles = (tiles_x * tiles_y) as usize;
-    let mut order: Vec<(u64, u32)> = splats
+    let mut entries: Vec<Entry> = splats
         .par_iter()
         .enumerate()
         .filter(|(_, s)| s.is_drawable())
-        // Depths are > 0, so the IEEE bit pattern orders like the value.
-        .map(|(i, s)| (s.depth.to_f64().to_bits(), i as u32))
+        .map(|(i, s)| Entry {
+            key: s.depth.to_f64().to_bits(),
+            index: i as u32,
+            rect: s.tiles,
+        })
         .collect();
-    order.par_sort_unstable();
+    entries.par_sort_unstable_by_key(|e| (e.key, e.index));
 
+    // Chunks of the sorted order are scattered in parallel, each into slots reserved for it in every tile.
     let chunks = rayon::current_num_threads().max(1) * 4;
-    let chunk_len = order.len().div_ceil(chunks).max(1);
+    let chunk_len = entries.len().div_ceil(chunks).max(1);
     // counts[chunk][tile]
-    let counts: Vec<Vec<u32>> = order
+    let counts: Vec<Vec<u32>> = entries
         .par_chunks(chunk_len)
         .map(|chunk| {
             let mut counts = vec![0u32; num_tiles];
-            for &(_, i) in chunk {
-                let [x0, y0, x1, y1] = splats[i as usize].tile_rect();
+            for e in chunk {
+                let [x0, y0, x1, y1] = e.rect.map(usize::from);
                 for ty in y0..y1 {
-                    let row = (ty * tiles_x) as usize;
-                    for tx in x0..x1 {
-                        counts[row + tx as usize] += 1;
+                    let row = ty * tiles_x as usize;
+                    for c in &mut counts[row + x0..row + x1] {
+                        *c += 1;
                     }
                 }
             }
@@ -61,7 +75,7 @@ pub fn bin<R: Real>(splats: &[Splat<R>], tiles_x: u32, tiles_y: u32) -> TileBins
         })
         .collect();
 
-    // Tile offsets, and each chunk's starting slot within each tile.
+    // Tile offsets, and each chunk's first slot within each tile.
     let mut offsets = vec![0u32; num_tiles + 1];
     let mut starts: Vec<Vec<u32>> = vec![vec![0u32; num_tiles]; counts.len()];
     let mut total = 0u64;
@@ -77,21 +91,20 @@ pub fn bin<R: Real>(splats: &[Splat<R>], tiles_x: u32, tiles_y: u32) -> TileBins
 
     let mut ids = vec![0u32; total as usize];
     let ids_ptr = SyncPtr(ids.as_mut_ptr());
-    order
+    entries
         .par_chunks(chunk_len)
         .zip(starts.par_iter_mut())
         .for_each(|(chunk, next)| {
             let ptr = &ids_ptr;
-            for &(_, i) in chunk {
-                let [x0, y0, x1, y1] = splats[i as usize].tile_rect();
+            for e in chunk {
+                let [x0, y0, x1, y1] = e.rect.map(usize::from);
                 for ty in y0..y1 {
-                    let row = (ty * tiles_x) as usize;
-                    for tx in x0..x1 {
-                        let slot = &mut next[row + tx as usize];
+                    let row = ty * tiles_x as usize;
+                    for slot in &mut next[row + x0..row + x1] {
                         // SAFETY: every (chunk, tile) pair owns the disjoint slot range
-                        // [starts[chunk][tile], starts[chunk][tile] + counts[chunk][tile]), which lies
-                        // inside `ids`; each chunk advances only its own cursors.
-                        unsafe { ptr.write(*slot as usize, i) };
+                        // [starts[chunk][tile], starts[chunk][tile] + counts[chunk][tile]) inside `ids`;
+                        // each chunk advances only its own cursors.
+                        unsafe { ptr.write(*slot as usize, e.index) };
                         *slot += 1;
                     }
                 }
