@@ -271,6 +271,23 @@ impl Default for FitConfig {
     }
 }
 
+impl FitConfig {
+    /// The INRIA schedule compressed to `steps`: densification stops halfway (as 15k of 30k does), capped
+    /// at the trainer's 15000; the position rate decays over `steps`.
+    pub fn for_steps(steps: u64) -> Self {
+        let default = Self::default();
+        Self {
+            steps,
+            rates: LearningRates::inria(steps),
+            strategy: DefaultStrategy {
+                refine_stop: (steps / 2).min(default.strategy.refine_stop),
+                ..default.strategy.clone()
+            },
+            ..default
+        }
+    }
+}
+
 /// Progress reported by [`fit`] after every step.
 #[derive(Clone, Debug)]
 pub struct FitProgress {
