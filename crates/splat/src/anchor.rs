@@ -147,7 +147,7 @@ impl Anchor {
         &self,
         scene: &GaussianScene,
         mask: Option<&[bool]>,
-        mut grads: Option<&mut SceneGrads>,
+        grads: Option<&mut SceneGrads>,
     ) -> AnchorLoss {
         let n = scene.len();
         assert_eq!(self.generations.len(), n, "anchor generations size");
@@ -201,7 +201,7 @@ impl Anchor {
             (sum / denom) as f32
         };
         let s = &self.snapshot;
-        let mut g = grads.as_deref_mut();
+        let mut g = grads;
         let geo = term(
             &scene.means,
             &s.means,
@@ -369,7 +369,8 @@ mod tests {
         let eps = 1e-2f32;
         let total = |s: &GaussianScene| a.loss(s, Some(&mask), None).total as f64;
         type Field = fn(&mut GaussianScene) -> &mut Vec<f32>;
-        let fields: [(&str, Field, fn(&SceneGrads) -> &Vec<f32>); 5] = [
+        type GradField = fn(&SceneGrads) -> &Vec<f32>;
+        let fields: [(&str, Field, GradField); 5] = [
             ("means", |s| &mut s.means, |g| &g.means),
             ("quats", |s| &mut s.quats, |g| &g.quats),
             ("sh", |s| &mut s.sh, |g| &g.sh),

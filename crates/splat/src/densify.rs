@@ -366,7 +366,7 @@ impl DefaultStrategy {
             self.reset_every > 0 && step % self.reset_every < self.pause_refine_after_reset;
         if step > self.refine_start
             && self.refine_every > 0
-            && step % self.refine_every == 0
+            && step.is_multiple_of(self.refine_every)
             && !paused
         {
             let (cloned, split) = self.grow(state, rng);
@@ -379,7 +379,7 @@ impl DefaultStrategy {
                 opacity_reset: false,
             });
         }
-        let reset = (self.reset_every > 0 && step > 0 && step % self.reset_every == 0)
+        let reset = (self.reset_every > 0 && step > 0 && step.is_multiple_of(self.reset_every))
             || (self.reset_at_refine_start && step == self.refine_start);
         if reset {
             reset_opacity(state, 2.0 * self.prune_opa);
@@ -482,7 +482,7 @@ impl EditStrategy {
             return None;
         }
         state.stats.add(&grads.means2d, radii, width, height, 1);
-        if step >= self.densify_from && self.interval > 0 && step % self.interval == 0 {
+        if step >= self.densify_from && self.interval > 0 && step.is_multiple_of(self.interval) {
             Some(self.densify_and_prune(state, rng))
         } else {
             None
@@ -656,8 +656,8 @@ mod tests {
         assert!(m[..9].iter().all(|&v| v != 0.0));
         assert!(m[9..].iter().all(|&v| v == 0.0));
         // Masks follow the source; generations are new.
-        assert_eq!(st.trainable.as_ref().unwrap()[5], false);
-        assert_eq!(st.trainable.as_ref().unwrap()[4], true);
+        assert!(!st.trainable.as_ref().unwrap()[5]);
+        assert!(st.trainable.as_ref().unwrap()[4]);
         assert_eq!(
             st.anchor.as_ref().unwrap().generations,
             vec![0, 0, 0, 0, 1, 1]

@@ -177,8 +177,8 @@ fn blur<R: Real>(
                 }
                 *d = acc;
             }
-            for x in width - r..width {
-                dst[x] = edge(x);
+            for (x, d) in dst.iter_mut().enumerate().skip(width - r) {
+                *d = edge(x);
             }
         } else {
             for (x, d) in dst.iter_mut().enumerate() {

@@ -628,23 +628,23 @@ mod tests {
         let mask = [true, false, true, false];
         let g = grads_like(&s, |_| 0.3);
         adam.step(&mut s, &g, Some(&mask));
-        for i in 0..4 {
+        for (i, &m) in mask.iter().enumerate() {
             let moved = s.mean(i) != orig.mean(i);
-            assert_eq!(moved, mask[i], "means of {i}");
-            assert_eq!(s.opacity_logits[i] != orig.opacity_logits[i], mask[i]);
-            assert_eq!(s.log_scales[3 * i] != orig.log_scales[3 * i], mask[i]);
-            assert_eq!(s.sh[3 * i] != orig.sh[3 * i], mask[i]);
+            assert_eq!(moved, m, "means of {i}");
+            assert_eq!(s.opacity_logits[i] != orig.opacity_logits[i], m);
+            assert_eq!(s.log_scales[3 * i] != orig.log_scales[3 * i], m);
+            assert_eq!(s.sh[3 * i] != orig.sh[3 * i], m);
             // Rotation is not hooked by default: it moves for everyone.
             assert_ne!(s.quats[4 * i], orig.quats[4 * i]);
-            assert_eq!(adam.means.m[3 * i] != 0.0, mask[i]);
+            assert_eq!(adam.means.m[3 * i] != 0.0, m);
         }
         // With mask_rotation the quaternions follow the mask too.
         let mut s2 = orig.clone();
         let mut adam2 = Adam::new(&s2, LearningRates::inria(100), 1.0);
         adam2.mask_rotation = true;
         adam2.step(&mut s2, &g, Some(&mask));
-        for i in 0..4 {
-            assert_eq!(s2.quats[4 * i] != orig.quats[4 * i], mask[i]);
+        for (i, &m) in mask.iter().enumerate() {
+            assert_eq!(s2.quats[4 * i] != orig.quats[4 * i], m);
         }
     }
 
