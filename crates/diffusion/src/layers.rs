@@ -4,7 +4,7 @@
 //! - **inference** (no operand tracks gradients): fused CPU kernels (group norm + SiLU, softmax, layer norm)
 //!   that avoid intermediate tensors;
 //! - **training** (an input or a weight is a `Var` or depends on one): kernels with backward passes
-//!   ([`crate::train_ops`]: conv, group norm (+ SiLU), layer norm, softmax for f32 on the CPU) and composite
+//!   ([`crate::train_ops`]: conv, group norm (+ SiLU), layer norm, softmax, GEGLU for f32 on the CPU) and composite
 //!   candle ops elsewhere, so `Tensor::backward` works through the whole network.
 //!
 //! The choice is automatic (see [`needs_grad`]), so the same model code serves both.
@@ -580,6 +580,9 @@ pub fn geglu(x: &Tensor) -> Result<Tensor> {
         candle_core::bail!("geglu: last dimension {width} is odd");
     }
     let inner = width / 2;
+    if needs_grad(&[x]) && crate::train_ops::supported(&[x]) {
+        return crate::train_ops::geglu(x);
+    }
     if needs_grad(&[x]) || x.dtype() != DType::F32 || !x.device().is_cpu() {
         let hidden = x.narrow(D::Minus1, 0, inner)?;
         let gate = x.narrow(D::Minus1, inner, inner)?;

@@ -10,7 +10,8 @@
 //!   which suits training batches of small images far better than one parallel GEMM per image;
 //! - [`group_norm`]: group norm with affine weight/bias, optionally followed by SiLU;
 //! - [`layer_norm`]: layer norm over the last dimension with weight and bias;
-//! - [`softmax_last_dim`]: softmax over the last dimension.
+//! - [`softmax_last_dim`]: softmax over the last dimension;
+//! - [`geglu`]: diffusers' GEGLU, `hidden · gelu(gate)`.
 //!
 //! Every function requires f32 CPU tensors (see [`supported`]); callers fall back to composite ops
 //! otherwise. Backward kernels return all gradients packed in one flat tensor, split afterwards.
@@ -837,13 +838,11 @@ impl CustomOp1 for SoftmaxOp {
                 .zip(x.par_chunks(dim * ROWS_PER_TASK))
                 .for_each(|(out, inp)| {
                     for (o, i) in out.chunks_mut(dim).zip(inp.chunks(dim)) {
-                        let max = i.iter().copied().fold(f32::NEG_INFINITY, f32::max);
-                        let mut sum = 0f32;
+                        let max = max_lanes(i);
                         for (o, &v) in o.iter_mut().zip(i) {
-                            *o = (v - max).exp();
-                            sum += *o;
+                            *o = exp_approx(v - max);
                         }
-                        let inv = 1.0 / sum;
+                        let inv = 1.0 / sum_lanes(o);
                         o.iter_mut().for_each(|o| *o *= inv);
                     }
                 });
@@ -886,7 +885,7 @@ impl CustomOp2 for SoftmaxBackward {
                 .zip(g.par_chunks(dim * ROWS_PER_TASK))
                 .for_each(|((dx, y), g)| {
                     for ((dx, y), g) in dx.chunks_mut(dim).zip(y.chunks(dim)).zip(g.chunks(dim)) {
-                        let dot: f32 = y.iter().zip(g).map(|(a, b)| a * b).sum();
+                        let dot = dot_lanes(y, g);
                         for ((d, &y), &g) in dx.iter_mut().zip(y).zip(g) {
                             *d = y * (g - dot);
                         }
@@ -900,6 +899,193 @@ impl CustomOp2 for SoftmaxBackward {
 /// Softmax over the last dimension with a fused backward pass.
 pub fn softmax_last_dim(x: &Tensor) -> Result<Tensor> {
     x.contiguous()?.apply_op1(SoftmaxOp)
+}
+
+// ---------------------------------------------------------------------------------------------------
+// vectorisable scalar helpers
+
+/// Lanes of the reductions below: independent accumulators let the compiler vectorise them (a plain
+/// iterator sum must keep f32 additions in order).
+const LANES: usize = 8;
+
+fn sum_lanes(v: &[f32]) -> f32 {
+    let mut acc = [0f32; LANES];
+    let chunks = v.chunks_exact(LANES);
+    let tail: f32 = chunks.remainder().iter().sum();
+    for c in chunks {
+        for k in 0..LANES {
+            acc[k] += c[k];
+        }
+    }
+    acc.iter().sum::<f32>() + tail
+}
+
+fn dot_lanes(a: &[f32], b: &[f32]) -> f32 {
+    let mut acc = [0f32; LANES];
+    let (ca, cb) = (a.chunks_exact(LANES), b.chunks_exact(LANES));
+    let tail: f32 = ca
+        .remainder()
+        .iter()
+        .zip(cb.remainder())
+        .map(|(x, y)| x * y)
+        .sum();
+    for (x, y) in ca.zip(cb) {
+        for k in 0..LANES {
+            acc[k] += x[k] * y[k];
+        }
+    }
+    acc.iter().sum::<f32>() + tail
+}
+
+fn max_lanes(v: &[f32]) -> f32 {
+    let mut acc = [f32::NEG_INFINITY; LANES];
+    let chunks = v.chunks_exact(LANES);
+    let tail = chunks
+        .remainder()
+        .iter()
+        .copied()
+        .fold(f32::NEG_INFINITY, f32::max);
+    for c in chunks {
+        for k in 0..LANES {
+            acc[k] = acc[k].max(c[k]);
+        }
+    }
+    acc.iter().copied().fold(tail, f32::max)
+}
+
+/// exp(x) to ~2e-7 relative error, branch-free so loops over it vectorise (libm's `expf` is a call per
+/// element). Range reduction x = n·ln2 + r with |r| ≤ ln2/2, a degree-7 Taylor polynomial for exp(r), and
+/// 2ⁿ built in the exponent bits. Inputs below −87 (including −∞ from attention masks) give ~1e-38.
+#[inline(always)]
+fn exp_approx(x: f32) -> f32 {
+    const LOG2E: f32 = std::f32::consts::LOG2_E;
+    const LN2_HI: f32 = 0.693_145_75;
+    const LN2_LO: f32 = 1.428_606_8e-6;
+    // 1.5·2²³: adding and subtracting it rounds to the nearest integer.
+    const ROUND: f32 = 12_582_912.0;
+    let x = x.clamp(-87.0, 88.0);
+    let n = (x * LOG2E + ROUND) - ROUND;
+    let r = (x - n * LN2_HI) - n * LN2_LO;
+    let p = 1.0
+        + r * (1.0
+            + r * (0.5
+                + r * (1.0 / 6.0
+                    + r * (1.0 / 24.0
+                        + r * (1.0 / 120.0 + r * (1.0 / 720.0 + r * (1.0 / 5040.0)))))));
+    f32::from_bits(((n as i32 + 127) as u32) << 23) * p
+}
+
+/// erf(x) to ~1.5e-7 absolute error (Abramowitz & Stegun 7.1.26), branch-free.
+#[inline(always)]
+fn erf_approx(x: f32) -> f32 {
+    let a = x.abs();
+    let t = 1.0 / (1.0 + 0.327_591_1 * a);
+    let poly = t
+        * (0.254_829_6
+            + t * (-0.284_496_74 + t * (1.421_413_7 + t * (-1.453_152_1 + t * 1.061_405_4))));
+    (1.0 - poly * exp_approx(-a * a)).copysign(x)
+}
+
+// ---------------------------------------------------------------------------------------------------
+// GEGLU
+
+const FRAC_1_SQRT_2: f32 = std::f32::consts::FRAC_1_SQRT_2;
+/// 1/√(2π), the standard normal density at 0.
+const INV_SQRT_2PI: f32 = 0.398_942_3;
+
+/// `hidden · gelu(gate)` for x = [..., hidden | gate] (diffusers `GEGLU`), exact-erf GELU.
+struct GegluOp;
+
+fn geglu_width(shape: &Shape, op: &str) -> Result<usize> {
+    let width = shape.dims().last().copied().unwrap_or(0);
+    if width == 0 || width % 2 != 0 {
+        candle_core::bail!("{op}: last dimension {width} is not a positive even number");
+    }
+    Ok(width)
+}
+
+impl CustomOp1 for GegluOp {
+    fn name(&self) -> &'static str {
+        "train-geglu"
+    }
+
+    fn cpu_fwd(&self, storage: &CpuStorage, layout: &Layout) -> Result<(CpuStorage, Shape)> {
+        let x = slice(storage, layout, self.name())?;
+        let width = geglu_width(layout.shape(), self.name())?;
+        let inner = width / 2;
+        let mut out = vec![0f32; x.len() / 2];
+        out.par_chunks_mut(inner * ROWS_PER_TASK)
+            .zip(x.par_chunks(width * ROWS_PER_TASK))
+            .for_each(|(out, x)| {
+                for (o, row) in out.chunks_mut(inner).zip(x.chunks(width)) {
+                    let (hidden, gate) = row.split_at(inner);
+                    for ((o, &h), &g) in o.iter_mut().zip(hidden).zip(gate) {
+                        *o = h * 0.5 * g * (1.0 + erf_approx(g * FRAC_1_SQRT_2));
+                    }
+                }
+            });
+        let mut dims = layout.shape().dims().to_vec();
+        *dims.last_mut().expect("rank ≥ 1") = inner;
+        Ok((CpuStorage::F32(out), Shape::from(dims)))
+    }
+
+    fn bwd(&self, arg: &Tensor, _res: &Tensor, grad: &Tensor) -> Result<Option<Tensor>> {
+        let dx = arg
+            .contiguous()?
+            .apply_op2_no_bwd(&grad.contiguous()?, &GegluBackward)?;
+        Ok(Some(dx))
+    }
+}
+
+/// d(hidden) = g · gelu(gate), d(gate) = g · hidden · gelu'(gate), from (x, output gradient g).
+struct GegluBackward;
+
+impl CustomOp2 for GegluBackward {
+    fn name(&self) -> &'static str {
+        "train-geglu-backward"
+    }
+
+    fn cpu_fwd(
+        &self,
+        xs: &CpuStorage,
+        xl: &Layout,
+        gs: &CpuStorage,
+        gl: &Layout,
+    ) -> Result<(CpuStorage, Shape)> {
+        let (x, g) = (slice(xs, xl, self.name())?, slice(gs, gl, self.name())?);
+        let width = geglu_width(xl.shape(), self.name())?;
+        let inner = width / 2;
+        if g.len() * 2 != x.len() {
+            candle_core::bail!("{}: gradient does not fit {:?}", self.name(), xl.shape());
+        }
+        let mut dx = vec![0f32; x.len()];
+        dx.par_chunks_mut(width * ROWS_PER_TASK)
+            .zip(x.par_chunks(width * ROWS_PER_TASK))
+            .zip(g.par_chunks(inner * ROWS_PER_TASK))
+            .for_each(|((dx, x), g)| {
+                for ((d, row), g) in dx
+                    .chunks_mut(width)
+                    .zip(x.chunks(width))
+                    .zip(g.chunks(inner))
+                {
+                    let (hidden, gate) = row.split_at(inner);
+                    let (dh, dg) = d.split_at_mut(inner);
+                    for k in 0..inner {
+                        let (h, z) = (hidden[k], gate[k]);
+                        let cdf = 0.5 * (1.0 + erf_approx(z * FRAC_1_SQRT_2));
+                        let pdf = INV_SQRT_2PI * exp_approx(-0.5 * z * z);
+                        dh[k] = g[k] * z * cdf;
+                        dg[k] = g[k] * h * (cdf + z * pdf);
+                    }
+                }
+            });
+        Ok((CpuStorage::F32(dx), xl.shape().clone()))
+    }
+}
+
+/// `hidden · gelu_erf(gate)` with `x` = [..., 2·inner] holding `[hidden | gate]`, with a fused backward pass.
+pub fn geglu(x: &Tensor) -> Result<Tensor> {
+    x.contiguous()?.apply_op1(GegluOp)
 }
 
 #[cfg(test)]
@@ -1105,6 +1291,57 @@ mod tests {
                 &format!("softmax {shape:?}"),
             );
         }
+    }
+
+    #[test]
+    fn geglu_matches_candle_with_gradients() {
+        for shape in [vec![2, 5, 16], vec![3, 2], vec![70, 6]] {
+            let vars = [var(&shape, 0.0, 2.0)];
+            let inner = shape[shape.len() - 1] / 2;
+            check(
+                &vars,
+                |t| geglu(&t[0]).unwrap(),
+                |t| {
+                    let h = t[0].narrow(D::Minus1, 0, inner).unwrap();
+                    let g = t[0].narrow(D::Minus1, inner, inner).unwrap();
+                    (h * g.gelu_erf().unwrap()).unwrap()
+                },
+                &format!("geglu {shape:?}"),
+            );
+        }
+        assert!(
+            geglu(&Tensor::zeros((2, 3), DType::F32, &candle_core::Device::Cpu).unwrap()).is_err()
+        );
+    }
+
+    #[test]
+    fn approximations_are_accurate() {
+        for i in 0..20_000 {
+            let x = -87.0 + i as f32 * 0.00875;
+            let (got, want) = (exp_approx(x) as f64, (x as f64).exp());
+            assert!(
+                (got - want).abs() <= 3e-7 * want,
+                "exp({x}): {got} vs {want}"
+            );
+        }
+        assert!(exp_approx(f32::NEG_INFINITY) < 1e-37);
+        // erf against its series/asymptotics through known values.
+        for (x, want) in [
+            (0.0f32, 0.0f64),
+            (0.5, 0.520_499_877_8),
+            (1.0, 0.842_700_792_9),
+            (2.0, 0.995_322_265),
+            (-1.5, -0.966_105_146_5),
+        ] {
+            let got = erf_approx(x) as f64;
+            assert!((got - want).abs() < 1e-6, "erf({x}): {got} vs {want}");
+        }
+        let v: Vec<f32> = (0..37).map(|k| (k as f32 * 0.37).sin()).collect();
+        let w: Vec<f32> = (0..37).map(|k| (k as f32 * 0.11).cos()).collect();
+        let dot: f32 = v.iter().zip(&w).map(|(a, b)| a * b).sum();
+        assert!((dot_lanes(&v, &w) - dot).abs() < 1e-5);
+        assert!((sum_lanes(&v) - v.iter().sum::<f32>()).abs() < 1e-5);
+        assert_eq!(max_lanes(&v), v.iter().copied().fold(f32::MIN, f32::max));
     }
 
     #[test]
