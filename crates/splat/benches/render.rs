@@ -2,14 +2,17 @@
 //! plus the real playbot-31k scene when the shared assets are present.
 //!
 //! Run: `cargo bench -p vcedit-splat --bench render` (add `-- quick` for one size, `-- stages` for a
-//! per-stage breakdown). Synthetic scenes fill a unit ball the way trained scenes fill their volume:
+//! per-stage breakdown, `-- channels` for extra-channel rendering and lifting with 24..300 channels). Synthetic scenes fill a unit ball the way trained scenes fill their volume:
 //! log-normal, anisotropic scales around the typical neighbour spacing, random rotations, opacities
 //! spread over (0, 1) with many near-opaque Gaussians, and SH degree 3.
 
 use rand::{Rng, SeedableRng};
 use rand_distr::{Distribution, Normal};
 use splat::cameras::orbit::look_at;
-use splat::render::{profile_stages, render, render_backward, OutputGrads, RenderSettings};
+use splat::lift::lift;
+use splat::render::{
+    profile_stages, render, render_backward, ExtraChannels, OutputGrads, RenderSettings,
+};
 use splat::{Camera, GaussianScene};
 use std::time::{Duration, Instant};
 
@@ -157,9 +160,71 @@ fn bench(label: &str, scene: &GaussianScene, cam: &Camera, runs: usize, stages: 
     }
 }
 
+/// Forward render with C extra channels (as the editor renders attention maps) and lifting C-channel
+/// maps from 4 views.
+fn bench_channels(scene: &GaussianScene, size: u32, channels: usize) {
+    let cam = camera(size);
+    let settings = RenderSettings::default();
+    let values: Vec<f32> = (0..scene.len() * channels)
+        .map(|i| (i % 13) as f32 / 13.0)
+        .collect();
+    let extra = ExtraChannels {
+        values: &values,
+        channels,
+    };
+    let _ = render(scene, &cam, &settings, Some(extra));
+    let runs = 3;
+    let mut times = vec![];
+    for _ in 0..runs {
+        let t = Instant::now();
+        std::hint::black_box(render(scene, &cam, &settings, Some(extra)));
+        times.push(t.elapsed());
+    }
+    let fwd = median(times);
+    let views: Vec<Camera> = (0..4)
+        .map(|k| {
+            let a = k as f64 * 1.3;
+            let focal = size as f64 / 2.0 / (25f64.to_radians()).tan();
+            look_at(
+                format!("v{k}"),
+                [2.9 * a.sin(), -0.6, -2.9 * a.cos()],
+                [0.0; 3],
+                [0.0, -1.0, 0.0],
+                size,
+                size,
+                focal,
+            )
+        })
+        .collect();
+    let maps: Vec<Vec<f32>> = (0..4)
+        .map(|k| {
+            (0..(size * size) as usize * channels)
+                .map(|i| ((i + k) % 7) as f32)
+                .collect()
+        })
+        .collect();
+    let map_refs: Vec<&[f32]> = maps.iter().map(|m| &m[..]).collect();
+    let t = Instant::now();
+    std::hint::black_box(lift(scene, &views, &map_refs, channels));
+    let lifted = t.elapsed();
+    println!(
+        "ball {}k {size}x{size}, {channels} extra channels: forward {:.1} ms; lifting 4 views: {:.1} ms",
+        scene.len() / 1000,
+        fwd.as_secs_f64() * 1e3,
+        lifted.as_secs_f64() * 1e3
+    );
+}
+
 fn main() {
     let args: Vec<String> = std::env::args().collect();
     let quick = args.iter().any(|a| a == "quick");
+    if args.iter().any(|a| a == "channels") {
+        let scene = ball_scene(125_000, 1);
+        for channels in [24, 96, 300] {
+            bench_channels(&scene, 512, channels);
+        }
+        return;
+    }
     let stages = args.iter().any(|a| a == "stages");
     println!("rayon threads: {}", rayon::current_num_threads());
     let counts: &[usize] = if quick {

@@ -6,7 +6,9 @@
 //! channels), C_j += 1, T ← T·(1 − alpha). The hit is unweighted by alpha·T, as in the reference.
 //! After all views: value_j = W_j / (C_j + 1e-7).
 //!
-//! Accumulation uses one dense buffer per worker thread (N·C floats each), summed at the end.
+//! Each tile first sums a Gaussian's hits in a small per-tile buffer, then adds them once to a dense N·C
+//! buffer owned by a fixed, interleaved set of tiles; the buffers are summed in a fixed order at the end,
+//! so results do not depend on thread scheduling.
 
 use crate::render::project::{CameraR, Splat};
 use crate::render::raster::{traverse_tile, Sink, TileRect, SEG, TILE_PIXELS};
@@ -29,8 +31,37 @@ struct Accum {
     counts: Vec<u32>,
 }
 
+/// Per-tile partial sums, one row per list entry the tile touches: a Gaussian's hits within a tile are
+/// summed here (in cache) and added to its N*C row once per tile instead of once per pixel.
+#[derive(Default)]
+struct TileSums {
+    rows: Vec<f32>,
+    counts: Vec<u32>,
+    /// List positions touched in the current tile, in first-touch order.
+    touched: Vec<u32>,
+    /// `seen[k] == epoch` when row k is in use for the current tile.
+    seen: Vec<u32>,
+    epoch: u32,
+}
+
+impl TileSums {
+    fn start_tile(&mut self, list_len: usize, channels: usize) {
+        if self.seen.len() < list_len {
+            self.seen.resize(list_len, 0);
+            self.counts.resize(list_len, 0);
+            self.rows.resize(list_len * channels, 0.0);
+        }
+        self.touched.clear();
+        self.epoch = self.epoch.wrapping_add(1);
+        if self.epoch == 0 {
+            self.seen.fill(0);
+            self.epoch = 1;
+        }
+    }
+}
+
 struct LiftSink<'a> {
-    acc: &'a mut Accum,
+    tile: &'a mut TileSums,
     map: &'a [f32],
     channels: usize,
     rect: TileRect,
@@ -39,11 +70,25 @@ struct LiftSink<'a> {
 
 impl Sink<f32> for LiftSink<'_> {
     #[inline(always)]
-    fn segment(&mut self, p0: usize, g: u32, _splat: &Splat<f32>, _w: &[f32; SEG], hits: u32) {
-        let g = g as usize;
+    fn segment(
+        &mut self,
+        p0: usize,
+        k: usize,
+        _g: u32,
+        _splat: &Splat<f32>,
+        _w: &[f32; SEG],
+        hits: u32,
+    ) {
         let ch = self.channels;
-        self.acc.counts[g] += hits.count_ones();
-        let sums = &mut self.acc.sums[g * ch..(g + 1) * ch];
+        let t = &mut *self.tile;
+        if t.seen[k] != t.epoch {
+            t.seen[k] = t.epoch;
+            t.touched.push(k as u32);
+            t.counts[k] = 0;
+            t.rows[k * ch..(k + 1) * ch].fill(0.0);
+        }
+        t.counts[k] += hits.count_ones();
+        let sums = &mut t.rows[k * ch..(k + 1) * ch];
         let mut bits = hits;
         while bits != 0 {
             let l = bits.trailing_zeros() as usize;
@@ -120,6 +165,7 @@ impl<'s> LiftAccumulator<'s> {
         (0..stride).into_par_iter().for_each(|slot| {
             let mut trans = Box::new([0f32; TILE_PIXELS]);
             let mut last = Box::new([0u32; TILE_PIXELS]);
+            let mut tile_sums = TileSums::default();
             let mut guard = slots[slot].lock().unwrap_or_else(|e| e.into_inner());
             let acc = guard.get_or_insert_with(|| Accum {
                 sums: vec![0.0; n * channels],
@@ -131,14 +177,27 @@ impl<'s> LiftAccumulator<'s> {
                     continue;
                 }
                 let rect = TileRect::new(tile, &bins, cam.width, cam.height);
+                tile_sums.start_tile(list.len(), channels);
                 let mut sink = LiftSink {
-                    acc,
+                    tile: &mut tile_sums,
                     map,
                     channels,
                     rect,
                     width: cam.width,
                 };
                 traverse_tile(&splats, list, &rect, &mut sink, &mut trans, &mut last);
+                for &k in &tile_sums.touched {
+                    let k = k as usize;
+                    let g = list[k] as usize;
+                    acc.counts[g] += tile_sums.counts[k];
+                    let src = &tile_sums.rows[k * channels..(k + 1) * channels];
+                    for (d, s) in acc.sums[g * channels..(g + 1) * channels]
+                        .iter_mut()
+                        .zip(src)
+                    {
+                        *d += s;
+                    }
+                }
             }
         });
     }

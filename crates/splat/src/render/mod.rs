@@ -478,6 +478,11 @@ fn backward_chunk<R: Real>(
     let k3 = 3 * sh_coeffs_of(params.sh_degree);
     for (j, opacity_logit) in c.opacity_logit.iter_mut().enumerate() {
         let i = c.start + j;
+        // Occluded or off-screen Gaussians (most of a dense scene) got no gradient: their outputs are
+        // already zero.
+        if splat_grads[i].is_zero() {
+            continue;
+        }
         project::project_one_backward(
             params,
             i,
@@ -555,4 +560,157 @@ pub fn profile_stages(
     project_backward_all(&params, &cam, &splats, &rg.splats, &mut grads);
     times.push(("project backward", t.elapsed()));
     times
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn camera(width: u32, height: u32) -> Camera {
+        Camera {
+            name: "c".into(),
+            width,
+            height,
+            fx: 20.0,
+            fy: 20.0,
+            cx: width as f64 / 2.0,
+            cy: height as f64 / 2.0,
+            rotation: [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],
+            translation: [0.0, 0.0, 0.0],
+        }
+    }
+
+    fn push(s: &mut GaussianScene, m: [f32; 3], log_scale: f32, q: [f32; 4], logit: f32) {
+        s.means.extend_from_slice(&m);
+        s.log_scales.extend_from_slice(&[log_scale; 3]);
+        s.quats.extend_from_slice(&q);
+        s.opacity_logits.push(logit);
+        s.sh.extend_from_slice(&[0.3, -0.2, 0.1]);
+    }
+
+    #[test]
+    fn empty_scene_shows_the_background() {
+        let scene = GaussianScene::new(0);
+        let settings = RenderSettings {
+            background: [1.0, 0.5, 0.25],
+        };
+        let out = render(&scene, &camera(20, 7), &settings, None);
+        assert!(out.rgb.chunks(3).all(|p| p == [1.0, 0.5, 0.25]));
+        assert!(out.alpha.iter().all(|&a| a == 0.0));
+        let g = render_backward(
+            &scene,
+            &camera(20, 7),
+            &settings,
+            None,
+            &out,
+            &OutputGrads {
+                rgb: &vec![1.0; 20 * 7 * 3],
+                alpha: None,
+                depth: None,
+                extra: None,
+            },
+        );
+        assert!(g.means.is_empty() && g.means2d.is_empty());
+    }
+
+    /// Non-finite, degenerate and out-of-view Gaussians are culled without panics, and the valid one is
+    /// still rendered with finite outputs and gradients.
+    #[test]
+    fn degenerate_gaussians_are_culled() {
+        let mut s = GaussianScene::new(0);
+        push(&mut s, [0.0, 0.0, 3.0], -1.0, [1.0, 0.0, 0.0, 0.0], 2.0); // valid
+        push(
+            &mut s,
+            [f32::NAN, 0.0, 3.0],
+            -1.0,
+            [1.0, 0.0, 0.0, 0.0],
+            2.0,
+        );
+        push(
+            &mut s,
+            [0.0, 0.0, 3.0],
+            f32::INFINITY,
+            [1.0, 0.0, 0.0, 0.0],
+            2.0,
+        );
+        push(&mut s, [0.0, 0.0, 3.0], f32::NAN, [1.0, 0.0, 0.0, 0.0], 2.0);
+        push(&mut s, [0.0, 0.0, 3.0], -1.0, [0.0; 4], 2.0); // zero quaternion
+        push(&mut s, [0.0, 0.0, 3.0], -1.0, [f32::NAN; 4], 2.0);
+        push(
+            &mut s,
+            [0.0, 0.0, 3.0],
+            -1.0,
+            [1.0, 0.0, 0.0, 0.0],
+            f32::NAN,
+        );
+        push(&mut s, [0.0, 0.0, -3.0], -1.0, [1.0, 0.0, 0.0, 0.0], 2.0); // behind
+        push(&mut s, [0.0, 0.0, 0.001], -1.0, [1.0, 0.0, 0.0, 0.0], 2.0); // inside the near plane
+        push(&mut s, [1e30, 0.0, 3.0], -1.0, [1.0, 0.0, 0.0, 0.0], 2.0); // far off screen
+        push(&mut s, [0.0, 0.0, 3.0], 40.0, [1.0, 0.0, 0.0, 0.0], 2.0); // astronomically large
+        push(&mut s, [0.0, 0.0, 3.0], -60.0, [1.0, 0.0, 0.0, 0.0], 2.0); // vanishingly small
+        for (w, h) in [(0, 0), (1, 1), (17, 33)] {
+            let cam = camera(w, h);
+            let settings = RenderSettings::default();
+            let out = render(&s, &cam, &settings, None);
+            assert!(out.rgb.iter().all(|v| v.is_finite()));
+            for i in 1..10 {
+                assert_eq!(out.radii[i], 0, "Gaussian {i} at {w}x{h}");
+            }
+            let npix = (w * h) as usize;
+            let g = render_backward(
+                &s,
+                &cam,
+                &settings,
+                None,
+                &out,
+                &OutputGrads {
+                    rgb: &vec![1.0; 3 * npix],
+                    alpha: Some(&vec![1.0; npix]),
+                    depth: Some(&vec![1.0; npix]),
+                    extra: None,
+                },
+            );
+            assert!(g.means[..3].iter().all(|v| v.is_finite()));
+            if w == 17 {
+                assert!(out.radii[0] > 0 && out.alpha.iter().any(|&a| a > 0.5));
+                assert!(g.opacity_logits[0] != 0.0);
+            }
+        }
+    }
+
+    /// Extra channels without a gradient for them: the other gradients are those of a render without
+    /// extra channels, and no extra gradient is returned.
+    #[test]
+    fn extra_channels_without_their_gradient() {
+        let mut s = GaussianScene::new(0);
+        push(&mut s, [0.0, 0.0, 3.0], -1.0, [1.0, 0.2, 0.0, 0.0], 1.0);
+        push(&mut s, [0.1, 0.1, 4.0], -0.8, [1.0, 0.0, 0.3, 0.0], 0.5);
+        let cam = camera(24, 20);
+        let settings = RenderSettings::default();
+        let values = vec![0.5, 1.0, 2.0, -1.0];
+        let extra = ExtraChannels {
+            values: &values,
+            channels: 2,
+        };
+        let rgb_grad = vec![0.7; 24 * 20 * 3];
+        let grads = OutputGrads {
+            rgb: &rgb_grad,
+            alpha: None,
+            depth: None,
+            extra: None,
+        };
+        let with = render(&s, &cam, &settings, Some(extra));
+        assert_eq!(with.extra.len(), 24 * 20 * 2);
+        let g_with = render_backward(&s, &cam, &settings, Some(extra), &with, &grads);
+        let without = render(&s, &cam, &settings, None);
+        let g_without = render_backward(&s, &cam, &settings, None, &without, &grads);
+        assert_eq!(with.rgb, without.rgb);
+        assert!(g_with.extra.is_empty());
+        assert_eq!(g_with.means, g_without.means);
+        assert_eq!(g_with.sh, g_without.sh);
+        // Extra channel 0 of Gaussian 0 is 0.5 and of Gaussian 1 is 2.0: the composite lies between.
+        let e = &with.extra;
+        let centre = (10 * 24 + 12) * 2;
+        assert!(e[centre] > 0.4 && e[centre] < 2.0, "{}", e[centre]);
+    }
 }

@@ -324,6 +324,9 @@ pub fn project_one<R: Real>(
         return culled;
     }
     let opacity = sigmoid(p.opacity_logits[i]);
+    if opacity.is_nan() {
+        return culled;
+    }
     // alpha = o·exp(-σ) ≥ 1/255  ⇔  σ ≤ ln(255·o). Enlarged a little so float rounding in the per-pixel
     // test can never accept a pixel this bound rejects.
     let sm = (opacity / c(ALPHA_MIN)).ln();
@@ -407,6 +410,19 @@ pub struct SplatGrad<R> {
     pub opacity: R,
     pub color: [R; 3],
     pub depth: R,
+}
+
+impl<R: Real> SplatGrad<R> {
+    /// Whether every entry is exactly zero (the Gaussian did not contribute to any pixel).
+    #[inline]
+    pub fn is_zero(&self) -> bool {
+        let z = R::ZERO;
+        self.mean == [z; 2]
+            && self.conic == [z; 3]
+            && self.opacity == z
+            && self.color == [z; 3]
+            && self.depth == z
+    }
 }
 
 /// Gradients of one Gaussian's parameters, written into the given slices (same layouts as the scene).

@@ -102,9 +102,9 @@ impl TileRect {
 
 /// Receives the contributions of one Gaussian to one segment (8 pixels of a tile row), front to back.
 pub trait Sink<R: Real> {
-    /// Tile pixels `p0..p0+8`: lane `l` got weight `w[l] = alpha·T` where bit `l` of `hits` is set
-    /// (`w` is 0 elsewhere).
-    fn segment(&mut self, p0: usize, g: u32, splat: &Splat<R>, w: &[R; SEG], hits: u32);
+    /// Tile pixels `p0..p0+8`: lane `l` got weight `w[l] = alpha·T` from Gaussian `g` (entry `k` of the
+    /// tile's list) where bit `l` of `hits` is set (`w` is 0 elsewhere).
+    fn segment(&mut self, p0: usize, k: usize, g: u32, splat: &Splat<R>, w: &[R; SEG], hits: u32);
 }
 
 /// Bits lo..=hi set (both < 32, lo <= hi).
@@ -283,7 +283,7 @@ fn traverse_tile_impl<R: Real, S: Sink<R>, const SIMD: bool>(
                         let keep = ((hits >> l) & 1).wrapping_sub(1);
                         lst[l] = (lst[l] & keep) | (kk & !keep);
                     }
-                    sink.segment(p0, g, s, &w, hits);
+                    sink.segment(p0, k, g, s, &w, hits);
                 }
             }
             if live[r] == 0 {
@@ -325,7 +325,7 @@ struct ColorSink<'a, R> {
 
 impl<R: Real> Sink<R> for ColorSink<'_, R> {
     #[inline(always)]
-    fn segment(&mut self, p0: usize, g: u32, s: &Splat<R>, w: &[R; SEG], hits: u32) {
+    fn segment(&mut self, p0: usize, _k: usize, g: u32, s: &Splat<R>, w: &[R; SEG], hits: u32) {
         for l in 0..SEG {
             self.r[p0 + l] += w[l] * s.color[0];
             self.g[p0 + l] += w[l] * s.color[1];

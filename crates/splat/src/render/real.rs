@@ -36,6 +36,7 @@ pub trait Real:
     fn ceil(self) -> Self;
     fn floor(self) -> Self;
     fn is_finite(self) -> bool;
+    fn is_nan(self) -> bool;
     #[inline(always)]
     fn max(self, other: Self) -> Self {
         if self > other {
@@ -94,6 +95,10 @@ macro_rules! impl_real {
             #[inline(always)]
             fn is_finite(self) -> bool {
                 <$t>::is_finite(self)
+            }
+            #[inline(always)]
+            fn is_nan(self) -> bool {
+                <$t>::is_nan(self)
             }
         }
     };
