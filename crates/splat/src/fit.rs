@@ -246,7 +246,8 @@ pub struct FitConfig {
     /// Learning rates; the position schedule's `max_steps` is set to `steps` by [`fit`].
     pub rates: LearningRates,
     pub strategy: DefaultStrategy,
-    /// Random points when the dataset has no point cloud.
+    /// Random points when the dataset has no point cloud. The INRIA trainer uses 100k; densification fills
+    /// in from far fewer, and the first (most overlapped) steps get 5x cheaper on the CPU.
     pub init_points: usize,
     pub init_opacity: f32,
     /// Evaluate held-out PSNR every this many steps (0 = only at the end).
@@ -264,7 +265,7 @@ impl Default for FitConfig {
             ssim_weight: DEFAULT_SSIM_WEIGHT,
             rates: LearningRates::inria(30_000),
             strategy: DefaultStrategy::default(),
-            init_points: 100_000,
+            init_points: 20_000,
             init_opacity: 0.1,
             eval_every: 0,
         }

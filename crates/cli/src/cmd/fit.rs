@@ -46,7 +46,7 @@ pub struct Args {
     #[arg(long, default_value_t = 3, value_parser = clap::value_parser!(u32).range(0..=3))]
     pub sh_degree: u32,
     /// Random initial points when the data has no point cloud.
-    #[arg(long, default_value_t = 100_000)]
+    #[arg(long, default_value_t = 20_000)]
     pub init_points: usize,
     /// Stop densifying after this step (default: half of --steps, at most 15000).
     #[arg(long, value_name = "STEP")]
