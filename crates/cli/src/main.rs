@@ -26,12 +26,16 @@ enum Command {
     // One line per subcommand; keep them in the order a user meets them.
     /// Print statistics of a 3DGS scene (count, SH degree, bounds, opacities, scales, cameras).
     Inspect(cmd::inspect::Args),
+    /// Run the whole editing pipeline on a built-in procedural scene with the bundled demo model.
+    Demo(cmd::demo::Args),
     /// Render a scene to one PNG per view (optionally depth and alpha).
     Render(cmd::render::Args),
     /// Train a 3DGS scene from posed images (COLMAP or transforms.json).
     Fit(cmd::fit::Args),
     /// Edit one image from a source prompt to a target prompt (InfEdit).
     EditImage(cmd::edit_image::Args),
+    /// Edit a 3DGS scene from a source prompt to a target prompt, consistently across views (VcEdit).
+    Edit(cmd::edit::Args),
     /// Compare two scenes: cross-view consistency, preservation (PSNR/SSIM), CLIP directional similarity.
     Metrics(cmd::metrics::Args),
     /// Inspect a Stable Diffusion model folder (`vcedit model check DIR`).
@@ -44,9 +48,11 @@ fn main() {
     let cli = Cli::parse();
     let result: anyhow::Result<()> = match cli.command {
         Command::Inspect(a) => cmd::inspect::run(a),
+        Command::Demo(a) => cmd::demo::run(a),
         Command::Render(a) => cmd::render::run(a),
         Command::Fit(a) => cmd::fit::run(a),
         Command::EditImage(a) => cmd::edit_image::run(a),
+        Command::Edit(a) => cmd::edit::run(a),
         Command::Metrics(a) => cmd::metrics::run(a),
         Command::Model(a) => cmd::model::run(a),
         Command::DemoModel(a) => cmd::demo_model::run(a),

@@ -14,5 +14,8 @@ pub mod metrics;
 pub mod model;
 pub mod multiview;
 pub mod noise;
+pub mod outputs;
+pub mod pipeline;
 pub mod report;
+pub mod train;
 pub mod viz;

@@ -1,5 +1,7 @@
 //! One module per subcommand.
+pub mod demo;
 pub mod demo_model;
+pub mod edit;
 pub mod edit_image;
 pub mod edit_opts;
 pub mod fit;
