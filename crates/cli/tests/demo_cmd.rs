@@ -1,0 +1,124 @@
+//! `vcedit demo` reduced to a few views and steps: the whole mission through the binary, checking every
+//! output the full demo promises. Uses the committed demo model when present, otherwise a tiny one trained
+//! here in a second, so the pipeline is exercised either way (the full demo is not run in CI).
+
+use std::path::{Path, PathBuf};
+use std::process::Command;
+
+fn vcedit(args: &[&str], cwd: &Path) -> (i32, String, String) {
+    let out = Command::new(env!("CARGO_BIN_EXE_vcedit"))
+        .args(args)
+        .current_dir(cwd)
+        .output()
+        .unwrap();
+    (
+        out.status.code().unwrap_or(-1),
+        String::from_utf8_lossy(&out.stdout).into_owned(),
+        String::from_utf8_lossy(&out.stderr).into_owned(),
+    )
+}
+
+/// The committed model, or a tiny freshly trained one.
+fn model(dir: &Path) -> PathBuf {
+    let committed = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../models/demo");
+    if committed
+        .join("unet/diffusion_pytorch_model.safetensors")
+        .is_file()
+    {
+        return committed;
+    }
+    println!("no committed demo model; training a tiny one");
+    let out = dir.join("tiny-model");
+    let (code, _, stderr) = vcedit(
+        &[
+            "demo-model",
+            "train",
+            "--out",
+            out.to_str().unwrap(),
+            "--preset",
+            "tiny",
+            "--codec-steps",
+            "3",
+            "--unet-steps",
+            "3",
+        ],
+        dir,
+    );
+    assert_eq!(code, 0, "{stderr}");
+    out
+}
+
+#[test]
+fn reduced_demo_writes_every_output() {
+    let dir = tempfile::tempdir().unwrap();
+    let model = model(dir.path());
+    let out = dir.path().join("demo-out");
+    let (code, stdout, stderr) = vcedit(
+        &[
+            "demo",
+            "--model",
+            model.to_str().unwrap(),
+            "--out",
+            out.to_str().unwrap(),
+            "--views",
+            "3",
+            "--iterations",
+            "1",
+            "--fit-steps",
+            "5",
+            "--steps",
+            "2",
+        ],
+        dir.path(),
+    );
+    assert_eq!(code, 0, "{stderr}");
+    for file in [
+        "edited.ply",
+        "report.html",
+        "turntable.gif",
+        "before/view_000.png",
+        "after/view_000.png",
+        "run.json",
+    ] {
+        assert!(out.join(file).is_file(), "{file} missing; stdout {stdout}");
+    }
+    assert!(stdout.contains("| VcEdit (full) |"), "{stdout}");
+    assert!(
+        stdout.contains(&format!("report: {}", out.join("report.html").display())),
+        "{stdout}"
+    );
+    // The edited scene is a valid scene the other commands accept.
+    let (code, inspect, stderr) = vcedit(
+        &["inspect", out.join("edited.ply").to_str().unwrap()],
+        dir.path(),
+    );
+    assert_eq!(code, 0, "{stderr}");
+    assert!(inspect.contains("gaussians"), "{inspect}");
+}
+
+#[test]
+fn demo_rejects_bad_options_with_one_line() {
+    let dir = tempfile::tempdir().unwrap();
+    let (code, stdout, _) = vcedit(&["demo", "--list"], dir.path());
+    assert_eq!(code, 0);
+    assert!(
+        stdout.starts_with("0: \"a red sphere\" → \"a blue sphere\""),
+        "{stdout}"
+    );
+
+    let missing = dir.path().join("no-such-model");
+    let (code, _, stderr) = vcedit(
+        &["demo", "--model", missing.to_str().unwrap(), "--out", "x"],
+        dir.path(),
+    );
+    assert_eq!(code, 1);
+    assert!(
+        stderr.starts_with("error:") && stderr.contains("demo model is missing"),
+        "{stderr}"
+    );
+    assert_eq!(stderr.trim_end().lines().count(), 1, "{stderr}");
+
+    let (code, _, stderr) = vcedit(&["demo", "--pair", "99", "--out", "x"], dir.path());
+    assert_eq!(code, 1);
+    assert!(stderr.contains("--pair 99"), "{stderr}");
+}
