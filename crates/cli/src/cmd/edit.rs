@@ -127,11 +127,47 @@ pub struct Args {
 /// Progress bars, one per stage, for the editing pipeline.
 pub struct Bars {
     bar: Option<ProgressBar>,
+    /// Plain progress lines instead of bars when stderr is not a terminal (logs, CI, `nohup`): indicatif
+    /// hides its bars there and would swallow the log lines printed through them.
+    plain: Option<PlainProgress>,
+}
+
+/// Line-per-update progress for non-terminal stderr, throttled to one line per stage every 30 s.
+struct PlainProgress {
+    start: Instant,
+    stage: String,
+    total: u64,
+    done: u64,
+    last_line: Instant,
+}
+
+impl PlainProgress {
+    fn line(&mut self) {
+        let t = self.start.elapsed().as_secs();
+        eprintln!(
+            "[{}:{:02}:{:02}] {}: {}/{}",
+            t / 3600,
+            t / 60 % 60,
+            t % 60,
+            self.stage,
+            self.done,
+            self.total
+        );
+        self.last_line = Instant::now();
+    }
 }
 
 impl Bars {
     pub fn new() -> Self {
-        Self { bar: None }
+        use std::io::IsTerminal;
+        let plain = (!std::io::stderr().is_terminal()).then(|| PlainProgress {
+            start: Instant::now(),
+            stage: String::new(),
+            total: 0,
+            done: 0,
+            last_line: Instant::now(),
+        });
+        Self { bar: None, plain }
     }
 
     /// Clears the last bar.
@@ -144,6 +180,13 @@ impl Bars {
 
 impl edit::pipeline::Progress for Bars {
     fn stage(&mut self, name: &str, total: u64) {
+        if let Some(p) = &mut self.plain {
+            p.stage = name.to_string();
+            p.total = total;
+            p.done = 0;
+            p.line();
+            return;
+        }
         if let Some(b) = self.bar.take() {
             b.finish_and_clear();
         }
@@ -158,6 +201,13 @@ impl edit::pipeline::Progress for Bars {
     }
 
     fn advance(&mut self, n: u64) {
+        if let Some(p) = &mut self.plain {
+            p.done += n;
+            if p.last_line.elapsed().as_secs() >= 30 {
+                p.line();
+            }
+            return;
+        }
         if let Some(b) = &self.bar {
             b.inc(n);
         }
