@@ -186,6 +186,7 @@ struct PairSums {
 fn warp_pair(
     img_from: &Image,
     from: &ViewGeometry,
+    region: Option<&[f32]>,
     img_to: &Image,
     to: &ViewGeometry,
     settings: &ConsistencySettings,
@@ -215,7 +216,7 @@ fn warp_pair(
             for x in 0..wa {
                 let p = y * wa + x;
                 let alpha = from.alpha[p];
-                if !(alpha > thr) {
+                if !(alpha > thr) || region.is_some_and(|r| !(r[p] >= MASK_THRESHOLD)) {
                     continue;
                 }
                 let z = from.depth[p] as f64 / alpha as f64;
@@ -320,6 +321,44 @@ pub fn multiview_consistency(
     geometry: &[ViewGeometry],
     settings: &ConsistencySettings,
 ) -> Result<ConsistencyReport, MetricsError> {
+    consistency_impl(images, geometry, None, settings)
+}
+
+/// [`multiview_consistency`] restricted to a region: only pixels whose `regions[view]` value is at least
+/// [`MASK_THRESHOLD`] are warped (their partners in the neighbour may lie anywhere). Used to measure the
+/// edited part of a scene alone, where per-view editing differs; outside it the local blend keeps the
+/// source and the error there is mostly the autoencoder's.
+pub fn multiview_consistency_in(
+    images: &[&Image],
+    geometry: &[ViewGeometry],
+    regions: &[&[f32]],
+    settings: &ConsistencySettings,
+) -> Result<ConsistencyReport, MetricsError> {
+    if regions.len() != geometry.len() {
+        return Err(MetricsError::Mismatch(format!(
+            "{} regions for {} views",
+            regions.len(),
+            geometry.len()
+        )));
+    }
+    for (k, (r, g)) in regions.iter().zip(geometry).enumerate() {
+        if r.len() != g.alpha.len() {
+            return Err(MetricsError::Mismatch(format!(
+                "view {k}: region has {} values, camera has {} pixels",
+                r.len(),
+                g.alpha.len()
+            )));
+        }
+    }
+    consistency_impl(images, geometry, Some(regions), settings)
+}
+
+fn consistency_impl(
+    images: &[&Image],
+    geometry: &[ViewGeometry],
+    regions: Option<&[&[f32]]>,
+    settings: &ConsistencySettings,
+) -> Result<ConsistencyReport, MetricsError> {
     if images.len() != geometry.len() {
         return Err(MetricsError::Mismatch(format!(
             "{} images for {} views",
@@ -339,7 +378,17 @@ pub fn multiview_consistency(
         .collect();
     let sums: Vec<PairSums> = pairs
         .iter()
-        .map(|&(i, j)| warp_pair(images[i], &geometry[i], images[j], &geometry[j], settings))
+        .map(|&(i, j)| {
+            let region = regions.map(|r| r[i]);
+            warp_pair(
+                images[i],
+                &geometry[i],
+                region,
+                images[j],
+                &geometry[j],
+                settings,
+            )
+        })
         .collect();
     let mut total = PairSums::default();
     let mut per_pair = Vec::with_capacity(pairs.len());
@@ -702,6 +751,44 @@ mod tests {
         for p in &r.per_pair {
             assert!((p.mean_abs_error.unwrap() - 0.1).abs() < 2e-3);
         }
+    }
+
+    #[test]
+    fn a_region_limits_the_warped_pixels() {
+        let cams = two_cameras(96);
+        let mut views: Vec<_> = cams.iter().map(|c| view_of_plane(c, 1.5, None)).collect();
+        for v in &mut views[1].0.data {
+            *v += 0.1;
+        }
+        let geometry: Vec<ViewGeometry> = views
+            .iter()
+            .zip(&cams)
+            .map(|((_, d, a), c)| ViewGeometry {
+                camera: c,
+                depth: d,
+                alpha: a,
+            })
+            .collect();
+        let images: Vec<&Image> = views.iter().map(|v| &v.0).collect();
+        let settings = ConsistencySettings::default();
+        let all = multiview_consistency(&images, &geometry, &settings).unwrap();
+        let n = 96 * 96;
+        let (ones, zeros) = (vec![1.0f32; n], vec![0.0f32; n]);
+        // A region covering everything changes nothing.
+        let full =
+            multiview_consistency_in(&images, &geometry, &[&ones, &ones], &settings).unwrap();
+        assert_eq!(full, all);
+        // Excluding view a's pixels leaves only the pair b → a, with the same error.
+        let only_b =
+            multiview_consistency_in(&images, &geometry, &[&zeros, &ones], &settings).unwrap();
+        let b_to_a = all.per_pair.iter().find(|p| p.from == 1).unwrap();
+        assert_eq!(only_b.summary.covisible_pixels, b_to_a.covisible_pixels);
+        assert!((only_b.summary.mean_abs_error.unwrap() - 0.1).abs() < 2e-3);
+        // Regions must match the views.
+        assert!(multiview_consistency_in(&images, &geometry, &[&ones], &settings).is_err());
+        assert!(
+            multiview_consistency_in(&images, &geometry, &[&ones, &ones[..10]], &settings).is_err()
+        );
     }
 
     #[test]

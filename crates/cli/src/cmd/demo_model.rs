@@ -27,7 +27,7 @@ pub enum DemoModelCommand {
 
 #[derive(Clone, Copy, Debug, clap::ValueEnum)]
 pub enum Preset {
-    /// The committed demo model: 128² images, ~3M-parameter UNet (about 2-3 hours on 2 cores).
+    /// The committed demo model: 128² images, ~3M-parameter UNet (about 1.5 hours on 2 cores).
     Demo,
     /// A minute-scale model for tests (32² images, tiny networks).
     Tiny,
