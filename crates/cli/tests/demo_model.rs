@@ -166,6 +166,12 @@ fn demo_model_edits_a_red_sphere_into_a_blue_sphere() {
         "a blue sphere",
         "--size",
         "128",
+        // The small model's settings (see `demo::run::demo_infedit_settings`): the target's own
+        // cross-attention for most steps and a looser blend threshold than SD's defaults.
+        "--cross",
+        "0.3",
+        "--thresh-e",
+        "0.3",
         "--out",
         output.to_str().unwrap(),
     ]);

@@ -178,11 +178,21 @@ pub fn demo_scene(opts: &DemoOptions) -> Result<DemoScene, DemoError> {
     })
 }
 
-fn job(opts: &DemoOptions, scene: &DemoScene, variant: Variant) -> EditJob {
-    let infedit = InfEditSettings {
-        steps: opts.steps,
+/// InfEdit settings for the demo model. Two differ from the reference's (tuned for Stable Diffusion): the
+/// small model follows a new colour word only when the target's own cross-attention acts for most steps
+/// (cross_replace 0.3, not 0.7), and its attention is more diffuse, so the local blend's threshold on the
+/// edited words is 0.3 (InfEdit's app default) rather than 0.6, or the object's rim keeps the old colour.
+pub fn demo_infedit_settings(steps: usize) -> InfEditSettings {
+    InfEditSettings {
+        steps,
+        cross_replace: 0.3,
+        thresh_e: 0.3,
         ..InfEditSettings::default()
-    };
+    }
+}
+
+fn job(opts: &DemoOptions, scene: &DemoScene, variant: Variant) -> EditJob {
+    let infedit = demo_infedit_settings(opts.steps);
     let mut consistency = ConsistencySettings::reference(opts.steps);
     match variant {
         Variant::NoCcm => consistency.ccm_steps.clear(),
