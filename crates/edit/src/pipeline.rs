@@ -603,7 +603,7 @@ pub fn work_plan(
         ),
         GuidanceMode::PerView => (0, 0, 0),
     };
-    let epochs = job.train.ecm_epochs;
+    let (epochs, _) = job.train.ecm_schedule(v);
     let cfg = &model.unet.config().block_out_channels;
     let unet_calls = job.iterations * v * (steps + ccm);
     // Attention layers recorded by CCM, at most one per transformer block: a generous 16.

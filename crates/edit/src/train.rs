@@ -134,6 +134,11 @@ pub struct TrainSettings {
     /// ECM: epochs over the views, and the epochs after which the rates halve.
     pub ecm_epochs: usize,
     pub ecm_halve_every: usize,
+    /// ECM: fewest Adam steps per fit. The reference's 6 epochs assume its 96 views (576 steps); with fewer
+    /// views the same epochs are too few steps for the copy to take on the predicted colours at these
+    /// rates (16 views: 96 steps move a colour by at most ~0.2), and ECM then pulls every prediction
+    /// back to the source. So epochs grow to reach this many steps, with the halvings stretched alike.
+    pub ecm_min_steps: usize,
     /// Background of the fits' renders (the reference uses black).
     pub background: [f32; 3],
 }
@@ -152,8 +157,20 @@ impl TrainSettings {
             },
             ecm_epochs: 6,
             ecm_halve_every: 2,
+            ecm_min_steps: 6 * 96,
             background: [0.0; 3],
         }
+    }
+}
+
+impl TrainSettings {
+    /// ECM's (epochs, epochs between rate halvings) for `views` views: the configured epochs, or more to
+    /// reach [`Self::ecm_min_steps`], the halvings scaled by the same factor.
+    pub fn ecm_schedule(&self, views: usize) -> (usize, usize) {
+        let base = self.ecm_epochs.max(1);
+        let epochs = base.max(self.ecm_min_steps.div_ceil(views.max(1)));
+        let halve_every = (self.ecm_halve_every.max(1) * epochs).div_ceil(base).max(1);
+        (epochs, halve_every)
     }
 }
 
@@ -361,8 +378,7 @@ pub struct EcmFitter<'a> {
     base: &'a TrainState,
     loss: &'a ImageLoss,
     scope: EcmScope,
-    epochs: usize,
-    halve_every: usize,
+    settings: &'a TrainSettings,
     background: [f32; 3],
 }
 
@@ -372,8 +388,7 @@ impl<'a> EcmFitter<'a> {
             base: &trainer.state,
             loss,
             scope,
-            epochs: trainer.settings.ecm_epochs,
-            halve_every: trainer.settings.ecm_halve_every.max(1),
+            settings: &trainer.settings,
             background: trainer.settings.background,
         }
     }
@@ -402,9 +417,10 @@ impl SceneFitter for EcmFitter<'_> {
         let mut prepared = Targets::new(images);
         let mut rng = ChaCha8Rng::seed_from_u64(seed);
         let base_scale = state.adam.lr_scale;
-        for epoch in 0..self.epochs {
-            // StepLR(step_size = 2 epochs, γ = 0.5).
-            state.adam.lr_scale = base_scale * 0.5f32.powi((epoch / self.halve_every) as i32);
+        let (epochs, halve_every) = self.settings.ecm_schedule(cameras.len());
+        for epoch in 0..epochs {
+            // StepLR(step_size = 2 epochs, γ = 0.5), stretched with the epochs.
+            state.adam.lr_scale = base_scale * 0.5f32.powi((epoch / halve_every) as i32);
             let mut order: Vec<usize> = (0..cameras.len()).collect();
             order.shuffle(&mut rng);
             for v in order {
@@ -421,5 +437,21 @@ impl SceneFitter for EcmFitter<'_> {
             }
         }
         Ok(state.scene)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::TrainSettings;
+
+    #[test]
+    fn ecm_schedule_keeps_the_reference_at_96_views_and_stretches_below() {
+        let s = TrainSettings::new(100);
+        // The reference: 6 epochs, rates halved every 2.
+        assert_eq!(s.ecm_schedule(96), (6, 2));
+        assert_eq!(s.ecm_schedule(200), (6, 2));
+        // 16 views: 36 epochs (576 steps), halved every 12 — the same shape, stretched.
+        assert_eq!(s.ecm_schedule(16), (36, 12));
+        assert_eq!(s.ecm_schedule(0), (576, 192));
     }
 }
