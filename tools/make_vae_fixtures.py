@@ -10,7 +10,7 @@ Writes under fixtures/vae/:
   `latents` [2,4,h,w] -> `decoded` (vae.decode(latents).sample, unscaled latents).
 - tiny-taesd/: a random AutoencoderTiny in diffusers layout (config.json + diffusion_pytorch_model.safetensors,
   f32, non-default config: SiLU, unequal encoder/decoder widths, uneven block counts).
-  tiny-taesd-original/: another random AutoencoderTiny (ReLU, as taesd.py hard-codes) stored in the original
+  taesd-tiny-original-weights.safetensors: another random AutoencoderTiny (ReLU, as taesd.py hard-codes) in the original
   taesd.py index layout (taesd_encoder.safetensors / taesd_decoder.safetensors, decoder indices shifted by the
   clamp at index 0), weights in bf16; its references are computed from the bf16-rounded weights.
   taesd-tiny.safetensors / taesd-tiny-original.safetensors: `image` [2,3,24,32] in [-1,1] -> `latents`
@@ -144,10 +144,10 @@ def tiny_taesd():
     bf16 = {k: v.to(torch.bfloat16) for k, v in model.state_dict().items()}
     model.load_state_dict({k: v.float() for k, v in bf16.items()})
     enc, dec = diffusers_to_original(bf16)
-    folder = os.path.join(OUT, "tiny-taesd-original")
-    os.makedirs(folder, exist_ok=True)
-    save_file(enc, os.path.join(folder, "taesd_encoder.safetensors"))
-    save_file(dec, os.path.join(folder, "taesd_decoder.safetensors"))
+    # One file with encoder./decoder. prefixes: files named taesd_{encoder,decoder}.safetensors are the real
+    # TAESD's (../shared/assets) and are never committed; the tests write the original layout to a temp dir.
+    both = {**{"encoder." + k: v for k, v in enc.items()}, **{"decoder." + k: v for k, v in dec.items()}}
+    save_file(both, os.path.join(OUT, "taesd-tiny-original-weights.safetensors"))
     taesd_references(model, 50, "taesd-tiny-original.safetensors")
 
 

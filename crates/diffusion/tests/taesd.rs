@@ -6,6 +6,8 @@ use std::path::{Path, PathBuf};
 use candle_core::{Device, Tensor};
 use diffusion::taesd::{AutoencoderTiny, TaesdConfig, TaesdLayout};
 
+mod common;
+
 fn repo() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("../..")
 }
@@ -53,7 +55,8 @@ fn tiny_diffusers_layout_matches_diffusers() {
 
 #[test]
 fn tiny_original_layout_bf16_matches_diffusers() {
-    let model = AutoencoderTiny::load(&repo().join("fixtures/vae/tiny-taesd-original")).unwrap();
+    let tmp = tempfile::tempdir().unwrap();
+    let model = AutoencoderTiny::load(&common::tiny_original_layout(tmp.path())).unwrap();
     assert_eq!(model.layout(), TaesdLayout::Original);
     let cfg = model.config();
     assert_eq!(cfg.num_encoder_blocks, vec![1, 1, 2]);

@@ -1,0 +1,27 @@
+//! Helpers shared by the integration tests.
+
+use std::collections::HashMap;
+use std::path::{Path, PathBuf};
+
+use candle_core::{Device, Tensor};
+
+/// A folder in the original `taesd.py` layout (`taesd_encoder.safetensors` + `taesd_decoder.safetensors`)
+/// holding the tiny random bf16 weights. They are committed as one file with `encoder.`/`decoder.` key
+/// prefixes: files named like the real TAESD weights belong to ../shared/assets, not to this repository.
+pub fn tiny_original_layout(dir: &Path) -> PathBuf {
+    let path = Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("../../fixtures/vae/taesd-tiny-original-weights.safetensors");
+    let all = candle_core::safetensors::load(&path, &Device::Cpu)
+        .unwrap_or_else(|e| panic!("{}: {e}", path.display()));
+    for part in ["encoder", "decoder"] {
+        let prefix = format!("{part}.");
+        let tensors: HashMap<String, Tensor> = all
+            .iter()
+            .filter_map(|(k, v)| k.strip_prefix(&prefix).map(|k| (k.to_string(), v.clone())))
+            .collect();
+        assert!(!tensors.is_empty(), "no {part} weights");
+        candle_core::safetensors::save(&tensors, dir.join(format!("taesd_{part}.safetensors")))
+            .unwrap();
+    }
+    dir.to_path_buf()
+}
