@@ -418,48 +418,27 @@ fn train_codec(
     if state.codec_step > 0 {
         trainable.load(&paths.codec(), state.codec_step)?;
     }
-    events(Event::Stage {
+    let stage = Stage {
         name: "codec",
-        total: c.steps,
-        done: state.codec_step.min(c.steps),
-    });
-    let started = Instant::now();
-    let mut last_checkpoint = Instant::now();
-    let mut window = LossWindow { sum: 0.0, count: 0 };
-    let mut running: Option<f64> = None;
-    while state.codec_step < c.steps {
-        let step = state.codec_step;
-        let mut rng = step_rng(config.seed, CODEC_TAG, step);
-        let (loss, parts) = trainer.loss(config, data, &mut rng)?;
-        if !parts.total.is_finite() {
-            return Err(TrainError::Diverged {
-                stage: "codec",
-                step,
-                loss: parts.total,
-            });
-        }
-        let lr = learning_rate(step, c.steps, c.warmup, c.lr, 0.1);
-        trainable.step(&loss, lr)?;
-        state.codec_step += 1;
-        window.push(state, "codec", state.codec_step, parts.l1);
-        let r = running.map_or(parts.l1, |r| 0.98 * r + 0.02 * parts.l1);
-        running = Some(r);
-        events(Event::Progress {
-            done: state.codec_step,
-            loss: Some(r),
-        });
-        if last_checkpoint.elapsed().as_secs_f64() > 60.0 * config.checkpoint_minutes {
-            add_seconds(state, "codec", &mut last_checkpoint, started);
-            trainable.save(&paths.codec())?;
-            save_state(paths, state)?;
-            events(Event::Note(format!(
-                "checkpoint at codec step {}",
-                state.codec_step
-            )));
-        }
-    }
-    add_seconds(state, "codec", &mut last_checkpoint, started);
-    trainable.save(&paths.codec())?;
+        tag: CODEC_TAG,
+        steps: c.steps,
+        warmup: c.warmup,
+        lr: c.lr,
+        checkpoint: paths.codec(),
+        state_file: paths.state(),
+    };
+    run_stage(
+        &stage,
+        config,
+        state,
+        |s| &mut s.codec_step,
+        &mut trainable,
+        &mut |rng| {
+            let (loss, parts) = trainer.loss(config, data, rng)?;
+            Ok((loss, parts.total, parts.l1))
+        },
+        events,
+    )?;
 
     // Export the EMA weights with the measured scaling factor.
     let weights = trainable.ema.weights();
@@ -475,6 +454,77 @@ fn train_codec(
     state.scaling_factor = Some(scaling);
     state.codec_exported_at = Some(state.codec_step);
     save_state(paths, state)
+}
+
+/// One training stage's fixed numbers.
+struct Stage {
+    name: &'static str,
+    /// Separates the stages' random streams.
+    tag: u64,
+    steps: u64,
+    warmup: u64,
+    lr: f64,
+    /// The stage's weights + optimiser checkpoint, and the run's state file.
+    checkpoint: PathBuf,
+    state_file: PathBuf,
+}
+
+/// The loop both stages share: seeded per-step batches, warm-up + cosine rate, divergence check, loss
+/// history and progress, periodic checkpoints, and a final save. `counter` picks the stage's step in the
+/// state; `loss` returns (loss to minimise, its value, the value to log).
+#[allow(clippy::too_many_arguments)]
+fn run_stage(
+    stage: &Stage,
+    config: &TrainConfig,
+    state: &mut TrainState,
+    counter: fn(&mut TrainState) -> &mut u64,
+    trainable: &mut Trainable,
+    loss: &mut dyn FnMut(&mut ChaCha8Rng) -> Result<(Tensor, f64, f64), TrainError>,
+    events: &mut dyn FnMut(Event),
+) -> Result<(), TrainError> {
+    events(Event::Stage {
+        name: stage.name,
+        total: stage.steps,
+        done: (*counter(state)).min(stage.steps),
+    });
+    let started = Instant::now();
+    let mut last_checkpoint = Instant::now();
+    let mut window = LossWindow { sum: 0.0, count: 0 };
+    let mut running: Option<f64> = None;
+    while *counter(state) < stage.steps {
+        let step = *counter(state);
+        let mut rng = step_rng(config.seed, stage.tag, step);
+        let (value, total, logged) = loss(&mut rng)?;
+        if !total.is_finite() {
+            return Err(TrainError::Diverged {
+                stage: stage.name,
+                step,
+                loss: total,
+            });
+        }
+        let lr = learning_rate(step, stage.steps, stage.warmup, stage.lr, 0.1);
+        trainable.step(&value, lr)?;
+        *counter(state) += 1;
+        let done = *counter(state);
+        window.push(state, stage.name, done, logged);
+        let r = running.map_or(logged, |r| 0.98 * r + 0.02 * logged);
+        running = Some(r);
+        events(Event::Progress {
+            done,
+            loss: Some(r),
+        });
+        if last_checkpoint.elapsed().as_secs_f64() > 60.0 * config.checkpoint_minutes {
+            add_seconds(state, stage.name, &mut last_checkpoint, started);
+            trainable.save(&stage.checkpoint)?;
+            write_json(&stage.state_file, state)?;
+            events(Event::Note(format!(
+                "checkpoint at {} step {done}",
+                stage.name
+            )));
+        }
+    }
+    add_seconds(state, stage.name, &mut last_checkpoint, started);
+    trainable.save(&stage.checkpoint)
 }
 
 fn add_seconds(state: &mut TrainState, stage: &str, since: &mut Instant, _started: Instant) {
@@ -590,48 +640,27 @@ fn train_denoiser(
     if state.unet_step > 0 {
         trainable.load(&paths.denoiser(), state.unet_step)?;
     }
-    events(Event::Stage {
+    let stage = Stage {
         name: "unet",
-        total: u.steps,
-        done: state.unet_step.min(u.steps),
-    });
-    let started = Instant::now();
-    let mut last_checkpoint = Instant::now();
-    let mut window = LossWindow { sum: 0.0, count: 0 };
-    let mut running: Option<f64> = None;
-    while state.unet_step < u.steps {
-        let step = state.unet_step;
-        let mut rng = step_rng(config.seed, UNET_TAG, step);
-        let (loss, parts) = trainer.loss(config, latents, &mut rng)?;
-        if !parts.total.is_finite() {
-            return Err(TrainError::Diverged {
-                stage: "unet",
-                step,
-                loss: parts.total,
-            });
-        }
-        let lr = learning_rate(step, u.steps, u.warmup, u.lr, 0.1);
-        trainable.step(&loss, lr)?;
-        state.unet_step += 1;
-        window.push(state, "unet", state.unet_step, parts.mse);
-        let r = running.map_or(parts.mse, |r| 0.98 * r + 0.02 * parts.mse);
-        running = Some(r);
-        events(Event::Progress {
-            done: state.unet_step,
-            loss: Some(r),
-        });
-        if last_checkpoint.elapsed().as_secs_f64() > 60.0 * config.checkpoint_minutes {
-            add_seconds(state, "unet", &mut last_checkpoint, started);
-            trainable.save(&paths.denoiser())?;
-            save_state(paths, state)?;
-            events(Event::Note(format!(
-                "checkpoint at unet step {}",
-                state.unet_step
-            )));
-        }
-    }
-    add_seconds(state, "unet", &mut last_checkpoint, started);
-    trainable.save(&paths.denoiser())?;
+        tag: UNET_TAG,
+        steps: u.steps,
+        warmup: u.warmup,
+        lr: u.lr,
+        checkpoint: paths.denoiser(),
+        state_file: paths.state(),
+    };
+    run_stage(
+        &stage,
+        config,
+        state,
+        |s| &mut s.unet_step,
+        &mut trainable,
+        &mut |rng| {
+            let (loss, parts) = trainer.loss(config, latents, rng)?;
+            Ok((loss, parts.total, parts.mse))
+        },
+        events,
+    )?;
 
     // Export the EMA weights: the UNet as diffusers names it, the text encoder with transformers 4's
     // `text_model.` prefix (what SD checkpoints on the hub carry; both loaders accept it).
