@@ -11,13 +11,16 @@ use std::time::Instant;
 
 use edit::infedit::{EditPrompts, InfEditSettings};
 use edit::metrics::{
-    multiview_consistency_in, ConsistencySettings as MetricSettings, ViewGeometry,
+    multiview_consistency, multiview_consistency_in, ConsistencySettings as MetricSettings,
+    ViewGeometry,
 };
 use edit::model::EditModel;
 use edit::multiview::ConsistencySettings;
+use edit::noise::SeededNoise;
 use edit::outputs::{write_outputs, RunInputs};
 use edit::pipeline::{run_edit, EditJob, GuidanceMode, MaskSource, Progress};
 use edit::train::{EcmScope, ImageLoss, TrainSettings};
+use edit::viz::{image_to_tensor, tensor_to_images};
 use serde::Serialize;
 use splat::render::{render, RenderOutput, RenderSettings};
 
@@ -286,16 +289,7 @@ pub fn run_variant(
     };
     // Object-only consistency: regions from the source object's labels; the guidance is warped with the
     // source geometry (it was made from renders of it), the final renders with their own.
-    let regions: Vec<Vec<f32>> = cams
-        .iter()
-        .map(|c| {
-            world::oracle::render_labels(&scene.built, c)
-                .object
-                .iter()
-                .map(|&o| if o == world::build::MAIN { 1.0 } else { 0.0 })
-                .collect()
-        })
-        .collect();
+    let regions = object_regions(scene, &cams);
     let region_refs: Vec<&[f32]> = regions.iter().map(|r| r.as_slice()).collect();
     let object_error = |images: &[splat::Image], geometry: &[RenderOutput]| {
         let geo: Vec<ViewGeometry> = cams
@@ -335,6 +329,104 @@ pub fn run_variant(
     })
 }
 
+/// Cross-view errors of images that are consistent by construction: what the comparison's numbers should be
+/// read against. Warping and bilinear resampling leave an error even on perfect renders, and every guidance
+/// image passes through the autoencoder, whose reconstruction differs from view to view.
+#[derive(Clone, Debug, Serialize)]
+pub struct ReferenceRow {
+    pub name: &'static str,
+    pub object: Option<f64>,
+    pub whole: Option<f64>,
+}
+
+/// The reference rows of a comparison: source and ideal-edit (the target spec rendered) renders, each as
+/// rendered and after one encode → decode round trip of the model's autoencoder (posterior sampled with
+/// the job's seed, as the editor encodes).
+pub fn reference_rows(
+    opts: &DemoOptions,
+    model: &EditModel,
+    scene: &DemoScene,
+) -> Result<Vec<ReferenceRow>, DemoError> {
+    let settings = RenderSettings {
+        background: scene.source.background,
+    };
+    let mut target = build_scene(&scene.source, &BuildSettings::default());
+    target.recolor(&scene.target)?;
+    let source_renders: Vec<RenderOutput> = scene
+        .cameras
+        .iter()
+        .map(|c| render(&scene.built.scene, c, &settings, None))
+        .collect();
+    let geometry: Vec<ViewGeometry> = scene
+        .cameras
+        .iter()
+        .zip(&source_renders)
+        .map(|(c, r)| ViewGeometry::from_render(c, r))
+        .collect();
+    let regions: Vec<Vec<f32>> = object_regions(scene, &scene.cameras);
+    let region_refs: Vec<&[f32]> = regions.iter().map(|r| r.as_slice()).collect();
+    let errors = |images: &[splat::Image]| {
+        let refs: Vec<&splat::Image> = images.iter().collect();
+        let m = MetricSettings::default();
+        let object = multiview_consistency_in(&refs, &geometry, &region_refs, &m)
+            .ok()
+            .and_then(|r| r.summary.mean_abs_error);
+        let whole = multiview_consistency(&refs, &geometry, &m)
+            .ok()
+            .and_then(|r| r.summary.mean_abs_error);
+        (object, whole)
+    };
+    let mut noise = SeededNoise::new(opts.seed);
+    let round_trip = |images: &[splat::Image], noise: &mut SeededNoise| {
+        images
+            .iter()
+            .map(|img| -> candle_core::Result<splat::Image> {
+                let x = image_to_tensor(img)?;
+                let z = model.encode(&x, noise)?;
+                let y = model.decode(&z)?.affine(0.5, 0.5)?.clamp(0f32, 1f32)?;
+                Ok(tensor_to_images(&y)?.remove(0))
+            })
+            .collect::<candle_core::Result<Vec<_>>>()
+            .map_err(|e| DemoError::Setup(format!("autoencoder round trip: {e}")))
+    };
+    let source: Vec<splat::Image> = source_renders.iter().map(|r| r.rgb_image()).collect();
+    let ideal: Vec<splat::Image> = scene
+        .cameras
+        .iter()
+        .map(|c| render(&target.scene, c, &settings, None).rgb_image())
+        .collect();
+    let source_codec = round_trip(&source, &mut noise)?;
+    let ideal_codec = round_trip(&ideal, &mut noise)?;
+    let row = |name, images: &[splat::Image]| {
+        let (object, whole) = errors(images);
+        ReferenceRow {
+            name,
+            object,
+            whole,
+        }
+    };
+    Ok(vec![
+        row("source renders", &source),
+        row("source through the autoencoder", &source_codec),
+        row("ideal edit (target renders)", &ideal),
+        row("ideal edit through the autoencoder", &ideal_codec),
+    ])
+}
+
+/// Per view, 1 on pixels of the source's main object and 0 elsewhere (from the oracle's label render).
+fn object_regions(scene: &DemoScene, cameras: &[splat::Camera]) -> Vec<Vec<f32>> {
+    cameras
+        .iter()
+        .map(|c| {
+            world::oracle::render_labels(&scene.built, c)
+                .object
+                .iter()
+                .map(|&o| if o == world::build::MAIN { 1.0 } else { 0.0 })
+                .collect()
+        })
+        .collect()
+}
+
 /// Loads the demo model.
 pub fn load_model(path: &Path) -> Result<EditModel, DemoError> {
     if !path.join("model_index.json").is_file() {
@@ -364,6 +456,23 @@ pub fn table(scores: &[DemoScores]) -> String {
             f(r.guidance_fidelity),
             r.preservation_psnr,
             r.seconds
+        ));
+    }
+    s
+}
+
+/// The reference rows as Markdown.
+pub fn reference_table(rows: &[ReferenceRow]) -> String {
+    let f = |v: Option<f64>| v.map_or("–".to_string(), |x| format!("{x:.3}"));
+    let mut s = String::from(
+        "| consistent by construction | cross-view error ↓ object / whole image |\n|---|---|\n",
+    );
+    for r in rows {
+        s.push_str(&format!(
+            "| {} | {} / {} |\n",
+            r.name,
+            f(r.object),
+            f(r.whole)
         ));
     }
     s

@@ -4,7 +4,8 @@ use std::path::PathBuf;
 
 use anyhow::Context;
 use demo::run::{
-    demo_scene, load_model, run_variant, table, variant_dir, DemoOptions, Variant, PAIRS,
+    demo_scene, load_model, reference_rows, reference_table, run_variant, table, variant_dir,
+    DemoOptions, Variant, PAIRS,
 };
 
 use super::edit::Bars;
@@ -100,12 +101,16 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             )?);
         }
         bars.finish();
-        let md = table(&scores);
+        let references = reference_rows(&opts, &model, &scene)?;
+        let md = format!("{}\n{}", table(&scores), reference_table(&references));
         println!("{md}");
         splat::atomic_write(&args.out.join("compare.md"), md.as_bytes())?;
         splat::atomic_write(
             &args.out.join("compare.json"),
-            &serde_json::to_vec_pretty(&scores)?,
+            &serde_json::to_vec_pretty(&serde_json::json!({
+                "runs": scores,
+                "references": references,
+            }))?,
         )?;
         println!("reports: {}", args.out.join("*/report.html").display());
     } else {
