@@ -96,6 +96,62 @@ fn reduced_demo_writes_every_output() {
     assert!(inspect.contains("gaussians"), "{inspect}");
 }
 
+/// A reduced `--compare`: five steps, so ECM (every fifth step) runs once in the variants that use it.
+#[test]
+fn reduced_compare_writes_the_table_and_every_variant() {
+    let dir = tempfile::tempdir().unwrap();
+    let model = model(dir.path());
+    let out = dir.path().join("compare-out");
+    let (code, stdout, stderr) = vcedit(
+        &[
+            "demo",
+            "--compare",
+            "--model",
+            model.to_str().unwrap(),
+            "--out",
+            out.to_str().unwrap(),
+            "--views",
+            "3",
+            "--iterations",
+            "1",
+            "--fit-steps",
+            "5",
+            "--steps",
+            "5",
+        ],
+        dir.path(),
+    );
+    assert_eq!(code, 0, "{stderr}");
+    for row in [
+        "| per-view guidance |",
+        "| VcEdit without CCM |",
+        "| VcEdit without ECM |",
+        "| VcEdit (full) |",
+        "| source through the autoencoder |",
+        "| ideal edit through the autoencoder |",
+    ] {
+        assert!(stdout.contains(row), "{row} missing: {stdout}");
+    }
+    for variant in ["per-view", "no-ccm", "no-ecm", "full"] {
+        assert!(out.join(variant).join("report.html").is_file(), "{variant}");
+    }
+    let json: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(out.join("compare.json")).unwrap()).unwrap();
+    assert_eq!(json["runs"].as_array().unwrap().len(), 4, "{json}");
+    assert_eq!(json["references"].as_array().unwrap().len(), 4, "{json}");
+    assert_eq!(
+        std::fs::read_to_string(out.join("compare.md"))
+            .unwrap()
+            .trim(),
+        stdout
+            .lines()
+            .take_while(|l| !l.starts_with("reports:"))
+            .collect::<Vec<_>>()
+            .join("\n")
+            .trim()
+    );
+}
+
 #[test]
 fn demo_rejects_bad_options_with_one_line() {
     let dir = tempfile::tempdir().unwrap();

@@ -2,7 +2,7 @@
 
 use edit::metrics::{multiview_consistency, ConsistencySettings, ViewGeometry};
 use edit::multiview::SceneFitter;
-use edit::train::{EcmFitter, EcmScope, EditTrainer, ImageLoss, TrainSettings};
+use edit::train::{EcmFitter, EcmParams, EcmScope, EditTrainer, ImageLoss, TrainSettings};
 use splat::render::{render, RenderSettings};
 use splat::{Camera, GaussianScene, Image};
 
@@ -81,35 +81,46 @@ fn ecm_makes_inconsistent_images_consistent() {
         .collect();
     let before = consistency(&targets, &cams, &scene);
 
-    let trainer = EditTrainer::new(&scene, None, TrainSettings::new(100), 2.0);
-    let loss = ImageLoss::dssim();
-    let fitter = EcmFitter::new(&trainer, &loss, EcmScope::All);
-    let fitted = fitter.fit(&scene, &cams, &targets, 7).unwrap();
-    let renders: Vec<Image> = cams
-        .iter()
-        .map(|c| render(&fitted, c, &RenderSettings::default(), None).rgb_image())
-        .collect();
-    let after = consistency(&renders, &cams, &scene);
-    eprintln!("ECM: cross-view error {before:.4} → {after:.4}");
-    assert!(before > 0.08, "targets must disagree: {before}");
-    assert!(
-        after < 0.5 * before,
-        "ECM renders disagree by {after}, the targets by {before}"
-    );
-    // The fit follows the targets on average (it is not just the source scene again).
     let source_renders: Vec<Image> = cams
         .iter()
         .map(|c| render(&scene, c, &RenderSettings::default(), None).rgb_image())
         .collect();
-    let moved: f32 = renders
-        .iter()
-        .zip(&source_renders)
-        .map(|(a, b)| splat::loss::l1(&a.data, &b.data).value)
-        .sum();
-    assert!(
-        moved > 0.01 * cams.len() as f32,
-        "the fit changed the scene ({moved})"
-    );
+    for params in [EcmParams::Appearance, EcmParams::All] {
+        let settings = TrainSettings {
+            ecm_params: params,
+            ..TrainSettings::new(100)
+        };
+        let trainer = EditTrainer::new(&scene, None, settings, 2.0);
+        let loss = ImageLoss::dssim();
+        let fitter = EcmFitter::new(&trainer, &loss, EcmScope::All);
+        let fitted = fitter.fit(&scene, &cams, &targets, 7).unwrap();
+        let renders: Vec<Image> = cams
+            .iter()
+            .map(|c| render(&fitted, c, &RenderSettings::default(), None).rgb_image())
+            .collect();
+        let after = consistency(&renders, &cams, &scene);
+        eprintln!("ECM ({params:?}): cross-view error {before:.4} → {after:.4}");
+        assert!(before > 0.08, "targets must disagree: {before}");
+        assert!(
+            after < 0.5 * before,
+            "{params:?}: ECM renders disagree by {after}, the targets by {before}"
+        );
+        // The fit follows the targets on average (it is not just the source scene again).
+        let moved: f32 = renders
+            .iter()
+            .zip(&source_renders)
+            .map(|(a, b)| splat::loss::l1(&a.data, &b.data).value)
+            .sum();
+        assert!(
+            moved > 0.01 * cams.len() as f32,
+            "{params:?}: the fit changed the scene ({moved})"
+        );
+        let geometry_kept = fitted.means == scene.means
+            && fitted.log_scales == scene.log_scales
+            && fitted.quats == scene.quats;
+        assert_eq!(geometry_kept, params == EcmParams::Appearance, "{params:?}");
+        assert_ne!(fitted.sh, scene.sh, "{params:?}: colours must change");
+    }
 }
 
 #[test]

@@ -9,7 +9,7 @@ use edit::model::EditModel;
 use edit::multiview::ConsistencySettings;
 use edit::outputs::{write_outputs, RunInputs};
 use edit::pipeline::{run_edit, EditJob, GuidanceMode, MaskSource};
-use edit::train::{EcmScope, ImageLoss, TrainSettings};
+use edit::train::{EcmParams, EcmScope, ImageLoss, TrainSettings};
 use indicatif::{ProgressBar, ProgressStyle};
 
 use super::edit_opts::{ModelArgs, PromptArgs, SamplerArgs};
@@ -20,6 +20,14 @@ pub enum GuidanceArg {
     Joint,
     /// Every view edited on its own (the inconsistent guidance of per-view editors; a baseline).
     PerView,
+}
+
+#[derive(Clone, Copy, Debug, clap::ValueEnum)]
+pub enum EcmParamsArg {
+    /// ECM fits change colours and opacities only (geometry stays; no floaters from few views).
+    Appearance,
+    /// ECM fits change every attribute, as the reference does.
+    All,
 }
 
 #[derive(Clone, Copy, Debug, clap::ValueEnum)]
@@ -92,6 +100,9 @@ pub struct Args {
     /// Which Gaussians ECM's fits may move.
     #[arg(long, value_enum, default_value = "masked")]
     pub ecm_scope: EcmScopeArg,
+    /// Which attributes ECM's fits may change.
+    #[arg(long, value_enum, default_value = "appearance")]
+    pub ecm_params: EcmParamsArg,
     /// Editable region: the source prompt's attention to this word.
     #[arg(long, value_name = "WORD", group = "maskgroup")]
     pub mask_word: Option<String>,
@@ -342,6 +353,10 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         },
         train: TrainSettings {
             background: args.background,
+            ecm_params: match args.ecm_params {
+                EcmParamsArg::Appearance => EcmParams::Appearance,
+                EcmParamsArg::All => EcmParams::All,
+            },
             ..TrainSettings::new((args.iterations * args.fit_steps) as u64)
         },
         size: (w, h),
