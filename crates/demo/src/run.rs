@@ -132,10 +132,17 @@ pub struct DemoScores {
     pub guidance_consistency_object: Option<f64>,
     /// The same for the final renders.
     pub final_consistency_object: Option<f64>,
-    /// Oracle fidelity of the final renders (fraction of object pixels showing the target colour).
+    /// Oracle colour fidelity of the final renders (of the object pixels showing a source or a target
+    /// colour, the fraction showing a target colour; other colours abstain).
     pub fidelity: Option<f64>,
-    /// Oracle fidelity of the last guidance images.
+    /// Oracle colour fidelity of the last guidance images.
     pub guidance_fidelity: Option<f64>,
+    /// Oracle layout fidelity of the final renders (of the object pixels where source and target differ,
+    /// the fraction closer to the target render than to the source: every colour votes, so a surface
+    /// that took the floor's colour counts against it).
+    pub layout_fidelity: Option<f64>,
+    /// Oracle layout fidelity of the last guidance images.
+    pub guidance_layout_fidelity: Option<f64>,
     /// PSNR of the final renders against the source outside the object.
     pub preservation_psnr: f64,
     pub seconds: f64,
@@ -284,7 +291,7 @@ pub fn run_variant(
     let renders: Vec<splat::Image> = final_renders.iter().map(|r| r.rgb_image()).collect();
     let final_score = oracle.score(&cams, &renders)?;
     let guidance_score = match result.guidance.last() {
-        Some(g) => oracle.score(&cams, g)?.color_fidelity,
+        Some(g) => Some(oracle.score(&cams, g)?),
         None => None,
     };
     // Object-only consistency: regions from the source object's labels; the guidance is warped with the
@@ -322,7 +329,9 @@ pub fn run_variant(
         guidance_consistency_object,
         final_consistency_object,
         fidelity: final_score.color_fidelity,
-        guidance_fidelity: guidance_score,
+        guidance_fidelity: guidance_score.as_ref().and_then(|g| g.color_fidelity),
+        layout_fidelity: final_score.fidelity,
+        guidance_layout_fidelity: guidance_score.as_ref().and_then(|g| g.fidelity),
         preservation_psnr: final_score.preservation_psnr,
         seconds: t.elapsed().as_secs_f64(),
         report: written.report,
@@ -442,18 +451,20 @@ pub fn load_model(path: &Path) -> Result<EditModel, DemoError> {
 pub fn table(scores: &[DemoScores]) -> String {
     let f = |v: Option<f64>| v.map_or("–".to_string(), |x| format!("{x:.3}"));
     let mut s = String::from(
-        "| run | guidance cross-view error ↓ object / whole image | final cross-view error ↓ object / whole image | fidelity ↑ final / guidance | preservation PSNR ↑ | time |\n|---|---|---|---|---|---|\n",
+        "| run | guidance cross-view error ↓ object / whole image | final cross-view error ↓ object / whole image | final fidelity ↑ colour / layout | guidance fidelity ↑ colour / layout | preservation PSNR ↑ | time |\n|---|---|---|---|---|---|---|\n",
     );
     for r in scores {
         s.push_str(&format!(
-            "| {} | {} / {} | {} / {} | {} / {} | {:.1} dB | {:.0} s |\n",
+            "| {} | {} / {} | {} / {} | {} / {} | {} / {} | {:.1} dB | {:.0} s |\n",
             r.variant.name(),
             f(r.guidance_consistency_object),
             f(r.guidance_consistency),
             f(r.final_consistency_object),
             f(r.final_consistency),
             f(r.fidelity),
+            f(r.layout_fidelity),
             f(r.guidance_fidelity),
+            f(r.guidance_layout_fidelity),
             r.preservation_psnr,
             r.seconds
         ));
