@@ -48,29 +48,31 @@ fn model(dir: &Path) -> PathBuf {
     out
 }
 
+/// `vcedit demo` with 3 views, 1 iteration and 5 fit steps, plus `extra` arguments.
+fn reduced_demo(dir: &Path, model: &Path, out: &Path, extra: &[&str]) -> (i32, String, String) {
+    let mut args = vec![
+        "demo",
+        "--model",
+        model.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+        "--views",
+        "3",
+        "--iterations",
+        "1",
+        "--fit-steps",
+        "5",
+    ];
+    args.extend_from_slice(extra);
+    vcedit(&args, dir)
+}
+
 #[test]
 fn reduced_demo_writes_every_output() {
     let dir = tempfile::tempdir().unwrap();
     let model = model(dir.path());
     let out = dir.path().join("demo-out");
-    let (code, stdout, stderr) = vcedit(
-        &[
-            "demo",
-            "--model",
-            model.to_str().unwrap(),
-            "--out",
-            out.to_str().unwrap(),
-            "--views",
-            "3",
-            "--iterations",
-            "1",
-            "--fit-steps",
-            "5",
-            "--steps",
-            "2",
-        ],
-        dir.path(),
-    );
+    let (code, stdout, stderr) = reduced_demo(dir.path(), &model, &out, &["--steps", "2"]);
     assert_eq!(code, 0, "{stderr}");
     for file in [
         "edited.ply",
@@ -102,25 +104,8 @@ fn reduced_compare_writes_the_table_and_every_variant() {
     let dir = tempfile::tempdir().unwrap();
     let model = model(dir.path());
     let out = dir.path().join("compare-out");
-    let (code, stdout, stderr) = vcedit(
-        &[
-            "demo",
-            "--compare",
-            "--model",
-            model.to_str().unwrap(),
-            "--out",
-            out.to_str().unwrap(),
-            "--views",
-            "3",
-            "--iterations",
-            "1",
-            "--fit-steps",
-            "5",
-            "--steps",
-            "5",
-        ],
-        dir.path(),
-    );
+    let (code, stdout, stderr) =
+        reduced_demo(dir.path(), &model, &out, &["--compare", "--steps", "5"]);
     assert_eq!(code, 0, "{stderr}");
     for row in [
         "| per-view guidance |",

@@ -117,11 +117,22 @@ pub fn write_outputs(
         }
     }
 
-    // Turntable: before | after around the scene.
+    // Turntable: before | after, circling what the views look at (the edited region when there is a mask)
+    // at the views' own distance and elevation; around the whole scene's bounds when they do not converge.
     let turntable = {
-        let (lo, hi) = splat::cameras::robust_bounds(source, 0.01).unwrap_or(([-1.0; 3], [1.0; 3]));
         let size = job.size.0.min(256);
-        let orbit = splat::cameras::orbit_cameras(lo, hi, 24, size, size);
+        let target = result
+            .mask
+            .as_deref()
+            .and_then(|m| masked_centre(source, m))
+            .or_else(|| splat::cameras::orbit::focus_point(cameras));
+        let orbit = target
+            .and_then(|t| splat::cameras::orbit::orbit_like(cameras, t, 24, size, size))
+            .unwrap_or_else(|| {
+                let (lo, hi) =
+                    splat::cameras::robust_bounds(source, 0.01).unwrap_or(([-1.0; 3], [1.0; 3]));
+                splat::cameras::orbit_cameras(lo, hi, 24, size, size)
+            });
         let frames: Vec<Image> = orbit
             .iter()
             .map(|c| {
@@ -275,4 +286,22 @@ pub fn write_outputs(
         report: report_path,
         metrics,
     })
+}
+
+/// Per-axis median position of the masked Gaussians (robust to a few stray ones).
+fn masked_centre(scene: &GaussianScene, mask: &[bool]) -> Option<[f64; 3]> {
+    let picked: Vec<&[f32]> = scene
+        .means
+        .chunks_exact(3)
+        .zip(mask)
+        .filter_map(|(p, &m)| m.then_some(p))
+        .collect();
+    if picked.is_empty() {
+        return None;
+    }
+    Some(std::array::from_fn(|a| {
+        let mut v: Vec<f32> = picked.iter().map(|p| p[a]).collect();
+        let mid = v.len() / 2;
+        f64::from(*v.select_nth_unstable_by(mid, f32::total_cmp).1)
+    }))
 }

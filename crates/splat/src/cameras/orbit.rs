@@ -209,6 +209,128 @@ pub fn orbit_cameras_with(
         .collect()
 }
 
+/// The point the cameras look at: the least-squares closest point to all their optical axes. `None` when
+/// the axes are (nearly) parallel, e.g. a forward-facing capture, or there are no cameras.
+pub fn focus_point(cameras: &[Camera]) -> Option<[f64; 3]> {
+    // Minimise Σ |(I − d dᵀ)(x − c)|²: solve (Σ I − d dᵀ) x = Σ (I − d dᵀ) c.
+    let mut a = [[0.0f64; 3]; 3];
+    let mut b = [0.0f64; 3];
+    for cam in cameras {
+        let (c, d) = (cam.center(), cam.rotation[2]);
+        for r in 0..3 {
+            for k in 0..3 {
+                let p = f64::from(u8::from(r == k)) - d[r] * d[k];
+                a[r][k] += p;
+                b[r] += p * c[k];
+            }
+        }
+    }
+    let det = |m: &[[f64; 3]; 3]| {
+        m[0][0] * (m[1][1] * m[2][2] - m[1][2] * m[2][1])
+            - m[0][1] * (m[1][0] * m[2][2] - m[1][2] * m[2][0])
+            + m[0][2] * (m[1][0] * m[2][1] - m[1][1] * m[2][0])
+    };
+    let d = det(&a);
+    // Parallel axes make the system singular; relative to n³ (the determinant of n·I) it is then tiny.
+    let n = cameras.len() as f64;
+    if !(d.abs() > 1e-6 * n * n * n) {
+        return None;
+    }
+    // Cramer's rule.
+    let x: [f64; 3] = std::array::from_fn(|col| {
+        let mut m = a;
+        for r in 0..3 {
+            m[r][col] = b[r];
+        }
+        det(&m) / d
+    });
+    x.iter().all(|v| v.is_finite()).then_some(x)
+}
+
+/// `n` cameras of `width` x `height` on a circle around `target`, laid out like `cameras`: their mean up
+/// direction, their median distance from `target` and elevation above it, their median field of view
+/// (across the shorter side), starting at the first camera's azimuth. For a turntable of what the user's
+/// own views show. `None` without cameras or when they sit on `target`.
+pub fn orbit_like(
+    cameras: &[Camera],
+    target: [f64; 3],
+    n: usize,
+    width: u32,
+    height: u32,
+) -> Option<Vec<Camera>> {
+    let first = cameras.first()?;
+    let median = |mut v: Vec<f64>| {
+        v.sort_by(f64::total_cmp);
+        v[v.len() / 2]
+    };
+    // OpenCV cameras: image y points down, so the world's up is minus the camera's y axis.
+    let up_sum = cameras
+        .iter()
+        .fold([0.0; 3], |acc, c| add(acc, c.rotation[1].map(|v| -v)));
+    let up = normalize(up_sum)?;
+    let offsets: Vec<[f64; 3]> = cameras
+        .iter()
+        .map(|c| std::array::from_fn(|a| c.center()[a] - target[a]))
+        .collect();
+    let distance = median(offsets.iter().map(|o| dot(*o, *o).sqrt()).collect());
+    if !(distance > 1e-9) || !distance.is_finite() {
+        return None;
+    }
+    let elevation = median(
+        offsets
+            .iter()
+            .filter_map(|o| normalize(*o))
+            .map(|o| dot(o, up).clamp(-1.0, 1.0).asin())
+            .collect(),
+    )
+    .clamp(-85f64.to_radians(), 85f64.to_radians());
+    let half_fov = median(
+        cameras
+            .iter()
+            .map(|c| {
+                let (w, h) = (c.width as f64, c.height as f64);
+                if w <= h {
+                    (0.5 * w / c.fx).atan()
+                } else {
+                    (0.5 * h / c.fy).atan()
+                }
+            })
+            .collect(),
+    );
+    let focal = 0.5 * width.min(height) as f64 / half_fov.tan();
+    // Horizontal basis with e1 toward the first camera, so frame 0 looks like view 0.
+    let first_offset: [f64; 3] = std::array::from_fn(|a| first.center()[a] - target[a]);
+    let flat: [f64; 3] = std::array::from_fn(|a| first_offset[a] - dot(first_offset, up) * up[a]);
+    let e1 = normalize(flat).or_else(|| {
+        let least = (0..3).min_by(|&a, &b| up[a].abs().total_cmp(&up[b].abs()))?;
+        let mut axis = [0.0; 3];
+        axis[least] = 1.0;
+        normalize(cross(up, axis))
+    })?;
+    let e2 = cross(up, e1);
+    Some(
+        (0..n)
+            .map(|i| {
+                let azimuth = std::f64::consts::TAU * i as f64 / n as f64;
+                let dir: [f64; 3] = std::array::from_fn(|a| {
+                    elevation.cos() * (azimuth.cos() * e1[a] + azimuth.sin() * e2[a])
+                        + elevation.sin() * up[a]
+                });
+                let eye = add(target, dir.map(|v| v * distance));
+                look_at(
+                    format!("orbit_{i:03}"),
+                    eye,
+                    target,
+                    up,
+                    width,
+                    height,
+                    focal,
+                )
+            })
+            .collect(),
+    )
+}
+
 fn add(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
     [a[0] + b[0], a[1] + b[1], a[2] + b[2]]
 }
@@ -287,8 +409,64 @@ fn normalize(v: [f64; 3]) -> Option<[f64; 3]> {
 
 #[cfg(test)]
 mod tests {
+    #[test]
+    fn orbit_like_reproduces_a_ring_and_finds_its_focus() {
+        // A ring of 8 cameras around (1, 2, 3), z up, 30° elevation, 60° field of view.
+        let target = [1.0, 2.0, 3.0];
+        let settings = OrbitSettings {
+            up: Up::PlusZ,
+            elevation_deg: 30.0,
+            fov_deg: 60.0,
+            ..OrbitSettings::default()
+        };
+        let ring = orbit_cameras_with([0.0, 1.0, 2.0], [2.0, 3.0, 4.0], 8, 64, 48, &settings);
+        let focus = focus_point(&ring).unwrap();
+        for a in 0..3 {
+            assert!((focus[a] - target[a]).abs() < 1e-9, "{focus:?}");
+        }
+        let like = orbit_like(&ring, focus, 16, 32, 32).unwrap();
+        assert_eq!(like.len(), 16);
+        let d0 = dist(ring[0].center(), target);
+        for (k, c) in like.iter().enumerate() {
+            let o: [f64; 3] = std::array::from_fn(|a| c.center()[a] - target[a]);
+            assert!(
+                (dist(c.center(), target) - d0).abs() < 1e-9 * d0,
+                "distance of {k}"
+            );
+            assert!(
+                (o[2] / d0 - 30f64.to_radians().sin()).abs() < 1e-9,
+                "elevation of {k}"
+            );
+            // Looks at the target: it projects to the image centre.
+            let p = c.world_to_camera(target);
+            assert!((c.fx * p[0] / p[2]).abs() < 1e-6 && (c.fy * p[1] / p[2]).abs() < 1e-6);
+            // Up stays up: a point above the target appears above the centre.
+            let q = c.world_to_camera([target[0], target[1], target[2] + 0.1]);
+            assert!(q[1] / q[2] < p[1] / p[2]);
+        }
+        // 60° across the shorter side (48 px of the ring's 64 x 48) → 60° across 32 px.
+        assert!((2.0 * (16.0 / like[0].fx).atan() - 60f64.to_radians()).abs() < 1e-9);
+        // Frame 0 sits where view 0 does (same distance and elevation, same azimuth).
+        assert!(dist(like[0].center(), ring[0].center()) < 1e-9 * d0);
+    }
+
+    #[test]
+    fn parallel_cameras_have_no_focus_and_no_cameras_no_orbit() {
+        let mut a = orbit_cameras([-1.0; 3], [1.0; 3], 1, 16, 16).remove(0);
+        let mut b = a.clone();
+        a.translation[0] += 1.0;
+        b.translation[1] -= 2.0;
+        assert_eq!(focus_point(&[a, b]), None);
+        assert_eq!(focus_point(&[]), None);
+        assert!(orbit_like(&[], [0.0; 3], 4, 16, 16).is_none());
+    }
+
     use super::super::test_util::project;
     use super::*;
+
+    fn dist(a: [f64; 3], b: [f64; 3]) -> f64 {
+        (0..3).map(|k| (a[k] - b[k]).powi(2)).sum::<f64>().sqrt()
+    }
 
     fn corners(lo: [f32; 3], hi: [f32; 3]) -> Vec<[f64; 3]> {
         (0..8)
