@@ -485,7 +485,7 @@ impl GroupNormOp {
     /// (channels, elements per channel) of a [batch, channels, ...] shape.
     fn layout(&self, shape: &Shape) -> Result<(usize, usize)> {
         let dims = shape.dims();
-        if dims.len() < 2 || self.groups == 0 || dims[1] % self.groups != 0 {
+        if dims.len() < 2 || self.groups == 0 || !dims[1].is_multiple_of(self.groups) {
             candle_core::bail!(
                 "group norm: {dims:?} does not split into {} groups",
                 self.groups

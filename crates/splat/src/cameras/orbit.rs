@@ -233,7 +233,7 @@ pub fn focus_point(cameras: &[Camera]) -> Option<[f64; 3]> {
     let d = det(&a);
     // Parallel axes make the system singular; relative to n³ (the determinant of n·I) it is then tiny.
     let n = cameras.len() as f64;
-    if !(d.abs() > 1e-6 * n * n * n) {
+    if d.is_nan() || d.abs() <= 1e-6 * n * n * n {
         return None;
     }
     // Cramer's rule.
@@ -249,8 +249,9 @@ pub fn focus_point(cameras: &[Camera]) -> Option<[f64; 3]> {
 
 /// `n` cameras of `width` x `height` on a circle around `target`, laid out like `cameras`: their mean up
 /// direction, their median distance from `target` and elevation above it, their median field of view
-/// (across the shorter side), starting at the first camera's azimuth. For a turntable of what the user's
-/// own views show. `None` without cameras or when they sit on `target`.
+/// (across the shorter side), starting at the first camera's azimuth. A full turn when the cameras go most
+/// of the way round; for a partial arc (a forward-facing capture) a sweep over the arc and back. For a
+/// turntable of what the user's own views show. `None` without cameras or when they sit on `target`.
 pub fn orbit_like(
     cameras: &[Camera],
     target: [f64; 3],
@@ -273,7 +274,7 @@ pub fn orbit_like(
         .map(|c| std::array::from_fn(|a| c.center()[a] - target[a]))
         .collect();
     let distance = median(offsets.iter().map(|o| dot(*o, *o).sqrt()).collect());
-    if !(distance > 1e-9) || !distance.is_finite() {
+    if !distance.is_finite() || distance <= 1e-9 {
         return None;
     }
     let elevation = median(
@@ -308,10 +309,12 @@ pub fn orbit_like(
         normalize(cross(up, axis))
     })?;
     let e2 = cross(up, e1);
+    let azimuths = orbit_azimuths(offsets.iter().map(|o| dot(*o, e2).atan2(dot(*o, e1))), n);
     Some(
-        (0..n)
-            .map(|i| {
-                let azimuth = std::f64::consts::TAU * i as f64 / n as f64;
+        azimuths
+            .into_iter()
+            .enumerate()
+            .map(|(i, azimuth)| {
                 let dir: [f64; 3] = std::array::from_fn(|a| {
                     elevation.cos() * (azimuth.cos() * e1[a] + azimuth.sin() * e2[a])
                         + elevation.sin() * up[a]
@@ -329,6 +332,47 @@ pub fn orbit_like(
             })
             .collect(),
     )
+}
+
+/// `n` azimuths for a turntable, given the views' azimuths (radians, the first view's at 0): a full turn
+/// when the views go most of the way round the target, otherwise a sweep over the arc they cover and back
+/// (a forward-facing capture has nothing to show behind it).
+fn orbit_azimuths(views: impl Iterator<Item = f64>, n: usize) -> Vec<f64> {
+    use std::f64::consts::TAU;
+    let mut a: Vec<f64> = views.map(|v| v.rem_euclid(TAU)).collect();
+    a.sort_by(f64::total_cmp);
+    // The covered arc is the circle minus its largest gap between neighbouring views; it starts at the
+    // view after that gap.
+    let (mut gap, mut arc_start) = (0.0, 0.0);
+    for (k, &v) in a.iter().enumerate() {
+        let next = if k + 1 < a.len() {
+            a[k + 1]
+        } else {
+            a[0] + TAU
+        };
+        if next - v > gap {
+            gap = next - v;
+            arc_start = next;
+        }
+    }
+    if a.len() < 2 || gap < 0.5 * TAU {
+        return (0..n).map(|i| TAU * i as f64 / n as f64).collect();
+    }
+    // The arc as [lo, hi] around the first view's 0, then a triangle wave from 0 up to hi, down to lo and
+    // back up to 0.
+    let len = TAU - gap;
+    let lo = -(-arc_start).rem_euclid(TAU).min(len);
+    let hi = lo + len;
+    (0..n)
+        .map(|i| {
+            let d = (i as f64 / n as f64 * 2.0 * len - lo).rem_euclid(2.0 * len);
+            if d <= len {
+                lo + d
+            } else {
+                hi - (d - len)
+            }
+        })
+        .collect()
 }
 
 fn add(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
@@ -448,6 +492,35 @@ mod tests {
         assert!((2.0 * (16.0 / like[0].fx).atan() - 60f64.to_radians()).abs() < 1e-9);
         // Frame 0 sits where view 0 does (same distance and elevation, same azimuth).
         assert!(dist(like[0].center(), ring[0].center()) < 1e-9 * d0);
+    }
+
+    #[test]
+    fn turntable_azimuths_turn_fully_or_sweep_the_covered_arc() {
+        use std::f64::consts::TAU;
+        // Views all round: a full turn from the first view.
+        let full = orbit_azimuths((0..8).map(|k| TAU * k as f64 / 8.0), 4);
+        assert_eq!(full, vec![0.0, 0.25 * TAU, 0.5 * TAU, 0.75 * TAU]);
+        // A forward-facing arc from -30° to +50°, first view at 0: sweep within it, starting at 0.
+        let deg = |d: f64| d.to_radians();
+        let arc = [0.0, deg(-30.0), deg(50.0), deg(20.0)];
+        let sweep = orbit_azimuths(arc.iter().copied(), 16);
+        assert!(sweep[0].abs() < 1e-12, "{sweep:?}");
+        let (lo, hi) = sweep
+            .iter()
+            .fold((f64::MAX, f64::MIN), |(l, h), &v| (l.min(v), h.max(v)));
+        assert!(
+            (lo - deg(-30.0)).abs() < 1e-9 && (hi - deg(50.0)).abs() < 1e-9,
+            "{sweep:?}"
+        );
+        // Evenly spaced along the path (total 160°, 16 frames → 10° apart), no jumps.
+        for w in sweep.windows(2) {
+            assert!(((w[1] - w[0]).abs() - deg(10.0)).abs() < 1e-9, "{sweep:?}");
+        }
+        // The same arc seen across the wrap (views at 340°..60°) behaves the same.
+        let wrapped = orbit_azimuths(arc.iter().map(|v| v.rem_euclid(TAU)), 16);
+        for (a, b) in wrapped.iter().zip(&sweep) {
+            assert!((a - b).abs() < 1e-9, "{wrapped:?} vs {sweep:?}");
+        }
     }
 
     #[test]
