@@ -20,7 +20,7 @@ use edit::noise::SeededNoise;
 use edit::outputs::{write_outputs, RunInputs};
 use edit::pipeline::{run_edit, EditJob, GuidanceMode, MaskSource, Progress};
 use edit::train::{EcmScope, ImageLoss, TrainSettings};
-use edit::viz::{image_to_tensor, tensor_to_images};
+use edit::viz::image_to_tensor;
 use serde::Serialize;
 use splat::render::{render, RenderOutput, RenderSettings};
 
@@ -359,7 +359,7 @@ pub fn reference_rows(
     let settings = RenderSettings {
         background: scene.source.background,
     };
-    let mut target = build_scene(&scene.source, &BuildSettings::default());
+    let mut target = scene.built.clone();
     target.recolor(&scene.target)?;
     let source_renders: Vec<RenderOutput> = scene
         .cameras
@@ -392,8 +392,7 @@ pub fn reference_rows(
             .map(|img| -> candle_core::Result<splat::Image> {
                 let x = image_to_tensor(img)?;
                 let z = model.encode(&x, noise)?;
-                let y = model.decode(&z)?.affine(0.5, 0.5)?.clamp(0f32, 1f32)?;
-                Ok(tensor_to_images(&y)?.remove(0))
+                Ok(model.decode_images(&z)?.remove(0))
             })
             .collect::<candle_core::Result<Vec<_>>>()
             .map_err(|e| DemoError::Setup(format!("autoencoder round trip: {e}")))
@@ -447,9 +446,14 @@ pub fn load_model(path: &Path) -> Result<EditModel, DemoError> {
     Ok(EditModel::load(path, None)?)
 }
 
+/// A table cell: three decimals, or a dash when there is no value.
+fn score_cell(v: Option<f64>) -> String {
+    v.map_or("–".to_string(), |x| format!("{x:.3}"))
+}
+
 /// The comparison table as Markdown.
 pub fn table(scores: &[DemoScores]) -> String {
-    let f = |v: Option<f64>| v.map_or("–".to_string(), |x| format!("{x:.3}"));
+    let f = score_cell;
     let mut s = String::from(
         "| run | guidance cross-view error ↓ object / whole image | final cross-view error ↓ object / whole image | final fidelity ↑ colour / layout | guidance fidelity ↑ colour / layout | preservation PSNR ↑ | time |\n|---|---|---|---|---|---|---|\n",
     );
@@ -474,7 +478,7 @@ pub fn table(scores: &[DemoScores]) -> String {
 
 /// The reference rows as Markdown.
 pub fn reference_table(rows: &[ReferenceRow]) -> String {
-    let f = |v: Option<f64>| v.map_or("–".to_string(), |x| format!("{x:.3}"));
+    let f = score_cell;
     let mut s = String::from(
         "| consistent by construction | cross-view error ↓ object / whole image |\n|---|---|\n",
     );

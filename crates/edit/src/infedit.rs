@@ -551,7 +551,7 @@ pub fn edit_image(
         on_step(i);
     }
     let pred = view.pred_t.clone().expect("at least one step ran");
-    let image = model.decode(&pred)?.affine(0.5, 0.5)?.clamp(0f32, 1f32)?;
+    let image = model.decode_unit(&pred)?;
     Ok(EditOutcome {
         image,
         state: view,

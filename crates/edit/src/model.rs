@@ -143,4 +143,15 @@ impl EditModel {
             .decode_scaled(latents)
             .map_err(|e| candle_core::Error::Msg(e.to_string()))
     }
+
+    /// Decodes UNet latents to images `[B, 3, H, W]` in [0, 1], clamped: the range images are shown, saved
+    /// and fitted in.
+    pub fn decode_unit(&self, latents: &Tensor) -> candle_core::Result<Tensor> {
+        self.decode(latents)?.affine(0.5, 0.5)?.clamp(0f32, 1f32)
+    }
+
+    /// [`Self::decode_unit`] as RGB images.
+    pub fn decode_images(&self, latents: &Tensor) -> candle_core::Result<Vec<splat::Image>> {
+        crate::viz::tensor_to_images(&self.decode_unit(latents)?)
+    }
 }

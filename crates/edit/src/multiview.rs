@@ -217,8 +217,7 @@ impl MultiView<'_> {
                 .pred_t
                 .as_ref()
                 .ok_or_else(|| MultiViewError::Input("no step ran".into()))?;
-            let img = model.decode(pred)?.affine(0.5, 0.5)?.clamp(0f32, 1f32)?;
-            out.push(viz::tensor_to_images(&img)?.remove(0));
+            out.push(model.decode_images(pred)?.remove(0));
         }
         timed(Stage::Decode, t, &mut times);
         Ok(MultiViewOutcome {
@@ -317,8 +316,7 @@ impl MultiView<'_> {
         let fitter = self.fitter.expect("checked in run");
         let model = self.model;
         let decode = |pred: &Tensor| -> candle_core::Result<Image> {
-            let img = model.decode(pred)?.affine(0.5, 0.5)?.clamp(0f32, 1f32)?;
-            Ok(viz::tensor_to_images(&img)?.remove(0))
+            Ok(model.decode_images(pred)?.remove(0))
         };
         let mut targets = Vec::with_capacity(views.len());
         let mut layouts = Vec::with_capacity(views.len());

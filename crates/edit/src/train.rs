@@ -179,9 +179,7 @@ impl TrainSettings {
             background: [0.0; 3],
         }
     }
-}
 
-impl TrainSettings {
     /// ECM's (epochs, epochs between rate halvings) for `views` views: the configured epochs, or more to
     /// reach [`Self::ecm_min_steps`], the halvings scaled by the same factor.
     pub fn ecm_schedule(&self, views: usize) -> (usize, usize) {
@@ -397,7 +395,6 @@ pub struct EcmFitter<'a> {
     loss: &'a ImageLoss,
     scope: EcmScope,
     settings: &'a TrainSettings,
-    background: [f32; 3],
 }
 
 impl<'a> EcmFitter<'a> {
@@ -407,7 +404,6 @@ impl<'a> EcmFitter<'a> {
             loss,
             scope,
             settings: &trainer.settings,
-            background: trainer.settings.background,
         }
     }
 }
@@ -453,7 +449,7 @@ impl SceneFitter for EcmFitter<'_> {
                     v,
                     &mut prepared,
                     self.loss,
-                    self.background,
+                    self.settings.background,
                 )
                 .map_err(|e| e.to_string())?;
                 state.step(&grads);
