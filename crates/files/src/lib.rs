@@ -1,0 +1,16 @@
+//! How vcedit writes files, in one place:
+//!
+//! - [`atomic_write`]: a file appears whole or not at all (temporary file + rename), and temporary files
+//!   of killed runs are recognised and removed by later runs ([`clean_stale_temps`]).
+//! - [`check_not_inputs`]: no command writes over one of its inputs, whatever the spelling of the paths
+//!   (`./a.png` vs `a.png`, symbolic links, hard links).
+//! - [`RunDir`]: an output folder holds the files of one run: a folder with another run's files is
+//!   refused unless it is the same run being resumed, or `--force` clears what vcedit wrote there.
+
+mod atomic;
+mod paths;
+mod rundir;
+
+pub use atomic::{atomic_write, atomic_write_with, clean_stale_temps, temp_path_for};
+pub use paths::{check_not_inputs, same_file, PathError};
+pub use rundir::{Previous, RunDir, RunDirError, RunDirMode, MANIFEST_NAME};
