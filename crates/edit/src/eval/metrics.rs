@@ -67,7 +67,7 @@ impl<'a> ViewGeometry<'a> {
 
 /// Options of [`multiview_consistency`].
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-pub struct ConsistencySettings {
+pub struct WarpSettings {
     /// Neighbouring cameras each view is warped into.
     pub neighbours: usize,
     /// A pixel belongs to the surface when its alpha exceeds this (in both views).
@@ -79,7 +79,7 @@ pub struct ConsistencySettings {
     pub max_angle_deg: f64,
 }
 
-impl Default for ConsistencySettings {
+impl Default for WarpSettings {
     fn default() -> Self {
         Self {
             neighbours: 3,
@@ -189,7 +189,7 @@ fn warp_pair(
     region: Option<&[f32]>,
     img_to: &Image,
     to: &ViewGeometry,
-    settings: &ConsistencySettings,
+    settings: &WarpSettings,
 ) -> PairSums {
     let (a, b) = (from.camera, to.camera);
     // X_to = M X_from + o with M = R_b R_aᵀ, o = t_b − M t_a (camera-to-camera transform).
@@ -319,7 +319,7 @@ fn check_view(k: usize, image: &Image, g: &ViewGeometry) -> Result<(), MetricsEr
 pub fn multiview_consistency(
     images: &[&Image],
     geometry: &[ViewGeometry],
-    settings: &ConsistencySettings,
+    settings: &WarpSettings,
 ) -> Result<ConsistencyReport, MetricsError> {
     consistency_impl(images, geometry, None, settings)
 }
@@ -332,7 +332,7 @@ pub fn multiview_consistency_in(
     images: &[&Image],
     geometry: &[ViewGeometry],
     regions: &[&[f32]],
-    settings: &ConsistencySettings,
+    settings: &WarpSettings,
 ) -> Result<ConsistencyReport, MetricsError> {
     if regions.len() != geometry.len() {
         return Err(MetricsError::Mismatch(format!(
@@ -357,7 +357,7 @@ fn consistency_impl(
     images: &[&Image],
     geometry: &[ViewGeometry],
     regions: Option<&[&[f32]]>,
-    settings: &ConsistencySettings,
+    settings: &WarpSettings,
 ) -> Result<ConsistencyReport, MetricsError> {
     if images.len() != geometry.len() {
         return Err(MetricsError::Mismatch(format!(
@@ -431,7 +431,7 @@ fn ratio(a: u64, b: u64) -> f64 {
 pub fn render_consistency(
     cameras: &[Camera],
     renders: &[RenderOutput],
-    settings: &ConsistencySettings,
+    settings: &WarpSettings,
 ) -> Result<ConsistencyReport, MetricsError> {
     if cameras.len() != renders.len() {
         return Err(MetricsError::Mismatch(format!(
@@ -726,7 +726,7 @@ mod tests {
             })
             .collect();
         let images: Vec<&Image> = views.iter().map(|v| &v.0).collect();
-        multiview_consistency(&images, &geometry, &ConsistencySettings::default()).unwrap()
+        multiview_consistency(&images, &geometry, &WarpSettings::default()).unwrap()
     }
 
     #[test]
@@ -770,7 +770,7 @@ mod tests {
             })
             .collect();
         let images: Vec<&Image> = views.iter().map(|v| &v.0).collect();
-        let settings = ConsistencySettings::default();
+        let settings = WarpSettings::default();
         let all = multiview_consistency(&images, &geometry, &settings).unwrap();
         let n = 96 * 96;
         let (ones, zeros) = (vec![1.0f32; n], vec![0.0f32; n]);
@@ -806,7 +806,7 @@ mod tests {
         assert!(a_to_b.covisible_pixels < base_a_to_b.covisible_pixels * 3 / 4);
         assert!(a_to_b.mean_abs_error.unwrap() < 2e-3, "{a_to_b:?}");
         // Without the occlusion test the magenta would dominate.
-        let loose = ConsistencySettings {
+        let loose = WarpSettings {
             depth_tolerance: 1.0,
             ..Default::default()
         };
@@ -838,20 +838,16 @@ mod tests {
                 alpha: &empty,
             })
             .collect();
-        let r = multiview_consistency(&[&img, &img], &geometry, &ConsistencySettings::default())
-            .unwrap();
+        let r = multiview_consistency(&[&img, &img], &geometry, &WarpSettings::default()).unwrap();
         assert_eq!(r.summary.mean_abs_error, None);
         assert_eq!(r.summary.psnr, None);
         assert_eq!(r.summary.covisible_fraction, 0.0);
         // Mismatched inputs are errors, not panics.
         let small = Image::new(8, 8, 3);
         assert!(
-            multiview_consistency(&[&small, &img], &geometry, &ConsistencySettings::default())
-                .is_err()
+            multiview_consistency(&[&small, &img], &geometry, &WarpSettings::default()).is_err()
         );
-        assert!(
-            multiview_consistency(&[&img], &geometry, &ConsistencySettings::default()).is_err()
-        );
+        assert!(multiview_consistency(&[&img], &geometry, &WarpSettings::default()).is_err());
     }
 
     #[test]

@@ -13,8 +13,8 @@ use std::path::{Component, Path, PathBuf};
 
 use serde::{Deserialize, Serialize};
 
-use crate::clip_score::ClipDirectionalReport;
-use crate::metrics::{ConsistencySummary, PreservationReport};
+use crate::eval::clip_score::ClipDirectionalReport;
+use crate::eval::metrics::{ConsistencySummary, PreservationReport};
 
 /// File name of the report inside the output folder.
 pub const REPORT_FILE: &str = "report.html";
