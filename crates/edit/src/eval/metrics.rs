@@ -15,6 +15,7 @@
 
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
+use splat::loss::{ssim_blur, SSIM_C1, SSIM_C2};
 use splat::render::RenderOutput;
 use splat::{Camera, Image};
 
@@ -36,7 +37,7 @@ pub fn psnr_from_mse(mse: f64) -> f64 {
     if mse <= 10f64.powf(-PSNR_CAP_DB / 10.0) {
         PSNR_CAP_DB
     } else {
-        -10.0 * mse.log10()
+        splat::loss::psnr_from_mse(mse)
     }
 }
 
@@ -453,12 +454,6 @@ pub fn render_consistency(
 // Preservation (PSNR / SSIM, optionally outside a mask)
 // ---------------------------------------------------------------------------------------------------------
 
-/// SSIM constants for data in [0, 1]: (0.01·L)², (0.03·L)².
-const SSIM_C1: f64 = 0.01 * 0.01;
-const SSIM_C2: f64 = 0.03 * 0.03;
-const SSIM_TAPS: usize = 11;
-const SSIM_SIGMA: f64 = 1.5;
-
 /// A mask value at or above this marks an editable pixel; below it the pixel is "outside".
 pub const MASK_THRESHOLD: f32 = 0.5;
 
@@ -476,36 +471,6 @@ pub struct PreservationReport {
     pub views: usize,
 }
 
-fn gaussian_window() -> [f64; SSIM_TAPS] {
-    let half = (SSIM_TAPS / 2) as f64;
-    let mut g: [f64; SSIM_TAPS] = std::array::from_fn(|i| {
-        (-((i as f64 - half).powi(2)) / (2.0 * SSIM_SIGMA * SSIM_SIGMA)).exp()
-    });
-    let s: f64 = g.iter().sum();
-    g.iter_mut().for_each(|v| *v /= s);
-    g
-}
-
-/// Separable Gaussian blur with zero padding, in place (`tmp` is scratch of the same size).
-fn blur(map: &mut [f64], tmp: &mut [f64], w: usize, h: usize, g: &[f64; SSIM_TAPS]) {
-    let r = SSIM_TAPS / 2;
-    for y in 0..h {
-        let row = &map[y * w..(y + 1) * w];
-        for x in 0..w {
-            let lo = x.saturating_sub(r);
-            let hi = (x + r).min(w - 1);
-            tmp[y * w + x] = (lo..=hi).map(|k| g[k + r - x] * row[k]).sum();
-        }
-    }
-    for y in 0..h {
-        let lo = y.saturating_sub(r);
-        let hi = (y + r).min(h - 1);
-        for x in 0..w {
-            map[y * w + x] = (lo..=hi).map(|k| g[k + r - y] * tmp[k * w + x]).sum();
-        }
-    }
-}
-
 /// Per view: (squared-error sum over channels, SSIM sum over channels, evaluated pixels).
 fn preservation_view(a: &Image, b: &Image, outside: &[bool]) -> (f64, f64, u64) {
     let (w, h) = (a.width as usize, a.height as usize);
@@ -515,26 +480,23 @@ fn preservation_view(a: &Image, b: &Image, outside: &[bool]) -> (f64, f64, u64) 
     if count == 0 {
         return (0.0, 0.0, 0);
     }
-    let g = gaussian_window();
     let m: Vec<f64> = outside.iter().map(|&o| if o { 1.0 } else { 0.0 }).collect();
-    let mut wsum = m.clone();
-    let mut tmp = vec![0.0; n];
-    blur(&mut wsum, &mut tmp, w, h, &g);
+    let wsum = ssim_blur(&m, w, h);
     let (mut sq, mut ssim) = (0.0, 0.0);
     for c in 0..3 {
         let x: Vec<f64> = (0..n).map(|i| a.data[i * ca + c] as f64).collect();
         let y: Vec<f64> = (0..n).map(|i| b.data[i * cb + c] as f64).collect();
         // Window statistics restricted to outside pixels: blur(m·f) / blur(m).
-        let mut maps: Vec<Vec<f64>> = vec![
-            (0..n).map(|i| m[i] * x[i]).collect(),
+        let maps: Vec<Vec<f64>> = [
+            (0..n).map(|i| m[i] * x[i]).collect::<Vec<f64>>(),
             (0..n).map(|i| m[i] * y[i]).collect(),
             (0..n).map(|i| m[i] * x[i] * x[i]).collect(),
             (0..n).map(|i| m[i] * y[i] * y[i]).collect(),
             (0..n).map(|i| m[i] * x[i] * y[i]).collect(),
-        ];
-        for map in &mut maps {
-            blur(map, &mut tmp, w, h, &g);
-        }
+        ]
+        .iter()
+        .map(|map| ssim_blur(map, w, h))
+        .collect();
         for i in 0..n {
             if !outside[i] {
                 continue;
@@ -925,7 +887,7 @@ mod tests {
     /// part of the 11x11 window, renormalised.
     fn direct_ssim(a: &Image, b: &Image, x: usize, y: usize, c: usize) -> f64 {
         let (w, h) = (a.width as usize, a.height as usize);
-        let g = gaussian_window();
+        let g = splat::loss::ssim_window();
         let (mut sw, mut mx, mut my, mut xx, mut yy, mut xy) = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0);
         for dy in 0..11 {
             for dx in 0..11 {
@@ -948,6 +910,47 @@ mod tests {
         let (vx, vy, cxy) = (xx / sw - mx * mx, yy / sw - my * my, xy / sw - mx * my);
         ((2.0 * mx * my + SSIM_C1) * (2.0 * cxy + SSIM_C2))
             / ((mx * mx + my * my + SSIM_C1) * (vx + vy + SSIM_C2))
+    }
+
+    /// The preservation SSIM's window statistics are splat's SSIM blur; they must stay, bit for bit, the
+    /// direct zero-padded window sums this module computed before it used splat's.
+    #[test]
+    fn ssim_blur_is_the_direct_window_sum_bit_for_bit() {
+        let g = splat::loss::ssim_window();
+        let direct = |map: &[f64], w: usize, h: usize| -> Vec<f64> {
+            let r = g.len() / 2;
+            let mut tmp = vec![0.0; w * h];
+            for y in 0..h {
+                for x in 0..w {
+                    let (lo, hi) = (x.saturating_sub(r), (x + r).min(w - 1));
+                    tmp[y * w + x] = (lo..=hi).map(|k| g[k + r - x] * map[y * w + k]).sum();
+                }
+            }
+            let mut out = vec![0.0; w * h];
+            for y in 0..h {
+                let (lo, hi) = (y.saturating_sub(r), (y + r).min(h - 1));
+                for x in 0..w {
+                    out[y * w + x] = (lo..=hi).map(|k| g[k + r - y] * tmp[k * w + x]).sum();
+                }
+            }
+            out
+        };
+        for (w, h, seed) in [(23, 17, 1), (7, 30, 2), (64, 5, 3), (1, 1, 4)] {
+            let img = noise_image(w, h, seed);
+            let (w, h) = (w as usize, h as usize);
+            // Masked products as preservation forms them (zeros outside).
+            let map: Vec<f64> = (0..w * h)
+                .map(|i| {
+                    let v = img.data[3 * i] as f64 * img.data[3 * i + 1] as f64;
+                    if i % 5 == 0 {
+                        0.0
+                    } else {
+                        v
+                    }
+                })
+                .collect();
+            assert_eq!(ssim_blur(&map, w, h), direct(&map, w, h), "{w}x{h}");
+        }
     }
 
     #[test]
