@@ -225,7 +225,7 @@ mod consistency_tests {
                 .collect(),
             (0..npx).map(|p| ((p * 7919) % 13) as f32 / 12.0).collect(),
         ];
-        let mut back = vec![Vec::new(), Vec::new()];
+        let mut back = [Vec::new(), Vec::new()];
         make_consistent(
             &scene,
             &cams,

@@ -1,16 +1,17 @@
 //! VcEdit's multi-view sampler: InfEdit over all views at once, with the paper's three consistency modules.
 //!
 //! One initial noise and one per-step noise are shared by every view and branch. Each step runs, in order:
-//! - **CCM**, cross-attention consistency ([`ccm`], docs/algorithm.md §1.1; default steps 6 and 13): the
+//! - **CCM**, cross-attention consistency (`ccm.rs`, docs/algorithm.md §1.1; default steps 6 and 13): the
 //!   views' cross-attention maps are lifted onto the Gaussians, rendered back and used in the step's pass;
 //! - the UNet pass and InfEdit's update of every view (docs/algorithm.md §1.2);
-//! - **ECM**, editing consistency ([`ecm`], §1.3; default steps 4, 9, 14): two copies of the scene are fitted
-//!   to the views' predictions and their renders replace them;
-//! - **blend-map consistency** ([`blend`], §1.4; every step after the first): the local-blend maps are lifted
-//!   and rendered back before the local blend.
+//! - **ECM**, editing consistency (`ecm.rs`, §1.3; default steps 4, 9, 14): two copies of the scene are
+//!   fitted to the views' predictions and their renders replace them;
+//! - **blend-map consistency** (`blend.rs`, §1.4; every step after the first): the local-blend maps are
+//!   lifted and rendered back before the local blend.
 //!
-//! All three rest on one operation, lifting per-view maps onto the Gaussians and rendering them back
-//! ([`lift`]). Follows docs/algorithm.md §1 (the reference's `EditConsistPipeline.__call__`).
+//! CCM and blend-map consistency rest on one operation, lifting per-view maps onto the Gaussians and
+//! rendering them back (`lift.rs`). Follows docs/algorithm.md §1 (the reference's
+//! `EditConsistPipeline.__call__`).
 
 mod blend;
 mod ccm;
@@ -18,7 +19,7 @@ mod ecm;
 mod lift;
 
 pub use ecm::{EcmFitter, EcmParams, EcmScope, EcmSettings, SceneFitter};
-pub use lift::{bilinear, make_consistent, resample, Resample};
+pub use lift::{bilinear, make_consistent, Resample};
 
 use std::time::{Duration, Instant};
 

@@ -41,21 +41,23 @@ pub fn run_edit(
     if scene.is_empty() {
         return Err(RunError::Input("the scene has no Gaussians".into()));
     }
-    let views = select_views(cameras.len(), job.max_views, job.seed);
-    let cams: Vec<Camera> = views.iter().map(|&i| cameras[i].clone()).collect();
-    let (mut trainer, mut state, resumed_from) = start(
-        job, model, scene, cameras, views, &cams, out, resume, progress,
-    )?;
+    let run = Run {
+        job,
+        model,
+        loss,
+        out,
+    };
+    let (mut trainer, mut state, resumed_from) = run.start(scene, cameras, resume, progress)?;
+    let cams: Vec<Camera> = state.views.iter().map(|&i| cameras[i].clone()).collect();
     let before = render_views(scene, &cams, job.background);
     let mut guidance = outputs::read_guidance(out, state.iterations_done, cams.len())?;
 
     for k in state.iterations_done..job.iterations {
-        let stage = |what: &str| format!("iteration {}/{}: {what}", k + 1, job.iterations);
         let mut times = IterationTimes::default();
 
         // Render the current scene from the edited views.
         let t = Instant::now();
-        progress.stage(&stage("rendering"), cams.len() as u64);
+        progress.stage(&run.stage(k, "rendering"), cams.len() as u64);
         let settings = RenderSettings {
             background: job.background,
         };
@@ -68,7 +70,7 @@ pub fn run_edit(
         times.render = t.elapsed().as_secs_f64();
 
         // Edit all views jointly into guidance images.
-        let (plan, edited) = edit_views(job, model, loss, &trainer, &cams, &sources, k, progress)?;
+        let (plan, edited) = run.edit_views(&trainer, &cams, &sources, k, progress)?;
         times.sampler = edited.times;
         state
             .guidance_consistency
@@ -82,7 +84,7 @@ pub fn run_edit(
 
         // Fit the scene to the guidance.
         let t = Instant::now();
-        progress.stage(&stage("fitting"), job.fit_steps as u64);
+        progress.stage(&run.stage(k, "fitting"), job.fit_steps as u64);
         trainer.fit(
             &cams,
             &edited.images,
@@ -124,103 +126,110 @@ pub fn run_edit(
     })
 }
 
-/// The trainer and run state to start iterating from: the checkpoint in `out` when resuming (with the
-/// iteration it was written after), else a fresh start with the editable mask.
-#[allow(clippy::too_many_arguments)]
-fn start(
-    job: &EditJob,
-    model: &EditModel,
-    scene: &GaussianScene,
-    cameras: &[Camera],
-    views: Vec<usize>,
-    cams: &[Camera],
-    out: &Path,
-    resume: bool,
-    progress: &mut dyn Progress,
-) -> Result<(EditTrainer, Checkpoint, Option<usize>), RunError> {
-    let fp = fingerprint(job, scene, cameras);
-    let setup = TrainerSetup {
-        train: &job.train,
-        extent: scene_extent(cams),
-        background: job.background,
-    };
-    if resume && Checkpoint::exists(out) {
-        let (state, trainer) = Checkpoint::load(out, &fp, &setup)?;
-        let k = state.iterations_done;
-        progress.log(&format!(
-            "resuming after iteration {k} of {}",
-            job.iterations
-        ));
-        return Ok((trainer, state, Some(k)));
-    }
-    if resume {
-        progress.log("no checkpoint to resume from; starting from the beginning");
-    }
-    let mask = editable_mask(job, model, scene, cams, progress)?;
-    let trainer = EditTrainer::new(
-        scene,
-        mask.clone(),
-        setup.train.clone(),
-        setup.extent,
-        setup.background,
-    );
-    Ok((trainer, Checkpoint::start(views, fp, mask), None))
+/// What every part of a run reads: the job, the model, the fits' loss and the output folder.
+struct Run<'a> {
+    job: &'a EditJob,
+    model: &'a EditModel,
+    loss: &'a ImageLoss,
+    out: &'a Path,
 }
 
-/// Iteration `k`'s joint edit of the views' current renders `sources`: VcEdit's multi-view sampler (or
-/// per-view InfEdit, as the job says). Iteration 0 edits source → target; later iterations target →
-/// target, re-editing the scene that already shows the target. Returns the plan it ran with and the result.
-#[allow(clippy::too_many_arguments)]
-fn edit_views(
-    job: &EditJob,
-    model: &EditModel,
-    loss: &ImageLoss,
-    trainer: &EditTrainer,
-    cams: &[Camera],
-    sources: &[Image],
-    k: usize,
-    progress: &mut dyn Progress,
-) -> Result<(EditPlan, MultiViewOutcome), RunError> {
-    let mut prompts = job.prompts.clone();
-    if k > 0 {
-        prompts.source = prompts.target.clone();
+impl Run<'_> {
+    /// The progress label of a stage of iteration `k`.
+    fn stage(&self, k: usize, what: &str) -> String {
+        format!("iteration {}/{}: {what}", k + 1, self.job.iterations)
     }
-    let (w, h) = job.size;
-    let mut plan = EditPlan::new(model, &prompts, &job.infedit, (w as usize, h as usize))?;
-    let consistency = match job.guidance {
-        GuidanceMode::Joint => {
-            plan.thresholds.dynamic_me = true;
-            job.consistency.clone()
+
+    /// The trainer and run state to start iterating from: the checkpoint in `out` when resuming (with the
+    /// iteration it was written after), else a fresh start on the selected views with the editable mask.
+    fn start(
+        &self,
+        scene: &GaussianScene,
+        cameras: &[Camera],
+        resume: bool,
+        progress: &mut dyn Progress,
+    ) -> Result<(EditTrainer, Checkpoint, Option<usize>), RunError> {
+        let job = self.job;
+        let fp = fingerprint(job, scene, cameras);
+        let views = select_views(cameras.len(), job.max_views, job.seed);
+        let cams: Vec<Camera> = views.iter().map(|&i| cameras[i].clone()).collect();
+        let setup = TrainerSetup {
+            train: &job.train,
+            extent: scene_extent(&cams),
+            background: job.background,
+        };
+        if resume && Checkpoint::exists(self.out) {
+            let (state, trainer) = Checkpoint::load(self.out, &fp, &setup)?;
+            let k = state.iterations_done;
+            progress.log(&format!(
+                "resuming after iteration {k} of {}",
+                job.iterations
+            ));
+            return Ok((trainer, state, Some(k)));
         }
-        GuidanceMode::PerView => ConsistencySettings::none(),
-    };
-    let fitter = EcmFitter::new(trainer, loss, &consistency.ecm);
-    let sampler = MultiView {
-        model,
-        plan: &plan,
-        scene: trainer.scene(),
-        cameras: cams,
-        consistency: &consistency,
-        fitter: Some(&fitter),
-        seed: job.seed_for(k, SeedPurpose::Ecm),
-        background: job.background,
-    };
-    progress.stage(
-        &format!(
-            "iteration {}/{}: editing {} views",
-            k + 1,
-            job.iterations,
-            cams.len()
-        ),
-        plan.timesteps.len() as u64,
-    );
-    let mut noise = SeededNoise::new(job.seed_for(k, SeedPurpose::Noise));
-    let edited = sampler.run(sources, &mut noise, &mut |_, stage| {
-        if stage == Stage::Unet {
-            progress.advance(1);
+        if resume {
+            progress.log("no checkpoint to resume from; starting from the beginning");
         }
-    })?;
-    Ok((plan, edited))
+        let mask = editable_mask(job, self.model, scene, &cams, progress)?;
+        let trainer = EditTrainer::new(
+            scene,
+            mask.clone(),
+            setup.train.clone(),
+            setup.extent,
+            setup.background,
+        );
+        Ok((trainer, Checkpoint::start(views, fp, mask), None))
+    }
+
+    /// Iteration `k`'s joint edit of the views' current renders `sources`: VcEdit's multi-view sampler (or
+    /// per-view InfEdit, as the job says). Iteration 0 edits source → target; later iterations target →
+    /// target, re-editing the scene that already shows the target. Returns the plan it ran with and the
+    /// result.
+    fn edit_views(
+        &self,
+        trainer: &EditTrainer,
+        cams: &[Camera],
+        sources: &[Image],
+        k: usize,
+        progress: &mut dyn Progress,
+    ) -> Result<(EditPlan, MultiViewOutcome), RunError> {
+        let job = self.job;
+        let mut prompts = job.prompts.clone();
+        if k > 0 {
+            prompts.source = prompts.target.clone();
+        }
+        let (w, h) = job.size;
+        let mut plan = EditPlan::new(self.model, &prompts, &job.infedit, (w as usize, h as usize))?;
+        let consistency = match job.guidance {
+            GuidanceMode::Joint => {
+                plan.thresholds.dynamic_me = true;
+                job.consistency.clone()
+            }
+            GuidanceMode::PerView => ConsistencySettings::none(),
+        };
+        let fitter = EcmFitter::new(trainer, self.loss, &consistency.ecm);
+        let sampler = MultiView {
+            model: self.model,
+            plan: &plan,
+            scene: trainer.scene(),
+            cameras: cams,
+            consistency: &consistency,
+            fitter: Some(&fitter),
+            seed: job.seed_for(k, SeedPurpose::Ecm),
+            background: job.background,
+        };
+        progress.stage(
+            &self.stage(k, &format!("editing {} views", cams.len())),
+            plan.timesteps.len() as u64,
+        );
+        let mut noise = SeededNoise::new(job.seed_for(k, SeedPurpose::Noise));
+        let edited = sampler.run(sources, &mut noise, &mut |_, stage| {
+            if stage == Stage::Unet {
+                progress.advance(1);
+            }
+        })?;
+        Ok((plan, edited))
+    }
 }
 
 /// Multi-view consistency of guidance images, warped with the geometry of the renders they were made from.
