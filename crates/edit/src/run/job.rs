@@ -106,7 +106,9 @@ pub enum RunError {
     Input(String),
     #[error("{}: {msg}", .path.display())]
     Io { path: PathBuf, msg: String },
-    #[error("stopped after iteration {iteration} as asked")]
+    #[error(
+        "stopped after iteration {iteration} as asked (--stop-after-iteration); --resume continues"
+    )]
     Stopped { iteration: usize },
     #[error(transparent)]
     Edit(#[from] EditError),
