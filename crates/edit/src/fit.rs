@@ -228,8 +228,8 @@ impl EditTrainer {
             extent,
         );
         state.trainable = mask;
-        // GaussianEditor leaves rotations of frozen Gaussians unhooked (docs/algorithm.md §3.3), so they drift
-        // outside the mask; an edit must not touch what the user excluded, so we freeze them too.
+        // GaussianEditor leaves rotations of frozen Gaussians unhooked (docs/algorithm.md §3.3), so they
+        // drift outside the mask; an edit must not touch what the user excluded, so we freeze them too.
         state.adam.mask_rotation = true;
         if settings.anchor {
             state.anchor = Some(Anchor::new(scene, AnchorConfig::vcedit()));

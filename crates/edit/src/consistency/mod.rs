@@ -19,7 +19,9 @@ mod ecm;
 mod lift;
 
 pub use ecm::{EcmFitter, EcmParams, EcmScope, EcmSettings, SceneFitter};
-pub use lift::{bilinear, make_consistent, Resample};
+pub use lift::{make_consistent, Resample};
+
+pub(crate) use lift::bilinear;
 
 use std::time::{Duration, Instant};
 

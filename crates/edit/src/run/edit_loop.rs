@@ -315,7 +315,7 @@ fn editable_mask(
 }
 
 /// A seeded sample of `min(n, max)` distinct camera indices, in ascending order.
-pub fn select_views(n: usize, max: usize, seed: u64) -> Vec<usize> {
+fn select_views(n: usize, max: usize, seed: u64) -> Vec<usize> {
     let mut idx: Vec<usize> = (0..n).collect();
     if n > max {
         let mut rng = ChaCha8Rng::seed_from_u64(seed);
@@ -327,7 +327,7 @@ pub fn select_views(n: usize, max: usize, seed: u64) -> Vec<usize> {
 }
 
 /// Renders `scene` from every camera over `background` as RGB images.
-pub fn render_views(scene: &GaussianScene, cameras: &[Camera], background: [f32; 3]) -> Vec<Image> {
+fn render_views(scene: &GaussianScene, cameras: &[Camera], background: [f32; 3]) -> Vec<Image> {
     let settings = RenderSettings { background };
     cameras
         .iter()
@@ -336,7 +336,7 @@ pub fn render_views(scene: &GaussianScene, cameras: &[Camera], background: [f32;
 }
 
 /// The INRIA trainer's scene extent: 1.1 × the largest distance of a camera centre from their mean.
-pub fn scene_extent(cameras: &[Camera]) -> f32 {
+fn scene_extent(cameras: &[Camera]) -> f32 {
     let n = cameras.len().max(1) as f64;
     let mut mean = [0.0f64; 3];
     for c in cameras {

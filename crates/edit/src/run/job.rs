@@ -181,7 +181,7 @@ impl EditJob {
 }
 
 /// A seed for one purpose of one iteration, independent of everything that ran before it.
-pub fn derive_seed(seed: u64, iteration: usize, purpose: u64) -> u64 {
+fn derive_seed(seed: u64, iteration: usize, purpose: u64) -> u64 {
     // SplitMix64 of the combined value: well-mixed and stable across versions.
     let mut z = seed
         ^ (iteration as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15)

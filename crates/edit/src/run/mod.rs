@@ -21,14 +21,10 @@ mod masks;
 mod outputs;
 mod work;
 
-pub use edit_loop::{render_views, run_edit, scene_extent, select_views};
+pub use edit_loop::run_edit;
 pub use job::{
-    derive_seed, EditJob, EditResult, GuidanceMode, IterationTimes, MaskSource, Progress, Quiet,
-    RunError,
+    EditJob, EditResult, GuidanceMode, IterationTimes, MaskSource, Progress, Quiet, RunError,
 };
-pub use masks::{
-    lift_maps, load_mask_images, mask_from_box, render_mask, threshold, word_attention_maps, Box3,
-    MaskError,
-};
-pub use outputs::{guidance_path, write_outputs, RunInputs, Written};
+pub use masks::{mask_from_box, Box3, MaskError};
+pub use outputs::{write_outputs, RunInputs, Written};
 pub use work::{available_memory, work_plan, WorkPlan};

@@ -41,7 +41,7 @@ fn metrics_err(e: MetricsError) -> RunError {
 }
 
 /// Path of a guidance image.
-pub fn guidance_path(out: &Path, iteration: usize, view: usize) -> PathBuf {
+fn guidance_path(out: &Path, iteration: usize, view: usize) -> PathBuf {
     out.join(format!("iter_{iteration}"))
         .join("guidance")
         .join(format!("view_{view:03}.png"))

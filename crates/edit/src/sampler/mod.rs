@@ -16,11 +16,12 @@ mod model;
 mod noise;
 
 pub use align::{align_prompts, global_align, AlignError, AlignInputs, TokenAlignment};
-pub use control::{ControlSettings, EditController, RecordedMaps, DEFAULT_STORE_MAX_TOKENS};
+pub use control::{ControlSettings, EditController, RecordedMaps};
 pub use infedit::{
-    blend_layer_size, edit_image, EditError, EditOutcome, EditPlan, EditPrompts, InfEditSettings,
-    ViewState,
+    edit_image, EditError, EditOutcome, EditPlan, EditPrompts, InfEditSettings, ViewState,
 };
-pub use local_blend::{apply_local_blend, blend_maps, blend_masks, BlendThresholds};
+pub use local_blend::BlendThresholds;
 pub use model::{image_to_tensor, tensor_to_images, EditModel, ModelError};
 pub use noise::{NoiseSource, RecordedNoise, SeededNoise};
+
+pub(crate) use local_blend::blend_maps;
