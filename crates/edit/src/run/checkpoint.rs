@@ -141,3 +141,44 @@ pub(super) fn fingerprint(job: &EditJob, scene: &GaussianScene, cameras: &[Camer
     }
     format!("{h:016x}")
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::consistency::ConsistencySettings;
+    use crate::run::{GuidanceMode, MaskSource};
+    use crate::sampler::{EditPrompts, InfEditSettings};
+
+    fn job() -> EditJob {
+        EditJob {
+            prompts: EditPrompts::new("a ball", "a red ball"),
+            infedit: InfEditSettings::default(),
+            consistency: ConsistencySettings::reference(15),
+            guidance: GuidanceMode::Joint,
+            iterations: 2,
+            fit_steps: 10,
+            max_views: 4,
+            seed: 0,
+            mask: MaskSource::None,
+            mask_threshold: 0.5,
+            train: TrainSettings::new(20),
+            size: (64, 64),
+            background: [0.0; 3],
+            stop_after_iteration: None,
+        }
+    }
+
+    #[test]
+    fn the_fingerprint_follows_the_settings_but_not_where_a_run_stops() {
+        let scene = GaussianScene::new(0);
+        let base = fingerprint(&job(), &scene, &[]);
+        let stopping = EditJob {
+            stop_after_iteration: Some(1),
+            ..job()
+        };
+        // A run stopped after an iteration must be resumable without the stop.
+        assert_eq!(fingerprint(&stopping, &scene, &[]), base);
+        let other = EditJob { seed: 1, ..job() };
+        assert_ne!(fingerprint(&other, &scene, &[]), base);
+    }
+}
