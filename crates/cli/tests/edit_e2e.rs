@@ -179,7 +179,6 @@ fn resume_after_an_interruption_equals_an_uninterrupted_run() {
     // Interrupt after the first iteration's checkpoint, then resume.
     let part = dir.path().join("part");
     let o = Command::new(env!("CARGO_BIN_EXE_vcedit"))
-        .env("VCEDIT_STOP_AFTER_ITERATION", "1")
         .args(["edit", "--scene"])
         .arg(&scene_path)
         .args(["--orbit", "6", "--model"])
@@ -202,6 +201,8 @@ fn resume_after_an_interruption_equals_an_uninterrupted_run() {
             "--ecm-steps",
             "2",
             "--mask-box=-0.8,-0.8,-0.8,0.8,0.8,0.8",
+            "--stop-after-iteration",
+            "1",
         ])
         .output()
         .unwrap();

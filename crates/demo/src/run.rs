@@ -9,18 +9,13 @@
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
-use edit::infedit::{EditPrompts, InfEditSettings};
-use edit::metrics::{
-    multiview_consistency, multiview_consistency_in, ConsistencySettings as MetricSettings,
-    ViewGeometry,
+use edit::consistency::ConsistencySettings;
+use edit::eval::metrics::{
+    multiview_consistency, multiview_consistency_in, ViewGeometry, WarpSettings as MetricSettings,
 };
-use edit::model::EditModel;
-use edit::multiview::ConsistencySettings;
-use edit::noise::SeededNoise;
-use edit::outputs::{write_outputs, RunInputs};
-use edit::pipeline::{run_edit, EditJob, GuidanceMode, MaskSource, Progress};
-use edit::train::{EcmScope, ImageLoss, TrainSettings};
-use edit::viz::image_to_tensor;
+use edit::fit::{ImageLoss, TrainSettings};
+use edit::run::{run_edit, write_outputs, EditJob, GuidanceMode, MaskSource, Progress, RunInputs};
+use edit::sampler::{image_to_tensor, EditModel, EditPrompts, InfEditSettings, SeededNoise};
 use serde::Serialize;
 use splat::render::{render, RenderOutput, RenderSettings};
 
@@ -46,9 +41,9 @@ pub enum DemoError {
     #[error(transparent)]
     Caption(#[from] world::CaptionError),
     #[error(transparent)]
-    Model(#[from] edit::model::ModelError),
+    Model(#[from] edit::sampler::ModelError),
     #[error(transparent)]
-    Pipeline(#[from] edit::pipeline::PipelineError),
+    Pipeline(#[from] edit::run::RunError),
 }
 
 /// Knobs of a demo run.
@@ -206,10 +201,9 @@ fn job(opts: &DemoOptions, scene: &DemoScene, variant: Variant) -> EditJob {
     let mut consistency = ConsistencySettings::reference(opts.steps);
     match variant {
         Variant::NoCcm => consistency.ccm_steps.clear(),
-        Variant::NoEcm => consistency.ecm_steps.clear(),
+        Variant::NoEcm => consistency.ecm.steps.clear(),
         _ => {}
     }
-    let background = scene.source.background;
     EditJob {
         prompts: scene.prompts.clone(),
         infedit,
@@ -225,13 +219,10 @@ fn job(opts: &DemoOptions, scene: &DemoScene, variant: Variant) -> EditJob {
         seed: opts.seed,
         mask: MaskSource::Given(scene.mask.clone()),
         mask_threshold: 0.5,
-        ecm_scope: EcmScope::Masked,
-        train: TrainSettings {
-            background,
-            ..TrainSettings::new((opts.iterations * opts.fit_steps) as u64)
-        },
+        train: TrainSettings::new((opts.iterations * opts.fit_steps) as u64),
         size: (opts.size, opts.size),
-        background,
+        background: scene.source.background,
+        stop_after_iteration: None,
     }
 }
 

@@ -4,7 +4,7 @@
 use candle_core::{Device, Tensor};
 use diffusion::clip::ids_tensor;
 use diffusion::scheduler::{DdimConfig, DdimScheduler, TimestepSpacing};
-use edit::model::EditModel;
+use edit::sampler::{tensor_to_images, EditModel};
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use splat::Image;
@@ -130,5 +130,5 @@ pub fn generate(
     }
     let decoded = model.decode(&latents)?;
     let images = ((decoded.clamp(-1.0, 1.0)? + 1.0)? * 0.5)?;
-    Ok(edit::viz::tensor_to_images(&images)?)
+    Ok(tensor_to_images(&images)?)
 }

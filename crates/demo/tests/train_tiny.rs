@@ -2,9 +2,7 @@
 //! runs an InfEdit step, sampling works, and a resumed run continues where the first stopped.
 
 use demo::train::{train, Event, TrainConfig, TrainOptions};
-use edit::infedit::{edit_image, EditPlan, EditPrompts, InfEditSettings};
-use edit::model::EditModel;
-use edit::noise::SeededNoise;
+use edit::sampler::{edit_image, EditModel, EditPlan, EditPrompts, InfEditSettings, SeededNoise};
 
 fn run(out: &std::path::Path, config: &TrainConfig) -> (demo::train::TrainSummary, Vec<String>) {
     let mut stages = Vec::new();

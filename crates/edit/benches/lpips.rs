@@ -5,7 +5,7 @@
 
 use std::time::Instant;
 
-use edit::lpips::{Lpips, VGG16_WIDTHS};
+use edit::eval::lpips::{Lpips, VGG16_WIDTHS};
 
 fn image(h: usize, w: usize, phase: f32) -> Vec<f32> {
     (0..h * w * 3)

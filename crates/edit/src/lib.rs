@@ -1,21 +1,19 @@
-//! Editing: the InfEdit sampler, attention control, the VcEdit consistency modules and the editing loop.
+//! Editing: VcEdit's text-driven, view-consistent editing of a 3D Gaussian Splatting scene, by stage.
+//!
+//! - [`sampler`]: InfEdit, the single-view editor (attention control, token alignment, local blend, the
+//!   model and its noise);
+//! - [`consistency`]: VcEdit's multi-view sampler and the paper's modules, one file each: CCM
+//!   (`consistency/ccm.rs`), ECM (`consistency/ecm.rs`) and blend-map consistency (`consistency/blend.rs`),
+//!   on the shared lift-and-render-back (`consistency/lift.rs`);
+//! - [`fit`]: fitting Gaussians to edited images (the loop's fit; ECM's fits start from it);
+//! - [`run`]: the editing loop (render → joint edit → fit), masks, checkpoints and outputs;
+//! - [`eval`]: metrics, LPIPS and CLIP scores;
+//! - [`present`]: the HTML report, the turntable GIF and attention images.
 
-pub mod align;
-pub mod blend;
-pub mod clip_score;
 pub mod clip_vision;
 pub mod consistency;
-pub mod control;
-pub mod gif;
-pub mod infedit;
-pub mod lpips;
-pub mod masks;
-pub mod metrics;
-pub mod model;
-pub mod multiview;
-pub mod noise;
-pub mod outputs;
-pub mod pipeline;
-pub mod report;
-pub mod train;
-pub mod viz;
+pub mod eval;
+pub mod fit;
+pub mod present;
+pub mod run;
+pub mod sampler;

@@ -5,7 +5,7 @@ use std::collections::HashMap;
 use std::path::{Path, PathBuf};
 
 use candle_core::{Device, Tensor};
-use edit::clip_score::ClipModel;
+use edit::eval::clip_score::ClipModel;
 use serde_json::Value;
 use splat::Image;
 

@@ -1,8 +1,8 @@
 //! The consistency modules do their job on constructed cases.
 
-use edit::metrics::{multiview_consistency, ConsistencySettings, ViewGeometry};
-use edit::multiview::SceneFitter;
-use edit::train::{EcmFitter, EcmParams, EcmScope, EditTrainer, ImageLoss, TrainSettings};
+use edit::consistency::{EcmFitter, EcmParams, EcmScope, EcmSettings, SceneFitter};
+use edit::eval::metrics::{multiview_consistency, ViewGeometry, WarpSettings};
+use edit::fit::{EditTrainer, ImageLoss, TrainSettings};
 use splat::render::{render, RenderSettings};
 use splat::{Camera, GaussianScene, Image};
 
@@ -49,7 +49,7 @@ fn consistency(images: &[Image], cams: &[Camera], scene: &GaussianScene) -> f64 
         .map(|(c, r)| ViewGeometry::from_render(c, r))
         .collect();
     let refs: Vec<&Image> = images.iter().collect();
-    multiview_consistency(&refs, &geometry, &ConsistencySettings::default())
+    multiview_consistency(&refs, &geometry, &WarpSettings::default())
         .unwrap()
         .summary
         .mean_abs_error
@@ -86,13 +86,14 @@ fn ecm_makes_inconsistent_images_consistent() {
         .map(|c| render(&scene, c, &RenderSettings::default(), None).rgb_image())
         .collect();
     for params in [EcmParams::Appearance, EcmParams::All] {
-        let settings = TrainSettings {
-            ecm_params: params,
-            ..TrainSettings::new(100)
+        let ecm = EcmSettings {
+            scope: EcmScope::All,
+            params,
+            ..EcmSettings::reference(0)
         };
-        let trainer = EditTrainer::new(&scene, None, settings, 2.0);
+        let trainer = EditTrainer::new(&scene, None, TrainSettings::new(100), 2.0, [0.0; 3]);
         let loss = ImageLoss::dssim();
-        let fitter = EcmFitter::new(&trainer, &loss, EcmScope::All);
+        let fitter = EcmFitter::new(&trainer, &loss, &ecm);
         let fitted = fitter.fit(&scene, &cams, &targets, 7).unwrap();
         let renders: Vec<Image> = cams
             .iter()

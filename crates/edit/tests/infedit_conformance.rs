@@ -4,9 +4,9 @@
 use std::path::PathBuf;
 
 use candle_core::{Device, Tensor};
-use edit::infedit::{EditPlan, EditPrompts, InfEditSettings};
-use edit::model::EditModel;
-use edit::noise::{NoiseSource, RecordedNoise};
+use edit::sampler::{
+    EditModel, EditPlan, EditPrompts, InfEditSettings, NoiseSource, RecordedNoise,
+};
 
 fn root() -> PathBuf {
     PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../fixtures")

@@ -4,10 +4,10 @@ use std::path::PathBuf;
 
 use candle_core::{IndexOp, Tensor};
 use diffusion::tokenizer::ClipTokenizer;
-use edit::align::{align_prompts, global_align, AlignInputs};
-use edit::infedit::{EditPlan, EditPrompts, InfEditSettings};
-use edit::model::EditModel;
-use edit::noise::{NoiseSource, SeededNoise};
+use edit::sampler::{
+    align_prompts, global_align, AlignInputs, EditModel, EditPlan, EditPrompts, InfEditSettings,
+    NoiseSource, SeededNoise,
+};
 
 fn fixtures() -> PathBuf {
     PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../fixtures")

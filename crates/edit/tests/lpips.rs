@@ -4,7 +4,7 @@
 use std::path::{Path, PathBuf};
 
 use candle_core::Device;
-use edit::lpips::{synthetic_tensors, InputRange, Lpips, VGG16_WIDTHS};
+use edit::eval::lpips::{synthetic_tensors, InputRange, Lpips, VGG16_WIDTHS};
 use serde_json::Value;
 
 fn fixtures() -> PathBuf {

@@ -2,7 +2,7 @@
 //! recolouring of the same geometry stays consistent, and per-view colour shifts (what independent
 //! per-view editing produces) are clearly detected.
 
-use edit::metrics::{multiview_consistency, render_consistency, ConsistencySettings, ViewGeometry};
+use edit::eval::metrics::{multiview_consistency, render_consistency, ViewGeometry, WarpSettings};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use splat::cameras::orbit_cameras;
@@ -69,7 +69,7 @@ fn report(
     cams: &[Camera],
     geometry: &[RenderOutput],
     images: &[Image],
-) -> edit::metrics::ConsistencySummary {
+) -> edit::eval::metrics::ConsistencySummary {
     let g: Vec<ViewGeometry> = cams
         .iter()
         .zip(geometry)
@@ -78,7 +78,7 @@ fn report(
     multiview_consistency(
         &images.iter().collect::<Vec<_>>(),
         &g,
-        &ConsistencySettings::default(),
+        &WarpSettings::default(),
     )
     .unwrap()
     .summary
@@ -87,7 +87,7 @@ fn report(
 #[test]
 fn consistent_images_score_low_and_per_view_shifts_score_high() {
     let (cams, renders) = setup();
-    let own = render_consistency(&cams, &renders, &ConsistencySettings::default()).unwrap();
+    let own = render_consistency(&cams, &renders, &WarpSettings::default()).unwrap();
     let s = &own.summary;
     println!("renders vs themselves: {s:?}");
     assert_eq!(s.pairs, 30);
@@ -149,7 +149,7 @@ fn background_pixels_are_ignored() {
             .rgb_image()
         })
         .collect();
-    let own = render_consistency(&cams, &renders, &ConsistencySettings::default()).unwrap();
+    let own = render_consistency(&cams, &renders, &WarpSettings::default()).unwrap();
     let r = report(&cams, &renders, &images);
     let (a, b) = (
         r.mean_abs_error.unwrap(),

@@ -7,9 +7,9 @@ use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
-use edit::gif::{write_gif, GifOptions};
-use edit::metrics::{ConsistencySummary, PreservationReport};
-use edit::report::{
+use edit::eval::metrics::{ConsistencySummary, PreservationReport};
+use edit::present::gif::{write_gif, GifOptions};
+use edit::present::report::{
     write_report, IterationInfo, MetricsSummary, ReportData, ReportOptions, RunSummary,
     StageTiming, ViewPair, WordImage,
 };
@@ -70,11 +70,11 @@ fn write_dummy_run(dir: &Path) -> PathBuf {
     }
     let heat: Vec<f32> = (0..w * h).map(|i| (i % w) as f32 / w as f32).collect();
     let att = PathBuf::from("attention/clown.png");
-    edit::viz::heat_image(&heat, w, h)
+    edit::present::viz::heat_image(&heat, w, h)
         .save_png(&dir.join(&att))
         .unwrap();
     let mask = PathBuf::from("mask/000.png");
-    edit::viz::mask_image(&heat, w, h)
+    edit::present::viz::mask_image(&heat, w, h)
         .save_png(&dir.join(&mask))
         .unwrap();
     let frames: Vec<Image> = (0..6)

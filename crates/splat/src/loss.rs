@@ -16,8 +16,9 @@ use rayon::prelude::*;
 pub const SSIM_WINDOW: usize = 11;
 /// Standard deviation of the SSIM window in pixels.
 pub const SSIM_SIGMA: f64 = 1.5;
-const SSIM_C1: f64 = 0.01 * 0.01;
-const SSIM_C2: f64 = 0.03 * 0.03;
+/// SSIM's stabilising constants for data in [0, 1]: (0.01·L)², (0.03·L)².
+pub const SSIM_C1: f64 = 0.01 * 0.01;
+pub const SSIM_C2: f64 = 0.03 * 0.03;
 /// The INRIA trainer's weight of the D-SSIM term (`lambda_dssim`).
 pub const DEFAULT_SSIM_WEIGHT: f32 = 0.2;
 
@@ -87,8 +88,12 @@ pub fn mse(pred: &[f32], target: &[f32]) -> f64 {
 /// Identical images give +∞.
 pub fn psnr(pred: &[f32], target: &[f32]) -> f64 {
     let clamped: Vec<f32> = pred.iter().map(|v| v.clamp(0.0, 1.0)).collect();
-    let m = mse(&clamped, target);
-    -10.0 * m.log10()
+    psnr_from_mse(mse(&clamped, target))
+}
+
+/// PSNR in dB of a mean squared error on [0, 1] data (+∞ for 0).
+pub fn psnr_from_mse(mse: f64) -> f64 {
+    -10.0 * mse.log10()
 }
 
 /// Mean SSIM between `pred` and `target` (`width*height*channels` each) and its gradient with respect to
@@ -129,6 +134,21 @@ pub fn l1_dssim(
         value: w_l1 * l.value + ssim_weight * (1.0 - s.value),
         grad,
     }
+}
+
+/// The SSIM window's normalised 1D Gaussian taps; the 2D window is their outer product.
+pub fn ssim_window() -> [f64; SSIM_WINDOW] {
+    gaussian_taps()
+}
+
+/// One `width x height` plane blurred with the SSIM window ('same' size, zero padding): the local means
+/// SSIM is built from, for callers that weight or mask the statistics themselves.
+pub fn ssim_blur(plane: &[f64], width: usize, height: usize) -> Vec<f64> {
+    assert_eq!(plane.len(), width * height, "ssim_blur: plane size");
+    let mut tmp = vec![0.0; plane.len()];
+    let mut out = vec![0.0; plane.len()];
+    blur(plane, width, height, &gaussian_taps(), &mut tmp, &mut out);
+    out
 }
 
 /// The normalised 1D Gaussian window; the 2D window is its outer product.

@@ -7,7 +7,7 @@ use std::time::Instant;
 use anyhow::{bail, Context};
 use demo::sample::{generate, SampleSettings};
 use demo::train::{train, Event, TrainConfig, TrainOptions};
-use edit::model::EditModel;
+use edit::sampler::EditModel;
 use indicatif::{ProgressBar, ProgressStyle};
 
 /// Train the demo model or sample from a model.

@@ -4,12 +4,10 @@ use std::path::PathBuf;
 use std::time::Instant;
 
 use anyhow::{bail, Context};
-use edit::masks::Box3;
-use edit::model::EditModel;
-use edit::multiview::ConsistencySettings;
-use edit::outputs::{write_outputs, RunInputs};
-use edit::pipeline::{run_edit, EditJob, GuidanceMode, MaskSource};
-use edit::train::{EcmParams, EcmScope, ImageLoss, TrainSettings};
+use edit::consistency::{ConsistencySettings, EcmParams, EcmScope};
+use edit::fit::{ImageLoss, TrainSettings};
+use edit::run::{run_edit, write_outputs, Box3, EditJob, GuidanceMode, MaskSource, RunInputs};
+use edit::sampler::EditModel;
 use indicatif::{ProgressBar, ProgressStyle};
 
 use super::edit_opts::{ModelArgs, PromptArgs, SamplerArgs};
@@ -133,6 +131,9 @@ pub struct Args {
     /// Start even if the memory estimate exceeds the available memory.
     #[arg(long)]
     pub ignore_memory_check: bool,
+    /// Stop right after this iteration's checkpoint, as a kill would (tests of --resume).
+    #[arg(long, hide = true, value_name = "K")]
+    pub stop_after_iteration: Option<usize>,
 }
 
 /// Progress bars, one per stage, for the editing pipeline.
@@ -189,7 +190,7 @@ impl Bars {
     }
 }
 
-impl edit::pipeline::Progress for Bars {
+impl edit::run::Progress for Bars {
     fn stage(&mut self, name: &str, total: u64) {
         if let Some(p) = &mut self.plain {
             p.stage = name.to_string();
@@ -302,11 +303,11 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         consistency.ccm_steps = s.clone();
     }
     if let Some(s) = &args.ecm_steps {
-        consistency.ecm_steps = s.clone();
+        consistency.ecm.steps = s.clone();
     }
     for (name, list) in [
         ("--ccm-steps", &consistency.ccm_steps),
-        ("--ecm-steps", &consistency.ecm_steps),
+        ("--ecm-steps", &consistency.ecm.steps),
     ] {
         if let Some(bad) = list.iter().find(|&&i| i >= steps) {
             bail!("{name}: step {bad} is past the last step ({})", steps - 1);
@@ -316,8 +317,16 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         consistency.ccm_steps.clear();
     }
     if args.no_ecm {
-        consistency.ecm_steps.clear();
+        consistency.ecm.steps.clear();
     }
+    consistency.ecm.scope = match args.ecm_scope {
+        EcmScopeArg::Masked => EcmScope::Masked,
+        EcmScopeArg::All => EcmScope::All,
+    };
+    consistency.ecm.params = match args.ecm_params {
+        EcmParamsArg::Appearance => EcmParams::Appearance,
+        EcmParamsArg::All => EcmParams::All,
+    };
     if args.no_blend_consistency {
         consistency.blend_consistency = false;
     }
@@ -347,27 +356,17 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         seed: args.sampler.seed,
         mask,
         mask_threshold: args.mask_threshold,
-        ecm_scope: match args.ecm_scope {
-            EcmScopeArg::Masked => EcmScope::Masked,
-            EcmScopeArg::All => EcmScope::All,
-        },
-        train: TrainSettings {
-            background: args.background,
-            ecm_params: match args.ecm_params {
-                EcmParamsArg::Appearance => EcmParams::Appearance,
-                EcmParamsArg::All => EcmParams::All,
-            },
-            ..TrainSettings::new((args.iterations * args.fit_steps) as u64)
-        },
+        train: TrainSettings::new((args.iterations * args.fit_steps) as u64),
         size: (w, h),
         background: args.background,
+        stop_after_iteration: args.stop_after_iteration,
     };
 
     let model = EditModel::load(&args.model.model, args.model.taesd.as_deref())
         .with_context(|| format!("loading model {}", args.model.model.display()))?;
     let mut notes = Vec::new();
     let loss = match &args.lpips {
-        Some(dir) => ImageLoss::lpips(edit::lpips::Lpips::load(dir)?),
+        Some(dir) => ImageLoss::lpips(edit::eval::lpips::Lpips::load(dir)?),
         None => {
             let note =
                 "no --lpips weights: fitting with 10·L1 + 2.5·D-SSIM instead of 10·L1 + 10·LPIPS"
@@ -378,9 +377,9 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         }
     };
 
-    let plan = edit::pipeline::work_plan(&job, &model, &scene, cameras.len());
+    let plan = edit::run::work_plan(&job, &model, &scene, cameras.len());
     eprintln!("{}", plan.describe());
-    let available = edit::pipeline::available_memory();
+    let available = edit::run::available_memory();
     if let Some(avail) = available {
         if plan.memory_bytes > avail && !args.ignore_memory_check {
             bail!(

@@ -4,10 +4,10 @@ use std::path::PathBuf;
 use std::time::Instant;
 
 use anyhow::{bail, Context};
-use edit::infedit::{edit_image, EditPlan};
-use edit::model::EditModel;
-use edit::noise::SeededNoise;
-use edit::viz;
+use edit::present::viz;
+use edit::sampler::{
+    edit_image, image_to_tensor, tensor_to_images, EditModel, EditPlan, SeededNoise,
+};
 use indicatif::{ProgressBar, ProgressStyle};
 use splat::Image;
 
@@ -73,14 +73,14 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         .progress_chars("=> "),
     );
     bar.set_prefix("editing");
-    let image = viz::image_to_tensor(&input)?;
+    let image = image_to_tensor(&input)?;
     let mut noise = SeededNoise::new(args.sampler.seed);
     let t1 = Instant::now();
     let outcome = edit_image(&model, &plan, &image, &mut noise, &mut |_| bar.inc(1))?;
     bar.finish_and_clear();
     let edit_time = t1.elapsed();
 
-    let out = viz::tensor_to_images(&outcome.image)?.remove(0);
+    let out = tensor_to_images(&outcome.image)?.remove(0);
     out.save_png(&args.out)?;
 
     if let Some(dir) = &args.save_attention {

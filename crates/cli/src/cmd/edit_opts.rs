@@ -3,7 +3,7 @@
 use std::path::PathBuf;
 
 use anyhow::{bail, Context};
-use edit::infedit::{EditPrompts, InfEditSettings};
+use edit::sampler::{EditPrompts, InfEditSettings};
 
 /// Which LCM timestep selection to use.
 #[derive(Clone, Copy, Debug, clap::ValueEnum)]

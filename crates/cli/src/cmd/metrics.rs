@@ -6,12 +6,12 @@
 //! - with `--clip DIR`: the CLIP directional similarity of the renders for the prompt change.
 
 use anyhow::{bail, Context, Result};
-use edit::clip_score::ClipModel;
-use edit::masks::{mask_from_box, Box3};
-use edit::metrics::{
-    preservation, render_consistency, ConsistencySettings, ConsistencySummary, PreservationReport,
+use edit::eval::clip_score::ClipModel;
+use edit::eval::metrics::{
+    preservation, render_consistency, ConsistencySummary, PreservationReport, WarpSettings,
 };
-use edit::report::MetricsSummary;
+use edit::present::report::MetricsSummary;
+use edit::run::{mask_from_box, Box3};
 use rayon::prelude::*;
 use serde::Serialize;
 use splat::cameras::{load_cameras, orbit_cameras, robust_bounds, to_working_resolution};
@@ -93,7 +93,7 @@ struct Output {
     views: usize,
     width: u32,
     height: u32,
-    consistency_settings: ConsistencySettings,
+    consistency_settings: WarpSettings,
     mask_box: Option<[[f32; 3]; 2]>,
     /// `source_consistency` / `final_consistency` are the source and edited scenes' renders.
     metrics: MetricsSummary,
@@ -157,7 +157,7 @@ fn choose_cameras(
     if cams.is_empty() {
         bail!("{from}: no cameras");
     }
-    let picked = edit::report::subset_indices(cams.len(), args.max_views);
+    let picked = edit::present::report::subset_indices(cams.len(), args.max_views);
     let cams: Vec<Camera> = picked
         .iter()
         .map(|&i| match size {
@@ -263,7 +263,7 @@ pub fn run(args: Args) -> Result<()> {
     let renders_a = render_all(&source, &cameras, &settings, args.mask_box.as_ref());
     let renders_b = render_all(&edited, &cameras, &settings, args.mask_box.as_ref());
 
-    let consistency_settings = ConsistencySettings {
+    let consistency_settings = WarpSettings {
         neighbours: args.neighbours,
         depth_tolerance: args.depth_tolerance,
         ..Default::default()

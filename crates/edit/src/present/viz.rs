@@ -3,6 +3,8 @@
 use candle_core::{DType, Device, Result, Tensor};
 use splat::Image;
 
+use crate::consistency::bilinear;
+
 /// A heat-map colour for v in [0, 1]: black → purple → orange → light yellow (inferno-like, readable in
 /// print and for most colour-blind viewers).
 pub fn heat_color(v: f32) -> [f32; 3] {
@@ -59,40 +61,6 @@ pub fn resize_map(map: &Tensor, out_h: usize, out_w: usize) -> Result<Vec<f32>> 
     let (h, w) = map.dims2()?;
     let src: Vec<f32> = map.to_dtype(DType::F32)?.flatten_all()?.to_vec1()?;
     Ok(bilinear(&src, h, w, out_h, out_w, 1))
-}
-
-/// Bilinear resampling of a row-major, channel-interleaved map (align_corners = false, edge-clamped, as
-/// torch's `interpolate(mode="bilinear")` when upsampling).
-pub fn bilinear(
-    src: &[f32],
-    h: usize,
-    w: usize,
-    out_h: usize,
-    out_w: usize,
-    channels: usize,
-) -> Vec<f32> {
-    let mut out = vec![0.0f32; out_h * out_w * channels];
-    let sy = h as f32 / out_h as f32;
-    let sx = w as f32 / out_w as f32;
-    for oy in 0..out_h {
-        let fy = ((oy as f32 + 0.5) * sy - 0.5).max(0.0);
-        let y0 = (fy as usize).min(h - 1);
-        let y1 = (y0 + 1).min(h - 1);
-        let ty = fy - y0 as f32;
-        for ox in 0..out_w {
-            let fx = ((ox as f32 + 0.5) * sx - 0.5).max(0.0);
-            let x0 = (fx as usize).min(w - 1);
-            let x1 = (x0 + 1).min(w - 1);
-            let tx = fx - x0 as f32;
-            for c in 0..channels {
-                let at = |y: usize, x: usize| src[(y * w + x) * channels + c];
-                let top = at(y0, x0) * (1.0 - tx) + at(y0, x1) * tx;
-                let bot = at(y1, x0) * (1.0 - tx) + at(y1, x1) * tx;
-                out[(oy * out_w + ox) * channels + c] = top * (1.0 - ty) + bot * ty;
-            }
-        }
-    }
-    out
 }
 
 /// One attention map per target word.
@@ -171,36 +139,6 @@ pub fn word_maps(
     Ok(maps)
 }
 
-/// An RGB image as a `[1, 3, H, W]` tensor in [-1, 1] (the codecs' input range).
-pub fn image_to_tensor(img: &Image) -> Result<Tensor> {
-    assert_eq!(img.channels, 3, "image_to_tensor needs RGB");
-    let (w, h) = (img.width as usize, img.height as usize);
-    let hwc = Tensor::from_vec(img.data.clone(), (h, w, 3), &Device::Cpu)?;
-    hwc.permute((2, 0, 1))?
-        .unsqueeze(0)?
-        .affine(2.0, -1.0)?
-        .contiguous()
-}
-
-/// Images `[B, 3, H, W]` in [0, 1] as RGB images.
-pub fn tensor_to_images(t: &Tensor) -> Result<Vec<Image>> {
-    let (b, c, h, w) = t.dims4()?;
-    let hwc = t
-        .to_dtype(DType::F32)?
-        .permute((0, 2, 3, 1))?
-        .contiguous()?;
-    (0..b)
-        .map(|i| {
-            Ok(Image::from_data(
-                w as u32,
-                h as u32,
-                c as u32,
-                hwc.get(i)?.flatten_all()?.to_vec1()?,
-            ))
-        })
-        .collect()
-}
-
 /// A file-name-safe version of a word.
 pub fn file_safe(word: &str) -> String {
     let s: String = word
@@ -246,13 +184,6 @@ mod tests {
                 ("hat".into(), vec![4])
             ]
         );
-    }
-
-    #[test]
-    fn bilinear_matches_torch_on_a_ramp() {
-        // torch: F.interpolate(tensor([[[[0., 1.]]]]), size=(1, 4), mode="bilinear") = [0, .25, .75, 1]
-        let out = bilinear(&[0.0, 1.0], 1, 2, 1, 4, 1);
-        assert_eq!(out, vec![0.0, 0.25, 0.75, 1.0]);
     }
 
     #[test]

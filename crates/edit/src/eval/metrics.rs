@@ -15,6 +15,7 @@
 
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
+use splat::loss::{ssim_blur, SSIM_C1, SSIM_C2};
 use splat::render::RenderOutput;
 use splat::{Camera, Image};
 
@@ -36,7 +37,7 @@ pub fn psnr_from_mse(mse: f64) -> f64 {
     if mse <= 10f64.powf(-PSNR_CAP_DB / 10.0) {
         PSNR_CAP_DB
     } else {
-        -10.0 * mse.log10()
+        splat::loss::psnr_from_mse(mse)
     }
 }
 
@@ -67,7 +68,7 @@ impl<'a> ViewGeometry<'a> {
 
 /// Options of [`multiview_consistency`].
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-pub struct ConsistencySettings {
+pub struct WarpSettings {
     /// Neighbouring cameras each view is warped into.
     pub neighbours: usize,
     /// A pixel belongs to the surface when its alpha exceeds this (in both views).
@@ -79,7 +80,7 @@ pub struct ConsistencySettings {
     pub max_angle_deg: f64,
 }
 
-impl Default for ConsistencySettings {
+impl Default for WarpSettings {
     fn default() -> Self {
         Self {
             neighbours: 3,
@@ -189,7 +190,7 @@ fn warp_pair(
     region: Option<&[f32]>,
     img_to: &Image,
     to: &ViewGeometry,
-    settings: &ConsistencySettings,
+    settings: &WarpSettings,
 ) -> PairSums {
     let (a, b) = (from.camera, to.camera);
     // X_to = M X_from + o with M = R_b R_aᵀ, o = t_b − M t_a (camera-to-camera transform).
@@ -319,7 +320,7 @@ fn check_view(k: usize, image: &Image, g: &ViewGeometry) -> Result<(), MetricsEr
 pub fn multiview_consistency(
     images: &[&Image],
     geometry: &[ViewGeometry],
-    settings: &ConsistencySettings,
+    settings: &WarpSettings,
 ) -> Result<ConsistencyReport, MetricsError> {
     consistency_impl(images, geometry, None, settings)
 }
@@ -332,7 +333,7 @@ pub fn multiview_consistency_in(
     images: &[&Image],
     geometry: &[ViewGeometry],
     regions: &[&[f32]],
-    settings: &ConsistencySettings,
+    settings: &WarpSettings,
 ) -> Result<ConsistencyReport, MetricsError> {
     if regions.len() != geometry.len() {
         return Err(MetricsError::Mismatch(format!(
@@ -357,7 +358,7 @@ fn consistency_impl(
     images: &[&Image],
     geometry: &[ViewGeometry],
     regions: Option<&[&[f32]]>,
-    settings: &ConsistencySettings,
+    settings: &WarpSettings,
 ) -> Result<ConsistencyReport, MetricsError> {
     if images.len() != geometry.len() {
         return Err(MetricsError::Mismatch(format!(
@@ -431,7 +432,7 @@ fn ratio(a: u64, b: u64) -> f64 {
 pub fn render_consistency(
     cameras: &[Camera],
     renders: &[RenderOutput],
-    settings: &ConsistencySettings,
+    settings: &WarpSettings,
 ) -> Result<ConsistencyReport, MetricsError> {
     if cameras.len() != renders.len() {
         return Err(MetricsError::Mismatch(format!(
@@ -453,12 +454,6 @@ pub fn render_consistency(
 // Preservation (PSNR / SSIM, optionally outside a mask)
 // ---------------------------------------------------------------------------------------------------------
 
-/// SSIM constants for data in [0, 1]: (0.01·L)², (0.03·L)².
-const SSIM_C1: f64 = 0.01 * 0.01;
-const SSIM_C2: f64 = 0.03 * 0.03;
-const SSIM_TAPS: usize = 11;
-const SSIM_SIGMA: f64 = 1.5;
-
 /// A mask value at or above this marks an editable pixel; below it the pixel is "outside".
 pub const MASK_THRESHOLD: f32 = 0.5;
 
@@ -476,36 +471,6 @@ pub struct PreservationReport {
     pub views: usize,
 }
 
-fn gaussian_window() -> [f64; SSIM_TAPS] {
-    let half = (SSIM_TAPS / 2) as f64;
-    let mut g: [f64; SSIM_TAPS] = std::array::from_fn(|i| {
-        (-((i as f64 - half).powi(2)) / (2.0 * SSIM_SIGMA * SSIM_SIGMA)).exp()
-    });
-    let s: f64 = g.iter().sum();
-    g.iter_mut().for_each(|v| *v /= s);
-    g
-}
-
-/// Separable Gaussian blur with zero padding, in place (`tmp` is scratch of the same size).
-fn blur(map: &mut [f64], tmp: &mut [f64], w: usize, h: usize, g: &[f64; SSIM_TAPS]) {
-    let r = SSIM_TAPS / 2;
-    for y in 0..h {
-        let row = &map[y * w..(y + 1) * w];
-        for x in 0..w {
-            let lo = x.saturating_sub(r);
-            let hi = (x + r).min(w - 1);
-            tmp[y * w + x] = (lo..=hi).map(|k| g[k + r - x] * row[k]).sum();
-        }
-    }
-    for y in 0..h {
-        let lo = y.saturating_sub(r);
-        let hi = (y + r).min(h - 1);
-        for x in 0..w {
-            map[y * w + x] = (lo..=hi).map(|k| g[k + r - y] * tmp[k * w + x]).sum();
-        }
-    }
-}
-
 /// Per view: (squared-error sum over channels, SSIM sum over channels, evaluated pixels).
 fn preservation_view(a: &Image, b: &Image, outside: &[bool]) -> (f64, f64, u64) {
     let (w, h) = (a.width as usize, a.height as usize);
@@ -515,26 +480,23 @@ fn preservation_view(a: &Image, b: &Image, outside: &[bool]) -> (f64, f64, u64) 
     if count == 0 {
         return (0.0, 0.0, 0);
     }
-    let g = gaussian_window();
     let m: Vec<f64> = outside.iter().map(|&o| if o { 1.0 } else { 0.0 }).collect();
-    let mut wsum = m.clone();
-    let mut tmp = vec![0.0; n];
-    blur(&mut wsum, &mut tmp, w, h, &g);
+    let wsum = ssim_blur(&m, w, h);
     let (mut sq, mut ssim) = (0.0, 0.0);
     for c in 0..3 {
         let x: Vec<f64> = (0..n).map(|i| a.data[i * ca + c] as f64).collect();
         let y: Vec<f64> = (0..n).map(|i| b.data[i * cb + c] as f64).collect();
         // Window statistics restricted to outside pixels: blur(m·f) / blur(m).
-        let mut maps: Vec<Vec<f64>> = vec![
-            (0..n).map(|i| m[i] * x[i]).collect(),
+        let maps: Vec<Vec<f64>> = [
+            (0..n).map(|i| m[i] * x[i]).collect::<Vec<f64>>(),
             (0..n).map(|i| m[i] * y[i]).collect(),
             (0..n).map(|i| m[i] * x[i] * x[i]).collect(),
             (0..n).map(|i| m[i] * y[i] * y[i]).collect(),
             (0..n).map(|i| m[i] * x[i] * y[i]).collect(),
-        ];
-        for map in &mut maps {
-            blur(map, &mut tmp, w, h, &g);
-        }
+        ]
+        .iter()
+        .map(|map| ssim_blur(map, w, h))
+        .collect();
         for i in 0..n {
             if !outside[i] {
                 continue;
@@ -726,7 +688,7 @@ mod tests {
             })
             .collect();
         let images: Vec<&Image> = views.iter().map(|v| &v.0).collect();
-        multiview_consistency(&images, &geometry, &ConsistencySettings::default()).unwrap()
+        multiview_consistency(&images, &geometry, &WarpSettings::default()).unwrap()
     }
 
     #[test]
@@ -770,7 +732,7 @@ mod tests {
             })
             .collect();
         let images: Vec<&Image> = views.iter().map(|v| &v.0).collect();
-        let settings = ConsistencySettings::default();
+        let settings = WarpSettings::default();
         let all = multiview_consistency(&images, &geometry, &settings).unwrap();
         let n = 96 * 96;
         let (ones, zeros) = (vec![1.0f32; n], vec![0.0f32; n]);
@@ -806,7 +768,7 @@ mod tests {
         assert!(a_to_b.covisible_pixels < base_a_to_b.covisible_pixels * 3 / 4);
         assert!(a_to_b.mean_abs_error.unwrap() < 2e-3, "{a_to_b:?}");
         // Without the occlusion test the magenta would dominate.
-        let loose = ConsistencySettings {
+        let loose = WarpSettings {
             depth_tolerance: 1.0,
             ..Default::default()
         };
@@ -838,20 +800,16 @@ mod tests {
                 alpha: &empty,
             })
             .collect();
-        let r = multiview_consistency(&[&img, &img], &geometry, &ConsistencySettings::default())
-            .unwrap();
+        let r = multiview_consistency(&[&img, &img], &geometry, &WarpSettings::default()).unwrap();
         assert_eq!(r.summary.mean_abs_error, None);
         assert_eq!(r.summary.psnr, None);
         assert_eq!(r.summary.covisible_fraction, 0.0);
         // Mismatched inputs are errors, not panics.
         let small = Image::new(8, 8, 3);
         assert!(
-            multiview_consistency(&[&small, &img], &geometry, &ConsistencySettings::default())
-                .is_err()
+            multiview_consistency(&[&small, &img], &geometry, &WarpSettings::default()).is_err()
         );
-        assert!(
-            multiview_consistency(&[&img], &geometry, &ConsistencySettings::default()).is_err()
-        );
+        assert!(multiview_consistency(&[&img], &geometry, &WarpSettings::default()).is_err());
     }
 
     #[test]
@@ -929,7 +887,7 @@ mod tests {
     /// part of the 11x11 window, renormalised.
     fn direct_ssim(a: &Image, b: &Image, x: usize, y: usize, c: usize) -> f64 {
         let (w, h) = (a.width as usize, a.height as usize);
-        let g = gaussian_window();
+        let g = splat::loss::ssim_window();
         let (mut sw, mut mx, mut my, mut xx, mut yy, mut xy) = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0);
         for dy in 0..11 {
             for dx in 0..11 {
@@ -952,6 +910,47 @@ mod tests {
         let (vx, vy, cxy) = (xx / sw - mx * mx, yy / sw - my * my, xy / sw - mx * my);
         ((2.0 * mx * my + SSIM_C1) * (2.0 * cxy + SSIM_C2))
             / ((mx * mx + my * my + SSIM_C1) * (vx + vy + SSIM_C2))
+    }
+
+    /// The preservation SSIM's window statistics are splat's SSIM blur; they must stay, bit for bit, the
+    /// direct zero-padded window sums this module computed before it used splat's.
+    #[test]
+    fn ssim_blur_is_the_direct_window_sum_bit_for_bit() {
+        let g = splat::loss::ssim_window();
+        let direct = |map: &[f64], w: usize, h: usize| -> Vec<f64> {
+            let r = g.len() / 2;
+            let mut tmp = vec![0.0; w * h];
+            for y in 0..h {
+                for x in 0..w {
+                    let (lo, hi) = (x.saturating_sub(r), (x + r).min(w - 1));
+                    tmp[y * w + x] = (lo..=hi).map(|k| g[k + r - x] * map[y * w + k]).sum();
+                }
+            }
+            let mut out = vec![0.0; w * h];
+            for y in 0..h {
+                let (lo, hi) = (y.saturating_sub(r), (y + r).min(h - 1));
+                for x in 0..w {
+                    out[y * w + x] = (lo..=hi).map(|k| g[k + r - y] * tmp[k * w + x]).sum();
+                }
+            }
+            out
+        };
+        for (w, h, seed) in [(23, 17, 1), (7, 30, 2), (64, 5, 3), (1, 1, 4)] {
+            let img = noise_image(w, h, seed);
+            let (w, h) = (w as usize, h as usize);
+            // Masked products as preservation forms them (zeros outside).
+            let map: Vec<f64> = (0..w * h)
+                .map(|i| {
+                    let v = img.data[3 * i] as f64 * img.data[3 * i + 1] as f64;
+                    if i % 5 == 0 {
+                        0.0
+                    } else {
+                        v
+                    }
+                })
+                .collect();
+            assert_eq!(ssim_blur(&map, w, h), direct(&map, w, h), "{w}x{h}");
+        }
     }
 
     #[test]

@@ -10,7 +10,7 @@
 
 use candle_core::{DType, Device, Result, Tensor, D};
 
-use crate::align::TokenAlignment;
+use super::align::TokenAlignment;
 
 /// Thresholds of the local blend.
 #[derive(Clone, Copy, Debug)]

@@ -6,15 +6,19 @@
 //! Paths inside `ReportData` are relative to the output folder the report is written into (absolute
 //! paths are accepted and made relative). Files that do not exist when the report is written are shown as
 //! "missing" instead of as broken images.
+//!
+//! The page is written with `maud`'s `html!` templates: markup checked at compile time, and every piece of
+//! text from the data (prompts, names, paths, settings) escaped on output.
 
 use std::collections::BTreeMap;
 use std::fmt::Write as _;
 use std::path::{Component, Path, PathBuf};
 
+use maud::{html, Markup, PreEscaped, DOCTYPE};
 use serde::{Deserialize, Serialize};
 
-use crate::clip_score::ClipDirectionalReport;
-use crate::metrics::{ConsistencySummary, PreservationReport};
+use crate::eval::clip_score::ClipDirectionalReport;
+use crate::eval::metrics::{ConsistencySummary, PreservationReport};
 
 /// File name of the report inside the output folder.
 pub const REPORT_FILE: &str = "report.html";
@@ -162,22 +166,6 @@ impl Default for ReportOptions {
     }
 }
 
-/// Escapes text for HTML element content and quoted attribute values.
-pub fn escape_html(s: &str) -> String {
-    let mut out = String::with_capacity(s.len());
-    for ch in s.chars() {
-        match ch {
-            '&' => out.push_str("&amp;"),
-            '<' => out.push_str("&lt;"),
-            '>' => out.push_str("&gt;"),
-            '"' => out.push_str("&quot;"),
-            '\'' => out.push_str("&#39;"),
-            c => out.push(c),
-        }
-    }
-    out
-}
-
 /// Percent-encodes one path segment for a URL (RFC 3986 unreserved characters stay).
 fn encode_segment(seg: &str) -> String {
     let mut out = String::new();
@@ -310,339 +298,221 @@ document.querySelectorAll('img').forEach(function(i){\
 if(!i.complete||i.naturalWidth===0){console.error('image failed to load: '+i.getAttribute('src'));\
 i.alt='missing: '+i.getAttribute('src');}});});";
 
-struct Writer<'a> {
+/// The page's sections, laid out for the output folder `dir` (where the referenced files are looked up).
+struct Page<'a> {
     dir: &'a Path,
     opts: &'a ReportOptions,
-    out: String,
 }
 
-impl Writer<'_> {
-    fn push(&mut self, s: &str) {
-        self.out.push_str(s);
-    }
-
+impl Page<'_> {
     /// An image thumbnail linking to the full-size file, or a "missing" box.
-    fn image(&mut self, path: &Path, alt: &str, width: u32) {
+    fn image(&self, path: &Path, alt: &str, width: u32) -> Markup {
         let resolved = if path.is_absolute() {
             path.to_path_buf()
         } else {
             self.dir.join(path)
         };
-        let alt = escape_html(alt);
         if resolved.is_file() {
             let url = href(self.dir, path);
-            let _ = write!(
-                self.out,
-                "<a href=\"{url}\"><img src=\"{url}\" alt=\"{alt}\" width=\"{width}\"></a>"
-            );
+            html! { a href=(url) { img src=(url) alt=(alt) width=(width); } }
         } else {
-            let _ = write!(
-                self.out,
-                "<div class=\"missing\" style=\"width:{width}px;height:{h}px\">missing: {p}</div>",
-                h = width * 3 / 4,
-                p = escape_html(&path.to_string_lossy())
-            );
-        }
-    }
-
-    fn figure(&mut self, path: &Path, caption: &str, width: u32) {
-        self.push("<figure>");
-        self.image(path, caption, width);
-        let _ = write!(
-            self.out,
-            "<figcaption>{}</figcaption></figure>",
-            escape_html(caption)
-        );
-    }
-
-    fn header(&mut self, d: &ReportData) {
-        let title = if d.title.is_empty() {
-            "vcedit run"
-        } else {
-            &d.title
-        };
-        let _ = write!(
-            self.out,
-            "<!DOCTYPE html>\n<html lang=\"en\"><head><meta charset=\"utf-8\">\
-             <meta name=\"viewport\" content=\"width=device-width, initial-scale=1\">\
-             <title>{}</title><style>{CSS}</style></head><body>\n<h1>{}</h1>\n",
-            escape_html(title),
-            escape_html(title)
-        );
-        let _ = writeln!(
-            self.out,
-            "<div class=\"prompts\">“{}”<span class=\"arrow\">→</span>“{}”</div>",
-            escape_html(&d.source_prompt),
-            escape_html(&d.target_prompt)
-        );
-        let mut facts = Vec::new();
-        if let Some(s) = &d.scene {
-            facts.push(format!("scene <code>{}</code>", escape_html(s)));
-        }
-        if let Some(c) = &d.cameras {
-            facts.push(format!("cameras <code>{}</code>", escape_html(c)));
-        }
-        if let Some(e) = &d.edited_scene {
-            facts.push(format!(
-                "edited scene <a href=\"{}\"><code>{}</code></a>",
-                href(self.dir, e),
-                escape_html(&e.to_string_lossy())
-            ));
-        }
-        if !facts.is_empty() {
-            let _ = writeln!(self.out, "<p class=\"muted\">{}</p>", facts.join(" · "));
-        }
-        if !d.notes.is_empty() {
-            self.push("<div class=\"notes\">");
-            for n in &d.notes {
-                let _ = write!(self.out, "<div>{}</div>", escape_html(n));
+            html! {
+                div.missing style={ "width:" (width) "px;height:" (width * 3 / 4) "px" } {
+                    "missing: " (path.to_string_lossy())
+                }
             }
-            self.push("</div>\n");
         }
     }
 
-    fn settings(&mut self, settings: &serde_json::Value) {
-        let Some(map) = settings.as_object() else {
-            if !settings.is_null() {
-                let _ = writeln!(
-                    self.out,
-                    "<h2>Settings</h2><pre>{}</pre>",
-                    escape_html(&settings.to_string())
-                );
+    fn figure(&self, path: &Path, caption: &str, width: u32) -> Markup {
+        html! { figure { (self.image(path, caption, width)) figcaption { (caption) } } }
+    }
+
+    fn header(&self, d: &ReportData, title: &str) -> Markup {
+        let has_facts = d.scene.is_some() || d.cameras.is_some() || d.edited_scene.is_some();
+        html! {
+            h1 { (title) }
+            div.prompts { "“" (d.source_prompt) "”" span.arrow { "→" } "“" (d.target_prompt) "”" }
+            @if has_facts {
+                p.muted {
+                    @if let Some(s) = &d.scene { "scene " code { (s) } }
+                    @if let Some(c) = &d.cameras {
+                        @if d.scene.is_some() { " · " }
+                        "cameras " code { (c) }
+                    }
+                    @if let Some(e) = &d.edited_scene {
+                        @if d.scene.is_some() || d.cameras.is_some() { " · " }
+                        "edited scene " a href=(href(self.dir, e)) { code { (e.to_string_lossy()) } }
+                    }
+                }
             }
-            return;
-        };
-        if map.is_empty() {
-            return;
-        }
-        self.push("<h2>Settings</h2><table>\n");
-        for (k, v) in map {
-            let shown = match v {
-                serde_json::Value::String(s) => s.clone(),
-                other => other.to_string(),
-            };
-            let _ = writeln!(
-                self.out,
-                "<tr><th>{}</th><td><code>{}</code></td></tr>",
-                escape_html(k),
-                escape_html(&shown)
-            );
-        }
-        self.push("</table>\n");
-    }
-
-    fn turntable(&mut self, gif: &Option<PathBuf>) {
-        if let Some(g) = gif {
-            self.push("<h2>Turntable</h2><div class=\"grid\">");
-            let w = self.opts.thumb_px * 2;
-            self.figure(g, "edited scene, orbit", w);
-            self.push("</div>\n");
+            @if !d.notes.is_empty() {
+                div.notes { @for n in &d.notes { div { (n) } } }
+            }
         }
     }
 
-    fn before_after(&mut self, views: &[ViewPair]) {
+    fn settings(&self, settings: &serde_json::Value) -> Markup {
+        html! {
+            @if let Some(map) = settings.as_object() {
+                @if !map.is_empty() {
+                    h2 { "Settings" }
+                    table {
+                        @for (k, v) in map {
+                            tr {
+                                th { (k) }
+                                td { code {
+                                    @match v {
+                                        serde_json::Value::String(s) => (s),
+                                        other => (other.to_string()),
+                                    }
+                                } }
+                            }
+                        }
+                    }
+                }
+            } @else if !settings.is_null() {
+                h2 { "Settings" }
+                pre { (settings.to_string()) }
+            }
+        }
+    }
+
+    fn turntable(&self, gif: &Option<PathBuf>) -> Markup {
+        html! {
+            @if let Some(g) = gif {
+                h2 { "Turntable" }
+                div.grid { (self.figure(g, "edited scene, orbit", self.opts.thumb_px * 2)) }
+            }
+        }
+    }
+
+    fn before_after(&self, views: &[ViewPair]) -> Markup {
         if views.is_empty() {
-            return;
+            return html! {};
         }
         let shown = subset_indices(views.len(), self.opts.max_views);
-        let _ = write!(
-            self.out,
-            "<h2>Before / after</h2><p class=\"muted\">{} of {} views; click an image for full size.</p><div class=\"grid\">",
-            shown.len(),
-            views.len()
-        );
-        for &i in &shown {
-            let v = &views[i];
-            self.push("<figure><div class=\"pair\">");
-            let w = self.opts.thumb_px;
-            self.image(&v.before, &format!("{} before", v.name), w);
-            self.image(&v.after, &format!("{} after", v.name), w);
-            let _ = write!(
-                self.out,
-                "</div><figcaption>{} — source | edited</figcaption></figure>",
-                escape_html(&v.name)
-            );
+        let w = self.opts.thumb_px;
+        html! {
+            h2 { "Before / after" }
+            p.muted { (shown.len()) " of " (views.len()) " views; click an image for full size." }
+            div.grid {
+                @for &i in &shown {
+                    @let v = &views[i];
+                    figure {
+                        div.pair {
+                            (self.image(&v.before, &format!("{} before", v.name), w))
+                            (self.image(&v.after, &format!("{} after", v.name), w))
+                        }
+                        figcaption { (v.name) " — source | edited" }
+                    }
+                }
+            }
         }
-        self.push("</div>\n");
     }
 
-    fn iterations(&mut self, iterations: &[IterationInfo]) {
+    fn iterations(&self, iterations: &[IterationInfo]) -> Markup {
         if iterations.is_empty() {
-            return;
+            return html! {};
         }
-        self.push("<h2>Guidance per iteration</h2>\n");
-        for it in iterations {
-            let mut head = format!("Iteration {}", it.index + 1);
-            if let Some(p) = &it.source_prompt {
-                head.push_str(&format!(" · source prompt “{}”", escape_html(p)));
-            }
-            if let Some(c) = &it.guidance_consistency {
-                head.push_str(&format!(
-                    " · cross-view error {} ({} dB)",
-                    fmt_opt(c.mean_abs_error, 4),
-                    fmt_opt(c.psnr, 2)
-                ));
-            }
-            if let Some(s) = it.seconds {
-                head.push_str(&format!(" · {}", fmt_seconds(s)));
-            }
-            let _ = write!(self.out, "<h3>{head}</h3>");
-            for (label, list) in [
-                ("guidance", &it.guidance),
-                ("render after fit", &it.renders),
-            ] {
-                if list.is_empty() {
-                    continue;
-                }
-                self.push("<div class=\"grid\">");
-                let w = self.opts.thumb_px * 3 / 4;
-                for i in subset_indices(list.len(), self.opts.max_views) {
-                    self.figure(&list[i], &format!("view {i} {label}"), w);
-                }
-                self.push("</div>\n");
-            }
-        }
-    }
-
-    fn attention(&mut self, words: &[WordImage], masks: &[PathBuf]) {
-        if words.is_empty() && masks.is_empty() {
-            return;
-        }
-        self.push("<h2>Attention and mask</h2>");
         let w = self.opts.thumb_px * 3 / 4;
-        if !words.is_empty() {
-            self.push("<div class=\"grid\">");
-            for wi in words {
-                self.figure(&wi.path, &format!("“{}”", wi.word), w);
+        html! {
+            h2 { "Guidance per iteration" }
+            @for it in iterations {
+                h3 {
+                    "Iteration " (it.index + 1)
+                    @if let Some(p) = &it.source_prompt { " · source prompt “" (p) "”" }
+                    @if let Some(c) = &it.guidance_consistency {
+                        " · cross-view error " (fmt_opt(c.mean_abs_error, 4)) " (" (fmt_opt(c.psnr, 2)) " dB)"
+                    }
+                    @if let Some(s) = it.seconds { " · " (fmt_seconds(s)) }
+                }
+                @for (label, list) in [("guidance", &it.guidance), ("render after fit", &it.renders)] {
+                    @if !list.is_empty() {
+                        div.grid {
+                            @for i in subset_indices(list.len(), self.opts.max_views) {
+                                (self.figure(&list[i], &format!("view {i} {label}"), w))
+                            }
+                        }
+                    }
+                }
             }
-            self.push("</div>\n");
-        }
-        if !masks.is_empty() {
-            self.push("<h3>Editable mask</h3><div class=\"grid\">");
-            for i in subset_indices(masks.len(), self.opts.max_views) {
-                self.figure(&masks[i], &format!("mask, view {i}"), w);
-            }
-            self.push("</div>\n");
         }
     }
 
-    fn metric_rows(m: &MetricsSummary) -> Vec<(String, String, String)> {
-        let mut rows = Vec::new();
-        for (name, c) in [
-            ("cross-view error, source renders", &m.source_consistency),
-            (
-                "cross-view error, guidance (last iteration)",
-                &m.guidance_consistency,
-            ),
-            ("cross-view error, final renders", &m.final_consistency),
-        ] {
-            if let Some(c) = c {
-                rows.push((
-                    name.to_string(),
-                    format!(
-                        "{} · {} dB",
-                        fmt_opt(c.mean_abs_error, 4),
-                        fmt_opt(c.psnr, 2)
-                    ),
-                    format!(
-                        "{} pairs, {:.0} % co-visible",
-                        c.pairs,
-                        100.0 * c.covisible_fraction
-                    ),
-                ));
+    fn attention(&self, words: &[WordImage], masks: &[PathBuf]) -> Markup {
+        if words.is_empty() && masks.is_empty() {
+            return html! {};
+        }
+        let w = self.opts.thumb_px * 3 / 4;
+        html! {
+            h2 { "Attention and mask" }
+            @if !words.is_empty() {
+                div.grid { @for wi in words { (self.figure(&wi.path, &format!("“{}”", wi.word), w)) } }
+            }
+            @if !masks.is_empty() {
+                h3 { "Editable mask" }
+                div.grid {
+                    @for i in subset_indices(masks.len(), self.opts.max_views) {
+                        (self.figure(&masks[i], &format!("mask, view {i}"), w))
+                    }
+                }
             }
         }
-        for (name, p) in [
-            (
-                "preservation outside the mask",
-                &m.preservation_outside_mask,
-            ),
-            ("preservation, whole image", &m.preservation_whole),
-        ] {
-            if let Some(p) = p {
-                rows.push((
-                    name.to_string(),
-                    format!(
-                        "PSNR {} dB · SSIM {}",
-                        fmt_opt(p.psnr, 2),
-                        fmt_opt(p.ssim, 4)
-                    ),
-                    format!("{:.0} % of pixels, {} views", 100.0 * p.fraction, p.views),
-                ));
-            }
-        }
-        if let Some(c) = &m.clip {
-            rows.push((
-                "CLIP directional similarity".to_string(),
-                format!("{:.4}", c.directional),
-                format!(
-                    "image similarity {:.4}, edited↔target text {:.4}",
-                    c.image_similarity, c.target_text_similarity
-                ),
-            ));
-        }
-        for (k, v) in &m.extra {
-            rows.push((escape_html(k), fmt_opt(Some(*v), 4), String::new()));
-        }
-        rows
     }
 
-    fn metrics(&mut self, m: &MetricsSummary, runs: &[RunSummary]) {
-        let rows = Self::metric_rows(m);
-        if !rows.is_empty() {
-            self.push(
-                "<h2>Metrics</h2><table><tr><th>metric</th><th>value</th><th>detail</th></tr>\n",
-            );
-            for (name, value, detail) in rows {
-                let _ = writeln!(
-                    self.out,
-                    "<tr><td>{name}</td><td class=\"num\">{value}</td><td class=\"muted\">{detail}</td></tr>"
-                );
+    fn metrics(&self, m: &MetricsSummary, runs: &[RunSummary]) -> Markup {
+        let rows = metric_rows(m);
+        let err =
+            |c: &Option<ConsistencySummary>| fmt_opt(c.as_ref().and_then(|c| c.mean_abs_error), 4);
+        html! {
+            @if !rows.is_empty() {
+                h2 { "Metrics" }
+                table {
+                    tr { th { "metric" } th { "value" } th { "detail" } }
+                    @for (name, value, detail) in &rows {
+                        tr { td { (name) } td.num { (value) } td.muted { (detail) } }
+                    }
+                }
+                p.muted {
+                    "Cross-view error: mean absolute colour difference (0–1 scale) between each view and its \
+                     nearest cameras, warped with the scene's rendered depth, over co-visible pixels; lower is \
+                     more consistent."
+                }
             }
-            self.push("</table><p class=\"muted\">Cross-view error: mean absolute colour difference (0–1 scale) between each view and its nearest cameras, warped with the scene's rendered depth, over co-visible pixels; lower is more consistent.</p>\n");
+            @if !runs.is_empty() {
+                h2 { "Comparison" }
+                table {
+                    tr {
+                        th { "run" } th { "guidance error" } th { "final error" } th { "final PSNR" }
+                        th { "PSNR outside" } th { "SSIM outside" } th { "CLIP dir." }
+                    }
+                    @for r in runs {
+                        @let m = &r.metrics;
+                        @let pres = m.preservation_outside_mask.as_ref().or(m.preservation_whole.as_ref());
+                        tr {
+                            td {
+                                @match &r.report {
+                                    Some(p) => a href=(href(self.dir, p)) { (r.name) },
+                                    None => (r.name),
+                                }
+                            }
+                            td.num { (err(&m.guidance_consistency)) }
+                            td.num { (err(&m.final_consistency)) }
+                            td.num { (fmt_opt(m.final_consistency.as_ref().and_then(|c| c.psnr), 2)) }
+                            td.num { (fmt_opt(pres.and_then(|p| p.psnr), 2)) }
+                            td.num { (fmt_opt(pres.and_then(|p| p.ssim), 4)) }
+                            td.num { (fmt_opt(m.clip.as_ref().map(|c| c.directional), 4)) }
+                        }
+                    }
+                }
+            }
         }
-        if runs.is_empty() {
-            return;
-        }
-        self.push(
-            "<h2>Comparison</h2><table><tr><th>run</th><th>guidance error</th><th>final error</th>\
-             <th>final PSNR</th><th>PSNR outside</th><th>SSIM outside</th><th>CLIP dir.</th></tr>\n",
-        );
-        for r in runs {
-            let m = &r.metrics;
-            let name = match &r.report {
-                Some(p) => format!(
-                    "<a href=\"{}\">{}</a>",
-                    href(self.dir, p),
-                    escape_html(&r.name)
-                ),
-                None => escape_html(&r.name),
-            };
-            let err = |c: &Option<ConsistencySummary>| {
-                fmt_opt(c.as_ref().and_then(|c| c.mean_abs_error), 4)
-            };
-            let pres = m
-                .preservation_outside_mask
-                .as_ref()
-                .or(m.preservation_whole.as_ref());
-            let _ = writeln!(
-                self.out,
-                "<tr><td>{name}</td><td class=\"num\">{}</td><td class=\"num\">{}</td><td class=\"num\">{}</td>\
-                 <td class=\"num\">{}</td><td class=\"num\">{}</td><td class=\"num\">{}</td></tr>",
-                err(&m.guidance_consistency),
-                err(&m.final_consistency),
-                fmt_opt(m.final_consistency.as_ref().and_then(|c| c.psnr), 2),
-                fmt_opt(pres.and_then(|p| p.psnr), 2),
-                fmt_opt(pres.and_then(|p| p.ssim), 4),
-                fmt_opt(m.clip.as_ref().map(|c| c.directional), 4),
-            );
-        }
-        self.push("</table>\n");
     }
 
-    fn timings(&mut self, timings: &[StageTiming]) {
+    fn timings(&self, timings: &[StageTiming]) -> Markup {
         if timings.is_empty() {
-            return;
+            return html! {};
         }
         let total: f64 = timings.iter().map(|t| t.seconds.max(0.0)).sum();
         let max = timings
@@ -650,44 +520,119 @@ impl Writer<'_> {
             .map(|t| t.seconds)
             .fold(0.0f64, f64::max)
             .max(1e-9);
-        self.push("<h2>Timings</h2><table><tr><th>stage</th><th>time</th><th></th></tr>\n");
-        for t in timings {
-            let width = (200.0 * t.seconds.max(0.0) / max).round() as u32;
-            let _ = writeln!(
-                self.out,
-                "<tr><td>{}</td><td class=\"num\">{}</td><td><div class=\"bar\" style=\"width:{width}px\"></div></td></tr>",
-                escape_html(&t.stage),
-                fmt_seconds(t.seconds)
-            );
+        html! {
+            h2 { "Timings" }
+            table {
+                tr { th { "stage" } th { "time" } th {} }
+                @for t in timings {
+                    @let width = (200.0 * t.seconds.max(0.0) / max).round() as u32;
+                    tr {
+                        td { (t.stage) }
+                        td.num { (fmt_seconds(t.seconds)) }
+                        td { div.bar style={ "width:" (width) "px" } {} }
+                    }
+                }
+                tr { th { "total" } th.num { (fmt_seconds(total)) } th {} }
+            }
         }
-        let _ = writeln!(
-            self.out,
-            "<tr><th>total</th><th class=\"num\">{}</th><th></th></tr></table>",
-            fmt_seconds(total)
-        );
     }
 }
 
-/// The report's HTML for output folder `dir` (which is where the referenced files are looked up).
+/// The metrics table's rows: (metric, value, detail).
+fn metric_rows(m: &MetricsSummary) -> Vec<(String, String, String)> {
+    let mut rows = Vec::new();
+    for (name, c) in [
+        ("cross-view error, source renders", &m.source_consistency),
+        (
+            "cross-view error, guidance (last iteration)",
+            &m.guidance_consistency,
+        ),
+        ("cross-view error, final renders", &m.final_consistency),
+    ] {
+        if let Some(c) = c {
+            rows.push((
+                name.to_string(),
+                format!(
+                    "{} · {} dB",
+                    fmt_opt(c.mean_abs_error, 4),
+                    fmt_opt(c.psnr, 2)
+                ),
+                format!(
+                    "{} pairs, {:.0} % co-visible",
+                    c.pairs,
+                    100.0 * c.covisible_fraction
+                ),
+            ));
+        }
+    }
+    for (name, p) in [
+        (
+            "preservation outside the mask",
+            &m.preservation_outside_mask,
+        ),
+        ("preservation, whole image", &m.preservation_whole),
+    ] {
+        if let Some(p) = p {
+            rows.push((
+                name.to_string(),
+                format!(
+                    "PSNR {} dB · SSIM {}",
+                    fmt_opt(p.psnr, 2),
+                    fmt_opt(p.ssim, 4)
+                ),
+                format!("{:.0} % of pixels, {} views", 100.0 * p.fraction, p.views),
+            ));
+        }
+    }
+    if let Some(c) = &m.clip {
+        rows.push((
+            "CLIP directional similarity".to_string(),
+            format!("{:.4}", c.directional),
+            format!(
+                "image similarity {:.4}, edited↔target text {:.4}",
+                c.image_similarity, c.target_text_similarity
+            ),
+        ));
+    }
+    for (k, v) in &m.extra {
+        rows.push((k.clone(), fmt_opt(Some(*v), 4), String::new()));
+    }
+    rows
+}
+
+/// The report's HTML for output folder `dir` (which is where the referenced files are looked up). All text
+/// from the data is escaped by the template.
 pub fn render_html(dir: &Path, data: &ReportData, options: &ReportOptions) -> String {
-    let mut w = Writer {
-        dir,
-        opts: options,
-        out: String::new(),
+    let page = Page { dir, opts: options };
+    let title = if data.title.is_empty() {
+        "vcedit run"
+    } else {
+        &data.title
     };
-    w.header(data);
-    w.turntable(&data.turntable);
-    w.before_after(&data.views);
-    w.metrics(&data.metrics, &data.runs);
-    w.iterations(&data.iterations);
-    w.attention(&data.attention, &data.masks);
-    w.timings(&data.timings);
-    w.settings(&data.settings);
-    w.push(&format!(
-        "<p class=\"muted\">Written by vcedit {}.</p>\n<script>{BROKEN_IMAGE_CHECK}</script>\n</body></html>\n",
-        env!("CARGO_PKG_VERSION")
-    ));
-    w.out
+    html! {
+        (DOCTYPE)
+        html lang="en" {
+            head {
+                meta charset="utf-8";
+                meta name="viewport" content="width=device-width, initial-scale=1";
+                title { (title) }
+                style { (PreEscaped(CSS)) }
+            }
+            body {
+                (page.header(data, title))
+                (page.turntable(&data.turntable))
+                (page.before_after(&data.views))
+                (page.metrics(&data.metrics, &data.runs))
+                (page.iterations(&data.iterations))
+                (page.attention(&data.attention, &data.masks))
+                (page.timings(&data.timings))
+                (page.settings(&data.settings))
+                p.muted { "Written by vcedit " (env!("CARGO_PKG_VERSION")) "." }
+                script { (PreEscaped(BROKEN_IMAGE_CHECK)) }
+            }
+        }
+    }
+    .into_string()
 }
 
 /// Writes `dir/report.html` atomically and returns its path.
@@ -711,9 +656,19 @@ mod tests {
 
     #[test]
     fn escaping_covers_markup_and_quotes() {
+        let data = ReportData {
+            title: r#"<script>alert("x")</script> & 'y'"#.into(),
+            ..Default::default()
+        };
+        let html = render_html(Path::new("/nonexistent"), &data, &ReportOptions::default());
+        // Every attribute is double-quoted, so an apostrophe cannot end one and stays as it is.
+        assert!(
+            html.contains("<h1>&lt;script&gt;alert(&quot;x&quot;)&lt;/script&gt; &amp; 'y'</h1>")
+        );
         assert_eq!(
-            escape_html(r#"<script>alert("x")</script> & 'y'"#),
-            "&lt;script&gt;alert(&quot;x&quot;)&lt;/script&gt; &amp; &#39;y&#39;"
+            html.matches("<script").count(),
+            1,
+            "only the page's own script"
         );
     }
 
@@ -776,7 +731,7 @@ mod tests {
         let html = render_html(Path::new("/nonexistent"), &data, &ReportOptions::default());
         assert!(!html.contains("<img src=x"), "unescaped user text");
         assert!(!html.contains("onerror=alert(1)>\""));
-        assert!(html.contains("&lt;img src=x onerror=alert(1)&gt;&quot;&#39;&amp;"));
+        assert!(html.contains("&lt;img src=x onerror=alert(1)&gt;&quot;'&amp;"));
     }
 
     #[test]

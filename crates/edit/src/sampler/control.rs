@@ -18,7 +18,7 @@ use std::collections::HashMap;
 use candle_core::{DType, Device, IndexOp, Result, Tensor, D};
 use diffusion::unet::{AttentionHook, AttnCall, AttnKind};
 
-use crate::align::TokenAlignment;
+use super::align::TokenAlignment;
 
 /// Which attention maps count as "small" for CCM recording (query length ≤ this); the reference's 32².
 pub const DEFAULT_STORE_MAX_TOKENS: usize = 32 * 32;

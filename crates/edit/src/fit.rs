@@ -1,28 +1,27 @@
-//! Fitting Gaussians to edited images: the editing loop's per-iteration fit and ECM's "mini-GS" fits.
+//! Fitting Gaussians to edited images: the image loss of every fit and the editing loop's per-iteration fit
+//! ([`EditTrainer`]). ECM's "mini-GS" fits start from the trainer's state with the same loss
+//! (`consistency::ecm`).
 //!
-//! Losses (algorithm.md §0, §1.3): 10·L1 + 10·LPIPS-VGG with user-supplied VGG weights; without them
+//! Losses (docs/algorithm.md §0, §1.3): 10·L1 + 10·LPIPS-VGG with user-supplied VGG weights; without them
 //! 10·L1 + 2.5·D-SSIM, the INRIA trainer's L1 : D-SSIM ratio (0.8 : 0.2) scaled to the same L1 weight. The
 //! editing fit adds the HGS anchor loss (VcEdit's weights) and GaussianEditor's mask-restricted
-//! densification; ECM fits start from a copy of the editing state (optimiser moments and current rates
-//! included), run 6 epochs over the views with the rates halved every 2 epochs, without densification or
-//! anchors.
+//! densification.
 
 use std::path::Path;
 
 use rand::seq::SliceRandom;
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
-use serde::{Deserialize, Serialize};
+use serde::Serialize;
 use splat::anchor::{Anchor, AnchorConfig};
 use splat::densify::EditStrategy;
 use splat::loss;
-use splat::optim::{Group, LearningRates};
+use splat::optim::LearningRates;
 use splat::render::{render, render_backward, OutputGrads, RenderSettings};
 use splat::train::TrainState;
 use splat::{Camera, GaussianScene, Image};
 
-use crate::lpips::{Lpips, TargetCache};
-use crate::multiview::SceneFitter;
+use crate::eval::lpips::{Lpips, LpipsError, TargetCache};
 
 #[derive(Debug, thiserror::Error)]
 pub enum TrainError {
@@ -34,7 +33,7 @@ pub enum TrainError {
         msg: String,
     },
     #[error(transparent)]
-    Lpips(#[from] crate::lpips::LpipsError),
+    Lpips(#[from] LpipsError),
 }
 
 /// The image loss of every fit.
@@ -112,31 +111,6 @@ impl ImageLoss {
     }
 }
 
-/// Which Gaussians ECM's fits may move.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "kebab-case")]
-pub enum EcmScope {
-    /// Only the editable (masked) Gaussians: the paper's intent, and the safer reading (default).
-    Masked,
-    /// Every Gaussian: what the reference most likely does (its gradient hooks are lost in the deep copy).
-    All,
-}
-
-/// Which attributes ECM's fits may change.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "kebab-case")]
-pub enum EcmParams {
-    /// Colours (all SH coefficients) and opacities; positions, scales and rotations stay (default). ECM is
-    /// there to reconcile the views' appearance. With the reference's 96 views the geometry is pinned by
-    /// many cameras, but with the 16-24 views a CPU run affords, 576 Adam steps on positions and scales
-    /// fit the views' disagreements with geometry: the demo's striped vase grew floaters above it, which
-    /// the guidance then taught the main fit (preservation 24 dB; 43 dB with geometry fixed, guidance
-    /// cross-view error 0.038 → 0.048 on the object, oracle colour fidelity lost → 1.0).
-    Appearance,
-    /// All six attribute groups, as the reference does.
-    All,
-}
-
 /// Knobs of the editing fit.
 #[derive(Clone, Debug, Serialize)]
 pub struct TrainSettings {
@@ -146,18 +120,6 @@ pub struct TrainSettings {
     pub anchor: bool,
     #[serde(skip)]
     pub strategy: EditStrategy,
-    /// ECM: epochs over the views, and the epochs after which the rates halve.
-    pub ecm_epochs: usize,
-    pub ecm_halve_every: usize,
-    /// ECM: fewest Adam steps per fit. The reference's 6 epochs assume its 96 views (576 steps); with fewer
-    /// views the same epochs are too few steps for the copy to take on the predicted colours at these
-    /// rates (16 views: 96 steps move a colour by at most ~0.2), and ECM then pulls every prediction
-    /// back to the source. So epochs grow to reach this many steps, with the halvings stretched alike.
-    pub ecm_min_steps: usize,
-    /// ECM: the attributes its fits change.
-    pub ecm_params: EcmParams,
-    /// Background of the fits' renders (the reference uses black).
-    pub background: [f32; 3],
 }
 
 impl TrainSettings {
@@ -172,21 +134,7 @@ impl TrainSettings {
                 max_grad: 5.0 / 65536.0,
                 ..EditStrategy::default()
             },
-            ecm_epochs: 6,
-            ecm_halve_every: 2,
-            ecm_min_steps: 6 * 96,
-            ecm_params: EcmParams::Appearance,
-            background: [0.0; 3],
         }
-    }
-
-    /// ECM's (epochs, epochs between rate halvings) for `views` views: the configured epochs, or more to
-    /// reach [`Self::ecm_min_steps`], the halvings scaled by the same factor.
-    pub fn ecm_schedule(&self, views: usize) -> (usize, usize) {
-        let base = self.ecm_epochs.max(1);
-        let epochs = base.max(self.ecm_min_steps.div_ceil(views.max(1)));
-        let halve_every = (self.ecm_halve_every.max(1) * epochs).div_ceil(base).max(1);
-        (epochs, halve_every)
     }
 }
 
@@ -195,13 +143,13 @@ impl TrainSettings {
 pub const LPIPS_CACHE_BYTES: usize = 1_500_000_000;
 
 /// The target images of a fit with their cached loss precomputations.
-struct Targets<'a> {
+pub(crate) struct Targets<'a> {
     images: &'a [Image],
     cache: TargetCache,
 }
 
 impl<'a> Targets<'a> {
-    fn new(images: &'a [Image]) -> Self {
+    pub(crate) fn new(images: &'a [Image]) -> Self {
         Self {
             images,
             cache: TargetCache::new(LPIPS_CACHE_BYTES),
@@ -210,7 +158,7 @@ impl<'a> Targets<'a> {
 }
 
 /// Renders view `v`, evaluates the loss against its target and back-propagates into scene gradients.
-fn loss_and_grads(
+pub(crate) fn loss_and_grads(
     scene: &GaussianScene,
     cam: &Camera,
     v: usize,
@@ -237,7 +185,7 @@ fn loss_and_grads(
     Ok((value, grads, out.radii.clone()))
 }
 
-fn check_targets(cameras: &[Camera], targets: &[Image]) -> Result<(), TrainError> {
+pub(crate) fn check_targets(cameras: &[Camera], targets: &[Image]) -> Result<(), TrainError> {
     if cameras.len() != targets.len() || cameras.is_empty() {
         return Err(TrainError::Input(format!(
             "{} targets for {} cameras",
@@ -262,6 +210,8 @@ pub struct EditTrainer {
     pub settings: TrainSettings,
     /// Steps taken over the whole edit (GaussianEditor's global step).
     pub global_step: u64,
+    /// Background of the renders fitted (the targets' background).
+    pub background: [f32; 3],
 }
 
 impl EditTrainer {
@@ -270,6 +220,7 @@ impl EditTrainer {
         mask: Option<Vec<bool>>,
         settings: TrainSettings,
         extent: f32,
+        background: [f32; 3],
     ) -> Self {
         let mut state = TrainState::new(
             scene.clone(),
@@ -277,8 +228,8 @@ impl EditTrainer {
             extent,
         );
         state.trainable = mask;
-        // GaussianEditor leaves rotations of frozen Gaussians unhooked (algorithm.md §3.3), so they drift
-        // outside the mask; an edit must not touch what the user excluded, so we freeze them too.
+        // GaussianEditor leaves rotations of frozen Gaussians unhooked (docs/algorithm.md §3.3), so they
+        // drift outside the mask; an edit must not touch what the user excluded, so we freeze them too.
         state.adam.mask_rotation = true;
         if settings.anchor {
             state.anchor = Some(Anchor::new(scene, AnchorConfig::vcedit()));
@@ -287,6 +238,7 @@ impl EditTrainer {
             state,
             settings,
             global_step: 0,
+            background,
         }
     }
 
@@ -322,7 +274,7 @@ impl EditTrainer {
                 v,
                 &mut prepared,
                 loss,
-                self.settings.background,
+                self.background,
             )?;
             if let Some(anchor) = &self.state.anchor {
                 anchor.loss(
@@ -370,6 +322,7 @@ impl EditTrainer {
         scene: &GaussianScene,
         settings: TrainSettings,
         extent: f32,
+        background: [f32; 3],
     ) -> Result<Self, TrainError> {
         let bytes = std::fs::read(path).map_err(|e| TrainError::State {
             path: path.into(),
@@ -385,92 +338,7 @@ impl EditTrainer {
             state,
             settings,
             global_step,
+            background,
         })
-    }
-}
-
-/// ECM's mini-GS fitter: fresh copies of the editing state fitted to each set of predictions.
-pub struct EcmFitter<'a> {
-    base: &'a TrainState,
-    loss: &'a ImageLoss,
-    scope: EcmScope,
-    settings: &'a TrainSettings,
-}
-
-impl<'a> EcmFitter<'a> {
-    pub fn new(trainer: &'a EditTrainer, loss: &'a ImageLoss, scope: EcmScope) -> Self {
-        Self {
-            base: &trainer.state,
-            loss,
-            scope,
-            settings: &trainer.settings,
-        }
-    }
-}
-
-impl SceneFitter for EcmFitter<'_> {
-    fn fit(
-        &self,
-        scene: &GaussianScene,
-        cameras: &[Camera],
-        images: &[Image],
-        seed: u64,
-    ) -> Result<GaussianScene, String> {
-        check_targets(cameras, images).map_err(|e| e.to_string())?;
-        if scene.len() != self.base.len() {
-            return Err("ECM scene differs from the editing state".into());
-        }
-        // A deep copy of the editing state: same optimiser moments and current rates (the reference's
-        // deep-copied optimizer), no densification, no anchor loss.
-        let mut state = self.base.clone();
-        state.scene.clone_from(scene);
-        state.anchor = None;
-        if self.scope == EcmScope::All {
-            state.trainable = None;
-        }
-        let mut prepared = Targets::new(images);
-        let mut rng = ChaCha8Rng::seed_from_u64(seed);
-        if self.settings.ecm_params == EcmParams::Appearance {
-            for g in [Group::Means, Group::LogScales, Group::Quats] {
-                state.adam.group_lr_scale[g.index()] = 0.0;
-            }
-        }
-        let base_scale = state.adam.lr_scale;
-        let (epochs, halve_every) = self.settings.ecm_schedule(cameras.len());
-        for epoch in 0..epochs {
-            // StepLR(step_size = 2 epochs, γ = 0.5), stretched with the epochs.
-            state.adam.lr_scale = base_scale * 0.5f32.powi((epoch / halve_every) as i32);
-            let mut order: Vec<usize> = (0..cameras.len()).collect();
-            order.shuffle(&mut rng);
-            for v in order {
-                let (_, grads, _) = loss_and_grads(
-                    &state.scene,
-                    &cameras[v],
-                    v,
-                    &mut prepared,
-                    self.loss,
-                    self.settings.background,
-                )
-                .map_err(|e| e.to_string())?;
-                state.step(&grads);
-            }
-        }
-        Ok(state.scene)
-    }
-}
-
-#[cfg(test)]
-mod tests {
-    use super::TrainSettings;
-
-    #[test]
-    fn ecm_schedule_keeps_the_reference_at_96_views_and_stretches_below() {
-        let s = TrainSettings::new(100);
-        // The reference: 6 epochs, rates halved every 2.
-        assert_eq!(s.ecm_schedule(96), (6, 2));
-        assert_eq!(s.ecm_schedule(200), (6, 2));
-        // 16 views: 36 epochs (576 steps), halved every 12 — the same shape, stretched.
-        assert_eq!(s.ecm_schedule(16), (36, 12));
-        assert_eq!(s.ecm_schedule(0), (576, 192));
     }
 }

@@ -1,4 +1,5 @@
-//! 2D → 3D → 2D: the operation both VcEdit consistency modules of attention maps rest on.
+//! 2D → 3D → 2D: the operation CCM and blend-map consistency rest on (docs/algorithm.md §3.1), and the
+//! resampling of maps between their native grid and the render resolution.
 //!
 //! Per-view maps (any number of channels) are lifted onto the Gaussians (GaussianEditor's `apply_weights`:
 //! each Gaussian gets the average of the map over the pixels it is hit at, over all views), then rendered
@@ -32,7 +33,7 @@ pub fn resample(
         return src.to_vec();
     }
     match mode {
-        Resample::Bilinear => crate::viz::bilinear(src, h, w, out_h, out_w, channels),
+        Resample::Bilinear => bilinear(src, h, w, out_h, out_w, channels),
         Resample::Nearest => {
             let mut out = vec![0.0; out_h * out_w * channels];
             for oy in 0..out_h {
@@ -48,6 +49,40 @@ pub fn resample(
             out
         }
     }
+}
+
+/// Bilinear resampling of a row-major, channel-interleaved map (align_corners = false, edge-clamped, as
+/// torch's `interpolate(mode="bilinear")` when upsampling).
+pub fn bilinear(
+    src: &[f32],
+    h: usize,
+    w: usize,
+    out_h: usize,
+    out_w: usize,
+    channels: usize,
+) -> Vec<f32> {
+    let mut out = vec![0.0f32; out_h * out_w * channels];
+    let sy = h as f32 / out_h as f32;
+    let sx = w as f32 / out_w as f32;
+    for oy in 0..out_h {
+        let fy = ((oy as f32 + 0.5) * sy - 0.5).max(0.0);
+        let y0 = (fy as usize).min(h - 1);
+        let y1 = (y0 + 1).min(h - 1);
+        let ty = fy - y0 as f32;
+        for ox in 0..out_w {
+            let fx = ((ox as f32 + 0.5) * sx - 0.5).max(0.0);
+            let x0 = (fx as usize).min(w - 1);
+            let x1 = (x0 + 1).min(w - 1);
+            let tx = fx - x0 as f32;
+            for c in 0..channels {
+                let at = |y: usize, x: usize| src[(y * w + x) * channels + c];
+                let top = at(y0, x0) * (1.0 - tx) + at(y0, x1) * tx;
+                let bot = at(y1, x0) * (1.0 - tx) + at(y1, x1) * tx;
+                out[(oy * out_w + ox) * channels + c] = top * (1.0 - ty) + bot * ty;
+            }
+        }
+    }
+    out
 }
 
 /// Lifts per-view maps onto the Gaussians and renders them back.
@@ -104,6 +139,13 @@ mod tests {
         assert_eq!(out, vec![0.0, 1.0]);
         let up = resample(&[0.0, 1.0], 1, 2, 1, 4, 1, Resample::Nearest);
         assert_eq!(up, vec![0.0, 0.0, 1.0, 1.0]);
+    }
+
+    #[test]
+    fn bilinear_matches_torch_on_a_ramp() {
+        // torch: F.interpolate(tensor([[[[0., 1.]]]]), size=(1, 4), mode="bilinear") = [0, .25, .75, 1]
+        let out = bilinear(&[0.0, 1.0], 1, 2, 1, 4, 1);
+        assert_eq!(out, vec![0.0, 0.25, 0.75, 1.0]);
     }
 }
 
@@ -183,7 +225,7 @@ mod consistency_tests {
                 .collect(),
             (0..npx).map(|p| ((p * 7919) % 13) as f32 / 12.0).collect(),
         ];
-        let mut back = vec![Vec::new(), Vec::new()];
+        let mut back = [Vec::new(), Vec::new()];
         make_consistent(
             &scene,
             &cams,

@@ -1,5 +1,6 @@
-//! Everything a finished edit writes besides the per-iteration guidance: the edited scene, before/after
-//! renders, mask images, a turntable GIF, metrics, `run.json` and `report.html`.
+//! The files an edit writes: per iteration the source renders, the guidance images and (first iteration)
+//! the per-word attention maps; at the end the edited scene, before/after renders, mask images, a
+//! turntable GIF, metrics, `run.json` and `report.html`.
 
 use std::path::{Path, PathBuf};
 
@@ -7,13 +8,17 @@ use serde::Serialize;
 use splat::render::{render, RenderOutput, RenderSettings};
 use splat::{Camera, GaussianScene, Image};
 
-use crate::gif::{write_gif, GifOptions};
-use crate::metrics::{self, ConsistencySettings, MetricsError};
-use crate::pipeline::{guidance_path, render_mask, EditJob, EditResult, PipelineError, Progress};
-use crate::report::{
+use crate::eval::metrics::{self, MetricsError, WarpSettings};
+use crate::present::gif::{write_gif, GifOptions};
+use crate::present::report::{
     self, IterationInfo, MetricsSummary, ReportData, ReportOptions, StageTiming, ViewPair,
     WordImage,
 };
+use crate::present::viz;
+use crate::sampler::{EditPlan, ViewState};
+
+use super::job::{io_err, EditJob, EditResult, IterationTimes, Progress, RunError};
+use super::masks::render_mask;
 
 /// Where the main outputs went.
 pub struct Written {
@@ -31,15 +36,83 @@ pub struct RunInputs<'a> {
     pub notes: Vec<String>,
 }
 
-fn io_err(path: &Path, e: impl std::fmt::Display) -> PipelineError {
-    PipelineError::Io {
-        path: path.to_path_buf(),
-        msg: e.to_string(),
-    }
+fn metrics_err(e: MetricsError) -> RunError {
+    RunError::Input(e.to_string())
 }
 
-fn metrics_err(e: MetricsError) -> PipelineError {
-    PipelineError::Input(e.to_string())
+/// Path of a guidance image.
+fn guidance_path(out: &Path, iteration: usize, view: usize) -> PathBuf {
+    out.join(format!("iter_{iteration}"))
+        .join("guidance")
+        .join(format!("view_{view:03}.png"))
+}
+
+/// Path of a source render (what the iteration edited).
+fn source_path(out: &Path, iteration: usize, view: usize) -> PathBuf {
+    out.join(format!("iter_{iteration}"))
+        .join("source")
+        .join(format!("view_{view:03}.png"))
+}
+
+/// Writes one iteration's source renders and guidance images.
+pub(super) fn write_iteration(
+    out: &Path,
+    iteration: usize,
+    sources: &[Image],
+    guidance: &[Image],
+) -> Result<(), RunError> {
+    for (v, (source, img)) in sources.iter().zip(guidance).enumerate() {
+        let p = guidance_path(out, iteration, v);
+        img.save_png(&p).map_err(|e| io_err(&p, e))?;
+        let p = source_path(out, iteration, v);
+        source.save_png(&p).map_err(|e| io_err(&p, e))?;
+    }
+    Ok(())
+}
+
+/// The guidance images of the first `iterations` iterations, read back (a resumed run reports them too).
+pub(super) fn read_guidance(
+    out: &Path,
+    iterations: usize,
+    views: usize,
+) -> Result<Vec<Vec<Image>>, RunError> {
+    (0..iterations)
+        .map(|k| {
+            (0..views)
+                .map(|v| {
+                    let p = guidance_path(out, k, v);
+                    Image::load(&p).map_err(|e| io_err(&p, e))
+                })
+                .collect()
+        })
+        .collect()
+}
+
+/// Writes the per-word attention heat maps of `view` (edited with `plan`) at `size` (width, height) under
+/// `out/attention/`; returns (word, file name) per word.
+pub(super) fn write_word_maps(
+    out: &Path,
+    plan: &EditPlan,
+    view: &ViewState,
+    size: (u32, u32),
+) -> Result<Vec<(String, String)>, RunError> {
+    let (w, h) = size;
+    let maps = viz::word_maps(
+        view.controller.blend_store(),
+        plan.blend_size,
+        &plan.target_tokens,
+        (h as usize, w as usize),
+    )?;
+    let mut listing = Vec::with_capacity(maps.len());
+    for (i, m) in maps.iter().enumerate() {
+        let file = format!("attn_{i:02}_{}.png", viz::file_safe(&m.word));
+        let p = out.join("attention").join(&file);
+        viz::heat_image(&m.map, w, h)
+            .save_png(&p)
+            .map_err(|e| io_err(&p, e))?;
+        listing.push((m.word.clone(), file));
+    }
+    Ok(listing)
 }
 
 fn rel(out: &Path, p: &Path) -> PathBuf {
@@ -69,7 +142,7 @@ pub fn write_outputs(
     cameras: &[Camera],
     result: &EditResult,
     progress: &mut dyn Progress,
-) -> Result<Written, PipelineError> {
+) -> Result<Written, RunError> {
     let cams: Vec<Camera> = result.views.iter().map(|&i| cameras[i].clone()).collect();
     let settings = RenderSettings {
         background: job.background,
@@ -109,7 +182,7 @@ pub fn write_outputs(
         for (v, c) in cams.iter().enumerate() {
             let m = render_mask(source, mask, c);
             let p = out.join("mask").join(format!("view_{v:03}.png"));
-            crate::viz::mask_image(&m, c.width, c.height)
+            viz::mask_image(&m, c.width, c.height)
                 .save_png(&p)
                 .map_err(|e| io_err(&p, e))?;
             mask_paths.push(rel(out, &p));
@@ -148,7 +221,7 @@ pub fn write_outputs(
     };
 
     // Metrics.
-    let cs = ConsistencySettings::default();
+    let cs = WarpSettings::default();
     let source_consistency = metrics::render_consistency(&cams, &before, &cs)
         .map_err(metrics_err)?
         .summary;
@@ -190,16 +263,11 @@ pub fn write_outputs(
                 .collect(),
             renders: Vec::new(),
             guidance_consistency: result.guidance_consistency.get(k).cloned().flatten(),
-            seconds: result.times.get(k).map(|t| {
-                let s = &t.sampler;
-                t.render + s.encode + s.ccm + s.unet + s.ecm + s.blend + s.decode + t.fit
-            }),
+            seconds: result.times.get(k).map(IterationTimes::total),
         })
         .collect();
     let mut timings = Vec::new();
-    let sum = |f: &dyn Fn(&crate::pipeline::IterationTimes) -> f64| {
-        result.times.iter().map(f).sum::<f64>()
-    };
+    let sum = |f: &dyn Fn(&IterationTimes) -> f64| result.times.iter().map(f).sum::<f64>();
     for (name, v) in [
         ("render", sum(&|t| t.render)),
         ("encode", sum(&|t| t.sampler.encode)),
@@ -262,7 +330,7 @@ pub fn write_outputs(
         loss: &'a str,
         metrics: &'a MetricsSummary,
         timings: &'a [StageTiming],
-        iterations: &'a [crate::pipeline::IterationTimes],
+        iterations: &'a [IterationTimes],
     }
     let run = RunJson {
         vcedit_version: env!("CARGO_PKG_VERSION"),

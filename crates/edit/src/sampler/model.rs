@@ -1,5 +1,6 @@
 //! The diffusion model an edit runs on: tokenizer, text encoder, UNet, latent codec and noise schedule,
-//! loaded from a user-given folder (diffusers layout or a hub-cache snapshot), optionally with TAESD as codec.
+//! loaded from a user-given folder (diffusers layout or a hub-cache snapshot), optionally with TAESD as codec;
+//! and the codecs' image convention (RGB images ↔ `[B, 3, H, W]` tensors).
 
 use std::path::{Path, PathBuf};
 
@@ -10,8 +11,9 @@ use diffusion::scheduler::LcmConfig;
 use diffusion::tokenizer::ClipTokenizer;
 use diffusion::unet::UNet2DConditionModel;
 use diffusion::vae::Autoencoder;
+use splat::Image;
 
-use crate::noise::NoiseSource;
+use super::noise::NoiseSource;
 
 #[derive(Debug, thiserror::Error)]
 pub enum ModelError {
@@ -151,7 +153,37 @@ impl EditModel {
     }
 
     /// [`Self::decode_unit`] as RGB images.
-    pub fn decode_images(&self, latents: &Tensor) -> candle_core::Result<Vec<splat::Image>> {
-        crate::viz::tensor_to_images(&self.decode_unit(latents)?)
+    pub fn decode_images(&self, latents: &Tensor) -> candle_core::Result<Vec<Image>> {
+        tensor_to_images(&self.decode_unit(latents)?)
     }
+}
+
+/// An RGB image as a `[1, 3, H, W]` tensor in [-1, 1] (the codecs' input range).
+pub fn image_to_tensor(img: &Image) -> candle_core::Result<Tensor> {
+    assert_eq!(img.channels, 3, "image_to_tensor needs RGB");
+    let (w, h) = (img.width as usize, img.height as usize);
+    let hwc = Tensor::from_vec(img.data.clone(), (h, w, 3), &Device::Cpu)?;
+    hwc.permute((2, 0, 1))?
+        .unsqueeze(0)?
+        .affine(2.0, -1.0)?
+        .contiguous()
+}
+
+/// Images `[B, 3, H, W]` in [0, 1] as RGB images.
+pub fn tensor_to_images(t: &Tensor) -> candle_core::Result<Vec<Image>> {
+    let (b, c, h, w) = t.dims4()?;
+    let hwc = t
+        .to_dtype(DType::F32)?
+        .permute((0, 2, 3, 1))?
+        .contiguous()?;
+    (0..b)
+        .map(|i| {
+            Ok(Image::from_data(
+                w as u32,
+                h as u32,
+                c as u32,
+                hwc.get(i)?.flatten_all()?.to_vec1()?,
+            ))
+        })
+        .collect()
 }

@@ -5,7 +5,7 @@
 //! predictions and the view's attention controller). The single-image sampler ([`edit_image`]) and VcEdit's
 //! multi-view sampler both drive these two types, step by step, so the per-step state is always explicit.
 //!
-//! Equations (algorithm.md §2.3, with ᾱ_t and ᾱ_prev of the current and next timestep):
+//! Equations (docs/algorithm.md §2.3, with ᾱ_t and ᾱ_prev of the current and next timestep):
 //! ε_c = (z_S − √ᾱ_t x0)/√(1−ᾱ_t);  x̂0_B = x0 + [(z_B − z_S) − √(1−ᾱ_t)(ε_B − ε_S)]/√ᾱ_t;
 //! σ² = η(1−ᾱ_prev);  dir = √(1−ᾱ_prev−σ²)(ε_B − ε_S + ε_c);
 //! z_B ← √ᾱ_prev x̂0_B + dir + σ n;  z_S ← √ᾱ_prev x0 + dir + σ n   (the same n for every branch).
@@ -13,11 +13,11 @@
 use candle_core::{DType, Device, Tensor};
 use diffusion::scheduler::{LcmScheduler, LcmVariant};
 
-use crate::align::{align_prompts, AlignError, AlignInputs, TokenAlignment};
-use crate::blend::{apply_local_blend, blend_maps, blend_masks, BlendThresholds};
-use crate::control::{ControlSettings, EditController, DEFAULT_STORE_MAX_TOKENS};
-use crate::model::EditModel;
-use crate::noise::NoiseSource;
+use super::align::{align_prompts, AlignError, AlignInputs, TokenAlignment};
+use super::control::{ControlSettings, EditController, DEFAULT_STORE_MAX_TOKENS};
+use super::local_blend::{apply_local_blend, blend_maps, blend_masks, BlendThresholds};
+use super::model::EditModel;
+use super::noise::NoiseSource;
 
 /// InfEdit's knobs; defaults are the reference app's (15 LCM steps, guidance 1/2, cross 0.7, self 0.3,
 /// thresholds 0.6/0.6, η = 1, pure-noise start).

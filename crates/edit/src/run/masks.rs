@@ -9,11 +9,11 @@ use std::path::Path;
 use candle_core::{DType, Device, Tensor};
 use diffusion::unet::{AttentionHook, AttnCall, AttnKind};
 use splat::lift::LiftAccumulator;
+use splat::render::{render, ExtraChannels, RenderSettings};
 use splat::{Camera, GaussianScene, Image};
 
-use crate::model::EditModel;
-use crate::noise::NoiseSource;
-use crate::viz;
+use crate::present::viz::resize_map;
+use crate::sampler::{image_to_tensor, EditModel, NoiseSource};
 
 #[derive(Debug, thiserror::Error)]
 pub enum MaskError {
@@ -122,6 +122,21 @@ pub fn load_mask_images(dir: &Path, cameras: &[Camera]) -> Result<Vec<Vec<f32>>,
     Ok(out)
 }
 
+/// The editable mask rendered from a camera (1 where editable Gaussians cover the pixel).
+pub fn render_mask(scene: &GaussianScene, mask: &[bool], camera: &Camera) -> Vec<f32> {
+    let values: Vec<f32> = mask.iter().map(|&m| if m { 1.0 } else { 0.0 }).collect();
+    let out = render(
+        scene,
+        camera,
+        &RenderSettings::default(),
+        Some(ExtraChannels {
+            values: &values,
+            channels: 1,
+        }),
+    );
+    out.extra
+}
+
 /// Records the conditional cross-attention maps of the layers of one spatial size.
 struct WordAttention {
     size: (usize, usize),
@@ -192,7 +207,7 @@ pub fn word_attention_maps(
         .map_err(|e| MaskError::Invalid(e.to_string()))?;
     let mut maps = Vec::with_capacity(images.len());
     for img in images {
-        let x0 = model.encode(&viz::image_to_tensor(img)?, noise)?;
+        let x0 = model.encode(&image_to_tensor(img)?, noise)?;
         let n = noise.sample(x0.dims())?;
         let zt = x0
             .affine(alpha.sqrt(), 0.0)?
@@ -213,7 +228,7 @@ pub fn word_attention_maps(
             .index_select(&Tensor::new(positions.as_slice(), &Device::Cpu)?, 1)?
             .max(1)?;
         let m = sel.reshape(blend_size)?;
-        let up = viz::resize_map(&m, img.height as usize, img.width as usize)?;
+        let up = resize_map(&m, img.height as usize, img.width as usize)?;
         let max = up.iter().copied().fold(0.0f32, f32::max);
         maps.push(
             up.into_iter()

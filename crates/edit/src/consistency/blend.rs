@@ -1,0 +1,56 @@
+//! Blend-map consistency (docs/algorithm.md §1.4): at every step the three local-blend maps of every view
+//! (`e`, `m`, `me`) are lifted onto the Gaussians and rendered back before the local blend, which then uses
+//! the dynamic threshold for `me` (VcEdit's variant).
+
+use candle_core::Tensor;
+
+use super::lift::{make_consistent, Resample};
+use super::{MultiView, MultiViewError};
+use crate::sampler::{blend_maps, ViewState};
+
+impl MultiView<'_> {
+    /// Blend maps of every view, made consistent when enabled, then InfEdit's local blend. Returns the maps.
+    pub(super) fn local_blend(
+        &self,
+        views: &mut [ViewState],
+        i: usize,
+    ) -> Result<Vec<Tensor>, MultiViewError> {
+        let plan = self.plan;
+        let (lh, lw) = plan.latent_size;
+        let mut maps = Vec::with_capacity(views.len());
+        for view in views.iter() {
+            maps.push(blend_maps(
+                view.controller.blend_store(),
+                plan.blend_size,
+                &plan.alignment,
+                plan.latent_size,
+                1e-6,
+            )?);
+        }
+        if self.consistency.blend_consistency {
+            let hwc = |m: &Tensor| -> candle_core::Result<Vec<f32>> {
+                m.permute((1, 2, 0))?.flatten_all()?.to_vec1()
+            };
+            let src = maps.clone();
+            make_consistent(
+                self.scene,
+                self.cameras,
+                (lh, lw),
+                3,
+                Resample::Nearest,
+                Resample::Nearest,
+                &mut |v| hwc(&src[v]),
+                &mut |v, back| {
+                    maps[v] = Tensor::from_vec(back, (lh, lw, 3), &candle_core::Device::Cpu)?
+                        .permute((2, 0, 1))?
+                        .contiguous()?;
+                    Ok(())
+                },
+            )?;
+        }
+        for (view, m) in views.iter_mut().zip(&maps) {
+            plan.blend_with_maps(view, i, m)?;
+        }
+        Ok(maps)
+    }
+}

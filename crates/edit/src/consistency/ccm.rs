@@ -1,0 +1,95 @@
+//! CCM, the cross-attention consistency module (docs/algorithm.md §1.1).
+//!
+//! At its steps (by default 6 and 13) a recording pass per view captures the conditional cross-attention
+//! maps of the small layers (after InfEdit's refinement). For each layer the maps of the real tokens
+//! (3 branches × heads × L channels) are upsampled to the render resolution, lifted onto the Gaussians over
+//! all views, rendered back, downsampled, clamped to [0, 1] and substituted in that step's real pass
+//! (padding tokens keep the recorded values; no renormalisation over tokens).
+
+use std::collections::HashMap;
+
+use candle_core::{DType, Tensor};
+
+use super::lift::{make_consistent, Resample};
+use super::{MultiView, MultiViewError};
+use crate::sampler::ViewState;
+
+impl MultiView<'_> {
+    /// CCM at step `i`: record, lift, render back, substitute.
+    pub(super) fn cross_attention_consistency(
+        &self,
+        views: &mut [ViewState],
+        i: usize,
+    ) -> Result<(), MultiViewError> {
+        let plan = self.plan;
+        let mut recorded = Vec::with_capacity(views.len());
+        for view in views.iter_mut() {
+            view.controller.start_recording();
+            plan.predict(self.model, view, i)?;
+            recorded.push(view.controller.finish_recording());
+        }
+        let layers = recorded[0].len();
+        if recorded.iter().any(|r| r.len() != layers) {
+            return Err(MultiViewError::Input(
+                "views recorded different attention layers".into(),
+            ));
+        }
+        let real = plan.alignment.target_len.max(plan.source_len);
+        let mut consistent: Vec<HashMap<String, Tensor>> = vec![HashMap::new(); views.len()];
+        for k in 0..layers {
+            let (sh, sw) = recorded[0][k].size;
+            let dims = recorded[0][k].maps.dims4()?; // [3, heads, N, tokens]
+            let (branches, heads, nq, tokens) = dims;
+            let l = real.min(tokens);
+            let channels = branches * heads * l;
+            // Per view: [N, 3*heads*L] interleaved, channel = (branch*heads + head)*L + token.
+            let as_map = |maps: &Tensor| -> candle_core::Result<Vec<f32>> {
+                maps.to_dtype(DType::F32)?
+                    .narrow(3, 0, l)?
+                    .reshape((branches * heads, nq, l))?
+                    .permute((1, 0, 2))?
+                    .flatten_all()?
+                    .to_vec1()
+            };
+            let rec = &recorded;
+            let mut backs: Vec<Option<Vec<f32>>> = vec![None; views.len()];
+            make_consistent(
+                self.scene,
+                self.cameras,
+                (sh, sw),
+                channels,
+                Resample::Bilinear,
+                Resample::Bilinear,
+                &mut |v| as_map(&rec[v][k].maps),
+                &mut |v, back| {
+                    backs[v] = Some(back);
+                    Ok(())
+                },
+            )?;
+            for (v, back) in backs.into_iter().enumerate() {
+                let back = back.expect("every view rendered");
+                let maps = &recorded[v][k].maps;
+                let lifted =
+                    Tensor::from_vec(back, (nq, branches * heads, l), &candle_core::Device::Cpu)?
+                        .permute((1, 0, 2))?
+                        .reshape((branches, heads, nq, l))?;
+                let merged = if l < tokens {
+                    Tensor::cat(
+                        &[
+                            &lifted,
+                            &maps.to_dtype(DType::F32)?.narrow(3, l, tokens - l)?,
+                        ],
+                        3,
+                    )?
+                } else {
+                    lifted
+                };
+                consistent[v].insert(recorded[v][k].layer.clone(), merged.clamp(0f32, 1f32)?);
+            }
+        }
+        for (view, maps) in views.iter_mut().zip(consistent) {
+            view.controller.set_consistent_maps(maps);
+        }
+        Ok(())
+    }
+}

@@ -1,0 +1,237 @@
+//! VcEdit's multi-view sampler: InfEdit over all views at once, with the paper's three consistency modules.
+//!
+//! One initial noise and one per-step noise are shared by every view and branch. Each step runs, in order:
+//! - **CCM**, cross-attention consistency (`ccm.rs`, docs/algorithm.md §1.1; default steps 6 and 13): the
+//!   views' cross-attention maps are lifted onto the Gaussians, rendered back and used in the step's pass;
+//! - the UNet pass and InfEdit's update of every view (docs/algorithm.md §1.2);
+//! - **ECM**, editing consistency (`ecm.rs`, §1.3; default steps 4, 9, 14): two copies of the scene are
+//!   fitted to the views' predictions and their renders replace them;
+//! - **blend-map consistency** (`blend.rs`, §1.4; every step after the first): the local-blend maps are
+//!   lifted and rendered back before the local blend.
+//!
+//! CCM and blend-map consistency rest on one operation, lifting per-view maps onto the Gaussians and
+//! rendering them back (`lift.rs`). Follows docs/algorithm.md §1 (the reference's
+//! `EditConsistPipeline.__call__`).
+
+mod blend;
+mod ccm;
+mod ecm;
+mod lift;
+
+pub use ecm::{EcmFitter, EcmParams, EcmScope, EcmSettings, SceneFitter};
+pub use lift::{make_consistent, Resample};
+
+pub(crate) use lift::bilinear;
+
+use std::time::{Duration, Instant};
+
+use candle_core::Tensor;
+use serde::{Deserialize, Serialize};
+use splat::{Camera, GaussianScene, Image};
+
+use crate::sampler::{image_to_tensor, EditModel, EditPlan, NoiseSource, ViewState};
+
+/// Which consistency modules run, and when (sampler step indices, 0-based).
+#[derive(Clone, Debug, Serialize)]
+pub struct ConsistencySettings {
+    /// Steps at which CCM runs.
+    pub ccm_steps: Vec<usize>,
+    /// ECM: its steps and its fits.
+    pub ecm: EcmSettings,
+    /// Whether the blend maps are made consistent (every step).
+    pub blend_consistency: bool,
+}
+
+impl ConsistencySettings {
+    /// The reference schedule: CCM when (i+1) % 7 == 0, ECM when (i+1) % 5 == 0, blend maps every step.
+    pub fn reference(steps: usize) -> Self {
+        Self {
+            ccm_steps: (0..steps).filter(|i| (i + 1) % 7 == 0).collect(),
+            ecm: EcmSettings::reference(steps),
+            blend_consistency: true,
+        }
+    }
+
+    /// Per-view guidance: every view edited independently (the inconsistent guidance of peer methods).
+    pub fn none() -> Self {
+        Self {
+            ccm_steps: Vec::new(),
+            ecm: EcmSettings::reference(0),
+            blend_consistency: false,
+        }
+    }
+}
+
+/// What the sampler is doing, for progress display.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Stage {
+    Encode,
+    Ccm,
+    Unet,
+    Ecm,
+    Blend,
+    Decode,
+}
+
+/// Wall-clock seconds spent per stage.
+#[derive(Clone, Debug, Default, Serialize, Deserialize)]
+pub struct StageTimes {
+    pub encode: f64,
+    pub ccm: f64,
+    pub unet: f64,
+    pub ecm: f64,
+    pub blend: f64,
+    pub decode: f64,
+}
+
+impl StageTimes {
+    fn add(&mut self, stage: Stage, d: Duration) {
+        let s = d.as_secs_f64();
+        match stage {
+            Stage::Encode => self.encode += s,
+            Stage::Ccm => self.ccm += s,
+            Stage::Unet => self.unet += s,
+            Stage::Ecm => self.ecm += s,
+            Stage::Blend => self.blend += s,
+            Stage::Decode => self.decode += s,
+        }
+    }
+}
+
+/// Result of a multi-view edit.
+pub struct MultiViewOutcome {
+    /// Edited images (the guidance), one per view, RGB in [0, 1].
+    pub images: Vec<Image>,
+    /// Final per-view states (attention stores for per-word maps, last predictions).
+    pub views: Vec<ViewState>,
+    /// The last step's blend maps per view `[3, H, W]` (after consistency when enabled).
+    pub blend_maps: Vec<Tensor>,
+    pub times: StageTimes,
+}
+
+#[derive(Debug, thiserror::Error)]
+pub enum MultiViewError {
+    #[error("{0}")]
+    Candle(#[from] candle_core::Error),
+    #[error("ECM fit failed: {0}")]
+    Fit(String),
+    #[error("{0}")]
+    Input(String),
+}
+
+/// The inputs of a multi-view edit.
+pub struct MultiView<'a> {
+    pub model: &'a EditModel,
+    pub plan: &'a EditPlan,
+    pub scene: &'a GaussianScene,
+    /// Cameras at the working resolution (the plan's image size).
+    pub cameras: &'a [Camera],
+    pub consistency: &'a ConsistencySettings,
+    /// Needed when `consistency.ecm.steps` is not empty.
+    pub fitter: Option<&'a dyn SceneFitter>,
+    /// Seed for the ECM fits' view order.
+    pub seed: u64,
+    /// Background of ECM's renders.
+    pub background: [f32; 3],
+}
+
+impl MultiView<'_> {
+    /// Edits all views. `images[v]` is the source render of `cameras[v]` (RGB, working resolution).
+    /// `progress(stage, done, total)` reports work units within the current step.
+    pub fn run(
+        &self,
+        images: &[Image],
+        noise: &mut dyn NoiseSource,
+        progress: &mut dyn FnMut(usize, Stage),
+    ) -> Result<MultiViewOutcome, MultiViewError> {
+        let plan = self.plan;
+        let model = self.model;
+        if images.len() != self.cameras.len() || images.is_empty() {
+            return Err(MultiViewError::Input(format!(
+                "{} images for {} cameras",
+                images.len(),
+                self.cameras.len()
+            )));
+        }
+        if !self.consistency.ecm.steps.is_empty() && self.fitter.is_none() {
+            return Err(MultiViewError::Input("ECM needs a scene fitter".into()));
+        }
+        let mut times = StageTimes::default();
+        let timed =
+            |stage: Stage, t: Instant, times: &mut StageTimes| times.add(stage, t.elapsed());
+
+        let t = Instant::now();
+        let mut views = Vec::with_capacity(images.len());
+        let shape = plan.latent_shape();
+        let mut x0s = Vec::with_capacity(images.len());
+        for img in images {
+            x0s.push(model.encode(&image_to_tensor(img)?, noise)?);
+        }
+        // One initial noise for every view (the reference repeats view 0's).
+        let init = noise.sample(&shape)?;
+        for x0 in x0s {
+            views.push(plan.initial_state(x0, &init)?);
+        }
+        timed(Stage::Encode, t, &mut times);
+
+        let mut last_maps = Vec::new();
+        for i in 0..plan.timesteps.len() {
+            let n = noise.sample(&shape)?;
+            if self.consistency.ccm_steps.contains(&i) {
+                let t = Instant::now();
+                self.cross_attention_consistency(&mut views, i)?;
+                progress(i, Stage::Ccm);
+                timed(Stage::Ccm, t, &mut times);
+            }
+            let t = Instant::now();
+            for view in views.iter_mut() {
+                let eps = plan.predict(model, view, i)?;
+                view.controller.end_step();
+                plan.update(view, i, &eps, &n)?;
+            }
+            progress(i, Stage::Unet);
+            timed(Stage::Unet, t, &mut times);
+            if self.consistency.ecm.steps.contains(&i) {
+                let t = Instant::now();
+                self.editing_consistency(&mut views, i, noise)?;
+                progress(i, Stage::Ecm);
+                timed(Stage::Ecm, t, &mut times);
+            }
+            if i > 0 {
+                let t = Instant::now();
+                last_maps = self.local_blend(&mut views, i)?;
+                progress(i, Stage::Blend);
+                timed(Stage::Blend, t, &mut times);
+            }
+        }
+        let t = Instant::now();
+        let mut out = Vec::with_capacity(views.len());
+        for view in &views {
+            let pred = view
+                .pred_t
+                .as_ref()
+                .ok_or_else(|| MultiViewError::Input("no step ran".into()))?;
+            out.push(model.decode_images(pred)?.remove(0));
+        }
+        timed(Stage::Decode, t, &mut times);
+        Ok(MultiViewOutcome {
+            images: out,
+            views,
+            blend_maps: last_maps,
+            times,
+        })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn reference_schedule() {
+        let c = ConsistencySettings::reference(15);
+        assert_eq!(c.ccm_steps, vec![6, 13]);
+        assert_eq!(c.ecm.steps, vec![4, 9, 14]);
+        assert!(c.blend_consistency);
+    }
+}

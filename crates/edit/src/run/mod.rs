@@ -1,0 +1,30 @@
+//! The VcEdit editing loop (docs/algorithm.md §0), with its checkpoints and outputs.
+//!
+//! Iteration k: render the V selected views of the current scene, edit them jointly with the multi-view
+//! sampler (iteration 0: source → target; later iterations: target → target, re-editing the current
+//! renders), then fit the scene to those guidance images for `fit_steps` single-view steps. Every iteration
+//! ends with an atomic checkpoint, so `--resume` continues after an interruption and gives the same result
+//! as an uninterrupted run: all randomness of iteration k is derived from (seed, k), never from a stream that
+//! an interruption would cut.
+//!
+//! - `job`: what a run is given ([`EditJob`]) and gives back ([`EditResult`]);
+//! - `edit_loop`: [`run_edit`], the loop itself;
+//! - `masks`: the editable region;
+//! - `checkpoint`: the state saved after every iteration;
+//! - `outputs`: the files written per iteration and at the end ([`write_outputs`]);
+//! - `work`: the work and memory a run needs ([`work_plan`]).
+
+mod checkpoint;
+mod edit_loop;
+mod job;
+mod masks;
+mod outputs;
+mod work;
+
+pub use edit_loop::run_edit;
+pub use job::{
+    EditJob, EditResult, GuidanceMode, IterationTimes, MaskSource, Progress, Quiet, RunError,
+};
+pub use masks::{mask_from_box, Box3, MaskError};
+pub use outputs::{write_outputs, RunInputs, Written};
+pub use work::{available_memory, work_plan, WorkPlan};

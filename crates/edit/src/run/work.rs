@@ -1,0 +1,121 @@
+//! What a run will cost: the work it does and the memory it needs, shown (and checked) before it starts.
+
+use serde::Serialize;
+use splat::GaussianScene;
+
+use crate::fit::LPIPS_CACHE_BYTES;
+use crate::sampler::EditModel;
+
+use super::job::{EditJob, GuidanceMode};
+
+/// The work a run will do and the memory it needs, printed before it starts.
+#[derive(Clone, Debug, Serialize)]
+pub struct WorkPlan {
+    pub views: usize,
+    pub iterations: usize,
+    /// UNet calls with a batch of 6 (3 branches × CFG), recording passes included.
+    pub unet_calls: usize,
+    /// Renders (forward only) and render+backward passes of the fits.
+    pub renders: usize,
+    pub fit_steps: usize,
+    pub lifts: usize,
+    pub memory_bytes: u64,
+}
+
+impl WorkPlan {
+    pub fn describe(&self) -> String {
+        format!(
+            "work: {} views × {} iterations: {} UNet calls (batch 6), {} renders, {} lifting passes, {} fitting steps; \
+             memory needed ≈ {:.1} GB",
+            self.views,
+            self.iterations,
+            self.unet_calls,
+            self.renders,
+            self.lifts,
+            self.fit_steps,
+            self.memory_bytes as f64 / 1e9
+        )
+    }
+}
+
+/// Counts the work of a run and estimates its peak memory.
+pub fn work_plan(
+    job: &EditJob,
+    model: &EditModel,
+    scene: &GaussianScene,
+    cameras: usize,
+) -> WorkPlan {
+    let v = cameras.min(job.max_views);
+    let steps = job.infedit.steps;
+    let (ccm, ecm, blend) = match job.guidance {
+        GuidanceMode::Joint => (
+            job.consistency.ccm_steps.len(),
+            job.consistency.ecm.steps.len(),
+            if job.consistency.blend_consistency {
+                steps.saturating_sub(1)
+            } else {
+                0
+            },
+        ),
+        GuidanceMode::PerView => (0, 0, 0),
+    };
+    let (epochs, _) = job.consistency.ecm.schedule(v);
+    let cfg = &model.unet.config().block_out_channels;
+    let unet_calls = job.iterations * v * (steps + ccm);
+    // Attention layers recorded by CCM, at most one per transformer block: a generous 16.
+    let ccm_layers = 16;
+    let renders = job.iterations
+        * (v + ecm * (2 * epochs * v + 2 * v) + blend * v + ccm * ccm_layers * v)
+        + 2 * v
+        + 48;
+    let lifts = job.iterations * (blend * v + ccm * ccm_layers * v);
+    let fit_steps = job.iterations * job.fit_steps;
+
+    let (w, h) = (job.size.0 as u64, job.size.1 as u64);
+    let f = model.downscale() as u64;
+    let latent = (w / f) * (h / f);
+    let weights = model.parameters * 4;
+    // A batch-6 UNet pass: roughly 40 activations of the first block's width at latent resolution.
+    let unet = 6 * latent * cfg.first().copied().unwrap_or(320) as u64 * 4 * 40;
+    // Per view: latents and attention stores (blend layers, CCM records at most 32² queries × 77 tokens).
+    let heads = 8u64;
+    let per_view = 12 * latent * 4
+        + 2 * heads * (latent / 16).max(1) * 77 * 4 * 5
+        + if ccm > 0 {
+            3 * heads * 1024 * 77 * 4 * 6
+        } else {
+            0
+        };
+    let images = v as u64 * w * h * 3 * 4 * 6;
+    let n = scene.len() as u64;
+    let k = 3 * ((scene.sh_degree + 1) * (scene.sh_degree + 1)) as u64;
+    let params = n * (11 + k) * 4;
+    // Editing state (params, grads, 2 moments, anchors) + two ECM copies; splits can grow the scene.
+    let train = params * 5 * 3 / 2 + params * 4 * 2;
+    // Lifting: per-thread sums of the widest map (CCM: 3 branches × heads × tokens).
+    let threads = rayon::current_num_threads() as u64;
+    let lift =
+        n * 4 * threads * if ccm > 0 { 3 * heads * 8 } else { 3 } + w * h * 4 * 3 * heads * 8;
+    let lpips = LPIPS_BUDGET.min(v as u64 * w * h * 4 * 128);
+    let memory_bytes =
+        weights + unet + v as u64 * per_view + images + train + lift + lpips + 300_000_000;
+    WorkPlan {
+        views: v,
+        iterations: job.iterations,
+        unet_calls,
+        renders,
+        fit_steps,
+        lifts,
+        memory_bytes,
+    }
+}
+
+const LPIPS_BUDGET: u64 = LPIPS_CACHE_BYTES as u64;
+
+/// Memory available to a new run (Linux `MemAvailable`), if known.
+pub fn available_memory() -> Option<u64> {
+    let text = std::fs::read_to_string("/proc/meminfo").ok()?;
+    let line = text.lines().find(|l| l.starts_with("MemAvailable:"))?;
+    let kb: u64 = line.split_whitespace().nth(1)?.parse().ok()?;
+    Some(kb * 1024)
+}
