@@ -202,7 +202,7 @@ fn main() {
         .map(|r| r.parse().unwrap())
         .unwrap_or(64);
     // Recommended for any inference binary (see its doc comment).
-    diffusion::layers::tune_allocator_for_inference();
+    diffusion::runtime::tune_allocator_for_inference();
     let threads = candle_core::utils::get_num_threads();
     eprintln!(
         "unet bench: SD 1.5 config, {size}x{size} latents, {threads} threads, {runs} timed runs"

@@ -3,7 +3,6 @@
 pub mod align;
 pub mod blend;
 pub mod clip_score;
-pub mod clip_vision;
 pub mod consistency;
 pub mod control;
 pub mod gif;

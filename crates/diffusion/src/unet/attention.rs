@@ -7,7 +7,8 @@
 use candle_core::{Module, Result, Tensor};
 use candle_nn::{Linear, VarBuilder};
 
-use crate::layers::{linear, scaled_dot_product_attention, softmax_last_dim};
+use crate::kernels::{attention, softmax_last_dim};
+use crate::layers::linear;
 
 /// Self-attention (keys from the image tokens) or cross-attention (keys from the text embedding).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -137,7 +138,7 @@ impl Attention {
         let v = split(self.to_v.forward(kv_source)?)?;
         let scale = 1.0 / (self.head_dim as f64).sqrt();
         let out = match hook {
-            None => scaled_dot_product_attention(&q, &k, &v, scale)?,
+            None => attention(&q, &k, &v, scale)?,
             Some(hook) => {
                 let call = AttnCall {
                     layer: &self.name,
@@ -153,7 +154,7 @@ impl Attention {
                     let probs = hook.probs(&call, softmax_last_dim(&scores)?)?;
                     probs.matmul(&v)?
                 } else {
-                    scaled_dot_product_attention(&q, &k, &v, scale)?
+                    attention(&q, &k, &v, scale)?
                 }
             }
         };
