@@ -435,41 +435,11 @@ impl SpatialSelfAttention {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use candle_core::{Device, Var};
-
-    fn composite_group_norm(x: &Tensor, groups: usize, w: &Tensor, b: &Tensor, eps: f64) -> Tensor {
-        let dims = x.dims().to_vec();
-        let g = x.reshape((dims[0], groups, ())).unwrap();
-        let n = g.dim(2).unwrap() as f64;
-        let mean = (g.sum_keepdim(2).unwrap() / n).unwrap();
-        let c = g.broadcast_sub(&mean).unwrap();
-        let var = (c.sqr().unwrap().sum_keepdim(2).unwrap() / n).unwrap();
-        let y = c
-            .broadcast_div(&(var + eps).unwrap().sqrt().unwrap())
-            .unwrap();
-        y.reshape(dims.as_slice())
-            .unwrap()
-            .broadcast_mul(&w.reshape((1, dims[1], 1, 1)).unwrap())
-            .unwrap()
-            .broadcast_add(&b.reshape((1, dims[1], 1, 1)).unwrap())
-            .unwrap()
-    }
-
-    fn max_diff(a: &Tensor, b: &Tensor) -> f32 {
-        (a - b)
-            .unwrap()
-            .abs()
-            .unwrap()
-            .flatten_all()
-            .unwrap()
-            .max(0)
-            .unwrap()
-            .to_scalar::<f32>()
-            .unwrap()
-    }
+    use crate::kernels::test_support::max_diff;
+    use candle_core::{DType, Device, Var};
 
     #[test]
-    fn fused_group_norm_matches_composite_and_training_path() {
+    fn group_norm_module_paths_agree() {
         let dev = Device::Cpu;
         let x = Tensor::randn(0f32, 1.0, (2, 8, 5, 3), &dev)
             .unwrap()
@@ -477,19 +447,24 @@ mod tests {
             .unwrap();
         let w = Tensor::randn(1f32, 0.2, 8, &dev).unwrap();
         let b = Tensor::randn(0f32, 0.2, 8, &dev).unwrap();
-        let gn = GroupNorm {
+        let module = |w: &Tensor, b: &Tensor| GroupNorm {
             weight: w.clone(),
             bias: b.clone(),
             num_groups: 4,
             eps: 1e-5,
         };
-        let want = composite_group_norm(&x, 4, &w, &b, 1e-5);
+        let (gn, f64_of) = (module(&w, &b), |t: &Tensor| t.to_dtype(DType::F64).unwrap());
+        // f64 runs the composite ops: the reference for the fused f32 kernel.
+        let gn64 = module(&f64_of(&w), &f64_of(&b));
+        let f32_of = |t: Tensor| t.to_dtype(DType::F32).unwrap();
+        let want = f32_of(gn64.forward(&f64_of(&x)).unwrap());
+        let want_silu = f32_of(gn64.forward_silu(&f64_of(&x)).unwrap());
         assert!(max_diff(&gn.forward(&x).unwrap(), &want) < 1e-5);
-        assert!(max_diff(&gn.forward_silu(&x).unwrap(), &want.silu().unwrap()) < 1e-5);
+        assert!(max_diff(&gn.forward_silu(&x).unwrap(), &want_silu) < 1e-5);
         // Through a Var the training kernel runs and gradients flow.
         let xv = Var::from_tensor(&x).unwrap();
         let y = gn.forward_silu(xv.as_tensor()).unwrap();
-        assert!(max_diff(&y, &want.silu().unwrap()) < 1e-5);
+        assert!(max_diff(&y, &want_silu) < 1e-5);
         let grads = y.sum_all().unwrap().backward().unwrap();
         assert!(grads.get(xv.as_tensor()).is_some());
     }

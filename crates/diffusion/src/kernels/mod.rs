@@ -105,7 +105,7 @@ fn rows_per_task(row_len: usize) -> usize {
 }
 
 #[cfg(test)]
-mod test_support {
+pub(crate) mod test_support {
     use candle_core::{Device, Tensor, Var};
 
     pub fn max_diff(a: &Tensor, b: &Tensor) -> f32 {

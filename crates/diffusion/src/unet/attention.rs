@@ -100,15 +100,6 @@ impl Attention {
         })
     }
 
-    /// The diffusers module path this layer was loaded from.
-    pub fn name(&self) -> &str {
-        &self.name
-    }
-
-    pub fn kind(&self) -> AttnKind {
-        self.kind
-    }
-
     /// `x` [batch, h·w, query_dim]; `context` [batch, tokens, context_dim] for cross-attention.
     pub fn forward(
         &self,

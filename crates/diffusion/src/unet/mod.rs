@@ -3,11 +3,11 @@
 //!
 //! Weights load unchanged by diffusers key names; every architecture number comes from `unet/config.json`.
 
-pub mod attention;
-pub mod blocks;
-pub mod config;
-pub mod embeddings;
-pub mod transformer;
+mod attention;
+mod blocks;
+mod config;
+mod embeddings;
+mod transformer;
 
 use std::path::{Path, PathBuf};
 
