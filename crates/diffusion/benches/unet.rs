@@ -177,8 +177,9 @@ fn main() {
     if let Some(path) = arg_value(&args, "--load-rss") {
         let before = peak_rss_mb();
         let start = Instant::now();
-        let vb = unsafe { VarBuilder::from_mmaped_safetensors(&[&path], DType::F32, &Device::Cpu) }
-            .unwrap();
+        let files = [std::path::PathBuf::from(&path)];
+        let vb =
+            diffusion::loader::var_builder_from_files(&files, DType::F32, &Device::Cpu).unwrap();
         let model = UNet2DConditionModel::load(&config(), vb).unwrap();
         let secs = start.elapsed().as_secs_f64();
         println!(

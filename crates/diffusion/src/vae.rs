@@ -848,15 +848,7 @@ mod tests {
         let fast_recon = fast
             .decode(&fast.encode_sample(&image, &noise).unwrap())
             .unwrap();
-        let diff = (fast_recon - recon)
-            .unwrap()
-            .abs()
-            .unwrap()
-            .flatten_all()
-            .unwrap()
-            .max(0)
-            .unwrap();
-        assert!(diff.to_scalar::<f32>().unwrap() < 1e-4);
+        assert!(crate::kernels::test_support::max_diff(&fast_recon, &recon) < 1e-4);
     }
 
     #[test]

@@ -276,8 +276,8 @@ fn causal_mask(s: usize, dtype: DType, device: &Device) -> candle_core::Result<T
 mod tests {
     use super::*;
 
-    fn random_model(act: ClipActivation) -> ClipTextModel {
-        let dev = Device::Cpu;
+    /// A random tiny model and the variables it was built from.
+    fn random_model_and_vars(act: ClipActivation) -> (ClipTextModel, candle_nn::VarMap) {
         let cfg = ClipTextConfig {
             vocab_size: 10,
             hidden_size: 8,
@@ -291,8 +291,12 @@ mod tests {
             projection_dim: None,
         };
         let vm = candle_nn::VarMap::new();
-        let vb = VarBuilder::from_varmap(&vm, DType::F32, &dev);
-        ClipTextModel::new(vb, cfg).unwrap()
+        let vb = VarBuilder::from_varmap(&vm, DType::F32, &Device::Cpu);
+        (ClipTextModel::new(vb, cfg).unwrap(), vm)
+    }
+
+    fn random_model(act: ClipActivation) -> ClipTextModel {
+        random_model_and_vars(act).0
     }
 
     #[test]
@@ -344,20 +348,7 @@ mod tests {
     #[test]
     fn every_parameter_gets_a_gradient() {
         let dev = Device::Cpu;
-        let cfg = ClipTextConfig {
-            vocab_size: 10,
-            hidden_size: 8,
-            intermediate_size: 16,
-            num_hidden_layers: 2,
-            num_attention_heads: 2,
-            max_position_embeddings: 6,
-            hidden_act: ClipActivation::QuickGelu,
-            layer_norm_eps: 1e-5,
-            eos_token_id: 9,
-            projection_dim: None,
-        };
-        let vm = candle_nn::VarMap::new();
-        let m = ClipTextModel::new(VarBuilder::from_varmap(&vm, DType::F32, &dev), cfg).unwrap();
+        let (m, vm) = random_model_and_vars(ClipActivation::QuickGelu);
         let ids = Tensor::new(&[[8u32, 1, 2, 3, 9, 9], [8, 4, 9, 9, 9, 9]], &dev).unwrap();
         let out = m.forward(&ids).unwrap();
         let weighting = Tensor::randn(0f32, 1.0, out.dims(), &dev).unwrap();

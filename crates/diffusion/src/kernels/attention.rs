@@ -4,7 +4,7 @@ use candle_core::{CpuStorage, Layout, Result, Shape, Tensor, D};
 use rayon::prelude::*;
 
 use super::softmax::{softmax_in_place, softmax_last_dim};
-use super::{cpu_f32, f32_slice, needs_grad};
+use super::{cpu_f32, f32_slices, needs_grad};
 
 /// Score elements one query chunk of the unfused path may hold (~128 MB of f32).
 const MAX_SCORE_ELEMENTS: usize = 1 << 25;
@@ -83,11 +83,7 @@ impl candle_core::CustomOp3 for FusedAttention {
         vs: &CpuStorage,
         vl: &Layout,
     ) -> Result<(CpuStorage, Shape)> {
-        let (q, k, v) = (
-            f32_slice(qs, ql, self.name())?,
-            f32_slice(ks, kl, self.name())?,
-            f32_slice(vs, vl, self.name())?,
-        );
+        let [q, k, v] = f32_slices([(qs, ql), (ks, kl), (vs, vl)], self.name())?;
         let (qd, kd, vd) = (ql.shape().dims(), kl.shape().dims(), vl.shape().dims());
         let r = qd.len();
         let (q_len, d) = (qd[r - 2], qd[r - 1]);

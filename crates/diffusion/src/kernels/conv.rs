@@ -13,7 +13,7 @@
 use candle_core::{CpuStorage, CustomOp2, CustomOp3, Layout, Result, Shape, Tensor};
 use rayon::prelude::*;
 
-use super::{cpu_f32, f32_slice, needs_grad, unpack};
+use super::{cpu_f32, f32_slices, needs_grad, split_grads, Grads3};
 
 /// im2col band size in f32 elements (~32 MB): large enough for efficient GEMMs, small enough that a
 /// 512×512 SD-VAE layer does not need a >1 GB scratch matrix.
@@ -280,11 +280,7 @@ impl CustomOp3 for BatchedConv2d {
         bl: &Layout,
     ) -> Result<(CpuStorage, Shape)> {
         let name = self.name();
-        let (x, weight, bias) = (
-            f32_slice(xs, xl, name)?,
-            f32_slice(ws, wl, name)?,
-            f32_slice(bs, bl, name)?,
-        );
+        let [x, weight, bias] = f32_slices([(xs, xl), (ws, wl), (bs, bl)], name)?;
         let g = ConvGeometry::new(xl.shape(), wl.shape(), self.stride, self.padding)?;
         let batch = xl.shape().dims()[0];
         if bias.len() != g.c_out {
@@ -334,7 +330,7 @@ impl CustomOp3 for BatchedConv2d {
         bias: &Tensor,
         _res: &Tensor,
         grad: &Tensor,
-    ) -> Result<(Option<Tensor>, Option<Tensor>, Option<Tensor>)> {
+    ) -> Result<Grads3> {
         let grad = grad.contiguous()?;
         let packed = x.apply_op3_no_bwd(
             weight,
@@ -344,9 +340,7 @@ impl CustomOp3 for BatchedConv2d {
                 padding: self.padding,
             },
         )?;
-        let parts = unpack(&packed, &[x.dims(), weight.dims(), bias.dims()])?;
-        let [dx, dw, db]: [Tensor; 3] = parts.try_into().expect("three parts");
-        Ok((Some(dx), Some(dw), Some(db)))
+        split_grads(&packed, x, weight, bias)
     }
 }
 
@@ -371,11 +365,7 @@ impl CustomOp3 for BatchedConv2dBackward {
         gl: &Layout,
     ) -> Result<(CpuStorage, Shape)> {
         let name = self.name();
-        let (x, weight, grad) = (
-            f32_slice(xs, xl, name)?,
-            f32_slice(ws, wl, name)?,
-            f32_slice(gs, gl, name)?,
-        );
+        let [x, weight, grad] = f32_slices([(xs, xl), (ws, wl), (gs, gl)], name)?;
         let g = ConvGeometry::new(xl.shape(), wl.shape(), self.stride, self.padding)?;
         let batch = xl.shape().dims()[0];
         let (k_rows, plane, c_out) = (g.k_rows(), g.out_plane(), g.c_out);
@@ -471,7 +461,7 @@ impl CustomOp2 for BandedConv2d {
         wl: &Layout,
     ) -> Result<(CpuStorage, Shape)> {
         let name = self.name();
-        let (xs, ws) = (f32_slice(xs, xl, name)?, f32_slice(ws, wl, name)?);
+        let [xs, ws] = f32_slices([(xs, xl), (ws, wl)], name)?;
         let g = ConvGeometry::new(xl.shape(), wl.shape(), self.stride, self.padding)?;
         let batch = xl.shape().dims()[0];
         let (c_out, k_rows, out_plane, out_w) = (g.c_out, g.k_rows(), g.out_plane(), g.out_w);

@@ -4,7 +4,7 @@ use candle_core::{CpuStorage, CustomOp1, CustomOp2, Layout, Result, Shape, Tenso
 use rayon::prelude::*;
 
 use super::approx;
-use super::{cpu_f32, f32_slice, needs_grad, rows_per_task};
+use super::{cpu_f32, f32_slice, f32_slices, needs_grad, rows_per_task};
 
 /// `hidden · gelu_erf(gate)` where `x` = [..., 2·inner] holds `[hidden | gate]`.
 pub fn geglu(x: &Tensor) -> Result<Tensor> {
@@ -89,10 +89,7 @@ impl CustomOp2 for GegluBackward {
         gs: &CpuStorage,
         gl: &Layout,
     ) -> Result<(CpuStorage, Shape)> {
-        let (x, g) = (
-            f32_slice(xs, xl, self.name())?,
-            f32_slice(gs, gl, self.name())?,
-        );
+        let [x, g] = f32_slices([(xs, xl), (gs, gl)], self.name())?;
         let width = xl.shape().dims().last().copied().unwrap_or(0);
         let inner = width / 2;
         if inner == 0 || g.len() * 2 != x.len() {

@@ -83,19 +83,31 @@ fn f32_slice<'a>(storage: &'a CpuStorage, layout: &Layout, op: &str) -> Result<&
     }
 }
 
-/// Splits a packed gradient vector into tensors of the given shapes (backward kernels return all their
-/// gradients in one flat tensor).
-fn unpack(packed: &Tensor, shapes: &[&[usize]]) -> Result<Vec<Tensor>> {
+/// [`f32_slice`] of each operand.
+fn f32_slices<'a, const N: usize>(
+    operands: [(&'a CpuStorage, &Layout); N],
+    op: &str,
+) -> Result<[&'a [f32]; N]> {
+    let mut slices = [&[][..]; N];
+    for (slice, (storage, layout)) in slices.iter_mut().zip(operands) {
+        *slice = f32_slice(storage, layout, op)?;
+    }
+    Ok(slices)
+}
+
+/// The gradients a three-operand op (x, weight, bias) returns from its backward pass.
+type Grads3 = (Option<Tensor>, Option<Tensor>, Option<Tensor>);
+
+/// Splits the output of a backward kernel, all gradients packed in one flat tensor [dx, dweight, dbias].
+fn split_grads(packed: &Tensor, x: &Tensor, weight: &Tensor, bias: &Tensor) -> Result<Grads3> {
     let mut offset = 0;
-    shapes
-        .iter()
-        .map(|dims| {
-            let n: usize = dims.iter().product();
-            let t = packed.narrow(0, offset, n)?.reshape(*dims)?;
-            offset += n;
-            Ok(t)
-        })
-        .collect()
+    let mut part = |t: &Tensor| -> Result<Option<Tensor>> {
+        let n = t.elem_count();
+        let part = packed.narrow(0, offset, n)?.reshape(t.dims())?;
+        offset += n;
+        Ok(Some(part))
+    };
+    Ok((part(x)?, part(weight)?, part(bias)?))
 }
 
 /// Rows of `row_len` elements one rayon task handles in the row-wise kernels: enough that a task does
@@ -109,16 +121,7 @@ pub(crate) mod test_support {
     use candle_core::{Device, Tensor, Var};
 
     pub fn max_diff(a: &Tensor, b: &Tensor) -> f32 {
-        (a - b)
-            .unwrap()
-            .abs()
-            .unwrap()
-            .flatten_all()
-            .unwrap()
-            .max(0)
-            .unwrap()
-            .to_scalar()
-            .unwrap()
+        max_abs(&(a - b).unwrap())
     }
 
     pub fn max_abs(a: &Tensor) -> f32 {

@@ -4,7 +4,7 @@ use candle_core::{CpuStorage, CustomOp3, DType, Layout, Result, Shape, Tensor, D
 use rayon::prelude::*;
 
 use super::approx;
-use super::{cpu_f32, f32_slice, needs_grad, rows_per_task, unpack};
+use super::{cpu_f32, f32_slices, needs_grad, rows_per_task, split_grads, Grads3};
 
 /// Group norm of `x` [batch, channels, ...] with affine `weight`/`bias` [channels], then SiLU if `silu`
 /// (the pairing used throughout ResNet blocks, fused into one pass on the CPU).
@@ -161,11 +161,7 @@ impl CustomOp3 for GroupNorm {
         bl: &Layout,
     ) -> Result<(CpuStorage, Shape)> {
         let name = self.name();
-        let (x, weight, bias) = (
-            f32_slice(xs, xl, name)?,
-            f32_slice(ws, wl, name)?,
-            f32_slice(bs, bl, name)?,
-        );
+        let [x, weight, bias] = f32_slices([(xs, xl), (ws, wl), (bs, bl)], name)?;
         let (channels, per_channel) = self.layout(xl.shape())?;
         if weight.len() != channels || bias.len() != channels {
             candle_core::bail!("group norm: affine parameters do not have {channels} entries");
@@ -204,12 +200,10 @@ impl CustomOp3 for GroupNorm {
         bias: &Tensor,
         _res: &Tensor,
         grad: &Tensor,
-    ) -> Result<(Option<Tensor>, Option<Tensor>, Option<Tensor>)> {
+    ) -> Result<Grads3> {
         let affine = Tensor::cat(&[weight, bias], 0)?;
         let packed = x.apply_op3_no_bwd(&affine, &grad.contiguous()?, &GroupNormBackward(*self))?;
-        let parts = unpack(&packed, &[x.dims(), weight.dims(), bias.dims()])?;
-        let [dx, dw, db]: [Tensor; 3] = parts.try_into().expect("three parts");
-        Ok((Some(dx), Some(dw), Some(db)))
+        split_grads(&packed, x, weight, bias)
     }
 }
 
@@ -232,11 +226,7 @@ impl CustomOp3 for GroupNormBackward {
     ) -> Result<(CpuStorage, Shape)> {
         let name = self.name();
         let op = self.0;
-        let (x, affine, grad) = (
-            f32_slice(xs, xl, name)?,
-            f32_slice(affs, affl, name)?,
-            f32_slice(gs, gl, name)?,
-        );
+        let [x, affine, grad] = f32_slices([(xs, xl), (affs, affl), (gs, gl)], name)?;
         let (channels, per_channel) = op.layout(xl.shape())?;
         if affine.len() != 2 * channels || grad.len() != x.len() {
             candle_core::bail!("{name}: operands do not fit input {:?}", xl.shape());
@@ -337,11 +327,7 @@ impl CustomOp3 for LayerNorm {
         bl: &Layout,
     ) -> Result<(CpuStorage, Shape)> {
         let name = self.name();
-        let (x, weight, bias) = (
-            f32_slice(xs, xl, name)?,
-            f32_slice(ws, wl, name)?,
-            f32_slice(bs, bl, name)?,
-        );
+        let [x, weight, bias] = f32_slices([(xs, xl), (ws, wl), (bs, bl)], name)?;
         let dim = xl.shape().dims().last().copied().unwrap_or(0);
         if dim == 0 || weight.len() != dim || bias.len() != dim {
             candle_core::bail!("layer norm: parameters do not fit input {:?}", xl.shape());
@@ -368,11 +354,9 @@ impl CustomOp3 for LayerNorm {
         bias: &Tensor,
         _res: &Tensor,
         grad: &Tensor,
-    ) -> Result<(Option<Tensor>, Option<Tensor>, Option<Tensor>)> {
+    ) -> Result<Grads3> {
         let packed = x.apply_op3_no_bwd(weight, &grad.contiguous()?, &LayerNormBackward(*self))?;
-        let parts = unpack(&packed, &[x.dims(), weight.dims(), bias.dims()])?;
-        let [dx, dw, db]: [Tensor; 3] = parts.try_into().expect("three parts");
-        Ok((Some(dx), Some(dw), Some(db)))
+        split_grads(&packed, x, weight, bias)
     }
 }
 
@@ -394,11 +378,7 @@ impl CustomOp3 for LayerNormBackward {
         gl: &Layout,
     ) -> Result<(CpuStorage, Shape)> {
         let name = self.name();
-        let (x, weight, grad) = (
-            f32_slice(xs, xl, name)?,
-            f32_slice(ws, wl, name)?,
-            f32_slice(gs, gl, name)?,
-        );
+        let [x, weight, grad] = f32_slices([(xs, xl), (ws, wl), (gs, gl)], name)?;
         let dim = weight.len();
         if dim == 0 || x.len() % dim != 0 || grad.len() != x.len() {
             candle_core::bail!("{name}: operands do not fit input {:?}", xl.shape());

@@ -5,7 +5,7 @@ use candle_core::{CpuStorage, CustomOp1, CustomOp2, Layout, Result, Shape, Tenso
 use rayon::prelude::*;
 
 use super::approx::{self, LANES};
-use super::{cpu_f32, f32_slice, needs_grad, rows_per_task};
+use super::{cpu_f32, f32_slice, f32_slices, needs_grad, rows_per_task};
 
 /// Softmax over the last dimension of `x`.
 ///
@@ -94,10 +94,7 @@ impl CustomOp2 for SoftmaxBackward {
         gs: &CpuStorage,
         gl: &Layout,
     ) -> Result<(CpuStorage, Shape)> {
-        let (y, g) = (
-            f32_slice(ys, yl, self.name())?,
-            f32_slice(gs, gl, self.name())?,
-        );
+        let [y, g] = f32_slices([(ys, yl), (gs, gl)], self.name())?;
         let dim = yl.shape().dims().last().copied().unwrap_or(0);
         if g.len() != y.len() {
             candle_core::bail!("{}: gradient does not fit {:?}", self.name(), yl.shape());
