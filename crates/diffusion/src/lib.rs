@@ -1,7 +1,7 @@
 //! Stable Diffusion 1.x components on candle (CPU) with attention hooks, conformant with diffusers.
 //!
-//! Network code (`clip`, `layers`, `unet`, `vae`, `taesd`) computes through [`kernels`]' one function per
-//! op; weight files are opened by `weights` (safetensors headers and memory-mapped tensors).
+//! Network code (`clip`, `layers`, `unet`, `vae`, `taesd`) computes through the private `kernels` module,
+//! one function per op; weight files are opened by `weights` (safetensors headers, memory-mapped tensors).
 
 pub mod clip;
 mod kernels;

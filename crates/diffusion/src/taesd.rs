@@ -19,8 +19,8 @@
 //!   and shapes, so taesd.py variants with other widths or latent channels load as well (activation ReLU,
 //!   nearest ×2 upsampling, as taesd.py hard-codes).
 //!
-//! Every op is differentiable (relu, tanh, nearest upsampling, and [`crate::layers::Conv2d`], whose kernel has
-//! a training variant), so a TAESD can be trained or fine-tuned.
+//! Every op is differentiable (relu, tanh, nearest upsampling, and the shared conv layer, whose kernel has a
+//! training variant), so a TAESD can be trained or fine-tuned.
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};

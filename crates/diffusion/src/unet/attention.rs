@@ -26,7 +26,7 @@ pub struct AttnCall<'a> {
     /// Spatial size of the queries: `height * width` query tokens, row-major.
     pub height: usize,
     pub width: usize,
-    /// Batch size of the UNet call (the caller knows its layout, e.g. InfEdit's [S_u,T_u,M_u,S_c,T_c,M_c]).
+    /// Batch size of the UNet call (the caller knows its layout, e.g. InfEdit's `[S_u,T_u,M_u,S_c,T_c,M_c]`).
     pub batch: usize,
     pub heads: usize,
 }
