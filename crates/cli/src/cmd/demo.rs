@@ -58,7 +58,7 @@ fn default_model() -> PathBuf {
 }
 
 pub fn run(args: Args) -> anyhow::Result<()> {
-    diffusion::layers::tune_allocator_for_inference();
+    diffusion::runtime::tune_allocator_for_inference();
     if args.list {
         for (i, (s, t, _)) in PAIRS.iter().enumerate() {
             println!("{i}: \"{s}\" → \"{t}\"");

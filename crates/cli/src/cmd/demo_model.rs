@@ -147,7 +147,7 @@ fn run_train(args: TrainArgs) -> anyhow::Result<()> {
         }
     }
     // Training allocates and frees activations every step; keep them in the heap.
-    diffusion::layers::tune_allocator_for_inference();
+    diffusion::runtime::tune_allocator_for_inference();
 
     // Without a terminal (a log file), one plain line per stage step every 30 s instead of a bar.
     let plain = !std::io::stderr().is_terminal();

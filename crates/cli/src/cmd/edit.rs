@@ -257,7 +257,7 @@ pub fn parse_rgb(s: &str) -> Result<[f32; 3], String> {
 }
 
 pub fn run(args: Args) -> anyhow::Result<()> {
-    diffusion::layers::tune_allocator_for_inference();
+    diffusion::runtime::tune_allocator_for_inference();
     let t0 = Instant::now();
     let infedit = args.sampler.settings()?;
     let (w, h) = args.sampler.size()?;

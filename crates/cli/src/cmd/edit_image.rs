@@ -38,7 +38,7 @@ pub struct Args {
 }
 
 pub fn run(args: Args) -> anyhow::Result<()> {
-    diffusion::layers::tune_allocator_for_inference();
+    diffusion::runtime::tune_allocator_for_inference();
     let settings = args.sampler.settings()?;
     let (w, h) = args.sampler.size()?;
     if args
