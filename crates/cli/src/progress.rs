@@ -164,17 +164,13 @@ impl Reporter {
             s.done,
             s.total
         );
+        // Pace and ETA once this stage has done something and until it is complete.
         let worked = s.done.saturating_sub(s.first);
         if worked > 0 && s.done < s.total {
-            let each = s.started.elapsed().as_secs_f64() / worked as f64;
-            let _ = write!(text, ", {} each", seconds(each));
-        }
-        if s.done < s.total {
-            let _ = write!(
-                text,
-                ", ETA {}",
-                eta_text(s.first, s.done, s.total, s.started.elapsed())
-            );
+            let elapsed = s.started.elapsed();
+            let each = elapsed.as_secs_f64() / worked as f64;
+            let eta = eta_text(s.first, s.done, s.total, elapsed);
+            let _ = write!(text, ", {} each, ETA {eta}", seconds(each));
         }
         if !s.message.is_empty() {
             let _ = write!(text, ", {}", s.message);
