@@ -202,4 +202,70 @@ mod tests {
         ]);
         assert!(err.contains("cannot be used with"), "{err}");
     }
+
+    /// Words of a shell command line: spaces split, double quotes group.
+    fn shell_words(line: &str) -> Vec<String> {
+        let mut words = Vec::new();
+        let (mut word, mut quoted, mut any) = (String::new(), false, false);
+        for c in line.chars() {
+            match c {
+                '"' => (quoted, any) = (!quoted, true),
+                ' ' if !quoted => {
+                    if any {
+                        words.push(std::mem::take(&mut word));
+                    }
+                    any = false;
+                }
+                _ => (word, any) = (word + &c.to_string(), true),
+            }
+        }
+        if any {
+            words.push(word);
+        }
+        words
+    }
+
+    #[test]
+    fn help_examples_parse() {
+        let mut cli = Cli::command();
+        cli.build();
+        let mut checked = 0;
+        let mut commands: Vec<&clap::Command> = cli.get_subcommands().collect();
+        while let Some(cmd) = commands.pop() {
+            commands.extend(cmd.get_subcommands());
+            let Some(help) = cmd.get_after_help() else {
+                continue;
+            };
+            // Example lines start with "  vcedit"; a trailing backslash continues them.
+            let mut lines = help
+                .to_string()
+                .lines()
+                .map(str::to_string)
+                .collect::<Vec<_>>();
+            lines.reverse();
+            while let Some(line) = lines.pop() {
+                let Some(mut example) = line.trim().strip_prefix("vcedit ").map(str::to_string)
+                else {
+                    continue;
+                };
+                while example.ends_with('\\') {
+                    example.pop();
+                    example += &lines.pop().unwrap_or_default();
+                }
+                // Without a trailing comment or output redirection.
+                let example = example.split(" #").next().unwrap_or_default();
+                let example = example.split(" >").next().unwrap_or_default();
+                if example.contains("...") {
+                    continue; // an abbreviation of an earlier example
+                }
+                let argv = std::iter::once("vcedit".to_string()).chain(shell_words(example));
+                if let Err(e) = Cli::try_parse_from(argv) {
+                    panic!("`vcedit {example}` does not parse:\n{e}");
+                }
+                checked += 1;
+            }
+        }
+        println!("{checked} examples parse");
+        assert!(checked >= 15, "only {checked} examples found");
+    }
 }
