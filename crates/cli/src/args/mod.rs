@@ -1,15 +1,16 @@
 //! Options shared by several commands: clap groups that each command flattens into its `Args`
 //! (`#[command(flatten)]`), so an option is spelt, parsed and documented once.
 //!
-//! | group            | options                                  | used by                         |
-//! |------------------|------------------------------------------|---------------------------------|
-//! | [`SizeArg`]      | `--size` (default: the inputs' own size) | render, metrics, fit            |
-//! | [`WorkingSize`]  | `--size` (default 512)                   | edit, edit-image (in `SamplerArgs`) |
-//! | [`BackgroundArg`]| `--background`                           | render, metrics, fit, edit      |
-//! | [`CameraArgs`]   | `--cameras`, `--orbit`, `--max-views`    | render, metrics, edit           |
-//! | [`editing`]      | model, prompts, sampler knobs            | edit, edit-image                |
+//! | group             | options                                   | used by                              |
+//! |-------------------|-------------------------------------------|--------------------------------------|
+//! | [`SizeArg`]       | `--size` (default: the inputs' own size)  | render, metrics, fit                 |
+//! | [`WorkingSize`]   | `--size` (default 512)                    | edit, edit-image (via `SamplerArgs`) |
+//! | [`BackgroundArg`] | `--background`                            | render, metrics, fit, edit           |
+//! | [`CameraArgs`]    | `--cameras`, `--orbit`, `--max-views`     | render, metrics, edit                |
+//! | [`editing`]       | model, prompts, InfEdit sampler knobs     | edit, edit-image                     |
 //!
-//! The value grammars (sizes, colours, positive counts, fractions) are the parsers of [`parse`].
+//! The value grammars are the parsers of [`parse`]: sizes (`N` or `WxH`), colours (a name, `#rrggbb` or
+//! `r,g,b` in 0..1), positive and non-negative whole numbers, fractions in [0, 1] and finite numbers.
 
 pub mod editing;
 pub mod parse;
