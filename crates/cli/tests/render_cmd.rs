@@ -116,7 +116,10 @@ fn negative_and_malformed_values_name_the_option() {
         let o = vcedit(&["s.ply", flag, value, "--out", out.to_str().unwrap()]);
         let err = String::from_utf8_lossy(&o.stderr);
         assert_eq!(o.status.code(), Some(2), "{flag} {value}: {err}");
-        assert!(err.contains(flag) && err.contains(says), "{flag} {value}: {err}");
+        assert!(
+            err.contains(flag) && err.contains(says),
+            "{flag} {value}: {err}"
+        );
         assert!(!err.contains("unexpected argument"), "{err}");
     }
 }
