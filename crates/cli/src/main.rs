@@ -109,7 +109,7 @@ mod tests {
             args.extend(["--target", "b", "--out", "o.png", option, value]);
             args
         };
-        let cases: [(Vec<&str>, &str, &str); 8] = [
+        let cases: [(Vec<&str>, &str, &str); 9] = [
             (
                 vec!["render", "s.ply", "--out", "o", "--size", "-64"],
                 "--size",
@@ -141,6 +141,25 @@ mod tests {
             (edit_image("--steps", "-1"), "--steps", "must be positive"),
             (edit_image("--cross", "-0.5"), "--cross", "between 0 and 1"),
             (vec!["demo", "--views", "-4"], "--views", "must be positive"),
+            (
+                vec![
+                    "edit",
+                    "--scene",
+                    "s.ply",
+                    "--model",
+                    "m",
+                    "--source",
+                    "a",
+                    "--target",
+                    "b",
+                    "--out",
+                    "o",
+                    "--ccm-steps",
+                    "3,-1",
+                ],
+                "--ccm-steps",
+                "must not be negative",
+            ),
             (
                 vec!["render", "s.ply", "--out", "o", "--background", "-1,0,0"],
                 "--background",

@@ -107,19 +107,26 @@ pub fn parse_colour(s: &str) -> Result<[f32; 3], String> {
 /// A whole number of at least 1 (steps, views, iterations). Negative values say "must be positive" rather
 /// than failing as text.
 pub fn positive<T: TryFrom<i128>>(s: &str) -> Result<T, String> {
-    whole_from(s, 1, "must be positive (a whole number, 1 or more)")
+    whole_from(s, 1, "must be positive", "a whole number, 1 or more")
 }
 
 /// A whole number of at least 0 (counts where 0 means "none" or "all", seeds).
 pub fn whole<T: TryFrom<i128>>(s: &str) -> Result<T, String> {
-    whole_from(s, 0, "must not be negative (a whole number, 0 or more)")
+    whole_from(s, 0, "must not be negative", "a whole number, 0 or more")
 }
 
-/// A whole number of at least `min` that fits `T`; `rule` says what is accepted.
-fn whole_from<T: TryFrom<i128>>(s: &str, min: i128, rule: &str) -> Result<T, String> {
+/// A whole number of at least `min` that fits `T`; `too_small` says what is wrong with a smaller one,
+/// `accepted` what is accepted.
+fn whole_from<T: TryFrom<i128>>(
+    s: &str,
+    min: i128,
+    too_small: &str,
+    accepted: &str,
+) -> Result<T, String> {
     match s.trim().parse::<i128>() {
-        Ok(n) if n >= min => T::try_from(n).map_err(|_| "too large".to_string()),
-        _ => Err(rule.to_string()),
+        Ok(n) if n >= min => T::try_from(n).map_err(|_| format!("too large ({accepted})")),
+        Ok(_) => Err(format!("{too_small} ({accepted})")),
+        Err(_) => Err(format!("not a whole number (expected {accepted})")),
     }
 }
 
@@ -212,7 +219,12 @@ mod tests {
         assert!(positive::<u64>("-1")
             .unwrap_err()
             .contains("must be positive"));
-        assert!(positive::<u32>("x").unwrap_err().contains("a whole number"));
+        assert!(positive::<u32>("x")
+            .unwrap_err()
+            .contains("not a whole number"));
+        assert!(whole::<usize>("--no-ccm")
+            .unwrap_err()
+            .contains("not a whole number"));
         assert!(whole::<u32>("1.5").unwrap_err().contains("a whole number"));
         assert!(positive::<u8>("300").unwrap_err().contains("too large"));
         assert_eq!(whole::<u64>("0"), Ok(0));

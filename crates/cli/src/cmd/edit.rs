@@ -94,10 +94,22 @@ pub struct Args {
     #[arg(long)]
     pub no_blend_consistency: bool,
     /// CCM step indices (default: steps where (i+1) % 7 == 0).
-    #[arg(long, value_delimiter = ',', value_name = "I,J,..")]
+    #[arg(
+        long,
+        value_delimiter = ',',
+        value_name = "I,J,..",
+        value_parser = whole::<usize>,
+        allow_hyphen_values = true
+    )]
     pub ccm_steps: Option<Vec<usize>>,
     /// ECM step indices (default: steps where (i+1) % 5 == 0).
-    #[arg(long, value_delimiter = ',', value_name = "I,J,..")]
+    #[arg(
+        long,
+        value_delimiter = ',',
+        value_name = "I,J,..",
+        value_parser = whole::<usize>,
+        allow_hyphen_values = true
+    )]
     pub ecm_steps: Option<Vec<usize>>,
     /// Which Gaussians ECM's fits may move.
     #[arg(long, value_enum, default_value = "masked")]
@@ -135,7 +147,13 @@ pub struct Args {
     #[arg(long)]
     pub ignore_memory_check: bool,
     /// Stop right after this iteration's checkpoint, as a kill would (tests of --resume).
-    #[arg(long, hide = true, value_name = "K", value_parser = whole::<usize>)]
+    #[arg(
+        long,
+        hide = true,
+        value_name = "K",
+        value_parser = whole::<usize>,
+        allow_negative_numbers = true
+    )]
     pub stop_after_iteration: Option<usize>,
 }
 
