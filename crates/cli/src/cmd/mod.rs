@@ -3,7 +3,6 @@ pub mod demo;
 pub mod demo_model;
 pub mod edit;
 pub mod edit_image;
-pub mod edit_opts;
 pub mod fit;
 pub mod inspect;
 pub mod metrics;
