@@ -1,6 +1,7 @@
 //! The run report: `report.html`, a single self-contained page that opens from disk (no server, no
-//! external resources, inline CSS) and links the run's images by relative paths. It needs no JavaScript;
-//! one small inline script only reports images that failed to load on the browser console.
+//! external resources, inline CSS) and links the run's images by relative paths. Apart from the optional
+//! interactive 3D viewer (`present::viewer`, WebGL2, its scenes embedded in the page) it needs no
+//! JavaScript; one small inline script only reports images that failed to load on the browser console.
 //!
 //! The editing loop fills a [`ReportData`] (also serialisable into `run.json`) and calls [`write_report`].
 //! Paths inside `ReportData` are relative to the output folder the report is written into (absolute
@@ -603,6 +604,26 @@ fn metric_rows(m: &MetricsSummary) -> Vec<(String, String, String)> {
 /// The report's HTML for output folder `dir` (which is where the referenced files are looked up). All text
 /// from the data is escaped by the template.
 pub fn render_html(dir: &Path, data: &ReportData, options: &ReportOptions) -> String {
+    page_html(dir, data, options, None)
+}
+
+/// [`render_html`] with an "Explore in 3D" section holding `viewer` (a `present::viewer` fragment) after
+/// the header.
+pub fn render_html_with_viewer(
+    dir: &Path,
+    data: &ReportData,
+    options: &ReportOptions,
+    viewer: &Markup,
+) -> String {
+    page_html(dir, data, options, Some(viewer))
+}
+
+fn page_html(
+    dir: &Path,
+    data: &ReportData,
+    options: &ReportOptions,
+    viewer: Option<&Markup>,
+) -> String {
     let page = Page { dir, opts: options };
     let title = if data.title.is_empty() {
         "vcedit run"
@@ -620,6 +641,10 @@ pub fn render_html(dir: &Path, data: &ReportData, options: &ReportOptions) -> St
             }
             body {
                 (page.header(data, title))
+                @if let Some(v) = viewer {
+                    h2 { "Explore in 3D" }
+                    (v)
+                }
                 (page.turntable(&data.turntable))
                 (page.before_after(&data.views))
                 (page.metrics(&data.metrics, &data.runs))
@@ -641,8 +666,21 @@ pub fn write_report(
     data: &ReportData,
     options: &ReportOptions,
 ) -> Result<PathBuf, ReportError> {
+    write_page(dir, &render_html(dir, data, options))
+}
+
+/// Writes `dir/report.html` with the 3D viewer (see [`render_html_with_viewer`]) and returns its path.
+pub fn write_report_with_viewer(
+    dir: &Path,
+    data: &ReportData,
+    options: &ReportOptions,
+    viewer: &Markup,
+) -> Result<PathBuf, ReportError> {
+    write_page(dir, &render_html_with_viewer(dir, data, options, viewer))
+}
+
+fn write_page(dir: &Path, html: &str) -> Result<PathBuf, ReportError> {
     let path = dir.join(REPORT_FILE);
-    let html = render_html(dir, data, options);
     splat::atomic_write(&path, html.as_bytes()).map_err(|e| ReportError::Write {
         path: path.clone(),
         msg: e.to_string(),
