@@ -7,7 +7,7 @@ mod common;
 
 use std::path::Path;
 
-use common::{chromium_available, file_url, run_chromium};
+use common::{chromium_available, file_url, run_chromium, ChromiumRun};
 use edit::present::viewer::{write_viewer_page, InitialView, ViewerOptions, ViewerScene};
 use splat::GaussianScene;
 
@@ -121,22 +121,30 @@ fn classify(counts: &mut Counts, [r, g, b]: [u8; 3]) {
     }
 }
 
-/// Screenshots the page at `url_suffix` (e.g. "#before"); checks the console stays quiet; returns the
-/// canvas cut out of the screenshot.
-fn screenshot_canvas(page: &Path, work: &Path, url_suffix: &str) -> image::RgbImage {
-    let shot = work.join("shot.png");
+/// Opens `url` with software WebGL2 in a 900x800 window, plus `output` (what to write: `--screenshot=...`
+/// or `--dump-dom`), and checks that the page wrote nothing on the console.
+fn quiet_run(url: &str, work: &Path, output: String) -> ChromiumRun {
     let mut args: Vec<String> = GL_FLAGS.iter().map(|s| s.to_string()).collect();
     args.extend([
         "--window-size=900,800".to_string(),
         "--virtual-time-budget=5000".to_string(),
-        format!("--screenshot={}", shot.display()),
+        output,
     ]);
-    let run = run_chromium(&format!("{}{url_suffix}", file_url(page)), work, &args);
+    let run = run_chromium(url, work, &args);
     assert!(
         run.console.is_empty(),
         "console messages:\n{}",
         run.console.join("\n")
     );
+    run
+}
+
+/// Screenshots the page at `url_suffix` (e.g. "#before"); checks the console stays quiet; returns the
+/// canvas cut out of the screenshot.
+fn screenshot_canvas(page: &Path, work: &Path, url_suffix: &str) -> image::RgbImage {
+    let shot = work.join("shot.png");
+    let url = format!("{}{url_suffix}", file_url(page));
+    quiet_run(&url, work, format!("--screenshot={}", shot.display()));
     if let Ok(keep) = std::env::var("VCEDIT_KEEP_SCREENSHOT") {
         std::fs::copy(&shot, keep).unwrap();
     }
@@ -309,18 +317,7 @@ fn viewer_controls_change_the_picture() {
     write_page(&page);
     let html = std::fs::read_to_string(&page).unwrap();
     std::fs::write(&page, html.replace("</body>", &format!("{HARNESS}</body>"))).unwrap();
-    let mut args: Vec<String> = GL_FLAGS.iter().map(|s| s.to_string()).collect();
-    args.extend([
-        "--window-size=900,800".to_string(),
-        "--virtual-time-budget=5000".to_string(),
-        "--dump-dom".to_string(),
-    ]);
-    let run = run_chromium(&file_url(&page), tmp.path(), &args);
-    assert!(
-        run.console.is_empty(),
-        "console messages:\n{}",
-        run.console.join("\n")
-    );
+    let run = quiet_run(&file_url(&page), tmp.path(), "--dump-dom".to_string());
     let start = run
         .stdout
         .find("<pre id=\"result\">")

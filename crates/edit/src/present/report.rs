@@ -773,6 +773,27 @@ mod tests {
     }
 
     #[test]
+    fn the_viewer_gets_its_own_section_after_the_header() {
+        let data = ReportData {
+            title: "t".into(),
+            notes: vec!["a note".into()],
+            turntable: Some("turntable.gif".into()),
+            ..Default::default()
+        };
+        let viewer = html! { div data-vcedit-viewer {} };
+        let dir = Path::new("/nonexistent");
+        let html = render_html_with_viewer(dir, &data, &ReportOptions::default(), &viewer);
+        let at = |needle: &str| {
+            html.find(needle)
+                .unwrap_or_else(|| panic!("{needle} missing"))
+        };
+        assert!(at("a note") < at("Explore in 3D"));
+        assert!(at("Explore in 3D") < at("data-vcedit-viewer"));
+        assert!(at("data-vcedit-viewer") < at("Turntable"));
+        assert!(!render_html(dir, &data, &ReportOptions::default()).contains("Explore in 3D"));
+    }
+
+    #[test]
     fn report_data_roundtrips_through_json() {
         let data = ReportData {
             title: "t".into(),
