@@ -35,6 +35,8 @@ enum Command {
     Demo(cmd::demo::Args),
     /// Render a scene to one PNG per view (optionally depth and alpha).
     Render(cmd::render::Args),
+    /// Write a self-contained HTML page to turn a scene around in 3D, or to compare two.
+    View(cmd::view::Args),
     /// Train a 3DGS scene from posed images (COLMAP or transforms.json).
     Fit(cmd::fit::Args),
     /// Edit one image from a source prompt to a target prompt (InfEdit).
@@ -55,6 +57,7 @@ fn main() {
         Command::Inspect(a) => cmd::inspect::run(a),
         Command::Demo(a) => cmd::demo::run(a),
         Command::Render(a) => cmd::render::run(a),
+        Command::View(a) => cmd::view::run(a),
         Command::Fit(a) => cmd::fit::run(a),
         Command::EditImage(a) => cmd::edit_image::run(*a),
         Command::Edit(a) => cmd::edit::run(*a),

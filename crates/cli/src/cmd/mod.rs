@@ -8,3 +8,4 @@ pub mod inspect;
 pub mod metrics;
 pub mod model;
 pub mod render;
+pub mod view;
