@@ -38,10 +38,8 @@ pub fn byte_chars() -> Vec<(u8, char)> {
         .filter(|&b| printable(b))
         .map(|b| (b as u8, char::from_u32(b).expect("latin-1 code point")))
         .collect();
-    let mut next = 256u32;
-    for b in (0..256u32).filter(|&b| !printable(b)) {
+    for (next, b) in (256u32..).zip((0..256u32).filter(|&b| !printable(b))) {
         kept.push((b as u8, char::from_u32(next).expect("valid code point")));
-        next += 1;
     }
     kept
 }

@@ -21,7 +21,7 @@ fn mean_loss(summary: &demo::train::TrainSummary, stage: &str, first: bool) -> f
         .loss_history
         .iter()
         .filter(|(s, _, _)| s == stage);
-    let entry = if first { it.next() } else { it.last() };
+    let entry = if first { it.next() } else { it.next_back() };
     entry.unwrap().2
 }
 

@@ -207,7 +207,7 @@ impl TrainConfig {
     /// Checks the numbers fit together; the message names the offending setting.
     pub fn validate(&self) -> Result<(), String> {
         let n = self.codec.block_out_channels.len();
-        if n < 2 || self.image_size as usize % (1 << (n - 1)) != 0 {
+        if n < 2 || !(self.image_size as usize).is_multiple_of(1 << (n - 1)) {
             return Err(format!(
                 "image size {} is not divisible by the codec's downscale {}",
                 self.image_size,
@@ -216,7 +216,7 @@ impl TrainConfig {
         }
         if self.codec.crop == 0
             || self.codec.crop > self.image_size as usize
-            || self.codec.crop % (1 << (n - 1)) != 0
+            || !self.codec.crop.is_multiple_of(1 << (n - 1))
         {
             return Err(format!(
                 "codec crop {} must divide into latents and fit the image",
@@ -231,13 +231,16 @@ impl TrainConfig {
                 "unet.cross_attention needs one entry per block and at least one true".into(),
             );
         }
-        if self.latent_size() % (1 << (u.block_out_channels.len() - 1)) != 0 {
+        if !self
+            .latent_size()
+            .is_multiple_of(1 << (u.block_out_channels.len() - 1))
+        {
             return Err(format!(
                 "latent size {} is not divisible by the UNet's downscale",
                 self.latent_size()
             ));
         }
-        if self.text.hidden_size % self.text.heads != 0 {
+        if !self.text.hidden_size.is_multiple_of(self.text.heads) {
             return Err("text hidden size must be divisible by its heads".into());
         }
         if self.samples == 0 || self.codec.batch == 0 || u.batch == 0 {

@@ -469,17 +469,19 @@ struct Stage {
     state_file: PathBuf,
 }
 
+/// One training step's loss: (loss to minimise, its value, the value to log).
+type StepLoss<'a> = dyn FnMut(&mut ChaCha8Rng) -> Result<(Tensor, f64, f64), TrainError> + 'a;
+
 /// The loop both stages share: seeded per-step batches, warm-up + cosine rate, divergence check, loss
 /// history and progress, periodic checkpoints, and a final save. `counter` picks the stage's step in the
 /// state; `loss` returns (loss to minimise, its value, the value to log).
-#[allow(clippy::too_many_arguments)]
 fn run_stage(
     stage: &Stage,
     config: &TrainConfig,
     state: &mut TrainState,
     counter: fn(&mut TrainState) -> &mut u64,
     trainable: &mut Trainable,
-    loss: &mut dyn FnMut(&mut ChaCha8Rng) -> Result<(Tensor, f64, f64), TrainError>,
+    loss: &mut StepLoss,
     events: &mut dyn FnMut(Event),
 ) -> Result<(), TrainError> {
     events(Event::Stage {
@@ -712,7 +714,7 @@ fn write_readme(
     let c = &state.config;
     let mean_of = |stage: &str, first: bool| -> Option<(u64, f64)> {
         let mut it = state.loss_history.iter().filter(|(s, _, _)| s == stage);
-        let pick = if first { it.next() } else { it.last() };
+        let pick = if first { it.next() } else { it.next_back() };
         pick.map(|(_, step, loss)| (*step, *loss))
     };
     let loss_line = |stage: &str, what: &str| -> String {

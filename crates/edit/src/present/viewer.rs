@@ -642,7 +642,7 @@ mod tests {
     #[test]
     fn initial_view_uses_the_first_camera_and_a_point_in_front() {
         let scene = varied(50, 0);
-        let cams = splat::cameras::orbit_cameras([-1.0; 3], [1.0; 3], 6, 64, 48);
+        let cams = orbit_cameras([-1.0; 3], [1.0; 3], 6, 64, 48);
         let view = InitialView::from_cameras(&cams, &scene, None);
         assert_eq!(view.camera, cams[0]);
         // Orbit cameras all look at the bounds' centre.

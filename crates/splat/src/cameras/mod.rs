@@ -482,9 +482,8 @@ mod tests {
 
     #[test]
     fn camera_extent_is_the_inria_normalisation() {
-        let at = |c: [f64; 3]| {
-            crate::cameras::orbit::look_at(String::new(), c, [0.0; 3], [0.0, 0.0, 1.0], 8, 8, 8.0)
-        };
+        let at =
+            |c: [f64; 3]| orbit::look_at(String::new(), c, [0.0; 3], [0.0, 0.0, 1.0], 8, 8, 8.0);
         let set = CameraSet {
             cameras: vec![
                 at([2.0, 0.0, 1.0]),

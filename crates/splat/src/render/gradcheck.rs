@@ -491,7 +491,7 @@ fn simd_and_portable_kernels_agree() {
     let t =
         reference::Tensors::load(&reference::fixture_dir().join(info["file"].as_str().unwrap()));
     let cam = reference::camera_from_json(&info["camera"]);
-    let scene = crate::GaussianScene {
+    let scene = GaussianScene {
         sh_degree: 3,
         means: t.f32("scene.means"),
         log_scales: t.f32("scene.log_scales"),
