@@ -1,12 +1,16 @@
 //! The `vcedit` binary: a thin command-line layer over the `splat`, `diffusion` and `edit` crates.
 //!
-//! Each subcommand lives in its own module under `cmd/` with an `Args` struct and a `run` function.
+//! Each subcommand lives in its own module under `cmd/` with an `Args` struct and a `run` function; options
+//! several commands share (size, background, cameras, editing knobs) and their value grammars are in `args/`,
+//! progress bars and plain progress lines in `progress`.
 //! Errors reach the user as one line (`error: ...` with its causes joined by ": ") and exit code 1;
 //! usage errors exit with 2 (clap's convention).
 
 use clap::{Parser, Subcommand};
 
+mod args;
 mod cmd;
+mod progress;
 
 #[derive(Parser)]
 #[command(
@@ -23,19 +27,22 @@ struct Cli {
 
 #[derive(Subcommand)]
 enum Command {
-    // One line per subcommand; keep them in the order a user meets them.
+    // One line per subcommand; keep them in the order a user meets them. The editing commands' options
+    // are boxed: they are many times larger than the others'.
     /// Print statistics of a 3DGS scene (count, SH degree, bounds, opacities, scales, cameras).
     Inspect(cmd::inspect::Args),
     /// Run the whole editing pipeline on a built-in procedural scene with the bundled demo model.
     Demo(cmd::demo::Args),
     /// Render a scene to one PNG per view (optionally depth and alpha).
     Render(cmd::render::Args),
+    /// Write a self-contained HTML page to turn a scene around in 3D, or to compare two.
+    View(cmd::view::Args),
     /// Train a 3DGS scene from posed images (COLMAP or transforms.json).
     Fit(cmd::fit::Args),
     /// Edit one image from a source prompt to a target prompt (InfEdit).
-    EditImage(cmd::edit_image::Args),
+    EditImage(Box<cmd::edit_image::Args>),
     /// Edit a 3DGS scene from a source prompt to a target prompt, consistently across views (VcEdit).
-    Edit(cmd::edit::Args),
+    Edit(Box<cmd::edit::Args>),
     /// Compare two scenes: cross-view consistency, preservation (PSNR/SSIM), CLIP directional similarity.
     Metrics(cmd::metrics::Args),
     /// Inspect a Stable Diffusion model folder (`vcedit model check DIR`).
@@ -50,9 +57,10 @@ fn main() {
         Command::Inspect(a) => cmd::inspect::run(a),
         Command::Demo(a) => cmd::demo::run(a),
         Command::Render(a) => cmd::render::run(a),
+        Command::View(a) => cmd::view::run(a),
         Command::Fit(a) => cmd::fit::run(a),
-        Command::EditImage(a) => cmd::edit_image::run(a),
-        Command::Edit(a) => cmd::edit::run(a),
+        Command::EditImage(a) => cmd::edit_image::run(*a),
+        Command::Edit(a) => cmd::edit::run(*a),
         Command::Metrics(a) => cmd::metrics::run(a),
         Command::Model(a) => cmd::model::run(a),
         Command::DemoModel(a) => cmd::demo_model::run(a),
@@ -66,5 +74,220 @@ fn main() {
             .join(": ");
         eprintln!("error: {msg}");
         std::process::exit(1);
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use clap::CommandFactory;
+
+    /// The message clap gives for `vcedit ARGS...`, which must fail to parse.
+    fn parse_error(args: &[&str]) -> String {
+        let argv = std::iter::once("vcedit").chain(args.iter().copied());
+        match Cli::try_parse_from(argv) {
+            Ok(_) => panic!("{args:?} parsed"),
+            Err(e) => e.to_string(),
+        }
+    }
+
+    #[test]
+    fn the_command_line_is_well_formed() {
+        // Conflicts, defaults set with mut_arg and flattened groups all name real arguments.
+        Cli::command().debug_assert();
+    }
+
+    #[test]
+    fn negative_numbers_reach_the_value_parsers() {
+        let edit_image = |option: &'static str, value: &'static str| {
+            let mut args = vec![
+                "edit-image",
+                "--model",
+                "m",
+                "--image",
+                "i",
+                "--source",
+                "a",
+            ];
+            args.extend(["--target", "b", "--out", "o.png", option, value]);
+            args
+        };
+        let cases: [(Vec<&str>, &str, &str); 9] = [
+            (
+                vec!["render", "s.ply", "--out", "o", "--size", "-64"],
+                "--size",
+                "must be positive",
+            ),
+            (
+                vec!["render", "s.ply", "--out", "o", "--orbit", "-3"],
+                "--orbit",
+                "must be positive",
+            ),
+            (
+                vec!["fit", "--data", "d", "--out", "o.ply", "--steps", "-1"],
+                "--steps",
+                "must be positive",
+            ),
+            (
+                vec![
+                    "metrics",
+                    "--source",
+                    "a",
+                    "--edited",
+                    "b",
+                    "--max-views",
+                    "-2",
+                ],
+                "--max-views",
+                "must not be negative",
+            ),
+            (edit_image("--steps", "-1"), "--steps", "must be positive"),
+            (edit_image("--cross", "-0.5"), "--cross", "between 0 and 1"),
+            (vec!["demo", "--views", "-4"], "--views", "must be positive"),
+            (
+                vec![
+                    "edit",
+                    "--scene",
+                    "s.ply",
+                    "--model",
+                    "m",
+                    "--source",
+                    "a",
+                    "--target",
+                    "b",
+                    "--out",
+                    "o",
+                    "--ccm-steps",
+                    "3,-1",
+                ],
+                "--ccm-steps",
+                "must not be negative",
+            ),
+            (
+                vec!["render", "s.ply", "--out", "o", "--background", "-1,0,0"],
+                "--background",
+                "#rrggbb",
+            ),
+        ];
+        for (args, option, says) in cases {
+            let err = parse_error(&args);
+            assert!(
+                err.contains(option) && err.contains(says),
+                "{args:?}: {err}"
+            );
+            assert!(!err.contains("unexpected argument"), "{args:?}: {err}");
+        }
+    }
+
+    #[test]
+    fn shared_options_parse_the_same_everywhere() {
+        for args in [
+            &["render", "s.ply", "--out", "o", "--background", "grey"][..],
+            &[
+                "fit",
+                "--data",
+                "d",
+                "--out",
+                "o.ply",
+                "--background",
+                "grey",
+            ][..],
+            &[
+                "metrics",
+                "--source",
+                "a",
+                "--edited",
+                "b",
+                "--background",
+                "grey",
+            ][..],
+        ] {
+            let argv = std::iter::once("vcedit").chain(args.iter().copied());
+            let background = match Cli::try_parse_from(argv).unwrap().command {
+                Command::Render(a) => a.background.background,
+                Command::Fit(a) => a.background.background,
+                Command::Metrics(a) => a.background.background,
+                _ => unreachable!(),
+            };
+            assert_eq!(background, [0.5; 3], "{args:?}");
+        }
+        // --cameras and --orbit exclude each other in every command that has them.
+        let err = parse_error(&[
+            "render",
+            "s.ply",
+            "--out",
+            "o",
+            "--cameras",
+            "c",
+            "--orbit",
+            "3",
+        ]);
+        assert!(err.contains("cannot be used with"), "{err}");
+    }
+
+    /// Words of a shell command line: spaces split, double quotes group.
+    fn shell_words(line: &str) -> Vec<String> {
+        let mut words = Vec::new();
+        let (mut word, mut quoted, mut any) = (String::new(), false, false);
+        for c in line.chars() {
+            match c {
+                '"' => (quoted, any) = (!quoted, true),
+                ' ' if !quoted => {
+                    if any {
+                        words.push(std::mem::take(&mut word));
+                    }
+                    any = false;
+                }
+                _ => (word, any) = (word + &c.to_string(), true),
+            }
+        }
+        if any {
+            words.push(word);
+        }
+        words
+    }
+
+    #[test]
+    fn help_examples_parse() {
+        let mut cli = Cli::command();
+        cli.build();
+        let mut checked = 0;
+        let mut commands: Vec<&clap::Command> = cli.get_subcommands().collect();
+        while let Some(cmd) = commands.pop() {
+            commands.extend(cmd.get_subcommands());
+            let Some(help) = cmd.get_after_help() else {
+                continue;
+            };
+            // Example lines start with "  vcedit"; a trailing backslash continues them.
+            let mut lines = help
+                .to_string()
+                .lines()
+                .map(str::to_string)
+                .collect::<Vec<_>>();
+            lines.reverse();
+            while let Some(line) = lines.pop() {
+                let Some(mut example) = line.trim().strip_prefix("vcedit ").map(str::to_string)
+                else {
+                    continue;
+                };
+                while example.ends_with('\\') {
+                    example.pop();
+                    example += &lines.pop().unwrap_or_default();
+                }
+                // Without a trailing comment or output redirection.
+                let example = example.split(" #").next().unwrap_or_default();
+                let example = example.split(" >").next().unwrap_or_default();
+                if example.contains("...") {
+                    continue; // an abbreviation of an earlier example
+                }
+                let argv = std::iter::once("vcedit".to_string()).chain(shell_words(example));
+                if let Err(e) = Cli::try_parse_from(argv) {
+                    panic!("`vcedit {example}` does not parse:\n{e}");
+                }
+                checked += 1;
+            }
+        }
+        println!("{checked} examples parse");
+        assert!(checked >= 15, "only {checked} examples found");
     }
 }

@@ -102,3 +102,24 @@ fn renders_from_a_camera_file_and_reports_bad_input() {
         "{err}"
     );
 }
+
+#[test]
+fn negative_and_malformed_values_name_the_option() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("out");
+    for (flag, value, says) in [
+        ("--size", "-64", "must be positive"),
+        ("--orbit", "-2", "must be positive"),
+        ("--background", "purple", "#rrggbb"),
+        ("--background", "-1,0,0", "outside 0 to 1"),
+    ] {
+        let o = vcedit(&["s.ply", flag, value, "--out", out.to_str().unwrap()]);
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert_eq!(o.status.code(), Some(2), "{flag} {value}: {err}");
+        assert!(
+            err.contains(flag) && err.contains(says),
+            "{flag} {value}: {err}"
+        );
+        assert!(!err.contains("unexpected argument"), "{err}");
+    }
+}

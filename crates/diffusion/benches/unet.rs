@@ -177,8 +177,9 @@ fn main() {
     if let Some(path) = arg_value(&args, "--load-rss") {
         let before = peak_rss_mb();
         let start = Instant::now();
-        let vb = unsafe { VarBuilder::from_mmaped_safetensors(&[&path], DType::F32, &Device::Cpu) }
-            .unwrap();
+        let files = [std::path::PathBuf::from(&path)];
+        let vb =
+            diffusion::loader::var_builder_from_files(&files, DType::F32, &Device::Cpu).unwrap();
         let model = UNet2DConditionModel::load(&config(), vb).unwrap();
         let secs = start.elapsed().as_secs_f64();
         println!(
@@ -202,7 +203,7 @@ fn main() {
         .map(|r| r.parse().unwrap())
         .unwrap_or(64);
     // Recommended for any inference binary (see its doc comment).
-    diffusion::layers::tune_allocator_for_inference();
+    diffusion::runtime::tune_allocator_for_inference();
     let threads = candle_core::utils::get_num_threads();
     eprintln!(
         "unet bench: SD 1.5 config, {size}x{size} latents, {threads} threads, {runs} timed runs"

@@ -1,13 +1,17 @@
 //! Stable Diffusion 1.x components on candle (CPU) with attention hooks, conformant with diffusers.
+//!
+//! Network code (`clip`, `layers`, `unet`, `vae`, `taesd`) computes through the private `kernels` module,
+//! one function per op; weight files are opened by `weights` (safetensors headers, memory-mapped tensors).
 
 pub mod clip;
-pub mod conv;
-pub mod layers;
+mod kernels;
+mod layers;
 pub mod loader;
 pub mod model_check;
+pub mod runtime;
 pub mod scheduler;
 pub mod taesd;
 pub mod tokenizer;
-pub mod train_ops;
 pub mod unet;
 pub mod vae;
+mod weights;

@@ -16,13 +16,14 @@
 use std::collections::{BTreeMap, BTreeSet};
 use std::fmt;
 use std::fs;
-use std::io::Read;
 use std::path::{Path, PathBuf};
 
 use candle_core::{DType, Device};
 use candle_nn::VarBuilder;
 use serde::de::DeserializeOwned;
 use serde::Deserialize;
+
+pub use crate::weights::{read_safetensors_header, var_builder_from_files, TensorInfo};
 
 /// Errors from resolving a model folder or reading its files. Every message names the file concerned.
 #[derive(Debug, thiserror::Error)]
@@ -384,7 +385,7 @@ fn prefix_problem(problem: Problem, folder: &str) -> Problem {
 }
 
 /// Reduces an error to its message without the path prefix (the caller names the file itself).
-fn short_reason(err: &LoadError) -> String {
+pub(crate) fn short_reason(err: &LoadError) -> String {
     match err {
         LoadError::BadFile { message, .. } => message.clone(),
         LoadError::Io { source, .. } => source.to_string(),
@@ -687,122 +688,6 @@ fn find_weight_files_inner(dir: &Path) -> Result<WeightFiles, WeightSearchError>
     })
 }
 
-/// A memory-mapped `VarBuilder` over safetensors files; tensors are converted to `dtype` when fetched.
-pub fn var_builder_from_files(
-    files: &[PathBuf],
-    dtype: DType,
-    device: &Device,
-) -> Result<VarBuilder<'static>, LoadError> {
-    let first = files.first().cloned().unwrap_or_default();
-    // SAFETY: the files are mapped read-only; like every mmap user we rely on nobody truncating or
-    // rewriting a checkpoint while vcedit runs (the same contract as candle and diffusers' safetensors).
-    unsafe { VarBuilder::from_mmaped_safetensors(files, dtype, device) }.map_err(|source| {
-        LoadError::Candle {
-            path: first,
-            source,
-        }
-    })
-}
-
-/// One tensor as described by a safetensors header.
-#[derive(Debug, Clone, PartialEq, Eq)]
-pub struct TensorInfo {
-    pub name: String,
-    /// The safetensors dtype string: "F32", "F16", "BF16", "I64", ...
-    pub dtype: String,
-    pub shape: Vec<usize>,
-}
-
-impl TensorInfo {
-    pub fn num_elements(&self) -> usize {
-        self.shape.iter().product()
-    }
-
-    /// Bytes per element on disk (0 for unknown dtypes).
-    pub fn element_size(&self) -> usize {
-        dtype_size(&self.dtype)
-    }
-}
-
-fn dtype_size(dtype: &str) -> usize {
-    match dtype {
-        "F64" | "I64" | "U64" => 8,
-        "F32" | "I32" | "U32" => 4,
-        "F16" | "BF16" | "I16" | "U16" => 2,
-        "I8" | "U8" | "BOOL" | "F8_E4M3" | "F8_E5M2" => 1,
-        _ => 0,
-    }
-}
-
-#[derive(Deserialize)]
-struct HeaderEntry {
-    dtype: String,
-    shape: Vec<usize>,
-    data_offsets: [u64; 2],
-}
-
-/// Reads only the JSON header of a safetensors file (no tensor data) and checks it against the file size,
-/// which catches truncated downloads. Tensors are returned sorted by name.
-pub fn read_safetensors_header(path: &Path) -> Result<Vec<TensorInfo>, LoadError> {
-    let bad = |message: String| LoadError::BadFile {
-        path: path.to_path_buf(),
-        message,
-    };
-    let io = |source| LoadError::Io {
-        path: path.to_path_buf(),
-        source,
-    };
-    let mut file = fs::File::open(path).map_err(io)?;
-    let file_len = file.metadata().map_err(io)?.len();
-    let mut len_bytes = [0u8; 8];
-    file.read_exact(&mut len_bytes).map_err(|_| {
-        bad("not a safetensors file (shorter than its 8-byte header length)".into())
-    })?;
-    let header_len = u64::from_le_bytes(len_bytes);
-    // Real headers are far below this; a huge value means the file is something else.
-    const MAX_HEADER: u64 = 100 << 20;
-    if header_len > MAX_HEADER || 8 + header_len > file_len {
-        return Err(bad(format!(
-            "not a safetensors file (header length {header_len} does not fit in {file_len} bytes)"
-        )));
-    }
-    let mut header = vec![0u8; header_len as usize];
-    file.read_exact(&mut header).map_err(io)?;
-    let raw: BTreeMap<String, serde_json::Value> = serde_json::from_slice(&header)
-        .map_err(|e| bad(format!("invalid safetensors header: {e}")))?;
-    let data_len = file_len - 8 - header_len;
-    let mut tensors = Vec::with_capacity(raw.len());
-    for (name, value) in raw {
-        if name == "__metadata__" {
-            continue;
-        }
-        let entry: HeaderEntry = serde_json::from_value(value)
-            .map_err(|e| bad(format!("invalid header entry for {name}: {e}")))?;
-        let [start, end] = entry.data_offsets;
-        let elements: u64 = entry.shape.iter().map(|&d| d as u64).product();
-        let expected = elements * dtype_size(&entry.dtype) as u64;
-        if end < start || end > data_len {
-            return Err(bad(format!(
-                "tensor {name} lies outside the file (bytes {start}..{end} of {data_len}); truncated download?"
-            )));
-        }
-        if dtype_size(&entry.dtype) != 0 && end - start != expected {
-            return Err(bad(format!(
-                "tensor {name} has {} bytes but shape {:?} of {} needs {expected}",
-                end - start,
-                entry.shape,
-                entry.dtype
-            )));
-        }
-        tensors.push(TensorInfo {
-            name,
-            dtype: entry.dtype,
-            shape: entry.shape,
-        });
-    }
-    Ok(tensors)
-}
-
 /// Reads and parses a JSON file, naming the file in any error.
 pub fn read_json<T: DeserializeOwned>(path: &Path) -> Result<T, LoadError> {
     let text = fs::read_to_string(path).map_err(|source| LoadError::Io {
@@ -820,22 +705,14 @@ mod tests {
     use super::*;
 
     fn write_safetensors(path: &Path, tensors: &[(&str, &[usize])]) {
-        let mut header = serde_json::Map::new();
-        let mut offset = 0u64;
-        for (name, shape) in tensors {
-            let n: usize = shape.iter().product();
-            let end = offset + 4 * n as u64;
-            header.insert(
-                name.to_string(),
-                serde_json::json!({"dtype": "F32", "shape": shape, "data_offsets": [offset, end]}),
-            );
-            offset = end;
-        }
-        let header = serde_json::to_vec(&header).unwrap();
-        let mut bytes = (header.len() as u64).to_le_bytes().to_vec();
-        bytes.extend_from_slice(&header);
-        bytes.extend(std::iter::repeat_n(0u8, offset as usize));
-        fs::write(path, bytes).unwrap();
+        let tensors: std::collections::HashMap<String, candle_core::Tensor> = tensors
+            .iter()
+            .map(|(name, shape)| {
+                let t = candle_core::Tensor::zeros(*shape, DType::F32, &Device::Cpu).unwrap();
+                (name.to_string(), t)
+            })
+            .collect();
+        candle_core::safetensors::save(&tensors, path).unwrap();
     }
 
     #[test]
@@ -921,44 +798,6 @@ mod tests {
             "{err}"
         );
         assert!(err.contains("safetensors"), "{err}");
-    }
-
-    #[test]
-    fn header_reader_counts_and_detects_truncation() {
-        let dir = tempfile::tempdir().unwrap();
-        let path = dir.path().join("w.safetensors");
-        write_safetensors(&path, &[("w", &[3, 4]), ("b", &[3])]);
-        let infos = read_safetensors_header(&path).unwrap();
-        assert_eq!(infos.len(), 2);
-        assert_eq!(
-            infos.iter().map(TensorInfo::num_elements).sum::<usize>(),
-            15
-        );
-        let bytes = fs::read(&path).unwrap();
-        fs::write(&path, &bytes[..bytes.len() - 4]).unwrap();
-        let err = read_safetensors_header(&path).unwrap_err().to_string();
-        assert!(err.contains("truncated"), "{err}");
-        fs::write(&path, b"abc").unwrap();
-        assert!(read_safetensors_header(&path).is_err());
-    }
-
-    #[test]
-    fn var_builder_converts_dtype() {
-        let dir = tempfile::tempdir().unwrap();
-        let path = dir.path().join("w.safetensors");
-        let t = candle_core::Tensor::new(&[1.5f32, -2.0], &Device::Cpu)
-            .unwrap()
-            .to_dtype(DType::F16)
-            .unwrap();
-        candle_core::safetensors::save(
-            &std::collections::HashMap::from([("x".to_string(), t)]),
-            &path,
-        )
-        .unwrap();
-        let vb = var_builder_from_files(&[path], DType::F32, &Device::Cpu).unwrap();
-        let x = vb.get(2, "x").unwrap();
-        assert_eq!(x.dtype(), DType::F32);
-        assert_eq!(x.to_vec1::<f32>().unwrap(), vec![1.5, -2.0]);
     }
 
     #[test]

@@ -16,14 +16,13 @@ use candle_core::{DType, Device};
 use serde_json::Value;
 
 use crate::clip::{ClipTextConfig, ClipTextModel};
-use crate::loader::{
-    read_json, read_safetensors_header, Component, LoadError, ModelDir, Problem, TensorInfo,
-};
+use crate::loader::{read_json, Component, LoadError, ModelDir, Problem};
 use crate::scheduler::{LcmVariant, Scheduler};
 use crate::taesd::{AutoencoderTiny, TaesdConfig};
 use crate::tokenizer::{ClipTokenizer, TokenizerSource};
 use crate::unet::{UNet2DConditionModel, UNetConfig};
 use crate::vae::{AutoencoderKL, AutoencoderKLConfig};
+use crate::weights::{read_safetensors_header, TensorInfo};
 
 /// What [`check_model`] should do beyond reading headers.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]

@@ -19,8 +19,8 @@
 //!   and shapes, so taesd.py variants with other widths or latent channels load as well (activation ReLU,
 //!   nearest ×2 upsampling, as taesd.py hard-codes).
 //!
-//! Every op is differentiable (relu, tanh, nearest upsampling, and [`crate::conv::Conv2d`], which falls back
-//! to candle's conv whenever gradients are needed), so a TAESD can be trained or fine-tuned.
+//! Every op is differentiable (relu, tanh, nearest upsampling, and the shared conv layer, whose kernel has a
+//! training variant), so a TAESD can be trained or fine-tuned.
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
@@ -28,7 +28,7 @@ use std::path::{Path, PathBuf};
 use candle_core::{DType, Device, Module, Tensor};
 use candle_nn::{Activation, VarBuilder};
 
-use crate::conv::Conv2d;
+use crate::layers::Conv2d;
 use serde::Deserialize;
 
 /// diffusers' file names for a single-component folder.
@@ -589,14 +589,12 @@ pub fn detect_layout(dir: &Path) -> Result<TaesdLayout> {
 }
 
 fn mmap_var_builder(path: &Path) -> Result<VarBuilder<'static>> {
-    // SAFETY: the file is mapped read-only; like every memory-mapped loader we rely on nobody truncating it
-    // while the model is alive.
-    unsafe { VarBuilder::from_mmaped_safetensors(&[path], DType::F32, &Device::Cpu) }.map_err(
-        |source| TaesdError::Weights {
+    crate::weights::mmap_var_builder(&[path], DType::F32, &Device::Cpu).map_err(|source| {
+        TaesdError::Weights {
             path: path.to_path_buf(),
             source,
-        },
-    )
+        }
+    })
 }
 
 /// One top-level entry of a taesd.py `nn.Sequential`, as seen in the weight file.
@@ -618,7 +616,11 @@ fn inspect_sequential(path: &Path) -> Result<BTreeMap<usize, Entry>> {
         path: path.to_path_buf(),
         message,
     };
-    let shapes = read_safetensors_shapes(path).map_err(bad)?;
+    let shapes: BTreeMap<String, Vec<usize>> = crate::weights::read_safetensors_header(path)
+        .map_err(|e| bad(crate::loader::short_reason(&e)))?
+        .into_iter()
+        .map(|info| (info.name, info.shape))
+        .collect();
     let mut entries = BTreeMap::new();
     for (name, shape) in &shapes {
         let (index, rest) = name
@@ -663,40 +665,6 @@ fn inspect_sequential(path: &Path) -> Result<BTreeMap<usize, Entry>> {
         ));
     }
     Ok(entries)
-}
-
-/// Tensor name → shape from a safetensors header, without reading the tensor data.
-fn read_safetensors_shapes(
-    path: &Path,
-) -> std::result::Result<BTreeMap<String, Vec<usize>>, String> {
-    use std::io::Read;
-    // A header larger than this is not a TAESD file; refuse rather than allocate.
-    const MAX_HEADER: u64 = 16 << 20;
-    let mut file = std::fs::File::open(path).map_err(|e| e.to_string())?;
-    let mut len = [0u8; 8];
-    file.read_exact(&mut len)
-        .map_err(|_| "not a safetensors file (too short)".to_string())?;
-    let len = u64::from_le_bytes(len);
-    if len > MAX_HEADER {
-        return Err(format!("not a safetensors file (header length {len})"));
-    }
-    let mut header = vec![0u8; len as usize];
-    file.read_exact(&mut header)
-        .map_err(|_| "not a safetensors file (truncated header)".to_string())?;
-    #[derive(Deserialize)]
-    struct Info {
-        shape: Vec<usize>,
-    }
-    let map: BTreeMap<String, serde_json::Value> = serde_json::from_slice(&header)
-        .map_err(|e| format!("not a safetensors file (bad header: {e})"))?;
-    map.into_iter()
-        .filter(|(name, _)| name != "__metadata__")
-        .map(|(name, v)| {
-            let info: Info = serde_json::from_value(v)
-                .map_err(|e| format!("bad safetensors header entry {name:?}: {e}"))?;
-            Ok((name, info.shape))
-        })
-        .collect()
 }
 
 /// Builds the config a pair of taesd.py files implies: encoder `conv, block*, (stride conv, block*)*, conv`;

@@ -249,6 +249,12 @@ impl ClipTokenizer {
         config: &TokenizerConfig,
     ) -> Result<Self, TokenizerError> {
         let vocab: HashMap<String, u32> = read_json(vocab_path)?;
+        if vocab.is_empty() {
+            return Err(TokenizerError::Format {
+                path: vocab_path.to_path_buf(),
+                message: "the vocabulary is empty".into(),
+            });
+        }
         let text = fs::read_to_string(merges_path).map_err(|source| TokenizerError::Io {
             path: merges_path.to_path_buf(),
             source,
@@ -345,6 +351,16 @@ impl ClipTokenizer {
             path: path.to_path_buf(),
             message,
         };
+        // A BPE vocabulary without merges would split every word into single bytes: the file is empty
+        // or truncated, and the model would see text it was never trained on.
+        if vocab.is_empty() {
+            return Err(format_err("the vocabulary is empty".into()));
+        }
+        if merge_list.is_empty() {
+            return Err(format_err(
+                "there are no BPE merges (empty or truncated merges list)".into(),
+            ));
+        }
         let mut vocab = vocab;
         let mut next_id = vocab.values().copied().max().map_or(0, |m| m + 1);
         for a in &added {

@@ -8,8 +8,8 @@
 //! - the posterior is a diagonal Gaussian whose log-variance is clamped to [−30, 20]; sampling takes either an
 //!   explicit noise tensor or a caller-owned RNG, so randomness is always under the caller's control.
 //!
-//! Everything is built from differentiable candle ops when gradients are needed (the shared layers switch to
-//! composite kernels automatically), so a small VAE can be trained with a `VarMap`-backed `VarBuilder`.
+//! Every op is differentiable when gradients are needed (the kernels switch to their training variants
+//! automatically), so a small VAE can be trained with a `VarMap`-backed `VarBuilder`.
 
 use std::path::{Path, PathBuf};
 
@@ -19,9 +19,9 @@ use rand::Rng;
 use rand_distr::{Distribution, StandardNormal};
 use serde::Deserialize;
 
-use crate::conv::Conv2d;
 use crate::layers::{
-    Downsample2D, GroupNorm, ResnetBlock2D, ResnetConfig, SpatialSelfAttention, Upsample2D,
+    conv2d, Conv2d, Downsample2D, GroupNorm, ResnetBlock2D, ResnetConfig, SpatialSelfAttention,
+    Upsample2D,
 };
 use crate::taesd::{self, AutoencoderTiny, TaesdError};
 
@@ -202,18 +202,6 @@ impl AutoencoderKLConfig {
     }
 }
 
-/// A conv with bias, built with the fast inference conv regardless of the shared layers' choice.
-fn conv_with_bias(
-    in_channels: usize,
-    out_channels: usize,
-    kernel: usize,
-    stride: usize,
-    padding: usize,
-    vb: VarBuilder,
-) -> candle_core::Result<Conv2d> {
-    Conv2d::load(in_channels, out_channels, kernel, stride, padding, true, vb)
-}
-
 /// `UNetMidBlock2D` without time embedding: resnet, single-head self-attention (optional), resnet.
 #[derive(Debug, Clone)]
 struct MidBlock {
@@ -285,7 +273,7 @@ pub struct VaeEncoder {
 impl VaeEncoder {
     pub fn new(cfg: &AutoencoderKLConfig, vb: VarBuilder) -> candle_core::Result<Self> {
         let chans = &cfg.block_out_channels;
-        let conv_in = conv_with_bias(cfg.in_channels, chans[0], 3, 1, 1, vb.pp("conv_in"))?;
+        let conv_in = conv2d(cfg.in_channels, chans[0], 3, 1, 1, vb.pp("conv_in"))?;
         let mut down_blocks = Vec::with_capacity(chans.len());
         let mut in_ch = chans[0];
         for (i, &out_ch) in chans.iter().enumerate() {
@@ -326,7 +314,7 @@ impl VaeEncoder {
                 NORM_EPS,
                 vb.pp("conv_norm_out"),
             )?,
-            conv_out: conv_with_bias(last, 2 * cfg.latent_channels, 3, 1, 1, vb.pp("conv_out"))?,
+            conv_out: conv2d(last, 2 * cfg.latent_channels, 3, 1, 1, vb.pp("conv_out"))?,
         })
     }
 
@@ -361,7 +349,7 @@ impl VaeDecoder {
     pub fn new(cfg: &AutoencoderKLConfig, vb: VarBuilder) -> candle_core::Result<Self> {
         let reversed: Vec<usize> = cfg.block_out_channels.iter().rev().copied().collect();
         let top = reversed[0];
-        let conv_in = conv_with_bias(cfg.latent_channels, top, 3, 1, 1, vb.pp("conv_in"))?;
+        let conv_in = conv2d(cfg.latent_channels, top, 3, 1, 1, vb.pp("conv_in"))?;
         let mid_block = MidBlock::new(cfg, top, vb.pp("mid_block"))?;
         let mut up_blocks = Vec::with_capacity(reversed.len());
         let mut in_ch = top;
@@ -399,7 +387,7 @@ impl VaeDecoder {
                 NORM_EPS,
                 vb.pp("conv_norm_out"),
             )?,
-            conv_out: conv_with_bias(bottom, cfg.out_channels, 3, 1, 1, vb.pp("conv_out"))?,
+            conv_out: conv2d(bottom, cfg.out_channels, 3, 1, 1, vb.pp("conv_out"))?,
         })
     }
 
@@ -495,12 +483,12 @@ impl AutoencoderKL {
         cfg.validate().map_err(candle_core::Error::msg)?;
         let l = cfg.latent_channels;
         let quant_conv = if cfg.use_quant_conv {
-            Some(conv_with_bias(2 * l, 2 * l, 1, 1, 0, vb.pp("quant_conv"))?)
+            Some(conv2d(2 * l, 2 * l, 1, 1, 0, vb.pp("quant_conv"))?)
         } else {
             None
         };
         let post_quant_conv = if cfg.use_post_quant_conv {
-            Some(conv_with_bias(l, l, 1, 1, 0, vb.pp("post_quant_conv"))?)
+            Some(conv2d(l, l, 1, 1, 0, vb.pp("post_quant_conv"))?)
         } else {
             None
         };
@@ -536,10 +524,8 @@ impl AutoencoderKL {
             path: weights.clone(),
             source,
         };
-        // SAFETY: mapped read-only; the checkpoint must not be modified while the model is alive.
-        let vb =
-            unsafe { VarBuilder::from_mmaped_safetensors(&[&weights], DType::F32, &Device::Cpu) }
-                .map_err(weights_err)?;
+        let vb = crate::weights::mmap_var_builder(&[&weights], DType::F32, &Device::Cpu)
+            .map_err(weights_err)?;
         Self::new(&cfg, vb).map_err(weights_err)
     }
 
@@ -862,15 +848,7 @@ mod tests {
         let fast_recon = fast
             .decode(&fast.encode_sample(&image, &noise).unwrap())
             .unwrap();
-        let diff = (fast_recon - recon)
-            .unwrap()
-            .abs()
-            .unwrap()
-            .flatten_all()
-            .unwrap()
-            .max(0)
-            .unwrap();
-        assert!(diff.to_scalar::<f32>().unwrap() < 1e-4);
+        assert!(crate::kernels::test_support::max_diff(&fast_recon, &recon) < 1e-4);
     }
 
     #[test]

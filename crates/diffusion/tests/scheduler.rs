@@ -8,6 +8,9 @@ use candle_core::{Device, Tensor};
 use diffusion::scheduler::{DdimConfig, DdimScheduler, LcmConfig, LcmScheduler, LcmVariant};
 use serde::Deserialize;
 
+mod common;
+use common::max_abs_diff;
+
 fn repo() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("../..")
 }
@@ -85,19 +88,6 @@ fn fixtures() -> Fixtures {
     let tensors =
         candle_core::safetensors::load(dir.join("steps.safetensors"), &Device::Cpu).unwrap();
     Fixtures { reference, tensors }
-}
-
-fn max_abs_diff(a: &Tensor, b: &Tensor) -> f32 {
-    (a - b)
-        .unwrap()
-        .abs()
-        .unwrap()
-        .flatten_all()
-        .unwrap()
-        .max(0)
-        .unwrap()
-        .to_scalar::<f32>()
-        .unwrap()
 }
 
 fn variant(name: &str) -> LcmVariant {

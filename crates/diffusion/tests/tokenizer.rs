@@ -164,3 +164,21 @@ fn missing_vocabulary_is_a_clear_error() {
         "{err}"
     );
 }
+
+#[test]
+fn empty_merges_or_vocabulary_are_clear_errors() {
+    let dir = tempfile::tempdir().unwrap();
+    std::fs::write(dir.path().join("vocab.json"), r#"{"a</w>": 0, "b</w>": 1}"#).unwrap();
+    std::fs::write(dir.path().join("merges.txt"), "#version: 0.2\n").unwrap();
+    let err = ClipTokenizer::from_dir(dir.path()).unwrap_err().to_string();
+    assert!(
+        err.contains("merges.txt") && err.contains("no BPE merges"),
+        "{err}"
+    );
+    std::fs::write(dir.path().join("vocab.json"), "{}").unwrap();
+    let err = ClipTokenizer::from_dir(dir.path()).unwrap_err().to_string();
+    assert!(
+        err.contains("vocab.json") && err.contains("vocabulary is empty"),
+        "{err}"
+    );
+}

@@ -6,6 +6,9 @@ use std::path::PathBuf;
 use candle_core::{Device, Result, Tensor};
 use diffusion::unet::{AttentionHook, AttnCall, AttnKind, UNet2DConditionModel};
 
+mod common;
+use common::max_abs_diff;
+
 fn repo() -> PathBuf {
     PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../..")
 }
@@ -25,20 +28,6 @@ fn load_fixture(name: &str) -> HashMap<String, Tensor> {
         .join(format!("{name}.safetensors"));
     candle_core::safetensors::load(&path, &Device::Cpu)
         .unwrap_or_else(|e| panic!("{}: {e}", path.display()))
-}
-
-fn max_abs_diff(a: &Tensor, b: &Tensor) -> f32 {
-    assert_eq!(a.dims(), b.dims());
-    (a - b)
-        .unwrap()
-        .abs()
-        .unwrap()
-        .flatten_all()
-        .unwrap()
-        .max(0)
-        .unwrap()
-        .to_scalar::<f32>()
-        .unwrap()
 }
 
 fn run(

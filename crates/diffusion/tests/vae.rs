@@ -7,6 +7,7 @@ use candle_core::{Device, Tensor};
 use diffusion::vae::{Autoencoder, AutoencoderKL};
 
 mod common;
+use common::max_abs_diff;
 
 fn repo() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("../..")
@@ -16,20 +17,6 @@ fn fixture(name: &str) -> HashMap<String, Tensor> {
     let path = repo().join("fixtures/vae").join(name);
     candle_core::safetensors::load(&path, &Device::Cpu)
         .unwrap_or_else(|e| panic!("{}: {e}", path.display()))
-}
-
-fn max_abs_diff(a: &Tensor, b: &Tensor) -> f32 {
-    assert_eq!(a.dims(), b.dims());
-    (a - b)
-        .unwrap()
-        .abs()
-        .unwrap()
-        .flatten_all()
-        .unwrap()
-        .max(0)
-        .unwrap()
-        .to_scalar::<f32>()
-        .unwrap()
 }
 
 /// Posterior mean/logvar, the sample for diffusers' noise, and decode, all within 1e-4.

@@ -10,7 +10,6 @@
 //! - [`eval`]: metrics, LPIPS and CLIP scores;
 //! - [`present`]: the HTML report, the turntable GIF and attention images.
 
-pub mod clip_vision;
 pub mod consistency;
 pub mod eval;
 pub mod fit;

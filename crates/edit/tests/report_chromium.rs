@@ -2,10 +2,11 @@
 //! would include "Failed to load resource"), no script errors, and the screenshot shows the images.
 //! Skips (with the reason printed) when /usr/bin/chromium is absent; Debian: `apt-get install -y chromium`.
 
-use std::io::Read;
+mod common;
+
 use std::path::{Path, PathBuf};
-use std::process::{Command, Stdio};
-use std::time::{Duration, Instant};
+
+use common::{chromium_available, file_url, run_chromium};
 
 use edit::eval::metrics::{ConsistencySummary, PreservationReport};
 use edit::present::gif::{write_gif, GifOptions};
@@ -14,8 +15,6 @@ use edit::present::report::{
     StageTiming, ViewPair, WordImage,
 };
 use splat::Image;
-
-const CHROMIUM: &str = "/usr/bin/chromium";
 
 fn solid(w: u32, h: u32, rgb: [f32; 3], k: usize) -> Image {
     let mut img = Image::new(w, h, 3);
@@ -201,71 +200,25 @@ fn report_links_resolve() {
 /// screenshot.
 fn open_in_chromium(report: &Path, work: &Path) -> (Vec<String>, image::RgbImage) {
     let shot = work.join("shot.png");
-    let profile = work.join("profile");
-    let url = format!(
-        "file://{}",
-        report
-            .to_string_lossy()
-            .replace('%', "%25")
-            .replace(' ', "%20")
+    let run = run_chromium(
+        &file_url(report),
+        work,
+        &[
+            "--disable-gpu".to_string(),
+            "--window-size=1280,2000".to_string(),
+            format!("--screenshot={}", shot.display()),
+        ],
     );
-    let mut child = Command::new(CHROMIUM)
-        .args([
-            "--headless",
-            "--no-sandbox",
-            "--disable-gpu",
-            "--disable-background-networking",
-            "--disable-component-update",
-            "--disable-sync",
-            "--no-first-run",
-            "--enable-logging=stderr",
-            "--v=0",
-            "--window-size=1280,2000",
-        ])
-        .arg(format!("--user-data-dir={}", profile.display()))
-        .arg(format!("--screenshot={}", shot.display()))
-        .arg(&url)
-        .stdout(Stdio::null())
-        .stderr(Stdio::piped())
-        .spawn()
-        .expect("start chromium");
-    // Read stderr on a thread so a chatty browser cannot block on a full pipe.
-    let mut pipe = child.stderr.take().unwrap();
-    let reader = std::thread::spawn(move || {
-        let mut s = String::new();
-        let _ = pipe.read_to_string(&mut s);
-        s
-    });
-    let start = Instant::now();
-    let status = loop {
-        if let Some(st) = child.try_wait().unwrap() {
-            break st;
-        }
-        if start.elapsed() > Duration::from_secs(120) {
-            let _ = child.kill();
-            let _ = child.wait();
-            panic!("chromium did not finish within 120 s");
-        }
-        std::thread::sleep(Duration::from_millis(100));
-    };
-    let stderr = reader.join().unwrap();
-    assert!(status.success(), "chromium failed: {status}\n{stderr}");
-    let console = stderr
-        .lines()
-        .filter(|l| l.contains(":CONSOLE") || l.contains("Uncaught"))
-        .map(str::to_string)
-        .collect();
     if let Ok(keep) = std::env::var("VCEDIT_KEEP_SCREENSHOT") {
         std::fs::copy(&shot, keep).unwrap();
     }
     let img = image::open(&shot).expect("screenshot").to_rgb8();
-    (console, img)
+    (run.console, img)
 }
 
 #[test]
 fn report_renders_in_headless_chromium() {
-    if !Path::new(CHROMIUM).exists() {
-        println!("SKIP: {CHROMIUM} not installed (Debian: apt-get install -y chromium)");
+    if !chromium_available() {
         return;
     }
     let tmp = tempfile::tempdir().unwrap();
@@ -317,8 +270,7 @@ fn report_renders_in_headless_chromium() {
 fn chromium_check_sees_a_file_that_fails_to_load() {
     // The console check above is meaningful: a linked image that is gone (deleted after the report was
     // written) shows up as a console message.
-    if !Path::new(CHROMIUM).exists() {
-        println!("SKIP: {CHROMIUM} not installed (Debian: apt-get install -y chromium)");
+    if !chromium_available() {
         return;
     }
     let tmp = tempfile::tempdir().unwrap();

@@ -234,7 +234,9 @@ fn parse_header(reader: &mut impl BufRead) -> Result<Header, Problem> {
             return Err(Problem::Header(if line_no == 1 {
                 "not a PLY file (it does not start with 'ply')".into()
             } else {
-                format!("line {line_no} is not text")
+                // Binary bytes inside the header: almost always the vertex data of a header whose
+                // `end_header` line is missing.
+                format!("no end_header line before the binary data (line {line_no} is not text)")
             }));
         };
         let text = text.trim_end_matches(['\n', '\r']);

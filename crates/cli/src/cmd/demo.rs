@@ -8,7 +8,8 @@ use demo::run::{
     DemoOptions, Variant, PAIRS,
 };
 
-use super::edit::Bars;
+use crate::args::parse::{positive, whole};
+use crate::progress::Reporter;
 
 /// Run the whole pipeline on a built-in procedural scene with the self-made demo model.
 #[derive(clap::Args, Debug)]
@@ -21,7 +22,7 @@ pub struct Args {
     #[arg(long, default_value = "vcedit-demo")]
     pub out: PathBuf,
     /// Which built-in edit to run (0-based; see --list).
-    #[arg(long, default_value_t = 0)]
+    #[arg(long, default_value_t = 0, value_parser = whole::<usize>, allow_negative_numbers = true)]
     pub pair: usize,
     /// List the built-in edits and exit.
     #[arg(long)]
@@ -32,19 +33,20 @@ pub struct Args {
     /// Demo model folder (default: models/demo of this checkout).
     #[arg(long)]
     pub model: Option<PathBuf>,
-    /// Number of views.
-    #[arg(long, default_value_t = 16)]
+    /// Number of views (at least 2).
+    #[arg(long, default_value_t = 16, value_parser = positive::<usize>, allow_negative_numbers = true)]
     pub views: usize,
     /// Render → edit → fit iterations.
-    #[arg(long, default_value_t = 2)]
+    #[arg(long, default_value_t = 2, value_parser = positive::<usize>, allow_negative_numbers = true)]
     pub iterations: usize,
     /// Fitting steps per iteration.
-    #[arg(long, default_value_t = 300)]
+    #[arg(long, default_value_t = 300, value_parser = whole::<usize>, allow_negative_numbers = true)]
     pub fit_steps: usize,
     /// LCM steps.
-    #[arg(long, default_value_t = 15)]
+    #[arg(long, default_value_t = 15, value_parser = positive::<usize>, allow_negative_numbers = true)]
     pub steps: usize,
-    #[arg(long, default_value_t = 0)]
+    /// Random seed.
+    #[arg(long, default_value_t = 0, value_parser = whole::<u64>, allow_negative_numbers = true)]
     pub seed: u64,
 }
 
@@ -58,7 +60,7 @@ fn default_model() -> PathBuf {
 }
 
 pub fn run(args: Args) -> anyhow::Result<()> {
-    diffusion::layers::tune_allocator_for_inference();
+    diffusion::runtime::tune_allocator_for_inference();
     if args.list {
         for (i, (s, t, _)) in PAIRS.iter().enumerate() {
             println!("{i}: \"{s}\" → \"{t}\"");
@@ -69,9 +71,9 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     let mut opts = DemoOptions::new(model_dir.clone(), args.out.clone());
     opts.pair = args.pair;
     opts.views = args.views.max(2);
-    opts.iterations = args.iterations.max(1);
+    opts.iterations = args.iterations;
     opts.fit_steps = args.fit_steps;
-    opts.steps = args.steps.max(1);
+    opts.steps = args.steps;
     opts.seed = args.seed;
     let scene = demo_scene(&opts)?;
     let model = load_model(&model_dir)?;
@@ -86,7 +88,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     );
     std::fs::create_dir_all(&args.out)
         .with_context(|| format!("creating {}", args.out.display()))?;
-    let mut bars = Bars::new();
+    let mut progress = Reporter::new();
     if args.compare {
         let mut scores = Vec::new();
         for v in Variant::ALL {
@@ -97,10 +99,10 @@ pub fn run(args: Args) -> anyhow::Result<()> {
                 &scene,
                 v,
                 &variant_dir(&args.out, v),
-                &mut bars,
+                &mut progress,
             )?);
         }
-        bars.finish();
+        progress.finish();
         let references = reference_rows(&opts, &model, &scene)?;
         let md = format!("{}\n{}", table(&scores), reference_table(&references));
         println!("{md}");
@@ -114,8 +116,15 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         )?;
         println!("reports: {}", args.out.join("*/report.html").display());
     } else {
-        let s = run_variant(&opts, &model, &scene, Variant::Full, &args.out, &mut bars)?;
-        bars.finish();
+        let s = run_variant(
+            &opts,
+            &model,
+            &scene,
+            Variant::Full,
+            &args.out,
+            &mut progress,
+        )?;
+        progress.finish();
         println!("{}", table(std::slice::from_ref(&s)));
         println!("edited scene: {}", args.out.join("edited.ply").display());
         println!("report: {}", s.report.display());

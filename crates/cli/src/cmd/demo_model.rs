@@ -1,6 +1,5 @@
 //! `vcedit demo-model`: train the self-made demo model (`train`) and draw samples from a model (`sample`).
 
-use std::io::IsTerminal;
 use std::path::PathBuf;
 use std::time::Instant;
 
@@ -8,7 +7,9 @@ use anyhow::{bail, Context};
 use demo::sample::{generate, SampleSettings};
 use demo::train::{train, Event, TrainConfig, TrainOptions};
 use edit::sampler::EditModel;
-use indicatif::{ProgressBar, ProgressStyle};
+
+use crate::args::parse::{finite, positive, whole};
+use crate::progress::Reporter;
 
 /// Train the demo model or sample from a model.
 #[derive(clap::Args, Debug)]
@@ -45,19 +46,19 @@ pub struct TrainArgs {
     #[arg(long, value_enum, default_value = "demo")]
     pub preset: Preset,
     /// Random seed (world samples, initialisation, batches).
-    #[arg(long)]
+    #[arg(long, value_parser = whole::<u64>, allow_negative_numbers = true)]
     pub seed: Option<u64>,
     /// Number of world samples to render and train on.
-    #[arg(long)]
+    #[arg(long, value_parser = positive::<usize>, allow_negative_numbers = true)]
     pub samples: Option<usize>,
     /// Codec training steps.
-    #[arg(long)]
+    #[arg(long, value_parser = whole::<u64>, allow_negative_numbers = true)]
     pub codec_steps: Option<u64>,
     /// UNet + text encoder training steps.
-    #[arg(long)]
+    #[arg(long, value_parser = whole::<u64>, allow_negative_numbers = true)]
     pub unet_steps: Option<u64>,
     /// Minutes between checkpoints.
-    #[arg(long)]
+    #[arg(long, value_parser = finite::<f64>, allow_negative_numbers = true)]
     pub checkpoint_minutes: Option<f64>,
     /// Discard existing checkpoints and start over.
     #[arg(long)]
@@ -76,18 +77,19 @@ pub struct SampleArgs {
     #[arg(long = "prompt", required = true)]
     pub prompts: Vec<String>,
     /// Images per prompt (the grid's columns).
-    #[arg(long, default_value_t = 4)]
+    #[arg(long, default_value_t = 4, value_parser = positive::<usize>, allow_negative_numbers = true)]
     pub per_prompt: usize,
     /// DDIM steps.
-    #[arg(long, default_value_t = 30)]
+    #[arg(long, default_value_t = 30, value_parser = positive::<usize>, allow_negative_numbers = true)]
     pub steps: usize,
     /// Classifier-free guidance scale.
-    #[arg(long, default_value_t = 4.0)]
+    #[arg(long, default_value_t = 4.0, value_parser = finite::<f64>, allow_negative_numbers = true)]
     pub guidance: f64,
     /// DDIM eta (0 = deterministic).
-    #[arg(long, default_value_t = 0.0)]
+    #[arg(long, default_value_t = 0.0, value_parser = finite::<f64>, allow_negative_numbers = true)]
     pub eta: f64,
-    #[arg(long, default_value_t = 0)]
+    /// Random seed.
+    #[arg(long, default_value_t = 0, value_parser = whole::<u64>, allow_negative_numbers = true)]
     pub seed: u64,
     /// Output PNG (the prompts go to the same path with extension .txt).
     #[arg(long, value_name = "FILE")]
@@ -147,65 +149,26 @@ fn run_train(args: TrainArgs) -> anyhow::Result<()> {
         }
     }
     // Training allocates and frees activations every step; keep them in the heap.
-    diffusion::layers::tune_allocator_for_inference();
+    diffusion::runtime::tune_allocator_for_inference();
 
-    // Without a terminal (a log file), one plain line per stage step every 30 s instead of a bar.
-    let plain = !std::io::stderr().is_terminal();
-    let mut last_line = Instant::now();
-    let mut stage: (&'static str, u64, u64, Instant) = ("", 0, 0, Instant::now());
-    let bar = ProgressBar::hidden();
-    let style = ProgressStyle::with_template(
-        "{prefix:>7} [{bar:30}] {pos}/{len} {msg} {elapsed} elapsed, ETA {eta}",
-    )
-    .expect("valid template")
-    .progress_chars("=> ");
+    let mut progress = Reporter::new();
     let started = Instant::now();
     let options = TrainOptions {
         restart: args.restart,
         command: Some(command),
     };
     let summary = train(&args.out, &config, &options, &mut |event| match event {
-        Event::Stage { name, total, done } if plain => {
-            eprintln!("[{}] {name}: {done}/{total}", clock(started));
-            stage = (name, total, done, Instant::now());
-        }
-        Event::Progress { done, loss } if plain => {
-            let (name, total, start, since) = stage;
-            if last_line.elapsed().as_secs() >= 30 || done == total {
-                last_line = Instant::now();
-                let rate =
-                    (done - start.min(done)) as f64 / since.elapsed().as_secs_f64().max(1e-9);
-                let eta = total.saturating_sub(done) as f64 / rate.max(1e-9);
-                let loss = loss.map_or(String::new(), |l| format!(" loss {l:.4}"));
-                eprintln!(
-                    "[{}] {name}: {done}/{total}{loss}, {:.2} s/step, ETA {:.1} min",
-                    clock(started),
-                    1.0 / rate.max(1e-9),
-                    eta / 60.0
-                );
-            }
-        }
-        Event::Note(text) if plain => eprintln!("[{}] {text}", clock(started)),
-        Event::Stage { name, total, done } => {
-            bar.finish();
-            bar.set_draw_target(indicatif::ProgressDrawTarget::stderr());
-            bar.set_style(style.clone());
-            bar.set_prefix(name);
-            bar.set_length(total);
-            bar.reset();
-            bar.set_position(done);
-            bar.set_message("");
-        }
+        Event::Stage { name, total, done } => progress.resume_stage(name, total, done),
         Event::Progress { done, loss } => {
-            bar.set_position(done);
             if let Some(l) = loss {
-                bar.set_message(format!("loss {l:.4}"));
+                progress.set_message(format!("loss {l:.4}"));
             }
+            progress.set_position(done);
         }
-        Event::Note(text) => bar.println(text),
+        Event::Note(text) => progress.log(&text),
     })
     .with_context(|| format!("training into {}", args.out.display()))?;
-    bar.finish();
+    progress.finish();
     let s = &summary.state;
     println!(
         "done in {:.1} min: codec {} steps, unet {} steps, scaling_factor {:.5}, weights {:.1} MB -> {}",
@@ -226,18 +189,9 @@ fn cores() -> String {
         .to_string()
 }
 
-/// Elapsed time as h:mm:ss for log lines.
-fn clock(started: Instant) -> String {
-    let s = started.elapsed().as_secs();
-    format!("{}:{:02}:{:02}", s / 3600, (s / 60) % 60, s % 60)
-}
-
 fn run_sample(args: SampleArgs) -> anyhow::Result<()> {
-    if args.per_prompt == 0 || args.steps == 0 {
-        bail!("--per-prompt and --steps must be positive");
-    }
-    if !args.guidance.is_finite() || !args.eta.is_finite() || args.eta < 0.0 {
-        bail!("--guidance and --eta must be finite (eta non-negative)");
+    if args.eta < 0.0 {
+        bail!("--eta {} must not be negative", args.eta);
     }
     let model = EditModel::load(&args.model, None)
         .with_context(|| format!("loading model {}", args.model.display()))?;

@@ -8,9 +8,14 @@ use edit::consistency::{ConsistencySettings, EcmParams, EcmScope};
 use edit::fit::{ImageLoss, TrainSettings};
 use edit::run::{run_edit, write_outputs, Box3, EditJob, GuidanceMode, MaskSource, RunInputs};
 use edit::sampler::EditModel;
-use indicatif::{ProgressBar, ProgressStyle};
 
-use super::edit_opts::{ModelArgs, PromptArgs, SamplerArgs};
+use crate::args::editing::{ModelArgs, PromptArgs, SamplerArgs};
+use crate::args::parse::{finite, positive, whole};
+use crate::args::{BackgroundArg, CameraArgs};
+use crate::progress::Reporter;
+
+/// Orbit views edited when neither --cameras nor --orbit is given and the scene has no cameras.
+const DEFAULT_ORBIT_VIEWS: usize = 32;
 
 #[derive(Clone, Copy, Debug, clap::ValueEnum)]
 pub enum GuidanceArg {
@@ -38,7 +43,13 @@ pub enum EcmScopeArg {
 
 /// Edit a 3D Gaussian Splatting scene from a source prompt to a target prompt, consistently across views.
 #[derive(clap::Args, Debug)]
-#[command(after_help = "Examples:
+#[command(
+    mut_arg("max_views", |a| a.default_value("96")),
+    after_help = "Cameras come from --cameras, else --orbit, else the scene folder (INRIA output with cameras.json), else an \
+orbit of 32 views around the scene; --max-views keeps a seeded sample of them. Renders are over --background (the \
+reference renders over black).
+
+Examples:
   vcedit edit --scene man/point_cloud.ply --cameras man/sparse/0 --model ./LCM_Dreamshaper_v7 \\
       --source \"a man\" --target \"a clown\" --mask-word man --out clown/
   vcedit edit --scene trained/ --model ./sd15 --taesd ./taesd --source \"a bear\" --target \"a brown bear\" \\
@@ -47,18 +58,14 @@ pub enum EcmScopeArg {
   vcedit edit ... --out clown/ --resume                   # continue after an interruption
 
 Outputs in --out: edited.ply, iter_K/guidance/*.png, attention/*.png, mask/*.png, before/ and after/ renders,
-turntable.gif, run.json and report.html (open it in a browser).")]
+turntable.gif, run.json and report.html (open it in a browser)."
+)]
 pub struct Args {
     /// Input scene: a 3DGS .ply or an INRIA trainer output folder.
     #[arg(long, value_name = "PLY|DIR")]
     pub scene: PathBuf,
-    /// Cameras: COLMAP model, transforms.json or INRIA cameras.json (default: the scene folder's
-    /// cameras.json, else --orbit cameras).
-    #[arg(long, value_name = "FILE|DIR")]
-    pub cameras: Option<PathBuf>,
-    /// Generate this many orbit cameras around the scene when it has none.
-    #[arg(long, default_value_t = 32, value_name = "N")]
-    pub orbit: usize,
+    #[command(flatten)]
+    pub views: CameraArgs,
     #[command(flatten)]
     pub model: ModelArgs,
     #[command(flatten)]
@@ -68,14 +75,11 @@ pub struct Args {
     pub out: PathBuf,
     #[command(flatten)]
     pub sampler: SamplerArgs,
-    /// At most this many views (a seeded sample of the cameras).
-    #[arg(long, default_value_t = 96)]
-    pub max_views: usize,
     /// Render → edit → fit iterations.
-    #[arg(long, default_value_t = 2)]
+    #[arg(long, default_value_t = 2, value_parser = positive::<usize>, allow_negative_numbers = true)]
     pub iterations: usize,
     /// Fitting steps per iteration (one view per step).
-    #[arg(long, default_value_t = 400)]
+    #[arg(long, default_value_t = 400, value_parser = whole::<usize>, allow_negative_numbers = true)]
     pub fit_steps: usize,
     /// How guidance images are made.
     #[arg(long, value_enum, default_value = "joint")]
@@ -90,10 +94,22 @@ pub struct Args {
     #[arg(long)]
     pub no_blend_consistency: bool,
     /// CCM step indices (default: steps where (i+1) % 7 == 0).
-    #[arg(long, value_delimiter = ',', value_name = "I,J,..")]
+    #[arg(
+        long,
+        value_delimiter = ',',
+        value_name = "I,J,..",
+        value_parser = whole::<usize>,
+        allow_hyphen_values = true
+    )]
     pub ccm_steps: Option<Vec<usize>>,
     /// ECM step indices (default: steps where (i+1) % 5 == 0).
-    #[arg(long, value_delimiter = ',', value_name = "I,J,..")]
+    #[arg(
+        long,
+        value_delimiter = ',',
+        value_name = "I,J,..",
+        value_parser = whole::<usize>,
+        allow_hyphen_values = true
+    )]
     pub ecm_steps: Option<Vec<usize>>,
     /// Which Gaussians ECM's fits may move.
     #[arg(long, value_enum, default_value = "masked")]
@@ -115,16 +131,15 @@ pub struct Args {
     /// Editable region: per-view mask images (<camera name>.png, white = editable).
     #[arg(long, value_name = "DIR", group = "maskgroup")]
     pub mask_dir: Option<PathBuf>,
-    /// A Gaussian is editable when its lifted mask value exceeds this.
-    #[arg(long, default_value_t = 0.5)]
+    /// A Gaussian is editable when its lifted mask value exceeds this (from 0 up to, not including, 1).
+    #[arg(long, default_value_t = 0.5, value_parser = finite::<f32>, allow_negative_numbers = true)]
     pub mask_threshold: f32,
     /// LPIPS-VGG weights (vgg16.safetensors + lpips_vgg.safetensors; tools/convert_lpips_weights.py).
     /// Without them the fits use L1 + D-SSIM.
     #[arg(long, value_name = "DIR")]
     pub lpips: Option<PathBuf>,
-    /// Background colour of every render, R,G,B in [0, 1] (the reference renders over black).
-    #[arg(long, default_value = "0,0,0", value_parser = parse_rgb, allow_hyphen_values = true)]
-    pub background: [f32; 3],
+    #[command(flatten)]
+    pub background: BackgroundArg,
     /// Continue an interrupted run in --out.
     #[arg(long)]
     pub resume: bool,
@@ -132,170 +147,31 @@ pub struct Args {
     #[arg(long)]
     pub ignore_memory_check: bool,
     /// Stop right after this iteration's checkpoint, as a kill would (tests of --resume).
-    #[arg(long, hide = true, value_name = "K")]
+    #[arg(
+        long,
+        hide = true,
+        value_name = "K",
+        value_parser = whole::<usize>,
+        allow_negative_numbers = true
+    )]
     pub stop_after_iteration: Option<usize>,
 }
 
-/// Progress bars, one per stage, for the editing pipeline.
-pub struct Bars {
-    bar: Option<ProgressBar>,
-    /// Plain progress lines instead of bars when stderr is not a terminal (logs, CI, `nohup`): indicatif
-    /// hides its bars there and would swallow the log lines printed through them.
-    plain: Option<PlainProgress>,
-}
-
-/// Line-per-update progress for non-terminal stderr, throttled to one line per stage every 30 s.
-struct PlainProgress {
-    start: Instant,
-    stage: String,
-    total: u64,
-    done: u64,
-    last_line: Instant,
-}
-
-impl PlainProgress {
-    fn line(&mut self) {
-        let t = self.start.elapsed().as_secs();
-        eprintln!(
-            "[{}:{:02}:{:02}] {}: {}/{}",
-            t / 3600,
-            t / 60 % 60,
-            t % 60,
-            self.stage,
-            self.done,
-            self.total
-        );
-        self.last_line = Instant::now();
-    }
-}
-
-impl Bars {
-    pub fn new() -> Self {
-        use std::io::IsTerminal;
-        let plain = (!std::io::stderr().is_terminal()).then(|| PlainProgress {
-            start: Instant::now(),
-            stage: String::new(),
-            total: 0,
-            done: 0,
-            last_line: Instant::now(),
-        });
-        Self { bar: None, plain }
-    }
-
-    /// Clears the last bar.
-    pub fn finish(&mut self) {
-        if let Some(b) = self.bar.take() {
-            b.finish_and_clear();
-        }
-    }
-}
-
-impl edit::run::Progress for Bars {
-    fn stage(&mut self, name: &str, total: u64) {
-        if let Some(p) = &mut self.plain {
-            p.stage = name.to_string();
-            p.total = total;
-            p.done = 0;
-            p.line();
-            return;
-        }
-        if let Some(b) = self.bar.take() {
-            b.finish_and_clear();
-        }
-        let bar = ProgressBar::new(total);
-        bar.set_style(
-            ProgressStyle::with_template("{prefix:40} [{bar:30}] {pos}/{len} {elapsed}, ETA {eta}")
-                .expect("valid template")
-                .progress_chars("=> "),
-        );
-        bar.set_prefix(name.to_string());
-        self.bar = Some(bar);
-    }
-
-    fn advance(&mut self, n: u64) {
-        if let Some(p) = &mut self.plain {
-            p.done += n;
-            if p.last_line.elapsed().as_secs() >= 30 {
-                p.line();
-            }
-            return;
-        }
-        if let Some(b) = &self.bar {
-            b.inc(n);
-        }
-    }
-
-    fn log(&mut self, line: &str) {
-        match &self.bar {
-            Some(b) => b.println(line),
-            None => eprintln!("{line}"),
-        }
-    }
-}
-
-/// Parses "R,G,B" with components in [0, 1], or the names black / white.
-pub fn parse_rgb(s: &str) -> Result<[f32; 3], String> {
-    match s {
-        "black" => return Ok([0.0; 3]),
-        "white" => return Ok([1.0; 3]),
-        _ => {}
-    }
-    let v: Vec<f32> = s
-        .split(',')
-        .map(|x| {
-            x.trim()
-                .parse::<f32>()
-                .map_err(|_| format!("'{x}' is not a number"))
-        })
-        .collect::<Result<_, _>>()?;
-    match v.as_slice() {
-        [r, g, b] if v.iter().all(|c| (0.0..=1.0).contains(c)) => Ok([*r, *g, *b]),
-        _ => Err(format!(
-            "expected R,G,B with components in [0, 1] (or black/white), got '{s}'"
-        )),
-    }
-}
-
 pub fn run(args: Args) -> anyhow::Result<()> {
-    diffusion::layers::tune_allocator_for_inference();
+    diffusion::runtime::tune_allocator_for_inference();
     let t0 = Instant::now();
     let infedit = args.sampler.settings()?;
-    let (w, h) = args.sampler.size()?;
-    if args.iterations == 0 {
-        bail!("--iterations must be at least 1");
-    }
-    if args.max_views == 0 {
-        bail!("--max-views must be at least 1");
-    }
+    let (w, h) = args.sampler.size();
     if !(0.0..1.0).contains(&args.mask_threshold) {
         bail!("--mask-threshold {} must be in [0, 1)", args.mask_threshold);
     }
 
     // Inputs.
     let (scene, scene_cams) = splat::open_scene(&args.scene)?;
-    let camera_set = match &args.cameras {
-        Some(p) => Some(splat::cameras::load_cameras(p)?),
-        None => scene_cams,
-    };
-    let mut cameras: Vec<splat::Camera> = match camera_set {
-        Some(set) => set.cameras,
-        None => {
-            let (lo, hi) =
-                splat::cameras::robust_bounds(&scene, 0.01).context("the scene is empty")?;
-            eprintln!(
-                "no cameras given: using {} orbit cameras around the scene",
-                args.orbit
-            );
-            splat::cameras::orbit_cameras(lo, hi, args.orbit, w, h)
-        }
-    };
-    if cameras.is_empty() {
-        bail!("no cameras to edit from");
-    }
-    cameras = cameras
-        .iter()
-        .map(|c| splat::cameras::to_working_resolution(c, w, h))
-        .collect();
+    let (cameras, source) =
+        args.views
+            .choose(&scene, scene_cams, Some((w, h)), DEFAULT_ORBIT_VIEWS)?;
+    eprintln!("cameras: {} views from {source}", cameras.len());
 
     let steps = infedit.steps;
     let mut consistency = ConsistencySettings::reference(steps);
@@ -352,13 +228,13 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         },
         iterations: args.iterations,
         fit_steps: args.fit_steps,
-        max_views: args.max_views,
+        max_views: args.views.view_limit(cameras.len()),
         seed: args.sampler.seed,
         mask,
         mask_threshold: args.mask_threshold,
         train: TrainSettings::new((args.iterations * args.fit_steps) as u64),
         size: (w, h),
-        background: args.background,
+        background: args.background.background,
         stop_after_iteration: args.stop_after_iteration,
     };
 
@@ -393,7 +269,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
 
     std::fs::create_dir_all(&args.out)
         .with_context(|| format!("creating {}", args.out.display()))?;
-    let mut bars = Bars::new();
+    let mut progress = Reporter::new();
     let result = run_edit(
         &job,
         &model,
@@ -402,11 +278,12 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         &cameras,
         &args.out,
         args.resume,
-        &mut bars,
+        &mut progress,
     )?;
     let inputs = RunInputs {
         scene: &args.scene.display().to_string(),
         cameras: &args
+            .views
             .cameras
             .as_ref()
             .map_or("(scene cameras / orbit)".to_string(), |p| {
@@ -417,9 +294,15 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         notes,
     };
     let written = write_outputs(
-        &args.out, &job, &inputs, &scene, &cameras, &result, &mut bars,
+        &args.out,
+        &job,
+        &inputs,
+        &scene,
+        &cameras,
+        &result,
+        &mut progress,
     )?;
-    bars.finish();
+    progress.finish();
     println!("edited scene: {}", written.scene.display());
     println!("report: {}", written.report.display());
     println!("done in {:.1} min", t0.elapsed().as_secs_f64() / 60.0);

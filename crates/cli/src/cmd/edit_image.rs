@@ -8,10 +8,10 @@ use edit::present::viz;
 use edit::sampler::{
     edit_image, image_to_tensor, tensor_to_images, EditModel, EditPlan, SeededNoise,
 };
-use indicatif::{ProgressBar, ProgressStyle};
 use splat::Image;
 
-use super::edit_opts::{ModelArgs, PromptArgs, SamplerArgs};
+use crate::args::editing::{ModelArgs, PromptArgs, SamplerArgs};
+use crate::progress::Reporter;
 
 /// Edit one image from a source prompt to a target prompt (InfEdit: inversion-free, LCM, attention control).
 #[derive(clap::Args, Debug)]
@@ -38,9 +38,9 @@ pub struct Args {
 }
 
 pub fn run(args: Args) -> anyhow::Result<()> {
-    diffusion::layers::tune_allocator_for_inference();
+    diffusion::runtime::tune_allocator_for_inference();
     let settings = args.sampler.settings()?;
-    let (w, h) = args.sampler.size()?;
+    let (w, h) = args.sampler.size();
     if args
         .out
         .extension()
@@ -64,20 +64,15 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     let prompts = args.prompts.prompts();
     let plan = EditPlan::new(&model, &prompts, &settings, (w as usize, h as usize))?;
 
-    let bar = ProgressBar::new(plan.timesteps.len() as u64);
-    bar.set_style(
-        ProgressStyle::with_template(
-            "{prefix} [{bar:30}] {pos}/{len} steps, {elapsed} elapsed, ETA {eta}",
-        )
-        .expect("valid template")
-        .progress_chars("=> "),
-    );
-    bar.set_prefix("editing");
     let image = image_to_tensor(&input)?;
     let mut noise = SeededNoise::new(args.sampler.seed);
+    let mut progress = Reporter::new();
+    progress.stage("editing steps", plan.timesteps.len() as u64);
     let t1 = Instant::now();
-    let outcome = edit_image(&model, &plan, &image, &mut noise, &mut |_| bar.inc(1))?;
-    bar.finish_and_clear();
+    let outcome = edit_image(&model, &plan, &image, &mut noise, &mut |_| {
+        progress.advance(1)
+    })?;
+    progress.finish();
     let edit_time = t1.elapsed();
 
     let out = tensor_to_images(&outcome.image)?.remove(0);

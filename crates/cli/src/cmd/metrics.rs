@@ -14,20 +14,24 @@ use edit::present::report::MetricsSummary;
 use edit::run::{mask_from_box, Box3};
 use rayon::prelude::*;
 use serde::Serialize;
-use splat::cameras::{load_cameras, orbit_cameras, robust_bounds, to_working_resolution};
 use splat::render::{render, ExtraChannels, RenderOutput, RenderSettings};
 use splat::{Camera, GaussianScene, Image};
 use std::path::PathBuf;
 use std::time::Instant;
 
+use crate::args::parse::{finite, positive};
+use crate::args::{BackgroundArg, CameraArgs, CameraSource, SizeArg};
+
+/// Views compared when neither --cameras nor --orbit is given and the source scene has no cameras.
 const DEFAULT_ORBIT_VIEWS: usize = 16;
-const DEFAULT_ORBIT_SIZE: (u32, u32) = (512, 512);
 
 #[derive(clap::Args, Debug)]
 #[command(
     about = "Compare two scenes: cross-view consistency, preservation (PSNR/SSIM), CLIP directional similarity",
+    mut_arg("max_views", |a| a.default_value("64")),
     after_help = "Cameras come from --cameras, else --orbit, else the source scene's folder (INRIA cameras.json), else an \
-orbit of 16 views around the source scene. Both scenes are rendered from the same cameras.
+orbit of 16 views around the source scene; --max-views keeps an evenly spaced subset. Both scenes are rendered from \
+the same cameras. --background affects PSNR/SSIM and CLIP, not the cross-view error.
 
 Cross-view error: each view is warped into its nearest cameras with the scene's rendered depth; the mean absolute colour \
 difference (0-1 scale) over pixels both cameras see. Lower is more consistent; a scene's own renders are the floor.
@@ -45,31 +49,21 @@ pub struct Args {
     /// The scene after editing.
     #[arg(long, value_name = "SCENE")]
     pub edited: PathBuf,
-    /// Cameras: a COLMAP model folder (or its sparse/0), a transforms*.json, or an INRIA cameras.json.
-    #[arg(long, value_name = "FILE|DIR", conflicts_with = "orbit")]
-    pub cameras: Option<PathBuf>,
-    /// N views on an orbit around the source scene.
-    #[arg(long, value_name = "N")]
-    pub orbit: Option<usize>,
-    /// Render size WxH (or N for NxN); cameras are centre-cropped to the aspect ratio, then scaled.
-    /// Default: the cameras' own size; 512x512 for orbits.
-    #[arg(long, value_name = "WxH")]
-    pub size: Option<String>,
-    /// Use at most this many cameras (evenly spaced); 0 = all.
-    #[arg(long, default_value_t = 64)]
-    pub max_views: usize,
+    #[command(flatten)]
+    pub views: CameraArgs,
+    #[command(flatten)]
+    pub size: SizeArg,
     /// Editable region xmin,ymin,zmin,xmax,ymax,zmax: preservation is also measured outside it.
     #[arg(long, value_name = "BOX", allow_hyphen_values = true)]
     pub mask_box: Option<Box3>,
     /// Neighbouring cameras each view is compared with.
-    #[arg(long, default_value_t = 3)]
+    #[arg(long, default_value_t = 3, value_parser = positive::<usize>, allow_negative_numbers = true)]
     pub neighbours: usize,
     /// Occlusion test tolerance (fraction of the depth).
-    #[arg(long, default_value_t = 0.03)]
+    #[arg(long, default_value_t = 0.03, value_parser = finite::<f32>, allow_negative_numbers = true)]
     pub depth_tolerance: f32,
-    /// Background colour R,G,B in [0, 1] of the renders (affects PSNR/SSIM and CLIP, not consistency).
-    #[arg(long, value_name = "R,G,B", default_value = "0,0,0")]
-    pub background: String,
+    #[command(flatten)]
+    pub background: BackgroundArg,
     /// A transformers CLIPModel folder (e.g. openai/clip-vit-large-patch14) for the CLIP directional similarity.
     #[arg(long, value_name = "DIR", requires_all = ["source_prompt", "target_prompt"])]
     pub clip: Option<PathBuf>,
@@ -100,72 +94,23 @@ struct Output {
     seconds: f64,
 }
 
-fn parse_background(s: &str) -> Result<[f32; 3]> {
-    let v: Vec<f32> = s
-        .split(',')
-        .map(|x| x.trim().parse::<f32>())
-        .collect::<Result<_, _>>()
-        .with_context(|| format!("--background {s}: expected R,G,B"))?;
-    if v.len() != 3 || v.iter().any(|c| !(0.0..=1.0).contains(c)) {
-        bail!("--background {s}: expected three numbers in [0, 1]");
-    }
-    Ok([v[0], v[1], v[2]])
-}
-
+/// The views to compare, and where they came from (for the output and its JSON).
 fn choose_cameras(
     args: &Args,
     source: &GaussianScene,
     own: Option<splat::cameras::CameraSet>,
 ) -> Result<(Vec<Camera>, String)> {
-    let size = args
-        .size
-        .as_deref()
-        .map(super::edit_opts::parse_size)
-        .transpose()?;
-    let orbit = |n: usize| -> Result<Vec<Camera>> {
-        let (lo, hi) = robust_bounds(source, 0.01)
-            .context("the source scene is empty: nothing to orbit around; pass --cameras")?;
-        let (w, h) = size.unwrap_or(DEFAULT_ORBIT_SIZE);
-        Ok(orbit_cameras(lo, hi, n, w, h))
-    };
-    // Generated orbits already have the requested size; loaded cameras are adapted to it.
-    let (cams, from, loaded) = if let Some(path) = &args.cameras {
-        let set = load_cameras(path)?;
-        (
-            set.cameras,
-            format!("cameras from {}", path.display()),
-            true,
-        )
-    } else if let Some(n) = args.orbit {
-        if n < 2 {
-            bail!("--orbit needs at least two views to compare views with each other");
-        }
-        (orbit(n)?, format!("an orbit of {n} views"), false)
-    } else if let Some(set) = own.filter(|s| !s.cameras.is_empty()) {
-        (
-            set.cameras,
-            "the source scene's cameras.json".to_string(),
-            true,
-        )
-    } else {
-        (
-            orbit(DEFAULT_ORBIT_VIEWS)?,
-            format!("an orbit of {DEFAULT_ORBIT_VIEWS} views"),
-            false,
-        )
-    };
-    if cams.is_empty() {
-        bail!("{from}: no cameras");
+    if args.views.orbit.is_some_and(|n| n < 2) {
+        bail!("--orbit needs at least two views to compare views with each other");
     }
-    let picked = edit::present::report::subset_indices(cams.len(), args.max_views);
-    let cams: Vec<Camera> = picked
-        .iter()
-        .map(|&i| match size {
-            Some((w, h)) if loaded => to_working_resolution(&cams[i], w, h),
-            _ => cams[i].clone(),
-        })
-        .collect();
-    Ok((cams, from))
+    let (cameras, from) = args
+        .views
+        .choose(source, own, args.size.size, DEFAULT_ORBIT_VIEWS)?;
+    let from = match from {
+        CameraSource::Scene => "the source scene's cameras.json".to_string(),
+        other => other.to_string(),
+    };
+    Ok((args.views.evenly_spaced(cameras), from))
 }
 
 /// Renders of `scene` from every camera, with the box mask (1 inside, 0 outside) as an extra channel.
@@ -217,15 +162,12 @@ fn fmt_preservation(p: &PreservationReport) -> String {
 
 pub fn run(args: Args) -> Result<()> {
     let t0 = Instant::now();
-    let background = parse_background(&args.background)?;
-    if args.depth_tolerance <= 0.0 || !args.depth_tolerance.is_finite() {
+    let background = args.background.background;
+    if args.depth_tolerance <= 0.0 {
         bail!(
             "--depth-tolerance {} must be positive",
             args.depth_tolerance
         );
-    }
-    if args.neighbours == 0 {
-        bail!("--neighbours must be at least 1");
     }
     // Load CLIP first: a wrong folder should fail before minutes of rendering.
     let clip = match &args.clip {

@@ -1,23 +1,23 @@
 //! `vcedit render SCENE`: render a scene to PNG files from given or generated cameras.
 
-use anyhow::{bail, Context, Result};
-use indicatif::{ProgressBar, ProgressStyle};
-use splat::cameras::{load_cameras, orbit_cameras, robust_bounds, to_working_resolution};
+use anyhow::{Context, Result};
 use splat::render::{render, RenderOutput, RenderSettings};
-use splat::{Camera, Image};
+use splat::Image;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
+use crate::args::{BackgroundArg, CameraArgs, CameraSource, SizeArg};
+use crate::progress::Reporter;
+
 /// Views rendered for a scene that brings no cameras when neither --cameras nor --orbit is given.
 const DEFAULT_ORBIT_VIEWS: usize = 8;
-/// Image size of generated orbit views unless --size says otherwise.
-const DEFAULT_ORBIT_SIZE: (u32, u32) = (512, 512);
 
 #[derive(clap::Args, Debug)]
 #[command(
     about = "Render a scene to one PNG per view (optionally depth and alpha)",
-    after_help = "Cameras come from --cameras, else from the scene folder (INRIA output with cameras.json), else an orbit \
-of 8 views around the scene. Files are named NNNN_<camera name>.png (+ _depth.png, _alpha.png).
+    after_help = "Cameras come from --cameras, else --orbit, else the scene folder (INRIA output with cameras.json), \
+else an orbit of 8 views around the scene; --max-views keeps an evenly spaced subset. Files are named \
+NNNN_<camera name>.png (+ _depth.png, _alpha.png).
 
 Examples:
   vcedit render scene.ply --orbit 24 --out renders/
@@ -27,19 +27,13 @@ Examples:
 pub struct Args {
     /// A .ply file, or an INRIA trainer output folder (point_cloud/iteration_*/point_cloud.ply + cameras.json).
     pub scene: PathBuf,
-    /// Cameras: a COLMAP model folder (or its sparse/0), a transforms*.json, or an INRIA cameras.json.
-    #[arg(long, value_name = "FILE|DIR", conflicts_with = "orbit")]
-    pub cameras: Option<PathBuf>,
-    /// Render N views on an orbit around the scene instead of its own cameras.
-    #[arg(long, value_name = "N")]
-    pub orbit: Option<usize>,
+    #[command(flatten)]
+    pub views: CameraArgs,
     /// Output folder (created if needed).
     #[arg(long, value_name = "DIR")]
     pub out: PathBuf,
-    /// Image size WxH (or one number for a square). Cameras are centre-cropped to the aspect ratio, then
-    /// scaled. Default: the cameras' own size; 512x512 for orbits.
-    #[arg(long, value_name = "WxH", value_parser = parse_size)]
-    pub size: Option<(u32, u32)>,
+    #[command(flatten)]
+    pub size: SizeArg,
     /// Also write the depth of each view (grey PNG, near = bright; normalised per view between the 1st and
     /// 99th percentile of the visible depths; empty pixels black).
     #[arg(long)]
@@ -47,88 +41,8 @@ pub struct Args {
     /// Also write the accumulated opacity of each view (grey PNG).
     #[arg(long)]
     pub alpha: bool,
-    /// Background colour R,G,B in [0, 1].
-    #[arg(long, value_name = "R,G,B", default_value = "0,0,0", value_parser = parse_color)]
-    pub background: [f32; 3],
-}
-
-fn parse_size(s: &str) -> Result<(u32, u32), String> {
-    let parse = |v: &str| -> Result<u32, String> {
-        let n: u32 = v
-            .trim()
-            .parse()
-            .map_err(|_| format!("'{v}' is not a whole number"))?;
-        if n == 0 || n > 16384 {
-            return Err(format!("{n} is out of range (1..=16384)"));
-        }
-        Ok(n)
-    };
-    match s.split_once(['x', 'X']) {
-        Some((w, h)) => Ok((parse(w)?, parse(h)?)),
-        None => {
-            let n = parse(s)?;
-            Ok((n, n))
-        }
-    }
-}
-
-fn parse_color(s: &str) -> Result<[f32; 3], String> {
-    let parts: Vec<&str> = s.split(',').collect();
-    if parts.len() != 3 {
-        return Err("expected three numbers R,G,B in [0, 1], e.g. 1,1,1".into());
-    }
-    let mut c = [0.0f32; 3];
-    for (v, p) in c.iter_mut().zip(&parts) {
-        *v = p
-            .trim()
-            .parse()
-            .map_err(|_| format!("'{p}' is not a number"))?;
-        if !(0.0..=1.0).contains(v) {
-            return Err(format!("{v} is outside [0, 1]"));
-        }
-    }
-    Ok(c)
-}
-
-/// The views to render, and a short description of where they came from.
-fn choose_cameras(
-    args: &Args,
-    scene: &splat::GaussianScene,
-    own: Option<splat::cameras::CameraSet>,
-) -> Result<(Vec<Camera>, String)> {
-    let orbit = |n: usize| -> Result<Vec<Camera>> {
-        let (lo, hi) = robust_bounds(scene, 0.01)
-            .context("the scene is empty, so there is nothing to orbit around; pass --cameras")?;
-        let (w, h) = args.size.unwrap_or(DEFAULT_ORBIT_SIZE);
-        Ok(orbit_cameras(lo, hi, n, w, h))
-    };
-    let (cams, source) = if let Some(path) = &args.cameras {
-        let set = load_cameras(path)?;
-        (set.cameras, format!("cameras from {}", path.display()))
-    } else if let Some(n) = args.orbit {
-        if n == 0 {
-            bail!("--orbit needs at least one view");
-        }
-        return Ok((orbit(n)?, format!("an orbit of {n} views")));
-    } else if let Some(set) = own {
-        (set.cameras, "the scene's cameras.json".to_string())
-    } else {
-        return Ok((
-            orbit(DEFAULT_ORBIT_VIEWS)?,
-            format!("an orbit of {DEFAULT_ORBIT_VIEWS} views (the scene has no cameras; see --cameras, --orbit)"),
-        ));
-    };
-    if cams.is_empty() {
-        bail!("{source}: no cameras");
-    }
-    let cams = match args.size {
-        Some((w, h)) => cams
-            .iter()
-            .map(|c| to_working_resolution(c, w, h))
-            .collect(),
-        None => cams,
-    };
-    Ok((cams, source))
+    #[command(flatten)]
+    pub background: BackgroundArg,
 }
 
 /// A file-name-safe version of a camera name.
@@ -185,7 +99,16 @@ fn save(img: &Image, path: &Path) -> Result<()> {
 pub fn run(args: Args) -> Result<()> {
     let t0 = Instant::now();
     let (scene, own_cameras) = splat::open_scene(&args.scene)?;
-    let (cameras, source) = choose_cameras(&args, &scene, own_cameras)?;
+    let (cameras, source) =
+        args.views
+            .choose(&scene, own_cameras, args.size.size, DEFAULT_ORBIT_VIEWS)?;
+    let cameras = args.views.evenly_spaced(cameras);
+    let source = match source {
+        CameraSource::Orbit {
+            by_default: true, ..
+        } => format!("{source} (the scene has no cameras; see --cameras, --orbit)"),
+        _ => source.to_string(),
+    };
     std::fs::create_dir_all(&args.out)
         .with_context(|| format!("{}: cannot create the output folder", args.out.display()))?;
     eprintln!(
@@ -196,14 +119,10 @@ pub fn run(args: Args) -> Result<()> {
         cameras.len()
     );
     let settings = RenderSettings {
-        background: args.background,
+        background: args.background.background,
     };
-    let bar = ProgressBar::new(cameras.len() as u64);
-    bar.set_style(
-        ProgressStyle::with_template("[{bar:30}] {pos}/{len} views, {elapsed} elapsed, ETA {eta}")
-            .expect("valid template")
-            .progress_chars("=> "),
-    );
+    let mut progress = Reporter::new();
+    progress.stage("rendering views", cameras.len() as u64);
     let t_render = Instant::now();
     for (i, cam) in cameras.iter().enumerate() {
         let out = render(&scene, cam, &settings, None);
@@ -219,9 +138,9 @@ pub fn run(args: Args) -> Result<()> {
             let alpha = Image::from_data(out.width, out.height, 1, out.alpha.clone());
             save(&alpha, &args.out.join(format!("{stem}_alpha.png")))?;
         }
-        bar.inc(1);
+        progress.advance(1);
     }
-    bar.finish_and_clear();
+    progress.finish();
     let per_view = t_render.elapsed().as_secs_f64() / cameras.len().max(1) as f64;
     eprintln!(
         "wrote {} views to {} ({:.0} ms per view, {:.1} s total)",
@@ -236,17 +155,6 @@ pub fn run(args: Args) -> Result<()> {
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    #[test]
-    fn sizes_and_colours_parse() {
-        assert_eq!(parse_size("640x480"), Ok((640, 480)));
-        assert_eq!(parse_size("256"), Ok((256, 256)));
-        assert!(parse_size("0x10").is_err());
-        assert!(parse_size("axb").is_err());
-        assert_eq!(parse_color("1, 0.5,0"), Ok([1.0, 0.5, 0.0]));
-        assert!(parse_color("1,2,0").is_err());
-        assert!(parse_color("1,1").is_err());
-    }
 
     #[test]
     fn file_stems_are_safe_and_ordered() {

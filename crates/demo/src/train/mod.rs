@@ -31,7 +31,7 @@
 //! stage; rerunning the same command continues from them. Parallel reductions make runs agree to float
 //! rounding, not bit for bit.
 //!
-//! Training speed came from [`diffusion::train_ops`]: fused conv/norm/softmax kernels with backward passes
+//! Training speed came from the diffusion crate's kernels: fused conv/norm/softmax/GEGLU with backward passes
 //! (candle's composite ops were 10-40× slower on these shapes).
 
 pub mod codec;

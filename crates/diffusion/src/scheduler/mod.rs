@@ -8,8 +8,8 @@
 //! Steps take their noise as an argument: callers own the random number generator (VcEdit shares one
 //! noise tensor across views and branches).
 
-pub mod ddim;
-pub mod lcm;
+mod ddim;
+mod lcm;
 
 use std::path::{Path, PathBuf};
 

@@ -7,7 +7,8 @@
 use candle_core::{Module, Result, Tensor};
 use candle_nn::{Linear, VarBuilder};
 
-use crate::layers::{linear, scaled_dot_product_attention, softmax_last_dim};
+use crate::kernels::{attention, softmax_last_dim};
+use crate::layers::linear;
 
 /// Self-attention (keys from the image tokens) or cross-attention (keys from the text embedding).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -25,7 +26,7 @@ pub struct AttnCall<'a> {
     /// Spatial size of the queries: `height * width` query tokens, row-major.
     pub height: usize,
     pub width: usize,
-    /// Batch size of the UNet call (the caller knows its layout, e.g. InfEdit's [S_u,T_u,M_u,S_c,T_c,M_c]).
+    /// Batch size of the UNet call (the caller knows its layout, e.g. InfEdit's `[S_u,T_u,M_u,S_c,T_c,M_c]`).
     pub batch: usize,
     pub heads: usize,
 }
@@ -99,15 +100,6 @@ impl Attention {
         })
     }
 
-    /// The diffusers module path this layer was loaded from.
-    pub fn name(&self) -> &str {
-        &self.name
-    }
-
-    pub fn kind(&self) -> AttnKind {
-        self.kind
-    }
-
     /// `x` [batch, h·w, query_dim]; `context` [batch, tokens, context_dim] for cross-attention.
     pub fn forward(
         &self,
@@ -137,7 +129,7 @@ impl Attention {
         let v = split(self.to_v.forward(kv_source)?)?;
         let scale = 1.0 / (self.head_dim as f64).sqrt();
         let out = match hook {
-            None => scaled_dot_product_attention(&q, &k, &v, scale)?,
+            None => attention(&q, &k, &v, scale)?,
             Some(hook) => {
                 let call = AttnCall {
                     layer: &self.name,
@@ -153,7 +145,7 @@ impl Attention {
                     let probs = hook.probs(&call, softmax_last_dim(&scores)?)?;
                     probs.matmul(&v)?
                 } else {
-                    scaled_dot_product_attention(&q, &k, &v, scale)?
+                    attention(&q, &k, &v, scale)?
                 }
             }
         };

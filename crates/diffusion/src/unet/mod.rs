@@ -3,11 +3,11 @@
 //!
 //! Weights load unchanged by diffusers key names; every architecture number comes from `unet/config.json`.
 
-pub mod attention;
-pub mod blocks;
-pub mod config;
-pub mod embeddings;
-pub mod transformer;
+mod attention;
+mod blocks;
+mod config;
+mod embeddings;
+mod transformer;
 
 use std::path::{Path, PathBuf};
 
@@ -20,8 +20,7 @@ pub use config::UNetConfig;
 use config::{BlockKind, ResolvedBlocks};
 use embeddings::{timestep_embedding, TimestepEmbedding};
 
-use crate::conv::Conv2d;
-use crate::layers::{conv2d, GroupNorm, TimeEmbeddingNorm};
+use crate::layers::{conv2d, Conv2d, GroupNorm, TimeEmbeddingNorm};
 
 /// Errors from building a UNet.
 #[derive(Debug, thiserror::Error)]
@@ -74,10 +73,7 @@ impl UNet2DConditionModel {
             path: config_path.to_path_buf(),
             source,
         })?;
-        // SAFETY: read-only memory map of checkpoint files that must not change while the model lives.
-        let vb = unsafe {
-            VarBuilder::from_mmaped_safetensors(weights, DType::F32, &candle_core::Device::Cpu)?
-        };
+        let vb = crate::weights::mmap_var_builder(weights, DType::F32, &candle_core::Device::Cpu)?;
         Self::load(&config, vb)
     }
 

@@ -4,8 +4,8 @@ use candle_core::{Module, Result, Tensor};
 use candle_nn::{Linear, VarBuilder};
 
 use super::attention::{Attention, AttentionHook};
-use crate::conv::Conv2d;
-use crate::layers::{conv2d, geglu, linear, GroupNorm, LayerNorm};
+use crate::kernels::geglu;
+use crate::layers::{conv2d, linear, Conv2d, GroupNorm, LayerNorm};
 
 /// diffusers `GEGLU` + output linear (`ff.net.0.proj`, `ff.net.2`): `W2 (h ⊙ gelu(g))` with `[h, g] = W1 x`.
 #[derive(Debug, Clone)]

@@ -11,7 +11,7 @@
 //! `models--openai--clip-vit-large-patch14` folder): `config.json` with `text_config` / `vision_config`,
 //! safetensors weights (`model.safetensors`, sharded or not; PyTorch pickles are refused), the tokenizer
 //! (`tokenizer.json` or `vocab.json` + `merges.txt`) and optionally `preprocessor_config.json`.
-//! The text tower is [`diffusion::clip::ClipTextModel`]; the image tower is [`crate::clip_vision`].
+//! The towers are [`diffusion::clip::ClipTextModel`] and [`diffusion::clip::ClipVisionModel`].
 //! Everything runs in f32: ViT-L/14 needs about 1.7 GB.
 //!
 //! # Image preprocessing
@@ -24,14 +24,14 @@ use std::path::{Path, PathBuf};
 
 use candle_core::{DType, Device, Module, Tensor};
 use candle_nn::{linear_no_bias, Linear};
-use diffusion::clip::{ids_tensor, ClipTextConfig, ClipTextModel};
+use diffusion::clip::{
+    ids_tensor, ClipTextConfig, ClipTextModel, ClipVisionConfig, ClipVisionModel,
+};
 use diffusion::loader::{find_weight_files, resolve_model_path, var_builder_from_files, LoadError};
 use diffusion::tokenizer::{ClipTokenizer, TokenizerError};
 use serde::{Deserialize, Serialize};
 use serde_json::Value;
 use splat::Image;
-
-use crate::clip_vision::{ClipVisionConfig, ClipVisionModel};
 
 /// OpenAI CLIP's normalisation constants (`OPENAI_CLIP_MEAN` / `OPENAI_CLIP_STD`).
 pub const CLIP_MEAN: [f32; 3] = [0.481_454_66, 0.457_827_5, 0.408_210_73];

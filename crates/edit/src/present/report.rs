@@ -1,6 +1,7 @@
 //! The run report: `report.html`, a single self-contained page that opens from disk (no server, no
-//! external resources, inline CSS) and links the run's images by relative paths. It needs no JavaScript;
-//! one small inline script only reports images that failed to load on the browser console.
+//! external resources, inline CSS) and links the run's images by relative paths. Apart from the optional
+//! interactive 3D viewer (`present::viewer`, WebGL2, its scenes embedded in the page) it needs no
+//! JavaScript; one small inline script only reports images that failed to load on the browser console.
 //!
 //! The editing loop fills a [`ReportData`] (also serialisable into `run.json`) and calls [`write_report`].
 //! Paths inside `ReportData` are relative to the output folder the report is written into (absolute
@@ -603,6 +604,26 @@ fn metric_rows(m: &MetricsSummary) -> Vec<(String, String, String)> {
 /// The report's HTML for output folder `dir` (which is where the referenced files are looked up). All text
 /// from the data is escaped by the template.
 pub fn render_html(dir: &Path, data: &ReportData, options: &ReportOptions) -> String {
+    page_html(dir, data, options, None)
+}
+
+/// [`render_html`] with an "Explore in 3D" section holding `viewer` (a `present::viewer` fragment) after
+/// the header.
+pub fn render_html_with_viewer(
+    dir: &Path,
+    data: &ReportData,
+    options: &ReportOptions,
+    viewer: &Markup,
+) -> String {
+    page_html(dir, data, options, Some(viewer))
+}
+
+fn page_html(
+    dir: &Path,
+    data: &ReportData,
+    options: &ReportOptions,
+    viewer: Option<&Markup>,
+) -> String {
     let page = Page { dir, opts: options };
     let title = if data.title.is_empty() {
         "vcedit run"
@@ -620,6 +641,10 @@ pub fn render_html(dir: &Path, data: &ReportData, options: &ReportOptions) -> St
             }
             body {
                 (page.header(data, title))
+                @if let Some(v) = viewer {
+                    h2 { "Explore in 3D" }
+                    (v)
+                }
                 (page.turntable(&data.turntable))
                 (page.before_after(&data.views))
                 (page.metrics(&data.metrics, &data.runs))
@@ -641,8 +666,21 @@ pub fn write_report(
     data: &ReportData,
     options: &ReportOptions,
 ) -> Result<PathBuf, ReportError> {
+    write_page(dir, &render_html(dir, data, options))
+}
+
+/// Writes `dir/report.html` with the 3D viewer (see [`render_html_with_viewer`]) and returns its path.
+pub fn write_report_with_viewer(
+    dir: &Path,
+    data: &ReportData,
+    options: &ReportOptions,
+    viewer: &Markup,
+) -> Result<PathBuf, ReportError> {
+    write_page(dir, &render_html_with_viewer(dir, data, options, viewer))
+}
+
+fn write_page(dir: &Path, html: &str) -> Result<PathBuf, ReportError> {
     let path = dir.join(REPORT_FILE);
-    let html = render_html(dir, data, options);
     splat::atomic_write(&path, html.as_bytes()).map_err(|e| ReportError::Write {
         path: path.clone(),
         msg: e.to_string(),
@@ -732,6 +770,27 @@ mod tests {
         assert!(!html.contains("<img src=x"), "unescaped user text");
         assert!(!html.contains("onerror=alert(1)>\""));
         assert!(html.contains("&lt;img src=x onerror=alert(1)&gt;&quot;'&amp;"));
+    }
+
+    #[test]
+    fn the_viewer_gets_its_own_section_after_the_header() {
+        let data = ReportData {
+            title: "t".into(),
+            notes: vec!["a note".into()],
+            turntable: Some("turntable.gif".into()),
+            ..Default::default()
+        };
+        let viewer = html! { div data-vcedit-viewer {} };
+        let dir = Path::new("/nonexistent");
+        let html = render_html_with_viewer(dir, &data, &ReportOptions::default(), &viewer);
+        let at = |needle: &str| {
+            html.find(needle)
+                .unwrap_or_else(|| panic!("{needle} missing"))
+        };
+        assert!(at("a note") < at("Explore in 3D"));
+        assert!(at("Explore in 3D") < at("data-vcedit-viewer"));
+        assert!(at("data-vcedit-viewer") < at("Turntable"));
+        assert!(!render_html(dir, &data, &ReportOptions::default()).contains("Explore in 3D"));
     }
 
     #[test]

@@ -14,6 +14,7 @@ use crate::present::report::{
     self, IterationInfo, MetricsSummary, ReportData, ReportOptions, StageTiming, ViewPair,
     WordImage,
 };
+use crate::present::viewer::{self, InitialView, ViewerOptions, ViewerScene};
 use crate::present::viz;
 use crate::sampler::{EditPlan, ViewState};
 
@@ -190,15 +191,17 @@ pub fn write_outputs(
         }
     }
 
-    // Turntable: before | after, circling what the views look at (the edited region when there is a mask)
-    // at the views' own distance and elevation; around the whole scene's bounds when they do not converge.
+    // What the views look at: the edited region when there is a mask, else where the cameras converge.
+    let target = result
+        .mask
+        .as_deref()
+        .and_then(|m| masked_centre(source, m))
+        .or_else(|| splat::cameras::orbit::focus_point(cameras));
+
+    // Turntable: before | after, circling the target at the views' own distance and elevation; around the
+    // whole scene's bounds when they do not converge.
     let turntable = {
         let size = job.size.0.min(256);
-        let target = result
-            .mask
-            .as_deref()
-            .and_then(|m| masked_centre(source, m))
-            .or_else(|| splat::cameras::orbit::focus_point(cameras));
         let orbit = target
             .and_then(|t| splat::cameras::orbit::orbit_like(cameras, t, 24, size, size))
             .unwrap_or_else(|| {
@@ -314,8 +317,27 @@ pub fn write_outputs(
         timings: timings.clone(),
         turntable: Some(turntable),
     };
+    // The interactive viewer starts at the first edited view and turns around the same target.
+    let viewer = viewer::viewer_html(
+        &[
+            ViewerScene {
+                label: "before",
+                scene: source,
+            },
+            ViewerScene {
+                label: "after",
+                scene: &result.scene,
+            },
+        ],
+        &InitialView::from_cameras(&cams, source, target),
+        &ViewerOptions {
+            background: job.background,
+            ..Default::default()
+        },
+    );
     let report_path =
-        report::write_report(out, &data, &ReportOptions::default()).map_err(|e| io_err(out, e))?;
+        report::write_report_with_viewer(out, &data, &ReportOptions::default(), &viewer)
+            .map_err(|e| io_err(out, e))?;
 
     #[derive(Serialize)]
     struct RunJson<'a> {

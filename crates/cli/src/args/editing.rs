@@ -2,8 +2,11 @@
 
 use std::path::PathBuf;
 
-use anyhow::{bail, Context};
+use anyhow::bail;
 use edit::sampler::{EditPrompts, InfEditSettings};
+
+use super::parse::{finite, fraction, positive, whole};
+use super::WorkingSize;
 
 /// Which LCM timestep selection to use.
 #[derive(Clone, Copy, Debug, clap::ValueEnum)]
@@ -63,74 +66,74 @@ impl PromptArgs {
 
 #[derive(clap::Args, Debug, Clone)]
 pub struct SamplerArgs {
-    /// Working resolution: N for NxN or WxH (multiples of 64 for SD 1.x models).
-    #[arg(long, default_value = "512", value_name = "N|WxH")]
-    pub size: String,
+    #[command(flatten)]
+    pub size: WorkingSize,
     /// LCM steps.
-    #[arg(long, default_value_t = 15)]
+    #[arg(long, default_value_t = 15, value_parser = positive::<usize>, allow_negative_numbers = true)]
     pub steps: usize,
-    /// Classifier-free guidance scale of the target branch.
-    #[arg(long, default_value_t = 2.0)]
+    /// Classifier-free guidance scale of the target branch (above 1).
+    #[arg(long, default_value_t = 2.0, value_parser = finite::<f64>, allow_negative_numbers = true)]
     pub guidance_scale: f64,
     /// Guidance scale of the source and layout branches.
-    #[arg(long, default_value_t = 1.0)]
+    #[arg(long, default_value_t = 1.0, value_parser = finite::<f64>, allow_negative_numbers = true)]
     pub guidance_scale_source: f64,
     /// Fraction of steps whose target cross-attention is taken from the source.
-    #[arg(long = "cross", default_value_t = 0.7, value_name = "FRACTION")]
+    #[arg(
+        long = "cross",
+        default_value_t = 0.7,
+        value_name = "FRACTION",
+        value_parser = fraction::<f64>,
+        allow_negative_numbers = true
+    )]
     pub cross_replace: f64,
     /// Fraction of steps using the source's self-attention queries/keys.
-    #[arg(long = "self", default_value_t = 0.3, value_name = "FRACTION")]
+    #[arg(
+        long = "self",
+        default_value_t = 0.3,
+        value_name = "FRACTION",
+        value_parser = fraction::<f64>,
+        allow_negative_numbers = true
+    )]
     pub self_replace: f64,
     /// Local-blend threshold of the target words.
-    #[arg(long, default_value_t = 0.6)]
+    #[arg(long, default_value_t = 0.6, value_parser = finite::<f64>, allow_negative_numbers = true)]
     pub thresh_e: f64,
     /// Local-blend threshold of the kept words.
-    #[arg(long, default_value_t = 0.6)]
+    #[arg(long, default_value_t = 0.6, value_parser = finite::<f64>, allow_negative_numbers = true)]
     pub thresh_m: f64,
-    /// DDCM eta (1 = LCM-style re-noising).
-    #[arg(long, default_value_t = 1.0)]
+    /// DDCM eta, from 0 to 1 (1 = LCM-style re-noising).
+    #[arg(long, default_value_t = 1.0, value_parser = fraction::<f64>, allow_negative_numbers = true)]
     pub eta: f64,
     /// Start from the noised source instead of pure noise, keeping this fraction of the steps.
-    #[arg(long, value_name = "0..1")]
+    #[arg(
+        long,
+        value_name = "0..1",
+        value_parser = fraction::<f64>,
+        allow_negative_numbers = true
+    )]
     pub strength: Option<f64>,
     /// LCM timestep selection.
     #[arg(long, value_enum, default_value = "diffusers-0.22")]
     pub lcm_schedule: LcmSchedule,
     /// Random seed.
-    #[arg(long, default_value_t = 0)]
+    #[arg(long, default_value_t = 0, value_parser = whole::<u64>, allow_negative_numbers = true)]
     pub seed: u64,
 }
 
 impl SamplerArgs {
+    /// The sampler's settings; the checks here are the ones a single option's parser cannot make.
     pub fn settings(&self) -> anyhow::Result<InfEditSettings> {
-        for (name, v) in [
-            ("--cross", self.cross_replace),
-            ("--self", self.self_replace),
-        ] {
-            if !(0.0..=1.0).contains(&v) {
-                bail!("{name} {v} must be between 0 and 1");
-            }
-        }
-        for (name, v) in [
-            ("--guidance-scale", self.guidance_scale),
-            ("--guidance-scale-source", self.guidance_scale_source),
-            ("--eta", self.eta),
-        ] {
-            if !v.is_finite() || v < 0.0 {
-                bail!("{name} {v} must be a non-negative number");
-            }
-        }
-        if self.eta > 1.0 {
-            bail!("--eta {} must be at most 1", self.eta);
+        if self.guidance_scale_source < 0.0 {
+            bail!(
+                "--guidance-scale-source {} must be a non-negative number",
+                self.guidance_scale_source
+            );
         }
         if self.guidance_scale <= 1.0 {
             bail!(
                 "--guidance-scale {} must be above 1 (the sampler needs classifier-free guidance on the target)",
                 self.guidance_scale
             );
-        }
-        if self.steps == 0 {
-            bail!("--steps must be at least 1");
         }
         Ok(InfEditSettings {
             steps: self.steps,
@@ -151,40 +154,7 @@ impl SamplerArgs {
     }
 
     /// (width, height) from `--size`.
-    pub fn size(&self) -> anyhow::Result<(u32, u32)> {
-        parse_size(&self.size)
-    }
-}
-
-/// Parses "512" or "640x512".
-pub fn parse_size(s: &str) -> anyhow::Result<(u32, u32)> {
-    let parse = |v: &str| {
-        v.trim()
-            .parse::<u32>()
-            .with_context(|| format!("--size {s}: expected N or WxH"))
-    };
-    let (w, h) = match s.split_once(['x', 'X']) {
-        Some((w, h)) => (parse(w)?, parse(h)?),
-        None => {
-            let n = parse(s)?;
-            (n, n)
-        }
-    };
-    if w == 0 || h == 0 || w > 8192 || h > 8192 {
-        bail!("--size {s}: width and height must be between 1 and 8192");
-    }
-    Ok((w, h))
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn sizes_parse() {
-        assert_eq!(parse_size("512").unwrap(), (512, 512));
-        assert_eq!(parse_size("640x384").unwrap(), (640, 384));
-        assert!(parse_size("0").is_err());
-        assert!(parse_size("abc").is_err());
+    pub fn size(&self) -> (u32, u32) {
+        self.size.size
     }
 }

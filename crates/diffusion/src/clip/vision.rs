@@ -7,10 +7,12 @@
 //!
 //! Weights use transformers' key names under `vision_model.`.
 
-use candle_core::{Module, Tensor};
-use candle_nn::{layer_norm, linear, LayerNorm, LayerNormConfig, Linear, VarBuilder};
-use diffusion::clip::ClipActivation;
+use candle_core::Tensor;
+use candle_nn::VarBuilder;
 use serde::Deserialize;
+
+use super::encoder::{ClipActivation, EncoderLayer, EncoderLayerConfig};
+use crate::layers::LayerNorm;
 
 fn d_hidden() -> usize {
     768
@@ -93,86 +95,15 @@ impl ClipVisionConfig {
     pub fn grid(&self) -> usize {
         self.image_size / self.patch_size
     }
-}
 
-/// Multi-head self-attention over all tokens (no mask: every patch sees every other).
-#[derive(Debug, Clone)]
-struct SelfAttention {
-    q_proj: Linear,
-    k_proj: Linear,
-    v_proj: Linear,
-    out_proj: Linear,
-    heads: usize,
-    head_dim: usize,
-}
-
-impl SelfAttention {
-    fn new(vb: VarBuilder, c: &ClipVisionConfig) -> candle_core::Result<Self> {
-        let d = c.hidden_size;
-        Ok(Self {
-            q_proj: linear(d, d, vb.pp("q_proj"))?,
-            k_proj: linear(d, d, vb.pp("k_proj"))?,
-            v_proj: linear(d, d, vb.pp("v_proj"))?,
-            out_proj: linear(d, d, vb.pp("out_proj"))?,
-            heads: c.num_attention_heads,
-            head_dim: d / c.num_attention_heads,
-        })
-    }
-
-    fn forward(&self, x: &Tensor) -> candle_core::Result<Tensor> {
-        let (b, s, d) = x.dims3()?;
-        let heads = |t: Tensor| -> candle_core::Result<Tensor> {
-            t.reshape((b, s, self.heads, self.head_dim))?
-                .transpose(1, 2)?
-                .contiguous()
-        };
-        let scale = (self.head_dim as f64).powf(-0.5);
-        let q = heads((self.q_proj.forward(x)? * scale)?)?;
-        let k = heads(self.k_proj.forward(x)?)?;
-        let v = heads(self.v_proj.forward(x)?)?;
-        let probs = candle_nn::ops::softmax_last_dim(&q.matmul(&k.t()?)?)?;
-        let out = probs.matmul(&v)?.transpose(1, 2)?.reshape((b, s, d))?;
-        self.out_proj.forward(&out)
-    }
-}
-
-#[derive(Debug, Clone)]
-struct Block {
-    layer_norm1: LayerNorm,
-    self_attn: SelfAttention,
-    layer_norm2: LayerNorm,
-    fc1: Linear,
-    fc2: Linear,
-    act: ClipActivation,
-}
-
-impl Block {
-    fn new(vb: VarBuilder, c: &ClipVisionConfig) -> candle_core::Result<Self> {
-        let ln = LayerNormConfig {
-            eps: c.layer_norm_eps,
-            ..Default::default()
-        };
-        Ok(Self {
-            layer_norm1: layer_norm(c.hidden_size, ln, vb.pp("layer_norm1"))?,
-            self_attn: SelfAttention::new(vb.pp("self_attn"), c)?,
-            layer_norm2: layer_norm(c.hidden_size, ln, vb.pp("layer_norm2"))?,
-            fc1: linear(c.hidden_size, c.intermediate_size, vb.pp("mlp").pp("fc1"))?,
-            fc2: linear(c.intermediate_size, c.hidden_size, vb.pp("mlp").pp("fc2"))?,
-            act: c.hidden_act,
-        })
-    }
-
-    fn forward(&self, x: &Tensor) -> candle_core::Result<Tensor> {
-        let x = (x + self.self_attn.forward(&self.layer_norm1.forward(x)?)?)?;
-        let h = self.fc1.forward(&self.layer_norm2.forward(&x)?)?;
-        let h = match self.act {
-            // Written out so the vision tower does not depend on the text module's private helper.
-            ClipActivation::QuickGelu => (&h * candle_nn::ops::sigmoid(&(&h * 1.702)?)?)?,
-            ClipActivation::Gelu => h.gelu_erf()?,
-            ClipActivation::GeluNew | ClipActivation::GeluPytorchTanh => h.gelu()?,
-            ClipActivation::Relu => h.relu()?,
-        };
-        x + self.fc2.forward(&h)?
+    fn encoder_layer(&self) -> EncoderLayerConfig {
+        EncoderLayerConfig {
+            hidden_size: self.hidden_size,
+            intermediate_size: self.intermediate_size,
+            num_attention_heads: self.num_attention_heads,
+            layer_norm_eps: self.layer_norm_eps,
+            hidden_act: self.hidden_act,
+        }
     }
 }
 
@@ -184,7 +115,7 @@ pub struct ClipVisionModel {
     class_embedding: Tensor,
     position_embedding: Tensor,
     pre_layrnorm: LayerNorm,
-    blocks: Vec<Block>,
+    layers: Vec<EncoderLayer>,
     post_layernorm: LayerNorm,
     config: ClipVisionConfig,
 }
@@ -206,21 +137,18 @@ impl ClipVisionModel {
         let class_embedding = emb.get(d, "class_embedding")?;
         let positions = c.grid() * c.grid() + 1;
         let position_embedding = emb.pp("position_embedding").get((positions, d), "weight")?;
-        let ln = LayerNormConfig {
-            eps: c.layer_norm_eps,
-            ..Default::default()
-        };
-        let pre_layrnorm = layer_norm(d, ln, vb.pp("pre_layrnorm"))?;
-        let blocks = (0..c.num_hidden_layers)
-            .map(|i| Block::new(vb.pp("encoder").pp("layers").pp(i), c))
+        let eps = c.layer_norm_eps;
+        let pre_layrnorm = LayerNorm::load(d, eps, vb.pp("pre_layrnorm"))?;
+        let layers = (0..c.num_hidden_layers)
+            .map(|i| EncoderLayer::load(vb.pp("encoder").pp("layers").pp(i), &c.encoder_layer()))
             .collect::<candle_core::Result<Vec<_>>>()?;
-        let post_layernorm = layer_norm(d, ln, vb.pp("post_layernorm"))?;
+        let post_layernorm = LayerNorm::load(d, eps, vb.pp("post_layernorm"))?;
         Ok(Self {
             patch_weight,
             class_embedding,
             position_embedding,
             pre_layrnorm,
-            blocks,
+            layers,
             post_layernorm,
             config,
         })
@@ -258,8 +186,8 @@ impl ClipVisionModel {
             .broadcast_as((b, 1, d))?;
         let mut x = Tensor::cat(&[&class, &tokens], 1)?.broadcast_add(&self.position_embedding)?;
         x = self.pre_layrnorm.forward(&x)?;
-        for block in &self.blocks {
-            x = block.forward(&x)?;
+        for layer in &self.layers {
+            x = layer.forward(&x, None)?;
         }
         let cls = x.narrow(1, 0, 1)?.squeeze(1)?;
         self.post_layernorm.forward(&cls)

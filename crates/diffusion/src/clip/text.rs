@@ -5,11 +5,12 @@
 //! Weights use transformers' key names, with or without the `text_model.` prefix (transformers 4 saved
 //! it, transformers 5 does not).
 
-use candle_core::{DType, Device, Module, Tensor, D};
-use candle_nn::{embedding, linear, Embedding, Linear, VarBuilder};
+use candle_core::{DType, Device, Module, Tensor};
+use candle_nn::{embedding, Embedding, VarBuilder};
 use serde::Deserialize;
 
-use crate::layers::{softmax_last_dim, LayerNorm};
+use super::encoder::{ClipActivation, EncoderLayer, EncoderLayerConfig};
+use crate::layers::LayerNorm;
 use crate::loader::{Component, LoadError, ModelDir};
 use crate::tokenizer::{ClipTokenizer, Encoding};
 
@@ -28,31 +29,6 @@ pub enum ClipError {
     Config(String),
     #[error(transparent)]
     Candle(#[from] candle_core::Error),
-}
-
-/// `hidden_act` of the config.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize)]
-#[serde(rename_all = "snake_case")]
-pub enum ClipActivation {
-    /// x·σ(1.702x), OpenAI CLIP's approximation (SD 1.x).
-    QuickGelu,
-    /// Exact erf GELU (SD 2.x / OpenCLIP).
-    Gelu,
-    /// tanh-approximated GELU.
-    GeluNew,
-    GeluPytorchTanh,
-    Relu,
-}
-
-impl ClipActivation {
-    fn apply(self, x: &Tensor) -> candle_core::Result<Tensor> {
-        match self {
-            ClipActivation::QuickGelu => x * candle_nn::ops::sigmoid(&(x * 1.702)?)?,
-            ClipActivation::Gelu => x.gelu_erf(),
-            ClipActivation::GeluNew | ClipActivation::GeluPytorchTanh => x.gelu(),
-            ClipActivation::Relu => x.relu(),
-        }
-    }
 }
 
 fn d_max_pos() -> usize {
@@ -106,84 +82,15 @@ impl ClipTextConfig {
         }
         Ok(())
     }
-}
 
-#[derive(Debug, Clone)]
-struct Attention {
-    q_proj: Linear,
-    k_proj: Linear,
-    v_proj: Linear,
-    out_proj: Linear,
-    heads: usize,
-    head_dim: usize,
-    scale: f64,
-}
-
-impl Attention {
-    fn new(vb: VarBuilder, c: &ClipTextConfig) -> candle_core::Result<Self> {
-        let d = c.hidden_size;
-        let head_dim = d / c.num_attention_heads;
-        Ok(Attention {
-            q_proj: linear(d, d, vb.pp("q_proj"))?,
-            k_proj: linear(d, d, vb.pp("k_proj"))?,
-            v_proj: linear(d, d, vb.pp("v_proj"))?,
-            out_proj: linear(d, d, vb.pp("out_proj"))?,
-            heads: c.num_attention_heads,
-            head_dim,
-            scale: (head_dim as f64).powf(-0.5),
-        })
-    }
-
-    /// x [B, S, D], mask [S, S] additive (−∞ above the diagonal).
-    fn forward(&self, x: &Tensor, mask: &Tensor) -> candle_core::Result<Tensor> {
-        let (b, s, d) = x.dims3()?;
-        let split = |t: Tensor| -> candle_core::Result<Tensor> {
-            t.reshape((b, s, self.heads, self.head_dim))?
-                .transpose(1, 2)?
-                .contiguous()
-        };
-        let q = split((self.q_proj.forward(x)? * self.scale)?)?;
-        let k = split(self.k_proj.forward(x)?)?;
-        let v = split(self.v_proj.forward(x)?)?;
-        let scores = q.matmul(&k.t()?)?.broadcast_add(mask)?;
-        // The shared softmax has a backward pass, so the encoder can be trained (the demo model is).
-        let probs = softmax_last_dim(&scores)?;
-        let out = probs.matmul(&v)?.transpose(1, 2)?.reshape((b, s, d))?;
-        self.out_proj.forward(&out)
-    }
-}
-
-#[derive(Debug, Clone)]
-struct EncoderLayer {
-    layer_norm1: LayerNorm,
-    self_attn: Attention,
-    layer_norm2: LayerNorm,
-    fc1: Linear,
-    fc2: Linear,
-    act: ClipActivation,
-}
-
-impl EncoderLayer {
-    fn new(vb: VarBuilder, c: &ClipTextConfig) -> candle_core::Result<Self> {
-        let eps = c.layer_norm_eps;
-        Ok(EncoderLayer {
-            layer_norm1: LayerNorm::load(c.hidden_size, eps, vb.pp("layer_norm1"))?,
-            self_attn: Attention::new(vb.pp("self_attn"), c)?,
-            layer_norm2: LayerNorm::load(c.hidden_size, eps, vb.pp("layer_norm2"))?,
-            fc1: linear(c.hidden_size, c.intermediate_size, vb.pp("mlp").pp("fc1"))?,
-            fc2: linear(c.intermediate_size, c.hidden_size, vb.pp("mlp").pp("fc2"))?,
-            act: c.hidden_act,
-        })
-    }
-
-    fn forward(&self, x: &Tensor, mask: &Tensor) -> candle_core::Result<Tensor> {
-        let h = self
-            .self_attn
-            .forward(&self.layer_norm1.forward(x)?, mask)?;
-        let x = (x + h)?;
-        let h = self.fc1.forward(&self.layer_norm2.forward(&x)?)?;
-        let h = self.fc2.forward(&self.act.apply(&h)?)?;
-        x + h
+    fn encoder_layer(&self) -> EncoderLayerConfig {
+        EncoderLayerConfig {
+            hidden_size: self.hidden_size,
+            intermediate_size: self.intermediate_size,
+            num_attention_heads: self.num_attention_heads,
+            layer_norm_eps: self.layer_norm_eps,
+            hidden_act: self.hidden_act,
+        }
     }
 }
 
@@ -219,7 +126,7 @@ impl ClipTextModel {
             },
         )?;
         let layers = (0..c.num_hidden_layers)
-            .map(|i| EncoderLayer::new(vb.pp("encoder").pp("layers").pp(i), c))
+            .map(|i| EncoderLayer::load(vb.pp("encoder").pp("layers").pp(i), &c.encoder_layer()))
             .collect::<candle_core::Result<Vec<_>>>()?;
         let final_layer_norm =
             LayerNorm::load(c.hidden_size, c.layer_norm_eps, vb.pp("final_layer_norm"))?;
@@ -298,7 +205,7 @@ impl ClipTextModel {
         let mask = causal_mask(s, x.dtype(), x.device())?;
         let used = self.layers.len().saturating_sub(clip_skip);
         for layer in &self.layers[..used] {
-            x = layer.forward(&x, &mask)?;
+            x = layer.forward(&x, Some(&mask))?;
         }
         self.final_layer_norm.forward(&x)
     }
@@ -365,21 +272,12 @@ fn causal_mask(s: usize, dtype: DType, device: &Device) -> candle_core::Result<T
     Tensor::from_vec(data, (s, s), device)?.to_dtype(dtype)
 }
 
-/// Cosine similarity of two vectors along their last dimension (used for InfEdit's token alignment).
-pub fn cosine_similarity(a: &Tensor, b: &Tensor) -> candle_core::Result<Tensor> {
-    let dot = (a * b)?.sum(D::Minus1)?;
-    let na = a.sqr()?.sum(D::Minus1)?.sqrt()?;
-    let nb = b.sqr()?.sum(D::Minus1)?.sqrt()?;
-    // torch clamps each norm at eps = 1e-8.
-    dot / (na.clamp(1e-8, f64::MAX)? * nb.clamp(1e-8, f64::MAX)?)?
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
 
-    fn random_model(act: ClipActivation) -> ClipTextModel {
-        let dev = Device::Cpu;
+    /// A random tiny model and the variables it was built from.
+    fn random_model_and_vars(act: ClipActivation) -> (ClipTextModel, candle_nn::VarMap) {
         let cfg = ClipTextConfig {
             vocab_size: 10,
             hidden_size: 8,
@@ -393,8 +291,12 @@ mod tests {
             projection_dim: None,
         };
         let vm = candle_nn::VarMap::new();
-        let vb = VarBuilder::from_varmap(&vm, DType::F32, &dev);
-        ClipTextModel::new(vb, cfg).unwrap()
+        let vb = VarBuilder::from_varmap(&vm, DType::F32, &Device::Cpu);
+        (ClipTextModel::new(vb, cfg).unwrap(), vm)
+    }
+
+    fn random_model(act: ClipActivation) -> ClipTextModel {
+        random_model_and_vars(act).0
     }
 
     #[test]
@@ -446,20 +348,7 @@ mod tests {
     #[test]
     fn every_parameter_gets_a_gradient() {
         let dev = Device::Cpu;
-        let cfg = ClipTextConfig {
-            vocab_size: 10,
-            hidden_size: 8,
-            intermediate_size: 16,
-            num_hidden_layers: 2,
-            num_attention_heads: 2,
-            max_position_embeddings: 6,
-            hidden_act: ClipActivation::QuickGelu,
-            layer_norm_eps: 1e-5,
-            eos_token_id: 9,
-            projection_dim: None,
-        };
-        let vm = candle_nn::VarMap::new();
-        let m = ClipTextModel::new(VarBuilder::from_varmap(&vm, DType::F32, &dev), cfg).unwrap();
+        let (m, vm) = random_model_and_vars(ClipActivation::QuickGelu);
         let ids = Tensor::new(&[[8u32, 1, 2, 3, 9, 9], [8, 4, 9, 9, 9, 9]], &dev).unwrap();
         let out = m.forward(&ids).unwrap();
         let weighting = Tensor::randn(0f32, 1.0, out.dims(), &dev).unwrap();
@@ -489,16 +378,5 @@ mod tests {
         let m = random_model(ClipActivation::QuickGelu);
         let ids = Tensor::zeros((1, 7), DType::U32, &Device::Cpu).unwrap();
         assert!(m.forward(&ids).is_err());
-    }
-
-    #[test]
-    fn cosine_similarity_of_parallel_vectors_is_one() {
-        let a = Tensor::new(&[1.0f32, 2.0, 3.0], &Device::Cpu).unwrap();
-        let b = (&a * 2.5).unwrap();
-        let c = cosine_similarity(&a, &b)
-            .unwrap()
-            .to_scalar::<f32>()
-            .unwrap();
-        assert!((c - 1.0).abs() < 1e-6);
     }
 }

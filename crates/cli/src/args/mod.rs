@@ -1,0 +1,287 @@
+//! Options shared by several commands: clap groups that each command flattens into its `Args`
+//! (`#[command(flatten)]`), so an option is spelt, parsed and documented once.
+//!
+//! | group             | options                                   | used by                              |
+//! |-------------------|-------------------------------------------|--------------------------------------|
+//! | [`SizeArg`]       | `--size` (default: the inputs' own size)  | render, metrics, fit                 |
+//! | [`WorkingSize`]   | `--size` (default 512)                    | edit, edit-image (via `SamplerArgs`) |
+//! | [`BackgroundArg`] | `--background`                            | render, metrics, fit, edit           |
+//! | [`CameraArgs`]    | `--cameras`, `--orbit`, `--max-views`     | render, metrics, edit                |
+//! | [`editing`]       | model, prompts, InfEdit sampler knobs     | edit, edit-image                     |
+//!
+//! The value grammars are the parsers of [`parse`]: sizes (`N` or `WxH`), colours (a name, `#rrggbb` or
+//! `r,g,b` in 0..1), positive and non-negative whole numbers, fractions in [0, 1] and finite numbers.
+
+pub mod editing;
+pub mod parse;
+
+use std::fmt;
+use std::path::PathBuf;
+
+use anyhow::{bail, Context, Result};
+use splat::cameras::{
+    load_cameras, orbit_cameras, robust_bounds, to_working_resolution, CameraSet,
+};
+use splat::{Camera, GaussianScene};
+
+use parse::{parse_colour, parse_size, positive, whole};
+
+// Compute device: a later change adds a `DeviceArg` group here (`--device cpu|gpu|auto`), flattened like
+// the groups below into every command that renders or runs the diffusion model (render, metrics, fit, edit,
+// edit-image, demo, demo-model). Nothing chooses a device yet.
+
+/// Size of generated orbit views when `--size` does not give one.
+pub const DEFAULT_ORBIT_SIZE: (u32, u32) = (512, 512);
+
+/// `--size` for commands whose default is the size of their input views.
+#[derive(clap::Args, Debug, Clone)]
+pub struct SizeArg {
+    /// Image size WxH, or N for NxN (each side 1 to 16384). Views are centre-cropped to its aspect ratio,
+    /// then resampled. Default: the input views' own size; 512x512 for generated orbit views.
+    #[arg(long, value_name = "WxH", value_parser = parse_size, allow_hyphen_values = true)]
+    pub size: Option<(u32, u32)>,
+}
+
+/// `--size` for the diffusion commands, which work at one resolution.
+#[derive(clap::Args, Debug, Clone)]
+pub struct WorkingSize {
+    /// Working resolution WxH, or N for NxN (multiples of 64 for SD 1.x models). Inputs and renders are
+    /// centre-cropped to its aspect ratio, then resampled.
+    #[arg(
+        long,
+        value_name = "WxH",
+        default_value = "512",
+        value_parser = parse_size,
+        allow_hyphen_values = true
+    )]
+    pub size: (u32, u32),
+}
+
+/// `--background`, the colour behind every render (and behind transparent input images).
+#[derive(clap::Args, Debug, Clone)]
+pub struct BackgroundArg {
+    /// Background colour: a name (black, white, grey, red, green, blue, ...), #rrggbb, or r,g,b with each
+    /// component from 0 to 1.
+    ///
+    /// Names (any case): black, white, grey or gray, red, green, blue, yellow, cyan, magenta. Hex: #rrggbb,
+    /// e.g. #336699. Components: r,g,b with each from 0 to 1, e.g. 1,1,1 or 0.2,0.4,0.6.
+    #[arg(
+        long,
+        value_name = "COLOUR",
+        default_value = "black",
+        value_parser = parse_colour,
+        allow_hyphen_values = true
+    )]
+    pub background: [f32; 3],
+}
+
+/// Which views a command renders: cameras from a file, an orbit, or the scene's own cameras, and at most how
+/// many of them. Commands give `--max-views` their default with
+/// `#[command(mut_arg("max_views", |a| a.default_value("N")))]` and say in their notes how they pick views.
+#[derive(clap::Args, Debug, Clone)]
+pub struct CameraArgs {
+    /// Cameras: a COLMAP model folder (or its sparse/0), a transforms*.json, or an INRIA cameras.json.
+    /// Default: the scene folder's cameras.json (INRIA trainer output), else an orbit.
+    #[arg(long, value_name = "FILE|DIR", conflicts_with = "orbit")]
+    pub cameras: Option<PathBuf>,
+    /// Use N views on an orbit around the scene instead of its own cameras.
+    #[arg(long, value_name = "N", value_parser = positive::<usize>, allow_negative_numbers = true)]
+    pub orbit: Option<usize>,
+    /// Use at most this many of the views; 0 = all.
+    #[arg(long, value_name = "N", value_parser = whole::<usize>, allow_negative_numbers = true)]
+    pub max_views: Option<usize>,
+}
+
+/// Where the chosen views came from.
+#[derive(Debug, Clone, PartialEq)]
+pub enum CameraSource {
+    /// `--cameras PATH`.
+    File(PathBuf),
+    /// An orbit: `--orbit N`, or the command's default orbit when the scene has no cameras (`by_default`).
+    Orbit { views: usize, by_default: bool },
+    /// The scene folder's cameras.json.
+    Scene,
+}
+
+impl fmt::Display for CameraSource {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            CameraSource::File(path) => write!(f, "cameras from {}", path.display()),
+            CameraSource::Orbit { views, .. } => write!(f, "an orbit of {views} views"),
+            CameraSource::Scene => write!(f, "the scene's cameras.json"),
+        }
+    }
+}
+
+impl CameraArgs {
+    /// The views to render: `--cameras`, else `--orbit`, else the scene's own cameras (`own`), else an orbit
+    /// of `default_orbit` views around `scene`. Loaded cameras are centre-cropped and scaled to `size` when
+    /// it is given; orbits are made at `size`, else at [`DEFAULT_ORBIT_SIZE`]. `--max-views` is not applied
+    /// here (see [`CameraArgs::evenly_spaced`], [`CameraArgs::view_limit`]).
+    pub fn choose(
+        &self,
+        scene: &GaussianScene,
+        own: Option<CameraSet>,
+        size: Option<(u32, u32)>,
+        default_orbit: usize,
+    ) -> Result<(Vec<Camera>, CameraSource)> {
+        let orbit = |views: usize, by_default: bool| -> Result<(Vec<Camera>, CameraSource)> {
+            let (lo, hi) = robust_bounds(scene, 0.01).context(
+                "the scene is empty, so there is nothing to orbit around; pass --cameras",
+            )?;
+            let (w, h) = size.unwrap_or(DEFAULT_ORBIT_SIZE);
+            let cameras = orbit_cameras(lo, hi, views, w, h);
+            Ok((cameras, CameraSource::Orbit { views, by_default }))
+        };
+        let (cameras, source) = if let Some(path) = &self.cameras {
+            (
+                load_cameras(path)?.cameras,
+                CameraSource::File(path.clone()),
+            )
+        } else if let Some(n) = self.orbit {
+            return orbit(n, false);
+        } else if let Some(set) = own.filter(|set| !set.cameras.is_empty()) {
+            (set.cameras, CameraSource::Scene)
+        } else {
+            return orbit(default_orbit, true);
+        };
+        if cameras.is_empty() {
+            bail!("{source}: no cameras");
+        }
+        Ok(match size {
+            Some((w, h)) => (
+                cameras
+                    .iter()
+                    .map(|c| to_working_resolution(c, w, h))
+                    .collect(),
+                source,
+            ),
+            None => (cameras, source),
+        })
+    }
+
+    /// At most `--max-views` of `cameras`, evenly spaced over the list (first and last included).
+    pub fn evenly_spaced(&self, cameras: Vec<Camera>) -> Vec<Camera> {
+        let max = self.max_views.unwrap_or(0);
+        if max == 0 || cameras.len() <= max {
+            return cameras;
+        }
+        edit::present::report::subset_indices(cameras.len(), max)
+            .into_iter()
+            .map(|i| cameras[i].clone())
+            .collect()
+    }
+
+    /// How many of `available` views to use: `--max-views`, or all of them when it is 0 or absent.
+    pub fn view_limit(&self, available: usize) -> usize {
+        match self.max_views {
+            Some(n) if n > 0 => n,
+            _ => available,
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn camera(name: &str, size: u32) -> Camera {
+        let mut c = orbit_cameras([-1.0; 3], [1.0; 3], 1, size, size).remove(0);
+        c.name = name.to_string();
+        c
+    }
+
+    fn args(cameras: Option<&str>, orbit: Option<usize>, max_views: Option<usize>) -> CameraArgs {
+        CameraArgs {
+            cameras: cameras.map(PathBuf::from),
+            orbit,
+            max_views,
+        }
+    }
+
+    /// A few Gaussians around the origin: something to orbit around.
+    fn ball() -> GaussianScene {
+        let mut s = GaussianScene::new(0);
+        for i in 0..8 {
+            let t = i as f32;
+            s.means
+                .extend_from_slice(&[0.3 * t.sin(), 0.3 * t.cos(), 0.1 * t - 0.4]);
+            s.log_scales.extend_from_slice(&[-2.0; 3]);
+            s.quats.extend_from_slice(&[1.0, 0.0, 0.0, 0.0]);
+            s.opacity_logits.push(3.0);
+            s.sh.extend_from_slice(&[1.0, 0.0, 0.0]);
+        }
+        s
+    }
+
+    fn camera_set(cameras: Vec<Camera>) -> CameraSet {
+        CameraSet {
+            image_paths: vec![None; cameras.len()],
+            cameras,
+            points: None,
+        }
+    }
+
+    #[test]
+    fn orbit_beats_the_scene_cameras_and_the_default_orbit_fills_in() {
+        let scene = ball();
+        let own = camera_set(vec![camera("a", 40), camera("b", 40)]);
+        let (cams, source) = args(None, Some(3), None)
+            .choose(&scene, Some(own.clone()), Some((32, 24)), 8)
+            .unwrap();
+        assert_eq!(
+            source,
+            CameraSource::Orbit {
+                views: 3,
+                by_default: false
+            }
+        );
+        assert_eq!(cams.len(), 3);
+        assert_eq!((cams[0].width, cams[0].height), (32, 24));
+
+        let (cams, source) = args(None, None, None)
+            .choose(&scene, Some(own), Some((20, 20)), 8)
+            .unwrap();
+        assert_eq!(source, CameraSource::Scene);
+        assert_eq!(
+            cams.iter().map(|c| c.name.as_str()).collect::<Vec<_>>(),
+            ["a", "b"]
+        );
+        assert_eq!((cams[0].width, cams[0].height), (20, 20));
+
+        let (cams, source) = args(None, None, None)
+            .choose(&scene, None, None, 8)
+            .unwrap();
+        assert!(matches!(
+            source,
+            CameraSource::Orbit {
+                views: 8,
+                by_default: true
+            }
+        ));
+        assert_eq!((cams[0].width, cams[0].height), DEFAULT_ORBIT_SIZE);
+    }
+
+    #[test]
+    fn an_empty_scene_has_no_orbit() {
+        let err = args(None, Some(4), None)
+            .choose(&GaussianScene::new(0), None, None, 8)
+            .unwrap_err();
+        assert!(err.to_string().contains("pass --cameras"), "{err}");
+    }
+
+    #[test]
+    fn max_views_picks_evenly_or_limits() {
+        let cams: Vec<Camera> = (0..10).map(|i| camera(&i.to_string(), 8)).collect();
+        let picked = args(None, None, Some(4)).evenly_spaced(cams.clone());
+        let names: Vec<&str> = picked.iter().map(|c| c.name.as_str()).collect();
+        assert_eq!(names, ["0", "3", "6", "9"]);
+        assert_eq!(
+            args(None, None, Some(0)).evenly_spaced(cams.clone()).len(),
+            10
+        );
+        assert_eq!(args(None, None, None).evenly_spaced(cams).len(), 10);
+        assert_eq!(args(None, None, Some(0)).view_limit(7), 7);
+        assert_eq!(args(None, None, Some(96)).view_limit(7), 96);
+    }
+}

@@ -1,0 +1,129 @@
+//! The transformer encoder layer both CLIP towers use (transformers' `CLIPEncoderLayer`): pre-LayerNorm
+//! multi-head self-attention and a two-layer MLP, each with a residual.
+//!
+//! Keys under the layer: `layer_norm1`, `self_attn.{q,k,v,out}_proj`, `layer_norm2`, `mlp.fc1`, `mlp.fc2`.
+
+use candle_core::{Module, Result, Tensor};
+use candle_nn::{linear, Linear, VarBuilder};
+use serde::Deserialize;
+
+use crate::kernels::softmax_last_dim;
+use crate::layers::LayerNorm;
+
+/// `hidden_act` of a CLIP config.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum ClipActivation {
+    /// x·σ(1.702x), OpenAI CLIP's approximation (SD 1.x).
+    QuickGelu,
+    /// Exact erf GELU (SD 2.x / OpenCLIP).
+    Gelu,
+    /// tanh-approximated GELU.
+    GeluNew,
+    GeluPytorchTanh,
+    Relu,
+}
+
+impl ClipActivation {
+    fn apply(self, x: &Tensor) -> Result<Tensor> {
+        match self {
+            ClipActivation::QuickGelu => x * candle_nn::ops::sigmoid(&(x * 1.702)?)?,
+            ClipActivation::Gelu => x.gelu_erf(),
+            ClipActivation::GeluNew | ClipActivation::GeluPytorchTanh => x.gelu(),
+            ClipActivation::Relu => x.relu(),
+        }
+    }
+}
+
+/// The sizes of one encoder layer (the fields both towers' configs share).
+#[derive(Debug, Clone, Copy)]
+pub(super) struct EncoderLayerConfig {
+    pub hidden_size: usize,
+    pub intermediate_size: usize,
+    pub num_attention_heads: usize,
+    pub layer_norm_eps: f64,
+    pub hidden_act: ClipActivation,
+}
+
+#[derive(Debug, Clone)]
+struct SelfAttention {
+    q_proj: Linear,
+    k_proj: Linear,
+    v_proj: Linear,
+    out_proj: Linear,
+    heads: usize,
+    head_dim: usize,
+}
+
+impl SelfAttention {
+    fn load(vb: VarBuilder, c: &EncoderLayerConfig) -> Result<Self> {
+        let d = c.hidden_size;
+        Ok(Self {
+            q_proj: linear(d, d, vb.pp("q_proj"))?,
+            k_proj: linear(d, d, vb.pp("k_proj"))?,
+            v_proj: linear(d, d, vb.pp("v_proj"))?,
+            out_proj: linear(d, d, vb.pp("out_proj"))?,
+            heads: c.num_attention_heads,
+            head_dim: d / c.num_attention_heads,
+        })
+    }
+
+    /// x [B, S, D]; `mask` [S, S] is added to the scores (−∞ hides a position).
+    fn forward(&self, x: &Tensor, mask: Option<&Tensor>) -> Result<Tensor> {
+        let (b, s, d) = x.dims3()?;
+        let split = |t: Tensor| -> Result<Tensor> {
+            t.reshape((b, s, self.heads, self.head_dim))?
+                .transpose(1, 2)?
+                .contiguous()
+        };
+        let scale = (self.head_dim as f64).powf(-0.5);
+        let q = split((self.q_proj.forward(x)? * scale)?)?;
+        let k = split(self.k_proj.forward(x)?)?;
+        let v = split(self.v_proj.forward(x)?)?;
+        let scores = q.matmul(&k.t()?)?;
+        let scores = match mask {
+            Some(mask) => scores.broadcast_add(mask)?,
+            None => scores,
+        };
+        // The kernel softmax has a backward pass, so the towers can be trained (the demo's text encoder is).
+        let probs = softmax_last_dim(&scores)?;
+        let out = probs.matmul(&v)?.transpose(1, 2)?.reshape((b, s, d))?;
+        self.out_proj.forward(&out)
+    }
+}
+
+/// One `CLIPEncoderLayer`.
+#[derive(Debug, Clone)]
+pub(super) struct EncoderLayer {
+    layer_norm1: LayerNorm,
+    self_attn: SelfAttention,
+    layer_norm2: LayerNorm,
+    fc1: Linear,
+    fc2: Linear,
+    act: ClipActivation,
+}
+
+impl EncoderLayer {
+    pub fn load(vb: VarBuilder, c: &EncoderLayerConfig) -> Result<Self> {
+        let eps = c.layer_norm_eps;
+        Ok(Self {
+            layer_norm1: LayerNorm::load(c.hidden_size, eps, vb.pp("layer_norm1"))?,
+            self_attn: SelfAttention::load(vb.pp("self_attn"), c)?,
+            layer_norm2: LayerNorm::load(c.hidden_size, eps, vb.pp("layer_norm2"))?,
+            fc1: linear(c.hidden_size, c.intermediate_size, vb.pp("mlp").pp("fc1"))?,
+            fc2: linear(c.intermediate_size, c.hidden_size, vb.pp("mlp").pp("fc2"))?,
+            act: c.hidden_act,
+        })
+    }
+
+    /// x [B, S, D] → [B, S, D]; `mask` as in self-attention.
+    pub fn forward(&self, x: &Tensor, mask: Option<&Tensor>) -> Result<Tensor> {
+        let h = self
+            .self_attn
+            .forward(&self.layer_norm1.forward(x)?, mask)?;
+        let x = (x + h)?;
+        let h = self.fc1.forward(&self.layer_norm2.forward(&x)?)?;
+        let h = self.fc2.forward(&self.act.apply(&h)?)?;
+        x + h
+    }
+}

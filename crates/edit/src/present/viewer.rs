@@ -1,0 +1,665 @@
+//! The interactive 3D viewer: an HTML fragment (canvas, controls, the scenes embedded as base64, and the
+//! WebGL2 script `viewer.js`) that the run report includes, and a standalone page for `vcedit view`.
+//!
+//! Embedded data: each scene becomes 32-byte records in antimatter15's `.splat` layout (see
+//! [`pack_record`]), base64-encoded inside a `<script type="application/octet-stream">`: 42⅔ characters per
+//! Gaussian. Scenes larger than the cap keep their most visible Gaussians (opacity × the area of the
+//! largest cross-section), chosen deterministically. With the default cap of [`DEFAULT_CAP`] a page holds
+//! at most 2 × 250 000 × 42⅔ B ≈ 21.3 MB of scene data; two scenes of 125 000 Gaussians take 10.7 MB.
+//!
+//! Colours are the view-independent SH degree-0 (DC) colours: higher SH bands are dropped.
+
+use std::path::Path;
+
+use maud::{html, Markup, PreEscaped, DOCTYPE};
+use serde::Serialize;
+use splat::cameras::orbit::{focus_point, look_at};
+use splat::cameras::{orbit_cameras, robust_bounds};
+use splat::{Camera, GaussianScene};
+
+/// The viewer's script (WebGL2 renderer, controls); readable on its own in `present/viewer.js`.
+const VIEWER_JS: &str = include_str!("viewer.js");
+
+/// Bytes per Gaussian in the embedded records.
+pub const RECORD_BYTES: usize = 32;
+/// Default number of Gaussians embedded per scene.
+pub const DEFAULT_CAP: usize = 250_000;
+/// The zeroth-order SH basis constant: colour = 0.5 + C0 · DC coefficient.
+const SH_C0: f32 = 0.282_094_8;
+/// Gaussians fainter than this can never pass the renderer's alpha test.
+const MIN_OPACITY: f32 = 1.0 / 255.0;
+
+#[derive(Debug, thiserror::Error)]
+pub enum ViewerError {
+    #[error("{}: cannot write the viewer page: {msg}", .path.display())]
+    Write {
+        path: std::path::PathBuf,
+        msg: String,
+    },
+}
+
+/// One Gaussian as the viewer receives it, decoded from its record.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Record {
+    pub position: [f32; 3],
+    /// Per-axis standard deviations (linear, not log).
+    pub scale: [f32; 3],
+    /// DC colour in [0, 1] (clamped), quantised to 1/255.
+    pub color: [f32; 3],
+    /// Opacity in [0, 1], quantised to 1/255.
+    pub opacity: f32,
+    /// Unit quaternion (w, x, y, z) with w ≥ 0; each component quantised to 1/128.
+    pub rotation: [f32; 4],
+}
+
+/// Packs Gaussian `i` of `scene` into the 32-byte `.splat` record (little-endian):
+/// position f32×3 | scale f32×3 (exp of the log-scales) | colour RGBA u8×4 (0.5 + C0·DC clamped to
+/// [0, 1], A = sigmoid of the opacity logit) | rotation u8×4 (the normalised quaternion w, x, y, z with
+/// w ≥ 0, each component c stored as round(128 c + 128) clamped to 0..=255).
+///
+/// This is antimatter15's `.splat` layout; once `splat::formats` writes `.splat` files with the same
+/// layout, this function can be replaced by it.
+pub fn pack_record(scene: &GaussianScene, i: usize) -> [u8; RECORD_BYTES] {
+    let mut out = [0u8; RECORD_BYTES];
+    let floats = scene.mean(i).into_iter().chain(scene.scale(i));
+    for (k, v) in floats.enumerate() {
+        out[4 * k..4 * k + 4].copy_from_slice(&v.to_le_bytes());
+    }
+    let to_byte = |v: f32| (v.clamp(0.0, 1.0) * 255.0).round() as u8;
+    let dc = &scene.sh[i * 3 * scene.sh_coeffs()..][..3];
+    for c in 0..3 {
+        out[24 + c] = to_byte(0.5 + SH_C0 * dc[c]);
+    }
+    out[27] = to_byte(scene.opacity(i));
+    let q = &scene.quats[4 * i..4 * i + 4];
+    let norm = q.iter().map(|v| v * v).sum::<f32>().sqrt();
+    // q and -q are the same rotation; w ≥ 0 makes the record unique.
+    let sign = if q[0] < 0.0 { -1.0 } else { 1.0 };
+    for (k, &v) in q.iter().enumerate() {
+        let unit = if norm > 0.0 {
+            sign * v / norm
+        } else {
+            f32::from(u8::from(k == 0))
+        };
+        out[28 + k] = (unit * 128.0 + 128.0).round().clamp(0.0, 255.0) as u8;
+    }
+    out
+}
+
+/// Decodes a record written by [`pack_record`].
+pub fn unpack_record(bytes: &[u8; RECORD_BYTES]) -> Record {
+    let f = |k: usize| f32::from_le_bytes(bytes[4 * k..4 * k + 4].try_into().expect("4 bytes"));
+    let q: [f32; 4] = std::array::from_fn(|k| (f32::from(bytes[28 + k]) - 128.0) / 128.0);
+    let norm = q
+        .iter()
+        .map(|v| v * v)
+        .sum::<f32>()
+        .sqrt()
+        .max(f32::MIN_POSITIVE);
+    Record {
+        position: [f(0), f(1), f(2)],
+        scale: [f(3), f(4), f(5)],
+        color: std::array::from_fn(|c| f32::from(bytes[24 + c]) / 255.0),
+        opacity: f32::from(bytes[27]) / 255.0,
+        rotation: q.map(|v| v / norm),
+    }
+}
+
+/// The Gaussians to embed, in scene order: every one that can be seen (finite, opacity ≥ 1/255), or when
+/// there are more than `cap`, the `cap` most visible by opacity × the product of the two largest scales
+/// (ties to the lower index, so the choice is deterministic).
+pub fn visible_subset(scene: &GaussianScene, cap: usize) -> Vec<usize> {
+    let score = |i: usize| -> Option<f64> {
+        let finite = scene.means[3 * i..3 * i + 3]
+            .iter()
+            .chain(&scene.log_scales[3 * i..3 * i + 3])
+            .chain(&scene.quats[4 * i..4 * i + 4])
+            .all(|v| v.is_finite());
+        let opacity = scene.opacity(i);
+        // A NaN opacity fails the comparison too.
+        let visible = finite && opacity >= MIN_OPACITY;
+        if !visible {
+            return None;
+        }
+        let mut ls = [0, 1, 2].map(|a| f64::from(scene.log_scales[3 * i + a]));
+        ls.sort_by(f64::total_cmp);
+        Some(f64::from(opacity) * (ls[1] + ls[2]).exp())
+    };
+    let mut ranked: Vec<(f64, usize)> = (0..scene.len())
+        .filter_map(|i| score(i).map(|s| (s, i)))
+        .collect();
+    if ranked.len() > cap {
+        let by_visibility =
+            |a: &(f64, usize), b: &(f64, usize)| b.0.total_cmp(&a.0).then(a.1.cmp(&b.1));
+        if cap > 0 {
+            ranked.select_nth_unstable_by(cap - 1, by_visibility);
+        }
+        ranked.truncate(cap);
+    }
+    let mut kept: Vec<usize> = ranked.into_iter().map(|(_, i)| i).collect();
+    kept.sort_unstable();
+    kept
+}
+
+/// Standard base64 (RFC 4648, with padding).
+fn base64(bytes: &[u8]) -> String {
+    const ALPHABET: &[u8; 64] = b"ABCDEFGHIJKLMNOPQRSTUVWXYZabcdefghijklmnopqrstuvwxyz0123456789+/";
+    let mut out = String::with_capacity(bytes.len().div_ceil(3) * 4);
+    for chunk in bytes.chunks(3) {
+        let b = [
+            chunk[0],
+            *chunk.get(1).unwrap_or(&0),
+            *chunk.get(2).unwrap_or(&0),
+        ];
+        let n = u32::from(b[0]) << 16 | u32::from(b[1]) << 8 | u32::from(b[2]);
+        for k in 0..4 {
+            if k <= chunk.len() {
+                out.push(ALPHABET[(n >> (18 - 6 * k) & 63) as usize] as char);
+            } else {
+                out.push('=');
+            }
+        }
+    }
+    out
+}
+
+/// Where the viewer starts and what it turns around.
+#[derive(Clone, Debug, PartialEq)]
+pub struct InitialView {
+    /// The starting camera; its aspect ratio is the canvas's, its intrinsics are scaled to the canvas.
+    pub camera: Camera,
+    /// The point orbiting turns around.
+    pub pivot: [f64; 3],
+    /// The world's up direction (horizontal drags turn about it).
+    pub up: [f64; 3],
+}
+
+impl InitialView {
+    /// The first of `cameras`, turning around `pivot` when given, else the point the cameras look at
+    /// (when it is in front of the first camera), else the scene's per-axis median. Without cameras: an
+    /// orbit camera looking at the scene's bounds (see [`InitialView::around`]).
+    pub fn from_cameras(
+        cameras: &[Camera],
+        scene: &GaussianScene,
+        pivot: Option<[f64; 3]>,
+    ) -> InitialView {
+        let Some(first) = cameras.first() else {
+            return Self::around(scene);
+        };
+        let in_front = |p: &[f64; 3]| first.world_to_camera(*p)[2] > 0.0;
+        let pivot = pivot
+            .or_else(|| focus_point(cameras).filter(in_front))
+            .or_else(|| median(scene).filter(in_front))
+            .unwrap_or_else(|| {
+                // A point straight ahead, as far as the cameras are apart (or 1).
+                let spread = cameras
+                    .iter()
+                    .map(|c| distance(c.center(), first.center()))
+                    .fold(0.0, f64::max);
+                let d = if spread > 0.0 { spread } else { 1.0 };
+                std::array::from_fn(|a| first.center()[a] + d * first.rotation[2][a])
+            });
+        // Image y points down, so the world's up is minus the cameras' mean y axis.
+        let up_sum = cameras.iter().fold([0.0; 3], |acc, c| {
+            std::array::from_fn(|a| acc[a] - c.rotation[1][a])
+        });
+        let up = normalized(up_sum).unwrap_or(first.rotation[1].map(|v| -v));
+        InitialView {
+            camera: first.clone(),
+            pivot,
+            up,
+        }
+    }
+
+    /// A camera looking at the scene from 20° above, on the orbit `vcedit render` uses for bare scenes,
+    /// turning around the centre of the scene's bounds (1st–99th percentile).
+    pub fn around(scene: &GaussianScene) -> InitialView {
+        let (lo, hi) = robust_bounds(scene, 0.01).unwrap_or(([-1.0; 3], [1.0; 3]));
+        let camera = orbit_cameras(lo, hi, 1, 800, 600).pop().unwrap_or_else(|| {
+            let eye = [0.0, 0.0, -3.0];
+            look_at(
+                "view".into(),
+                eye,
+                [0.0; 3],
+                [0.0, -1.0, 0.0],
+                800,
+                600,
+                600.0,
+            )
+        });
+        let pivot = std::array::from_fn(|a| 0.5 * (f64::from(lo[a]) + f64::from(hi[a])));
+        let up = camera.rotation[1].map(|v| -v);
+        InitialView { camera, pivot, up }
+    }
+}
+
+fn distance(a: [f64; 3], b: [f64; 3]) -> f64 {
+    (0..3).map(|k| (a[k] - b[k]).powi(2)).sum::<f64>().sqrt()
+}
+
+fn normalized(v: [f64; 3]) -> Option<[f64; 3]> {
+    let n = v.iter().map(|x| x * x).sum::<f64>().sqrt();
+    (n > 1e-12 && n.is_finite()).then(|| v.map(|x| x / n))
+}
+
+/// Per-axis median of the means (robust to floaters); `None` for an empty scene.
+fn median(scene: &GaussianScene) -> Option<[f64; 3]> {
+    robust_bounds(scene, 0.5).map(|(lo, _)| lo.map(f64::from))
+}
+
+/// A scene to show, with the name the controls give it.
+pub struct ViewerScene<'a> {
+    pub label: &'a str,
+    pub scene: &'a GaussianScene,
+}
+
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct ViewerOptions {
+    /// Most Gaussians embedded per scene.
+    pub cap: usize,
+    /// Colour behind the Gaussians, RGB in [0, 1].
+    pub background: [f32; 3],
+}
+
+impl Default for ViewerOptions {
+    fn default() -> Self {
+        Self {
+            cap: DEFAULT_CAP,
+            background: [0.0; 3],
+        }
+    }
+}
+
+/// What the script reads from `script.vcv-config` (names and labels stay in the markup).
+#[derive(Serialize)]
+struct Config {
+    camera: CameraConfig,
+    pivot: [f64; 3],
+    up: [f64; 3],
+    background: [f32; 3],
+}
+
+#[derive(Serialize)]
+struct CameraConfig {
+    width: u32,
+    height: u32,
+    fx: f64,
+    fy: f64,
+    cx: f64,
+    cy: f64,
+    rotation: [[f64; 3]; 3],
+    translation: [f64; 3],
+}
+
+/// JSON that can sit inside a `<script>` element: `<`, `>` and `&` as JSON escapes.
+fn script_json<T: Serialize>(value: &T) -> String {
+    serde_json::to_string(value)
+        .expect("plain data serialises")
+        .replace('<', "\\u003c")
+        .replace('>', "\\u003e")
+        .replace('&', "\\u0026")
+}
+
+/// "12 345"-style thousands grouping for the page's text.
+fn grouped(n: usize) -> String {
+    let digits = n.to_string();
+    let mut out = String::new();
+    for (k, ch) in digits.chars().enumerate() {
+        if k > 0 && (digits.len() - k).is_multiple_of(3) {
+            out.push('\u{202f}');
+        }
+        out.push(ch);
+    }
+    out
+}
+
+const CSS: &str = "
+.vcv{max-width:820px;margin:8px 0 16px}
+.vcv-stage{position:relative;width:100%;background:#000;border-radius:6px;overflow:hidden;line-height:0}
+.vcv-stage canvas{display:block;width:100%;height:auto;cursor:grab;touch-action:none}
+.vcv-stage canvas:active{cursor:grabbing}
+.vcv-divider{position:absolute;top:0;bottom:0;width:2px;margin-left:-1px;background:rgba(255,255,255,.85);pointer-events:none}
+.vcv-tag{position:absolute;top:8px;padding:2px 8px;border-radius:4px;background:rgba(0,0,0,.55);color:#fff;font:13px/1.4 system-ui,sans-serif;pointer-events:none}
+.vcv-tag-0{left:8px}.vcv-tag-1{right:8px}
+.vcv[data-mode=before] .vcv-tag-1,.vcv[data-mode=after] .vcv-tag-0,.vcv[data-mode=before] .vcv-divider,.vcv[data-mode=after] .vcv-divider{display:none}
+.vcv-message{position:absolute;left:0;right:0;top:45%;text-align:center;color:#fff;font:15px/1.4 system-ui,sans-serif}
+.vcv-controls{display:flex;flex-wrap:wrap;align-items:center;gap:6px;margin:8px 0 4px;font:14px system-ui,sans-serif}
+.vcv-controls button{font:inherit;padding:3px 12px;border:1px solid #b8c0c5;border-radius:4px;background:#fff;cursor:pointer}
+.vcv[data-mode=before] button[data-mode=before],.vcv[data-mode=after] button[data-mode=after],.vcv[data-mode=split] button[data-mode=split]{background:#2a6f97;border-color:#2a6f97;color:#fff}
+.vcv-controls input[type=range]{flex:1;min-width:120px}
+.vcv-note{font:12px/1.45 system-ui,sans-serif;color:#5f6b73;margin:2px 0}
+";
+
+/// The viewer as an HTML fragment: styles, canvas, controls, embedded scenes (one or two; the first is
+/// shown left of the divider, the second right of it) and the script. Labels are escaped by the template.
+pub fn viewer_html(
+    scenes: &[ViewerScene<'_>],
+    view: &InitialView,
+    options: &ViewerOptions,
+) -> Markup {
+    build(scenes, view, options).0
+}
+
+/// The fragment and how many Gaussians of each scene it embeds.
+fn build(
+    scenes: &[ViewerScene<'_>],
+    view: &InitialView,
+    options: &ViewerOptions,
+) -> (Markup, Vec<usize>) {
+    let cam = &view.camera;
+    let config = Config {
+        camera: CameraConfig {
+            width: cam.width.max(1),
+            height: cam.height.max(1),
+            fx: cam.fx,
+            fy: cam.fy,
+            cx: cam.cx,
+            cy: cam.cy,
+            rotation: cam.rotation,
+            translation: cam.translation,
+        },
+        pivot: view.pivot,
+        up: view.up,
+        background: options.background,
+    };
+    let packed: Vec<(usize, String)> = scenes
+        .iter()
+        .map(|s| {
+            let kept = visible_subset(s.scene, options.cap);
+            let bytes: Vec<u8> = kept.iter().flat_map(|&i| pack_record(s.scene, i)).collect();
+            (kept.len(), base64(&bytes))
+        })
+        .collect();
+    let two = scenes.len() > 1;
+    let (w, h) = (cam.width.max(1), cam.height.max(1));
+    let aspect = format!("aspect-ratio:{w}/{h}");
+    // As wide as the page allows (at most 820 px), but no taller than 78 % of the window.
+    let fit = format!("max-width:calc(78vh * {w} / {h})");
+    let mb_125k_pair = 2.0 * 125_000.0 * (RECORD_BYTES as f64 * 4.0 / 3.0) / 1e6;
+    let markup = html! {
+        style { (PreEscaped(CSS)) }
+        div.vcv data-vcedit-viewer data-mode="split" {
+            script.vcv-config type="application/json" { (PreEscaped(script_json(&config))) }
+            @for (s, (_, data)) in scenes.iter().zip(&packed) {
+                script.vcv-scene type="application/octet-stream" data-label=(s.label) {
+                    (PreEscaped(data))
+                }
+            }
+            div.vcv-stage style=(fit) {
+                canvas style=(aspect) tabindex="0" aria-label="3D view: drag to turn, wheel to zoom" {}
+                @if two {
+                    div.vcv-divider style="left:50%" {}
+                }
+                @for (k, s) in scenes.iter().enumerate().take(2) {
+                    span class={ "vcv-tag vcv-tag-" (k) } { (s.label) }
+                }
+                div.vcv-message {}
+            }
+            div.vcv-controls {
+                @if two {
+                    button type="button" data-mode="before" { (scenes[0].label) }
+                    button type="button" data-mode="split" { "split" }
+                    button type="button" data-mode="after" { (scenes[1].label) }
+                    input.vcv-split type="range" min="0" max="100" value="50" aria-label="divider position";
+                }
+                button type="button" data-action="reset" { "reset view" }
+            }
+            p.vcv-note {
+                "Drag to turn around the scene, shift- or right-drag to pan, wheel to zoom, double-click to \
+                 reset. WebGL2 splatting of the embedded Gaussians with their SH degree-0 (view-independent) \
+                 colours, so shading that changes with the viewing direction is not shown."
+            }
+            p.vcv-note {
+                "Embedded: "
+                @for (k, (s, (kept, _))) in scenes.iter().zip(&packed).enumerate() {
+                    @if k > 0 { "; " }
+                    (s.label) " " (grouped(*kept)) " of " (grouped(s.scene.len())) " Gaussians"
+                }
+                " (at most " (grouped(options.cap)) " per scene, the most visible by opacity × area). "
+                (RECORD_BYTES) " bytes per Gaussian, " (format!("{:.1}", RECORD_BYTES as f64 * 4.0 / 3.0))
+                " in the page as base64: two scenes of 125" "\u{202f}" "000 Gaussians take "
+                (format!("{mb_125k_pair:.1}")) " MB."
+            }
+        }
+        script { (PreEscaped(VIEWER_JS)) }
+    };
+    (markup, packed.iter().map(|(kept, _)| *kept).collect())
+}
+
+/// A standalone page holding only the viewer.
+pub fn viewer_page(
+    title: &str,
+    scenes: &[ViewerScene<'_>],
+    view: &InitialView,
+    options: &ViewerOptions,
+) -> String {
+    page(title, build(scenes, view, options).0)
+}
+
+fn page(title: &str, viewer: Markup) -> String {
+    html! {
+        (DOCTYPE)
+        html lang="en" {
+            head {
+                meta charset="utf-8";
+                meta name="viewport" content="width=device-width, initial-scale=1";
+                title { (title) }
+                style { (PreEscaped("body{margin:0;padding:20px 28px;font:15px/1.45 system-ui,sans-serif;color:#1d2327;background:#fbfbfa}h1{font-size:20px;margin:0 0 10px}")) }
+            }
+            body {
+                h1 { (title) }
+                (viewer)
+            }
+        }
+    }
+    .into_string()
+}
+
+/// Writes [`viewer_page`] to `path` atomically; returns how many Gaussians of each scene it embeds.
+pub fn write_viewer_page(
+    path: &Path,
+    title: &str,
+    scenes: &[ViewerScene<'_>],
+    view: &InitialView,
+    options: &ViewerOptions,
+) -> Result<Vec<usize>, ViewerError> {
+    let (viewer, embedded) = build(scenes, view, options);
+    splat::atomic_write(path, page(title, viewer).as_bytes()).map_err(|e| ViewerError::Write {
+        path: path.to_path_buf(),
+        msg: e.to_string(),
+    })?;
+    Ok(embedded)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Gaussians with varied parameters, including an unnormalised and a negative-w quaternion and a
+    /// colour beyond [0, 1].
+    fn varied(n: usize, sh_degree: u32) -> GaussianScene {
+        let k = splat::scene::sh_coeffs(sh_degree);
+        let mut s = GaussianScene::new(sh_degree);
+        for i in 0..n {
+            let t = i as f32;
+            s.means
+                .extend([t * 0.5 - 3.0, (t * 1.7).sin(), -(t * 0.3).cos() * 2.0]);
+            s.log_scales
+                .extend([-3.0 + 0.1 * t, -2.0, -4.0 + (t * 0.7).sin()]);
+            s.quats
+                .extend([(t * 0.9).cos() * 2.0, 0.3, -(t * 1.3).sin(), 0.7 - 0.1 * t]);
+            s.opacity_logits.push((t * 2.1).sin() * 4.0);
+            for j in 0..k {
+                let base = if j == 0 { 1.0 } else { 0.1 };
+                s.sh.extend([base * (t * 0.4).sin() * 2.5, base * 0.1, -base * 0.2 * t]);
+            }
+        }
+        s
+    }
+
+    #[test]
+    fn records_round_trip_within_their_quantisation() {
+        for degree in [0, 3] {
+            let scene = varied(40, degree);
+            for i in 0..scene.len() {
+                let r = unpack_record(&pack_record(&scene, i));
+                assert_eq!(r.position, scene.mean(i), "positions are stored as f32");
+                assert_eq!(r.scale, scene.scale(i), "scales are exp(log-scale) as f32");
+                let dc = &scene.sh[i * 3 * scene.sh_coeffs()..][..3];
+                for (c, (&got, &dc)) in r.color.iter().zip(dc).enumerate() {
+                    let want = (0.5 + SH_C0 * dc).clamp(0.0, 1.0);
+                    assert!((got - want).abs() <= 0.5 / 255.0 + 1e-6, "colour {i}/{c}");
+                }
+                assert!((r.opacity - scene.opacity(i)).abs() <= 0.5 / 255.0 + 1e-6);
+                let q = &scene.quats[4 * i..4 * i + 4];
+                let n = q.iter().map(|v| v * v).sum::<f32>().sqrt();
+                let sign = q[0].signum();
+                for (k, (&got, &qk)) in r.rotation.iter().zip(q).enumerate() {
+                    // 1/256 from rounding, 1/128 where a component of 1 is clamped to 255; renormalising
+                    // the decoded quaternion moves components by about as much again.
+                    let err = (got - sign * qk / n).abs();
+                    assert!(err <= 2.0 / 128.0, "quaternion {i}/{k}: error {err}");
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn rotation_is_quantised_to_the_splat_convention() {
+        let mut s = varied(1, 0);
+        s.quats = vec![-2.0, 0.0, 0.0, 0.0];
+        let rec = pack_record(&s, 0);
+        assert_eq!(
+            &rec[28..],
+            &[255, 128, 128, 128],
+            "w = 1 (sign flipped) clamps to 255"
+        );
+        s.quats = vec![0.0; 4];
+        assert_eq!(
+            &pack_record(&s, 0)[28..],
+            &[255, 128, 128, 128],
+            "a zero quaternion is identity"
+        );
+    }
+
+    #[test]
+    fn subset_keeps_the_most_visible_deterministically() {
+        let mut scene = varied(500, 0);
+        // Two invisible ones: never embedded, whatever the cap.
+        scene.opacity_logits[7] = -20.0;
+        scene.means[3 * 11] = f32::NAN;
+        let all = visible_subset(&scene, usize::MAX);
+        assert_eq!(all.len(), 498);
+        assert!(!all.contains(&7) && !all.contains(&11));
+
+        let kept = visible_subset(&scene, 100);
+        assert_eq!(kept.len(), 100);
+        assert_eq!(kept, visible_subset(&scene, 100), "deterministic");
+        assert!(kept.windows(2).all(|w| w[0] < w[1]), "scene order");
+        let score = |i: usize| {
+            let mut ls = scene.log_scales[3 * i..3 * i + 3].to_vec();
+            ls.sort_by(f32::total_cmp);
+            f64::from(scene.opacity(i)) * f64::from(ls[1] + ls[2]).exp()
+        };
+        let weakest_kept = kept.iter().map(|&i| score(i)).fold(f64::INFINITY, f64::min);
+        let strongest_dropped = all
+            .iter()
+            .filter(|i| !kept.contains(i))
+            .map(|&i| score(i))
+            .fold(0.0, f64::max);
+        assert!(weakest_kept >= strongest_dropped);
+
+        // Ties go to the lower index.
+        let mut same = varied(10, 0);
+        same.log_scales.fill(-2.0);
+        same.opacity_logits.fill(1.0);
+        assert_eq!(visible_subset(&same, 3), vec![0, 1, 2]);
+        assert!(visible_subset(&same, 0).is_empty());
+    }
+
+    #[test]
+    fn base64_matches_rfc_4648() {
+        for (input, want) in [
+            ("", ""),
+            ("f", "Zg=="),
+            ("fo", "Zm8="),
+            ("foo", "Zm9v"),
+            ("foob", "Zm9vYg=="),
+            ("fooba", "Zm9vYmE="),
+            ("foobar", "Zm9vYmFy"),
+        ] {
+            assert_eq!(base64(input.as_bytes()), want);
+        }
+        assert_eq!(base64(&[0xff, 0xfe, 0x3f]), "//4/");
+    }
+
+    fn page_for(labels: [&str; 2]) -> String {
+        let before = varied(5, 0);
+        let after = varied(6, 1);
+        let view = InitialView::around(&before);
+        viewer_page(
+            labels[0],
+            &[
+                ViewerScene {
+                    label: labels[0],
+                    scene: &before,
+                },
+                ViewerScene {
+                    label: labels[1],
+                    scene: &after,
+                },
+            ],
+            &view,
+            &ViewerOptions::default(),
+        )
+    }
+
+    #[test]
+    fn names_are_escaped() {
+        let evil = "</script><script>alert(\"x\")</script> & 'q'";
+        let html = page_for([evil, "after"]);
+        assert!(!html.contains("<script>alert"), "unescaped label");
+        assert!(html.contains(
+            "&lt;/script&gt;&lt;script&gt;alert(&quot;x&quot;)&lt;/script&gt; &amp; 'q'"
+        ));
+        // Two data blocks, the config and the script: nothing else opens a script element.
+        assert_eq!(html.matches("<script").count(), 4);
+        assert!(script_json(&"</script>").contains("\\u003c/script\\u003e"));
+    }
+
+    #[test]
+    fn page_embeds_every_visible_gaussian_and_states_the_budget() {
+        let html = page_for(["before", "after"]);
+        let start = html.find("data-label=\"after\">").unwrap() + "data-label=\"after\">".len();
+        let data = &html[start..start + html[start..].find('<').unwrap()];
+        let visible = visible_subset(&varied(6, 1), usize::MAX).len();
+        assert_eq!(data.len(), (visible * RECORD_BYTES).div_ceil(3) * 4);
+        assert!(html.contains("32 bytes per Gaussian, 42.7 in the page as base64"));
+        assert!(html.contains("take 10.7 MB"));
+        assert!(html.contains("at most 250\u{202f}000 per scene"));
+    }
+
+    #[test]
+    fn initial_view_uses_the_first_camera_and_a_point_in_front() {
+        let scene = varied(50, 0);
+        let cams = splat::cameras::orbit_cameras([-1.0; 3], [1.0; 3], 6, 64, 48);
+        let view = InitialView::from_cameras(&cams, &scene, None);
+        assert_eq!(view.camera, cams[0]);
+        // Orbit cameras all look at the bounds' centre.
+        assert!(
+            view.pivot.iter().all(|v| v.abs() < 1e-6),
+            "{:?}",
+            view.pivot
+        );
+        assert!((view.up.iter().map(|v| v * v).sum::<f64>() - 1.0).abs() < 1e-9);
+        let given = InitialView::from_cameras(&cams, &scene, Some([0.5, 0.0, 0.0]));
+        assert_eq!(given.pivot, [0.5, 0.0, 0.0]);
+        // No cameras: an orbit view of the scene, looking at the pivot.
+        let around = InitialView::from_cameras(&[], &scene, None);
+        let p = around.camera.world_to_camera(around.pivot);
+        assert!(
+            p[2] > 0.0 && p[0].abs() < 1e-6 && p[1].abs() < 1e-6,
+            "{p:?}"
+        );
+    }
+}
