@@ -7,7 +7,8 @@ use super::geometry::{
     VMeasure,
 };
 use super::pattern::{PatternFrame, SurfacePoint};
-use super::spec::{proportions::*, ObjectSpec, SceneSpec, Shape, VASE_LIP};
+use super::shape::{proportions::*, Shape, VASE_LIP};
+use super::spec::{ObjectSpec, SceneSpec};
 use super::WorldError;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -523,7 +524,8 @@ mod tests {
     use crate::world::caption::Appearance;
     use crate::world::palette::ColorName;
     use crate::world::pattern::{Orientation, PatternKind};
-    use crate::world::spec::{GeneratorSettings, ShapeKind};
+    use crate::world::shape::ShapeKind;
+    use crate::world::spec::GeneratorSettings;
 
     fn spec_of(shape: ShapeKind, pattern: PatternKind, on_table: bool, seed: u64) -> SceneSpec {
         let app = Appearance {
