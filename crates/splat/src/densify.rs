@@ -504,12 +504,12 @@ mod tests {
         let mut var = [0.0f64; 3];
         for c in 0..st2.len() {
             let m = st2.scene.mean(c);
-            for a in 0..3 {
+            for (a, v) in var.iter_mut().enumerate() {
                 // local = Rᵀ (m − mean)
                 let l: f32 = (0..3)
                     .map(|b| r.col(a)[b] * (m[b] - big.scene.means[b]))
                     .sum();
-                var[a] += (l as f64).powi(2);
+                *v += (l as f64).powi(2);
             }
         }
         let want = [1.0, 0.25, 0.01];

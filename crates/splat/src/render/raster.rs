@@ -12,11 +12,11 @@
 //! [`traverse_tile`] is shared by rendering and lifting through the [`Sink`] trait.
 
 use super::cpu::{dispatch, is_f32, prefetch, Kernel};
-use super::project::{Splat, ALPHA_MAX, ALPHA_MIN, TILE, T_MIN};
+use super::project::{Splat, TILE, T_MIN};
 use super::real::{c, Real};
 use super::segment::{
-    bit_range, for_each_segment, row_mask, sigma_at, Segment, TileRect, PREFETCH_AHEAD, SEG,
-    TILE_PIXELS,
+    bit_range, for_each_segment, lane_alpha, row_mask, LaneAlpha, Segment, TileRect,
+    PREFETCH_AHEAD, SEG, TILE_PIXELS,
 };
 use super::tiles::{SyncPtr, TileBins};
 use rayon::prelude::*;
@@ -54,16 +54,12 @@ fn forward_segment<R: Real, const SIMD: bool>(
             );
         }
     }
-    let alpha_max: R = c(ALPHA_MAX);
-    let alpha_min: R = c(ALPHA_MIN);
     let t_min: R = c(T_MIN);
     let mut hits = 0u32;
     let mut stops = 0u32;
     for l in 0..SEG {
-        let dx = s.mean[0] - xs[l];
-        let sigma = sigma_at(&s.conic, dx, dy);
-        let alpha = (s.opacity * (-sigma).exp_fast()).min(alpha_max);
-        let valid = (live >> l) & 1 != 0 && sigma >= R::ZERO && alpha >= alpha_min;
+        let LaneAlpha { alpha, counts, .. } = lane_alpha(s, xs[l], dy);
+        let valid = (live >> l) & 1 != 0 && counts;
         let t = trans[l];
         let next = t * (R::ONE - alpha);
         let stop = valid && next < t_min;
@@ -318,7 +314,8 @@ pub fn rasterize<R: Real>(
 #[cfg(test)]
 mod tests {
     use super::super::gradcheck::camera;
-    use super::super::project::CameraR;
+    use super::super::project::{CameraR, ALPHA_MAX, ALPHA_MIN};
+    use super::super::segment::sigma_at;
     use super::super::{project_all, tiles, Params};
     use super::*;
     use rand::{Rng, SeedableRng};

@@ -6,10 +6,10 @@
 //! worker thread (no atomics, no contention); the buffers are summed at the end.
 
 use super::cpu::{dispatch, is_f32, prefetch, Kernel};
-use super::project::{Splat, SplatGrad, ALPHA_MAX, ALPHA_MIN, TILE};
+use super::project::{Splat, SplatGrad, ALPHA_MAX, TILE};
 use super::real::{c, Real};
 use super::segment::{
-    for_each_segment, row_mask, sigma_at, LaneGrads, SegState, SegTemps, Segment, TileRect,
+    for_each_segment, lane_alpha, row_mask, LaneGrads, SegState, SegTemps, Segment, TileRect,
     PREFETCH_AHEAD, SEG, TILE_PIXELS,
 };
 use super::tiles::TileBins;
@@ -226,16 +226,11 @@ fn pass1<R: Real, const SIMD: bool>(
             );
         }
     }
-    let alpha_max: R = c(ALPHA_MAX);
-    let alpha_min: R = c(ALPHA_MIN);
-    let o = sp.opacity;
     let mut act_bits = 0u32;
     for l in 0..SEG {
-        tmp.dx[l] = sp.mean[0] - xs[l];
-        let sigma = sigma_at(&sp.conic, tmp.dx[l], dy);
-        tmp.vis[l] = (-sigma).exp_fast();
-        tmp.alpha[l] = (o * tmp.vis[l]).min(alpha_max);
-        let act = (active >> l) & 1 != 0 && sigma >= R::ZERO && tmp.alpha[l] >= alpha_min;
+        let a = lane_alpha(sp, xs[l], dy);
+        (tmp.dx[l], tmp.vis[l], tmp.alpha[l]) = (a.dx, a.vis, a.alpha);
+        let act = (active >> l) & 1 != 0 && a.counts;
         act_bits |= (act as u32) << l;
         tmp.ra[l] = R::ONE / (R::ONE - tmp.alpha[l]);
         let t = st8.trans[l] * tmp.ra[l];

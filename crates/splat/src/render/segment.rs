@@ -6,7 +6,7 @@
 //!   `f32`), with per-row bit masks of the pixels still in play;
 //! - the per-lane state of one segment in the backward pass ([`SegTemps`], [`SegState`], [`LaneGrads`]).
 
-use super::project::{Splat, TILE};
+use super::project::{Splat, ALPHA_MAX, ALPHA_MIN, TILE};
 use super::real::{c, Real};
 use super::tiles::TileBins;
 
@@ -98,6 +98,35 @@ pub(crate) fn column_mask<R: Real>(s: &Splat<R>, rect: &TileRect) -> u32 {
 #[inline(always)]
 pub(crate) fn sigma_at<R: Real>(conic: &[R; 3], dx: R, dy: R) -> R {
     c::<R>(0.5) * (conic[0] * dx * dx + conic[2] * dy * dy) + conic[1] * dx * dy
+}
+
+/// What every pass computes per pixel from a splat, the same way (the AVX2 kernels have their own copy,
+/// `simd::alpha_lanes`).
+#[derive(Clone, Copy)]
+pub(crate) struct LaneAlpha<R> {
+    /// Splat mean − pixel-centre x.
+    pub dx: R,
+    /// exp(−σ).
+    pub vis: R,
+    /// min(0.99, opacity · exp(−σ)).
+    pub alpha: R,
+    /// σ ≥ 0 and alpha ≥ 1/255: the splat counts at this pixel (if the pixel is still in play).
+    pub counts: bool,
+}
+
+/// [`LaneAlpha`] of splat `s` at the pixel centred at x (`dy` = mean − pixel-centre y).
+#[inline(always)]
+pub(crate) fn lane_alpha<R: Real>(s: &Splat<R>, x: R, dy: R) -> LaneAlpha<R> {
+    let dx = s.mean[0] - x;
+    let sigma = sigma_at(&s.conic, dx, dy);
+    let vis = (-sigma).exp_fast();
+    let alpha = (s.opacity * vis).min(c(ALPHA_MAX));
+    LaneAlpha {
+        dx,
+        vis,
+        alpha,
+        counts: sigma >= R::ZERO && alpha >= c(ALPHA_MIN),
+    }
 }
 
 /// One segment a splat may cover.
