@@ -1,4 +1,4 @@
-//! GaussianEditor's hierarchical Gaussian splatting (HGS) anchor loss (algorithm.md §3.2).
+//! GaussianEditor's hierarchical Gaussian splatting (HGS) anchor loss (docs/algorithm.md §3.2).
 //!
 //! Every Gaussian has a generation: 0 for the loaded ones, and each densification gives the Gaussians it
 //! creates a new generation number. A weight schedule w[g] pulls older generations harder towards their

@@ -3,7 +3,7 @@
 //!
 //! Two strategies:
 //! - [`DefaultStrategy`]: the INRIA trainer / gsplat `DefaultStrategy` used to fit scenes from images.
-//! - [`EditStrategy`]: GaussianEditor's variant used while editing (algorithm.md §3.4): statistics and
+//! - [`EditStrategy`]: GaussianEditor's variant used while editing (docs/algorithm.md §3.4): statistics and
 //!   pruning restricted to the trainable mask, a top-quantile cut of the gradients, and HGS generations.
 //!
 //! Both decide on the screen-space gradient statistics of [`crate::train::DensifyStats`], which are in the
@@ -226,7 +226,7 @@ impl DefaultStrategy {
     }
 }
 
-/// GaussianEditor's densification during editing (algorithm.md §3.4). Step numbers are GaussianEditor's
+/// GaussianEditor's densification during editing (docs/algorithm.md §3.4). Step numbers are GaussianEditor's
 /// `true_global_step` (0-based).
 #[derive(Clone, Debug, PartialEq)]
 pub struct EditStrategy {
@@ -235,7 +235,7 @@ pub struct EditStrategy {
     pub densify_until: u64,
     pub interval: u64,
     /// Clone/split threshold on the mean gradient (GaussianEditor's `max_grad`; an empirical knob, see
-    /// algorithm.md §3.4 on loss scaling).
+    /// docs/algorithm.md §3.4 on loss scaling).
     pub max_grad: f32,
     /// Only the top fraction of the non-zero gradients may densify.
     pub max_densify_percent: f32,

@@ -1,4 +1,4 @@
-//! Lifting 2D maps onto Gaussians: GaussianEditor's `apply_weights` (see algorithm.md §3.1).
+//! Lifting 2D maps onto Gaussians: GaussianEditor's `apply_weights` (see docs/algorithm.md §3.1).
 //!
 //! For every view, the scene is projected and binned exactly as for rendering; then per pixel, front to
 //! back with T = 1, each Gaussian is skipped when σ < 0 or alpha < 1/255, the pixel stops (this Gaussian

@@ -44,7 +44,8 @@ impl Group {
         self as usize
     }
 
-    /// Whether GaussianEditor's gradient hooks apply to this group (all but rotation, algorithm.md §3.3).
+    /// Whether GaussianEditor's gradient hooks apply to this group (all but rotation,
+    /// docs/algorithm.md §3.3).
     pub const fn hooked_by_mask(self) -> bool {
         !matches!(self, Group::Quats)
     }
@@ -117,8 +118,8 @@ impl LearningRates {
         }
     }
 
-    /// GaussianEditor's editing rates (algorithm.md §3.4): positions 1.6e-4 → 1.6e-5 over `max_steps`,
-    /// f_dc 0.0125, f_rest 0.0125/20, opacity 0.05, scaling 0.005, rotation 0.001.
+    /// GaussianEditor's editing rates (docs/algorithm.md §3.4): positions 1.6e-4 → 1.6e-5 over
+    /// `max_steps`, f_dc 0.0125, f_rest 0.0125/20, opacity 0.05, scaling 0.005, rotation 0.001.
     pub fn gaussian_editor(max_steps: u64) -> Self {
         Self {
             means: ExponentialLr {
@@ -188,7 +189,7 @@ pub struct Adam {
     /// Per-group multipliers, indexed by [`Group::index`].
     pub group_lr_scale: [f32; 6],
     /// Whether rotations of masked-out Gaussians are frozen too. GaussianEditor hooks every attribute but
-    /// the rotation (algorithm.md §3.3), so its behaviour is `false`.
+    /// the rotation (docs/algorithm.md §3.3), so its behaviour is `false`.
     pub mask_rotation: bool,
     pub(crate) means_lr: f32,
     /// Steps taken (torch keeps it per parameter; all groups step together here).
