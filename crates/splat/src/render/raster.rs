@@ -15,8 +15,8 @@ use super::cpu::{dispatch, is_f32, prefetch, Kernel};
 use super::project::{Splat, TILE, T_MIN};
 use super::real::{c, Real};
 use super::segment::{
-    bit_range, for_each_segment, lane_alpha, row_mask, LaneAlpha, Segment, TileRect,
-    PREFETCH_AHEAD, SEG, TILE_PIXELS,
+    bit_range, column_mask, lane_alpha, row_mask, LaneAlpha, TileRect, PREFETCH_AHEAD, SEG,
+    TILE_PIXELS,
 };
 use super::tiles::{SyncPtr, TileBins};
 use rayon::prelude::*;
@@ -133,26 +133,26 @@ fn traverse<R: Real, S: Sink<R>, const SIMD: bool>(
             prefetch(&splats[ahead as usize]);
         }
         let s = &splats[g as usize];
-        let rows = row_mask(s, rect) & rows_live;
+        let mut rows = row_mask(s, rect) & rows_live;
         if rows == 0 {
             continue;
         }
-        // Always inlined, so it is compiled for AVX2+FMA in that copy of the tile loop.
-        for_each_segment(
-            s,
-            rect,
-            rows,
-            &mut live,
-            #[inline(always)]
-            |seg: &Segment<R>, row_live: &mut u32| {
-                let p0 = seg.p0;
-                let t: &mut [R; SEG] = (&mut trans[p0..p0 + SEG]).try_into().unwrap();
-                let (hits, stops) =
-                    forward_segment::<R, SIMD>(s, seg.dy, &xs[seg.half], t, seg.lanes, &mut w);
-                *row_live &= !(stops << (seg.half * SEG));
-                if *row_live == 0 {
-                    rows_live &= !(1 << seg.row);
+        let cols = column_mask(s, rect);
+        // The segments of the rows the splat may cover, skipping finished pixels. Written out here and in
+        // the backward pass: a shared visitor taking a closure cost ~5% more instructions in both loops.
+        while rows != 0 {
+            let r = rows.trailing_zeros() as usize;
+            rows &= rows - 1;
+            let dy = s.mean[1] - c((rect.y0 as usize + r) as f64 + 0.5);
+            for h in 0..2 {
+                let seg_live = (live[r] & cols) >> (h * SEG) & 0xff;
+                if seg_live == 0 {
+                    continue;
                 }
+                let p0 = r * TILE as usize + h * SEG;
+                let t: &mut [R; SEG] = (&mut trans[p0..p0 + SEG]).try_into().unwrap();
+                let (hits, stops) = forward_segment::<R, SIMD>(s, dy, &xs[h], t, seg_live, &mut w);
+                live[r] &= !(stops << (h * SEG));
                 if hits != 0 {
                     let lst: &mut [u32; SEG] = (&mut last[p0..p0 + SEG]).try_into().unwrap();
                     let kk = k as u32 + 1;
@@ -163,8 +163,11 @@ fn traverse<R: Real, S: Sink<R>, const SIMD: bool>(
                     }
                     sink.segment(p0, k, g, s, &w, hits);
                 }
-            },
-        );
+            }
+            if live[r] == 0 {
+                rows_live &= !(1 << r);
+            }
+        }
         if rows_live == 0 {
             break;
         }

@@ -9,8 +9,8 @@ use super::cpu::{dispatch, is_f32, prefetch, Kernel};
 use super::project::{Splat, SplatGrad, ALPHA_MAX, TILE};
 use super::real::{c, Real};
 use super::segment::{
-    for_each_segment, lane_alpha, row_mask, LaneGrads, SegState, SegTemps, Segment, TileRect,
-    PREFETCH_AHEAD, SEG, TILE_PIXELS,
+    column_mask, lane_alpha, row_mask, LaneGrads, SegState, SegTemps, TileRect, PREFETCH_AHEAD,
+    SEG, TILE_PIXELS,
 };
 use super::tiles::TileBins;
 use rayon::prelude::*;
@@ -447,27 +447,30 @@ fn backward_tile<R: Real, const SIMD: bool>(
         }
         let g = list[k] as usize;
         let sp = &splats[g];
-        let rows = row_mask(sp, rect) & rows_active;
+        let mut rows = row_mask(sp, rect) & rows_active;
         if rows == 0 {
             continue;
         }
+        let cols = column_mask(sp, rect);
         let mut lg = LaneGrads::<R>::zero();
         let mut touched = false;
-        // Always inlined, so it is compiled for AVX2+FMA in that copy of the tile loop.
-        for_each_segment(
-            sp,
-            rect,
-            rows,
-            &mut active,
-            #[inline(always)]
-            |seg: &Segment<R>, _: &mut u32| {
-                let p0 = seg.p0;
+        // The segments of the rows the splat may cover (the same walk as the forward pass's).
+        while rows != 0 {
+            let r = rows.trailing_zeros() as usize;
+            rows &= rows - 1;
+            let dy = sp.mean[1] - c((rect.y0 as usize + r) as f64 + 0.5);
+            for h in 0..2 {
+                let seg_active = (active[r] & cols) >> (h * SEG) & 0xff;
+                if seg_active == 0 {
+                    continue;
+                }
+                let p0 = r * TILE as usize + h * SEG;
                 let act_bits = {
                     let st8 = seg_state(s, p0);
-                    pass1::<R, SIMD>(sp, seg.dy, &xs[seg.half], seg.lanes, &st8, &mut tmp)
+                    pass1::<R, SIMD>(sp, dy, &xs[h], seg_active, &st8, &mut tmp)
                 };
                 if act_bits == 0 {
-                    return;
+                    continue;
                 }
                 touched = true;
                 // Pass 2 (only with extra channels): their part of dL/dalpha and their gradients.
@@ -495,9 +498,9 @@ fn backward_tile<R: Real, const SIMD: bool>(
                     }
                 }
                 let mut st8 = seg_state(s, p0);
-                pass3::<R, SIMD>(sp, seg.dy, act_bits, &mut st8, &tmp, &mut lg);
-            },
-        );
+                pass3::<R, SIMD>(sp, dy, act_bits, &mut st8, &tmp, &mut lg);
+            }
+        }
         if touched {
             let a = &mut acc.splats[g];
             for ch in 0..3 {

@@ -129,55 +129,6 @@ pub(crate) fn lane_alpha<R: Real>(s: &Splat<R>, x: R, dy: R) -> LaneAlpha<R> {
     }
 }
 
-/// One segment a splat may cover.
-#[derive(Clone, Copy, Debug)]
-pub(crate) struct Segment<R> {
-    /// Tile row.
-    pub row: usize,
-    /// Which half of the row (0 = left): index into [`TileRect::segment_xs`].
-    pub half: usize,
-    /// Tile pixel of lane 0.
-    pub p0: usize,
-    /// Splat mean − pixel-centre y of the row.
-    pub dy: R,
-    /// Lanes in play (bit l = pixel p0 + l), never 0.
-    pub lanes: u32,
-}
-
-/// Visits the segments of the tile that splat `s` may cover, top row first: for each row of `rows` (the
-/// caller has culled them with [`row_mask`]), each half whose pixels in play (`lanes[row]`) meet the
-/// splat's columns. `visit` also gets that row's mask of pixels in play and may clear bits in it (the
-/// forward pass drops finished pixels); the next half then sees the change.
-#[inline(always)]
-pub(crate) fn for_each_segment<R: Real>(
-    s: &Splat<R>,
-    rect: &TileRect,
-    mut rows: u32,
-    lanes: &mut [u32; TILE as usize],
-    mut visit: impl FnMut(&Segment<R>, &mut u32),
-) {
-    let cols = column_mask(s, rect);
-    while rows != 0 {
-        let row = rows.trailing_zeros() as usize;
-        rows &= rows - 1;
-        let dy = s.mean[1] - c((rect.y0 as usize + row) as f64 + 0.5);
-        for half in 0..2 {
-            let seg_lanes = (lanes[row] & cols) >> (half * SEG) & 0xff;
-            if seg_lanes == 0 {
-                continue;
-            }
-            let seg = Segment {
-                row,
-                half,
-                p0: row * TILE as usize + half * SEG,
-                dy,
-                lanes: seg_lanes,
-            };
-            visit(&seg, &mut lanes[row]);
-        }
-    }
-}
-
 /// Per-lane intermediate values of one backward segment, shared between its passes.
 #[derive(Clone, Copy, Default)]
 pub(crate) struct SegTemps<R> {
