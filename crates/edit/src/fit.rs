@@ -18,7 +18,7 @@ use splat::densify::EditStrategy;
 use splat::loss;
 use splat::optim::LearningRates;
 use splat::render::{render, render_backward, OutputGrads, RenderSettings};
-use splat::train::TrainState;
+use splat::train::{RenderedView, TrainState};
 use splat::{Camera, GaussianScene, Image};
 
 use crate::eval::lpips::{Lpips, LpipsError, TargetCache};
@@ -289,10 +289,7 @@ impl EditTrainer {
             strategy.after_backward(
                 &mut self.state,
                 self.global_step,
-                &grads,
-                &radii,
-                cam.width,
-                cam.height,
+                &RenderedView::new(&grads, &radii, cam),
                 &mut rng,
             );
             self.global_step += 1;

@@ -84,21 +84,15 @@ fn bench(label: &str, scene: &GaussianScene, cam: &Camera, runs: usize, stages: 
     let grad: Vec<f32> = (0..3 * npix)
         .map(|i| ((i % 7) as f32 - 3.0) * 0.01)
         .collect();
+    let grads = OutputGrads {
+        rgb: &grad,
+        alpha: None,
+        depth: None,
+        extra: None,
+    };
     // Warm-up (page faults, thread pool).
     let out = render(scene, cam, &settings, None);
-    let _ = render_backward(
-        scene,
-        cam,
-        &settings,
-        None,
-        &out,
-        &OutputGrads {
-            rgb: &grad,
-            alpha: None,
-            depth: None,
-            extra: None,
-        },
-    );
+    let _ = render_backward(scene, cam, &settings, None, &out, &grads);
     let (mut fwd, mut bwd) = (vec![], vec![]);
     let mut isects = 0;
     let cpu_start = process_cpu_time();
@@ -108,19 +102,7 @@ fn bench(label: &str, scene: &GaussianScene, cam: &Camera, runs: usize, stages: 
         fwd.push(t.elapsed());
         isects = out.tile_intersections();
         let t = Instant::now();
-        let g = render_backward(
-            scene,
-            cam,
-            &settings,
-            None,
-            &out,
-            &OutputGrads {
-                rgb: &grad,
-                alpha: None,
-                depth: None,
-                extra: None,
-            },
-        );
+        let g = render_backward(scene, cam, &settings, None, &out, &grads);
         bwd.push(t.elapsed());
         std::hint::black_box(g);
     }

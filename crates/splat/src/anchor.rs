@@ -1,4 +1,4 @@
-//! GaussianEditor's hierarchical Gaussian splatting (HGS) anchor loss (algorithm.md §3.2).
+//! GaussianEditor's hierarchical Gaussian splatting (HGS) anchor loss (docs/algorithm.md §3.2).
 //!
 //! Every Gaussian has a generation: 0 for the loaded ones, and each densification gives the Gaussians it
 //! creates a new generation number. A weight schedule w[g] pulls older generations harder towards their
@@ -13,15 +13,16 @@
 //! (trainable) parameters; geo = positions + quaternions, color = SH DC + SH rest, opacity, scale; the total
 //! is Σ λ_attr·L_attr.
 
-use crate::densify::Remap;
+use crate::layout::{remap_scene, set_scene_sh_degree, Remap};
 use crate::render::SceneGrads;
 use crate::GaussianScene;
+use serde::{Deserialize, Serialize};
 
 /// GaussianEditor caps every generation weight at this value.
 pub const MAX_ANCHOR_WEIGHT: f32 = 10.0;
 
-/// Weights of the anchor loss.
-#[derive(Clone, Debug, PartialEq)]
+/// Weights of the anchor loss (serialised as is in training-state checkpoints).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct AnchorConfig {
     /// Initial weight of generation 0 (the loaded scene).
     pub weight_init_g0: f32,
@@ -108,7 +109,7 @@ impl Anchor {
 
     /// Follows a clone/split/prune: survivors keep their generation and anchors, new Gaussians belong to
     /// [`Anchor::next_generation`] and copy their source's anchors until the next [`Anchor::refresh`].
-    pub fn remap(&mut self, remap: &Remap) {
+    pub(crate) fn remap(&mut self, remap: &Remap) {
         let g = self.next_generation();
         remap.apply_fill(&mut self.generations, 1, g);
         remap_scene(&mut self.snapshot, remap);
@@ -131,10 +132,7 @@ impl Anchor {
 
     /// Re-lays the anchored SH coefficients after the scene's SH degree changed.
     pub fn set_sh_degree(&mut self, degree: u32) {
-        let old_k = self.snapshot.sh_coeffs();
-        self.snapshot.sh =
-            crate::optim::relayout_sh(&self.snapshot.sh, old_k, crate::scene::sh_coeffs(degree));
-        self.snapshot.sh_degree = degree;
+        set_scene_sh_degree(&mut self.snapshot, degree);
     }
 
     /// The anchor loss over the Gaussians selected by `mask` (all when `None`). When `grads` is given, the
@@ -265,16 +263,6 @@ impl Anchor {
                 + c.lambda_scale * scale,
         }
     }
-}
-
-/// Applies a [`Remap`] to every parameter array of a scene (new Gaussians copy their source).
-pub fn remap_scene(scene: &mut GaussianScene, remap: &Remap) {
-    let k3 = 3 * scene.sh_coeffs();
-    remap.apply(&mut scene.means, 3);
-    remap.apply(&mut scene.log_scales, 3);
-    remap.apply(&mut scene.quats, 4);
-    remap.apply(&mut scene.opacity_logits, 1);
-    remap.apply(&mut scene.sh, k3);
 }
 
 #[cfg(test)]

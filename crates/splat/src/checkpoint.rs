@@ -7,9 +7,8 @@
 use serde::{Deserialize, Serialize};
 
 use crate::anchor::{Anchor, AnchorConfig};
-use crate::densify::DensifyStats;
 use crate::optim::{Adam, LearningRates, Moments};
-use crate::train::TrainState;
+use crate::train::{DensifyStats, TrainState};
 use crate::GaussianScene;
 
 const MAGIC: &[u8] = b"VCEDIT-TRAINSTATE 1\n";
@@ -25,19 +24,8 @@ struct Header {
     mask_rotation: bool,
     sh_degree: u32,
     has_trainable: bool,
-    anchor: Option<AnchorHeader>,
+    anchor: Option<AnchorConfig>,
     arrays: Vec<(String, usize)>,
-}
-
-#[derive(Serialize, Deserialize)]
-struct AnchorHeader {
-    weight_init_g0: f32,
-    weight_init: f32,
-    weight_multiplier: f32,
-    lambda_color: f32,
-    lambda_geo: f32,
-    lambda_opacity: f32,
-    lambda_scale: f32,
 }
 
 struct Writer {
@@ -97,16 +85,7 @@ impl TrainState {
             w.put("anchor.quats", &s.quats);
             w.put("anchor.opacity_logits", &s.opacity_logits);
             w.put("anchor.sh", &s.sh);
-            let c = &an.config;
-            AnchorHeader {
-                weight_init_g0: c.weight_init_g0,
-                weight_init: c.weight_init,
-                weight_multiplier: c.weight_multiplier,
-                lambda_color: c.lambda_color,
-                lambda_geo: c.lambda_geo,
-                lambda_opacity: c.lambda_opacity,
-                lambda_scale: c.lambda_scale,
-            }
+            an.config.clone()
         });
         let header = Header {
             user_step,
@@ -206,18 +185,9 @@ impl TrainState {
         } else {
             None
         };
-        let anchor = match &header.anchor {
+        let anchor = match header.anchor {
             None => None,
-            Some(c) => {
-                let config = AnchorConfig {
-                    weight_init_g0: c.weight_init_g0,
-                    weight_init: c.weight_init,
-                    weight_multiplier: c.weight_multiplier,
-                    lambda_color: c.lambda_color,
-                    lambda_geo: c.lambda_geo,
-                    lambda_opacity: c.lambda_opacity,
-                    lambda_scale: c.lambda_scale,
-                };
+            Some(config) => {
                 let mut an = Anchor::new(&scene, config);
                 an.generations = take("anchor.generations")?
                     .into_iter()
@@ -277,7 +247,15 @@ mod tests {
             means2d: vec![[0.1, 0.2]; 2],
         };
         st.step(&grads);
-        st.stats.add(&grads.means2d, &[3, 0], 64, 64, 1);
+        st.stats.add(
+            &crate::train::RenderedView {
+                means2d: &grads.means2d,
+                radii: &[3, 0],
+                width: 64,
+                height: 64,
+            },
+            1,
+        );
         st.adam.lr_scale = 0.5;
         let bytes = st.to_bytes(42).unwrap();
         let (back, step) = TrainState::from_bytes(

@@ -3,196 +3,19 @@
 //!
 //! Two strategies:
 //! - [`DefaultStrategy`]: the INRIA trainer / gsplat `DefaultStrategy` used to fit scenes from images.
-//! - [`EditStrategy`]: GaussianEditor's variant used while editing (algorithm.md §3.4): statistics and
+//! - [`EditStrategy`]: GaussianEditor's variant used while editing (docs/algorithm.md §3.4): statistics and
 //!   pruning restricted to the trainable mask, a top-quantile cut of the gradients, and HGS generations.
 //!
-//! Both accumulate the norm of the screen-space positional gradient in the units of the INRIA rasteriser:
-//! its `dL/d(mean2D)` is taken with respect to normalised device coordinates, i.e. the pixel-space gradient
-//! times (W/2, H/2) (gsplat's `_update_state` does the same scaling). With a mean-reduced image loss this
-//! makes `grow_grad2d = 0.0002` mean what it means in the trainer.
+//! Both decide on the screen-space gradient statistics of [`crate::train::DensifyStats`], which are in the
+//! units of the INRIA rasteriser, so `grow_grad2d = 0.0002` means what it means in the trainer.
 
+use crate::layout::Remap;
 use crate::optim::Group;
-use crate::render::SceneGrads;
-use crate::train::TrainState;
+use crate::train::{RenderedView, TrainState};
 use crate::GaussianScene;
+use glam::{Mat3, Quat, Vec3};
 use rand::Rng;
 use rand_distr::StandardNormal;
-
-/// One structural change of the Gaussian set: the old Gaussians with `keep` set, in order, followed by
-/// copies of the old Gaussians `appended` (old indices, possibly repeated).
-#[derive(Clone, Debug, PartialEq, Eq)]
-pub struct Remap {
-    pub keep: Vec<bool>,
-    pub appended: Vec<usize>,
-}
-
-impl Remap {
-    /// Keeps everything and appends a copy of each selected Gaussian.
-    pub fn duplicate(selected: &[bool]) -> Self {
-        Self {
-            keep: vec![true; selected.len()],
-            appended: indices(selected),
-        }
-    }
-
-    /// Removes the selected Gaussians and appends two copies of each (first copies of all, then second
-    /// copies, as gsplat orders them).
-    pub fn split(selected: &[bool]) -> Self {
-        let sel = indices(selected);
-        let mut appended = sel.clone();
-        appended.extend_from_slice(&sel);
-        Self {
-            keep: selected.iter().map(|&s| !s).collect(),
-            appended,
-        }
-    }
-
-    /// Removes the selected Gaussians.
-    pub fn remove(selected: &[bool]) -> Self {
-        Self {
-            keep: selected.iter().map(|&s| !s).collect(),
-            appended: Vec::new(),
-        }
-    }
-
-    pub fn old_len(&self) -> usize {
-        self.keep.len()
-    }
-
-    pub fn new_len(&self) -> usize {
-        self.keep.iter().filter(|&&k| k).count() + self.appended.len()
-    }
-
-    /// Index in the new order of the first appended Gaussian.
-    pub fn first_appended(&self) -> usize {
-        self.new_len() - self.appended.len()
-    }
-
-    /// Applies the change to an array of `width` values per Gaussian; appended entries copy their source.
-    ///
-    /// # Panics
-    /// When `v` does not hold `old_len() * width` values.
-    pub fn apply<T: Clone>(&self, v: &mut Vec<T>, width: usize) {
-        assert_eq!(v.len(), self.old_len() * width, "remap: array length");
-        let mut extra = Vec::with_capacity(self.appended.len() * width);
-        for &src in &self.appended {
-            extra.extend_from_slice(&v[src * width..(src + 1) * width]);
-        }
-        self.retain(v, width);
-        v.extend(extra);
-    }
-
-    /// Like [`Remap::apply`], but appended entries are set to `fill`.
-    pub fn apply_fill<T: Clone>(&self, v: &mut Vec<T>, width: usize, fill: T) {
-        assert_eq!(v.len(), self.old_len() * width, "remap: array length");
-        self.retain(v, width);
-        v.resize(v.len() + self.appended.len() * width, fill);
-    }
-
-    fn retain<T: Clone>(&self, v: &mut Vec<T>, width: usize) {
-        let mut w = 0;
-        for (i, &k) in self.keep.iter().enumerate() {
-            if k {
-                if w != i {
-                    for e in 0..width {
-                        v[w * width + e] = v[i * width + e].clone();
-                    }
-                }
-                w += 1;
-            }
-        }
-        v.truncate(w * width);
-    }
-}
-
-fn indices(selected: &[bool]) -> Vec<usize> {
-    selected
-        .iter()
-        .enumerate()
-        .filter_map(|(i, &s)| s.then_some(i))
-        .collect()
-}
-
-/// Running screen-space statistics per Gaussian between two refinements.
-#[derive(Clone, Debug, Default, PartialEq)]
-pub struct DensifyStats {
-    /// Σ ‖dL/d(mean2D)‖ in NDC units over the views that rendered the Gaussian.
-    pub grad2d: Vec<f32>,
-    /// Number of views that rendered the Gaussian.
-    pub count: Vec<f32>,
-    /// Largest screen radius in pixels.
-    pub max_radius: Vec<f32>,
-}
-
-impl DensifyStats {
-    pub fn new(n: usize) -> Self {
-        Self {
-            grad2d: vec![0.0; n],
-            count: vec![0.0; n],
-            max_radius: vec![0.0; n],
-        }
-    }
-
-    pub fn len(&self) -> usize {
-        self.count.len()
-    }
-
-    pub fn is_empty(&self) -> bool {
-        self.count.is_empty()
-    }
-
-    /// Adds one rendered view: `means2d` is dL/d(pixel centre) from the renderer, `radii` its per-Gaussian
-    /// screen radii (0 = not rendered) for a `width` x `height` image. Loss gradients averaged over a batch
-    /// of B views should pass `batch = B` (gsplat multiplies by the number of cameras); otherwise 1.
-    pub fn add(
-        &mut self,
-        means2d: &[[f32; 2]],
-        radii: &[u32],
-        width: u32,
-        height: u32,
-        batch: usize,
-    ) {
-        assert_eq!(means2d.len(), self.len(), "densify stats: means2d size");
-        assert_eq!(radii.len(), self.len(), "densify stats: radii size");
-        let sx = 0.5 * width as f32 * batch as f32;
-        let sy = 0.5 * height as f32 * batch as f32;
-        for (i, (&[gx, gy], &r)) in means2d.iter().zip(radii).enumerate() {
-            if r == 0 {
-                continue;
-            }
-            let norm = ((gx * sx).powi(2) + (gy * sy).powi(2)).sqrt();
-            if !norm.is_finite() {
-                continue;
-            }
-            self.grad2d[i] += norm;
-            self.count[i] += 1.0;
-            self.max_radius[i] = self.max_radius[i].max(r as f32);
-        }
-    }
-
-    /// Mean gradient norm per Gaussian (0 where never rendered).
-    pub fn average(&self) -> Vec<f32> {
-        self.grad2d
-            .iter()
-            .zip(&self.count)
-            .map(|(&g, &c)| if c > 0.0 { g / c } else { 0.0 })
-            .collect()
-    }
-
-    pub fn clear(&mut self) {
-        for v in [&mut self.grad2d, &mut self.count, &mut self.max_radius] {
-            v.iter_mut().for_each(|x| *x = 0.0);
-        }
-    }
-
-    /// Follows a structural change; new Gaussians copy their source's statistics (gsplat's behaviour; they
-    /// are cleared right after a refinement anyway).
-    pub fn remap(&mut self, remap: &Remap) {
-        remap.apply(&mut self.grad2d, 1);
-        remap.apply(&mut self.count, 1);
-        remap.apply(&mut self.max_radius, 1);
-    }
-}
 
 /// What one refinement did.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
@@ -209,32 +32,16 @@ fn max_scale(scene: &GaussianScene, i: usize) -> f32 {
     s[0].max(s[1]).max(s[2]).exp()
 }
 
-/// Rotation matrix (row-major) of Gaussian `i`'s normalised quaternion (w, x, y, z).
-fn rotation(scene: &GaussianScene, i: usize) -> [[f32; 3]; 3] {
+/// Rotation matrix of Gaussian `i`'s quaternion (w, x, y, z), normalised by division (identity when it
+/// is zero or not finite).
+fn rotation(scene: &GaussianScene, i: usize) -> Mat3 {
     let q = &scene.quats[4 * i..4 * i + 4];
     let norm = q.iter().map(|v| v * v).sum::<f32>().sqrt();
-    let [w, x, y, z] = if norm > 0.0 && norm.is_finite() {
-        [q[0] / norm, q[1] / norm, q[2] / norm, q[3] / norm]
-    } else {
-        [1.0, 0.0, 0.0, 0.0]
-    };
-    [
-        [
-            1.0 - 2.0 * (y * y + z * z),
-            2.0 * (x * y - w * z),
-            2.0 * (x * z + w * y),
-        ],
-        [
-            2.0 * (x * y + w * z),
-            1.0 - 2.0 * (x * x + z * z),
-            2.0 * (y * z - w * x),
-        ],
-        [
-            2.0 * (x * z - w * y),
-            2.0 * (y * z + w * x),
-            1.0 - 2.0 * (x * x + y * y),
-        ],
-    ]
+    if !(norm > 0.0 && norm.is_finite()) {
+        return Mat3::IDENTITY;
+    }
+    let [w, x, y, z] = [q[0] / norm, q[1] / norm, q[2] / norm, q[3] / norm];
+    Mat3::from_quat(Quat::from_xyzw(x, y, z, w))
 }
 
 /// Appends a copy of each selected Gaussian (parameters copied, optimiser moments zero).
@@ -260,14 +67,15 @@ pub fn split<R: Rng + ?Sized>(state: &mut TrainState, selected: &[bool], rng: &m
     let scene = &state.scene;
     let mut child_means = Vec::with_capacity(remap.appended.len() * 3);
     for &p in &remap.appended {
-        let s = scene.scale(p);
         let r = rotation(scene, p);
         let z: [f32; 3] = std::array::from_fn(|_| rng.sample(StandardNormal));
-        let local = [s[0] * z[0], s[1] * z[1], s[2] * z[2]];
-        let m = scene.mean(p);
-        for a in 0..3 {
-            child_means.push(m[a] + r[a][0] * local[0] + r[a][1] * local[1] + r[a][2] * local[2]);
-        }
+        let local = Vec3::from(scene.scale(p)) * Vec3::from(z);
+        // Summed left to right from the mean, column by column.
+        let m = Vec3::from(scene.mean(p))
+            + r.x_axis * local.x
+            + r.y_axis * local.y
+            + r.z_axis * local.z;
+        child_means.extend_from_slice(&m.to_array());
     }
     let shrink = 1.6f32.ln();
     state.apply_remap(&remap);
@@ -344,23 +152,19 @@ impl Default for DefaultStrategy {
 }
 
 impl DefaultStrategy {
-    /// Call after every backward pass with that view's screen-space gradients and radii. Accumulates the
-    /// statistics, and on refinement steps grows, prunes and resets.
-    #[allow(clippy::too_many_arguments)]
+    /// Call after every backward pass with what that view rendered. Accumulates the statistics, and on
+    /// refinement steps grows, prunes and resets.
     pub fn after_backward<R: Rng + ?Sized>(
         &self,
         state: &mut TrainState,
         step: u64,
-        grads: &SceneGrads,
-        radii: &[u32],
-        width: u32,
-        height: u32,
+        view: &RenderedView<'_>,
         rng: &mut R,
     ) -> Option<RefineReport> {
         if step >= self.refine_stop {
             return None;
         }
-        state.stats.add(&grads.means2d, radii, width, height, 1);
+        state.stats.add(view, 1);
         let mut report = None;
         let paused =
             self.reset_every > 0 && step % self.reset_every < self.pause_refine_after_reset;
@@ -422,7 +226,7 @@ impl DefaultStrategy {
     }
 }
 
-/// GaussianEditor's densification during editing (algorithm.md §3.4). Step numbers are GaussianEditor's
+/// GaussianEditor's densification during editing (docs/algorithm.md §3.4). Step numbers are GaussianEditor's
 /// `true_global_step` (0-based).
 #[derive(Clone, Debug, PartialEq)]
 pub struct EditStrategy {
@@ -431,7 +235,7 @@ pub struct EditStrategy {
     pub densify_until: u64,
     pub interval: u64,
     /// Clone/split threshold on the mean gradient (GaussianEditor's `max_grad`; an empirical knob, see
-    /// algorithm.md §3.4 on loss scaling).
+    /// docs/algorithm.md §3.4 on loss scaling).
     pub max_grad: f32,
     /// Only the top fraction of the non-zero gradients may densify.
     pub max_densify_percent: f32,
@@ -466,22 +270,19 @@ impl Default for EditStrategy {
 }
 
 impl EditStrategy {
-    /// Call after every backward pass. Accumulates statistics and densifies on densification steps.
-    #[allow(clippy::too_many_arguments)]
+    /// Call after every backward pass with what that view rendered. Accumulates statistics and densifies
+    /// on densification steps.
     pub fn after_backward<R: Rng + ?Sized>(
         &self,
         state: &mut TrainState,
         step: u64,
-        grads: &SceneGrads,
-        radii: &[u32],
-        width: u32,
-        height: u32,
+        view: &RenderedView<'_>,
         rng: &mut R,
     ) -> Option<RefineReport> {
         if step >= self.densify_until {
             return None;
         }
-        state.stats.add(&grads.means2d, radii, width, height, 1);
+        state.stats.add(view, 1);
         if step >= self.densify_from && self.interval > 0 && step.is_multiple_of(self.interval) {
             Some(self.densify_and_prune(state, rng))
         } else {
@@ -579,6 +380,7 @@ mod tests {
     use super::*;
     use crate::anchor::{Anchor, AnchorConfig};
     use crate::optim::LearningRates;
+    use crate::render::SceneGrads;
     use rand::SeedableRng;
     use rand_chacha::ChaCha8Rng;
 
@@ -608,6 +410,16 @@ mod tests {
         st
     }
 
+    /// A 10 x 10 view with these gradients and radii.
+    fn view<'a>(grads: &'a SceneGrads, radii: &'a [u32]) -> RenderedView<'a> {
+        RenderedView {
+            means2d: &grads.means2d,
+            radii,
+            width: 10,
+            height: 10,
+        }
+    }
+
     fn grads_for(st: &TrainState, f: impl Fn(usize) -> f32) -> SceneGrads {
         let s = &st.scene;
         SceneGrads {
@@ -619,22 +431,6 @@ mod tests {
             extra: Vec::new(),
             means2d: (0..s.len()).map(|i| [f(i), 0.0]).collect(),
         }
-    }
-
-    #[test]
-    fn remap_apply_orders_survivors_then_copies() {
-        let r = Remap {
-            keep: vec![true, false, true, true],
-            appended: vec![1, 3, 1],
-        };
-        let mut v = vec![0, 0, 1, 1, 2, 2, 3, 3];
-        r.apply(&mut v, 2);
-        assert_eq!(v, vec![0, 0, 2, 2, 3, 3, 1, 1, 3, 3, 1, 1]);
-        let mut w = vec![10, 11, 12, 13];
-        r.apply_fill(&mut w, 1, -1);
-        assert_eq!(w, vec![10, 12, 13, -1, -1, -1]);
-        assert_eq!(r.new_len(), 6);
-        assert_eq!(r.first_appended(), 3);
     }
 
     #[test]
@@ -708,10 +504,12 @@ mod tests {
         let mut var = [0.0f64; 3];
         for c in 0..st2.len() {
             let m = st2.scene.mean(c);
-            for a in 0..3 {
+            for (a, v) in var.iter_mut().enumerate() {
                 // local = Rᵀ (m − mean)
-                let l: f32 = (0..3).map(|b| r[b][a] * (m[b] - big.scene.means[b])).sum();
-                var[a] += (l as f64).powi(2);
+                let l: f32 = (0..3)
+                    .map(|b| r.col(a)[b] * (m[b] - big.scene.means[b]))
+                    .sum();
+                *v += (l as f64).powi(2);
             }
         }
         let want = [1.0, 0.25, 0.01];
@@ -737,7 +535,7 @@ mod tests {
         let mut st = state(5);
         let g = grads_for(&st, |i| i as f32);
         st.step(&g);
-        st.stats.add(&g.means2d, &[1; 5], 10, 10, 1);
+        st.stats.add(&view(&g, &[1; 5]), 1);
         let before = st.scene.clone();
         let n = prune(&mut st, &[true, false, false, true, false]);
         assert_eq!(n, 2);
@@ -763,10 +561,10 @@ mod tests {
             let g = grads_for(&st, |i| if i % 2 == 0 { 1e-4 } else { 1e-6 });
             let radii = vec![3; 8];
             assert!(strategy
-                .after_backward(&mut st, 1, &g, &radii, 10, 10, &mut rng)
+                .after_backward(&mut st, 1, &view(&g, &radii), &mut rng)
                 .is_none());
             let report = strategy
-                .after_backward(&mut st, 2, &g, &radii, 10, 10, &mut rng)
+                .after_backward(&mut st, 2, &view(&g, &radii), &mut rng)
                 .unwrap();
             (st, report)
         };
@@ -794,7 +592,7 @@ mod tests {
         let mut rng = ChaCha8Rng::seed_from_u64(0);
         let radii = vec![0; 4];
         let r = strategy
-            .after_backward(&mut st, 3000, &g, &radii, 10, 10, &mut rng)
+            .after_backward(&mut st, 3000, &view(&g, &radii), &mut rng)
             .unwrap();
         assert!(r.opacity_reset);
         for i in 0..4 {
@@ -815,7 +613,7 @@ mod tests {
             ..Default::default()
         };
         let mut rng = ChaCha8Rng::seed_from_u64(0);
-        st.stats.add(&g.means2d, &[2; 8], 10, 10, 1);
+        st.stats.add(&view(&g, &[2; 8]), 1);
         let report = strategy.densify_and_prune(&mut st, &mut rng);
         st.check().unwrap();
         // Gaussian 7 is masked out (7 % 4 == 3); the largest masked gradient is Gaussian 6 (scale 0.028 >
@@ -834,7 +632,7 @@ mod tests {
             max_densify_percent: 1.0,
             ..Default::default()
         };
-        st.stats.add(&g.means2d, &[2; 8], 10, 10, 1);
+        st.stats.add(&view(&g, &[2; 8]), 1);
         let report = strategy.densify_and_prune(&mut st, &mut rng);
         // Masked in: 0, 1, 2, 4, 5, 6. Scale 0.004·(i+1) ≤ 0.01 → clone for 0, 1; split 2, 4, 5, 6.
         assert_eq!((report.cloned, report.split), (2, 4));

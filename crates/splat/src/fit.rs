@@ -9,7 +9,7 @@ use crate::image::ImageError;
 use crate::loss::{l1_dssim, psnr, DEFAULT_SSIM_WEIGHT};
 use crate::optim::LearningRates;
 use crate::render::{render, render_backward, OutputGrads, RenderSettings};
-use crate::train::TrainState;
+use crate::train::{RenderedView, TrainState};
 use crate::{Camera, GaussianScene, Image};
 use rand::seq::SliceRandom;
 use rand::{Rng, SeedableRng};
@@ -620,10 +620,7 @@ pub fn fit(
         let refine = config.strategy.after_backward(
             &mut state,
             step,
-            &grads,
-            &out.radii,
-            view.camera.width,
-            view.camera.height,
+            &RenderedView::new(&grads, &out.radii, &view.camera),
             &mut rng,
         );
         times.densify += t.elapsed().as_secs_f64();

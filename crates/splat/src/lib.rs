@@ -15,6 +15,7 @@ pub mod checkpoint;
 pub mod densify;
 pub mod fit;
 pub mod image;
+mod layout;
 pub mod lift;
 pub mod loss;
 pub mod open;

@@ -1,4 +1,4 @@
-//! Lifting 2D maps onto Gaussians: GaussianEditor's `apply_weights` (see algorithm.md §3.1).
+//! Lifting 2D maps onto Gaussians: GaussianEditor's `apply_weights` (see docs/algorithm.md §3.1).
 //!
 //! For every view, the scene is projected and binned exactly as for rendering; then per pixel, front to
 //! back with T = 1, each Gaussian is skipped when σ < 0 or alpha < 1/255, the pixel stops (this Gaussian
@@ -11,7 +11,8 @@
 //! so results do not depend on thread scheduling.
 
 use crate::render::project::{CameraR, Splat};
-use crate::render::raster::{traverse_tile, Sink, TileRect, SEG, TILE_PIXELS};
+use crate::render::raster::{traverse_tile, Sink, Traversal};
+use crate::render::segment::{TileRect, SEG, TILE_PIXELS};
 use crate::render::{project_all, tiles, Params};
 use crate::{Camera, GaussianScene};
 use rayon::prelude::*;
@@ -185,7 +186,14 @@ impl<'s> LiftAccumulator<'s> {
                     rect,
                     width: cam.width,
                 };
-                traverse_tile(&splats, list, &rect, &mut sink, &mut trans, &mut last);
+                traverse_tile(Traversal {
+                    splats: &splats,
+                    list,
+                    rect: &rect,
+                    sink: &mut sink,
+                    trans: &mut trans,
+                    last: &mut last,
+                });
                 for &k in &tile_sums.touched {
                     let k = k as usize;
                     let g = list[k] as usize;
@@ -244,8 +252,8 @@ impl<'s> LiftAccumulator<'s> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::render::raster::sigma_at;
     use crate::render::real::Real;
+    use crate::render::segment::sigma_at;
     use crate::render::{ALPHA_MAX, ALPHA_MIN};
 
     /// A camera at the origin looking down +z.

@@ -13,7 +13,7 @@
 //!   long as their moments start at zero (then torch's update is exactly 0); skipping also keeps state that
 //!   another phase built up from decaying.
 
-use crate::densify::Remap;
+use crate::layout::{relayout_sh, Remap};
 use crate::render::SceneGrads;
 use crate::GaussianScene;
 use rayon::prelude::*;
@@ -44,7 +44,8 @@ impl Group {
         self as usize
     }
 
-    /// Whether GaussianEditor's gradient hooks apply to this group (all but rotation, algorithm.md §3.3).
+    /// Whether GaussianEditor's gradient hooks apply to this group (all but rotation,
+    /// docs/algorithm.md §3.3).
     pub const fn hooked_by_mask(self) -> bool {
         !matches!(self, Group::Quats)
     }
@@ -117,8 +118,8 @@ impl LearningRates {
         }
     }
 
-    /// GaussianEditor's editing rates (algorithm.md §3.4): positions 1.6e-4 → 1.6e-5 over `max_steps`,
-    /// f_dc 0.0125, f_rest 0.0125/20, opacity 0.05, scaling 0.005, rotation 0.001.
+    /// GaussianEditor's editing rates (docs/algorithm.md §3.4): positions 1.6e-4 → 1.6e-5 over
+    /// `max_steps`, f_dc 0.0125, f_rest 0.0125/20, opacity 0.05, scaling 0.005, rotation 0.001.
     pub fn gaussian_editor(max_steps: u64) -> Self {
         Self {
             means: ExponentialLr {
@@ -188,7 +189,7 @@ pub struct Adam {
     /// Per-group multipliers, indexed by [`Group::index`].
     pub group_lr_scale: [f32; 6],
     /// Whether rotations of masked-out Gaussians are frozen too. GaussianEditor hooks every attribute but
-    /// the rotation (algorithm.md §3.3), so its behaviour is `false`.
+    /// the rotation (docs/algorithm.md §3.3), so its behaviour is `false`.
     pub mask_rotation: bool,
     pub(crate) means_lr: f32,
     /// Steps taken (torch keeps it per parameter; all groups step together here).
@@ -385,7 +386,7 @@ impl Adam {
 
     /// Follows a densification: survivors keep their moments, new Gaussians start at zero (as the
     /// trainer's `cat_tensors_to_optimizer` does).
-    pub fn remap(&mut self, remap: &Remap) {
+    pub(crate) fn remap(&mut self, remap: &Remap) {
         assert_eq!(remap.old_len(), self.len(), "remap of another size");
         let k3 = 3 * self.sh_coeffs;
         for (mom, width) in [
@@ -429,24 +430,6 @@ impl Adam {
         self.sh.v = relayout_sh(&self.sh.v, self.sh_coeffs, new_k);
         self.sh_coeffs = new_k;
     }
-}
-
-/// Copies per-Gaussian SH blocks of `old_k` coefficients into blocks of `new_k` (truncating or padding
-/// with zeros).
-pub(crate) fn relayout_sh(sh: &[f32], old_k: usize, new_k: usize) -> Vec<f32> {
-    if old_k == new_k {
-        return sh.to_vec();
-    }
-    let n = sh.len() / (3 * old_k).max(1);
-    let keep = 3 * old_k.min(new_k);
-    let mut out = vec![0.0; 3 * new_k * n];
-    for (dst, src) in out
-        .chunks_exact_mut(3 * new_k)
-        .zip(sh.chunks_exact(3 * old_k))
-    {
-        dst[..keep].copy_from_slice(&src[..keep]);
-    }
-    out
 }
 
 #[derive(Clone, Copy)]
@@ -669,16 +652,5 @@ mod tests {
             assert_eq!(m == 0.0, (i / 3) % 4 == 0, "sh moment {i}");
         }
         assert_eq!(adam.steps(), 1);
-    }
-
-    #[test]
-    fn sh_degree_change_keeps_low_coefficients() {
-        let sh: Vec<f32> = (0..2 * 3 * 4).map(|i| i as f32).collect();
-        let up = relayout_sh(&sh, 4, 9);
-        assert_eq!(up.len(), 2 * 27);
-        assert_eq!(&up[..12], &sh[..12]);
-        assert!(up[12..27].iter().all(|&v| v == 0.0));
-        assert_eq!(&up[27..39], &sh[12..24]);
-        assert_eq!(relayout_sh(&up, 9, 4), sh);
     }
 }

@@ -2,11 +2,11 @@
 //! and must follow clone/split/prune (optimiser moments, densification statistics, trainable mask, HGS
 //! generations and anchors).
 
-use crate::anchor::{remap_scene, Anchor};
-use crate::densify::{DensifyStats, Remap};
+use crate::anchor::Anchor;
+use crate::layout::{remap_scene, set_scene_sh_degree, Remap};
 use crate::optim::{Adam, LearningRates};
 use crate::render::SceneGrads;
-use crate::GaussianScene;
+use crate::{Camera, GaussianScene};
 
 /// A scene being trained. Cloning it gives an independent copy with the same optimiser state (what
 /// VcEdit's mini-GS fits start from).
@@ -53,7 +53,7 @@ impl TrainState {
     }
 
     /// Applies a structural change to every per-Gaussian array.
-    pub fn apply_remap(&mut self, remap: &Remap) {
+    pub(crate) fn apply_remap(&mut self, remap: &Remap) {
         assert_eq!(remap.old_len(), self.len(), "remap of another size");
         remap_scene(&mut self.scene, remap);
         self.adam.remap(remap);
@@ -69,13 +69,10 @@ impl TrainState {
     /// Changes the scene's SH degree (the INRIA trainer raises the active degree during fitting); new
     /// coefficients start at zero, removed ones are dropped.
     pub fn set_sh_degree(&mut self, degree: u32) {
-        let old_k = self.scene.sh_coeffs();
-        let new_k = crate::scene::sh_coeffs(degree);
-        if old_k == new_k {
+        if self.scene.sh_coeffs() == crate::scene::sh_coeffs(degree) {
             return;
         }
-        self.scene.sh = crate::optim::relayout_sh(&self.scene.sh, old_k, new_k);
-        self.scene.sh_degree = degree;
+        set_scene_sh_degree(&mut self.scene, degree);
         self.adam.set_sh_degree(degree);
         if let Some(anchor) = &mut self.anchor {
             anchor.set_sh_degree(degree);
@@ -102,6 +99,112 @@ impl TrainState {
             }
         }
         Ok(())
+    }
+}
+
+/// What one rendered view tells densification: every Gaussian's screen-space positional gradient and
+/// screen radius, and the size of the image they were measured in.
+#[derive(Clone, Copy, Debug)]
+pub struct RenderedView<'a> {
+    /// dL/d(pixel centre) per Gaussian ([`SceneGrads::means2d`]).
+    pub means2d: &'a [[f32; 2]],
+    /// Screen radius per Gaussian in pixels, 0 = not rendered ([`crate::render::RenderOutput::radii`]).
+    pub radii: &'a [u32],
+    pub width: u32,
+    pub height: u32,
+}
+
+impl<'a> RenderedView<'a> {
+    /// The view `camera` rendered with these `radii` and backpropagated into `grads`.
+    pub fn new(grads: &'a SceneGrads, radii: &'a [u32], camera: &Camera) -> Self {
+        Self {
+            means2d: &grads.means2d,
+            radii,
+            width: camera.width,
+            height: camera.height,
+        }
+    }
+}
+
+/// Running screen-space statistics per Gaussian between two refinements.
+///
+/// The gradient norm is taken in the units of the INRIA rasteriser: its `dL/d(mean2D)` is with respect to
+/// normalised device coordinates, i.e. the pixel-space gradient times (W/2, H/2) (gsplat's `_update_state`
+/// does the same scaling). With a mean-reduced image loss this makes a densification threshold of 0.0002
+/// mean what it means in the trainer.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct DensifyStats {
+    /// Σ ‖dL/d(mean2D)‖ in NDC units over the views that rendered the Gaussian.
+    pub grad2d: Vec<f32>,
+    /// Number of views that rendered the Gaussian.
+    pub count: Vec<f32>,
+    /// Largest screen radius in pixels.
+    pub max_radius: Vec<f32>,
+}
+
+impl DensifyStats {
+    pub fn new(n: usize) -> Self {
+        Self {
+            grad2d: vec![0.0; n],
+            count: vec![0.0; n],
+            max_radius: vec![0.0; n],
+        }
+    }
+
+    pub fn len(&self) -> usize {
+        self.count.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.count.is_empty()
+    }
+
+    /// Adds one rendered view. Loss gradients averaged over a batch of B views should pass `batch = B`
+    /// (gsplat multiplies by the number of cameras); otherwise 1.
+    pub fn add(&mut self, view: &RenderedView<'_>, batch: usize) {
+        assert_eq!(
+            view.means2d.len(),
+            self.len(),
+            "densify stats: means2d size"
+        );
+        assert_eq!(view.radii.len(), self.len(), "densify stats: radii size");
+        let sx = 0.5 * view.width as f32 * batch as f32;
+        let sy = 0.5 * view.height as f32 * batch as f32;
+        for (i, (&[gx, gy], &r)) in view.means2d.iter().zip(view.radii).enumerate() {
+            if r == 0 {
+                continue;
+            }
+            let norm = ((gx * sx).powi(2) + (gy * sy).powi(2)).sqrt();
+            if !norm.is_finite() {
+                continue;
+            }
+            self.grad2d[i] += norm;
+            self.count[i] += 1.0;
+            self.max_radius[i] = self.max_radius[i].max(r as f32);
+        }
+    }
+
+    /// Mean gradient norm per Gaussian (0 where never rendered).
+    pub fn average(&self) -> Vec<f32> {
+        self.grad2d
+            .iter()
+            .zip(&self.count)
+            .map(|(&g, &c)| if c > 0.0 { g / c } else { 0.0 })
+            .collect()
+    }
+
+    pub fn clear(&mut self) {
+        for v in [&mut self.grad2d, &mut self.count, &mut self.max_radius] {
+            v.iter_mut().for_each(|x| *x = 0.0);
+        }
+    }
+
+    /// Follows a structural change; new Gaussians copy their source's statistics (gsplat's behaviour; they
+    /// are cleared right after a refinement anyway).
+    pub(crate) fn remap(&mut self, remap: &Remap) {
+        remap.apply(&mut self.grad2d, 1);
+        remap.apply(&mut self.count, 1);
+        remap.apply(&mut self.max_radius, 1);
     }
 }
 

@@ -15,26 +15,11 @@ struct Pose {
     center: [f64; 3],
 }
 
+/// Row-major rotation of a quaternion (w, x, y, z), through glam: independent of the loaders' own.
 fn quat_matrix(q: [f64; 4]) -> [[f64; 3]; 3] {
-    let n = q.iter().map(|v| v * v).sum::<f64>().sqrt();
-    let [w, x, y, z] = q.map(|v| v / n);
-    [
-        [
-            1.0 - 2.0 * (y * y + z * z),
-            2.0 * (x * y - w * z),
-            2.0 * (x * z + w * y),
-        ],
-        [
-            2.0 * (x * y + w * z),
-            1.0 - 2.0 * (x * x + z * z),
-            2.0 * (y * z - w * x),
-        ],
-        [
-            2.0 * (x * z - w * y),
-            2.0 * (y * z + w * x),
-            1.0 - 2.0 * (x * x + y * y),
-        ],
-    ]
+    let [w, x, y, z] = q;
+    let m = glam::DMat3::from_quat(glam::DQuat::from_xyzw(x, y, z, w).normalize());
+    m.transpose().to_cols_array_2d()
 }
 
 impl Pose {

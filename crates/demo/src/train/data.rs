@@ -133,23 +133,17 @@ mod tests {
         let mirror = full.flip(&[3]).unwrap();
         for _ in 0..8 {
             let b = set.batch(&[2], 16, &mut rng).unwrap();
-            let same = (&b - &full)
-                .unwrap()
-                .abs()
-                .unwrap()
-                .max_all()
-                .unwrap()
-                .to_scalar::<f32>()
-                .unwrap();
-            let flipped = (&b - &mirror)
-                .unwrap()
-                .abs()
-                .unwrap()
-                .max_all()
-                .unwrap()
-                .to_scalar::<f32>()
-                .unwrap();
-            assert!(same == 0.0 || flipped == 0.0);
+            let max_diff = |other: &Tensor| {
+                (&b - other)
+                    .unwrap()
+                    .abs()
+                    .unwrap()
+                    .max_all()
+                    .unwrap()
+                    .to_scalar::<f32>()
+                    .unwrap()
+            };
+            assert!(max_diff(&full) == 0.0 || max_diff(&mirror) == 0.0);
         }
         let crops = set.batch(&[0, 1, 4], 8, &mut rng).unwrap();
         assert_eq!(crops.dims(), &[3, 3, 8, 8]);

@@ -133,18 +133,7 @@ impl AdamW {
                 ("adam.m", &mut self.first[k]),
                 ("adam.v", &mut self.second[k]),
             ] {
-                let key = format!("{prefix}.{name}");
-                let t = tensors
-                    .get(&key)
-                    .ok_or_else(|| candle_core::Error::Msg(format!("checkpoint lacks {key}")))?;
-                if t.dims() != var.dims() {
-                    candle_core::bail!(
-                        "checkpoint {key} has shape {:?}, expected {:?}",
-                        t.dims(),
-                        var.dims()
-                    );
-                }
-                *slot = t.clone();
+                *slot = saved_like(tensors, &format!("{prefix}.{name}"), var)?;
             }
         }
         self.steps = steps;
@@ -207,21 +196,25 @@ impl Ema {
 
     pub fn load_state(&mut self, tensors: &HashMap<String, Tensor>) -> Result<()> {
         for (k, (name, var)) in self.params.iter().enumerate() {
-            let key = format!("ema.{name}");
-            let t = tensors
-                .get(&key)
-                .ok_or_else(|| candle_core::Error::Msg(format!("checkpoint lacks {key}")))?;
-            if t.dims() != var.dims() {
-                candle_core::bail!(
-                    "checkpoint {key} has shape {:?}, expected {:?}",
-                    t.dims(),
-                    var.dims()
-                );
-            }
-            self.shadow[k] = t.clone();
+            self.shadow[k] = saved_like(tensors, &format!("ema.{name}"), var)?;
         }
         Ok(())
     }
+}
+
+/// The checkpoint tensor `key`, which must have the shape of `var`.
+fn saved_like(tensors: &HashMap<String, Tensor>, key: &str, var: &Var) -> Result<Tensor> {
+    let t = tensors
+        .get(key)
+        .ok_or_else(|| candle_core::Error::Msg(format!("checkpoint lacks {key}")))?;
+    if t.dims() != var.dims() {
+        candle_core::bail!(
+            "checkpoint {key} has shape {:?}, expected {:?}",
+            t.dims(),
+            var.dims()
+        );
+    }
+    Ok(t.clone())
 }
 
 /// Learning rate at `step` of `total`: linear warm-up over `warmup` steps, then cosine decay to

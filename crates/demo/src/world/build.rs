@@ -3,12 +3,13 @@
 //! along the normal, coloured by the object's pattern at that point (SH degree 0).
 
 use super::geometry::{
-    box_faces, cross, frame_quaternion, normalize, revolve, Element, Motion, Part, Profile,
-    VMeasure,
+    box_faces, frame_quaternion, revolve, unit_or_z, Element, Motion, Part, Profile, VMeasure,
 };
 use super::pattern::{PatternFrame, SurfacePoint};
-use super::spec::{proportions::*, ObjectSpec, SceneSpec, Shape, VASE_LIP};
+use super::shape::{proportions::*, Shape, VASE_LIP};
+use super::spec::{ObjectSpec, SceneSpec};
 use super::WorldError;
+use glam::Vec3;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use serde::{Deserialize, Serialize};
@@ -304,11 +305,11 @@ fn push_elements(
     let logit = (opacity / (1.0 - opacity)).ln();
     let floor_sigma = 1e-4_f32.max(0.02 * spacing);
     for e in elements {
-        let n = normalize(e.normal);
+        let n = unit_or_z(Vec3::from(e.normal));
         // Re-orthogonalise the tangent against the normal (cheap insurance against rounding).
-        let dot: f32 = (0..3).map(|a| e.tangent[a] * n[a]).sum();
-        let t1 = normalize(std::array::from_fn(|a| e.tangent[a] - dot * n[a]));
-        let t2 = cross(n, t1);
+        let tangent = Vec3::from(e.tangent);
+        let t1 = unit_or_z(tangent - tangent.dot(n) * n);
+        let t2 = n.cross(t1);
         let s1 = (settings.overlap * e.extent[0]).max(floor_sigma);
         let s2 = (settings.overlap * e.extent[1]).max(floor_sigma);
         let sn = (settings.thickness * s1.min(s2)).max(1e-5);
@@ -316,7 +317,9 @@ fn push_elements(
         scene
             .log_scales
             .extend_from_slice(&[s1.ln(), s2.ln(), sn.ln()]);
-        scene.quats.extend_from_slice(&frame_quaternion(t1, t2, n));
+        scene
+            .quats
+            .extend_from_slice(&frame_quaternion(t1.into(), t2.into(), n.into()));
         scene.opacity_logits.push(logit);
         scene.sh.extend_from_slice(&[0.0; 3]);
         labels.object.push(object);
@@ -523,7 +526,8 @@ mod tests {
     use crate::world::caption::Appearance;
     use crate::world::palette::ColorName;
     use crate::world::pattern::{Orientation, PatternKind};
-    use crate::world::spec::{GeneratorSettings, ShapeKind};
+    use crate::world::shape::ShapeKind;
+    use crate::world::spec::GeneratorSettings;
 
     fn spec_of(shape: ShapeKind, pattern: PatternKind, on_table: bool, seed: u64) -> SceneSpec {
         let app = Appearance {

@@ -15,7 +15,7 @@
 
 use super::palette::ColorName;
 use super::pattern::PatternKind;
-use super::spec::ShapeKind;
+use super::shape::ShapeKind;
 use serde::{Deserialize, Serialize};
 
 /// Every word a caption can contain (the demo tokenizer's vocabulary).

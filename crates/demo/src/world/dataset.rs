@@ -328,7 +328,7 @@ mod tests {
     use crate::world::caption::Appearance;
     use crate::world::palette::{lab_distance, ColorName};
     use crate::world::pattern::PatternKind;
-    use crate::world::spec::{Shape, ShapeKind};
+    use crate::world::shape::{Shape, ShapeKind};
 
     fn window_colour(img: &Image, at: [f64; 2], half: i64) -> [f32; 3] {
         let (cx, cy) = (at[0].floor() as i64, at[1].floor() as i64);

@@ -6,6 +6,7 @@
 //! ([`crate::world::pattern`]) and the part it belongs to.
 
 use super::pattern::SurfacePoint;
+use glam::Vec3;
 use rand::Rng;
 use serde::{Deserialize, Serialize};
 use std::f32::consts::TAU;
@@ -416,20 +417,14 @@ pub(crate) fn frame_quaternion(t1: [f32; 3], t2: [f32; 3], n: [f32; 3]) -> [f32;
     }
 }
 
-pub(crate) fn cross(a: [f32; 3], b: [f32; 3]) -> [f32; 3] {
-    [
-        a[1] * b[2] - a[2] * b[1],
-        a[2] * b[0] - a[0] * b[2],
-        a[0] * b[1] - a[1] * b[0],
-    ]
-}
-
-pub(crate) fn normalize(v: [f32; 3]) -> [f32; 3] {
-    let n = (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt();
+/// `v` scaled to unit length, +z when it is (nearly) zero. Divides by the length where glam's `normalize`
+/// multiplies by its reciprocal, so the built scenes keep their bits.
+pub(crate) fn unit_or_z(v: Vec3) -> Vec3 {
+    let n = v.length();
     if n > 1e-12 {
-        v.map(|c| c / n)
+        v / n
     } else {
-        [0.0, 0.0, 1.0]
+        Vec3::Z
     }
 }
 
@@ -442,49 +437,28 @@ mod tests {
     use super::*;
     use rand::SeedableRng;
 
-    fn rot_of(q: [f32; 4]) -> [[f32; 3]; 3] {
-        let [w, x, y, z] = q;
-        [
-            [
-                1.0 - 2.0 * (y * y + z * z),
-                2.0 * (x * y - w * z),
-                2.0 * (x * z + w * y),
-            ],
-            [
-                2.0 * (x * y + w * z),
-                1.0 - 2.0 * (x * x + z * z),
-                2.0 * (y * z - w * x),
-            ],
-            [
-                2.0 * (x * z - w * y),
-                2.0 * (y * z + w * x),
-                1.0 - 2.0 * (x * x + y * y),
-            ],
-        ]
-    }
-
     #[test]
     fn frame_quaternion_reproduces_the_frame() {
         let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(1);
         for _ in 0..200 {
-            let n = normalize([
+            let n = unit_or_z(Vec3::new(
                 rng.gen_range(-1.0..1.0),
                 rng.gen_range(-1.0..1.0),
                 rng.gen_range(-1.0..1.0),
-            ]);
-            let t1 = normalize(cross(
-                n,
-                [rng.gen_range(-1.0..1.0), rng.gen_range(-1.0..1.0), 0.3],
             ));
-            let t2 = cross(n, t1);
-            let r = rot_of(frame_quaternion(t1, t2, n));
+            let t1 = unit_or_z(n.cross(Vec3::new(
+                rng.gen_range(-1.0..1.0),
+                rng.gen_range(-1.0..1.0),
+                0.3,
+            )));
+            let t2 = n.cross(t1);
+            let [w, x, y, z] = frame_quaternion(t1.into(), t2.into(), n.into());
+            let r = glam::Mat3::from_quat(glam::Quat::from_xyzw(x, y, z, w));
             for (col, axis) in [t1, t2, n].iter().enumerate() {
-                for row in 0..3 {
-                    assert!(
-                        (r[row][col] - axis[row]).abs() < 1e-4,
-                        "{r:?} {t1:?} {t2:?} {n:?}"
-                    );
-                }
+                assert!(
+                    r.col(col).abs_diff_eq(*axis, 1e-4),
+                    "{r:?} {t1:?} {t2:?} {n:?}"
+                );
             }
         }
     }

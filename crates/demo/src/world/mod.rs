@@ -2,6 +2,7 @@
 //! surface patterns, captions in a small fixed grammar, a dataset of (render, caption) pairs from random
 //! orbit views, and an oracle that measures edit fidelity without CLIP.
 //!
+//! - [`shape`]: [`ShapeKind`] (the object words of the captions) and [`Shape`] (their dimensions).
 //! - [`spec`]: [`SceneSpec`] (what a scene contains, serde), random or caption-driven generation.
 //! - [`caption`]: the caption grammar and [`VOCABULARY`], [`caption()`](caption::caption) and
 //!   [`parse_caption`].
@@ -18,6 +19,7 @@ pub(crate) mod geometry;
 pub mod oracle;
 pub mod palette;
 pub mod pattern;
+pub mod shape;
 pub mod spec;
 
 pub use build::{build_scene, BuildSettings, BuiltScene, GaussianLabels, Slot};
@@ -27,7 +29,8 @@ pub use geometry::Part;
 pub use oracle::{EditScore, LabelImage, Oracle, OracleSettings};
 pub use palette::{ColorName, ColorSpec};
 pub use pattern::{Orientation, Pattern, PatternKind};
-pub use spec::{GeneratorSettings, ObjectSpec, SceneSpec, Shape, ShapeKind};
+pub use shape::{Shape, ShapeKind};
+pub use spec::{GeneratorSettings, ObjectSpec, SceneSpec};
 
 use std::path::PathBuf;
 

@@ -26,6 +26,7 @@ pub mod transforms;
 pub use orbit::{orbit_cameras, orbit_cameras_with, robust_bounds, OrbitSettings, Up};
 
 use crate::Camera;
+use glam::{DMat3, DQuat, DVec3};
 use std::path::{Path, PathBuf};
 
 /// Posed views: cameras plus (when the source has them) the image files and a sparse point cloud.
@@ -224,30 +225,32 @@ pub fn to_working_resolution(cam: &Camera, width: u32, height: u32) -> Camera {
 // ---------------------------------------------------------------------------------------------------------
 // Shared pose math
 
-/// Rotation matrix of a quaternion (w, x, y, z); `None` if it is zero or not finite.
+/// Rotation matrix (row-major) of a quaternion (w, x, y, z); `None` if it is zero or not finite. The one
+/// quaternion-to-matrix conversion of the camera loaders.
 pub(crate) fn quat_to_matrix(q: [f64; 4]) -> Option<[[f64; 3]; 3]> {
     let norm = q.iter().map(|v| v * v).sum::<f64>().sqrt();
     if !norm.is_finite() || norm < 1e-12 {
         return None;
     }
     let [w, x, y, z] = q.map(|v| v / norm);
-    Some([
-        [
-            1.0 - 2.0 * (y * y + z * z),
-            2.0 * (x * y - w * z),
-            2.0 * (x * z + w * y),
-        ],
-        [
-            2.0 * (x * y + w * z),
-            1.0 - 2.0 * (x * x + z * z),
-            2.0 * (y * z - w * x),
-        ],
-        [
-            2.0 * (x * z - w * y),
-            2.0 * (y * z + w * x),
-            1.0 - 2.0 * (x * x + y * y),
-        ],
-    ])
+    Some(rows_of(DMat3::from_quat(DQuat::from_xyzw(x, y, z, w))))
+}
+
+/// The rows of `m` (cameras store their rotations row-major; glam's matrices are column-major).
+pub(crate) fn rows_of(m: DMat3) -> [[f64; 3]; 3] {
+    m.transpose().to_cols_array_2d()
+}
+
+/// `v` scaled to unit length; `None` when it is (nearly) zero or not finite. Divides by the length where
+/// glam's `normalize` multiplies by its reciprocal, so poses keep the bits they had before glam.
+pub(crate) fn unit(v: DVec3) -> Option<DVec3> {
+    let n = v.length();
+    (n.is_finite() && n > 1e-12).then(|| v / n)
+}
+
+/// World-to-camera translation of a camera at `center` with world-to-camera `rotation`: −R·c.
+pub(crate) fn translation_of(rotation: &[[f64; 3]; 3], center: DVec3) -> [f64; 3] {
+    rotation.map(|row| -DVec3::from(row).dot(center))
 }
 
 pub(crate) fn transpose(m: &[[f64; 3]; 3]) -> [[f64; 3]; 3] {
@@ -287,24 +290,12 @@ pub(crate) fn clean_rotation(m: [[f64; 3]; 3]) -> Result<[[f64; 3]; 3], String> 
     if det(&m) < 0.0 {
         return Err("the rotation is a reflection (determinant -1)".into());
     }
-    let dot = |a: &[f64; 3], b: &[f64; 3]| a[0] * b[0] + a[1] * b[1] + a[2] * b[2];
-    let normalize = |a: [f64; 3]| {
-        let n = dot(&a, &a).sqrt();
-        a.map(|v| v / n)
-    };
-    let r0 = normalize(m[0]);
-    let d = dot(&m[1], &r0);
-    let r1 = normalize([
-        m[1][0] - d * r0[0],
-        m[1][1] - d * r0[1],
-        m[1][2] - d * r0[2],
-    ]);
-    let r2 = [
-        r0[1] * r1[2] - r0[2] * r1[1],
-        r0[2] * r1[0] - r0[0] * r1[2],
-        r0[0] * r1[1] - r0[1] * r1[0],
-    ];
-    Ok([r0, r1, r2])
+    let [m0, m1, _] = m.map(DVec3::from);
+    let r0 = m0 / m0.length();
+    let r1 = m1 - m1.dot(r0) * r0;
+    let r1 = r1 / r1.length();
+    let r2 = r0.cross(r1);
+    Ok([r0, r1, r2].map(<[f64; 3]>::from))
 }
 
 /// A camera from a camera-to-world rotation (OpenCV axes) and the camera centre.
@@ -315,11 +306,7 @@ pub(crate) fn camera_from_c2w(
     center: [f64; 3],
 ) -> Camera {
     let rotation = transpose(&c2w_rotation);
-    let mut translation = [0.0; 3];
-    for (a, t) in translation.iter_mut().enumerate() {
-        *t =
-            -(rotation[a][0] * center[0] + rotation[a][1] * center[1] + rotation[a][2] * center[2]);
-    }
+    let translation = translation_of(&rotation, DVec3::from(center));
     Camera {
         name,
         width: intrinsics.width,

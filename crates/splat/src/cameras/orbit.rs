@@ -12,7 +12,9 @@
 //! everything the INRIA trainer produces, inherit the y-down axis of their cameras). When the guess is
 //! wrong, pass the axis explicitly (`Up::PlusY`, `Up::MinusZ`, ... or any vector).
 
+use super::{det, translation_of, unit};
 use crate::{Camera, GaussianScene};
+use glam::DVec3;
 
 /// The world's up direction for orbits.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
@@ -75,7 +77,7 @@ impl Up {
             Up::MinusZ => [0.0, 0.0, -1.0],
             Up::Vector(v) => v,
         };
-        normalize(v).unwrap_or([0.0, 0.0, 1.0])
+        unit(DVec3::from(v)).map_or([0.0, 0.0, 1.0], <[f64; 3]>::from)
     }
 }
 
@@ -129,26 +131,29 @@ pub fn orbit_cameras_with(
     } else {
         ([-1.0; 3], [1.0; 3])
     };
-    let center: [f64; 3] = std::array::from_fn(|a| 0.5 * (lo[a] as f64 + hi[a] as f64));
+    let center = DVec3::from_array(std::array::from_fn(|a| 0.5 * (lo[a] as f64 + hi[a] as f64)));
     let fov = settings.fov_deg.clamp(1.0, 170.0).to_radians();
     let focal = 0.5 * width.min(height) as f64 / (0.5 * fov).tan();
     let margin = settings.margin.max(1.0);
     // Bounds corners relative to the centre; flat or point bounds get a small minimum size.
     let half: [f64; 3] = std::array::from_fn(|a| (0.5 * (hi[a] as f64 - lo[a] as f64)).max(1e-3));
-    let corners: Vec<[f64; 3]> = (0..8)
-        .map(|i| std::array::from_fn(|a| if i >> a & 1 == 1 { half[a] } else { -half[a] }))
+    let corners: Vec<DVec3> = (0..8)
+        .map(|i| {
+            DVec3::from_array(std::array::from_fn(|a| {
+                if i >> a & 1 == 1 {
+                    half[a]
+                } else {
+                    -half[a]
+                }
+            }))
+        })
         .collect();
     let radius = half.iter().map(|h| h * h).sum::<f64>().sqrt();
 
-    let up = settings.up.resolve(lo, hi);
+    let up = DVec3::from(settings.up.resolve(lo, hi));
     // A horizontal basis: e1 from the world axis least aligned with up, e2 completing it.
-    let least = (0..3)
-        .min_by(|&a, &b| up[a].abs().total_cmp(&up[b].abs()))
-        .unwrap_or(0);
-    let mut axis = [0.0; 3];
-    axis[least] = 1.0;
-    let e1 = normalize(cross(up, axis)).unwrap_or([1.0, 0.0, 0.0]);
-    let e2 = cross(up, e1);
+    let e1 = unit(up.cross(least_aligned_axis(up))).unwrap_or(DVec3::X);
+    let e2 = up.cross(e1);
 
     let rings = settings.rings.clamp(1, n.max(1));
     let mut directions = Vec::with_capacity(n);
@@ -161,10 +166,7 @@ pub fn orbit_cameras_with(
         for k in 0..in_ring {
             // Stagger rings so their cameras do not line up.
             let azimuth = std::f64::consts::TAU * (k as f64 + 0.5 * ring as f64) / in_ring as f64;
-            directions.push(std::array::from_fn(|a| {
-                elevation.cos() * (azimuth.cos() * e1[a] + azimuth.sin() * e2[a])
-                    + elevation.sin() * up[a]
-            }));
+            directions.push(orbit_direction(elevation, azimuth, e1, e2, up));
         }
     }
 
@@ -175,18 +177,18 @@ pub fn orbit_cameras_with(
     for dir in &directions {
         let probe = look_at(
             String::new(),
-            add(center, *dir),
-            center,
-            up,
+            (center + *dir).to_array(),
+            center.to_array(),
+            up.to_array(),
             width,
             height,
             focal,
         );
-        let [right, down, _] = probe.rotation;
+        let [right, down, _] = probe.rotation.map(DVec3::from);
         for o in &corners {
-            let toward = dot(*o, *dir);
+            let toward = o.dot(*dir);
             let need =
-                (margin * dot(*o, right).abs() / tan_x).max(margin * dot(*o, down).abs() / tan_y);
+                (margin * o.dot(right).abs() / tan_x).max(margin * o.dot(down).abs() / tan_y);
             distance = distance.max(toward + need).max(toward + 0.1 * radius);
         }
     }
@@ -195,12 +197,12 @@ pub fn orbit_cameras_with(
         .iter()
         .enumerate()
         .map(|(i, dir)| {
-            let eye = add(center, dir.map(|v| v * distance));
+            let eye = center + *dir * distance;
             look_at(
                 format!("orbit_{i:03}"),
-                eye,
-                center,
-                up,
+                eye.to_array(),
+                center.to_array(),
+                up.to_array(),
                 width,
                 height,
                 focal,
@@ -225,11 +227,6 @@ pub fn focus_point(cameras: &[Camera]) -> Option<[f64; 3]> {
             }
         }
     }
-    let det = |m: &[[f64; 3]; 3]| {
-        m[0][0] * (m[1][1] * m[2][2] - m[1][2] * m[2][1])
-            - m[0][1] * (m[1][0] * m[2][2] - m[1][2] * m[2][0])
-            + m[0][2] * (m[1][0] * m[2][1] - m[1][1] * m[2][0])
-    };
     let d = det(&a);
     // Parallel axes make the system singular; relative to n³ (the determinant of n·I) it is then tiny.
     let n = cameras.len() as f64;
@@ -267,21 +264,22 @@ pub fn orbit_like(
     // OpenCV cameras: image y points down, so the world's up is minus the camera's y axis.
     let up_sum = cameras
         .iter()
-        .fold([0.0; 3], |acc, c| add(acc, c.rotation[1].map(|v| -v)));
-    let up = normalize(up_sum)?;
-    let offsets: Vec<[f64; 3]> = cameras
+        .fold(DVec3::ZERO, |acc, c| acc + -DVec3::from(c.rotation[1]));
+    let up = unit(up_sum)?;
+    let target = DVec3::from(target);
+    let offsets: Vec<DVec3> = cameras
         .iter()
-        .map(|c| std::array::from_fn(|a| c.center()[a] - target[a]))
+        .map(|c| DVec3::from(c.center()) - target)
         .collect();
-    let distance = median(offsets.iter().map(|o| dot(*o, *o).sqrt()).collect());
+    let distance = median(offsets.iter().map(|o| o.length()).collect());
     if !distance.is_finite() || distance <= 1e-9 {
         return None;
     }
     let elevation = median(
         offsets
             .iter()
-            .filter_map(|o| normalize(*o))
-            .map(|o| dot(o, up).clamp(-1.0, 1.0).asin())
+            .filter_map(|o| unit(*o))
+            .map(|o| o.dot(up).clamp(-1.0, 1.0).asin())
             .collect(),
     )
     .clamp(-85f64.to_radians(), 85f64.to_radians());
@@ -300,31 +298,23 @@ pub fn orbit_like(
     );
     let focal = 0.5 * width.min(height) as f64 / half_fov.tan();
     // Horizontal basis with e1 toward the first camera, so frame 0 looks like view 0.
-    let first_offset: [f64; 3] = std::array::from_fn(|a| first.center()[a] - target[a]);
-    let flat: [f64; 3] = std::array::from_fn(|a| first_offset[a] - dot(first_offset, up) * up[a]);
-    let e1 = normalize(flat).or_else(|| {
-        let least = (0..3).min_by(|&a, &b| up[a].abs().total_cmp(&up[b].abs()))?;
-        let mut axis = [0.0; 3];
-        axis[least] = 1.0;
-        normalize(cross(up, axis))
-    })?;
-    let e2 = cross(up, e1);
-    let azimuths = orbit_azimuths(offsets.iter().map(|o| dot(*o, e2).atan2(dot(*o, e1))), n);
+    let first_offset = DVec3::from(first.center()) - target;
+    let flat = first_offset - first_offset.dot(up) * up;
+    let e1 = unit(flat).or_else(|| unit(up.cross(least_aligned_axis(up))))?;
+    let e2 = up.cross(e1);
+    let azimuths = orbit_azimuths(offsets.iter().map(|o| o.dot(e2).atan2(o.dot(e1))), n);
     Some(
         azimuths
             .into_iter()
             .enumerate()
             .map(|(i, azimuth)| {
-                let dir: [f64; 3] = std::array::from_fn(|a| {
-                    elevation.cos() * (azimuth.cos() * e1[a] + azimuth.sin() * e2[a])
-                        + elevation.sin() * up[a]
-                });
-                let eye = add(target, dir.map(|v| v * distance));
+                let dir = orbit_direction(elevation, azimuth, e1, e2, up);
+                let eye = target + dir * distance;
                 look_at(
                     format!("orbit_{i:03}"),
-                    eye,
-                    target,
-                    up,
+                    eye.to_array(),
+                    target.to_array(),
+                    up.to_array(),
                     width,
                     height,
                     focal,
@@ -375,12 +365,17 @@ fn orbit_azimuths(views: impl Iterator<Item = f64>, n: usize) -> Vec<f64> {
         .collect()
 }
 
-fn add(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
-    [a[0] + b[0], a[1] + b[1], a[2] + b[2]]
+/// The world axis least aligned with `up` (the first of equals): a partner for a horizontal basis.
+fn least_aligned_axis(up: DVec3) -> DVec3 {
+    let least = (0..3)
+        .min_by(|&a, &b| up[a].abs().total_cmp(&up[b].abs()))
+        .unwrap_or(0);
+    DVec3::AXES[least]
 }
 
-fn dot(a: [f64; 3], b: [f64; 3]) -> f64 {
-    a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+/// Unit direction at `elevation` above the horizontal plane spanned by `e1`, `e2` and `azimuth` from `e1`.
+fn orbit_direction(elevation: f64, azimuth: f64, e1: DVec3, e2: DVec3, up: DVec3) -> DVec3 {
+    elevation.cos() * (azimuth.cos() * e1 + azimuth.sin() * e2) + elevation.sin() * up
 }
 
 /// An OpenCV camera at `eye` looking at `target`, with `up` appearing upwards in the image.
@@ -393,16 +388,15 @@ pub fn look_at(
     height: u32,
     focal: f64,
 ) -> Camera {
-    let forward = normalize(std::array::from_fn(|a| target[a] - eye[a])).unwrap_or([0.0, 0.0, 1.0]);
-    let right = normalize(cross(forward, up))
-        .or_else(|| normalize(cross(forward, [1.0, 0.0, 0.0])))
-        .or_else(|| normalize(cross(forward, [0.0, 1.0, 0.0])))
-        .unwrap_or([1.0, 0.0, 0.0]);
-    let down = cross(forward, right);
-    let rotation = [right, down, forward];
-    let translation = std::array::from_fn(|a| {
-        -(rotation[a][0] * eye[0] + rotation[a][1] * eye[1] + rotation[a][2] * eye[2])
-    });
+    let (eye, target, up) = (DVec3::from(eye), DVec3::from(target), DVec3::from(up));
+    let forward = unit(target - eye).unwrap_or(DVec3::Z);
+    let right = unit(forward.cross(up))
+        .or_else(|| unit(forward.cross(DVec3::X)))
+        .or_else(|| unit(forward.cross(DVec3::Y)))
+        .unwrap_or(DVec3::X);
+    let down = forward.cross(right);
+    let rotation = [right, down, forward].map(<[f64; 3]>::from);
+    let translation = translation_of(&rotation, eye);
     Camera {
         name,
         width,
@@ -436,19 +430,6 @@ pub fn robust_bounds(scene: &GaussianScene, q: f64) -> Option<([f32; 3], [f32; 3
         hi[a] = *column.select_nth_unstable_by(hi_i, f32::total_cmp).1;
     }
     Some((lo, hi))
-}
-
-fn cross(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
-    [
-        a[1] * b[2] - a[2] * b[1],
-        a[2] * b[0] - a[0] * b[2],
-        a[0] * b[1] - a[1] * b[0],
-    ]
-}
-
-fn normalize(v: [f64; 3]) -> Option<[f64; 3]> {
-    let n = (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt();
-    (n.is_finite() && n > 1e-12).then(|| v.map(|c| c / n))
 }
 
 #[cfg(test)]

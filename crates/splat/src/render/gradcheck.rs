@@ -11,8 +11,8 @@
 //! cannot leave it.
 
 use super::project::{CameraR, Splat};
-use super::raster::sigma_at;
 use super::raster_backward::{ImageGrads, SavedPixels};
+use super::segment::sigma_at;
 use super::*;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -485,7 +485,7 @@ fn matches_torch_autograd_on_random_fixture() {
 /// gradients of a scene with saturated pixels, extra channels and a background.
 #[test]
 fn simd_and_portable_kernels_agree() {
-    use crate::render::raster::force_portable;
+    use crate::render::cpu::force_portable;
     let m = reference::manifest();
     let info = &m["random_scene"];
     let t =

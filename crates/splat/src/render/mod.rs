@@ -7,6 +7,10 @@
 //!    of RGB, alpha, depth and any number of extra per-Gaussian channels in the same pass;
 //!    [`raster_backward`] walks each pixel back to front from the saved final T and last contributor.
 //!
+//! Both compositing passes (and lifting) work in the units of [`segment`]: 16x16 tiles and 8-pixel
+//! segments. `cpu` picks the AVX2+FMA or portable build of each stage; `simd` holds the hand-written
+//! AVX2 segment kernels. The modules stand in layers: segment → simd → raster, raster_backward.
+//!
 //! The math is generic over [`real::Real`] so the gradient tests run the very same code in `f64`; the
 //! public API below is `f32`.
 
@@ -14,10 +18,12 @@
 // like the formulas they implement.
 #![allow(clippy::neg_cmp_op_on_partial_ord, clippy::needless_range_loop)]
 
+mod cpu;
 pub(crate) mod project;
 pub(crate) mod raster;
 pub(crate) mod raster_backward;
 pub(crate) mod real;
+pub(crate) mod segment;
 pub(crate) mod sh;
 #[cfg(target_arch = "x86_64")]
 mod simd;
@@ -27,6 +33,7 @@ pub(crate) mod tiles;
 mod gradcheck;
 
 use crate::{Camera, GaussianScene};
+use cpu::{dispatch, Kernel};
 use project::{CameraR, ParamGradsMut, Splat};
 use raster::RasterOut;
 use raster_backward::{ImageGrads, SavedPixels};
@@ -294,19 +301,45 @@ pub(crate) fn project_all<R: Real>(
     out.par_chunks_mut(PROJECT_CHUNK)
         .enumerate()
         .for_each(|(c, chunk)| {
-            let start = c * PROJECT_CHUNK;
-            #[cfg(target_arch = "x86_64")]
-            if raster::has_avx2() {
-                // SAFETY: the CPU supports the features the function is compiled for.
-                return unsafe { project_chunk_avx2(params, cam, with_color, start, chunk) };
-            }
-            project_chunk(params, cam, with_color, start, chunk)
+            dispatch(ProjectChunk {
+                params,
+                cam,
+                with_color,
+                start: c * PROJECT_CHUNK,
+                chunk,
+            })
         });
     out
 }
 
 /// Gaussians per parallel work item of the per-Gaussian stages.
 const PROJECT_CHUNK: usize = 512;
+
+/// Stage (a) for the Gaussians from `start` on, one per entry of `chunk` (compiled for AVX2+FMA as well:
+/// inline rounding and square roots, wider registers).
+struct ProjectChunk<'a, R> {
+    params: &'a Params<'a, R>,
+    cam: &'a CameraR<R>,
+    with_color: bool,
+    start: usize,
+    chunk: &'a mut [Splat<R>],
+}
+
+impl<R: Real> Kernel for ProjectChunk<'_, R> {
+    type Output = ();
+
+    #[inline(always)]
+    fn run<const SIMD: bool>(self) {
+        // Separate arguments tell the compiler the output does not alias the inputs.
+        project_chunk(
+            self.params,
+            self.cam,
+            self.with_color,
+            self.start,
+            self.chunk,
+        )
+    }
+}
 
 #[inline(always)]
 fn project_chunk<R: Real>(
@@ -319,19 +352,6 @@ fn project_chunk<R: Real>(
     for (j, s) in chunk.iter_mut().enumerate() {
         *s = project::project_one(params, start + j, cam, with_color);
     }
-}
-
-/// [`project_chunk`] compiled for AVX2+FMA (inline rounding and square roots, wider registers).
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2,fma")]
-unsafe fn project_chunk_avx2<R: Real>(
-    params: &Params<'_, R>,
-    cam: &CameraR<R>,
-    with_color: bool,
-    start: usize,
-    chunk: &mut [Splat<R>],
-) {
-    project_chunk(params, cam, with_color, start, chunk)
 }
 
 pub(crate) fn forward<R: Real>(
@@ -440,20 +460,20 @@ fn project_backward_all<R: Real>(
         .into_par_iter()
         .enumerate()
         .for_each(|(c, (mean, log_scale, quat, opacity_logit, sh))| {
-            let chunk = GradChunk {
-                start: c * n,
-                mean,
-                log_scale,
-                quat,
-                opacity_logit,
-                sh,
-            };
-            #[cfg(target_arch = "x86_64")]
-            if raster::has_avx2() {
-                // SAFETY: the CPU supports the features the function is compiled for.
-                return unsafe { backward_chunk_avx2(params, cam, splats, splat_grads, chunk) };
-            }
-            backward_chunk(params, cam, splats, splat_grads, chunk)
+            dispatch(ProjectBackwardChunk {
+                params,
+                cam,
+                splats,
+                splat_grads,
+                out: GradChunk {
+                    start: c * n,
+                    mean,
+                    log_scale,
+                    quat,
+                    opacity_logit,
+                    sh,
+                },
+            })
         });
 }
 
@@ -467,8 +487,33 @@ struct GradChunk<'a, R> {
     sh: &'a mut [R],
 }
 
+/// Backward of stage (a) for one chunk of Gaussians (compiled for AVX2+FMA as well).
+struct ProjectBackwardChunk<'a, R> {
+    params: &'a Params<'a, R>,
+    cam: &'a CameraR<R>,
+    splats: &'a [Splat<R>],
+    splat_grads: &'a [project::SplatGrad<R>],
+    out: GradChunk<'a, R>,
+}
+
+impl<R: Real> Kernel for ProjectBackwardChunk<'_, R> {
+    type Output = ();
+
+    #[inline(always)]
+    fn run<const SIMD: bool>(self) {
+        // Separate arguments tell the compiler the outputs do not alias the inputs.
+        project_backward_chunk(
+            self.params,
+            self.cam,
+            self.splats,
+            self.splat_grads,
+            self.out,
+        )
+    }
+}
+
 #[inline(always)]
-fn backward_chunk<R: Real>(
+fn project_backward_chunk<R: Real>(
     params: &Params<'_, R>,
     cam: &CameraR<R>,
     splats: &[Splat<R>],
@@ -498,18 +543,6 @@ fn backward_chunk<R: Real>(
             },
         );
     }
-}
-
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2,fma")]
-unsafe fn backward_chunk_avx2<R: Real>(
-    params: &Params<'_, R>,
-    cam: &CameraR<R>,
-    splats: &[Splat<R>],
-    splat_grads: &[project::SplatGrad<R>],
-    c: GradChunk<'_, R>,
-) {
-    backward_chunk(params, cam, splats, splat_grads, c)
 }
 
 /// Wall-clock time of each stage of one forward + backward pass (for benchmarks and profiling).

@@ -5,11 +5,13 @@
 //! Gradients are accumulated per Gaussian over the pixels of a tile, then added to a buffer owned by the
 //! worker thread (no atomics, no contention); the buffers are summed at the end.
 
-use super::project::{Splat, SplatGrad, ALPHA_MAX, ALPHA_MIN, TILE};
-use super::raster::{
-    column_mask, has_avx2, prefetch, row_mask, sigma_at, TileRect, PREFETCH_AHEAD, SEG, TILE_PIXELS,
-};
+use super::cpu::{dispatch, is_f32, prefetch, Kernel};
+use super::project::{Splat, SplatGrad, ALPHA_MAX, TILE};
 use super::real::{c, Real};
+use super::segment::{
+    column_mask, lane_alpha, row_mask, LaneGrads, SegState, SegTemps, TileRect, PREFETCH_AHEAD,
+    SEG, TILE_PIXELS,
+};
 use super::tiles::TileBins;
 use rayon::prelude::*;
 use std::sync::Mutex;
@@ -76,6 +78,16 @@ pub fn rasterize_backward<R: Real>(
     // Each slot owns a fixed, interleaved set of tiles walked in order and the slots are summed in order,
     // so gradients do not depend on thread scheduling (bit-identical reruns; resumable edits rely on it).
     // Twice as many slots as threads keep the interleaved sets balanced.
+    let inputs = TileInputs {
+        splats,
+        width,
+        background,
+        values,
+        channels,
+        extra_grad,
+        fwd,
+        grads,
+    };
     let stride = 2 * rayon::current_num_threads().max(1);
     let slots: Vec<Mutex<Option<ThreadGrads<R>>>> = (0..stride).map(|_| Mutex::new(None)).collect();
     let tiles = bins.num_tiles();
@@ -107,21 +119,13 @@ pub fn rasterize_backward<R: Real>(
                 splats: vec![SplatGrad::default(); n],
                 extra: vec![R::ZERO; extra_len],
             });
-            let rect = TileRect::new(tile, bins, width, height);
-            backward_tile(
-                splats,
+            dispatch(BackwardTile {
+                inputs: &inputs,
                 list,
-                &rect,
-                width,
-                background,
-                values,
-                channels,
-                extra_grad,
-                fwd,
-                grads,
-                &mut scratch,
+                rect: &TileRect::new(tile, bins, width, height),
+                s: &mut scratch,
                 acc,
-            );
+            });
         }
     });
 
@@ -166,57 +170,6 @@ pub fn rasterize_backward<R: Real>(
         splats: total.splats,
         extra: total.extra,
     }
-}
-
-/// Per-lane intermediate values of one backward segment, shared between its passes.
-#[derive(Clone, Copy, Default)]
-pub struct SegTemps<R> {
-    pub dx: [R; SEG],
-    pub vis: [R; SEG],
-    pub alpha: [R; SEG],
-    /// 1 / (1 − alpha).
-    pub ra: [R; SEG],
-    /// T before this Gaussian.
-    pub t_new: [R; SEG],
-    /// dL/dalpha (without the extra channels' part).
-    pub v_alpha: [R; SEG],
-}
-
-/// Per-pixel backward state of the 8 pixels of a segment (views into the tile scratch).
-pub struct SegState<'a, R> {
-    pub trans: &'a mut [R; SEG],
-    pub behind: [&'a mut [R; SEG]; 4],
-    pub v_color: [&'a [R; SEG]; 3],
-    pub v_depth: &'a [R; SEG],
-    pub v_final: &'a [R; SEG],
-}
-
-/// Per-lane gradient sums of one Gaussian.
-#[derive(Clone, Copy)]
-pub struct LaneGrads<R> {
-    pub color: [[R; SEG]; 3],
-    pub depth: [R; SEG],
-    pub conic: [[R; SEG]; 3],
-    pub mean: [[R; SEG]; 2],
-    pub opacity: [R; SEG],
-}
-
-impl<R: Real> LaneGrads<R> {
-    pub fn zero() -> Self {
-        Self {
-            color: [[R::ZERO; SEG]; 3],
-            depth: [R::ZERO; SEG],
-            conic: [[R::ZERO; SEG]; 3],
-            mean: [[R::ZERO; SEG]; 2],
-            opacity: [R::ZERO; SEG],
-        }
-    }
-}
-
-/// Whether `R` is `f32` (decided at compile time after monomorphisation).
-#[inline(always)]
-pub(crate) fn is_f32<R: 'static>() -> bool {
-    std::any::TypeId::of::<R>() == std::any::TypeId::of::<f32>()
 }
 
 /// Views of the tile scratch for the segment starting at tile pixel `p0`.
@@ -273,16 +226,11 @@ fn pass1<R: Real, const SIMD: bool>(
             );
         }
     }
-    let alpha_max: R = c(ALPHA_MAX);
-    let alpha_min: R = c(ALPHA_MIN);
-    let o = sp.opacity;
     let mut act_bits = 0u32;
     for l in 0..SEG {
-        tmp.dx[l] = sp.mean[0] - xs[l];
-        let sigma = sigma_at(&sp.conic, tmp.dx[l], dy);
-        tmp.vis[l] = (-sigma).exp_fast();
-        tmp.alpha[l] = (o * tmp.vis[l]).min(alpha_max);
-        let act = (active >> l) & 1 != 0 && sigma >= R::ZERO && tmp.alpha[l] >= alpha_min;
+        let a = lane_alpha(sp, xs[l], dy);
+        (tmp.dx[l], tmp.vis[l], tmp.alpha[l]) = (a.dx, a.vis, a.alpha);
+        let act = (active >> l) & 1 != 0 && a.counts;
         act_bits |= (act as u32) << l;
         tmp.ra[l] = R::ONE / (R::ONE - tmp.alpha[l]);
         let t = st8.trans[l] * tmp.ra[l];
@@ -366,75 +314,72 @@ fn lane_sum<R: Real>(v: &[R; SEG]) -> R {
     s
 }
 
-#[allow(clippy::too_many_arguments)]
-fn backward_tile<R: Real>(
-    splats: &[Splat<R>],
-    list: &[u32],
-    rect: &TileRect,
+/// What the backward pass of every tile reads.
+#[derive(Clone, Copy)]
+struct TileInputs<'a, R> {
+    splats: &'a [Splat<R>],
     width: u32,
     background: [R; 3],
-    values: &[R],
+    /// Extra channels' values (N*C) and C (0 without extra channels).
+    values: &'a [R],
     channels: usize,
-    extra_grad: Option<&[R]>,
-    fwd: SavedPixels<'_, R>,
-    grads: &ImageGrads<'_, R>,
-    s: &mut Scratch<R>,
-    acc: &mut ThreadGrads<R>,
-) {
-    #[cfg(target_arch = "x86_64")]
-    if has_avx2() {
-        // SAFETY: the CPU supports the features `backward_tile_avx2` is compiled for.
-        return unsafe {
-            backward_tile_avx2(
-                splats, list, rect, width, background, values, channels, extra_grad, fwd, grads, s,
-                acc,
-            )
-        };
+    /// dL/d(extra image), when given and there are extra channels.
+    extra_grad: Option<&'a [R]>,
+    fwd: SavedPixels<'a, R>,
+    grads: &'a ImageGrads<'a, R>,
+}
+
+/// The backward pass of one tile, adding its gradients to `acc`.
+struct BackwardTile<'a, R> {
+    inputs: &'a TileInputs<'a, R>,
+    /// The tile's list, front to back.
+    list: &'a [u32],
+    rect: &'a TileRect,
+    s: &'a mut Scratch<R>,
+    acc: &'a mut ThreadGrads<R>,
+}
+
+impl<R: Real> Kernel for BackwardTile<'_, R> {
+    type Output = ();
+
+    #[inline(always)]
+    fn run<const SIMD: bool>(self) {
+        let i = self.inputs;
+        // The buffers go in as separate arguments: that tells the compiler they do not alias, which
+        // struct fields would not.
+        backward_tile::<R, SIMD>(
+            i.splats,
+            self.list,
+            self.rect,
+            i.values,
+            i.extra_grad,
+            i,
+            self.s,
+            self.acc,
+        )
     }
-    backward_tile_impl::<R, false>(
-        splats, list, rect, width, background, values, channels, extra_grad, fwd, grads, s, acc,
-    )
 }
 
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2,fma")]
-#[allow(clippy::too_many_arguments)]
-unsafe fn backward_tile_avx2<R: Real>(
-    splats: &[Splat<R>],
-    list: &[u32],
-    rect: &TileRect,
-    width: u32,
-    background: [R; 3],
-    values: &[R],
-    channels: usize,
-    extra_grad: Option<&[R]>,
-    fwd: SavedPixels<'_, R>,
-    grads: &ImageGrads<'_, R>,
-    s: &mut Scratch<R>,
-    acc: &mut ThreadGrads<R>,
-) {
-    backward_tile_impl::<R, true>(
-        splats, list, rect, width, background, values, channels, extra_grad, fwd, grads, s, acc,
-    )
-}
-
-/// `SIMD`: compiled for AVX2+FMA, so the f32 segment kernels of `simd.rs` may be used.
 #[allow(clippy::too_many_arguments)]
 #[inline(always)]
-fn backward_tile_impl<R: Real, const SIMD: bool>(
+fn backward_tile<R: Real, const SIMD: bool>(
     splats: &[Splat<R>],
     list: &[u32],
     rect: &TileRect,
-    width: u32,
-    background: [R; 3],
     values: &[R],
-    channels: usize,
     extra_grad: Option<&[R]>,
-    fwd: SavedPixels<'_, R>,
-    grads: &ImageGrads<'_, R>,
+    inputs: &TileInputs<'_, R>,
     s: &mut Scratch<R>,
     acc: &mut ThreadGrads<R>,
 ) {
+    let TileInputs {
+        width,
+        background,
+        channels,
+        fwd,
+        grads,
+        ..
+    } = *inputs;
     // Per-pixel state in structure-of-arrays form. Pixels join the backward walk when it reaches their
     // last contributor, so they are ordered by decreasing last index.
     s.order.clear();
@@ -509,6 +454,7 @@ fn backward_tile_impl<R: Real, const SIMD: bool>(
         let cols = column_mask(sp, rect);
         let mut lg = LaneGrads::<R>::zero();
         let mut touched = false;
+        // The segments of the rows the splat may cover (the same walk as the forward pass's).
         while rows != 0 {
             let r = rows.trailing_zeros() as usize;
             rows &= rows - 1;

@@ -8,8 +8,7 @@
 #![cfg(target_arch = "x86_64")]
 
 use super::project::{Splat, ALPHA_MAX, ALPHA_MIN, T_MIN};
-use super::raster::SEG;
-use super::raster_backward::{LaneGrads, SegState, SegTemps};
+use super::segment::{LaneGrads, SegState, SegTemps, SEG};
 use std::arch::x86_64::*;
 
 const LANE_BITS: [i32; SEG] = [1, 2, 4, 8, 16, 32, 64, 128];
