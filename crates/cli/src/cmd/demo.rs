@@ -106,8 +106,8 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         let references = reference_rows(&opts, &model, &scene)?;
         let md = format!("{}\n{}", table(&scores), reference_table(&references));
         println!("{md}");
-        splat::atomic_write(&args.out.join("compare.md"), md.as_bytes())?;
-        splat::atomic_write(
+        files::atomic_write(&args.out.join("compare.md"), md.as_bytes())?;
+        files::atomic_write(
             &args.out.join("compare.json"),
             &serde_json::to_vec_pretty(&serde_json::json!({
                 "runs": scores,

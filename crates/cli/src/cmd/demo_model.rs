@@ -228,7 +228,7 @@ fn run_sample(args: SampleArgs) -> anyhow::Result<()> {
     let mut text = args.prompts.join("\n");
     text.push('\n');
     let txt = args.out.with_extension("txt");
-    splat::atomic_write(&txt, text.as_bytes())
+    files::atomic_write(&txt, text.as_bytes())
         .with_context(|| format!("writing {}", txt.display()))?;
     println!(
         "{} images in {:.1} s -> {}",

@@ -298,7 +298,7 @@ pub fn run(args: Args) -> Result<()> {
             seconds: t0.elapsed().as_secs_f64(),
         };
         let text = serde_json::to_string_pretty(&out)?;
-        splat::atomic_write(path, text.as_bytes())
+        files::atomic_write(path, text.as_bytes())
             .with_context(|| format!("writing {}", path.display()))?;
         eprintln!("wrote {}", path.display());
     }
