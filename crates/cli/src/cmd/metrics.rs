@@ -19,6 +19,7 @@ use splat::{Camera, GaussianScene, Image};
 use std::path::PathBuf;
 use std::time::Instant;
 
+use crate::args::output::output_file;
 use crate::args::parse::{finite, positive};
 use crate::args::{BackgroundArg, CameraArgs, CameraSource, SizeArg};
 
@@ -168,6 +169,15 @@ pub fn run(args: Args) -> Result<()> {
             "--depth-tolerance {} must be positive",
             args.depth_tolerance
         );
+    }
+    args.views.validate()?;
+    if let Some(path) = &args.json {
+        let inputs: Vec<&std::path::Path> = [&args.source, &args.edited]
+            .into_iter()
+            .chain(args.views.cameras.as_ref())
+            .map(PathBuf::as_path)
+            .collect();
+        output_file(path, &inputs)?;
     }
     // Load CLIP first: a wrong folder should fail before minutes of rendering.
     let clip = match &args.clip {

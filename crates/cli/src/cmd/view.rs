@@ -6,6 +6,8 @@ use edit::present::viewer::{
 };
 use std::path::{Path, PathBuf};
 
+use crate::args::output::{files_under, output_file};
+
 #[derive(clap::Args, Debug)]
 #[command(
     about = "Write a self-contained HTML page with an interactive 3D view of a scene, or of two side by side",
@@ -60,13 +62,12 @@ pub fn run(args: Args) -> Result<()> {
             .unwrap_or(name);
         PathBuf::from(format!("{stem}-view.html"))
     });
-    for p in &paths {
-        if let (Ok(a), Ok(b)) = (p.canonicalize(), out.canonicalize()) {
-            if a == b {
-                bail!("--out {} is one of the scenes", out.display());
-            }
-        }
+    if paths.iter().any(|p| files::same_file(p, &out)) {
+        bail!("--out {} is one of the scenes", out.display());
     }
+    let inputs: Vec<PathBuf> = paths.iter().flat_map(|p| files_under(p, 3)).collect();
+    let input_refs: Vec<&Path> = inputs.iter().map(PathBuf::as_path).collect();
+    output_file(&out, &input_refs)?;
 
     let mut scenes = Vec::new();
     let mut cameras = None;
