@@ -112,9 +112,6 @@ pub fn run(args: Args) -> Result<()> {
     let started = Instant::now();
     // Everything is checked before the (long) fit: where it writes, what it reads, whether it fits.
     require_extension(&args.out, "--out", SCENE_EXTENSIONS, "the fitted scene")?;
-    if !args.data.exists() {
-        bail!("--data {}: no such file or folder", args.data.display());
-    }
     let set = load_cameras(&args.data).context("cannot load the training data")?;
     let mut inputs: Vec<PathBuf> = files_under(&args.data, 2);
     inputs.extend(set.image_paths.iter().flatten().cloned());
