@@ -214,6 +214,76 @@ pub fn run_and_assert(name: &str, seeds: &[Vec<u8>], crash_dir: &Path, check: im
     );
 }
 
+/// A scratch folder for one target's inputs, removed when dropped.
+struct Scratch(PathBuf);
+
+impl Scratch {
+    fn new(name: &str) -> Self {
+        let dir = std::env::temp_dir().join(format!("vcedit-fuzz-{name}-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).expect("scratch folder for fuzzing");
+        Self(dir)
+    }
+}
+
+impl Drop for Scratch {
+    fn drop(&mut self) {
+        let _ = std::fs::remove_dir_all(&self.0);
+    }
+}
+
+/// Fuzzes a reader of one file: each input is written to a file named `file_name`, whose path `check`
+/// reads.
+pub fn run_file_and_assert(
+    name: &str,
+    file_name: &str,
+    seeds: &[Vec<u8>],
+    crash_dir: &Path,
+    mut check: impl FnMut(&Path),
+) {
+    let scratch = Scratch::new(name);
+    let path = scratch.0.join(file_name);
+    run_and_assert(name, seeds, crash_dir, |input| {
+        std::fs::write(&path, input).expect("scratch file");
+        check(&path);
+    });
+}
+
+/// Fuzzes a reader of several files in one folder (a COLMAP model, a tokenizer folder): each input
+/// replaces one of the files `names` of `valid_dir` (its first byte picks which) while the others stay
+/// valid; `check` reads the folder. Seeded from the valid files.
+pub fn run_file_set_and_assert(
+    name: &str,
+    valid_dir: &Path,
+    names: &[&str],
+    crash_dir: &Path,
+    mut check: impl FnMut(&Path),
+) {
+    let seeds: Vec<Vec<u8>> = names
+        .iter()
+        .enumerate()
+        .map(|(i, file)| {
+            let mut v = vec![i as u8];
+            v.extend(std::fs::read(valid_dir.join(file)).expect("valid seed file"));
+            v
+        })
+        .collect();
+    let scratch = Scratch::new(name);
+    run_and_assert(name, &seeds, crash_dir, |input| {
+        let Some((&which, content)) = input.split_first() else {
+            return;
+        };
+        for (i, file) in names.iter().enumerate() {
+            let path = scratch.0.join(file);
+            if i == which as usize % names.len() {
+                std::fs::write(path, content).expect("scratch file");
+            } else {
+                std::fs::copy(valid_dir.join(file), path).expect("scratch file");
+            }
+        }
+        check(&scratch.0);
+    });
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

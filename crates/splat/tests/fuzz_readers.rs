@@ -34,8 +34,6 @@ fn scene(degree: u32, n: usize) -> GaussianScene {
 
 #[test]
 fn fuzz_ply() {
-    let dir = tempfile::tempdir().unwrap();
-    let path = dir.path().join("scene.ply");
     let ascii = "ply\nformat ascii 1.0\ncomment fuzz seed\nelement vertex 2\nproperty float x\n\
                  property float y\nproperty float z\nproperty float opacity\nend_header\n\
                  0 0 0 1\n1 2 3 -0.5\n";
@@ -44,45 +42,17 @@ fn fuzz_ply() {
         encode_ply(&scene(3, 2)).unwrap(),
         ascii.as_bytes().to_vec(),
     ];
-    files::fuzz::run_and_assert("ply", &seeds, &crash_dir(), |input| {
-        std::fs::write(&path, input).unwrap();
-        let _ = read_ply(&path);
+    files::fuzz::run_file_and_assert("ply", "scene.ply", &seeds, &crash_dir(), |path| {
+        let _ = read_ply(path);
     });
-}
-
-/// Seeds for a target whose input is one file of a set: the first byte picks which file (`names`) the
-/// rest replaces; the set's other files stay valid.
-fn set_seeds(dir: &Path, names: &[&str]) -> Vec<Vec<u8>> {
-    names
-        .iter()
-        .enumerate()
-        .map(|(i, name)| {
-            let mut v = vec![i as u8];
-            v.extend(std::fs::read(dir.join(name)).unwrap());
-            v
-        })
-        .collect()
 }
 
 /// Fuzzes a COLMAP model of files `names` written by `write`.
 fn fuzz_colmap(target: &str, names: &[&str], write: fn(&Path, &[camera_files::View])) {
     let valid = tempfile::tempdir().unwrap();
     write(valid.path(), &views());
-    let seeds = set_seeds(valid.path(), names);
-    let work = tempfile::tempdir().unwrap();
-    files::fuzz::run_and_assert(target, &seeds, &crash_dir(), |input| {
-        let Some((&which, content)) = input.split_first() else {
-            return;
-        };
-        for (i, name) in names.iter().enumerate() {
-            let path = work.path().join(name);
-            if i == which as usize % names.len() {
-                std::fs::write(path, content).unwrap();
-            } else {
-                std::fs::copy(valid.path().join(name), path).unwrap();
-            }
-        }
-        let _ = load_cameras(work.path());
+    files::fuzz::run_file_set_and_assert(target, valid.path(), names, &crash_dir(), |dir| {
+        let _ = load_cameras(dir);
     });
 }
 
@@ -110,9 +80,8 @@ fn fuzz_json(target: &str, name: &str, write: fn(&Path, &[camera_files::View])) 
     let path = dir.path().join(name);
     write(&path, &views());
     let seeds = vec![std::fs::read(&path).unwrap()];
-    files::fuzz::run_and_assert(target, &seeds, &crash_dir(), |input| {
-        std::fs::write(&path, input).unwrap();
-        let _ = load_cameras(&path);
+    files::fuzz::run_file_and_assert(target, name, &seeds, &crash_dir(), |path| {
+        let _ = load_cameras(path);
     });
 }
 
