@@ -32,7 +32,11 @@ pub fn output_file(out: &Path, inputs: &[&Path]) -> Result<()> {
     if out.is_dir() {
         bail!("{}: is a folder; the output must be a file", out.display());
     }
-    files::clean_stale_temps(parent_of(out))?;
+    let dir = parent_of(out);
+    if dir.exists() && !dir.is_dir() {
+        bail!("{}: {} is not a folder", out.display(), dir.display());
+    }
+    files::clean_stale_temps(dir).map_err(|e| anyhow::anyhow!("{}: {e}", dir.display()))?;
     Ok(())
 }
 

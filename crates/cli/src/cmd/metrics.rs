@@ -186,10 +186,8 @@ pub fn run(args: Args) -> Result<()> {
         ),
         None => None,
     };
-    let (source, own) = splat::open_scene(&args.source)
-        .with_context(|| format!("opening the source scene {}", args.source.display()))?;
-    let (edited, _) = splat::open_scene(&args.edited)
-        .with_context(|| format!("opening the edited scene {}", args.edited.display()))?;
+    let (source, own) = splat::open_scene(&args.source).context("the source scene")?;
+    let (edited, _) = splat::open_scene(&args.edited).context("the edited scene")?;
     if source.is_empty() || edited.is_empty() {
         bail!(
             "{} has no Gaussians",

@@ -1,6 +1,6 @@
 //! `vcedit view SCENE [SCENE2]`: a self-contained HTML page to turn one scene around, or to compare two.
 
-use anyhow::{bail, Context, Result};
+use anyhow::{bail, Result};
 use edit::present::viewer::{
     write_viewer_page, InitialView, ViewerOptions, ViewerScene, DEFAULT_CAP, RECORD_BYTES,
 };
@@ -72,8 +72,8 @@ pub fn run(args: Args) -> Result<()> {
     let mut scenes = Vec::new();
     let mut cameras = None;
     for p in &paths {
-        let (scene, cams) =
-            splat::open_scene(p).with_context(|| format!("opening {}", p.display()))?;
+        // The reader's errors name the file.
+        let (scene, cams) = splat::open_scene(p)?;
         if scene.is_empty() {
             bail!("{}: the scene has no Gaussians", p.display());
         }
