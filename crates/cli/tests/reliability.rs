@@ -385,6 +385,26 @@ fn edit_refuses_bad_arguments_before_making_its_folder() {
 }
 
 #[test]
+fn a_mask_that_selects_nothing_leaves_no_folder() {
+    let dir = tempfile::tempdir().unwrap();
+    write_ply(&dir.path().join("ball.ply"), &ball()).unwrap();
+    let masks = dir.path().join("masks");
+    std::fs::create_dir(&masks).unwrap();
+    for i in 0..4 {
+        Image::new(64, 64, 1)
+            .save_png(&masks.join(format!("orbit_{i:03}.png")))
+            .unwrap();
+    }
+    let model = tiny_model();
+    let o = vcedit_in(
+        dir.path(),
+        &edit_args("ball.ply", s(&model), "out", &["--mask-dir", "masks"]),
+    );
+    assert_one_clear_error(&o, 1, &["the mask selects no Gaussian"]);
+    assert!(!dir.path().join("out").exists());
+}
+
+#[test]
 fn edit_image_checks_the_attention_folder_before_writing_its_image() {
     let dir = tempfile::tempdir().unwrap();
     write_png(&dir.path().join("a.png"), 64, 64);
@@ -729,6 +749,27 @@ fn fractions_and_thresholds_are_finite_and_in_range() {
             assert_one_clear_error(&o, 2, &[option]);
         }
     }
+}
+
+#[test]
+fn counts_and_durations_out_of_range_are_refused() {
+    let dir = tempfile::tempdir().unwrap();
+    let o = vcedit_in(dir.path(), &["demo", "--views", "1", "--out", "d"]);
+    assert_one_clear_error(&o, 1, &["--views 1", "at least 2"]);
+    assert!(!dir.path().join("d").exists());
+    let o = vcedit_in(
+        dir.path(),
+        &[
+            "demo-model",
+            "train",
+            "--out",
+            "m",
+            "--checkpoint-minutes",
+            "-5",
+        ],
+    );
+    assert_one_clear_error(&o, 1, &["--checkpoint-minutes -5", "must be positive"]);
+    assert!(!dir.path().join("m").exists());
 }
 
 #[test]

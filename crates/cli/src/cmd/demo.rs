@@ -2,6 +2,8 @@
 
 use std::path::PathBuf;
 
+use anyhow::bail;
+
 use demo::run::{
     demo_scene, load_model, reference_rows, reference_table, run_variant, table, variant_dir,
     DemoOptions, Variant, PAIRS,
@@ -69,10 +71,13 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         }
         return Ok(());
     }
+    if args.views < 2 {
+        bail!("--views {}: the demo needs at least 2 views", args.views);
+    }
     let model_dir = args.model.clone().unwrap_or_else(default_model);
     let mut opts = DemoOptions::new(model_dir.clone(), args.out.clone());
     opts.pair = args.pair;
-    opts.views = args.views.max(2);
+    opts.views = args.views;
     opts.iterations = args.iterations;
     opts.fit_steps = args.fit_steps;
     opts.steps = args.steps;

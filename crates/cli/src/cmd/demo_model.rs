@@ -105,6 +105,11 @@ pub fn run(args: Args) -> anyhow::Result<()> {
 }
 
 fn run_train(args: TrainArgs) -> anyhow::Result<()> {
+    if let Some(m) = args.checkpoint_minutes {
+        if m <= 0.0 {
+            bail!("--checkpoint-minutes {m} must be positive");
+        }
+    }
     // Temporary files of a killed training run (the folder is resumable, so its own files stay).
     files::clean_stale_temps(&args.out)?;
     files::clean_stale_temps(&args.out.join("checkpoints"))?;
