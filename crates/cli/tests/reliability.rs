@@ -641,9 +641,8 @@ fn gap_in_safetensors(path: &Path) -> String {
         }
     }
     let mut text = serde_json::to_vec(&header).unwrap();
-    while text.len() % 8 != 0 {
-        text.push(b' ');
-    }
+    // Headers are padded with spaces to a multiple of 8 bytes.
+    text.resize(text.len().div_ceil(8) * 8, b' ');
     let mut out = (text.len() as u64).to_le_bytes().to_vec();
     out.extend(text);
     out.extend(&data[..cut as usize]);

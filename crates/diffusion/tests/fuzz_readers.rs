@@ -24,9 +24,8 @@ fn tiny_model() -> PathBuf {
 fn small_safetensors() -> Vec<u8> {
     let header = r#"{"__metadata__":{"format":"pt"},"a.weight":{"dtype":"F32","shape":[2,3],"data_offsets":[0,24]},"b.bias":{"dtype":"F16","shape":[4],"data_offsets":[24,32]}}"#;
     let mut header = header.as_bytes().to_vec();
-    while header.len() % 8 != 0 {
-        header.push(b' ');
-    }
+    // Headers are padded with spaces to a multiple of 8 bytes.
+    header.resize(header.len().div_ceil(8) * 8, b' ');
     let mut file = (header.len() as u64).to_le_bytes().to_vec();
     file.extend(header);
     file.extend((0..32u8).map(|i| i.wrapping_mul(37)));
