@@ -23,6 +23,29 @@ fn tiny_model() -> PathBuf {
     PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../fixtures/models/tiny-lcm")
 }
 
+/// `vcedit edit-image` on `a.png` with the tiny model at 64x64, 2 steps, plus `extra`.
+fn edit_image_args<'a>(
+    model: &'a str,
+    target: &'a str,
+    out: &'a str,
+    extra: &[&'a str],
+) -> Vec<&'a str> {
+    let mut v = vec![
+        "edit-image",
+        "--model",
+        model,
+        "--image",
+        "a.png",
+        "--source",
+        "a cat",
+    ];
+    v.extend([
+        "--target", target, "--out", out, "--size", "64", "--steps", "2",
+    ]);
+    v.extend_from_slice(extra);
+    v
+}
+
 fn s(p: &Path) -> &str {
     p.to_str().unwrap()
 }
@@ -171,26 +194,7 @@ fn edit_image_never_writes_over_its_image() {
         outs.push("link.png".into());
     }
     for out in &outs {
-        let o = vcedit_in(
-            dir.path(),
-            &[
-                "edit-image",
-                "--model",
-                s(&model),
-                "--image",
-                "a.png",
-                "--source",
-                "a cat",
-                "--target",
-                "a dog",
-                "--out",
-                out,
-                "--size",
-                "64",
-                "--steps",
-                "2",
-            ],
-        );
+        let o = vcedit_in(dir.path(), &edit_image_args(s(&model), "a dog", out, &[]));
         assert_one_clear_error(&o, 1, &["also an input", "a.png"]);
         assert_eq!(hash_of(&dir.path().join("a.png")), before, "{out}");
     }
@@ -278,23 +282,6 @@ fn prompt_word_options_name_the_word_and_the_prompt() {
     let dir = tempfile::tempdir().unwrap();
     write_png(&dir.path().join("a.png"), 64, 64);
     let model = tiny_model();
-    let base = [
-        "edit-image",
-        "--model",
-        s(&model),
-        "--image",
-        "a.png",
-        "--source",
-        "a cat",
-        "--target",
-        "a red cat",
-        "--out",
-        "o.png",
-        "--size",
-        "64",
-        "--steps",
-        "2",
-    ];
     for (extra, says) in [
         (
             ["--blend-words", "dog"],
@@ -309,9 +296,10 @@ fn prompt_word_options_name_the_word_and_the_prompt() {
             "--keep-words: 'dog' is not a word of the source prompt 'a cat'",
         ),
     ] {
-        let mut args = base.to_vec();
-        args.extend(extra);
-        let o = vcedit_in(dir.path(), &args);
+        let o = vcedit_in(
+            dir.path(),
+            &edit_image_args(s(&model), "a red cat", "o.png", &extra),
+        );
         assert_one_clear_error(&o, 1, &[says]);
         assert!(!dir.path().join("o.png").exists());
     }
@@ -412,25 +400,12 @@ fn edit_image_checks_the_attention_folder_before_writing_its_image() {
     let model = tiny_model();
     let o = vcedit_in(
         dir.path(),
-        &[
-            "edit-image",
-            "--model",
+        &edit_image_args(
             s(&model),
-            "--image",
-            "a.png",
-            "--source",
-            "a cat",
-            "--target",
             "a dog",
-            "--out",
             "o.png",
-            "--size",
-            "64",
-            "--steps",
-            "2",
-            "--save-attention",
-            "a.png/attention",
-        ],
+            &["--save-attention", "a.png/attention"],
+        ),
     );
     assert_one_clear_error(&o, 1, &["--save-attention", "a.png/attention"]);
     assert!(!dir.path().join("o.png").exists());
@@ -611,9 +586,8 @@ fn walk(dir: &Path) -> Vec<PathBuf> {
 fn edit_image_with(dir: &Path, model: &Path) -> Output {
     write_png(&dir.join("a.png"), 64, 64);
     let mut cmd = Command::new(env!("CARGO_BIN_EXE_vcedit"));
-    cmd.args(["edit-image", "--model", s(model), "--image", "a.png"])
-        .args(["--source", "a cat", "--target", "a dog", "--out", "o.png"])
-        .args(["--size", "64", "--steps", "2"])
+    // With RUST_BACKTRACE=1: errors must still be one line.
+    cmd.args(edit_image_args(s(model), "a dog", "o.png", &[]))
         .env("RUST_BACKTRACE", "1")
         .current_dir(dir);
     cmd.output().unwrap()
