@@ -478,6 +478,50 @@ fn render_folders_hold_one_run() {
 }
 
 #[test]
+fn an_edit_folder_holds_one_run() {
+    let dir = tempfile::tempdir().unwrap();
+    write_ply(&dir.path().join("ball.ply"), &ball()).unwrap();
+    let model = tiny_model();
+    let edit = |extra: &[&str]| {
+        let mut extra = extra.to_vec();
+        if !extra.contains(&"--iterations") {
+            extra.extend(["--iterations", "2"]);
+        }
+        let mut args = edit_args("ball.ply", s(&model), "e", &[]);
+        // edit_args says --iterations 1; this test chooses.
+        let at = args.iter().position(|a| *a == "--iterations").unwrap();
+        args.drain(at..at + 2);
+        args.extend(extra);
+        vcedit_in(dir.path(), &args)
+    };
+    let o = edit(&[]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    assert!(dir.path().join("e/iter_1").is_dir());
+    let scene_hash = hash_of(&dir.path().join("e/edited.ply"));
+
+    // A killed write in a subfolder is cleaned up when the same run is resumed.
+    let stale = dir
+        .path()
+        .join("e/checkpoint/.scene_2.ply.vcedit-tmp-4194305");
+    std::fs::write(&stale, "half").unwrap();
+    let o = edit(&["--resume"]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    assert!(!stale.exists());
+    assert_eq!(hash_of(&dir.path().join("e/edited.ply")), scene_hash);
+
+    // One iteration into the two-iteration folder: refused; with --force, nothing of the old run stays.
+    let o = edit(&["--iterations", "1"]);
+    assert_one_clear_error(&o, 1, &["e: holds the outputs of another run", "--force"]);
+    assert!(dir.path().join("e/iter_1").is_dir());
+    let o = edit(&["--iterations", "1", "--force"]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    assert!(!dir.path().join("e/iter_1").exists());
+    assert!(dir.path().join("e/iter_0").is_dir());
+    assert!(!dir.path().join("e/checkpoint/scene_2.ply").exists());
+    assert!(dir.path().join("e/checkpoint/scene_1.ply").exists());
+}
+
+#[test]
 fn huge_orbits_are_refused_up_front() {
     let dir = tempfile::tempdir().unwrap();
     write_ply(&dir.path().join("ball.ply"), &ball()).unwrap();

@@ -99,6 +99,25 @@ pub fn probe_folder(dir: &Path) -> Result<()> {
     Ok(())
 }
 
+/// [`files::clean_stale_temps`] in every folder under `dir`, down to `depth` levels.
+fn clean_stale_temps_below(dir: &Path, depth: usize) -> Result<()> {
+    if depth == 0 {
+        return Ok(());
+    }
+    let Ok(entries) = std::fs::read_dir(dir) else {
+        return Ok(());
+    };
+    for entry in entries.flatten() {
+        let path = entry.path();
+        if entry.file_type().is_ok_and(|t| t.is_dir()) {
+            files::clean_stale_temps(&path)
+                .map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))?;
+            clean_stale_temps_below(&path, depth - 1)?;
+        }
+    }
+    Ok(())
+}
+
 fn parent_of(path: &Path) -> &Path {
     match path.parent() {
         Some(p) if !p.as_os_str().is_empty() => p,
@@ -143,6 +162,9 @@ impl OutputDir {
             RunDirMode::Keep
         };
         let run = RunDir::open(dir, command, fingerprint, mode, inputs)?;
+        // RunDir cleans the folder itself; a run killed while writing into a subfolder (a checkpoint,
+        // an iteration's guidance) left its temporary file there.
+        clean_stale_temps_below(dir, 3)?;
         Ok(Self {
             run: Some(run),
             created,
