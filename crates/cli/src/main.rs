@@ -66,15 +66,45 @@ fn main() {
         Command::DemoModel(a) => cmd::demo_model::run(a),
     };
     if let Err(err) = result {
-        // One clear line, never a backtrace: the chain of contexts says which file and what is wrong.
-        let msg = err
-            .chain()
-            .map(|c| c.to_string())
-            .collect::<Vec<_>>()
-            .join(": ");
-        eprintln!("error: {msg}");
+        eprintln!("error: {}", one_line(&err));
         std::process::exit(1);
     }
+}
+
+/// The error as one line: its contexts and causes joined by ": ", each said once, without backtraces.
+/// Many error types already put their source in their own message (`"{path}: {source}"`, `"{0}"` over a
+/// wrapped error); a cause whose text the line already holds is not repeated.
+fn one_line(err: &anyhow::Error) -> String {
+    let mut line = String::new();
+    for cause in err.chain() {
+        let text = without_backtrace(&cause.to_string());
+        let text = text.trim();
+        if text.is_empty() || line.contains(text) {
+            continue;
+        }
+        if !line.is_empty() {
+            line.push_str(": ");
+        }
+        line.push_str(text);
+    }
+    line
+}
+
+/// `text` without a captured backtrace (some libraries' errors print one in their message when
+/// `RUST_BACKTRACE` is set): everything from the first line that looks like a backtrace frame (`  12: ...`)
+/// or a "stack backtrace:" header. Remaining lines are joined with spaces.
+fn without_backtrace(text: &str) -> String {
+    let is_frame = |l: &str| {
+        let t = l.trim_start();
+        let digits = t.chars().take_while(char::is_ascii_digit).count();
+        (digits > 0 && t[digits..].starts_with(": ")) || t.starts_with("stack backtrace:")
+    };
+    text.lines()
+        .take_while(|l| !is_frame(l))
+        .map(str::trim)
+        .filter(|l| !l.is_empty())
+        .collect::<Vec<_>>()
+        .join(" ")
 }
 
 #[cfg(test)]
@@ -89,6 +119,37 @@ mod tests {
             Ok(_) => panic!("{args:?} parsed"),
             Err(e) => e.to_string(),
         }
+    }
+
+    #[test]
+    fn errors_print_each_cause_once_without_backtraces() {
+        #[derive(Debug)]
+        struct Wraps(std::io::Error);
+        impl std::fmt::Display for Wraps {
+            // Says its source itself, as `#[error("{0}")]` over a `#[from]` does.
+            fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+                write!(f, "model.safetensors: {}", self.0)
+            }
+        }
+        impl std::error::Error for Wraps {
+            fn source(&self) -> Option<&(dyn std::error::Error + 'static)> {
+                Some(&self.0)
+            }
+        }
+        let err = anyhow::Error::new(Wraps(std::io::Error::other("disk on fire")))
+            .context("loading model m");
+        assert_eq!(
+            one_line(&err),
+            "loading model m: model.safetensors: disk on fire"
+        );
+        let with_trace = anyhow::anyhow!(
+            "shape mismatch in conv_in\n   0: candle_core::error::Error::bt\n             at src/error.rs:1\n   1: main"
+        )
+        .context("loading model m");
+        assert_eq!(
+            one_line(&with_trace),
+            "loading model m: shape mismatch in conv_in"
+        );
     }
 
     #[test]

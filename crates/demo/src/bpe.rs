@@ -147,7 +147,7 @@ impl Bpe {
     pub fn write_tokenizer(&self, dir: &Path, max_length: usize) -> Result<(), BpeError> {
         let write = |name: &str, text: String| {
             let path = dir.join(name);
-            splat::atomic_write(&path, text.as_bytes())
+            files::atomic_write(&path, text.as_bytes())
                 .map_err(|source| BpeError::Write { path, source })
         };
         std::fs::create_dir_all(dir).map_err(|source| BpeError::Write {

@@ -165,6 +165,24 @@ struct Headers {
     config: Value,
 }
 
+/// A component that failed to load: the file its error names when that is under `root` (so the file is
+/// named once, as `vae/config.json: reason`), else the component's folder.
+fn load_problem(root: &Path, folder: &str, reason: String) -> Problem {
+    if let Some((head, rest)) = reason.split_once(": ") {
+        let named = Path::new(head);
+        if named.starts_with(root) && named != root {
+            return Problem::Invalid {
+                file: rel(root, named),
+                reason: rest.to_string(),
+            };
+        }
+    }
+    Problem::Invalid {
+        file: folder.into(),
+        reason,
+    }
+}
+
 fn rel(root: &Path, path: &Path) -> String {
     path.strip_prefix(root)
         .unwrap_or(path)
@@ -262,9 +280,16 @@ pub fn check_model(path: &Path, depth: CheckDepth) -> Result<ModelReport, LoadEr
             message: format!("not a CLIP text config: {e}"),
         })?;
     let tokenizer = ClipTokenizer::from_dir(dir.component_dir(Component::Tokenizer))
-        .map_err(|e| LoadError::BadFile {
-            path: dir.component_dir(Component::Tokenizer),
-            message: e.to_string(),
+        .map_err(|e| match load_problem(&root, "tokenizer", e.to_string()) {
+            // The tokenizer's errors name their file; keep that, once.
+            Problem::Invalid { file, reason } if file != "tokenizer" => LoadError::BadFile {
+                path: root.join(file),
+                message: reason,
+            },
+            _ => LoadError::BadFile {
+                path: dir.component_dir(Component::Tokenizer),
+                message: e.to_string(),
+            },
         })?
         .with_max_length(te_config.max_position_embeddings);
     let scheduler_path = dir.config_path(Component::Scheduler);
@@ -396,10 +421,7 @@ pub fn check_model(path: &Path, depth: CheckDepth) -> Result<ModelReport, LoadEr
         let mut problems = Vec::new();
         let start = Instant::now();
         if let Err(e) = ClipTextModel::load(&dir, DType::F32, &device) {
-            problems.push(Problem::Invalid {
-                file: "text_encoder/".into(),
-                reason: e.to_string(),
-            });
+            problems.push(load_problem(&root, "text_encoder/", e.to_string()));
         }
         text.report.load_time = Some(start.elapsed());
 
@@ -415,10 +437,7 @@ pub fn check_model(path: &Path, depth: CheckDepth) -> Result<ModelReport, LoadEr
             Ok(())
         })();
         if let Err(reason) = unet_result {
-            problems.push(Problem::Invalid {
-                file: "unet/".into(),
-                reason,
-            });
+            problems.push(load_problem(&root, "unet/", reason));
         }
         unet.report.load_time = Some(start.elapsed());
 
@@ -439,10 +458,7 @@ pub fn check_model(path: &Path, depth: CheckDepth) -> Result<ModelReport, LoadEr
             Ok(())
         })();
         if let Err(reason) = vae_result {
-            problems.push(Problem::Invalid {
-                file: "vae/".into(),
-                reason,
-            });
+            problems.push(load_problem(&root, "vae/", reason));
         }
         vae.report.load_time = Some(start.elapsed());
         if !problems.is_empty() {

@@ -168,7 +168,10 @@ impl AutoencoderKLConfig {
             return Err(format!("act_fn {:?} is not supported (silu)", self.act_fn));
         }
         let g = self.norm_num_groups;
-        if g == 0 || self.block_out_channels.iter().any(|c| c % g != 0) {
+        if g == 0 {
+            return Err("norm_num_groups 0 must be at least 1".into());
+        }
+        if self.block_out_channels.iter().any(|c| c % g != 0) {
             return Err(format!(
                 "norm_num_groups {g} must divide every block_out_channels entry {:?}",
                 self.block_out_channels

@@ -307,7 +307,7 @@ impl EditTrainer {
                 path: path.into(),
                 msg,
             })?;
-        splat::atomic_write(path, &bytes).map_err(|e| TrainError::State {
+        files::atomic_write(path, &bytes).map_err(|e| TrainError::State {
             path: path.into(),
             msg: e.to_string(),
         })

@@ -8,6 +8,8 @@
 //!   refused unless it is the same run being resumed, or `--force` clears what vcedit wrote there.
 
 mod atomic;
+#[cfg(feature = "fuzz")]
+pub mod fuzz;
 mod paths;
 mod rundir;
 

@@ -1,11 +1,10 @@
 //! Float images and atomic PNG I/O.
 //!
-//! Every output file in vcedit goes through [`atomic_write`]: the bytes go to a temporary file next to the
+//! Every output file in vcedit goes through [`files::atomic_write`]: the bytes go to a temporary file next to the
 //! target, then a rename replaces the target, so an interrupted run never leaves a half-written file and
 //! never destroys the previous one.
 
 use image::ImageEncoder;
-use std::io::Write;
 use std::path::{Path, PathBuf};
 
 #[derive(Debug, thiserror::Error)]
@@ -138,7 +137,7 @@ impl Image {
             path: path.to_path_buf(),
             msg,
         })?;
-        atomic_write(path, &bytes).map_err(|e| ImageError::Write {
+        files::atomic_write(path, &bytes).map_err(|e| ImageError::Write {
             path: path.to_path_buf(),
             msg: e.to_string(),
         })
@@ -173,31 +172,6 @@ impl Image {
             })
             .collect()
     }
-}
-
-/// Writes `bytes` to `path` atomically: temporary file in the same directory, fsync, rename.
-/// Creates the parent directory if needed.
-pub fn atomic_write(path: &Path, bytes: &[u8]) -> std::io::Result<()> {
-    let dir = match path.parent() {
-        Some(p) if !p.as_os_str().is_empty() => p.to_path_buf(),
-        _ => PathBuf::from("."),
-    };
-    std::fs::create_dir_all(&dir)?;
-    let file_name = path
-        .file_name()
-        .map(|n| n.to_string_lossy().into_owned())
-        .unwrap_or_default();
-    let tmp = dir.join(format!(".{file_name}.tmp-{}", std::process::id()));
-    let result = (|| {
-        let mut f = std::fs::File::create(&tmp)?;
-        f.write_all(bytes)?;
-        f.sync_all()?;
-        std::fs::rename(&tmp, path)
-    })();
-    if result.is_err() {
-        let _ = std::fs::remove_file(&tmp);
-    }
-    result
 }
 
 #[cfg(test)]
@@ -247,16 +221,6 @@ mod tests {
         assert!(rgb.data.iter().all(|v| (v - 0.5).abs() < 1e-4));
         let tall = Image::new(3, 9, 3).center_crop_to_aspect(1, 1);
         assert_eq!((tall.width, tall.height), (3, 3));
-    }
-
-    #[test]
-    fn atomic_write_replaces_and_leaves_no_temp() {
-        let dir = tempfile::tempdir().unwrap();
-        let p = dir.path().join("sub").join("f.bin");
-        atomic_write(&p, b"one").unwrap();
-        atomic_write(&p, b"two").unwrap();
-        assert_eq!(std::fs::read(&p).unwrap(), b"two");
-        assert_eq!(std::fs::read_dir(p.parent().unwrap()).unwrap().count(), 1);
     }
 
     #[test]

@@ -26,6 +26,6 @@ pub mod scene;
 pub mod train;
 
 pub use camera::Camera;
-pub use image::{atomic_write, Image};
+pub use image::Image;
 pub use open::{open_scene, OpenError};
 pub use scene::GaussianScene;

@@ -1116,13 +1116,13 @@ pub fn encode_ply(scene: &GaussianScene) -> Result<Vec<u8>, String> {
     Ok(out)
 }
 
-/// Writes a scene in the INRIA trainer's layout, atomically (see [`crate::atomic_write`]).
+/// Writes a scene in the INRIA trainer's layout, atomically (see [`files::atomic_write`]).
 pub fn write_ply(path: &Path, scene: &GaussianScene) -> Result<(), PlyError> {
     let bytes = encode_ply(scene).map_err(|msg| PlyError::InvalidScene {
         path: path.to_path_buf(),
         msg,
     })?;
-    crate::atomic_write(path, &bytes).map_err(|err| PlyError::Write {
+    files::atomic_write(path, &bytes).map_err(|err| PlyError::Write {
         path: path.to_path_buf(),
         err,
     })

@@ -2,8 +2,9 @@
 
 use std::path::PathBuf;
 
-use anyhow::bail;
-use edit::sampler::{EditPrompts, InfEditSettings};
+use anyhow::{bail, Context};
+use diffusion::tokenizer::ClipTokenizer;
+use edit::sampler::{EditModel, EditPlan, EditPrompts, InfEditSettings};
 
 use super::parse::{finite, fraction, positive, whole};
 use super::WorkingSize;
@@ -48,7 +49,65 @@ pub struct PromptArgs {
     pub negative: String,
 }
 
+/// Refuses a word of `words` (the value of `option`) that is not a word of `prompt` (`which` prompt):
+/// its tokens must appear, in order, among the prompt's. A misspelt word would otherwise silently change
+/// the edit (an unknown blend word turns the local blend off).
+pub fn check_words_in(
+    tokenizer: &ClipTokenizer,
+    option: &str,
+    words: &str,
+    which: &str,
+    prompt: &str,
+) -> anyhow::Result<()> {
+    let prompt_ids = tokenizer.tokenize(prompt);
+    for word in words.split_whitespace() {
+        let ids = tokenizer.tokenize(word);
+        // Punctuation alone ("," in "a, b") has tokens too; a word with none cannot mark anything.
+        let found = !ids.is_empty() && prompt_ids.windows(ids.len()).any(|w| w == ids.as_slice());
+        if !found {
+            bail!("{option}: '{word}' is not a word of the {which} prompt '{prompt}'");
+        }
+    }
+    Ok(())
+}
+
 impl PromptArgs {
+    /// Checks every prompt-word option against its prompt (`mask_word` against the source prompt), before
+    /// any work.
+    pub fn check_words(
+        &self,
+        tokenizer: &ClipTokenizer,
+        mask_word: Option<&str>,
+    ) -> anyhow::Result<()> {
+        if let Some(words) = &self.blend_words {
+            check_words_in(tokenizer, "--blend-words", words, "target", &self.target)?;
+        }
+        check_words_in(
+            tokenizer,
+            "--keep-words",
+            &self.keep_words,
+            "source",
+            &self.source,
+        )?;
+        check_words_in(
+            tokenizer,
+            "--keep-words",
+            &self.keep_words,
+            "target",
+            &self.target,
+        )?;
+        if let Some(word) = mask_word {
+            if word.trim().is_empty() {
+                bail!(
+                    "--mask-word is empty; give a word of the source prompt '{}'",
+                    self.source
+                );
+            }
+            check_words_in(tokenizer, "--mask-word", word, "source", &self.source)?;
+        }
+        Ok(())
+    }
+
     pub fn prompts(&self) -> EditPrompts {
         EditPrompts {
             source: self.source.clone(),
@@ -95,11 +154,11 @@ pub struct SamplerArgs {
         allow_negative_numbers = true
     )]
     pub self_replace: f64,
-    /// Local-blend threshold of the target words.
-    #[arg(long, default_value_t = 0.6, value_parser = finite::<f64>, allow_negative_numbers = true)]
+    /// Local-blend threshold of the target words, from 0 to 1.
+    #[arg(long, default_value_t = 0.6, value_parser = fraction::<f64>, allow_negative_numbers = true)]
     pub thresh_e: f64,
-    /// Local-blend threshold of the kept words.
-    #[arg(long, default_value_t = 0.6, value_parser = finite::<f64>, allow_negative_numbers = true)]
+    /// Local-blend threshold of the kept words, from 0 to 1.
+    #[arg(long, default_value_t = 0.6, value_parser = fraction::<f64>, allow_negative_numbers = true)]
     pub thresh_m: f64,
     /// DDCM eta, from 0 to 1 (1 = LCM-style re-noising).
     #[arg(long, default_value_t = 1.0, value_parser = fraction::<f64>, allow_negative_numbers = true)]
@@ -156,5 +215,11 @@ impl SamplerArgs {
     /// (width, height) from `--size`.
     pub fn size(&self) -> (u32, u32) {
         self.size.size
+    }
+
+    /// Whether `model` works at `--size` (each model has its own multiple), before any work.
+    pub fn check_size(&self, model: &EditModel) -> anyhow::Result<()> {
+        let (w, h) = self.size();
+        EditPlan::check_size(model, (w as usize, h as usize)).context("--size")
     }
 }

@@ -8,11 +8,18 @@
 //! | [`BackgroundArg`] | `--background`                            | render, metrics, fit, edit           |
 //! | [`CameraArgs`]    | `--cameras`, `--orbit`, `--max-views`     | render, metrics, edit                |
 //! | [`editing`]       | model, prompts, InfEdit sampler knobs     | edit, edit-image                     |
+//! | [`output::ForceArg`] | `--force`                              | render, edit, demo                   |
+//! | [`memory::MemoryCheckArg`] | `--ignore-memory-check`          | edit, fit                            |
+//!
+//! Where commands write (never over an input, one run per output folder) is decided in [`output`]; the
+//! memory estimate's refusal in [`memory`].
 //!
 //! The value grammars are the parsers of [`parse`]: sizes (`N` or `WxH`), colours (a name, `#rrggbb` or
 //! `r,g,b` in 0..1), positive and non-negative whole numbers, fractions in [0, 1] and finite numbers.
 
 pub mod editing;
+pub mod memory;
+pub mod output;
 pub mod parse;
 
 use std::fmt;
@@ -29,6 +36,10 @@ use parse::{parse_colour, parse_size, positive, whole};
 // Compute device: a later change adds a `DeviceArg` group here (`--device cpu|gpu|auto`), flattened like
 // the groups below into every command that renders or runs the diffusion model (render, metrics, fit, edit,
 // edit-image, demo, demo-model). Nothing chooses a device yet.
+
+/// The most views `--orbit` makes without `--allow-many-views`: a typo (100000 for 100) must not start
+/// writing or rendering for hours.
+pub const MAX_ORBIT_VIEWS: usize = 1000;
 
 /// Size of generated orbit views when `--size` does not give one.
 pub const DEFAULT_ORBIT_SIZE: (u32, u32) = (512, 512);
@@ -90,6 +101,9 @@ pub struct CameraArgs {
     /// Use at most this many of the views; 0 = all.
     #[arg(long, value_name = "N", value_parser = whole::<usize>, allow_negative_numbers = true)]
     pub max_views: Option<usize>,
+    /// Allow --orbit above 1000 views.
+    #[arg(long)]
+    pub allow_many_views: bool,
 }
 
 /// Where the chosen views came from.
@@ -114,6 +128,23 @@ impl fmt::Display for CameraSource {
 }
 
 impl CameraArgs {
+    /// The checks of these options that need no file: run before any work.
+    pub fn validate(&self) -> Result<()> {
+        if let Some(n) = self.orbit {
+            if n > MAX_ORBIT_VIEWS && !self.allow_many_views {
+                bail!(
+                    "--orbit {n}: more than {MAX_ORBIT_VIEWS} views; pass --allow-many-views if you mean it"
+                );
+            }
+        }
+        if let Some(path) = &self.cameras {
+            if !path.exists() {
+                bail!("--cameras {}: no such file or folder", path.display());
+            }
+        }
+        Ok(())
+    }
+
     /// The views to render: `--cameras`, else `--orbit`, else the scene's own cameras (`own`), else an orbit
     /// of `default_orbit` views around `scene`. Loaded cameras are centre-cropped and scaled to `size` when
     /// it is given; orbits are made at `size`, else at [`DEFAULT_ORBIT_SIZE`]. `--max-views` is not applied
@@ -196,6 +227,7 @@ mod tests {
             cameras: cameras.map(PathBuf::from),
             orbit,
             max_views,
+            allow_many_views: false,
         }
     }
 
@@ -260,6 +292,22 @@ mod tests {
             }
         ));
         assert_eq!((cams[0].width, cams[0].height), DEFAULT_ORBIT_SIZE);
+    }
+
+    #[test]
+    fn huge_orbits_need_to_be_asked_for() {
+        let err = args(None, Some(100_000), None)
+            .validate()
+            .unwrap_err()
+            .to_string();
+        assert!(
+            err.contains("--orbit 100000") && err.contains("--allow-many-views"),
+            "{err}"
+        );
+        assert!(args(None, Some(MAX_ORBIT_VIEWS), None).validate().is_ok());
+        let mut many = args(None, Some(100_000), None);
+        many.allow_many_views = true;
+        assert!(many.validate().is_ok());
     }
 
     #[test]

@@ -2,12 +2,14 @@
 
 use std::path::PathBuf;
 
-use anyhow::Context;
+use anyhow::bail;
+
 use demo::run::{
     demo_scene, load_model, reference_rows, reference_table, run_variant, table, variant_dir,
     DemoOptions, Variant, PAIRS,
 };
 
+use crate::args::output::{files_under, fingerprint, ForceArg, OutputDir};
 use crate::args::parse::{positive, whole};
 use crate::progress::Reporter;
 
@@ -18,9 +20,11 @@ use crate::progress::Reporter;
   vcedit demo --pair 1             # another built-in edit (see --list)
   vcedit demo --compare            # per-view guidance vs VcEdit without CCM / ECM vs full VcEdit")]
 pub struct Args {
-    /// Output folder.
+    /// Output folder. A folder holding another run's outputs is refused (see --force).
     #[arg(long, default_value = "vcedit-demo")]
     pub out: PathBuf,
+    #[command(flatten)]
+    pub force: ForceArg,
     /// Which built-in edit to run (0-based; see --list).
     #[arg(long, default_value_t = 0, value_parser = whole::<usize>, allow_negative_numbers = true)]
     pub pair: usize,
@@ -67,10 +71,13 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         }
         return Ok(());
     }
+    if args.views < 2 {
+        bail!("--views {}: the demo needs at least 2 views", args.views);
+    }
     let model_dir = args.model.clone().unwrap_or_else(default_model);
     let mut opts = DemoOptions::new(model_dir.clone(), args.out.clone());
     opts.pair = args.pair;
-    opts.views = args.views.max(2);
+    opts.views = args.views;
     opts.iterations = args.iterations;
     opts.fit_steps = args.fit_steps;
     opts.steps = args.steps;
@@ -86,8 +93,19 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         opts.size,
         model_dir.display()
     );
-    std::fs::create_dir_all(&args.out)
-        .with_context(|| format!("creating {}", args.out.display()))?;
+    let settings_key = fingerprint(&(
+        &model_dir,
+        args.pair,
+        args.compare,
+        opts.views,
+        args.iterations,
+        args.fit_steps,
+        args.steps,
+        args.seed,
+    ));
+    let model_files = files_under(&model_dir, 3);
+    let inputs: Vec<&std::path::Path> = model_files.iter().map(PathBuf::as_path).collect();
+    let out_dir = OutputDir::open(&args.out, "demo", &settings_key, args.force.force, &inputs)?;
     let mut progress = Reporter::new();
     if args.compare {
         let mut scores = Vec::new();
@@ -106,8 +124,8 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         let references = reference_rows(&opts, &model, &scene)?;
         let md = format!("{}\n{}", table(&scores), reference_table(&references));
         println!("{md}");
-        splat::atomic_write(&args.out.join("compare.md"), md.as_bytes())?;
-        splat::atomic_write(
+        files::atomic_write(&args.out.join("compare.md"), md.as_bytes())?;
+        files::atomic_write(
             &args.out.join("compare.json"),
             &serde_json::to_vec_pretty(&serde_json::json!({
                 "runs": scores,
@@ -115,6 +133,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             }))?,
         )?;
         println!("reports: {}", args.out.join("*/report.html").display());
+        out_dir.finish();
     } else {
         let s = run_variant(
             &opts,
@@ -128,6 +147,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         println!("{}", table(std::slice::from_ref(&s)));
         println!("edited scene: {}", args.out.join("edited.ply").display());
         println!("report: {}", s.report.display());
+        out_dir.finish();
     }
     Ok(())
 }

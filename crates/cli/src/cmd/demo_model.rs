@@ -8,6 +8,7 @@ use demo::sample::{generate, SampleSettings};
 use demo::train::{train, Event, TrainConfig, TrainOptions};
 use edit::sampler::EditModel;
 
+use crate::args::output::{files_under, output_file, require_extension};
 use crate::args::parse::{finite, positive, whole};
 use crate::progress::Reporter;
 
@@ -104,6 +105,14 @@ pub fn run(args: Args) -> anyhow::Result<()> {
 }
 
 fn run_train(args: TrainArgs) -> anyhow::Result<()> {
+    if let Some(m) = args.checkpoint_minutes {
+        if m <= 0.0 {
+            bail!("--checkpoint-minutes {m} must be positive");
+        }
+    }
+    // Temporary files of a killed training run (the folder is resumable, so its own files stay).
+    files::clean_stale_temps(&args.out)?;
+    files::clean_stale_temps(&args.out.join("checkpoints"))?;
     let mut config = match args.preset {
         Preset::Demo => TrainConfig::demo(),
         Preset::Tiny => TrainConfig::tiny(),
@@ -193,6 +202,13 @@ fn run_sample(args: SampleArgs) -> anyhow::Result<()> {
     if args.eta < 0.0 {
         bail!("--eta {} must not be negative", args.eta);
     }
+    // The grid and its prompts file, neither over a file of the model.
+    require_extension(&args.out, "--out", &["png"], "the grid")?;
+    let txt = args.out.with_extension("txt");
+    let model_files = files_under(&args.model, 3);
+    let inputs: Vec<&std::path::Path> = model_files.iter().map(PathBuf::as_path).collect();
+    output_file(&args.out, &inputs)?;
+    output_file(&txt, &inputs)?;
     let model = EditModel::load(&args.model, None)
         .with_context(|| format!("loading model {}", args.model.display()))?;
     let t0 = Instant::now();
@@ -227,8 +243,7 @@ fn run_sample(args: SampleArgs) -> anyhow::Result<()> {
         .with_context(|| format!("writing {}", args.out.display()))?;
     let mut text = args.prompts.join("\n");
     text.push('\n');
-    let txt = args.out.with_extension("txt");
-    splat::atomic_write(&txt, text.as_bytes())
+    files::atomic_write(&txt, text.as_bytes())
         .with_context(|| format!("writing {}", txt.display()))?;
     println!(
         "{} images in {:.1} s -> {}",

@@ -1,6 +1,6 @@
 //! `vcedit edit`: view-consistent editing of a 3DGS scene (VcEdit).
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use anyhow::{bail, Context};
@@ -10,6 +10,8 @@ use edit::run::{run_edit, write_outputs, Box3, EditJob, GuidanceMode, MaskSource
 use edit::sampler::EditModel;
 
 use crate::args::editing::{ModelArgs, PromptArgs, SamplerArgs};
+use crate::args::memory::MemoryCheckArg;
+use crate::args::output::{files_under, fingerprint, ForceArg, OutputDir};
 use crate::args::parse::{finite, positive, whole};
 use crate::args::{BackgroundArg, CameraArgs};
 use crate::progress::Reporter;
@@ -70,9 +72,11 @@ pub struct Args {
     pub model: ModelArgs,
     #[command(flatten)]
     pub prompts: PromptArgs,
-    /// Output folder.
+    /// Output folder. A folder holding another run's outputs is refused (see --force, --resume).
     #[arg(long, value_name = "DIR")]
     pub out: PathBuf,
+    #[command(flatten)]
+    pub force: ForceArg,
     #[command(flatten)]
     pub sampler: SamplerArgs,
     /// Render → edit → fit iterations.
@@ -140,12 +144,11 @@ pub struct Args {
     pub lpips: Option<PathBuf>,
     #[command(flatten)]
     pub background: BackgroundArg,
-    /// Continue an interrupted run in --out.
-    #[arg(long)]
+    /// Continue an interrupted run in --out (same settings); its files are kept.
+    #[arg(long, conflicts_with = "force")]
     pub resume: bool,
-    /// Start even if the memory estimate exceeds the available memory.
-    #[arg(long)]
-    pub ignore_memory_check: bool,
+    #[command(flatten)]
+    pub memory: MemoryCheckArg,
     /// Stop right after this iteration's checkpoint, as a kill would (tests of --resume).
     #[arg(
         long,
@@ -160,14 +163,36 @@ pub struct Args {
 pub fn run(args: Args) -> anyhow::Result<()> {
     diffusion::runtime::tune_allocator_for_inference();
     let t0 = Instant::now();
+    // Every argument is checked before any work; the output folder is opened last, so a refused run
+    // leaves nothing behind.
     let infedit = args.sampler.settings()?;
     let (w, h) = args.sampler.size();
     if !(0.0..1.0).contains(&args.mask_threshold) {
         bail!("--mask-threshold {} must be in [0, 1)", args.mask_threshold);
     }
+    args.views.validate()?;
+    for (option, dir) in [
+        ("--mask-dir", &args.mask_dir),
+        ("--lpips", &args.lpips),
+        ("--taesd", &args.model.taesd),
+    ] {
+        if let Some(dir) = dir {
+            if !dir.is_dir() {
+                bail!("{option} {}: no such folder", dir.display());
+            }
+        }
+    }
 
     // Inputs.
     let (scene, scene_cams) = splat::open_scene(&args.scene)?;
+    if let Some(b) = &args.mask_box {
+        if !edit::run::mask_from_box(&scene, b).contains(&true) {
+            bail!(
+                "--mask-box: the box holds none of the scene's {} Gaussians; check its corners",
+                scene.len()
+            );
+        }
+    }
     let (cameras, source) =
         args.views
             .choose(&scene, scene_cams, Some((w, h)), DEFAULT_ORBIT_VIEWS)?;
@@ -240,6 +265,9 @@ pub fn run(args: Args) -> anyhow::Result<()> {
 
     let model = EditModel::load(&args.model.model, args.model.taesd.as_deref())
         .with_context(|| format!("loading model {}", args.model.model.display()))?;
+    args.sampler.check_size(&model)?;
+    args.prompts
+        .check_words(&model.tokenizer, args.mask_word.as_deref())?;
     let mut notes = Vec::new();
     let loss = match &args.lpips {
         Some(dir) => ImageLoss::lpips(edit::eval::lpips::Lpips::load(dir)?),
@@ -255,20 +283,28 @@ pub fn run(args: Args) -> anyhow::Result<()> {
 
     let plan = edit::run::work_plan(&job, &model, &scene, cameras.len());
     eprintln!("{}", plan.describe());
-    let available = edit::run::available_memory();
-    if let Some(avail) = available {
-        if plan.memory_bytes > avail && !args.ignore_memory_check {
-            bail!(
-                "this run needs about {:.1} GB but {:.1} GB are available; reduce --max-views or --size, \
-                 or pass --ignore-memory-check",
-                plan.memory_bytes as f64 / 1e9,
-                avail as f64 / 1e9
-            );
-        }
-    }
+    args.memory
+        .check(plan.memory_bytes, "--max-views or --size")?;
 
-    std::fs::create_dir_all(&args.out)
-        .with_context(|| format!("creating {}", args.out.display()))?;
+    // One run per folder: the settings that decide the result (a resumed run has the same), and the
+    // inputs, which no write or --force may touch.
+    let settings_key = fingerprint(&(
+        serde_json::to_string(&job)?,
+        &args.scene,
+        &args.views.cameras,
+        &args.model,
+        &args.lpips,
+    ));
+    let mut inputs = files_under(&args.scene, 2);
+    inputs.extend(args.views.cameras.iter().flat_map(|c| files_under(c, 2)));
+    let input_refs: Vec<&Path> = inputs.iter().map(PathBuf::as_path).collect();
+    let out_dir = OutputDir::open(
+        &args.out,
+        "edit",
+        &settings_key,
+        args.force.force,
+        &input_refs,
+    )?;
     let mut progress = Reporter::new();
     let result = run_edit(
         &job,
@@ -303,6 +339,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         &mut progress,
     )?;
     progress.finish();
+    out_dir.finish();
     println!("edited scene: {}", written.scene.display());
     println!("report: {}", written.report.display());
     println!("done in {:.1} min", t0.elapsed().as_secs_f64() / 60.0);

@@ -3,7 +3,7 @@
 use std::path::PathBuf;
 use std::time::Instant;
 
-use anyhow::{bail, Context};
+use anyhow::Context;
 use edit::present::viz;
 use edit::sampler::{
     edit_image, image_to_tensor, tensor_to_images, EditModel, EditPlan, SeededNoise,
@@ -11,6 +11,7 @@ use edit::sampler::{
 use splat::Image;
 
 use crate::args::editing::{ModelArgs, PromptArgs, SamplerArgs};
+use crate::args::output::{output_file, probe_folder, require_extension};
 use crate::progress::Reporter;
 
 /// Edit one image from a source prompt to a target prompt (InfEdit: inversion-free, LCM, attention control).
@@ -41,15 +42,11 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     diffusion::runtime::tune_allocator_for_inference();
     let settings = args.sampler.settings()?;
     let (w, h) = args.sampler.size();
-    if args
-        .out
-        .extension()
-        .and_then(|e| e.to_str())
-        .map(str::to_ascii_lowercase)
-        .as_deref()
-        != Some("png")
-    {
-        bail!("{}: the output must be a .png file", args.out.display());
+    // Every argument is checked before any work, and both outputs before the first is written.
+    require_extension(&args.out, "--out", &["png"], "the edited image")?;
+    output_file(&args.out, &[&args.image])?;
+    if let Some(dir) = &args.save_attention {
+        probe_folder(dir).context("--save-attention")?;
     }
     let input = Image::load(&args.image)?;
     let input = input
@@ -61,6 +58,8 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     let model = EditModel::load(&args.model.model, args.model.taesd.as_deref())
         .with_context(|| format!("loading model {}", args.model.model.display()))?;
     let load_time = t0.elapsed();
+    args.sampler.check_size(&model)?;
+    args.prompts.check_words(&model.tokenizer, None)?;
     let prompts = args.prompts.prompts();
     let plan = EditPlan::new(&model, &prompts, &settings, (w as usize, h as usize))?;
 
@@ -79,7 +78,6 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     out.save_png(&args.out)?;
 
     if let Some(dir) = &args.save_attention {
-        std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
         let maps = viz::word_maps(
             outcome.state.controller.blend_store(),
             plan.blend_size,

@@ -1,10 +1,13 @@
 //! `vcedit fit --data DIR --out scene.ply`: train a 3DGS scene from posed images.
 
-use anyhow::{Context, Result};
+use anyhow::{bail, Context, Result};
+use splat::cameras::{load_cameras, CameraSet};
 use splat::fit::{fit, load_dataset, DatasetOptions, FitConfig};
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::time::Instant;
 
+use crate::args::memory::MemoryCheckArg;
+use crate::args::output::{files_under, output_file, require_extension, SCENE_EXTENSIONS};
 use crate::args::parse::{positive, whole};
 use crate::args::{BackgroundArg, SizeArg};
 use crate::progress::Reporter;
@@ -25,7 +28,7 @@ pub struct Args {
     /// Folder (or file) with the posed images: COLMAP model or transforms*.json.
     #[arg(long, value_name = "DIR")]
     pub data: PathBuf,
-    /// Output PLY (INRIA layout), written atomically.
+    /// Output scene file (.ply, INRIA layout), written atomically; never one of the data's files.
     #[arg(long, value_name = "FILE")]
     pub out: PathBuf,
     /// Optimisation steps (one view per step). The default fits NeRF-synthetic scenes at 200x200 to
@@ -56,8 +59,8 @@ pub struct Args {
         allow_negative_numbers = true
     )]
     pub sh_degree: u32,
-    /// Random initial points when the data has no point cloud.
-    #[arg(long, default_value_t = 20_000, value_parser = whole::<usize>, allow_negative_numbers = true)]
+    /// Random initial points when the data has no point cloud (or an empty one).
+    #[arg(long, default_value_t = 20_000, value_parser = positive::<usize>, allow_negative_numbers = true)]
     pub init_points: usize,
     /// Stop densifying after this step (default: half of --steps, at most 15000).
     #[arg(long, value_name = "STEP", value_parser = whole::<u64>, allow_negative_numbers = true)]
@@ -71,10 +74,53 @@ pub struct Args {
         allow_negative_numbers = true
     )]
     pub eval_every: u64,
+    #[command(flatten)]
+    pub memory: MemoryCheckArg,
+}
+
+/// Peak memory of a fit, roughly: the decoded training images, a full-resolution decode per thread while
+/// loading, the renderer's per-pixel buffers (forward, backward, SSIM) and the Gaussians with their
+/// gradients and moments, allowing densification to grow them tenfold.
+fn fit_memory(set: &CameraSet, size: Option<(u32, u32)>, init_points: usize) -> u64 {
+    let pixels = |w: u32, h: u32| w as u64 * h as u64;
+    let working: Vec<u64> = set
+        .cameras
+        .iter()
+        .map(|c| size.map_or(pixels(c.width, c.height), |(w, h)| pixels(w, h)))
+        .collect();
+    let images: u64 = working.iter().map(|p| p * 3 * 4).sum();
+    let largest_source = set
+        .cameras
+        .iter()
+        .map(|c| pixels(c.width, c.height))
+        .max()
+        .unwrap_or(0);
+    let threads = rayon::current_num_threads() as u64;
+    let decode = largest_source * 4 * 4 * threads;
+    let render = working.iter().copied().max().unwrap_or(0) * 4 * 48;
+    let points = set
+        .points
+        .as_ref()
+        .map_or(0, |p| p.positions.len())
+        .max(init_points) as u64;
+    // 59 floats per Gaussian at SH degree 3; parameters, gradients, two moments and spare copies.
+    let gaussians = 10 * points * 59 * 4 * 6;
+    images + decode + render + gaussians + 300_000_000
 }
 
 pub fn run(args: Args) -> Result<()> {
     let started = Instant::now();
+    // Everything is checked before the (long) fit: where it writes, what it reads, whether it fits.
+    require_extension(&args.out, "--out", SCENE_EXTENSIONS, "the fitted scene")?;
+    let set = load_cameras(&args.data).context("cannot load the training data")?;
+    let mut inputs: Vec<PathBuf> = files_under(&args.data, 2);
+    inputs.extend(set.image_paths.iter().flatten().cloned());
+    let input_refs: Vec<&Path> = inputs.iter().map(PathBuf::as_path).collect();
+    output_file(&args.out, &input_refs)?;
+    args.memory.check(
+        fit_memory(&set, args.size.size, args.init_points),
+        "--size (or the number of views)",
+    )?;
     let dataset = load_dataset(
         &args.data,
         &DatasetOptions {
@@ -92,8 +138,14 @@ pub fn run(args: Args) -> Result<()> {
         "{} training and {} held-out views at {w}x{h}{}",
         dataset.train.len(),
         dataset.test.len(),
+        // Say what is really used: an empty point cloud falls back to random points.
         match &dataset.points {
-            Some(p) => format!(", {} initial points from the data", p.positions.len()),
+            Some(p) if !p.positions.is_empty() =>
+                format!(", {} initial points from the data", p.positions.len()),
+            Some(_) => format!(
+                "; the data's point cloud (points3D) is empty: starting from {} random points",
+                args.init_points
+            ),
             None => format!(", {} random initial points", args.init_points),
         }
     );
@@ -132,6 +184,12 @@ pub fn run(args: Args) -> Result<()> {
         }
     });
     progress.finish();
+    if result.scene.is_empty() {
+        bail!(
+            "the fit ended with no Gaussians (they were all pruned); nothing written to {}",
+            args.out.display()
+        );
+    }
     splat::ply::write_ply(&args.out, &result.scene)
         .with_context(|| format!("cannot write {}", args.out.display()))?;
     let t = result.seconds;

@@ -19,6 +19,7 @@ use splat::{Camera, GaussianScene, Image};
 use std::path::PathBuf;
 use std::time::Instant;
 
+use crate::args::output::output_file;
 use crate::args::parse::{finite, positive};
 use crate::args::{BackgroundArg, CameraArgs, CameraSource, SizeArg};
 
@@ -169,6 +170,15 @@ pub fn run(args: Args) -> Result<()> {
             args.depth_tolerance
         );
     }
+    args.views.validate()?;
+    if let Some(path) = &args.json {
+        let inputs: Vec<&std::path::Path> = [&args.source, &args.edited]
+            .into_iter()
+            .chain(args.views.cameras.as_ref())
+            .map(PathBuf::as_path)
+            .collect();
+        output_file(path, &inputs)?;
+    }
     // Load CLIP first: a wrong folder should fail before minutes of rendering.
     let clip = match &args.clip {
         Some(dir) => Some(
@@ -176,10 +186,8 @@ pub fn run(args: Args) -> Result<()> {
         ),
         None => None,
     };
-    let (source, own) = splat::open_scene(&args.source)
-        .with_context(|| format!("opening the source scene {}", args.source.display()))?;
-    let (edited, _) = splat::open_scene(&args.edited)
-        .with_context(|| format!("opening the edited scene {}", args.edited.display()))?;
+    let (source, own) = splat::open_scene(&args.source).context("the source scene")?;
+    let (edited, _) = splat::open_scene(&args.edited).context("the edited scene")?;
     if source.is_empty() || edited.is_empty() {
         bail!(
             "{} has no Gaussians",
@@ -298,7 +306,7 @@ pub fn run(args: Args) -> Result<()> {
             seconds: t0.elapsed().as_secs_f64(),
         };
         let text = serde_json::to_string_pretty(&out)?;
-        splat::atomic_write(path, text.as_bytes())
+        files::atomic_write(path, text.as_bytes())
             .with_context(|| format!("writing {}", path.display()))?;
         eprintln!("wrote {}", path.display());
     }

@@ -6,6 +6,7 @@ use splat::Image;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
+use crate::args::output::{fingerprint, ForceArg, OutputDir};
 use crate::args::{BackgroundArg, CameraArgs, CameraSource, SizeArg};
 use crate::progress::Reporter;
 
@@ -29,9 +30,11 @@ pub struct Args {
     pub scene: PathBuf,
     #[command(flatten)]
     pub views: CameraArgs,
-    /// Output folder (created if needed).
+    /// Output folder (created if needed). A folder holding another run's renders is refused (see --force).
     #[arg(long, value_name = "DIR")]
     pub out: PathBuf,
+    #[command(flatten)]
+    pub force: ForceArg,
     #[command(flatten)]
     pub size: SizeArg,
     /// Also write the depth of each view (grey PNG, near = bright; normalised per view between the 1st and
@@ -98,6 +101,7 @@ fn save(img: &Image, path: &Path) -> Result<()> {
 
 pub fn run(args: Args) -> Result<()> {
     let t0 = Instant::now();
+    args.views.validate()?;
     let (scene, own_cameras) = splat::open_scene(&args.scene)?;
     let (cameras, source) =
         args.views
@@ -109,8 +113,25 @@ pub fn run(args: Args) -> Result<()> {
         } => format!("{source} (the scene has no cameras; see --cameras, --orbit)"),
         _ => source.to_string(),
     };
-    std::fs::create_dir_all(&args.out)
-        .with_context(|| format!("{}: cannot create the output folder", args.out.display()))?;
+    // Everything that decides the files written; a folder of another render is not mixed with this one.
+    let settings_key = fingerprint(&(
+        &args.scene,
+        &args.views,
+        &args.size,
+        args.depth,
+        args.alpha,
+        &args.background,
+    ));
+    let inputs: Vec<&Path> = std::iter::once(args.scene.as_path())
+        .chain(args.views.cameras.as_deref())
+        .collect();
+    let out_dir = OutputDir::open(
+        &args.out,
+        "render",
+        &settings_key,
+        args.force.force,
+        &inputs,
+    )?;
     eprintln!(
         "{}: {} Gaussians (SH degree {}), rendering {} views from {source}",
         args.scene.display(),
@@ -141,6 +162,7 @@ pub fn run(args: Args) -> Result<()> {
         progress.advance(1);
     }
     progress.finish();
+    out_dir.finish();
     let per_view = t_render.elapsed().as_secs_f64() / cameras.len().max(1) as f64;
     eprintln!(
         "wrote {} views to {} ({:.0} ms per view, {:.1} s total)",

@@ -1,10 +1,12 @@
 //! `vcedit view SCENE [SCENE2]`: a self-contained HTML page to turn one scene around, or to compare two.
 
-use anyhow::{bail, Context, Result};
+use anyhow::{bail, Result};
 use edit::present::viewer::{
     write_viewer_page, InitialView, ViewerOptions, ViewerScene, DEFAULT_CAP, RECORD_BYTES,
 };
 use std::path::{Path, PathBuf};
+
+use crate::args::output::{files_under, output_file};
 
 #[derive(clap::Args, Debug)]
 #[command(
@@ -60,19 +62,18 @@ pub fn run(args: Args) -> Result<()> {
             .unwrap_or(name);
         PathBuf::from(format!("{stem}-view.html"))
     });
-    for p in &paths {
-        if let (Ok(a), Ok(b)) = (p.canonicalize(), out.canonicalize()) {
-            if a == b {
-                bail!("--out {} is one of the scenes", out.display());
-            }
-        }
+    if paths.iter().any(|p| files::same_file(p, &out)) {
+        bail!("--out {} is one of the scenes", out.display());
     }
+    let inputs: Vec<PathBuf> = paths.iter().flat_map(|p| files_under(p, 3)).collect();
+    let input_refs: Vec<&Path> = inputs.iter().map(PathBuf::as_path).collect();
+    output_file(&out, &input_refs)?;
 
     let mut scenes = Vec::new();
     let mut cameras = None;
     for p in &paths {
-        let (scene, cams) =
-            splat::open_scene(p).with_context(|| format!("opening {}", p.display()))?;
+        // The reader's errors name the file.
+        let (scene, cams) = splat::open_scene(p)?;
         if scene.is_empty() {
             bail!("{}: the scene has no Gaussians", p.display());
         }

@@ -167,7 +167,7 @@ fn load_tensors(path: &Path) -> Result<HashMap<String, Tensor>, TrainError> {
 fn write_json(path: &Path, value: &impl Serialize) -> Result<(), TrainError> {
     let mut text = serde_json::to_string_pretty(value).expect("serialisable");
     text.push('\n');
-    splat::atomic_write(path, text.as_bytes()).map_err(io_err(path))
+    files::atomic_write(path, text.as_bytes()).map_err(io_err(path))
 }
 
 /// A trainable model's weights, optimiser and EMA, checkpointed together.
@@ -276,7 +276,7 @@ pub fn train(
     std::fs::create_dir_all(&paths.checkpoints).map_err(io_err(&paths.checkpoints))?;
     // Checkpoints are large and local: keep them out of version control wherever OUT lives.
     let ignore = paths.checkpoints.join(".gitignore");
-    splat::atomic_write(&ignore, b"*\n").map_err(io_err(&ignore))?;
+    files::atomic_write(&ignore, b"*\n").map_err(io_err(&ignore))?;
 
     let mut state = match std::fs::read_to_string(paths.state()) {
         Ok(text) => {
@@ -576,7 +576,7 @@ fn encode_latents(
     })?;
     let captions = serde_json::to_string(&data.captions).expect("json");
     let caption_path = paths.checkpoints.join("captions.json");
-    splat::atomic_write(&caption_path, captions.as_bytes()).map_err(io_err(&caption_path))?;
+    files::atomic_write(&caption_path, captions.as_bytes()).map_err(io_err(&caption_path))?;
     let tensors = HashMap::from([
         ("mean".to_string(), mean.clone()),
         ("std".to_string(), std.clone()),
@@ -774,5 +774,5 @@ fn write_readme(
         unet_loss = loss_line("unet", "UNet noise-prediction MSE"),
     );
     let path = out.join("README.md");
-    splat::atomic_write(&path, text.as_bytes()).map_err(io_err(&path))
+    files::atomic_write(&path, text.as_bytes()).map_err(io_err(&path))
 }

@@ -318,7 +318,7 @@ pub fn write_sample_grid(
     let txt = path.with_extension("txt");
     let mut text = captions.join("\n");
     text.push('\n');
-    splat::atomic_write(&txt, text.as_bytes()).map_err(|e| write_err(&txt, e.to_string()))?;
+    files::atomic_write(&txt, text.as_bytes()).map_err(|e| write_err(&txt, e.to_string()))?;
     Ok(captions)
 }
 

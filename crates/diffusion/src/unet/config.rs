@@ -389,7 +389,10 @@ impl UNetConfig {
         let groups = self.norm_num_groups.unwrap_or(0);
         reject(
             groups > 0,
-            "norm_num_groups = null (supported: a group count)".to_string(),
+            match self.norm_num_groups {
+                None => "norm_num_groups = null (supported: a group count)".to_string(),
+                Some(g) => format!("norm_num_groups = {g} (must be at least 1)"),
+            },
         );
 
         let mut per_block = |name: &str, value: Option<Vec<usize>>| -> Vec<usize> {

@@ -120,7 +120,7 @@ pub fn write_gif(path: &Path, frames: &[Image], options: &GifOptions) -> Result<
         path: path.to_path_buf(),
         msg,
     })?;
-    splat::atomic_write(path, &bytes).map_err(|e| GifError::Write {
+    files::atomic_write(path, &bytes).map_err(|e| GifError::Write {
         path: path.to_path_buf(),
         msg: e.to_string(),
     })

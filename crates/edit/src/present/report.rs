@@ -681,7 +681,7 @@ pub fn write_report_with_viewer(
 
 fn write_page(dir: &Path, html: &str) -> Result<PathBuf, ReportError> {
     let path = dir.join(REPORT_FILE);
-    splat::atomic_write(&path, html.as_bytes()).map_err(|e| ReportError::Write {
+    files::atomic_write(&path, html.as_bytes()).map_err(|e| ReportError::Write {
         path: path.clone(),
         msg: e.to_string(),
     })?;

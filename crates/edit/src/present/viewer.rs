@@ -464,7 +464,7 @@ pub fn write_viewer_page(
     options: &ViewerOptions,
 ) -> Result<Vec<usize>, ViewerError> {
     let (viewer, embedded) = build(scenes, view, options);
-    splat::atomic_write(path, page(title, viewer).as_bytes()).map_err(|e| ViewerError::Write {
+    files::atomic_write(path, page(title, viewer).as_bytes()).map_err(|e| ViewerError::Write {
         path: path.to_path_buf(),
         msg: e.to_string(),
     })?;

@@ -112,7 +112,7 @@ impl Checkpoint {
         trainer.save(&state_path)?;
         let path = meta_path(out);
         let json = serde_json::to_vec_pretty(self).expect("serialisable");
-        splat::atomic_write(&path, &json).map_err(|e| io_err(&path, e))?;
+        files::atomic_write(&path, &json).map_err(|e| io_err(&path, e))?;
         // Older iterations' files are no longer needed.
         if k > 0 {
             let _ = std::fs::remove_file(dir.join(format!("scene_{}.ply", k - 1)));

@@ -369,7 +369,7 @@ pub fn write_outputs(
         iterations: &result.times,
     };
     let p = out.join("run.json");
-    splat::atomic_write(&p, &serde_json::to_vec_pretty(&run).expect("serialisable"))
+    files::atomic_write(&p, &serde_json::to_vec_pretty(&run).expect("serialisable"))
         .map_err(|e| io_err(&p, e))?;
     Ok(Written {
         scene: scene_path,

@@ -148,13 +148,9 @@ pub fn blend_layer_size(down_block_types: &[String], latent: (usize, usize)) -> 
 }
 
 impl EditPlan {
-    /// Prepares an edit of images of `image_size` (width, height) pixels.
-    pub fn new(
-        model: &EditModel,
-        prompts: &EditPrompts,
-        settings: &InfEditSettings,
-        image_size: (usize, usize),
-    ) -> Result<Self, EditError> {
+    /// Whether `model` can edit images of `image_size` (width, height) pixels: a cheap check, made before
+    /// any work by callers that validate their arguments up front (and again by [`EditPlan::new`]).
+    pub fn check_size(model: &EditModel, image_size: (usize, usize)) -> Result<(), EditError> {
         let f = model.downscale();
         let (iw, ih) = image_size;
         if iw % f != 0 || ih % f != 0 || iw == 0 || ih == 0 {
@@ -162,7 +158,6 @@ impl EditPlan {
                 "image size {iw}x{ih} must be a positive multiple of {f} (the codec's downscale)"
             )));
         }
-        let latent_size = (ih / f, iw / f);
         // Each down block but the last halves the latents; odd sizes would not line up with the up path.
         let levels = model.unet.config().down_block_types.len().saturating_sub(1) as u32;
         let multiple = f * 2usize.pow(levels);
@@ -172,6 +167,20 @@ impl EditPlan {
                  ({f}x codec, {levels} UNet downsamplings)"
             )));
         }
+        Ok(())
+    }
+
+    /// Prepares an edit of images of `image_size` (width, height) pixels.
+    pub fn new(
+        model: &EditModel,
+        prompts: &EditPrompts,
+        settings: &InfEditSettings,
+        image_size: (usize, usize),
+    ) -> Result<Self, EditError> {
+        Self::check_size(model, image_size)?;
+        let f = model.downscale();
+        let (iw, ih) = image_size;
+        let latent_size = (ih / f, iw / f);
         let tok = &model.tokenizer;
         let strict = |which: &'static str, text: &str| {
             tok.encode_strict(text)

@@ -1,0 +1,247 @@
+//! Where commands write, under one policy (the mechanism is the `files` crate):
+//!
+//! - an output file is never one of the command's inputs, however the paths are spelt ([`output_file`]);
+//! - an output folder holds the files of one run ([`OutputDir`]): a folder holding another run is refused
+//!   unless `--force` ([`ForceArg`]) clears what vcedit wrote there, and a run that fails before writing
+//!   anything leaves no folder behind;
+//! - temporary files of killed runs in every output folder are removed.
+
+use std::fmt::Debug;
+use std::path::{Path, PathBuf};
+
+use anyhow::{bail, Result};
+use files::{RunDir, RunDirMode};
+
+/// File extensions of scene files vcedit writes, lower case, longest first (so `.compressed.ply` is
+/// matched before `.ply`). Commands that write a scene check their output against this list.
+pub const SCENE_EXTENSIONS: &[&str] = &["ply"];
+
+/// `--force` for commands that write into an output folder.
+#[derive(clap::Args, Debug, Clone)]
+pub struct ForceArg {
+    /// Replace the outputs of another vcedit run in --out: the files vcedit wrote there are removed
+    /// first (nothing else). Without it such a folder is refused.
+    #[arg(long)]
+    pub force: bool,
+}
+
+/// Prepares the output file `out`: refuses it when it is one of `inputs` (also through `./`, `..`,
+/// symbolic and hard links), then removes temporary files that killed runs left in its folder.
+pub fn output_file(out: &Path, inputs: &[&Path]) -> Result<()> {
+    files::check_not_inputs(&[out], inputs)?;
+    if out.is_dir() {
+        bail!("{}: is a folder; the output must be a file", out.display());
+    }
+    let dir = parent_of(out);
+    if dir.exists() && !dir.is_dir() {
+        bail!("{}: {} is not a folder", out.display(), dir.display());
+    }
+    files::clean_stale_temps(dir).map_err(|e| anyhow::anyhow!("{}: {e}", dir.display()))?;
+    Ok(())
+}
+
+/// Refuses `out` (the value of `option`) unless its name ends in one of `extensions` (any case).
+pub fn require_extension(out: &Path, option: &str, extensions: &[&str], what: &str) -> Result<()> {
+    let name = out
+        .file_name()
+        .map(|n| n.to_string_lossy().to_ascii_lowercase())
+        .unwrap_or_default();
+    let ok = extensions
+        .iter()
+        .any(|ext| name.len() > ext.len() + 1 && name.ends_with(&format!(".{ext}")));
+    if !ok {
+        let list = extensions
+            .iter()
+            .map(|e| format!(".{e}"))
+            .collect::<Vec<_>>()
+            .join(", ");
+        bail!("{option} {}: {what} must end in {list}", out.display());
+    }
+    Ok(())
+}
+
+/// The files under `dir` (down to `depth` levels of folders), as inputs to protect; `dir` itself when
+/// it is a file. A folder a command reads (a dataset, a model) is protected file by file this way.
+pub fn files_under(dir: &Path, depth: usize) -> Vec<PathBuf> {
+    if !dir.is_dir() {
+        return vec![dir.to_path_buf()];
+    }
+    let mut out = Vec::new();
+    let Ok(entries) = std::fs::read_dir(dir) else {
+        return out;
+    };
+    for entry in entries.flatten() {
+        let p = entry.path();
+        if p.is_dir() {
+            if depth > 0 {
+                out.extend(files_under(&p, depth - 1));
+            }
+        } else {
+            out.push(p);
+        }
+    }
+    out
+}
+
+/// Makes sure files can be written into the folder `dir` (creating it if needed), so that a command with
+/// several outputs does not fail on the second after writing the first.
+pub fn probe_folder(dir: &Path) -> Result<()> {
+    if dir.exists() && !dir.is_dir() {
+        bail!("{}: exists and is not a folder", dir.display());
+    }
+    std::fs::create_dir_all(dir)
+        .map_err(|e| anyhow::anyhow!("{}: cannot create the folder: {e}", dir.display()))?;
+    let probe = dir.join(format!(".vcedit-probe-{}", std::process::id()));
+    std::fs::write(&probe, b"")
+        .map_err(|e| anyhow::anyhow!("{}: cannot write into the folder: {e}", dir.display()))?;
+    let _ = std::fs::remove_file(&probe);
+    files::clean_stale_temps(dir)?;
+    Ok(())
+}
+
+/// [`files::clean_stale_temps`] in every folder under `dir`, down to `depth` levels.
+fn clean_stale_temps_below(dir: &Path, depth: usize) -> Result<()> {
+    if depth == 0 {
+        return Ok(());
+    }
+    let Ok(entries) = std::fs::read_dir(dir) else {
+        return Ok(());
+    };
+    for entry in entries.flatten() {
+        let path = entry.path();
+        if entry.file_type().is_ok_and(|t| t.is_dir()) {
+            files::clean_stale_temps(&path)
+                .map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))?;
+            clean_stale_temps_below(&path, depth - 1)?;
+        }
+    }
+    Ok(())
+}
+
+fn parent_of(path: &Path) -> &Path {
+    match path.parent() {
+        Some(p) if !p.as_os_str().is_empty() => p,
+        _ => Path::new("."),
+    }
+}
+
+/// A short, stable fingerprint of a command's settings: a hash of their `Debug` text. Callers pass the
+/// settings that decide the outputs (not `--out`, `--force` or `--resume`).
+pub fn fingerprint(settings: &impl Debug) -> String {
+    let text = format!("{settings:?}");
+    // FNV-1a: stable across builds and platforms, unlike std's hasher.
+    let mut h: u64 = 0xcbf2_9ce4_8422_2325;
+    for b in text.bytes() {
+        h ^= b as u64;
+        h = h.wrapping_mul(0x100_0000_01b3);
+    }
+    format!("{h:016x}")
+}
+
+/// An output folder open for one run; see the module documentation. Call [`OutputDir::finish`] when the
+/// run succeeded; dropped without it after a failure, it removes what it created if nothing was written.
+pub struct OutputDir {
+    run: Option<RunDir>,
+    created: bool,
+    finished: bool,
+}
+
+impl OutputDir {
+    /// Opens `dir` for `command` with settings `fingerprint`; `inputs` are never removed or replaced.
+    pub fn open(
+        dir: &Path,
+        command: &str,
+        fingerprint: &str,
+        force: bool,
+        inputs: &[&Path],
+    ) -> Result<Self> {
+        let created = !dir.exists();
+        let mode = if force {
+            RunDirMode::Force
+        } else {
+            RunDirMode::Keep
+        };
+        let run = RunDir::open(dir, command, fingerprint, mode, inputs)?;
+        // RunDir cleans the folder itself; a run killed while writing into a subfolder (a checkpoint,
+        // an iteration's guidance) left its temporary file there.
+        clean_stale_temps_below(dir, 3)?;
+        Ok(Self {
+            run: Some(run),
+            created,
+            finished: false,
+        })
+    }
+
+    /// The run succeeded: keep the folder.
+    pub fn finish(mut self) {
+        self.finished = true;
+    }
+}
+
+impl Drop for OutputDir {
+    fn drop(&mut self) {
+        let Some(run) = self.run.take() else {
+            return;
+        };
+        let dir = run.path().to_path_buf();
+        let untouched = !self.finished
+            && run.previous() == files::Previous::Nothing
+            && run.recorded().is_ok_and(|r| r.is_empty());
+        drop(run);
+        if untouched {
+            // Nothing was written: leave the place as it was found.
+            let _ = std::fs::remove_file(dir.join(files::MANIFEST_NAME));
+            if self.created {
+                let _ = std::fs::remove_dir(&dir);
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn extensions_are_checked_case_insensitively() {
+        let ok = |p: &str| {
+            require_extension(
+                Path::new(p),
+                "--out",
+                &["compressed.ply", "ply"],
+                "the scene",
+            )
+            .is_ok()
+        };
+        assert!(ok("a.ply") && ok("dir/A.PLY") && ok("x.compressed.ply"));
+        assert!(!ok("transforms.json") && !ok(".ply") && !ok("ply") && !ok("a.ply.bak"));
+        let err = require_extension(Path::new("t.json"), "--out", &["ply"], "the scene")
+            .unwrap_err()
+            .to_string();
+        assert!(
+            err.contains("--out t.json") && err.contains(".ply"),
+            "{err}"
+        );
+    }
+
+    #[test]
+    fn a_failed_run_leaves_no_folder() {
+        let tmp = tempfile::tempdir().unwrap();
+        let dir = tmp.path().join("out");
+        {
+            let _out = OutputDir::open(&dir, "render", "a", false, &[]).unwrap();
+            assert!(dir.is_dir());
+        }
+        assert!(!dir.exists());
+        let out = OutputDir::open(&dir, "render", "a", false, &[]).unwrap();
+        files::atomic_write(&dir.join("view.png"), b"x").unwrap();
+        drop(out);
+        assert!(dir.join("view.png").exists());
+    }
+
+    #[test]
+    fn fingerprints_follow_the_settings() {
+        assert_eq!(fingerprint(&(1, "a")), fingerprint(&(1, "a")));
+        assert_ne!(fingerprint(&(1, "a")), fingerprint(&(2, "a")));
+    }
+}

@@ -1,0 +1,320 @@
+//! A small mutation fuzzer for vcedit's file readers, run by `cargo test` on stable Rust (no
+//! `cargo fuzz`, no nightly): each target starts from valid files and feeds its reader mutated copies
+//! (truncated, bytes flipped, pieces spliced in or dropped, numbers made huge, negative or NaN) for a
+//! bounded time. A reader may reject any input with an error; it may not panic. A panicking input is
+//! saved under the crash folder and fails the test, so it can be replayed and added to the corpus.
+//!
+//! Time per target: `VCEDIT_FUZZ_SECONDS` (default [`DEFAULT_SECONDS`]); the random sequence starts
+//! from `VCEDIT_FUZZ_SEED` (default 1), so a run can be repeated.
+
+use std::panic::{catch_unwind, AssertUnwindSafe};
+use std::path::{Path, PathBuf};
+use std::time::{Duration, Instant};
+
+/// Seconds per target when `VCEDIT_FUZZ_SECONDS` is not set: short enough for every `cargo test`.
+pub const DEFAULT_SECONDS: f64 = 5.0;
+
+/// Numbers that break careless readers: counts and lengths at the edges of their types.
+const NASTY_BINARY: [u64; 8] = [
+    0,
+    1,
+    0x7fff_ffff,
+    0xffff_ffff,
+    0x8000_0000_0000_0000,
+    u64::MAX,
+    0x0000_0001_0000_0000,
+    0x7ff8_0000_0000_0000, // NaN as an f64
+];
+const NASTY_TEXT: [&str; 10] = [
+    "0",
+    "-1",
+    "4294967295",
+    "18446744073709551616",
+    "99999999999999999999999",
+    "nan",
+    "inf",
+    "-inf",
+    "1e309",
+    "",
+];
+
+/// What a fuzz run did.
+#[derive(Debug, Default)]
+pub struct Summary {
+    pub inputs: u64,
+    /// Files the panicking inputs were saved to.
+    pub crashes: Vec<PathBuf>,
+}
+
+/// The seconds a target runs for: `VCEDIT_FUZZ_SECONDS`, else [`DEFAULT_SECONDS`].
+pub fn budget() -> Duration {
+    let secs = std::env::var("VCEDIT_FUZZ_SECONDS")
+        .ok()
+        .and_then(|v| v.trim().parse::<f64>().ok())
+        .filter(|v| v.is_finite() && *v >= 0.0)
+        .unwrap_or(DEFAULT_SECONDS);
+    Duration::from_secs_f64(secs)
+}
+
+/// xorshift64*: tiny, seedable, good enough to pick mutations.
+struct Rng(u64);
+
+impl Rng {
+    fn next(&mut self) -> u64 {
+        self.0 ^= self.0 >> 12;
+        self.0 ^= self.0 << 25;
+        self.0 ^= self.0 >> 27;
+        self.0.wrapping_mul(0x2545_f491_4f6c_dd1d)
+    }
+    fn below(&mut self, n: usize) -> usize {
+        if n == 0 {
+            0
+        } else {
+            (self.next() % n as u64) as usize
+        }
+    }
+}
+
+/// One mutation of `input`; `seeds` supply pieces to splice in.
+fn mutate(input: &mut Vec<u8>, seeds: &[Vec<u8>], rng: &mut Rng) {
+    let len = input.len();
+    match rng.below(9) {
+        // Truncate.
+        0 => input.truncate(rng.below(len + 1)),
+        // Flip a few bits.
+        1 => {
+            for _ in 0..=rng.below(4) {
+                if !input.is_empty() {
+                    let i = rng.below(input.len());
+                    input[i] ^= 1 << rng.below(8);
+                }
+            }
+        }
+        // Overwrite a byte with an arbitrary one.
+        2 => {
+            if len > 0 {
+                let i = rng.below(len);
+                input[i] = rng.next() as u8;
+            }
+        }
+        // A huge, zero or NaN number in binary, at any offset (counts and lengths in headers).
+        3 => {
+            let v = NASTY_BINARY[rng.below(NASTY_BINARY.len())];
+            let bytes = if rng.below(2) == 0 {
+                v.to_le_bytes().to_vec()
+            } else {
+                (v as u32).to_le_bytes().to_vec()
+            };
+            if len >= bytes.len() {
+                let at = rng.below(len - bytes.len() + 1);
+                input[at..at + bytes.len()].copy_from_slice(&bytes);
+            }
+        }
+        // A number in text replaced by a nasty one.
+        4 => {
+            let digits: Vec<usize> = (0..len).filter(|&i| input[i].is_ascii_digit()).collect();
+            if !digits.is_empty() {
+                let start = digits[rng.below(digits.len())];
+                let mut end = start;
+                while end < len && (input[end].is_ascii_digit() || input[end] == b'.') {
+                    end += 1;
+                }
+                let with = NASTY_TEXT[rng.below(NASTY_TEXT.len())].as_bytes();
+                input.splice(start..end, with.iter().copied());
+            }
+        }
+        // Splice in a piece of a seed (or of itself).
+        5 => {
+            let donor = &seeds[rng.below(seeds.len())];
+            if !donor.is_empty() {
+                let a = rng.below(donor.len());
+                let b = (a + 1 + rng.below(64)).min(donor.len());
+                let at = rng.below(len + 1);
+                input.splice(at..at, donor[a..b].iter().copied());
+            }
+        }
+        // Drop a range.
+        6 => {
+            if len > 0 {
+                let a = rng.below(len);
+                let b = (a + 1 + rng.below(64)).min(len);
+                input.drain(a..b);
+            }
+        }
+        // Duplicate a range (repeated lines, repeated records).
+        7 => {
+            if len > 0 {
+                let a = rng.below(len);
+                let b = (a + 1 + rng.below(256)).min(len);
+                let piece = input[a..b].to_vec();
+                input.splice(b..b, piece);
+            }
+        }
+        // Insert random bytes.
+        _ => {
+            let at = rng.below(len + 1);
+            let n = 1 + rng.below(8);
+            let bytes: Vec<u8> = (0..n).map(|_| rng.next() as u8).collect();
+            input.splice(at..at, bytes);
+        }
+    }
+}
+
+/// Runs target `name` for `time`: every seed as given, then mutated copies (one to four mutations each)
+/// until the time is up. `check` reads one input and must not panic (errors are fine). Panicking inputs
+/// are saved to `crash_dir/NAME-N.bin`; the summary lists them.
+pub fn run_for(
+    name: &str,
+    seeds: &[Vec<u8>],
+    crash_dir: &Path,
+    time: Duration,
+    mut check: impl FnMut(&[u8]),
+) -> Summary {
+    assert!(!seeds.is_empty(), "fuzz target {name} has no seeds");
+    let seed = std::env::var("VCEDIT_FUZZ_SEED")
+        .ok()
+        .and_then(|v| v.trim().parse::<u64>().ok())
+        .unwrap_or(1);
+    let mut rng = Rng(seed.wrapping_mul(0x9e37_79b9_7f4a_7c15) | 1);
+    let deadline = Instant::now() + time;
+    let mut summary = Summary::default();
+    let mut try_one = |input: &[u8], summary: &mut Summary| {
+        summary.inputs += 1;
+        if catch_unwind(AssertUnwindSafe(|| check(input))).is_err() {
+            let _ = std::fs::create_dir_all(crash_dir);
+            let path = crash_dir.join(format!("{name}-{}.bin", summary.crashes.len()));
+            let _ = std::fs::write(&path, input);
+            summary.crashes.push(path);
+        }
+    };
+    for s in seeds {
+        try_one(s, &mut summary);
+    }
+    while Instant::now() < deadline && summary.crashes.len() < 10 {
+        let mut input = seeds[rng.below(seeds.len())].clone();
+        for _ in 0..=rng.below(4) {
+            mutate(&mut input, seeds, &mut rng);
+        }
+        try_one(&input, &mut summary);
+    }
+    summary
+}
+
+/// [`run_for`] with the [`budget`] from the environment, then a test failure naming the saved inputs if
+/// any panicked.
+pub fn run_and_assert(name: &str, seeds: &[Vec<u8>], crash_dir: &Path, check: impl FnMut(&[u8])) {
+    let summary = run_for(name, seeds, crash_dir, budget(), check);
+    println!("fuzz {name}: {} inputs", summary.inputs);
+    assert!(
+        summary.crashes.is_empty(),
+        "fuzz {name}: {} of {} inputs panicked; saved as {:?} (replay them through the reader)",
+        summary.crashes.len(),
+        summary.inputs,
+        summary.crashes
+    );
+}
+
+/// A scratch folder for one target's inputs, removed when dropped.
+struct Scratch(PathBuf);
+
+impl Scratch {
+    fn new(name: &str) -> Self {
+        let dir = std::env::temp_dir().join(format!("vcedit-fuzz-{name}-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).expect("scratch folder for fuzzing");
+        Self(dir)
+    }
+}
+
+impl Drop for Scratch {
+    fn drop(&mut self) {
+        let _ = std::fs::remove_dir_all(&self.0);
+    }
+}
+
+/// Fuzzes a reader of one file: each input is written to a file named `file_name`, whose path `check`
+/// reads.
+pub fn run_file_and_assert(
+    name: &str,
+    file_name: &str,
+    seeds: &[Vec<u8>],
+    crash_dir: &Path,
+    mut check: impl FnMut(&Path),
+) {
+    let scratch = Scratch::new(name);
+    let path = scratch.0.join(file_name);
+    run_and_assert(name, seeds, crash_dir, |input| {
+        std::fs::write(&path, input).expect("scratch file");
+        check(&path);
+    });
+}
+
+/// Fuzzes a reader of several files in one folder (a COLMAP model, a tokenizer folder): each input
+/// replaces one of the files `names` of `valid_dir` (its first byte picks which) while the others stay
+/// valid; `check` reads the folder. Seeded from the valid files.
+pub fn run_file_set_and_assert(
+    name: &str,
+    valid_dir: &Path,
+    names: &[&str],
+    crash_dir: &Path,
+    mut check: impl FnMut(&Path),
+) {
+    let seeds: Vec<Vec<u8>> = names
+        .iter()
+        .enumerate()
+        .map(|(i, file)| {
+            let mut v = vec![i as u8];
+            v.extend(std::fs::read(valid_dir.join(file)).expect("valid seed file"));
+            v
+        })
+        .collect();
+    let scratch = Scratch::new(name);
+    run_and_assert(name, &seeds, crash_dir, |input| {
+        let Some((&which, content)) = input.split_first() else {
+            return;
+        };
+        for (i, file) in names.iter().enumerate() {
+            let path = scratch.0.join(file);
+            if i == which as usize % names.len() {
+                std::fs::write(path, content).expect("scratch file");
+            } else {
+                std::fs::copy(valid_dir.join(file), path).expect("scratch file");
+            }
+        }
+        check(&scratch.0);
+    });
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn mutations_stay_in_bounds_and_vary() {
+        let seeds = vec![
+            b"ply\nelement vertex 12\nend_header\n".to_vec(),
+            vec![0u8; 40],
+        ];
+        let mut rng = Rng(7);
+        let mut distinct = std::collections::HashSet::new();
+        for i in 0..2000 {
+            let mut input = seeds[i % 2].clone();
+            mutate(&mut input, &seeds, &mut rng);
+            distinct.insert(input);
+        }
+        assert!(distinct.len() > 500, "{}", distinct.len());
+    }
+
+    #[test]
+    fn panics_are_caught_and_saved() {
+        let dir = tempfile::tempdir().unwrap();
+        let time = Duration::from_millis(200);
+        let summary = run_for("toy", &[b"abc".to_vec()], dir.path(), time, |input| {
+            if input.len() > 5 {
+                panic!("too long");
+            }
+        });
+        assert!(summary.inputs > 1);
+        assert!(!summary.crashes.is_empty());
+        assert!(std::fs::read(&summary.crashes[0]).unwrap().len() > 5);
+    }
+}
