@@ -25,7 +25,8 @@ pub struct Args {
     /// Folder (or file) with the posed images: COLMAP model or transforms*.json.
     #[arg(long, value_name = "DIR")]
     pub data: PathBuf,
-    /// Output PLY (INRIA layout), written atomically.
+    /// Output scene, written atomically; its name chooses the format (*.ply is the INRIA layout; also
+    /// *.compressed.ply, *.splat, *.spz, *.sog, DIR/meta.json).
     #[arg(long, value_name = "FILE")]
     pub out: PathBuf,
     /// Optimisation steps (one view per step). The default fits NeRF-synthetic scenes at 200x200 to
@@ -75,6 +76,12 @@ pub struct Args {
 
 pub fn run(args: Args) -> Result<()> {
     let started = Instant::now();
+    if splat::OutputFormat::for_path(&args.out).is_none() {
+        anyhow::bail!(
+            "--out {}: unknown output format: name it *.ply, *.compressed.ply, *.splat, *.spz, *.sog or meta.json",
+            args.out.display()
+        );
+    }
     let dataset = load_dataset(
         &args.data,
         &DatasetOptions {
@@ -132,8 +139,11 @@ pub fn run(args: Args) -> Result<()> {
         }
     });
     progress.finish();
-    splat::ply::write_ply(&args.out, &result.scene)
+    let report = splat::write_scene(&args.out, &result.scene)
         .with_context(|| format!("cannot write {}", args.out.display()))?;
+    if !report.is_lossless() {
+        eprintln!("wrote {}: {report}", args.out.display());
+    }
     let t = result.seconds;
     eprintln!(
         "time: render {:.0}s, loss {:.0}s, backward {:.0}s, optimiser {:.0}s, densify {:.0}s, eval {:.0}s; total {:.0}s",
