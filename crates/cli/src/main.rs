@@ -43,6 +43,8 @@ enum Command {
     EditImage(Box<cmd::edit_image::Args>),
     /// Edit a 3DGS scene from a source prompt to a target prompt, consistently across views (VcEdit).
     Edit(Box<cmd::edit::Args>),
+    /// Convert a scene between formats (PLY, compressed PLY, .splat, .spz, SOG).
+    Convert(cmd::convert::Args),
     /// Compare two scenes: cross-view consistency, preservation (PSNR/SSIM), CLIP directional similarity.
     Metrics(cmd::metrics::Args),
     /// Inspect a Stable Diffusion model folder (`vcedit model check DIR`).
@@ -62,6 +64,7 @@ fn main() {
         Command::EditImage(a) => cmd::edit_image::run(*a),
         Command::Edit(a) => cmd::edit::run(*a),
         Command::Metrics(a) => cmd::metrics::run(a),
+        Command::Convert(a) => cmd::convert::run(a),
         Command::Model(a) => cmd::model::run(a),
         Command::DemoModel(a) => cmd::demo_model::run(a),
     };

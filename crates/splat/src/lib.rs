@@ -14,18 +14,21 @@ pub mod cameras;
 pub mod checkpoint;
 pub mod densify;
 pub mod fit;
+pub mod formats;
 pub mod image;
 mod layout;
 pub mod lift;
 pub mod loss;
 pub mod open;
 pub mod optim;
-pub mod ply;
 pub mod render;
 pub mod scene;
 pub mod train;
 
 pub use camera::Camera;
+/// The INRIA PLY reader and writer, at their historical path.
+pub use formats::ply;
+pub use formats::{read_scene, write_scene, FormatError, OutputFormat, WriteReport};
 pub use image::Image;
 pub use open::{open_scene, OpenError};
 pub use scene::GaussianScene;

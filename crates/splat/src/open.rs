@@ -1,6 +1,8 @@
-//! Opening a scene the way a user names it: a `.ply` file, or an INRIA trainer output folder.
+//! Opening a scene the way a user names it: a scene file of any supported format, a SOG folder, or an
+//! INRIA trainer output folder (the only source that also has cameras).
 
 use crate::cameras::{inria::load_inria_cameras, CameraError, CameraSet};
+use crate::formats::{read_scene, FormatError};
 use crate::ply::{read_ply, PlyError};
 use crate::GaussianScene;
 use std::path::{Path, PathBuf};
@@ -10,11 +12,13 @@ pub enum OpenError {
     #[error(transparent)]
     Ply(#[from] PlyError),
     #[error(transparent)]
+    Format(#[from] FormatError),
+    #[error(transparent)]
     Cameras(#[from] CameraError),
     #[error("{}: no such file or folder", path.display())]
     NotFound { path: PathBuf },
     #[error(
-        "{}: not a scene: expected a .ply file or an INRIA output folder with point_cloud/iteration_*/point_cloud.ply",
+        "{}: not a scene: expected a scene file, a SOG folder with meta.json, or an INRIA output folder with point_cloud/iteration_*/point_cloud.ply",
         path.display()
     )]
     NotAScene { path: PathBuf },
@@ -22,12 +26,12 @@ pub enum OpenError {
 
 /// Opens a scene and, when the source has them, its cameras.
 ///
-/// - A file is read as a PLY (no cameras).
-/// - A folder is read as the INRIA trainer's output: the highest `point_cloud/iteration_N/point_cloud.ply`
-///   plus `cameras.json` at the folder root when present.
+/// - A file is read by [`read_scene`], whatever its format (no cameras); so is a SOG folder.
+/// - Another folder is read as the INRIA trainer's output: the highest
+///   `point_cloud/iteration_N/point_cloud.ply` plus `cameras.json` at the folder root when present.
 pub fn open_scene(path: &Path) -> Result<(GaussianScene, Option<CameraSet>), OpenError> {
-    if path.is_file() {
-        return Ok((read_ply(path)?, None));
+    if path.is_file() || path.join("meta.json").is_file() {
+        return Ok((read_scene(path)?, None));
     }
     if !path.is_dir() {
         return Err(OpenError::NotFound {

@@ -12,10 +12,6 @@ use std::path::{Path, PathBuf};
 use anyhow::{bail, Result};
 use files::{RunDir, RunDirMode};
 
-/// File extensions of scene files vcedit writes, lower case, longest first (so `.compressed.ply` is
-/// matched before `.ply`). Commands that write a scene check their output against this list.
-pub const SCENE_EXTENSIONS: &[&str] = &["ply"];
-
 /// `--force` for commands that write into an output folder.
 #[derive(clap::Args, Debug, Clone)]
 pub struct ForceArg {

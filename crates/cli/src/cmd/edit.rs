@@ -63,7 +63,7 @@ Outputs in --out: edited.ply, iter_K/guidance/*.png, attention/*.png, mask/*.png
 turntable.gif, run.json and report.html (open it in a browser)."
 )]
 pub struct Args {
-    /// Input scene: a 3DGS .ply or an INRIA trainer output folder.
+    /// Input scene: a scene file (PLY, compressed PLY, .splat, .spz, SOG) or an INRIA trainer output folder.
     #[arg(long, value_name = "PLY|DIR")]
     pub scene: PathBuf,
     #[command(flatten)]

@@ -7,7 +7,7 @@ use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use crate::args::memory::MemoryCheckArg;
-use crate::args::output::{files_under, output_file, require_extension, SCENE_EXTENSIONS};
+use crate::args::output::{files_under, output_file};
 use crate::args::parse::{positive, whole};
 use crate::args::{BackgroundArg, SizeArg};
 use crate::progress::Reporter;
@@ -28,7 +28,8 @@ pub struct Args {
     /// Folder (or file) with the posed images: COLMAP model or transforms*.json.
     #[arg(long, value_name = "DIR")]
     pub data: PathBuf,
-    /// Output scene file (.ply, INRIA layout), written atomically; never one of the data's files.
+    /// Output scene, written atomically; its name chooses the format (*.ply is the INRIA layout; also
+    /// *.compressed.ply, *.splat, *.spz, *.sog, DIR/meta.json).
     #[arg(long, value_name = "FILE")]
     pub out: PathBuf,
     /// Optimisation steps (one view per step). The default fits NeRF-synthetic scenes at 200x200 to
@@ -111,7 +112,12 @@ fn fit_memory(set: &CameraSet, size: Option<(u32, u32)>, init_points: usize) -> 
 pub fn run(args: Args) -> Result<()> {
     let started = Instant::now();
     // Everything is checked before the (long) fit: where it writes, what it reads, whether it fits.
-    require_extension(&args.out, "--out", SCENE_EXTENSIONS, "the fitted scene")?;
+    if splat::OutputFormat::for_path(&args.out).is_none() {
+        bail!(
+            "--out {}: unknown scene format: name it *.ply, *.compressed.ply, *.splat, *.spz, *.sog or meta.json",
+            args.out.display()
+        );
+    }
     let set = load_cameras(&args.data).context("cannot load the training data")?;
     let mut inputs: Vec<PathBuf> = files_under(&args.data, 2);
     inputs.extend(set.image_paths.iter().flatten().cloned());
@@ -190,8 +196,11 @@ pub fn run(args: Args) -> Result<()> {
             args.out.display()
         );
     }
-    splat::ply::write_ply(&args.out, &result.scene)
+    let report = splat::write_scene(&args.out, &result.scene)
         .with_context(|| format!("cannot write {}", args.out.display()))?;
+    if !report.is_lossless() {
+        eprintln!("wrote {}: {report}", args.out.display());
+    }
     let t = result.seconds;
     eprintln!(
         "time: render {:.0}s, loss {:.0}s, backward {:.0}s, optimiser {:.0}s, densify {:.0}s, eval {:.0}s; total {:.0}s",

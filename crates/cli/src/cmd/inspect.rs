@@ -12,7 +12,8 @@ use std::path::PathBuf;
     after_help = "Examples:\n  vcedit inspect scene.ply\n  vcedit inspect output/garden          # INRIA trainer output folder (adds the camera count)\n  vcedit inspect scene.ply --json > stats.json"
 )]
 pub struct Args {
-    /// A .ply file, or an INRIA trainer output folder (point_cloud/iteration_*/point_cloud.ply + cameras.json).
+    /// A scene file (PLY, compressed PLY, .splat, .spz, SOG), a SOG folder, or an INRIA trainer output
+    /// folder (point_cloud/iteration_*/point_cloud.ply + cameras.json).
     pub scene: PathBuf,
     /// Print the statistics as JSON instead of text.
     #[arg(long)]

@@ -44,7 +44,7 @@ Examples:
       --source-prompt \"a photo of a man\" --target-prompt \"a photo of a clown\""
 )]
 pub struct Args {
-    /// The scene before editing (.ply or INRIA output folder).
+    /// The scene before editing (a scene file of any supported format, or an INRIA output folder).
     #[arg(long, value_name = "SCENE")]
     pub source: PathBuf,
     /// The scene after editing.

@@ -26,7 +26,8 @@ Examples:
   vcedit render scene.ply --cameras data/transforms.json --out renders/ --background 1,1,1"
 )]
 pub struct Args {
-    /// A .ply file, or an INRIA trainer output folder (point_cloud/iteration_*/point_cloud.ply + cameras.json).
+    /// A scene file (PLY, compressed PLY, .splat, .spz, SOG), a SOG folder, or an INRIA trainer output
+    /// folder (point_cloud/iteration_*/point_cloud.ply + cameras.json).
     pub scene: PathBuf,
     #[command(flatten)]
     pub views: CameraArgs,

@@ -23,7 +23,8 @@ Examples:
   vcedit view big.ply --cap 100000"
 )]
 pub struct Args {
-    /// A .ply file, or an INRIA trainer output folder (point_cloud/iteration_*/point_cloud.ply + cameras.json).
+    /// A scene file (PLY, compressed PLY, .splat, .spz, SOG), a SOG folder, or an INRIA trainer output
+    /// folder (point_cloud/iteration_*/point_cloud.ply + cameras.json).
     pub scene: PathBuf,
     /// A second scene to compare with the first (shown right of the divider).
     pub scene2: Option<PathBuf>,

@@ -21,10 +21,11 @@ use splat::{Camera, GaussianScene};
 const VIEWER_JS: &str = include_str!("viewer.js");
 
 /// Bytes per Gaussian in the embedded records.
-pub const RECORD_BYTES: usize = 32;
+pub const RECORD_BYTES: usize = splat::formats::dot_splat::RECORD_BYTES;
 /// Default number of Gaussians embedded per scene.
 pub const DEFAULT_CAP: usize = 250_000;
 /// The zeroth-order SH basis constant: colour = 0.5 + C0 · DC coefficient.
+#[cfg(test)]
 const SH_C0: f32 = 0.282_094_8;
 /// Gaussians fainter than this can never pass the renderer's alpha test.
 const MIN_OPACITY: f32 = 1.0 / 255.0;
@@ -57,33 +58,9 @@ pub struct Record {
 /// [0, 1], A = sigmoid of the opacity logit) | rotation u8×4 (the normalised quaternion w, x, y, z with
 /// w ≥ 0, each component c stored as round(128 c + 128) clamped to 0..=255).
 ///
-/// This is antimatter15's `.splat` layout; once `splat::formats` writes `.splat` files with the same
-/// layout, this function can be replaced by it.
+/// This is exactly a record of antimatter15's `.splat` files, as `splat::formats::dot_splat` writes them.
 pub fn pack_record(scene: &GaussianScene, i: usize) -> [u8; RECORD_BYTES] {
-    let mut out = [0u8; RECORD_BYTES];
-    let floats = scene.mean(i).into_iter().chain(scene.scale(i));
-    for (k, v) in floats.enumerate() {
-        out[4 * k..4 * k + 4].copy_from_slice(&v.to_le_bytes());
-    }
-    let to_byte = |v: f32| (v.clamp(0.0, 1.0) * 255.0).round() as u8;
-    let dc = &scene.sh[i * 3 * scene.sh_coeffs()..][..3];
-    for c in 0..3 {
-        out[24 + c] = to_byte(0.5 + SH_C0 * dc[c]);
-    }
-    out[27] = to_byte(scene.opacity(i));
-    let q = &scene.quats[4 * i..4 * i + 4];
-    let norm = q.iter().map(|v| v * v).sum::<f32>().sqrt();
-    // q and -q are the same rotation; w ≥ 0 makes the record unique.
-    let sign = if q[0] < 0.0 { -1.0 } else { 1.0 };
-    for (k, &v) in q.iter().enumerate() {
-        let unit = if norm > 0.0 {
-            sign * v / norm
-        } else {
-            f32::from(u8::from(k == 0))
-        };
-        out[28 + k] = (unit * 128.0 + 128.0).round().clamp(0.0, 255.0) as u8;
-    }
-    out
+    splat::formats::dot_splat::encode_record(scene, i)
 }
 
 /// Decodes a record written by [`pack_record`].

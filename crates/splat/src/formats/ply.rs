@@ -46,7 +46,7 @@ pub enum PlyError {
 }
 
 /// Which kind of problem, before the path is attached.
-enum Problem {
+pub(crate) enum Problem {
     Io(std::io::Error),
     Header(String),
     NotGaussians(String),
@@ -54,7 +54,17 @@ enum Problem {
 }
 
 impl Problem {
-    fn at(self, path: &Path) -> PlyError {
+    /// The problem as text, for readers that attach the path themselves.
+    pub(crate) fn describe(self) -> String {
+        match self {
+            Problem::Io(err) => format!("cannot read: {err}"),
+            Problem::Header(msg) => format!("bad PLY header: {msg}"),
+            Problem::NotGaussians(msg) => format!("not a 3DGS scene: {msg}"),
+            Problem::Data(msg) => format!("bad PLY data: {msg}"),
+        }
+    }
+
+    pub(crate) fn at(self, path: &Path) -> PlyError {
         let path = path.to_path_buf();
         match self {
             Problem::Io(err) => PlyError::Read { path, err },
@@ -69,14 +79,14 @@ impl Problem {
 // Header
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
-enum Format {
+pub(crate) enum Format {
     Ascii,
     BinaryLe,
     BinaryBe,
 }
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
-enum ScalarType {
+pub(crate) enum ScalarType {
     I8,
     U8,
     I16,
@@ -102,7 +112,7 @@ impl ScalarType {
         })
     }
 
-    fn size(self) -> usize {
+    pub(crate) fn size(self) -> usize {
         match self {
             Self::I8 | Self::U8 => 1,
             Self::I16 | Self::U16 => 2,
@@ -129,7 +139,7 @@ impl ScalarType {
     }
 
     /// Decodes one value from the start of `b` (which holds at least `size()` bytes).
-    fn decode(self, b: &[u8], big_endian: bool) -> f64 {
+    pub(crate) fn decode(self, b: &[u8], big_endian: bool) -> f64 {
         macro_rules! get {
             ($t:ty, $n:expr) => {{
                 let mut a = [0u8; $n];
@@ -155,22 +165,22 @@ impl ScalarType {
 }
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
-enum PropKind {
+pub(crate) enum PropKind {
     Scalar(ScalarType),
     List { count: ScalarType, item: ScalarType },
 }
 
 #[derive(Clone, Debug)]
-struct Property {
-    name: String,
-    kind: PropKind,
+pub(crate) struct Property {
+    pub(crate) name: String,
+    pub(crate) kind: PropKind,
 }
 
 #[derive(Clone, Debug)]
-struct Element {
-    name: String,
-    count: u64,
-    props: Vec<Property>,
+pub(crate) struct Element {
+    pub(crate) name: String,
+    pub(crate) count: u64,
+    pub(crate) props: Vec<Property>,
 }
 
 impl Element {
@@ -198,14 +208,14 @@ impl Element {
     }
 }
 
-struct Header {
-    format: Format,
-    elements: Vec<Element>,
+pub(crate) struct Header {
+    pub(crate) format: Format,
+    pub(crate) elements: Vec<Element>,
     /// Bytes from the start of the file to the first data byte.
-    len: u64,
+    pub(crate) len: u64,
 }
 
-fn parse_header(reader: &mut impl BufRead) -> Result<Header, Problem> {
+pub(crate) fn parse_header(reader: &mut impl BufRead) -> Result<Header, Problem> {
     let mut consumed: u64 = 0;
     let mut line_no = 0usize;
     let mut raw = Vec::new();
@@ -1043,14 +1053,8 @@ pub fn inria_property_names(sh_degree: u32) -> Vec<String> {
     names
 }
 
-/// Encodes a scene in the INRIA trainer's PLY layout (binary little-endian).
-pub fn encode_ply(scene: &GaussianScene) -> Result<Vec<u8>, String> {
-    if scene.sh_degree > 3 {
-        return Err(format!(
-            "SH degree {} is above 3, which PLY viewers do not understand",
-            scene.sh_degree
-        ));
-    }
+/// Checks what every writer needs: consistent array lengths and finite values. Returns the first problem.
+pub(crate) fn check_writable(scene: &GaussianScene) -> Result<(), String> {
     scene.check_shapes()?;
     let fields: [(&str, &[f32]); 5] = [
         ("position", &scene.means),
@@ -1069,6 +1073,18 @@ pub fn encode_ply(scene: &GaussianScene) -> Result<Vec<u8>, String> {
             ));
         }
     }
+    Ok(())
+}
+
+/// Encodes a scene in the INRIA trainer's PLY layout (binary little-endian).
+pub fn encode_ply(scene: &GaussianScene) -> Result<Vec<u8>, String> {
+    if scene.sh_degree > 3 {
+        return Err(format!(
+            "SH degree {} is above 3, which PLY viewers do not understand",
+            scene.sh_degree
+        ));
+    }
+    check_writable(scene)?;
 
     let n = scene.len();
     let k = scene.sh_coeffs();

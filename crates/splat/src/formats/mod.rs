@@ -1,0 +1,275 @@
+//! The file formats people share Gaussian splats in.
+//!
+//! [`read_scene`] recognises a scene by its content, never by its name:
+//!
+//! | content | format |
+//! | --- | --- |
+//! | `ply` header with a `vertex` element of float properties | INRIA PLY ([`ply`]) |
+//! | `ply` header with `chunk` + `vertex` (`packed_*`) elements | PlayCanvas/SuperSplat compressed PLY ([`compressed_ply`]) |
+//! | gzip stream holding an `NGSP` header, or a plain `NGSP` header | Niantic `.spz` v2/v3, v4 ([`spz`]) |
+//! | zip archive with `meta.json`, a `meta.json` file, or a folder holding one | PlayCanvas SOG ([`sog`]) |
+//! | a folder with `point_cloud/iteration_N/point_cloud.ply` | INRIA trainer output |
+//! | none of the above, 32 bytes per Gaussian | antimatter15 `.splat` ([`dot_splat`]) |
+//!
+//! [`write_scene`] chooses the format by the output name (see [`OutputFormat::for_path`]) and returns a
+//! [`WriteReport`]: for a lossy format, the largest error of every quantity, measured by decoding the
+//! bytes written exactly as [`read_scene`] will.
+
+pub mod compressed_ply;
+pub mod dot_splat;
+pub mod ply;
+pub mod sog;
+pub mod spz;
+
+mod codec;
+mod report;
+
+pub use report::{QuantisationError, WriteReport};
+
+use crate::GaussianScene;
+use std::io::Read;
+use std::path::{Path, PathBuf};
+
+#[derive(Debug, thiserror::Error)]
+pub enum FormatError {
+    /// Problems of INRIA PLY files keep the PLY reader's own messages.
+    #[error(transparent)]
+    Ply(#[from] ply::PlyError),
+    #[error("{}: no such file or folder", path.display())]
+    NotFound { path: PathBuf },
+    #[error("{}: cannot read: {err}", path.display())]
+    Read { path: PathBuf, err: std::io::Error },
+    #[error("{}: cannot write: {err}", path.display())]
+    Write { path: PathBuf, err: std::io::Error },
+    #[error("{}: bad {format} file: {msg}", path.display())]
+    Malformed {
+        path: PathBuf,
+        format: &'static str,
+        msg: String,
+    },
+    #[error("{}: not a scene: {msg}", path.display())]
+    NotAScene { path: PathBuf, msg: String },
+    #[error("{}: cannot write this scene as {format}: {msg}", path.display())]
+    Unwritable {
+        path: PathBuf,
+        format: &'static str,
+        msg: String,
+    },
+    #[error(
+        "{}: unknown output format: name it *.ply, *.compressed.ply, *.splat, *.spz, *.sog or meta.json (a SOG folder)",
+        path.display()
+    )]
+    UnknownOutput { path: PathBuf },
+}
+
+/// A format [`write_scene`] can produce.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum OutputFormat {
+    /// The INRIA trainer's PLY (exact).
+    InriaPly,
+    /// PlayCanvas/SuperSplat compressed PLY.
+    CompressedPly,
+    /// antimatter15 `.splat`.
+    Splat,
+    /// Niantic `.spz`, version 4.
+    Spz,
+    /// PlayCanvas SOG bundled in one zip file.
+    SogZip,
+    /// PlayCanvas SOG as a folder: `meta.json` and its WebP textures beside it.
+    SogFolder,
+}
+
+impl OutputFormat {
+    /// The format an output name asks for: `*.compressed.ply`, `*.ply`, `*.splat`, `*.spz`, `*.sog`, or a
+    /// file named `meta.json` (a SOG folder). Case-insensitive.
+    pub fn for_path(path: &Path) -> Option<Self> {
+        let name = path.file_name()?.to_str()?.to_ascii_lowercase();
+        Some(if name.ends_with(".compressed.ply") {
+            Self::CompressedPly
+        } else if name.ends_with(".ply") {
+            Self::InriaPly
+        } else if name.ends_with(".splat") {
+            Self::Splat
+        } else if name.ends_with(".spz") {
+            Self::Spz
+        } else if name.ends_with(".sog") {
+            Self::SogZip
+        } else if name == "meta.json" {
+            Self::SogFolder
+        } else {
+            return None;
+        })
+    }
+
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::InriaPly => "PLY",
+            Self::CompressedPly => "compressed PLY",
+            Self::Splat => ".splat",
+            Self::Spz => ".spz",
+            Self::SogZip => "SOG (zip)",
+            Self::SogFolder => "SOG (folder)",
+        }
+    }
+}
+
+/// Reads a scene from any supported file or folder, recognised by content (see the module docs).
+pub fn read_scene(path: &Path) -> Result<GaussianScene, FormatError> {
+    if path.is_dir() {
+        return read_folder(path);
+    }
+    if !path.exists() {
+        return Err(FormatError::NotFound {
+            path: path.to_path_buf(),
+        });
+    }
+    let read_err = |err| FormatError::Read {
+        path: path.to_path_buf(),
+        err,
+    };
+    let mut head = Vec::with_capacity(16);
+    std::fs::File::open(path)
+        .map_err(read_err)?
+        .take(16)
+        .read_to_end(&mut head)
+        .map_err(read_err)?;
+    let bad = |format: &'static str| {
+        move |msg: String| FormatError::Malformed {
+            path: path.to_path_buf(),
+            format,
+            msg,
+        }
+    };
+    if head.is_empty() {
+        return Err(FormatError::NotAScene {
+            path: path.to_path_buf(),
+            msg: "the file is empty".into(),
+        });
+    }
+    if head.starts_with(b"ply") {
+        return if compressed_ply::is_compressed_ply(path).map_err(read_err)? {
+            let bytes = std::fs::read(path).map_err(read_err)?;
+            compressed_ply::decode(&bytes).map_err(bad("compressed PLY"))
+        } else {
+            Ok(ply::read_ply(path)?)
+        };
+    }
+    if head.starts_with(&spz::GZIP_MAGIC) || head.starts_with(&spz::NGSP_MAGIC) {
+        let bytes = std::fs::read(path).map_err(read_err)?;
+        return spz::decode(&bytes).map_err(bad(".spz"));
+    }
+    if head.starts_with(sog::ZIP_MAGIC) {
+        return sog::read_zip(path).map_err(bad("SOG"));
+    }
+    if head.trim_ascii_start().starts_with(b"{") {
+        return sog::read_folder(path).map_err(bad("SOG"));
+    }
+    let bytes = std::fs::read(path).map_err(read_err)?;
+    dot_splat::decode(&bytes).map_err(|msg| FormatError::NotAScene {
+        path: path.to_path_buf(),
+        msg: format!(
+            "not PLY, compressed PLY, .spz or SOG, and not a valid .splat file either: {msg}"
+        ),
+    })
+}
+
+/// A folder is a SOG folder (with `meta.json`) or the INRIA trainer's output (its highest iteration).
+fn read_folder(dir: &Path) -> Result<GaussianScene, FormatError> {
+    let meta = dir.join("meta.json");
+    if meta.is_file() {
+        return sog::read_folder(&meta).map_err(|msg| FormatError::Malformed {
+            path: meta.clone(),
+            format: "SOG",
+            msg,
+        });
+    }
+    match crate::open::latest_iteration_ply(dir) {
+        Some(ply_path) => Ok(ply::read_ply(&ply_path)?),
+        None => Err(FormatError::NotAScene {
+            path: dir.to_path_buf(),
+            msg: "expected a scene file, an INRIA output folder with point_cloud/iteration_*/point_cloud.ply, or a SOG folder with meta.json".into(),
+        }),
+    }
+}
+
+/// Writes a scene in the format its name asks for ([`OutputFormat::for_path`]), atomically where the
+/// output is one file. Lossy formats report their largest errors, measured on what was written.
+pub fn write_scene(path: &Path, scene: &GaussianScene) -> Result<WriteReport, FormatError> {
+    let format = OutputFormat::for_path(path).ok_or_else(|| FormatError::UnknownOutput {
+        path: path.to_path_buf(),
+    })?;
+    let unwritable = |msg: String| FormatError::Unwritable {
+        path: path.to_path_buf(),
+        format: format.name(),
+        msg,
+    };
+    let write_err = |err| FormatError::Write {
+        path: path.to_path_buf(),
+        err,
+    };
+    if format == OutputFormat::InriaPly {
+        ply::write_ply(path, scene)?;
+        let bytes = std::fs::metadata(path).map_err(write_err)?.len();
+        return Ok(WriteReport::lossless(format, scene, bytes));
+    }
+    ply::check_writable(scene).map_err(unwritable)?;
+    // Each lossy format encodes to memory, then decodes its own bytes with the reader's code: the report
+    // is then the error a reader of this very file will see.
+    let (bytes, decoded) = match format {
+        OutputFormat::CompressedPly => {
+            let bytes = compressed_ply::encode(scene).map_err(unwritable)?;
+            let back = compressed_ply::decode(&bytes).map_err(unwritable)?;
+            (bytes, back)
+        }
+        OutputFormat::Splat => {
+            let bytes = dot_splat::encode(scene).map_err(unwritable)?;
+            let back = dot_splat::decode(&bytes).map_err(unwritable)?;
+            (bytes, back)
+        }
+        OutputFormat::Spz => {
+            let bytes = spz::encode(scene, spz::LATEST_VERSION).map_err(unwritable)?;
+            let back = spz::decode(&bytes).map_err(unwritable)?;
+            (bytes, back)
+        }
+        OutputFormat::SogZip | OutputFormat::SogFolder => {
+            let files = sog::encode(scene).map_err(unwritable)?;
+            let back = sog::decode_files(&files).map_err(unwritable)?;
+            let bytes = if format == OutputFormat::SogZip {
+                sog::zip_files(&files).map_err(unwritable)?
+            } else {
+                let dir = path.parent().unwrap_or(Path::new("."));
+                let dir = if dir.as_os_str().is_empty() {
+                    Path::new(".")
+                } else {
+                    dir
+                };
+                let mut total = 0;
+                for (name, data) in &files {
+                    let file = if name == "meta.json" {
+                        path.to_path_buf()
+                    } else {
+                        dir.join(name)
+                    };
+                    files::atomic_write(&file, data).map_err(|err| FormatError::Write {
+                        path: file.clone(),
+                        err,
+                    })?;
+                    total += data.len() as u64;
+                }
+                return Ok(WriteReport::measured(format, scene, &back, total));
+            };
+            (bytes, back)
+        }
+        OutputFormat::InriaPly => unreachable!("handled above"),
+    };
+    files::atomic_write(path, &bytes).map_err(write_err)?;
+    Ok(WriteReport::measured(
+        format,
+        scene,
+        &decoded,
+        bytes.len() as u64,
+    ))
+}
+
+#[cfg(test)]
+mod tests;
