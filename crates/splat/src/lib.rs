@@ -14,6 +14,7 @@ pub mod cameras;
 pub mod checkpoint;
 pub mod densify;
 pub mod fit;
+pub mod gpu;
 pub mod image;
 pub mod lift;
 pub mod loss;
