@@ -23,10 +23,11 @@ use crate::render::{ExtraChannels, OutputGrads, RenderSettings, SceneGrads, TILE
 use crate::{Camera, GaussianScene};
 use ::gpu::cubecl::prelude::*;
 use ::gpu::cubecl::server::Handle;
+use ::gpu::gpu_call;
 use ::gpu::prims::{
     arg, empty32, exclusive_scan, grid, read_f32, read_u32, sort_pairs, upload_f32, zeros32,
 };
-use ::gpu::{gpu_call, GpuContext, GpuError};
+pub use ::gpu::{open, DeviceChoice, GpuContext, GpuError};
 use project::{CAM_F, GRAD_F, INFO_U, SPLAT_F};
 
 /// Scene parameters on the device (layouts of [`GaussianScene`]).
@@ -520,7 +521,56 @@ pub fn render_backward(
             extra: ext.as_ref(),
         },
     )?;
-    let k = crate::scene::sh_coeffs(scene.sh_degree);
+    read_grads(ctx, &g, n, scene.sh_degree, extra_ref.map(|e| e.1))
+}
+
+/// One training pass with the loss on the host: uploads `scene`, renders on the device, reads the RGB
+/// image back, lets `loss` turn it into (its value, dL/d rgb), and runs the backward on the device.
+/// Returns the screen radii (densification uses them), the loss value and the parameter gradients.
+pub fn render_with_loss<L>(
+    ctx: &GpuContext,
+    scene: &GaussianScene,
+    camera: &Camera,
+    settings: &RenderSettings,
+    loss: impl FnOnce(&[f32]) -> (L, Vec<f32>),
+) -> Result<(Vec<u32>, L, SceneGrads), GpuError> {
+    let c = &ctx.client;
+    let n = scene.len();
+    let npix = (camera.width * camera.height) as usize;
+    let dev = GpuScene::upload(ctx, scene);
+    let frame = render_device(ctx, &dev, camera, settings, None)?;
+    let rgb = read_f32(c, &frame.rgb, 3 * npix)?;
+    let (value, grad) = loss(&rgb);
+    assert_eq!(grad.len(), 3 * npix, "rgb gradient must be H*W*3");
+    let grad = upload_f32(c, &grad);
+    let g = render_backward_device(
+        ctx,
+        &dev,
+        settings,
+        None,
+        &frame,
+        &GpuOutputGrads {
+            rgb: &grad,
+            alpha: None,
+            depth: None,
+            extra: None,
+        },
+    )?;
+    let info = read_u32(c, &frame.info, INFO_U * n)?;
+    let grads = read_grads(ctx, &g, n, scene.sh_degree, None)?;
+    Ok((info.chunks(INFO_U).map(|r| r[0]).collect(), value, grads))
+}
+
+/// Reads device gradients back into the CPU renderer's type.
+fn read_grads(
+    ctx: &GpuContext,
+    g: &GpuSceneGrads,
+    n: usize,
+    sh_degree: u32,
+    channels: Option<usize>,
+) -> Result<SceneGrads, GpuError> {
+    let c = &ctx.client;
+    let k = crate::scene::sh_coeffs(sh_degree);
     let splat = read_f32(c, &g.splat, GRAD_F * n)?;
     Ok(SceneGrads {
         means: read_f32(c, &g.means, 3 * n)?,
@@ -528,8 +578,8 @@ pub fn render_backward(
         quats: read_f32(c, &g.quats, 4 * n)?,
         opacity_logits: read_f32(c, &g.opacity_logits, n)?,
         sh: read_f32(c, &g.sh, 3 * k * n)?,
-        extra: match (&g.extra, extra_ref) {
-            (Some(h), Some((_, ch))) => read_f32(c, h, ch * n)?,
+        extra: match (&g.extra, channels) {
+            (Some(h), Some(ch)) => read_f32(c, h, ch * n)?,
             _ => vec![],
         },
         means2d: splat.chunks(GRAD_F).map(|s| [s[0], s[1]]).collect(),

@@ -228,3 +228,48 @@ fn backward_matches_the_cpu_per_parameter_kind() {
         assert!(e <= 1e-3, "{name}: relative error {e}");
     }
 }
+
+/// `fit_on` with the device reaches the CPU fit's PSNR on a tiny self-rendered dataset.
+#[test]
+fn fit_on_the_gpu_tracks_the_cpu_fit() {
+    use crate::fit::{fit, fit_on, Dataset, FitConfig, View};
+    let Some(ctx) = context_or_skip() else {
+        return;
+    };
+    let truth = random_scene(300, 1, 21);
+    let settings = RenderSettings::default();
+    let views: Vec<View> = (0..4)
+        .map(|k| {
+            let a = k as f64 * 0.4 - 0.6;
+            let cam = look_at(
+                format!("v{k}"),
+                [3.0 * a.sin(), -0.2, 1.0 - 3.0 * a.cos()],
+                [0.0, 0.0, 1.0],
+                [0.0, -1.0, 0.0],
+                32,
+                32,
+                30.0,
+            );
+            let image = render::render(&truth, &cam, &settings, None).rgb;
+            View { camera: cam, image }
+        })
+        .collect();
+    let dataset = Dataset {
+        train: views[1..].to_vec(),
+        test: views[..1].to_vec(),
+        points: None,
+    };
+    let config = FitConfig {
+        init_points: 400,
+        ..FitConfig::for_steps(40)
+    };
+    let cpu = fit(&dataset, &config, &mut |_| {});
+    let gpu = fit_on(&dataset, &config, Some(&ctx), &mut |_| {}).unwrap();
+    eprintln!(
+        "fit 40 steps: train PSNR CPU {:.3} GPU {:.3}, test {:?} / {:?}",
+        cpu.train_psnr, gpu.train_psnr, cpu.test_psnr, gpu.test_psnr
+    );
+    assert!((cpu.train_psnr - gpu.train_psnr).abs() < 0.1);
+    assert!((cpu.test_psnr.unwrap() - gpu.test_psnr.unwrap()).abs() < 0.1);
+    assert_eq!(cpu.scene.len(), gpu.scene.len());
+}
