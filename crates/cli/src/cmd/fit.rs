@@ -1,12 +1,12 @@
 //! `vcedit fit --data DIR --out scene.ply`: train a 3DGS scene from posed images.
 
 use anyhow::{Context, Result};
-use splat::fit::{fit, load_dataset, DatasetOptions, FitConfig};
+use splat::fit::{fit_on, load_dataset, DatasetOptions, FitConfig};
 use std::path::PathBuf;
 use std::time::Instant;
 
 use crate::args::parse::{positive, whole};
-use crate::args::{BackgroundArg, SizeArg};
+use crate::args::{BackgroundArg, DeviceArg, SizeArg};
 use crate::progress::Reporter;
 
 #[derive(clap::Args, Debug)]
@@ -45,6 +45,8 @@ pub struct Args {
     pub holdout_every: usize,
     #[command(flatten)]
     pub background: BackgroundArg,
+    #[command(flatten)]
+    pub device: DeviceArg,
     /// Seed of every random choice (initial points, view order, splits).
     #[arg(long, default_value_t = 0, value_parser = whole::<u64>, allow_negative_numbers = true)]
     pub seed: u64,
@@ -112,7 +114,8 @@ pub fn run(args: Args) -> Result<()> {
     progress.stage("fitting", args.steps);
     let mut smoothed = None::<f32>;
     let mut last_psnr = None::<f64>;
-    let result = fit(&dataset, &config, &mut |p| {
+    let device = args.device.open()?;
+    let result = fit_on(&dataset, &config, device.as_ref(), &mut |p| {
         // Exponential moving average, as the INRIA trainer shows.
         let ema = smoothed.map_or(p.loss, |s| 0.6 * p.loss + 0.4 * s);
         smoothed = Some(ema);
@@ -130,7 +133,7 @@ pub fn run(args: Args) -> Result<()> {
             progress.set_message(format!("loss {ema:.4}{psnr} N {}", p.gaussians));
             progress.set_position(p.step);
         }
-    });
+    })?;
     progress.finish();
     splat::ply::write_ply(&args.out, &result.scene)
         .with_context(|| format!("cannot write {}", args.out.display()))?;

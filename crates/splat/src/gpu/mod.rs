@@ -15,6 +15,8 @@
 //! device buffers only (one 4-byte read: the number of tile intersections), and [`render`] /
 //! [`render_backward`] are host-side conveniences with the CPU renderer's types.
 
+mod lift;
+mod optim;
 pub(crate) mod project;
 pub(crate) mod raster;
 pub(crate) mod sh;
@@ -27,7 +29,11 @@ use ::gpu::gpu_call;
 use ::gpu::prims::{
     arg, empty32, exclusive_scan, grid, read_f32, read_u32, sort_pairs, upload_f32, zeros32,
 };
-pub use ::gpu::{open, DeviceChoice, GpuContext, GpuError};
+pub use ::gpu::{
+    list_adapters, open, DeviceChoice, GpuContext, GpuError, ALLOW_SOFTWARE_ENV, DEVICE_ENV,
+};
+pub use lift::lift;
+pub use optim::GpuAdam;
 use project::{CAM_F, GRAD_F, INFO_U, SPLAT_F};
 
 /// Scene parameters on the device (layouts of [`GaussianScene`]).
@@ -136,19 +142,28 @@ pub fn render_device(
     gpu_call(|| render_device_inner(ctx, scene, camera, settings, extra))
 }
 
-fn render_device_inner(
+/// Projected and binned Gaussians of one view (stages 1 and 2).
+struct Binned {
+    splats: Handle,
+    info: Handle,
+    ids: Handle,
+    tile_start: Handle,
+    tile_end: Handle,
+    intersections: usize,
+    cam: Handle,
+    tiles_x: u32,
+    tiles_y: u32,
+}
+
+fn project_and_bin(
     ctx: &GpuContext,
     scene: &GpuScene,
     camera: &Camera,
-    settings: &RenderSettings,
-    extra: Option<(&Handle, usize)>,
-) -> Result<GpuFrame, GpuError> {
+) -> Result<Binned, GpuError> {
     let c = &ctx.client;
     let n = scene.len;
-    let (width, height) = (camera.width, camera.height);
-    let npix = (width * height) as usize;
-    let tiles_x = width.div_ceil(TILE);
-    let tiles_y = height.div_ceil(TILE);
+    let tiles_x = camera.width.div_ceil(TILE);
+    let tiles_y = camera.height.div_ceil(TILE);
     let num_tiles = (tiles_x * tiles_y) as usize;
     let cam = upload_f32(c, &camera_values(camera));
 
@@ -178,6 +193,42 @@ fn render_device_inner(
 
     // 2. Binning.
     let (ids, tile_start, tile_end, intersections) = bin(ctx, &info, n, tiles_x, num_tiles.max(1))?;
+    Ok(Binned {
+        splats,
+        info,
+        ids,
+        tile_start,
+        tile_end,
+        intersections,
+        cam,
+        tiles_x,
+        tiles_y,
+    })
+}
+
+fn render_device_inner(
+    ctx: &GpuContext,
+    scene: &GpuScene,
+    camera: &Camera,
+    settings: &RenderSettings,
+    extra: Option<(&Handle, usize)>,
+) -> Result<GpuFrame, GpuError> {
+    let c = &ctx.client;
+    let n = scene.len;
+    let (width, height) = (camera.width, camera.height);
+    let npix = (width * height) as usize;
+    let Binned {
+        splats,
+        info,
+        ids,
+        tile_start,
+        tile_end,
+        intersections,
+        cam,
+        tiles_x,
+        tiles_y,
+    } = project_and_bin(ctx, scene, camera)?;
+    let num_tiles = (tiles_x * tiles_y) as usize;
 
     // 3. Rasterisation.
     let channels = extra.map_or(0, |e| e.1);

@@ -258,3 +258,53 @@ pub fn depth_keys(info: &[u32], n: u32, keys: &mut [u32], vals: &mut [u32]) {
         vals[i] = i as u32;
     }
 }
+
+/// Lifting (GaussianEditor's `apply_weights`, as `crate::lift`): the forward walk with T from 1, and at
+/// every hit (an unweighted one) the pixel's C map values are added to the Gaussian's sums and its count
+/// goes up by one.
+#[cube(launch)]
+#[allow(clippy::too_many_arguments)]
+pub fn lift_accumulate(
+    splats: &[f32],
+    ids: &[u32],
+    tile_start: &[u32],
+    tile_end: &[u32],
+    map: &[f32],
+    width: u32,
+    height: u32,
+    tiles_x: u32,
+    sums: &mut [Atomic<f32>],
+    counts: &mut [Atomic<u32>],
+    #[comptime] channels: u32,
+) {
+    let px = CUBE_POS_X * TILE + UNIT_POS_X;
+    let py = CUBE_POS_Y * TILE + UNIT_POS_Y;
+    if px < width && py < height {
+        let p = (py * width + px) as usize;
+        let c = channels as usize;
+        let tile = (CUBE_POS_Y * tiles_x + CUBE_POS_X) as usize;
+        let fx = px as f32 + 0.5;
+        let fy = py as f32 + 0.5;
+        let mut t = 1.0f32;
+        for k in tile_start[tile]..tile_end[tile] {
+            let gi = ids[k as usize] as usize;
+            let s = gi * 10;
+            let dx = splats[s] - fx;
+            let dy = splats[s + 1] - fy;
+            let sigma = 0.5f32 * (splats[s + 2] * dx * dx + splats[s + 4] * dy * dy)
+                + splats[s + 3] * dx * dy;
+            let a = f32::min(splats[s + 5] * (-sigma).exp(), ALPHA_MAX as f32);
+            if sigma >= 0.0 && a >= ALPHA_MIN as f32 {
+                let next = t * (1.0f32 - a);
+                if next < T_MIN as f32 {
+                    break;
+                }
+                counts[gi].fetch_add(1u32);
+                for ch in 0..c {
+                    sums[gi * c + ch].fetch_add(map[p * c + ch]);
+                }
+                t = next;
+            }
+        }
+    }
+}

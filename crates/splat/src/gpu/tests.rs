@@ -273,3 +273,106 @@ fn fit_on_the_gpu_tracks_the_cpu_fit() {
     assert!((cpu.test_psnr.unwrap() - gpu.test_psnr.unwrap()).abs() < 0.1);
     assert_eq!(cpu.scene.len(), gpu.scene.len());
 }
+
+/// GPU lifting against `crate::lift::lift` on a constructed scene with three views.
+#[test]
+fn lifting_matches_the_cpu() {
+    let Some(ctx) = context_or_skip() else {
+        return;
+    };
+    let scene = random_scene(300, 0, 5);
+    let channels = 3;
+    let cams: Vec<Camera> = (0..3)
+        .map(|k| {
+            let a = k as f64 * 0.3;
+            look_at(
+                format!("v{k}"),
+                [3.0 * a.sin(), -0.1, 1.0 - 3.0 * a.cos()],
+                [0.0, 0.0, 1.0],
+                [0.0, -1.0, 0.0],
+                40,
+                34,
+                36.0,
+            )
+        })
+        .collect();
+    let maps: Vec<Vec<f32>> = (0..3)
+        .map(|k| {
+            (0..40 * 34 * channels)
+                .map(|i| ((i * 7 + k * 3) % 11) as f32 / 10.0)
+                .collect()
+        })
+        .collect();
+    let refs: Vec<&[f32]> = maps.iter().map(|m| &m[..]).collect();
+    let want = crate::lift::lift(&scene, &cams, &refs, channels);
+    let got = super::lift(&ctx, &scene, &cams, &refs, channels).unwrap();
+    assert!(want.counts.iter().filter(|&&c| c > 0.0).count() > 50);
+    let mismatched = got
+        .counts
+        .iter()
+        .zip(&want.counts)
+        .filter(|(a, b)| a != b)
+        .count();
+    // exp differs from the CPU's exp_fast in the last bits: a pixel exactly at a threshold may differ.
+    assert!(mismatched <= 1, "{mismatched} counts differ");
+    let e = rel_err(&got.values, &want.values);
+    eprintln!("lifting: {mismatched} counts differ, values relative error {e:.2e}");
+    assert!(e < 1e-3, "values relative error {e}");
+}
+
+/// Three device Adam steps land where `Adam::step` does.
+#[test]
+fn adam_on_the_device_matches_the_cpu() {
+    use crate::optim::{Adam, LearningRates};
+    let Some(ctx) = context_or_skip() else {
+        return;
+    };
+    let c = &ctx.client;
+    let scene = random_scene(60, 2, 9);
+    let wave = |len: usize, f: f32| -> Vec<f32> {
+        (0..len).map(|i| (i as f32 * f).sin() * 0.01).collect()
+    };
+    let grads = SceneGrads {
+        means: wave(scene.means.len(), 0.3),
+        log_scales: wave(scene.log_scales.len(), 0.7),
+        quats: wave(scene.quats.len(), 1.1),
+        opacity_logits: wave(scene.len(), 0.5),
+        sh: wave(scene.sh.len(), 0.9),
+        extra: vec![],
+        means2d: vec![],
+    };
+    let mut cpu_scene = scene.clone();
+    let mut cpu = Adam::new(&scene, LearningRates::inria(100), 2.0);
+    let dev = GpuScene::upload(&ctx, &scene);
+    let mut gpu_adam = GpuAdam::new(&ctx, &dev);
+    let mut gpu_rates = Adam::new(&scene, LearningRates::inria(100), 2.0);
+    let up = |v: &[f32]| upload_f32(c, v);
+    let dev_grads = GpuSceneGrads {
+        means: up(&grads.means),
+        log_scales: up(&grads.log_scales),
+        quats: up(&grads.quats),
+        opacity_logits: up(&grads.opacity_logits),
+        sh: up(&grads.sh),
+        extra: None,
+        splat: up(&[0.0]),
+    };
+    for _ in 0..3 {
+        cpu.step(&mut cpu_scene, &grads, None);
+        gpu_adam
+            .step(&ctx, &mut gpu_rates, &dev, &dev_grads)
+            .unwrap();
+    }
+    let got = dev.download(&ctx).unwrap();
+    for (name, g, w) in [
+        ("means", &got.means, &cpu_scene.means),
+        ("log_scales", &got.log_scales, &cpu_scene.log_scales),
+        ("quats", &got.quats, &cpu_scene.quats),
+        ("opacity", &got.opacity_logits, &cpu_scene.opacity_logits),
+        ("sh", &got.sh, &cpu_scene.sh),
+    ] {
+        let e = rel_err(g, w);
+        assert!(e < 1e-6, "{name}: relative error {e}");
+    }
+    assert_ne!(got.means, scene.means);
+    assert_eq!(gpu_rates.steps(), cpu.steps());
+}
