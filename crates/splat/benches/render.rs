@@ -2,7 +2,7 @@
 //! plus the real playbot-31k scene when the shared assets are present.
 //!
 //! Run: `cargo bench -p vcedit-splat --bench render` (add `-- quick` for one size, `-- stages` for a
-//! per-stage breakdown, `-- channels` for extra-channel rendering and lifting with 24..300 channels). Synthetic scenes fill a unit ball the way trained scenes fill their volume:
+//! per-stage breakdown, `-- gpu` for the GPU renderer at 125k 512² beside the CPU (`-- gpu quick`: 30k), `-- channels` for extra-channel rendering and lifting with 24..300 channels). Synthetic scenes fill a unit ball the way trained scenes fill their volume:
 //! log-normal, anisotropic scales around the typical neighbour spacing, random rotations, opacities
 //! spread over (0, 1) with many near-opaque Gaussians, and SH degree 3.
 
@@ -197,9 +197,81 @@ fn bench_channels(scene: &GaussianScene, size: u32, channels: usize) {
     );
 }
 
+/// Forward and backward on the GPU with the scene and frame on the device (the timings include waiting
+/// for the device; the only host read is the pair count inside the forward).
+fn bench_gpu(ctx: &gpu::GpuContext, label: &str, scene: &GaussianScene, cam: &Camera, runs: usize) {
+    use splat::gpu::{render_backward_device, render_device, GpuOutputGrads, GpuScene};
+    let settings = RenderSettings::default();
+    let npix = (cam.width * cam.height) as usize;
+    let grad: Vec<f32> = (0..3 * npix)
+        .map(|i| ((i % 7) as f32 - 3.0) * 0.01)
+        .collect();
+    let dev = GpuScene::upload(ctx, scene);
+    let grad = gpu::prims::upload_f32(&ctx.client, &grad);
+    let sync = || gpu::cubecl::future::block_on(ctx.client.sync()).expect("device failed");
+    let grads = GpuOutputGrads {
+        rgb: &grad,
+        alpha: None,
+        depth: None,
+        extra: None,
+    };
+    // Warm-up: kernel compilation.
+    let frame = render_device(ctx, &dev, cam, &settings, None).expect("forward");
+    render_backward_device(ctx, &dev, &settings, None, &frame, &grads).expect("backward");
+    sync();
+    let (mut fwd, mut bwd) = (vec![], vec![]);
+    let mut isects = 0;
+    for _ in 0..runs {
+        let t = Instant::now();
+        let frame = render_device(ctx, &dev, cam, &settings, None).expect("forward");
+        sync();
+        fwd.push(t.elapsed());
+        isects = frame.intersections;
+        let t = Instant::now();
+        let g =
+            render_backward_device(ctx, &dev, &settings, None, &frame, &grads).expect("backward");
+        sync();
+        bwd.push(t.elapsed());
+        std::hint::black_box(g);
+    }
+    let (f, b) = (median(fwd), median(bwd));
+    println!(
+        "{label:<14} {:>4}x{:<4} GPU forward {:>7.1} ms  backward {:>7.1} ms  fwd+bwd {:>7.1} ms  ({} tile entries)",
+        cam.width,
+        cam.height,
+        f.as_secs_f64() * 1e3,
+        b.as_secs_f64() * 1e3,
+        (f + b).as_secs_f64() * 1e3,
+        isects
+    );
+}
+
+/// `-- gpu`: the GPU renderer (any adapter, software ones included) beside the CPU one.
+fn main_gpu(quick: bool) {
+    let ctx = match gpu::open(gpu::DeviceChoice::Gpu) {
+        Ok(Some(ctx)) => ctx,
+        Ok(None) | Err(_) => {
+            println!("SKIP gpu: no GPU adapter");
+            return;
+        }
+    };
+    println!("GPU: {}", ctx.describe());
+    let counts: &[usize] = if quick { &[30_000] } else { &[125_000] };
+    for &n in counts {
+        let scene = ball_scene(n, 1);
+        let cam = camera(512);
+        let label = format!("ball {}k", n / 1000);
+        bench_gpu(&ctx, &label, &scene, &cam, 3);
+        bench(&label, &scene, &cam, 3, false);
+    }
+}
+
 fn main() {
     let args: Vec<String> = std::env::args().collect();
     let quick = args.iter().any(|a| a == "quick");
+    if args.iter().any(|a| a == "gpu") {
+        return main_gpu(quick);
+    }
     if args.iter().any(|a| a == "channels") {
         let scene = ball_scene(125_000, 1);
         for channels in [24, 96, 300] {

@@ -566,6 +566,21 @@ pub fn fit(
     config: &FitConfig,
     progress: &mut dyn FnMut(&FitProgress),
 ) -> FitResult {
+    match fit_on(dataset, config, None, progress) {
+        Ok(r) => r,
+        Err(e) => unreachable!("the CPU path has no device to fail: {e}"),
+    }
+}
+
+/// [`fit`] with the render and its backward on `device` when one is given (the loss, Adam and
+/// densification stay on the host for now, so every step moves the scene and gradients across).
+/// Errors only come from the device (out of memory, lost device).
+pub fn fit_on(
+    dataset: &Dataset,
+    config: &FitConfig,
+    device: Option<&crate::gpu::GpuContext>,
+    progress: &mut dyn FnMut(&FitProgress),
+) -> Result<FitResult, crate::gpu::GpuError> {
     let mut rng = ChaCha8Rng::seed_from_u64(config.seed);
     let cams: Vec<Camera> = dataset.train.iter().map(|v| v.camera.clone()).collect();
     let (_, extent) = camera_extent(&cams);
@@ -591,28 +606,52 @@ pub fn fit(
         }
         state.adam.set_iteration(step);
 
-        let t = clock();
-        let out = render(&state.scene, &view.camera, &settings, None);
-        times.render += t.elapsed().as_secs_f64();
-        let t = clock();
         let (w, h) = (view.camera.width as usize, view.camera.height as usize);
-        let loss = l1_dssim(&out.rgb, &view.image, w, h, 3, config.ssim_weight);
-        times.loss += t.elapsed().as_secs_f64();
-        let t = clock();
-        let grads = render_backward(
-            &state.scene,
-            &view.camera,
-            &settings,
-            None,
-            &out,
-            &OutputGrads {
-                rgb: &loss.grad,
-                alpha: None,
-                depth: None,
-                extra: None,
-            },
-        );
-        times.backward += t.elapsed().as_secs_f64();
+        let (radii, loss, grads) = match device {
+            Some(ctx) => {
+                let t = clock();
+                let mut loss_secs = 0.0;
+                let (radii, loss, grads) = crate::gpu::render_with_loss(
+                    ctx,
+                    &state.scene,
+                    &view.camera,
+                    &settings,
+                    |rgb| {
+                        let t = clock();
+                        let loss = l1_dssim(rgb, &view.image, w, h, 3, config.ssim_weight);
+                        loss_secs = t.elapsed().as_secs_f64();
+                        (loss.value, loss.grad)
+                    },
+                )?;
+                times.loss += loss_secs;
+                times.render += t.elapsed().as_secs_f64() - loss_secs;
+                (radii, loss, grads)
+            }
+            None => {
+                let t = clock();
+                let out = render(&state.scene, &view.camera, &settings, None);
+                times.render += t.elapsed().as_secs_f64();
+                let t = clock();
+                let loss = l1_dssim(&out.rgb, &view.image, w, h, 3, config.ssim_weight);
+                times.loss += t.elapsed().as_secs_f64();
+                let t = clock();
+                let grads = render_backward(
+                    &state.scene,
+                    &view.camera,
+                    &settings,
+                    None,
+                    &out,
+                    &OutputGrads {
+                        rgb: &loss.grad,
+                        alpha: None,
+                        depth: None,
+                        extra: None,
+                    },
+                );
+                times.backward += t.elapsed().as_secs_f64();
+                (out.radii, loss.value, grads)
+            }
+        };
         let t = clock();
         state.step(&grads);
         times.optimise += t.elapsed().as_secs_f64();
@@ -620,7 +659,7 @@ pub fn fit(
         let refine = config.strategy.after_backward(
             &mut state,
             step,
-            &RenderedView::new(&grads, &out.radii, &view.camera),
+            &RenderedView::new(&grads, &radii, &view.camera),
             &mut rng,
         );
         times.densify += t.elapsed().as_secs_f64();
@@ -638,7 +677,7 @@ pub fn fit(
         progress(&FitProgress {
             step: done,
             steps: config.steps,
-            loss: loss.value,
+            loss,
             gaussians: state.len(),
             test_psnr,
             refine,
@@ -649,12 +688,12 @@ pub fn fit(
         .then(|| evaluate(&state.scene, &dataset.test, config.background));
     let train_psnr = evaluate(&state.scene, &dataset.train, config.background);
     times.eval += t.elapsed().as_secs_f64();
-    FitResult {
+    Ok(FitResult {
         scene: state.scene,
         test_psnr,
         train_psnr,
         seconds: times,
-    }
+    })
 }
 
 #[cfg(test)]

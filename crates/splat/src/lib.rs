@@ -15,6 +15,7 @@ pub mod checkpoint;
 pub mod densify;
 pub mod fit;
 pub mod formats;
+pub mod gpu;
 pub mod image;
 mod layout;
 pub mod lift;

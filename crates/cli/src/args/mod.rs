@@ -7,6 +7,7 @@
 //! | [`WorkingSize`]   | `--size` (default 512)                    | edit, edit-image (via `SamplerArgs`) |
 //! | [`BackgroundArg`] | `--background`                            | render, metrics, fit, edit           |
 //! | [`CameraArgs`]    | `--cameras`, `--orbit`, `--max-views`     | render, metrics, edit                |
+//! | [`DeviceArg`]     | `--device`                                | render, fit                          |
 //! | [`editing`]       | model, prompts, InfEdit sampler knobs     | edit, edit-image                     |
 //! | [`output::ForceArg`] | `--force`                              | render, edit, demo                   |
 //! | [`memory::MemoryCheckArg`] | `--ignore-memory-check`          | edit, fit                            |
@@ -29,13 +30,47 @@ use anyhow::{bail, Context, Result};
 use splat::cameras::{
     load_cameras, orbit_cameras, robust_bounds, to_working_resolution, CameraSet,
 };
+use splat::gpu::{DeviceChoice, GpuContext};
 use splat::{Camera, GaussianScene};
 
 use parse::{parse_colour, parse_size, positive, whole};
 
-// Compute device: a later change adds a `DeviceArg` group here (`--device cpu|gpu|auto`), flattened like
-// the groups below into every command that renders or runs the diffusion model (render, metrics, fit, edit,
-// edit-image, demo, demo-model). Nothing chooses a device yet.
+/// `--device`: where rendering and fitting run.
+#[derive(clap::Args, Debug, Clone)]
+pub struct DeviceArg {
+    /// Compute device: cpu, gpu (an error without one) or auto (a hardware GPU when one is found, else
+    /// the CPU). Default: $VCEDIT_DEVICE, else auto.
+    #[arg(long, value_name = "DEVICE")]
+    pub device: Option<DeviceChoice>,
+}
+
+impl DeviceArg {
+    /// Opens the chosen device and says in the log which one runs: `None` means the CPU.
+    pub fn open(&self) -> Result<Option<GpuContext>> {
+        let choice = match self.device {
+            Some(c) => c,
+            None => DeviceChoice::from_env_or(DeviceChoice::Auto)
+                .context(format!("${}", splat::gpu::DEVICE_ENV))?,
+        };
+        let ctx = splat::gpu::open(choice)?;
+        match (&ctx, choice) {
+            (Some(ctx), _) => eprintln!("device: {}", ctx.describe()),
+            (None, DeviceChoice::Auto) => {
+                let software = splat::gpu::list_adapters().into_iter().find(|a| a.software);
+                match software {
+                    Some(a) => eprintln!(
+                        "device: CPU (auto: no hardware GPU; {} is a software rasteriser, set {}=1 to use it)",
+                        a.name,
+                        splat::gpu::ALLOW_SOFTWARE_ENV
+                    ),
+                    None => eprintln!("device: CPU (auto: no GPU found)"),
+                }
+            }
+            (None, _) => eprintln!("device: CPU"),
+        }
+        Ok(ctx)
+    }
+}
 
 /// The most views `--orbit` makes without `--allow-many-views`: a typo (100000 for 100) must not start
 /// writing or rendering for hours.

@@ -2,14 +2,14 @@
 
 use anyhow::{bail, Context, Result};
 use splat::cameras::{load_cameras, CameraSet};
-use splat::fit::{fit, load_dataset, DatasetOptions, FitConfig};
+use splat::fit::{fit_on, load_dataset, DatasetOptions, FitConfig};
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use crate::args::memory::MemoryCheckArg;
 use crate::args::output::{files_under, output_file};
 use crate::args::parse::{positive, whole};
-use crate::args::{BackgroundArg, SizeArg};
+use crate::args::{BackgroundArg, DeviceArg, SizeArg};
 use crate::progress::Reporter;
 
 #[derive(clap::Args, Debug)]
@@ -49,6 +49,8 @@ pub struct Args {
     pub holdout_every: usize,
     #[command(flatten)]
     pub background: BackgroundArg,
+    #[command(flatten)]
+    pub device: DeviceArg,
     /// Seed of every random choice (initial points, view order, splits).
     #[arg(long, default_value_t = 0, value_parser = whole::<u64>, allow_negative_numbers = true)]
     pub seed: u64,
@@ -170,7 +172,8 @@ pub fn run(args: Args) -> Result<()> {
     progress.stage("fitting", args.steps);
     let mut smoothed = None::<f32>;
     let mut last_psnr = None::<f64>;
-    let result = fit(&dataset, &config, &mut |p| {
+    let device = args.device.open()?;
+    let result = fit_on(&dataset, &config, device.as_ref(), &mut |p| {
         // Exponential moving average, as the INRIA trainer shows.
         let ema = smoothed.map_or(p.loss, |s| 0.6 * p.loss + 0.4 * s);
         smoothed = Some(ema);
@@ -188,7 +191,7 @@ pub fn run(args: Args) -> Result<()> {
             progress.set_message(format!("loss {ema:.4}{psnr} N {}", p.gaussians));
             progress.set_position(p.step);
         }
-    });
+    })?;
     progress.finish();
     if result.scene.is_empty() {
         bail!(

@@ -1,13 +1,13 @@
 //! `vcedit render SCENE`: render a scene to PNG files from given or generated cameras.
 
 use anyhow::{Context, Result};
-use splat::render::{render, RenderOutput, RenderSettings};
+use splat::render::{render, RenderSettings};
 use splat::Image;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use crate::args::output::{fingerprint, ForceArg, OutputDir};
-use crate::args::{BackgroundArg, CameraArgs, CameraSource, SizeArg};
+use crate::args::{BackgroundArg, CameraArgs, CameraSource, DeviceArg, SizeArg};
 use crate::progress::Reporter;
 
 /// Views rendered for a scene that brings no cameras when neither --cameras nor --orbit is given.
@@ -47,6 +47,8 @@ pub struct Args {
     pub alpha: bool,
     #[command(flatten)]
     pub background: BackgroundArg,
+    #[command(flatten)]
+    pub device: DeviceArg,
 }
 
 /// A file-name-safe version of a camera name.
@@ -71,15 +73,14 @@ fn file_stem(index: usize, name: &str) -> String {
 
 /// Depth as a grey image: per-pixel mean depth (depth / alpha) where alpha > 0.5, mapped so the 1st
 /// percentile is white and the 99th is dark grey; other pixels black.
-fn depth_image(out: &RenderOutput) -> Image {
-    let mean_depth: Vec<Option<f32>> = out
-        .depth
+fn depth_image(width: u32, height: u32, depth: &[f32], alpha: &[f32]) -> Image {
+    let mean_depth: Vec<Option<f32>> = depth
         .iter()
-        .zip(&out.alpha)
+        .zip(alpha)
         .map(|(&d, &a)| (a > 0.5 && d.is_finite()).then(|| d / a))
         .collect();
     let mut visible: Vec<f32> = mean_depth.iter().flatten().copied().collect();
-    let mut img = Image::new(out.width, out.height, 1);
+    let mut img = Image::new(width, height, 1);
     if visible.is_empty() {
         return img;
     }
@@ -143,21 +144,35 @@ pub fn run(args: Args) -> Result<()> {
     let settings = RenderSettings {
         background: args.background.background,
     };
+    let device = args.device.open()?;
+    let on_device = device
+        .as_ref()
+        .map(|ctx| (ctx, splat::gpu::GpuScene::upload(ctx, &scene)));
     let mut progress = Reporter::new();
     progress.stage("rendering views", cameras.len() as u64);
     let t_render = Instant::now();
     for (i, cam) in cameras.iter().enumerate() {
-        let out = render(&scene, cam, &settings, None);
+        let (rgb, alpha, depth) = match &on_device {
+            Some((ctx, dev)) => {
+                let frame = splat::gpu::render_device(ctx, dev, cam, &settings, None)?;
+                let out = splat::gpu::download(ctx, &frame, scene.len())?;
+                (out.rgb_image(), out.alpha, out.depth)
+            }
+            None => {
+                let out = render(&scene, cam, &settings, None);
+                (out.rgb_image(), out.alpha, out.depth)
+            }
+        };
         let stem = file_stem(i, &cam.name);
-        save(&out.rgb_image(), &args.out.join(format!("{stem}.png")))?;
+        save(&rgb, &args.out.join(format!("{stem}.png")))?;
         if args.depth {
             save(
-                &depth_image(&out),
+                &depth_image(rgb.width, rgb.height, &depth, &alpha),
                 &args.out.join(format!("{stem}_depth.png")),
             )?;
         }
         if args.alpha {
-            let alpha = Image::from_data(out.width, out.height, 1, out.alpha.clone());
+            let alpha = Image::from_data(rgb.width, rgb.height, 1, alpha);
             save(&alpha, &args.out.join(format!("{stem}_alpha.png")))?;
         }
         progress.advance(1);

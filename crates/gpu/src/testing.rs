@@ -1,0 +1,23 @@
+//! Helpers for tests that need a GPU: on machines without one (a fresh clone, CI without lavapipe) they
+//! skip with one printed line instead of failing.
+
+use crate::{open, DeviceChoice, GpuContext, GpuError};
+use std::sync::OnceLock;
+
+/// The test device (any adapter, software ones included), opened once per test binary; `None` after
+/// printing "skipping: no Vulkan device" when there is none.
+pub fn context_or_skip() -> Option<GpuContext> {
+    static CONTEXT: OnceLock<Result<GpuContext, String>> = OnceLock::new();
+    let ctx = CONTEXT.get_or_init(|| match open(DeviceChoice::Gpu) {
+        Ok(Some(ctx)) => Ok(ctx),
+        Ok(None) | Err(GpuError::NoAdapter) => Err(String::new()),
+        Err(e) => Err(format!(" ({e})")),
+    });
+    match ctx {
+        Ok(ctx) => Some(ctx.clone()),
+        Err(why) => {
+            println!("skipping: no Vulkan device{why}");
+            None
+        }
+    }
+}

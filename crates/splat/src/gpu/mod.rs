@@ -1,0 +1,641 @@
+//! The differentiable renderer on the GPU (CubeCL kernels through `gpu`), with the CPU renderer of
+//! [`crate::render`] as the reference it must match.
+//!
+//! Stages, each one kernel per op:
+//! 1. [`project`]: projection + SH colour per Gaussian (depth keys and covered tile counts included);
+//! 2. binning: a stable radix sort of the drawable Gaussians by depth, an exclusive scan of their tile
+//!    counts in that order, one (tile, Gaussian) pair per covered tile, a stable radix sort of the pairs
+//!    by tile and the per-tile ranges: every tile list comes out sorted by depth, ties by index, as on
+//!    the CPU;
+//! 3. [`raster`]: per-pixel compositing of RGB, alpha, depth and extra channels.
+//!
+//! The backward runs 3 then 1 with the state the forward left on the device.
+//!
+//! [`GpuScene`] keeps the parameters on the device; [`render_device`] / [`render_backward_device`] work on
+//! device buffers only (one 4-byte read: the number of tile intersections), and [`render`] /
+//! [`render_backward`] are host-side conveniences with the CPU renderer's types.
+
+mod lift;
+mod optim;
+pub(crate) mod project;
+pub(crate) mod raster;
+pub(crate) mod sh;
+
+use crate::render::{ExtraChannels, OutputGrads, RenderSettings, SceneGrads, TILE};
+use crate::{Camera, GaussianScene};
+use ::gpu::cubecl::prelude::*;
+use ::gpu::cubecl::server::Handle;
+use ::gpu::gpu_call;
+use ::gpu::prims::{
+    arg, empty32, exclusive_scan, grid, read_f32, read_u32, sort_pairs, upload_f32, zeros32,
+};
+pub use ::gpu::{
+    list_adapters, open, DeviceChoice, GpuContext, GpuError, ALLOW_SOFTWARE_ENV, DEVICE_ENV,
+};
+pub use lift::lift;
+pub use optim::GpuAdam;
+use project::{CAM_F, GRAD_F, INFO_U, SPLAT_F};
+
+/// Scene parameters on the device (layouts of [`GaussianScene`]).
+pub struct GpuScene {
+    pub len: usize,
+    pub sh_degree: u32,
+    pub means: Handle,
+    pub log_scales: Handle,
+    pub quats: Handle,
+    pub opacity_logits: Handle,
+    pub sh: Handle,
+}
+
+impl GpuScene {
+    /// Uploads `scene`.
+    ///
+    /// # Panics
+    /// When the scene's arrays are inconsistent or its SH degree is above 3 (as [`crate::render::render`]).
+    pub fn upload(ctx: &GpuContext, scene: &GaussianScene) -> Self {
+        if let Err(e) = scene.check_shapes() {
+            panic!("inconsistent scene: {e}");
+        }
+        assert!(
+            scene.sh_degree <= 3,
+            "SH degree {} is not supported",
+            scene.sh_degree
+        );
+        let c = &ctx.client;
+        Self {
+            len: scene.len(),
+            sh_degree: scene.sh_degree,
+            means: upload_f32(c, &scene.means),
+            log_scales: upload_f32(c, &scene.log_scales),
+            quats: upload_f32(c, &scene.quats),
+            opacity_logits: upload_f32(c, &scene.opacity_logits),
+            sh: upload_f32(c, &scene.sh),
+        }
+    }
+
+    /// Reads the parameters back.
+    pub fn download(&self, ctx: &GpuContext) -> Result<GaussianScene, GpuError> {
+        let c = &ctx.client;
+        let n = self.len;
+        let k = crate::scene::sh_coeffs(self.sh_degree);
+        Ok(GaussianScene {
+            sh_degree: self.sh_degree,
+            means: read_f32(c, &self.means, 3 * n)?,
+            log_scales: read_f32(c, &self.log_scales, 3 * n)?,
+            quats: read_f32(c, &self.quats, 4 * n)?,
+            opacity_logits: read_f32(c, &self.opacity_logits, n)?,
+            sh: read_f32(c, &self.sh, 3 * k * n)?,
+        })
+    }
+}
+
+/// A frame rendered on the device, with the state its backward needs.
+pub struct GpuFrame {
+    pub width: u32,
+    pub height: u32,
+    pub channels: usize,
+    /// H*W*3, H*W, H*W, H*W*C: as [`crate::render::RenderOutput`].
+    pub rgb: Handle,
+    pub alpha: Handle,
+    pub depth: Handle,
+    pub extra: Handle,
+    /// Number of (tile, Gaussian) pairs.
+    pub intersections: usize,
+    splats: Handle,
+    info: Handle,
+    ids: Handle,
+    tile_start: Handle,
+    t_final: Handle,
+    last: Handle,
+    cam: Handle,
+    tiles_x: u32,
+    tiles_y: u32,
+}
+
+/// Camera values in the kernels' layout, computed as `CameraR::<f32>` does (f64, then rounded).
+fn camera_values(cam: &Camera) -> [f32; CAM_F] {
+    let (w, h) = (cam.width as f64, cam.height as f64);
+    let tan_x = 0.5 * w / cam.fx;
+    let tan_y = 0.5 * h / cam.fy;
+    let centre = cam.center();
+    let mut v = vec![cam.fx, cam.fy, cam.cx, cam.cy];
+    v.extend(cam.rotation.iter().flatten());
+    v.extend(cam.translation);
+    v.extend(centre);
+    v.extend([
+        cam.cx / cam.fx + 0.3 * tan_x,
+        (w - cam.cx) / cam.fx + 0.3 * tan_x,
+        cam.cy / cam.fy + 0.3 * tan_y,
+        (h - cam.cy) / cam.fy + 0.3 * tan_y,
+    ]);
+    std::array::from_fn(|i| v[i] as f32)
+}
+
+/// Renders a device scene. `extra`: per-Gaussian values on the device (N*C) and C.
+pub fn render_device(
+    ctx: &GpuContext,
+    scene: &GpuScene,
+    camera: &Camera,
+    settings: &RenderSettings,
+    extra: Option<(&Handle, usize)>,
+) -> Result<GpuFrame, GpuError> {
+    gpu_call(|| render_device_inner(ctx, scene, camera, settings, extra))
+}
+
+/// Projected and binned Gaussians of one view (stages 1 and 2).
+struct Binned {
+    splats: Handle,
+    info: Handle,
+    ids: Handle,
+    tile_start: Handle,
+    tile_end: Handle,
+    intersections: usize,
+    cam: Handle,
+    tiles_x: u32,
+    tiles_y: u32,
+}
+
+fn project_and_bin(
+    ctx: &GpuContext,
+    scene: &GpuScene,
+    camera: &Camera,
+) -> Result<Binned, GpuError> {
+    let c = &ctx.client;
+    let n = scene.len;
+    let tiles_x = camera.width.div_ceil(TILE);
+    let tiles_y = camera.height.div_ceil(TILE);
+    let num_tiles = (tiles_x * tiles_y) as usize;
+    let cam = upload_f32(c, &camera_values(camera));
+
+    // 1. Projection.
+    let splats = empty32(c, SPLAT_F * n);
+    let info = empty32(c, INFO_U * n);
+    if n > 0 {
+        let (count, dim) = grid(n);
+        project::project_forward::launch(
+            c,
+            count,
+            dim,
+            arg(&scene.means, 3 * n),
+            arg(&scene.log_scales, 3 * n),
+            arg(&scene.quats, 4 * n),
+            arg(&scene.opacity_logits, n),
+            arg(&scene.sh, 3 * crate::scene::sh_coeffs(scene.sh_degree) * n),
+            arg(&cam, CAM_F),
+            n as u32,
+            tiles_x,
+            tiles_y,
+            arg(&splats, SPLAT_F * n),
+            arg(&info, INFO_U * n),
+            scene.sh_degree,
+        );
+    }
+
+    // 2. Binning.
+    let (ids, tile_start, tile_end, intersections) = bin(ctx, &info, n, tiles_x, num_tiles.max(1))?;
+    Ok(Binned {
+        splats,
+        info,
+        ids,
+        tile_start,
+        tile_end,
+        intersections,
+        cam,
+        tiles_x,
+        tiles_y,
+    })
+}
+
+fn render_device_inner(
+    ctx: &GpuContext,
+    scene: &GpuScene,
+    camera: &Camera,
+    settings: &RenderSettings,
+    extra: Option<(&Handle, usize)>,
+) -> Result<GpuFrame, GpuError> {
+    let c = &ctx.client;
+    let n = scene.len;
+    let (width, height) = (camera.width, camera.height);
+    let npix = (width * height) as usize;
+    let Binned {
+        splats,
+        info,
+        ids,
+        tile_start,
+        tile_end,
+        intersections,
+        cam,
+        tiles_x,
+        tiles_y,
+    } = project_and_bin(ctx, scene, camera)?;
+    let num_tiles = (tiles_x * tiles_y) as usize;
+
+    // 3. Rasterisation.
+    let channels = extra.map_or(0, |e| e.1);
+    let extra_vals = extra.map_or_else(|| empty32(c, 1), |e| e.0.clone());
+    let rgb = empty32(c, 3 * npix);
+    let alpha = empty32(c, npix);
+    let depth = empty32(c, npix);
+    let extra_img = empty32(c, channels * npix);
+    let t_final = empty32(c, npix);
+    let last = empty32(c, npix);
+    if npix > 0 {
+        let bg = settings.background;
+        raster::raster_forward::launch(
+            c,
+            CubeCount::new_2d(tiles_x, tiles_y),
+            CubeDim::new_2d(TILE, TILE),
+            arg(&splats, SPLAT_F * n),
+            arg(&ids, intersections),
+            arg(&tile_start, num_tiles),
+            arg(&tile_end, num_tiles),
+            arg(&extra_vals, channels * n),
+            width,
+            height,
+            tiles_x,
+            bg[0],
+            bg[1],
+            bg[2],
+            arg(&rgb, 3 * npix),
+            arg(&alpha, npix),
+            arg(&depth, npix),
+            arg(&extra_img, channels * npix),
+            arg(&t_final, npix),
+            arg(&last, npix),
+            channels as u32,
+        );
+    }
+    Ok(GpuFrame {
+        width,
+        height,
+        channels,
+        rgb,
+        alpha,
+        depth,
+        extra: extra_img,
+        intersections,
+        splats,
+        info,
+        ids,
+        tile_start,
+        t_final,
+        last,
+        cam,
+        tiles_x,
+        tiles_y,
+    })
+}
+
+/// Tile lists: (ids, start, end, number of pairs).
+fn bin(
+    ctx: &GpuContext,
+    info: &Handle,
+    n: usize,
+    tiles_x: u32,
+    num_tiles: usize,
+) -> Result<(Handle, Handle, Handle, usize), GpuError> {
+    let c = &ctx.client;
+    let tile_start = zeros32(c, num_tiles);
+    let tile_end = zeros32(c, num_tiles);
+    if n == 0 {
+        return Ok((empty32(c, 1), tile_start, tile_end, 0));
+    }
+    let (count, dim) = grid(n);
+    let keys = empty32(c, n);
+    let vals = empty32(c, n);
+    raster::depth_keys::launch(
+        c,
+        count.clone(),
+        dim,
+        arg(info, INFO_U * n),
+        n as u32,
+        arg(&keys, n),
+        arg(&vals, n),
+    );
+    let (_, order) = sort_pairs(c, keys, vals, n, 32);
+    let counts = empty32(c, n);
+    raster::gather_info::launch(
+        c,
+        count.clone(),
+        dim,
+        arg(&order, n),
+        arg(info, INFO_U * n),
+        n as u32,
+        6,
+        arg(&counts, n),
+    );
+    let (offsets, total) = exclusive_scan(c, &counts, n);
+    // The one read of the forward pass: the pair count sizes the next buffers.
+    let m = read_u32(c, &total, 1)?[0] as usize;
+    if m == 0 {
+        return Ok((empty32(c, 1), tile_start, tile_end, 0));
+    }
+    let tile_keys = empty32(c, m);
+    let ids = empty32(c, m);
+    raster::emit_pairs::launch(
+        c,
+        count,
+        dim,
+        arg(&order, n),
+        arg(info, INFO_U * n),
+        arg(&offsets, n),
+        n as u32,
+        tiles_x,
+        arg(&tile_keys, m),
+        arg(&ids, m),
+    );
+    let tile_bits = u32::BITS - (num_tiles as u32 - 1).leading_zeros();
+    let (tile_keys, ids) = sort_pairs(c, tile_keys, ids, m, tile_bits);
+    let (count, dim) = grid(m);
+    raster::tile_ranges::launch(
+        c,
+        count,
+        dim,
+        arg(&tile_keys, m),
+        m as u32,
+        arg(&tile_start, num_tiles),
+        arg(&tile_end, num_tiles),
+    );
+    Ok((ids, tile_start, tile_end, m))
+}
+
+/// Gradients of the loss with respect to a device frame's outputs (device buffers, same layouts).
+pub struct GpuOutputGrads<'a> {
+    pub rgb: &'a Handle,
+    pub alpha: Option<&'a Handle>,
+    pub depth: Option<&'a Handle>,
+    pub extra: Option<&'a Handle>,
+}
+
+/// Parameter gradients on the device (layouts of [`SceneGrads`]); `splat` holds the per-Gaussian screen
+/// gradients (mean x, y first: the densification statistics read them).
+pub struct GpuSceneGrads {
+    pub means: Handle,
+    pub log_scales: Handle,
+    pub quats: Handle,
+    pub opacity_logits: Handle,
+    pub sh: Handle,
+    /// N*C, present when an extra-channel gradient was given.
+    pub extra: Option<Handle>,
+    pub splat: Handle,
+}
+
+/// Backward of [`render_device`]: `scene`, `camera`, `settings` and `extra` must be those of `frame`.
+pub fn render_backward_device(
+    ctx: &GpuContext,
+    scene: &GpuScene,
+    settings: &RenderSettings,
+    extra: Option<(&Handle, usize)>,
+    frame: &GpuFrame,
+    grads: &GpuOutputGrads<'_>,
+) -> Result<GpuSceneGrads, GpuError> {
+    gpu_call(|| {
+        let c = &ctx.client;
+        let n = scene.len;
+        let npix = (frame.width * frame.height) as usize;
+        let k = crate::scene::sh_coeffs(scene.sh_degree);
+        let num_tiles = (frame.tiles_x * frame.tiles_y) as usize;
+        let splat = zeros32(c, GRAD_F * n);
+        let channels = match (extra, grads.extra) {
+            (Some((_, ch)), Some(_)) if ch > 0 => ch,
+            _ => 0,
+        };
+        let g_extra = (channels > 0).then(|| zeros32(c, channels * n));
+        if npix > 0 && frame.intersections > 0 {
+            let zeros_pix =
+                (grads.alpha.is_none() || grads.depth.is_none()).then(|| zeros32(c, npix));
+            let v_alpha = grads.alpha.or(zeros_pix.as_ref()).unwrap();
+            let v_depth = grads.depth.or(zeros_pix.as_ref()).unwrap();
+            let dummy = empty32(c, 1);
+            let extra_vals = extra.filter(|_| channels > 0).map_or(&dummy, |e| e.0);
+            let v_extra = grads.extra.filter(|_| channels > 0).unwrap_or(&dummy);
+            let behind = empty32(c, channels * npix);
+            let bg = settings.background;
+            raster::raster_backward::launch(
+                c,
+                CubeCount::new_2d(frame.tiles_x, frame.tiles_y),
+                CubeDim::new_2d(TILE, TILE),
+                arg(&frame.splats, SPLAT_F * n),
+                arg(&frame.ids, frame.intersections),
+                arg(&frame.tile_start, num_tiles),
+                arg(extra_vals, channels * n),
+                frame.width,
+                frame.height,
+                frame.tiles_x,
+                bg[0],
+                bg[1],
+                bg[2],
+                arg(&frame.t_final, npix),
+                arg(&frame.last, npix),
+                arg(grads.rgb, 3 * npix),
+                arg(v_alpha, npix),
+                arg(v_depth, npix),
+                arg(v_extra, channels * npix),
+                arg(&behind, channels * npix),
+                arg(&splat, GRAD_F * n),
+                arg(g_extra.as_ref().unwrap_or(&dummy), channels * n),
+                channels as u32,
+            );
+        }
+        let out = GpuSceneGrads {
+            means: empty32(c, 3 * n),
+            log_scales: empty32(c, 3 * n),
+            quats: empty32(c, 4 * n),
+            opacity_logits: empty32(c, n),
+            sh: empty32(c, 3 * k * n),
+            extra: g_extra,
+            splat,
+        };
+        if n > 0 {
+            let (count, dim) = grid(n);
+            project::project_backward::launch(
+                c,
+                count,
+                dim,
+                arg(&scene.means, 3 * n),
+                arg(&scene.log_scales, 3 * n),
+                arg(&scene.quats, 4 * n),
+                arg(&scene.sh, 3 * k * n),
+                arg(&frame.cam, CAM_F),
+                n as u32,
+                arg(&frame.splats, SPLAT_F * n),
+                arg(&frame.info, INFO_U * n),
+                arg(&out.splat, GRAD_F * n),
+                arg(&out.means, 3 * n),
+                arg(&out.log_scales, 3 * n),
+                arg(&out.quats, 4 * n),
+                arg(&out.opacity_logits, n),
+                arg(&out.sh, 3 * k * n),
+                scene.sh_degree,
+            );
+        }
+        Ok(out)
+    })
+}
+
+/// A GPU render read back to the host (fields as in [`crate::render::RenderOutput`]).
+#[derive(Clone, Debug)]
+pub struct HostFrame {
+    pub width: u32,
+    pub height: u32,
+    pub rgb: Vec<f32>,
+    pub alpha: Vec<f32>,
+    pub depth: Vec<f32>,
+    pub extra: Vec<f32>,
+    pub channels: usize,
+    pub radii: Vec<u32>,
+}
+
+impl HostFrame {
+    /// The RGB image as an [`crate::Image`].
+    pub fn rgb_image(&self) -> crate::Image {
+        crate::Image::from_data(self.width, self.height, 3, self.rgb.clone())
+    }
+}
+
+/// Reads a device frame back.
+pub fn download(ctx: &GpuContext, frame: &GpuFrame, n: usize) -> Result<HostFrame, GpuError> {
+    let c = &ctx.client;
+    let npix = (frame.width * frame.height) as usize;
+    let info = read_u32(c, &frame.info, INFO_U * n)?;
+    Ok(HostFrame {
+        width: frame.width,
+        height: frame.height,
+        rgb: read_f32(c, &frame.rgb, 3 * npix)?,
+        alpha: read_f32(c, &frame.alpha, npix)?,
+        depth: read_f32(c, &frame.depth, npix)?,
+        extra: read_f32(c, &frame.extra, frame.channels * npix)?,
+        channels: frame.channels,
+        radii: info.chunks(INFO_U).map(|r| r[0]).collect(),
+    })
+}
+
+/// Host convenience: uploads, renders and reads back, like [`crate::render::render`].
+pub fn render(
+    ctx: &GpuContext,
+    scene: &GaussianScene,
+    camera: &Camera,
+    settings: &RenderSettings,
+    extra: Option<ExtraChannels<'_>>,
+) -> Result<HostFrame, GpuError> {
+    let dev = GpuScene::upload(ctx, scene);
+    let extra_dev = extra.map(|e| {
+        assert_eq!(
+            e.values.len(),
+            scene.len() * e.channels,
+            "extra channel values must be N*C"
+        );
+        (upload_f32(&ctx.client, e.values), e.channels)
+    });
+    let frame = render_device(
+        ctx,
+        &dev,
+        camera,
+        settings,
+        extra_dev.as_ref().map(|(h, c)| (h, *c)),
+    )?;
+    download(ctx, &frame, scene.len())
+}
+
+/// Host convenience: forward and backward on the device, gradients read back, like
+/// [`crate::render::render_backward`] (which needs the forward's output; here the forward is rerun).
+pub fn render_backward(
+    ctx: &GpuContext,
+    scene: &GaussianScene,
+    camera: &Camera,
+    settings: &RenderSettings,
+    extra: Option<ExtraChannels<'_>>,
+    grads: &OutputGrads<'_>,
+) -> Result<SceneGrads, GpuError> {
+    let c = &ctx.client;
+    let n = scene.len();
+    let npix = (camera.width * camera.height) as usize;
+    assert_eq!(grads.rgb.len(), 3 * npix, "rgb gradient must be H*W*3");
+    let dev = GpuScene::upload(ctx, scene);
+    let extra_dev = extra.map(|e| (upload_f32(c, e.values), e.channels));
+    let extra_ref = extra_dev.as_ref().map(|(h, ch)| (h, *ch));
+    let frame = render_device(ctx, &dev, camera, settings, extra_ref)?;
+    let rgb = upload_f32(c, grads.rgb);
+    let alpha = grads.alpha.map(|a| upload_f32(c, a));
+    let depth = grads.depth.map(|d| upload_f32(c, d));
+    let ext = grads.extra.map(|e| upload_f32(c, e));
+    let g = render_backward_device(
+        ctx,
+        &dev,
+        settings,
+        extra_ref,
+        &frame,
+        &GpuOutputGrads {
+            rgb: &rgb,
+            alpha: alpha.as_ref(),
+            depth: depth.as_ref(),
+            extra: ext.as_ref(),
+        },
+    )?;
+    read_grads(ctx, &g, n, scene.sh_degree, extra_ref.map(|e| e.1))
+}
+
+/// One training pass with the loss on the host: uploads `scene`, renders on the device, reads the RGB
+/// image back, lets `loss` turn it into (its value, dL/d rgb), and runs the backward on the device.
+/// Returns the screen radii (densification uses them), the loss value and the parameter gradients.
+pub fn render_with_loss<L>(
+    ctx: &GpuContext,
+    scene: &GaussianScene,
+    camera: &Camera,
+    settings: &RenderSettings,
+    loss: impl FnOnce(&[f32]) -> (L, Vec<f32>),
+) -> Result<(Vec<u32>, L, SceneGrads), GpuError> {
+    let c = &ctx.client;
+    let n = scene.len();
+    let npix = (camera.width * camera.height) as usize;
+    let dev = GpuScene::upload(ctx, scene);
+    let frame = render_device(ctx, &dev, camera, settings, None)?;
+    let rgb = read_f32(c, &frame.rgb, 3 * npix)?;
+    let (value, grad) = loss(&rgb);
+    assert_eq!(grad.len(), 3 * npix, "rgb gradient must be H*W*3");
+    let grad = upload_f32(c, &grad);
+    let g = render_backward_device(
+        ctx,
+        &dev,
+        settings,
+        None,
+        &frame,
+        &GpuOutputGrads {
+            rgb: &grad,
+            alpha: None,
+            depth: None,
+            extra: None,
+        },
+    )?;
+    let info = read_u32(c, &frame.info, INFO_U * n)?;
+    let grads = read_grads(ctx, &g, n, scene.sh_degree, None)?;
+    Ok((info.chunks(INFO_U).map(|r| r[0]).collect(), value, grads))
+}
+
+/// Reads device gradients back into the CPU renderer's type.
+fn read_grads(
+    ctx: &GpuContext,
+    g: &GpuSceneGrads,
+    n: usize,
+    sh_degree: u32,
+    channels: Option<usize>,
+) -> Result<SceneGrads, GpuError> {
+    let c = &ctx.client;
+    let k = crate::scene::sh_coeffs(sh_degree);
+    let splat = read_f32(c, &g.splat, GRAD_F * n)?;
+    Ok(SceneGrads {
+        means: read_f32(c, &g.means, 3 * n)?,
+        log_scales: read_f32(c, &g.log_scales, 3 * n)?,
+        quats: read_f32(c, &g.quats, 4 * n)?,
+        opacity_logits: read_f32(c, &g.opacity_logits, n)?,
+        sh: read_f32(c, &g.sh, 3 * k * n)?,
+        extra: match (&g.extra, channels) {
+            (Some(h), Some(ch)) => read_f32(c, h, ch * n)?,
+            _ => vec![],
+        },
+        means2d: splat.chunks(GRAD_F).map(|s| [s[0], s[1]]).collect(),
+    })
+}
+
+#[cfg(test)]
+mod tests;

@@ -1,0 +1,148 @@
+//! Adam on the device: the update of `crate::optim::Adam::step` (torch's Adam with the trainer's eps),
+//! with the moments kept beside a [`GpuScene`]. The CPU [`Adam`] still holds the learning rates and the
+//! step count, so both paths share one schedule.
+
+use super::{arg, GpuContext, GpuError, GpuScene, GpuSceneGrads};
+use crate::optim::{Adam, Group};
+use ::gpu::cubecl;
+use ::gpu::cubecl::prelude::*;
+use ::gpu::cubecl::server::Handle;
+use ::gpu::gpu_call;
+use ::gpu::prims::{grid, zeros32};
+
+/// One Adam update of an array of `width` values per Gaussian: the first `first` values of each block
+/// use `lr_first`, the rest `lr_rest` (SH: DC and higher coefficients).
+#[cube(launch)]
+#[allow(clippy::too_many_arguments)]
+fn adam_update(
+    params: &mut [f32],
+    grads: &[f32],
+    m: &mut [f32],
+    v: &mut [f32],
+    len: u32,
+    width: u32,
+    first: u32,
+    lr_first: f32,
+    lr_rest: f32,
+    beta1: f32,
+    beta2: f32,
+    eps: f32,
+    inv_bias1: f32,
+    inv_sqrt_bias2: f32,
+) {
+    let i = ABSOLUTE_POS;
+    if i < len as usize {
+        let lr = select((i as u32 % width) < first, lr_first, lr_rest);
+        let g = grads[i];
+        let mi = beta1 * m[i] + (1.0f32 - beta1) * g;
+        let vi = beta2 * v[i] + (1.0f32 - beta2) * g * g;
+        m[i] = mi;
+        v[i] = vi;
+        let denom = vi.sqrt() * inv_sqrt_bias2 + eps;
+        params[i] -= lr * inv_bias1 * mi / denom;
+    }
+}
+
+/// First and second moments of every parameter array, on the device.
+pub struct GpuAdam {
+    /// (m, v) for means, log-scales, quaternions, opacity logits, SH.
+    moments: [(Handle, Handle); 5],
+}
+
+impl GpuAdam {
+    /// Zero moments for `scene`.
+    pub fn new(ctx: &GpuContext, scene: &GpuScene) -> Self {
+        let c = &ctx.client;
+        let n = scene.len;
+        let k = crate::scene::sh_coeffs(scene.sh_degree);
+        let pair = |len: usize| (zeros32(c, len), zeros32(c, len));
+        Self {
+            moments: [
+                pair(3 * n),
+                pair(3 * n),
+                pair(4 * n),
+                pair(n),
+                pair(3 * k * n),
+            ],
+        }
+    }
+
+    /// One step of every parameter (no trainable mask) with `adam`'s rates and hyper-parameters;
+    /// advances `adam`'s step count as [`Adam::step`] does.
+    pub fn step(
+        &mut self,
+        ctx: &GpuContext,
+        adam: &mut Adam,
+        scene: &GpuScene,
+        grads: &GpuSceneGrads,
+    ) -> Result<(), GpuError> {
+        let c = &ctx.client;
+        let n = scene.len;
+        let k = crate::scene::sh_coeffs(scene.sh_degree);
+        adam.steps += 1;
+        let t = adam.steps as i32;
+        let p = adam.params;
+        let bias1 = 1.0 - (p.beta1 as f64).powi(t);
+        let bias2 = 1.0 - (p.beta2 as f64).powi(t);
+        let (inv_bias1, inv_sqrt_bias2) = ((1.0 / bias1) as f32, (1.0 / bias2.sqrt()) as f32);
+        let arrays = [
+            (&scene.means, &grads.means, 3, 3, adam.lr(Group::Means), 0.0),
+            (
+                &scene.log_scales,
+                &grads.log_scales,
+                3,
+                3,
+                adam.lr(Group::LogScales),
+                0.0,
+            ),
+            (&scene.quats, &grads.quats, 4, 4, adam.lr(Group::Quats), 0.0),
+            (
+                &scene.opacity_logits,
+                &grads.opacity_logits,
+                1,
+                1,
+                adam.lr(Group::Opacity),
+                0.0,
+            ),
+            (
+                &scene.sh,
+                &grads.sh,
+                3 * k,
+                3,
+                adam.lr(Group::ShDc),
+                adam.lr(Group::ShRest),
+            ),
+        ];
+        gpu_call(|| {
+            for ((param, grad, width, first, lr_first, lr_rest), (m, v)) in
+                arrays.into_iter().zip(&self.moments)
+            {
+                let len = width * n;
+                if len == 0 {
+                    continue;
+                }
+                let (count, dim) = grid(len);
+                adam_update::launch(
+                    c,
+                    count,
+                    dim,
+                    arg(param, len),
+                    arg(grad, len),
+                    arg(m, len),
+                    arg(v, len),
+                    len as u32,
+                    width as u32,
+                    first as u32,
+                    lr_first,
+                    lr_rest,
+                    p.beta1,
+                    p.beta2,
+                    p.eps,
+                    inv_bias1,
+                    inv_sqrt_bias2,
+                );
+            }
+            Ok(())
+        })
+    }
+}
