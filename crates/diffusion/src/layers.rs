@@ -83,6 +83,13 @@ impl Conv2d {
     }
 }
 
+impl Conv2d {
+    /// The convolution on the input's device (the CPU branch is [`Module::forward`]'s call).
+    pub fn forward_device(&self, x: &kernels::DeviceTensor) -> Result<kernels::DeviceTensor> {
+        x.conv2d(&self.weight, self.bias.as_ref(), self.stride, self.padding)
+    }
+}
+
 impl Module for Conv2d {
     fn forward(&self, x: &Tensor) -> Result<Tensor> {
         kernels::conv2d(

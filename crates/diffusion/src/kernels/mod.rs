@@ -49,12 +49,15 @@ macro_rules! simd_dispatch {
 mod approx;
 mod attention;
 mod conv;
+mod device;
 mod geglu;
+pub mod gpu;
 mod norm;
 mod softmax;
 
 pub use attention::attention;
 pub use conv::conv2d;
+pub use device::DeviceTensor;
 pub use geglu::geglu;
 pub use norm::{group_norm, layer_norm};
 pub use softmax::softmax_last_dim;

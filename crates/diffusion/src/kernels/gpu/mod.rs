@@ -1,0 +1,257 @@
+//! The GPU side of the kernels: a CubeCL client on a wgpu adapter (Vulkan/Metal/DX12, WGSL shaders; Mesa
+//! lavapipe in CI), a device-resident f32 tensor ([`GpuTensor`]) and one host function per op
+//! ([`ops`]), each the GPU twin of a CPU function of `kernels`.
+//!
+//! The device is opened once per process ([`GpuDevice::shared`]). Weights live in the network as candle
+//! CPU tensors; the first GPU use of a weight uploads it into the device's cache, keyed by the tensor's
+//! id, so a model runs on the GPU without a second, GPU-side copy of its definition.
+//!
+//! TODO(issue 13): take the client from `gpu::GpuContext` (crates/gpu) once it lands, so the splatting
+//! engine and the diffusion networks share one adapter and one runtime.
+
+mod cube;
+pub mod ops;
+
+use std::collections::HashMap;
+use std::sync::{Arc, Mutex, OnceLock};
+
+use candle_core::{DType, Device, Result, Tensor, TensorId};
+use cubecl::client::Client;
+use cubecl::prelude::*;
+use cubecl::server::Handle;
+
+/// An opened GPU: the CubeCL client, the adapter's name and the uploaded-weight cache.
+#[derive(Clone)]
+pub struct GpuDevice {
+    inner: Arc<Inner>,
+}
+
+struct Inner {
+    client: Client,
+    name: String,
+    /// Weights already on the device: the CPU tensor is kept beside its copy so its id stays unique.
+    weights: Mutex<HashMap<TensorId, (Tensor, Handle)>>,
+}
+
+impl std::fmt::Debug for GpuDevice {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "GpuDevice({})", self.inner.name)
+    }
+}
+
+impl GpuDevice {
+    /// The process's GPU, opened on first use; `Err` (one line) when no Vulkan adapter works.
+    pub fn shared() -> std::result::Result<GpuDevice, String> {
+        static DEVICE: OnceLock<std::result::Result<GpuDevice, String>> = OnceLock::new();
+        DEVICE.get_or_init(open_vulkan).clone()
+    }
+
+    /// The adapter's name, e.g. "llvmpipe (LLVM 15.0.6, 256 bits)".
+    pub fn name(&self) -> &str {
+        &self.inner.name
+    }
+
+    pub(crate) fn client(&self) -> &Client {
+        &self.inner.client
+    }
+
+    /// The device copy of a (weight) tensor, uploaded on first use.
+    pub fn cached(&self, weight: &Tensor) -> Result<GpuTensor> {
+        let mut weights = self.inner.weights.lock().unwrap_or_else(|e| e.into_inner());
+        if let Some((_, handle)) = weights.get(&weight.id()) {
+            return Ok(GpuTensor {
+                device: self.clone(),
+                handle: handle.clone(),
+                shape: weight.dims().to_vec(),
+            });
+        }
+        let copy = GpuTensor::upload(self, weight)?;
+        weights.insert(weight.id(), (weight.clone(), copy.handle.clone()));
+        Ok(copy)
+    }
+
+    /// Drops every cached weight (after a model is dropped or its weights change).
+    pub fn clear_weight_cache(&self) {
+        self.inner
+            .weights
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .clear();
+    }
+}
+
+/// Opens the first non-CPU Vulkan adapter, else a software one (lavapipe). Vulkan is pinned: wgpu's
+/// automatic backend would otherwise fall back to OpenGL silently.
+fn open_vulkan() -> std::result::Result<GpuDevice, String> {
+    use cubecl::device::{WgpuBackend, WgpuDeviceKind};
+    use cubecl::wgpu::wgpu;
+    use cubecl::wgpu::{AutoGraphicsApi, RuntimeOptions, WgpuDevice};
+
+    let instance = wgpu::Instance::new(wgpu::InstanceDescriptor {
+        backends: wgpu::Backends::VULKAN,
+        ..wgpu::InstanceDescriptor::new_without_display_handle()
+    });
+    let adapters = cubecl::future::block_on(instance.enumerate_adapters(wgpu::Backends::VULKAN));
+    // cubecl numbers adapters per type: DiscreteGpu(n) is the n-th discrete GPU.
+    let mut seen = [0usize; 5];
+    let mut candidates = Vec::new();
+    for adapter in &adapters {
+        let info = adapter.get_info();
+        let (slot, rank) = match info.device_type {
+            wgpu::DeviceType::DiscreteGpu => (0, 0),
+            wgpu::DeviceType::IntegratedGpu => (1, 1),
+            wgpu::DeviceType::VirtualGpu => (2, 2),
+            wgpu::DeviceType::Other => (3, 3),
+            wgpu::DeviceType::Cpu => (4, 4),
+        };
+        let n = seen[slot];
+        seen[slot] += 1;
+        let kind = match info.device_type {
+            wgpu::DeviceType::DiscreteGpu => WgpuDeviceKind::DiscreteGpu(n),
+            wgpu::DeviceType::IntegratedGpu => WgpuDeviceKind::IntegratedGpu(n),
+            wgpu::DeviceType::VirtualGpu => WgpuDeviceKind::VirtualGpu(n),
+            wgpu::DeviceType::Other => WgpuDeviceKind::Other,
+            wgpu::DeviceType::Cpu => WgpuDeviceKind::Cpu,
+        };
+        candidates.push((rank, kind, info.name));
+    }
+    candidates.sort_by_key(|(rank, _, _)| *rank);
+    let (_, kind, name) = candidates
+        .into_iter()
+        .next()
+        .ok_or_else(|| "no Vulkan adapter found".to_string())?;
+    let device = WgpuDevice::new(kind).on(WgpuBackend::Vulkan);
+    cubecl::wgpu::try_init_setup::<AutoGraphicsApi>(&device, RuntimeOptions::default())
+        .map_err(|e| format!("could not open the Vulkan adapter {name:?}: {e}"))?;
+    let client = cubecl::Device::Wgpu(device).client();
+    Ok(GpuDevice {
+        inner: Arc::new(Inner {
+            client,
+            name,
+            weights: Mutex::new(HashMap::new()),
+        }),
+    })
+}
+
+/// A contiguous row-major f32 tensor in GPU memory.
+#[derive(Clone)]
+pub struct GpuTensor {
+    device: GpuDevice,
+    handle: Handle,
+    shape: Vec<usize>,
+}
+
+impl std::fmt::Debug for GpuTensor {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "GpuTensor{:?}", self.shape)
+    }
+}
+
+/// A GPU failure as a candle error, so network code keeps one error type.
+fn gpu_error(what: &str, e: impl std::fmt::Display) -> candle_core::Error {
+    candle_core::Error::msg(format!("GPU {what}: {e}"))
+}
+
+impl GpuTensor {
+    /// Copies a CPU tensor (any float dtype, any layout) to the device as f32.
+    pub fn upload(device: &GpuDevice, t: &Tensor) -> Result<GpuTensor> {
+        let data: Vec<f32> = t.to_dtype(DType::F32)?.flatten_all()?.to_vec1()?;
+        Ok(Self::from_slice(device, &data, t.dims().to_vec()))
+    }
+
+    pub(crate) fn from_slice(device: &GpuDevice, data: &[f32], shape: Vec<usize>) -> GpuTensor {
+        let client = device.client();
+        debug_assert_eq!(data.len(), shape.iter().product::<usize>());
+        // wgpu rejects empty buffers: keep at least one element.
+        let handle = if data.is_empty() {
+            client.create_from_slice(f32::as_bytes(&[0.0]))
+        } else {
+            client.create_from_slice(f32::as_bytes(data))
+        };
+        GpuTensor {
+            device: device.clone(),
+            handle,
+            shape,
+        }
+    }
+
+    /// An uninitialised tensor of `shape` on the same device as `self`.
+    pub(crate) fn empty_like_device(&self, shape: Vec<usize>) -> GpuTensor {
+        let n = shape.iter().product::<usize>().max(1);
+        GpuTensor {
+            device: self.device.clone(),
+            handle: self.client().empty(n * std::mem::size_of::<f32>()),
+            shape,
+        }
+    }
+
+    /// Reads the tensor back (waits for the kernels that write it; their errors surface here).
+    pub fn to_cpu(&self) -> Result<Tensor> {
+        let bytes = self
+            .client()
+            .read_one(self.handle.clone())
+            .map_err(|e| gpu_error("read-back", e))?;
+        let data = f32::from_bytes(&bytes);
+        let n = self.elem_count();
+        Tensor::from_slice(&data[..n], self.shape.as_slice(), &Device::Cpu)
+    }
+
+    pub fn dims(&self) -> &[usize] {
+        &self.shape
+    }
+
+    pub fn elem_count(&self) -> usize {
+        self.shape.iter().product()
+    }
+
+    /// The same data under another shape of equal size (no copy).
+    pub fn reshape(&self, shape: &[usize]) -> Result<GpuTensor> {
+        if shape.iter().product::<usize>() != self.elem_count() {
+            candle_core::bail!(
+                "gpu reshape: {:?} to {shape:?} changes the size",
+                self.shape
+            );
+        }
+        Ok(GpuTensor {
+            device: self.device.clone(),
+            handle: self.handle.clone(),
+            shape: shape.to_vec(),
+        })
+    }
+
+    /// Whether both tensors are views of one buffer.
+    pub fn same_buffer(&self, other: &GpuTensor) -> bool {
+        self.handle.memory.id() == other.handle.memory.id()
+    }
+
+    /// The device holding the tensor.
+    pub fn device(&self) -> &GpuDevice {
+        &self.device
+    }
+
+    pub(crate) fn client(&self) -> &Client {
+        self.device.client()
+    }
+
+    /// The buffer as a kernel argument (its length in f32 elements).
+    pub(crate) fn arg(&self) -> BufferArg {
+        // SAFETY: the handle holds at least max(1, elem_count) f32 elements (see from_slice/empty_like).
+        unsafe { BufferArg::from_raw_parts(self.handle.clone(), self.elem_count().max(1)) }
+    }
+}
+
+#[cfg(test)]
+pub(crate) mod testing {
+    use super::GpuDevice;
+
+    /// The shared GPU, or `None` after printing one line saying why the calling test is skipped.
+    pub fn device_or_skip(test: &str) -> Option<GpuDevice> {
+        match GpuDevice::shared() {
+            Ok(device) => Some(device),
+            Err(e) => {
+                println!("{test}: skipped, no GPU ({e})");
+                None
+            }
+        }
+    }
+}
