@@ -123,6 +123,11 @@ impl LayerNorm {
     pub fn forward(&self, x: &Tensor) -> Result<Tensor> {
         kernels::layer_norm(x, &self.weight, &self.bias, self.eps)
     }
+
+    /// [`Self::forward`] on the input's device.
+    pub fn forward_device(&self, x: &kernels::DeviceTensor) -> Result<kernels::DeviceTensor> {
+        x.layer_norm(&self.weight, &self.bias, self.eps)
+    }
 }
 
 /// `nn.GroupNorm` with affine weight/bias (keys `weight`, `bias`) over [batch, channels, ...].

@@ -156,6 +156,24 @@ impl DeviceTensor {
         self.map(|t| t.tanh(), |g| Ok(ops::tanh(g)))
     }
 
+    /// Applies `cpu` on the CPU, or the GPU kernel `gpu` (for activations whose CPU form is a composite).
+    pub fn unary_op(
+        &self,
+        cpu: impl FnOnce(&Tensor) -> Result<Tensor>,
+        gpu: fn(&GpuTensor) -> GpuTensor,
+    ) -> Result<DeviceTensor> {
+        self.map(cpu, |g| Ok(gpu(g)))
+    }
+
+    /// `self + t` with broadcasting, `t` a CPU tensor that is uploaded for this call (not cached: masks
+    /// and other per-call constants).
+    pub fn broadcast_add_tensor(&self, t: &Tensor) -> Result<DeviceTensor> {
+        self.map(
+            |x| x.broadcast_add(t),
+            |g| ops::add(g, &GpuTensor::upload(g.device(), t)?),
+        )
+    }
+
     /// A candle-nn activation (the ones diffusers configs name).
     pub fn activation(&self, act: Activation) -> Result<DeviceTensor> {
         self.map(
@@ -279,6 +297,15 @@ impl DeviceTensor {
     /// [`super::geglu`] on either device.
     pub fn geglu(&self) -> Result<DeviceTensor> {
         self.map(super::geglu, ops::geglu)
+    }
+
+    /// `self × otherᵀ` over the last two dimensions (candle `a.matmul(&b.t()?)`).
+    pub fn matmul_t(&self, other: &DeviceTensor) -> Result<DeviceTensor> {
+        self.zip(
+            other,
+            |a, b| a.matmul(&b.t()?),
+            |a, b| ops::matmul_scaled(a, b, true, 1.0),
+        )
     }
 
     /// Batched matrix product (candle `matmul`).

@@ -41,6 +41,10 @@ pub mod unary_op {
     pub const EXP: u32 = 6;
     /// `x·tanh(softplus(x))`.
     pub const MISH: u32 = 7;
+    /// `x·σ(1.702x)` (OpenAI CLIP).
+    pub const QUICK_GELU: u32 = 8;
+    /// GELU, tanh approximation.
+    pub const GELU_TANH: u32 = 9;
 }
 
 /// Binary op codes of [`binary`].
@@ -72,6 +76,11 @@ fn apply_unary(x: f32, a: f32, b: f32, #[comptime] op: u32) -> f32 {
         f32::tanh(x * a) * b
     } else if comptime!(op == unary_op::EXP) {
         f32::exp(x)
+    } else if comptime!(op == unary_op::QUICK_GELU) {
+        x / (1.0f32 + f32::exp(-1.702f32 * x))
+    } else if comptime!(op == unary_op::GELU_TANH) {
+        // 0.5·x·(1 + tanh(√(2/π)·(x + 0.044715·x³)))
+        0.5f32 * x * (1.0f32 + f32::tanh(0.7978846f32 * (x + 0.044715f32 * x * x * x)))
     } else {
         // softplus = ln(1 + eˣ), computed as max(x, 0) + ln(1 + e^-|x|) so large x does not overflow.
         let softplus = f32::max(x, 0.0f32) + f32::ln(1.0f32 + f32::exp(-f32::abs(x)));

@@ -107,6 +107,14 @@ pub fn exp(x: &GpuTensor) -> GpuTensor {
 pub fn mish(x: &GpuTensor) -> GpuTensor {
     unary(x, unary_op::MISH, 0.0, 0.0)
 }
+/// `x·σ(1.702x)`.
+pub fn quick_gelu(x: &GpuTensor) -> GpuTensor {
+    unary(x, unary_op::QUICK_GELU, 0.0, 0.0)
+}
+/// GELU, tanh approximation (candle `gelu`).
+pub fn gelu_tanh(x: &GpuTensor) -> GpuTensor {
+    unary(x, unary_op::GELU_TANH, 0.0, 0.0)
+}
 
 /// The broadcast shape of two shapes (numpy/candle rules, aligned on the right).
 fn broadcast_shape(a: &[usize], b: &[usize]) -> Result<Vec<usize>> {

@@ -69,6 +69,9 @@ fn elementwise_ops_match_cpu() {
         &((&x / 3.0).unwrap().tanh().unwrap() * 3.0).unwrap(),
     );
     check("exp", &exp(&g), &x.exp().unwrap());
+    let quick = (&x * candle_nn::ops::sigmoid(&(&x * 1.702).unwrap()).unwrap()).unwrap();
+    check("quick gelu", &quick_gelu(&g), &quick);
+    check("gelu tanh", &gelu_tanh(&g), &x.gelu().unwrap());
     let mish_cpu = candle_nn::Activation::Mish;
     check(
         "mish",
