@@ -199,6 +199,26 @@ impl DeviceTensor {
         self.map(|t| t.permute(dims)?.contiguous(), |g| ops::permute(g, dims))
     }
 
+    /// `narrow(dim, start, len)` (a view on the CPU, a copy on the GPU).
+    pub fn narrow(&self, dim: usize, start: usize, len: usize) -> Result<DeviceTensor> {
+        self.map(
+            |t| t.narrow(dim, start, len),
+            |g| ops::narrow(g, dim, start, len),
+        )
+    }
+
+    /// One zero row at the bottom and one zero column at the right (diffusers' `Downsample2D` with
+    /// padding 0).
+    pub fn pad_bottom_right_with_zeros(&self) -> Result<DeviceTensor> {
+        self.map(
+            |t| {
+                t.pad_with_zeros(candle_core::D::Minus1, 0, 1)?
+                    .pad_with_zeros(candle_core::D::Minus2, 0, 1)
+            },
+            |g| ops::pad_bottom_right(g, 1, 1),
+        )
+    }
+
     pub fn upsample_nearest2d(&self, out_h: usize, out_w: usize) -> Result<DeviceTensor> {
         self.map(
             |t| t.upsample_nearest2d(out_h, out_w),

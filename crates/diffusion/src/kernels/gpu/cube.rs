@@ -45,6 +45,8 @@ pub mod unary_op {
     pub const QUICK_GELU: u32 = 8;
     /// GELU, tanh approximation.
     pub const GELU_TANH: u32 = 9;
+    /// The constant `a` (x is not read).
+    pub const FILL: u32 = 10;
 }
 
 /// Binary op codes of [`binary`].
@@ -93,7 +95,11 @@ fn apply_unary(x: f32, a: f32, b: f32, #[comptime] op: u32) -> f32 {
 pub fn unary(x: &[f32], out: &mut [f32], a: f32, b: f32, #[comptime] op: u32) {
     let i = linear_pos() as usize;
     if i < out.len() {
-        out[i] = apply_unary(x[i], a, b, op);
+        if comptime!(op == unary_op::FILL) {
+            out[i] = a;
+        } else {
+            out[i] = apply_unary(x[i], a, b, op);
+        }
     }
 }
 

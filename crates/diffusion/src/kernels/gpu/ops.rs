@@ -107,6 +107,49 @@ pub fn exp(x: &GpuTensor) -> GpuTensor {
 pub fn mish(x: &GpuTensor) -> GpuTensor {
     unary(x, unary_op::MISH, 0.0, 0.0)
 }
+/// A tensor of `shape` filled with `value`, on `like`'s device.
+pub fn full(like: &GpuTensor, shape: Vec<usize>, value: f32) -> GpuTensor {
+    let out = like.empty_like_device(shape);
+    // The kernel does not read its input; a separate one-element buffer avoids binding `out` twice.
+    let unused = GpuTensor::from_slice(like.device(), &[0.0], vec![1]);
+    // SAFETY: the kernel writes out only, bound-checked.
+    unsafe {
+        cube::unary::launch_unchecked(
+            like.client(),
+            grid_for(out.elem_count(), ELEMENTWISE_UNITS),
+            CubeDim::new_1d(ELEMENTWISE_UNITS),
+            unused.arg(),
+            out.arg(),
+            value,
+            0.0,
+            unary_op::FILL,
+        )
+    };
+    out
+}
+
+/// Zero padding of the last two dimensions: `bottom` rows and `right` columns appended.
+pub fn pad_bottom_right(x: &GpuTensor, bottom: usize, right: usize) -> Result<GpuTensor> {
+    let rank = x.dims().len();
+    if rank < 2 {
+        candle_core::bail!("gpu pad: rank {rank} < 2");
+    }
+    let mut shape = x.dims().to_vec();
+    shape[rank - 2] += bottom;
+    shape[rank - 1] += right;
+    let out = full(x, shape.clone(), 0.0);
+    copy_strided(
+        x,
+        &out,
+        x.dims(),
+        &contiguous_strides(x.dims()),
+        0,
+        &contiguous_strides(&shape),
+        0,
+    )?;
+    Ok(out)
+}
+
 /// `x·σ(1.702x)`.
 pub fn quick_gelu(x: &GpuTensor) -> GpuTensor {
     unary(x, unary_op::QUICK_GELU, 0.0, 0.0)

@@ -163,6 +163,12 @@ fn copies_match_cpu() {
         &upsample_nearest2d(&g, 8, 15).unwrap(),
         &x.upsample_nearest2d(8, 15).unwrap(),
     );
+    let padded = x
+        .pad_with_zeros(3, 0, 1)
+        .unwrap()
+        .pad_with_zeros(2, 0, 1)
+        .unwrap();
+    check("pad", &pad_bottom_right(&g, 1, 1).unwrap(), &padded);
     assert!(permute(&g, &[0, 0, 1, 2]).is_err());
 }
 
