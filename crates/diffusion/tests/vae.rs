@@ -103,3 +103,46 @@ fn autoencoder_enum_picks_the_right_model() {
     let out = tiny.decode_scaled(&refs["decode_in"]).unwrap();
     assert!(max_abs_diff(&out, &refs["decoded"]) <= 1e-4);
 }
+
+/// One definition on both devices: the AutoencoderKL (ResNet blocks, mid-block attention, down/up
+/// sampling) on the GPU (lavapipe in CI) matches the CPU to f32 precision.
+#[test]
+fn tiny_vae_on_gpu_matches_cpu() {
+    let gpu = match diffusion::device::GpuDevice::shared() {
+        Ok(gpu) => gpu,
+        Err(e) => {
+            println!("tiny_vae_on_gpu_matches_cpu: skipped, no GPU ({e})");
+            return;
+        }
+    };
+    let relative = |got: &Tensor, want: &Tensor| {
+        let scale: f32 = want
+            .abs()
+            .unwrap()
+            .flatten_all()
+            .unwrap()
+            .max(0)
+            .unwrap()
+            .to_scalar()
+            .unwrap();
+        max_abs_diff(got, want) / scale.max(1e-6)
+    };
+    for model in ["tiny-lcm", "tiny-ip2p"] {
+        let vae =
+            AutoencoderKL::load(&repo().join("fixtures/models").join(model).join("vae")).unwrap();
+        let refs = fixture(&format!("kl-{model}.safetensors"));
+        let cpu = vae.encode(&refs["image"]).unwrap();
+        let on_gpu = vae.encode_on(&refs["image"], Some(&gpu)).unwrap();
+        let decoded_cpu = vae.decode(&refs["latents"]).unwrap();
+        let decoded_gpu = vae.decode_on(&refs["latents"], Some(&gpu)).unwrap();
+        let errs = [
+            ("mean", relative(&on_gpu.mean, &cpu.mean)),
+            ("logvar", relative(&on_gpu.logvar, &cpu.logvar)),
+            ("decode", relative(&decoded_gpu, &decoded_cpu)),
+        ];
+        println!("{model} on {}: relative errors {errs:?}", gpu.name());
+        for (what, err) in errs {
+            assert!(err <= 1e-4, "{model} {what}: relative error {err}");
+        }
+    }
+}
