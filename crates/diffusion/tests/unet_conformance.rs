@@ -233,3 +233,78 @@ fn lcm_without_condition_matches_diffusers() {
         "the condition must matter"
     );
 }
+
+/// One definition on both devices: the tiny UNets on the GPU (lavapipe in CI) match the CPU to f32
+/// precision without a hook (flash attention), with a hook that reads every probability map (explicit
+/// probabilities, read back to the CPU) and with one that rewrites K/V (mutual self-attention).
+#[test]
+fn tiny_unet_on_gpu_matches_cpu() {
+    let gpu = match diffusion::device::GpuDevice::shared() {
+        Ok(gpu) => gpu,
+        Err(e) => {
+            println!("tiny_unet_on_gpu_matches_cpu: skipped, no GPU ({e})");
+            return;
+        }
+    };
+    let relative = |got: &Tensor, want: &Tensor| {
+        let scale: f32 = want
+            .abs()
+            .unwrap()
+            .flatten_all()
+            .unwrap()
+            .max(0)
+            .unwrap()
+            .to_scalar()
+            .unwrap();
+        max_abs_diff(got, want) / scale.max(1e-6)
+    };
+    for name in ["tiny-lcm", "tiny-ip2p"] {
+        let model = load_model(name);
+        let fx = load_fixture(name);
+        let on = |hook: Option<&mut dyn AttentionHook>, device| {
+            model
+                .forward_on(
+                    &fx["sample"],
+                    &fx["timesteps"],
+                    &fx["encoder_hidden_states"],
+                    fx.get("timestep_cond"),
+                    hook,
+                    device,
+                )
+                .unwrap()
+        };
+        let plain = relative(&on(None, Some(&gpu)), &on(None, None));
+        let capture = || Capture {
+            wanted: layers_with_prefix(&fx, "probs.").into_iter().collect(),
+            seen: HashMap::new(),
+            calls: Vec::new(),
+        };
+        let (mut on_cpu, mut on_gpu) = (capture(), capture());
+        let want = on(Some(&mut on_cpu), None);
+        let maps = relative(&on(Some(&mut on_gpu), Some(&gpu)), &want);
+        assert_eq!(
+            on_cpu.calls, on_gpu.calls,
+            "{name}: the hook sees the same calls"
+        );
+        let mut map_err = 0f32;
+        for (layer, (_, probs)) in &on_cpu.seen {
+            map_err = map_err.max(relative(&on_gpu.seen[layer].1, probs));
+        }
+        let swapped = relative(
+            &on(Some(&mut SwapLastKv), Some(&gpu)),
+            &on(Some(&mut SwapLastKv), None),
+        );
+        println!(
+            "{name} on {}: relative errors plain {plain:.2e}, hooked {maps:.2e}, maps {map_err:.2e}, swapped K/V {swapped:.2e}",
+            gpu.name()
+        );
+        for (what, err) in [
+            ("plain", plain),
+            ("hooked", maps),
+            ("maps", map_err),
+            ("swapped", swapped),
+        ] {
+            assert!(err <= 1e-4, "{name} {what}: relative error {err}");
+        }
+    }
+}
