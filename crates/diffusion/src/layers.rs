@@ -158,12 +158,14 @@ impl GroupNorm {
         })
     }
 
-    /// Group norm alone.
+    /// Group norm alone (CPU; networks call [`Self::forward_device`]).
+    #[cfg(test)]
     pub fn forward(&self, x: &Tensor) -> Result<Tensor> {
         self.run(x, false)
     }
 
     /// Group norm followed by SiLU (the pairing used throughout ResNet blocks), fused on the fast path.
+    #[cfg(test)]
     pub fn forward_silu(&self, x: &Tensor) -> Result<Tensor> {
         self.run(x, true)
     }
@@ -299,14 +301,8 @@ impl ResnetBlock2D {
         })
     }
 
-    /// `x` [batch, in, h, w]; `temb` [batch, temb_channels] (ignored by blocks loaded without one).
-    pub fn forward(&self, x: &Tensor, temb: Option<&Tensor>) -> Result<Tensor> {
-        let temb = temb.map(|t| DeviceTensor::Cpu(t.clone()));
-        self.forward_device(&x.clone().into(), temb.as_ref())?
-            .to_cpu()
-    }
-
-    /// [`Self::forward`] on the input's device (`temb` on the same device).
+    /// `x` [batch, in, h, w]; `temb` [batch, temb_channels] on the same device (ignored by blocks loaded
+    /// without one).
     pub fn forward_device(
         &self,
         x: &DeviceTensor,
@@ -373,11 +369,7 @@ impl Downsample2D {
         })
     }
 
-    pub fn forward(&self, x: &Tensor) -> Result<Tensor> {
-        self.forward_device(&x.clone().into())?.to_cpu()
-    }
-
-    /// [`Self::forward`] on the input's device.
+    /// The downsampling on the input's device.
     pub fn forward_device(&self, x: &DeviceTensor) -> Result<DeviceTensor> {
         if self.padding == 0 {
             let x = x.pad_bottom_right_with_zeros()?;
@@ -403,11 +395,6 @@ impl Upsample2D {
 
     /// Doubles the spatial size, or resizes to `size` = (h, w) when given (the UNet passes the skip
     /// connection's size when the latent is not a multiple of the total downsampling factor).
-    pub fn forward(&self, x: &Tensor, size: Option<(usize, usize)>) -> Result<Tensor> {
-        self.forward_device(&x.clone().into(), size)?.to_cpu()
-    }
-
-    /// [`Self::forward`] on the input's device.
     pub fn forward_device(
         &self,
         x: &DeviceTensor,
@@ -467,11 +454,7 @@ impl SpatialSelfAttention {
         })
     }
 
-    pub fn forward(&self, x: &Tensor) -> Result<Tensor> {
-        self.forward_device(&x.clone().into())?.to_cpu()
-    }
-
-    /// [`Self::forward`] on the input's device.
+    /// The attention block on the input's device.
     pub fn forward_device(&self, x: &DeviceTensor) -> Result<DeviceTensor> {
         let (b, c, h, w) = x.dims4()?;
         let normed = self.group_norm.forward_device(x, false)?;

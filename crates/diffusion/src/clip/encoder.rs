@@ -3,7 +3,7 @@
 //!
 //! Keys under the layer: `layer_norm1`, `self_attn.{q,k,v,out}_proj`, `layer_norm2`, `mlp.fc1`, `mlp.fc2`.
 
-use candle_core::{Module, Result, Tensor};
+use candle_core::{Result, Tensor};
 use candle_nn::{linear, Linear, VarBuilder};
 use serde::Deserialize;
 

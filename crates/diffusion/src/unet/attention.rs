@@ -4,7 +4,7 @@
 //! whether it is self- or cross-attention, the spatial size of its queries and the batch/head counts, and
 //! the hook may replace Q/K/V before the softmax and read or replace the probabilities after it.
 
-use candle_core::{Module, Result, Tensor};
+use candle_core::{Result, Tensor};
 use candle_nn::{Linear, VarBuilder};
 
 use crate::kernels::DeviceTensor;
@@ -100,20 +100,8 @@ impl Attention {
         })
     }
 
-    /// `x` [batch, h·w, query_dim]; `context` [batch, tokens, context_dim] for cross-attention.
-    pub fn forward(
-        &self,
-        x: &Tensor,
-        context: Option<&Tensor>,
-        size: (usize, usize),
-        hook: Option<&mut (dyn AttentionHook + '_)>,
-    ) -> Result<Tensor> {
-        let context = context.map(|c| DeviceTensor::Cpu(c.clone()));
-        self.forward_device(&x.clone().into(), context.as_ref(), size, hook)?
-            .to_cpu()
-    }
-
-    /// [`Self::forward`] on the input's device. Without a hook the GPU runs the flash kernel (no
+    /// `x` [batch, h·w, query_dim]; `context` [batch, tokens, context_dim] for cross-attention, on one
+    /// device. Without a hook the GPU runs the flash kernel (no
     /// probability matrix); the hook itself always sees CPU tensors (read back from the GPU, and its
     /// results uploaded again).
     pub fn forward_device(

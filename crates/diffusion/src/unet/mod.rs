@@ -11,7 +11,7 @@ mod transformer;
 
 use std::path::{Path, PathBuf};
 
-use candle_core::{DType, Module, Tensor};
+use candle_core::{DType, Tensor};
 use candle_nn::VarBuilder;
 
 pub use attention::{AttentionHook, AttnCall, AttnKind};

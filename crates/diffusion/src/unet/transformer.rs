@@ -1,6 +1,6 @@
 //! diffusers `Transformer2DModel` (continuous input) and `BasicTransformerBlock`.
 
-use candle_core::{Module, Result, Tensor};
+use candle_core::Result;
 use candle_nn::{Linear, VarBuilder};
 
 use super::attention::{Attention, AttentionHook};
@@ -23,11 +23,6 @@ impl FeedForward {
         })
     }
 
-    pub fn forward(&self, x: &Tensor) -> Result<Tensor> {
-        self.forward_device(&x.clone().into())?.to_cpu()
-    }
-
-    /// [`Self::forward`] on the input's device.
     pub fn forward_device(&self, x: &DeviceTensor) -> Result<DeviceTensor> {
         // diffusers uses the exact (erf) GELU here.
         x.linear(&self.proj)?.geglu()?.linear(&self.out)

@@ -59,7 +59,7 @@ pub mod binary_op {
 
 #[cube]
 fn gelu_erf(x: f32) -> f32 {
-    0.5f32 * x * (1.0f32 + f32::erf(x * 0.70710677f32))
+    0.5f32 * x * (1.0f32 + Erf::erf(x * 0.70710677f32))
 }
 
 #[cube]
@@ -411,7 +411,10 @@ pub fn softmax_rows(x: &[f32], out: &mut [f32], meta: &[u32]) {
     let width = meta[0];
     let valid = cube_index() < meta[1];
     let base = u32::min(cube_index(), meta[1] - 1) * width;
-    let mut m = f32::NEG_INFINITY;
+    // −∞ stand-in: finite for WGSL; exp(it − any score) = 0. Built at run time so it is a runtime value.
+    let mut floor = 0.0f32;
+    floor -= 3.0e38f32;
+    let mut m = floor;
     let mut i = UNIT_POS;
     while i < width {
         m = f32::max(m, x[(base + i) as usize]);
@@ -484,7 +487,10 @@ pub fn flash_attention(
     for c in 0..dv {
         acc[c as usize] = 0.0f32;
     }
-    let mut run_max = f32::NEG_INFINITY;
+    // −∞ stand-in: finite for WGSL; exp(it − any score) = 0. Built at run time so it is a runtime value.
+    let mut floor = 0.0f32;
+    floor -= 3.0e38f32;
+    let mut run_max = floor;
     let mut run_sum = 0.0f32;
     let mut sk = Shared::<[f32]>::new_slice(comptime!((ATTENTION_KEYS * d) as usize));
     let mut sv = Shared::<[f32]>::new_slice(comptime!((ATTENTION_KEYS * dv) as usize));
@@ -514,7 +520,7 @@ pub fn flash_attention(
             e += queries;
         }
         sync_cube();
-        let mut tile_max = f32::NEG_INFINITY;
+        let mut tile_max = floor;
         #[unroll]
         for j in 0..tile {
             let mut s = 0.0f32;
@@ -523,13 +529,13 @@ pub fn flash_attention(
                 s += qr[c as usize] * sk[(j * d + c) as usize];
             }
             if key0 + j >= k_len {
-                s = f32::NEG_INFINITY;
+                s = floor;
             }
             scores[j as usize] = s;
             tile_max = f32::max(tile_max, s);
         }
         let new_max = f32::max(run_max, tile_max);
-        // exp(-inf - finite) = 0 rescales nothing on the first tile.
+        // exp(−3e38 − finite) = 0: nothing to rescale on the first tile.
         let correction = f32::exp(run_max - new_max);
         run_sum *= correction;
         #[unroll]

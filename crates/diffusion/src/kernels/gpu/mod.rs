@@ -110,7 +110,7 @@ fn open_vulkan() -> std::result::Result<GpuDevice, String> {
             wgpu::DeviceType::DiscreteGpu => WgpuDeviceKind::DiscreteGpu(n),
             wgpu::DeviceType::IntegratedGpu => WgpuDeviceKind::IntegratedGpu(n),
             wgpu::DeviceType::VirtualGpu => WgpuDeviceKind::VirtualGpu(n),
-            wgpu::DeviceType::Other => WgpuDeviceKind::Other,
+            wgpu::DeviceType::Other => WgpuDeviceKind::Other(n),
             wgpu::DeviceType::Cpu => WgpuDeviceKind::Cpu,
         };
         candidates.push((rank, kind, info.name));
@@ -221,7 +221,7 @@ impl GpuTensor {
 
     /// Whether both tensors are views of one buffer.
     pub fn same_buffer(&self, other: &GpuTensor) -> bool {
-        self.handle.memory.id() == other.handle.memory.id()
+        self.handle.clone().memory.binding().id() == other.handle.clone().memory.binding().id()
     }
 
     /// The device holding the tensor.
