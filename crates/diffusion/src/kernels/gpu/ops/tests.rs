@@ -244,7 +244,7 @@ fn norms_match_cpu() {
         return;
     };
     // Offset inputs test the two-pass variance.
-    let x = (randn(&[2, 8, 5, 7]) * 2.0 + 3.0).unwrap();
+    let x = randn(&[2, 8, 5, 7]).affine(2.0, 3.0).unwrap();
     let (w, b) = (randn(&[8]), randn(&[8]));
     for silu in [false, true] {
         let want = crate::kernels::group_norm(&x, &w, &b, 4, 1e-5, silu).unwrap();
