@@ -166,17 +166,22 @@ pub fn strided_copy(x: &[f32], out: &mut [f32], meta: &[u32], #[comptime] rank: 
     }
 }
 
-/// Nearest-neighbour upsampling of [planes, h, w] by integer factors: out [planes, h·fy, w·fx].
+/// Nearest-neighbour resize of [planes, h, w] to [planes, oh, ow] through source-index tables:
+/// `meta = [h, w, oh, ow, source row of each output row; oh, source column of each output column; ow]`.
 #[cube(launch_unchecked)]
-pub fn upsample_nearest(x: &[f32], out: &mut [f32], h: u32, w: u32, fy: u32, fx: u32) {
+pub fn upsample_nearest(x: &[f32], out: &mut [f32], meta: &[u32]) {
     let i = linear_pos();
     if (i as usize) < out.len() {
-        let ow = w * fx;
-        let oh = h * fy;
+        let h = meta[0];
+        let w = meta[1];
+        let oh = meta[2];
+        let ow = meta[3];
         let ox = i % ow;
         let oy = (i / ow) % oh;
         let plane = i / (ow * oh);
-        out[i as usize] = x[((plane * h + oy / fy) * w + ox / fx) as usize];
+        let sy = meta[(4 + oy) as usize];
+        let sx = meta[(4 + oh + ox) as usize];
+        out[i as usize] = x[((plane * h + sy) * w + sx) as usize];
     }
 }
 

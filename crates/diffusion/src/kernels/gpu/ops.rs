@@ -364,21 +364,30 @@ pub fn cat(parts: &[&GpuTensor], dim: usize) -> Result<GpuTensor> {
     Ok(out)
 }
 
-/// Nearest-neighbour upsampling of [.., h, w] to [.., out_h, out_w] (integer factors).
+/// Nearest-neighbour resize of [.., h, w] to [.., out_h, out_w], choosing source pixels exactly as
+/// candle's CPU `upsample_nearest2d` does (`floor(i · in / out)` in f64), so odd sizes agree too.
 pub fn upsample_nearest2d(x: &GpuTensor, out_h: usize, out_w: usize) -> Result<GpuTensor> {
     let rank = x.dims().len();
     if rank < 2 {
         candle_core::bail!("gpu upsample: rank {rank} < 2");
     }
     let (h, w) = (x.dims()[rank - 2], x.dims()[rank - 1]);
-    if h == 0 || w == 0 || out_h % h != 0 || out_w % w != 0 {
-        candle_core::bail!("gpu upsample: {h}x{w} to {out_h}x{out_w} is not an integer factor");
+    if h == 0 || w == 0 || out_h == 0 || out_w == 0 {
+        candle_core::bail!("gpu upsample: {h}x{w} to {out_h}x{out_w}");
     }
+    let source = |len: usize, out: usize| {
+        let scale = len as f64 / out as f64;
+        (0..out).map(move |i| ((i as f64 * scale) as usize).min(len - 1))
+    };
+    let mut meta = vec![h, w, out_h, out_w];
+    meta.extend(source(h, out_h));
+    meta.extend(source(w, out_w));
+    let meta = Meta::new(x, &meta)?;
     let mut shape = x.dims().to_vec();
     shape[rank - 2] = out_h;
     shape[rank - 1] = out_w;
     let out = x.empty_like_device(shape);
-    // SAFETY: the kernel bound-checks against out; reads stay inside the source planes.
+    // SAFETY: the kernel bound-checks against out; the index tables stay inside the source planes.
     unsafe {
         cube::upsample_nearest::launch_unchecked(
             x.client(),
@@ -386,10 +395,7 @@ pub fn upsample_nearest2d(x: &GpuTensor, out_h: usize, out_w: usize) -> Result<G
             CubeDim::new_1d(ELEMENTWISE_UNITS),
             x.arg(),
             out.arg(),
-            to_u32(h, "height")?,
-            to_u32(w, "width")?,
-            to_u32(out_h / h, "factor")?,
-            to_u32(out_w / w, "factor")?,
+            meta.arg(),
         )
     };
     Ok(out)
