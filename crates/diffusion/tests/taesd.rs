@@ -101,36 +101,11 @@ fn real_taesd_matches_diffusers_on_lego() {
     assert!(e <= 1e-4 && d <= 1e-4, "encode {e}, decode {d}");
 }
 
-/// The shared GPU, or `None` after one line saying why the test is skipped (no Vulkan device).
-fn gpu_or_skip(test: &str) -> Option<diffusion::device::GpuDevice> {
-    match diffusion::device::GpuDevice::shared() {
-        Ok(device) => Some(device),
-        Err(e) => {
-            println!("{test}: skipped, no GPU ({e})");
-            None
-        }
-    }
-}
-
-/// Max abs difference relative to the reference's max abs value.
-fn relative_error(got: &Tensor, want: &Tensor) -> f32 {
-    let scale: f32 = want
-        .abs()
-        .unwrap()
-        .flatten_all()
-        .unwrap()
-        .max(0)
-        .unwrap()
-        .to_scalar()
-        .unwrap();
-    max_abs_diff(got, want) / scale.max(1e-6)
-}
-
 /// One network definition on both devices: TAESD on the GPU (lavapipe in CI) matches the CPU to f32
 /// precision, in both weight layouts (the original one holds bf16 weights, upcast to f32 on upload).
 #[test]
 fn tiny_taesd_on_gpu_matches_cpu() {
-    let Some(gpu) = gpu_or_skip("tiny_taesd_on_gpu_matches_cpu") else {
+    let Some(gpu) = common::gpu_or_skip() else {
         return;
     };
     let tmp = tempfile::tempdir().unwrap();
@@ -151,8 +126,8 @@ fn tiny_taesd_on_gpu_matches_cpu() {
         let image_cpu = model.decode(decode_in).unwrap();
         let image_gpu = model.decode_on(decode_in, Some(&gpu)).unwrap();
         let (e, d) = (
-            relative_error(&latents_gpu, &latents_cpu),
-            relative_error(&image_gpu, &image_cpu),
+            common::relative_error(&latents_gpu, &latents_cpu),
+            common::relative_error(&image_gpu, &image_cpu),
         );
         println!(
             "{fixture_name} on {}: encode rel err {e:.2e}, decode rel err {d:.2e}",

@@ -80,12 +80,8 @@ fn tiny_ip2p_f16_text_encoder_matches_transformers() {
 /// hidden states to f32 precision, with and without clip skip.
 #[test]
 fn tiny_text_encoder_on_gpu_matches_cpu() {
-    let gpu = match diffusion::device::GpuDevice::shared() {
-        Ok(gpu) => gpu,
-        Err(e) => {
-            println!("tiny_text_encoder_on_gpu_matches_cpu: skipped, no GPU ({e})");
-            return;
-        }
+    let Some(gpu) = common::gpu_or_skip() else {
+        return;
     };
     let dev = Device::Cpu;
     for name in ["tiny-lcm", "tiny-ip2p"] {

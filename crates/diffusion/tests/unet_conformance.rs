@@ -239,12 +239,8 @@ fn lcm_without_condition_matches_diffusers() {
 /// probabilities, read back to the CPU) and with one that rewrites K/V (mutual self-attention).
 #[test]
 fn tiny_unet_on_gpu_matches_cpu() {
-    let gpu = match diffusion::device::GpuDevice::shared() {
-        Ok(gpu) => gpu,
-        Err(e) => {
-            println!("tiny_unet_on_gpu_matches_cpu: skipped, no GPU ({e})");
-            return;
-        }
+    let Some(gpu) = common::gpu_or_skip() else {
+        return;
     };
     let relative = |got: &Tensor, want: &Tensor| {
         let scale: f32 = want

@@ -108,12 +108,8 @@ fn autoencoder_enum_picks_the_right_model() {
 /// sampling) on the GPU (lavapipe in CI) matches the CPU to f32 precision.
 #[test]
 fn tiny_vae_on_gpu_matches_cpu() {
-    let gpu = match diffusion::device::GpuDevice::shared() {
-        Ok(gpu) => gpu,
-        Err(e) => {
-            println!("tiny_vae_on_gpu_matches_cpu: skipped, no GPU ({e})");
-            return;
-        }
+    let Some(gpu) = common::gpu_or_skip() else {
+        return;
     };
     let relative = |got: &Tensor, want: &Tensor| {
         let scale: f32 = want

@@ -377,8 +377,7 @@ mod tests {
 
     #[test]
     fn weights_are_uploaded_once_and_mixed_devices_are_an_error() {
-        let Some(dev) = device_or_skip("weights_are_uploaded_once_and_mixed_devices_are_an_error")
-        else {
+        let Some(dev) = device_or_skip() else {
             return;
         };
         let w = Tensor::randn(0f32, 1.0, (4, 4), &Device::Cpu).unwrap();

@@ -2,61 +2,73 @@
 //! lavapipe in CI), a device-resident f32 tensor ([`GpuTensor`]) and one host function per op
 //! ([`ops`]), each the GPU twin of a CPU function of `kernels`.
 //!
-//! The device is opened once per process ([`GpuDevice::shared`]). Weights live in the network as candle
-//! CPU tensors; the first GPU use of a weight uploads it into the device's cache, keyed by the tensor's
-//! id, so a model runs on the GPU without a second, GPU-side copy of its definition.
-//!
-//! TODO(issue 13): take the client from `gpu::GpuContext` (crates/gpu) once it lands, so the splatting
-//! engine and the diffusion networks share one adapter and one runtime.
+//! A [`GpuDevice`] wraps the [`gpu::GpuContext`] of crates/gpu, so the splatting engine and the diffusion
+//! networks share one adapter and one CubeCL client. Weights live in the network as candle CPU tensors;
+//! the first GPU use of a weight uploads it into the device's cache, keyed by the tensor's id, so a model
+//! runs on the GPU without a second, GPU-side copy of its definition.
 
 mod cube;
 pub mod ops;
 
 use std::collections::HashMap;
-use std::sync::{Arc, Mutex, OnceLock};
+use std::sync::{Arc, Mutex};
 
 use candle_core::{DType, Device, Result, Tensor, TensorId};
 use cubecl::client::Client;
 use cubecl::prelude::*;
 use cubecl::server::Handle;
+use gpu::{DeviceChoice, GpuContext, GpuError};
 
-/// An opened GPU: the CubeCL client, the adapter's name and the uploaded-weight cache.
+/// An opened GPU for the networks: the shared [`GpuContext`] and the uploaded-weight cache.
 #[derive(Clone)]
 pub struct GpuDevice {
     inner: Arc<Inner>,
 }
 
 struct Inner {
-    client: Client,
-    name: String,
+    context: GpuContext,
     /// Weights already on the device: the CPU tensor is kept beside its copy so its id stays unique.
     weights: Mutex<HashMap<TensorId, (Tensor, Handle)>>,
 }
 
 impl std::fmt::Debug for GpuDevice {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        write!(f, "GpuDevice({})", self.inner.name)
+        write!(f, "GpuDevice({})", self.inner.context.describe())
     }
 }
 
 impl GpuDevice {
-    /// The process's GPU, opened on first use; `Err` (one line) when no Vulkan adapter works.
-    pub fn shared() -> std::result::Result<GpuDevice, String> {
-        static DEVICE: OnceLock<std::result::Result<GpuDevice, String>> = OnceLock::new();
-        DEVICE.get_or_init(open_vulkan).clone()
+    /// The networks' view of an opened GPU (with an empty weight cache).
+    pub fn new(context: GpuContext) -> GpuDevice {
+        GpuDevice {
+            inner: Arc::new(Inner {
+                context,
+                weights: Mutex::new(HashMap::new()),
+            }),
+        }
+    }
+
+    /// Opens the device `choice` names (`None` for the CPU); see [`gpu::open`].
+    pub fn open(choice: DeviceChoice) -> std::result::Result<Option<GpuDevice>, GpuError> {
+        Ok(gpu::open(choice)?.map(GpuDevice::new))
+    }
+
+    /// The shared context (the same client the splatting kernels use).
+    pub fn context(&self) -> &GpuContext {
+        &self.inner.context
     }
 
     /// The adapter's name, e.g. "llvmpipe (LLVM 15.0.6, 256 bits)".
     pub fn name(&self) -> &str {
-        &self.inner.name
+        &self.inner.context.adapter
     }
 
     pub(crate) fn client(&self) -> &Client {
-        &self.inner.client
+        &self.inner.context.client
     }
 
     /// The device copy of a (weight) tensor, uploaded on first use.
-    pub fn cached(&self, weight: &Tensor) -> Result<GpuTensor> {
+    pub fn cached(&self, weight: &Tensor) -> candle_core::Result<GpuTensor> {
         let mut weights = self.inner.weights.lock().unwrap_or_else(|e| e.into_inner());
         if let Some((_, handle)) = weights.get(&weight.id()) {
             return Ok(GpuTensor {
@@ -78,59 +90,6 @@ impl GpuDevice {
             .unwrap_or_else(|e| e.into_inner())
             .clear();
     }
-}
-
-/// Opens the first non-CPU Vulkan adapter, else a software one (lavapipe). Vulkan is pinned: wgpu's
-/// automatic backend would otherwise fall back to OpenGL silently.
-fn open_vulkan() -> std::result::Result<GpuDevice, String> {
-    use cubecl::device::{WgpuBackend, WgpuDeviceKind};
-    use cubecl::wgpu::wgpu;
-    use cubecl::wgpu::{AutoGraphicsApi, RuntimeOptions, WgpuDevice};
-
-    let instance = wgpu::Instance::new(wgpu::InstanceDescriptor {
-        backends: wgpu::Backends::VULKAN,
-        ..wgpu::InstanceDescriptor::new_without_display_handle()
-    });
-    let adapters = cubecl::future::block_on(instance.enumerate_adapters(wgpu::Backends::VULKAN));
-    // cubecl numbers adapters per type: DiscreteGpu(n) is the n-th discrete GPU.
-    let mut seen = [0usize; 5];
-    let mut candidates = Vec::new();
-    for adapter in &adapters {
-        let info = adapter.get_info();
-        let (slot, rank) = match info.device_type {
-            wgpu::DeviceType::DiscreteGpu => (0, 0),
-            wgpu::DeviceType::IntegratedGpu => (1, 1),
-            wgpu::DeviceType::VirtualGpu => (2, 2),
-            wgpu::DeviceType::Other => (3, 3),
-            wgpu::DeviceType::Cpu => (4, 4),
-        };
-        let n = seen[slot];
-        seen[slot] += 1;
-        let kind = match info.device_type {
-            wgpu::DeviceType::DiscreteGpu => WgpuDeviceKind::DiscreteGpu(n),
-            wgpu::DeviceType::IntegratedGpu => WgpuDeviceKind::IntegratedGpu(n),
-            wgpu::DeviceType::VirtualGpu => WgpuDeviceKind::VirtualGpu(n),
-            wgpu::DeviceType::Other => WgpuDeviceKind::Other(n),
-            wgpu::DeviceType::Cpu => WgpuDeviceKind::Cpu,
-        };
-        candidates.push((rank, kind, info.name));
-    }
-    candidates.sort_by_key(|(rank, _, _)| *rank);
-    let (_, kind, name) = candidates
-        .into_iter()
-        .next()
-        .ok_or_else(|| "no Vulkan adapter found".to_string())?;
-    let device = WgpuDevice::new(kind).on(WgpuBackend::Vulkan);
-    cubecl::wgpu::try_init_setup::<AutoGraphicsApi>(&device, RuntimeOptions::default())
-        .map_err(|e| format!("could not open the Vulkan adapter {name:?}: {e}"))?;
-    let client = cubecl::Device::Wgpu(device).client();
-    Ok(GpuDevice {
-        inner: Arc::new(Inner {
-            client,
-            name,
-            weights: Mutex::new(HashMap::new()),
-        }),
-    })
 }
 
 /// A contiguous row-major f32 tensor in GPU memory.
@@ -242,16 +201,18 @@ impl GpuTensor {
 
 #[cfg(test)]
 pub(crate) mod testing {
+    use std::sync::OnceLock;
+
     use super::GpuDevice;
 
-    /// The shared GPU, or `None` after printing one line saying why the calling test is skipped.
-    pub fn device_or_skip(test: &str) -> Option<GpuDevice> {
-        match GpuDevice::shared() {
-            Ok(device) => Some(device),
-            Err(e) => {
-                println!("{test}: skipped, no GPU ({e})");
-                None
-            }
+    /// The test GPU (lavapipe in CI) shared by the tests of this binary, or `None` after the one line
+    /// `gpu::testing::context_or_skip` prints when there is no Vulkan device.
+    pub fn device_or_skip() -> Option<GpuDevice> {
+        static DEVICE: OnceLock<GpuDevice> = OnceLock::new();
+        if let Some(device) = DEVICE.get() {
+            return Some(device.clone());
         }
+        let device = GpuDevice::new(gpu::testing::context_or_skip()?);
+        Some(DEVICE.get_or_init(|| device).clone())
     }
 }

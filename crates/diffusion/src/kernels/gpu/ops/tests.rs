@@ -49,7 +49,7 @@ fn check(what: &str, gpu: &GpuTensor, cpu: &Tensor) {
 
 #[test]
 fn elementwise_ops_match_cpu() {
-    let Some(dev) = device_or_skip("elementwise_ops_match_cpu") else {
+    let Some(dev) = device_or_skip() else {
         return;
     };
     let x = (randn(&[3, 5, 7]) * 3.0).unwrap();
@@ -82,7 +82,7 @@ fn elementwise_ops_match_cpu() {
 
 #[test]
 fn broadcasting_binary_ops_match_cpu() {
-    let Some(dev) = device_or_skip("broadcasting_binary_ops_match_cpu") else {
+    let Some(dev) = device_or_skip() else {
         return;
     };
     let a = randn(&[2, 3, 4, 5]);
@@ -127,7 +127,7 @@ fn broadcasting_binary_ops_match_cpu() {
 
 #[test]
 fn copies_match_cpu() {
-    let Some(dev) = device_or_skip("copies_match_cpu") else {
+    let Some(dev) = device_or_skip() else {
         return;
     };
     let x = randn(&[2, 3, 4, 5]);
@@ -174,7 +174,7 @@ fn copies_match_cpu() {
 
 #[test]
 fn matmul_and_linear_match_cpu() {
-    let Some(dev) = device_or_skip("matmul_and_linear_match_cpu") else {
+    let Some(dev) = device_or_skip() else {
         return;
     };
     let a = randn(&[2, 3, 17, 19]);
@@ -211,7 +211,7 @@ fn matmul_and_linear_match_cpu() {
 
 #[test]
 fn conv2d_matches_cpu() {
-    let Some(dev) = device_or_skip("conv2d_matches_cpu") else {
+    let Some(dev) = device_or_skip() else {
         return;
     };
     // (batch, cin, cout, h, w, kernel, stride, padding, bias)
@@ -240,7 +240,7 @@ fn conv2d_matches_cpu() {
 
 #[test]
 fn norms_match_cpu() {
-    let Some(dev) = device_or_skip("norms_match_cpu") else {
+    let Some(dev) = device_or_skip() else {
         return;
     };
     // Offset inputs test the two-pass variance.
@@ -263,7 +263,7 @@ fn norms_match_cpu() {
 
 #[test]
 fn softmax_and_geglu_match_cpu() {
-    let Some(dev) = device_or_skip("softmax_and_geglu_match_cpu") else {
+    let Some(dev) = device_or_skip() else {
         return;
     };
     for width in [1, 7, 300] {
@@ -286,7 +286,7 @@ fn softmax_and_geglu_match_cpu() {
 
 #[test]
 fn attention_matches_cpu() {
-    let Some(dev) = device_or_skip("attention_matches_cpu") else {
+    let Some(dev) = device_or_skip() else {
         return;
     };
     // Query and key counts off the tile sizes; a value width different from the key width.
