@@ -212,6 +212,8 @@ pub fn matmul(
     let mut sa = Shared::<[f32]>::new_slice(comptime!((MATMUL_TILE * MATMUL_TILE) as usize));
     let mut sb = Shared::<[f32]>::new_slice(comptime!((MATMUL_TILE * MATMUL_TILE) as usize));
     let mut acc = 0.0f32;
+    // Spelt out: `div_ceil` is not part of CubeCL's kernel language.
+    #[allow(clippy::manual_div_ceil)]
     let tiles = (k + tile - 1) / tile;
     for t in 0..tiles {
         let ka = t * tile + UNIT_POS_X;
@@ -287,7 +289,7 @@ fn cube_sum(v: f32, #[comptime] units: u32) -> f32 {
     #[unroll]
     for _ in 0..comptime!(units.trailing_zeros()) {
         if UNIT_POS < stride {
-            s[UNIT_POS as usize] = s[UNIT_POS as usize] + s[(UNIT_POS + stride) as usize];
+            s[UNIT_POS as usize] += s[(UNIT_POS + stride) as usize];
         }
         sync_cube();
         stride /= 2;
@@ -500,6 +502,7 @@ pub fn flash_attention(
     let mut sk = Shared::<[f32]>::new_slice(comptime!((ATTENTION_KEYS * d) as usize));
     let mut sv = Shared::<[f32]>::new_slice(comptime!((ATTENTION_KEYS * dv) as usize));
     let mut scores = Array::<f32>::new(comptime!(ATTENTION_KEYS as usize));
+    #[allow(clippy::manual_div_ceil)]
     let tiles = (k_len + tile - 1) / tile;
     for t in 0..tiles {
         let key0 = t * tile;
@@ -545,7 +548,7 @@ pub fn flash_attention(
         run_sum *= correction;
         #[unroll]
         for c in 0..dv {
-            acc[c as usize] = acc[c as usize] * correction;
+            acc[c as usize] *= correction;
         }
         #[unroll]
         for j in 0..tile {

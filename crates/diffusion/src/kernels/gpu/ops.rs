@@ -608,7 +608,11 @@ pub fn group_norm(
     silu: bool,
 ) -> Result<GpuTensor> {
     let dims = x.dims();
-    if dims.len() < 2 || groups == 0 || dims[1] % groups != 0 || weight.elem_count() != dims[1] {
+    if dims.len() < 2
+        || groups == 0
+        || !dims[1].is_multiple_of(groups)
+        || weight.elem_count() != dims[1]
+    {
         candle_core::bail!(
             "gpu group_norm: input {dims:?}, {groups} groups, weight {:?}",
             weight.dims()
@@ -698,7 +702,7 @@ pub fn softmax_last_dim(x: &GpuTensor) -> Result<GpuTensor> {
 /// GEGLU over the last dimension: [.., 2·inner] → hidden · gelu(gate), [.., inner].
 pub fn geglu(x: &GpuTensor) -> Result<GpuTensor> {
     let width = *x.dims().last().unwrap_or(&0);
-    if width == 0 || width % 2 != 0 {
+    if width == 0 || !width.is_multiple_of(2) {
         candle_core::bail!("geglu: last dimension {width} is not a positive even number");
     }
     let mut shape = x.dims().to_vec();
