@@ -96,16 +96,7 @@ fn tiny_text_encoder_on_gpu_matches_cpu() {
         for skip in [0, 1] {
             let cpu = model.forward_skip(&ids, skip).unwrap();
             let on_gpu = model.forward_skip_on(&ids, skip, Some(&gpu)).unwrap();
-            let scale: f32 = cpu
-                .abs()
-                .unwrap()
-                .flatten_all()
-                .unwrap()
-                .max(0)
-                .unwrap()
-                .to_scalar()
-                .unwrap();
-            let rel = max_abs_diff(&on_gpu, &cpu) / scale.max(1e-6);
+            let rel = common::relative_error(&on_gpu, &cpu);
             println!(
                 "{name} clip_skip {skip} on {}: relative error {rel:.2e}",
                 gpu.name()

@@ -242,18 +242,6 @@ fn tiny_unet_on_gpu_matches_cpu() {
     let Some(gpu) = common::gpu_or_skip() else {
         return;
     };
-    let relative = |got: &Tensor, want: &Tensor| {
-        let scale: f32 = want
-            .abs()
-            .unwrap()
-            .flatten_all()
-            .unwrap()
-            .max(0)
-            .unwrap()
-            .to_scalar()
-            .unwrap();
-        max_abs_diff(got, want) / scale.max(1e-6)
-    };
     for name in ["tiny-lcm", "tiny-ip2p"] {
         let model = load_model(name);
         let fx = load_fixture(name);
@@ -269,7 +257,7 @@ fn tiny_unet_on_gpu_matches_cpu() {
                 )
                 .unwrap()
         };
-        let plain = relative(&on(None, Some(&gpu)), &on(None, None));
+        let plain = common::relative_error(&on(None, Some(&gpu)), &on(None, None));
         let capture = || Capture {
             wanted: layers_with_prefix(&fx, "probs.").into_iter().collect(),
             seen: HashMap::new(),
@@ -277,16 +265,16 @@ fn tiny_unet_on_gpu_matches_cpu() {
         };
         let (mut on_cpu, mut on_gpu) = (capture(), capture());
         let want = on(Some(&mut on_cpu), None);
-        let maps = relative(&on(Some(&mut on_gpu), Some(&gpu)), &want);
+        let maps = common::relative_error(&on(Some(&mut on_gpu), Some(&gpu)), &want);
         assert_eq!(
             on_cpu.calls, on_gpu.calls,
             "{name}: the hook sees the same calls"
         );
         let mut map_err = 0f32;
         for (layer, (_, probs)) in &on_cpu.seen {
-            map_err = map_err.max(relative(&on_gpu.seen[layer].1, probs));
+            map_err = map_err.max(common::relative_error(&on_gpu.seen[layer].1, probs));
         }
-        let swapped = relative(
+        let swapped = common::relative_error(
             &on(Some(&mut SwapLastKv), Some(&gpu)),
             &on(Some(&mut SwapLastKv), None),
         );

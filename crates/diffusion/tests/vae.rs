@@ -111,18 +111,6 @@ fn tiny_vae_on_gpu_matches_cpu() {
     let Some(gpu) = common::gpu_or_skip() else {
         return;
     };
-    let relative = |got: &Tensor, want: &Tensor| {
-        let scale: f32 = want
-            .abs()
-            .unwrap()
-            .flatten_all()
-            .unwrap()
-            .max(0)
-            .unwrap()
-            .to_scalar()
-            .unwrap();
-        max_abs_diff(got, want) / scale.max(1e-6)
-    };
     for model in ["tiny-lcm", "tiny-ip2p"] {
         let vae =
             AutoencoderKL::load(&repo().join("fixtures/models").join(model).join("vae")).unwrap();
@@ -132,9 +120,12 @@ fn tiny_vae_on_gpu_matches_cpu() {
         let decoded_cpu = vae.decode(&refs["latents"]).unwrap();
         let decoded_gpu = vae.decode_on(&refs["latents"], Some(&gpu)).unwrap();
         let errs = [
-            ("mean", relative(&on_gpu.mean, &cpu.mean)),
-            ("logvar", relative(&on_gpu.logvar, &cpu.logvar)),
-            ("decode", relative(&decoded_gpu, &decoded_cpu)),
+            ("mean", common::relative_error(&on_gpu.mean, &cpu.mean)),
+            (
+                "logvar",
+                common::relative_error(&on_gpu.logvar, &cpu.logvar),
+            ),
+            ("decode", common::relative_error(&decoded_gpu, &decoded_cpu)),
         ];
         println!("{model} on {}: relative errors {errs:?}", gpu.name());
         for (what, err) in errs {

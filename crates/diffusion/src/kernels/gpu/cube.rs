@@ -319,6 +319,38 @@ fn cube_max(v: f32, #[comptime] units: u32) -> f32 {
     total
 }
 
+/// Mean of `x[base..base + len]`, computed by the whole cube.
+#[cube]
+fn segment_mean(x: &[f32], base: u32, len: u32, #[comptime] units: u32) -> f32 {
+    let mut sum = 0.0f32;
+    let mut i = UNIT_POS;
+    while i < len {
+        sum += x[(base + i) as usize];
+        i += units;
+    }
+    cube_sum(sum, units) / f32::cast_from(len)
+}
+
+/// `1/√(variance + eps)` of `x[base..base + len]` around `mean` (a second pass, for accuracy).
+#[cube]
+fn segment_inv_std(
+    x: &[f32],
+    base: u32,
+    len: u32,
+    mean: f32,
+    eps: f32,
+    #[comptime] units: u32,
+) -> f32 {
+    let mut sq = 0.0f32;
+    let mut i = UNIT_POS;
+    while i < len {
+        let d = x[(base + i) as usize] - mean;
+        sq += d * d;
+        i += units;
+    }
+    1.0f32 / f32::sqrt(cube_sum(sq, units) / f32::cast_from(len) + eps)
+}
+
 /// Group norm (+ optional SiLU) of x [batch, channels, spatial]: one cube per (batch, group), two passes
 /// (mean, then the mean squared deviation) for accuracy. `meta = [channels, spatial, groups, cubes]`.
 #[cube(launch_unchecked)]
@@ -342,23 +374,9 @@ pub fn group_norm(
     let len = per_group * spatial;
     let group = cube % groups;
     let base = cube * len;
-    let mut sum = 0.0f32;
+    let mean = segment_mean(x, base, len, units);
+    let inv = segment_inv_std(x, base, len, mean, eps, units);
     let mut i = UNIT_POS;
-    while i < len {
-        sum += x[(base + i) as usize];
-        i += units;
-    }
-    let mean = cube_sum(sum, units) / f32::cast_from(len);
-    let mut sq = 0.0f32;
-    i = UNIT_POS;
-    while i < len {
-        let d = x[(base + i) as usize] - mean;
-        sq += d * d;
-        i += units;
-    }
-    let var = cube_sum(sq, units) / f32::cast_from(len);
-    let inv = 1.0f32 / f32::sqrt(var + eps);
-    i = UNIT_POS;
     while i < len {
         let c = group * per_group + i / spatial;
         let mut v = (x[(base + i) as usize] - mean) * inv * weight[c as usize] + bias[c as usize];
@@ -386,22 +404,9 @@ pub fn layer_norm(
     let width = meta[0];
     let valid = cube_index() < meta[1];
     let base = u32::min(cube_index(), meta[1] - 1) * width;
-    let mut sum = 0.0f32;
+    let mean = segment_mean(x, base, width, units);
+    let inv = segment_inv_std(x, base, width, mean, eps, units);
     let mut i = UNIT_POS;
-    while i < width {
-        sum += x[(base + i) as usize];
-        i += units;
-    }
-    let mean = cube_sum(sum, units) / f32::cast_from(width);
-    let mut sq = 0.0f32;
-    i = UNIT_POS;
-    while i < width {
-        let d = x[(base + i) as usize] - mean;
-        sq += d * d;
-        i += units;
-    }
-    let inv = 1.0f32 / f32::sqrt(cube_sum(sq, units) / f32::cast_from(width) + eps);
-    i = UNIT_POS;
     while i < width {
         if valid {
             out[(base + i) as usize] =
