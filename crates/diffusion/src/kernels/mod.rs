@@ -12,7 +12,11 @@
 //! - anything else (other dtypes or devices): composite candle ops, differentiable.
 //!
 //! Inference and training share their forward kernels, so a model computes the same values whether or
-//! not it is being trained. A GPU variant of an op belongs inside its function, beside the CPU branch.
+//! not it is being trained.
+//!
+//! The GPU path: networks pass a [`DeviceTensor`] from layer to layer; on the CPU each of its ops is the
+//! very function above (or candle call), on the GPU the CubeCL twin in [`gpu::ops`] (tested against the
+//! CPU function on lavapipe). One network definition thus runs on either device.
 
 use candle_core::{CpuStorage, Layout, Result, Tensor};
 
