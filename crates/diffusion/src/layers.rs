@@ -5,10 +5,12 @@
 //! The arithmetic lives in [`crate::kernels`], whose functions pick a fused inference kernel or a
 //! differentiable one per call, so the same blocks serve inference and training.
 
-use candle_core::{Module, Result, Tensor, D};
+use candle_core::{Module, Result, Tensor};
 use candle_nn::{Linear, VarBuilder};
 
 use crate::kernels;
+use crate::kernels::gpu::ops;
+use crate::kernels::DeviceTensor;
 
 /// Loads a `nn.Linear` (`weight` [out, in], optional `bias` [out]) under `vb`.
 pub fn linear(in_dim: usize, out_dim: usize, bias: bool, vb: VarBuilder) -> Result<Linear> {
@@ -83,6 +85,13 @@ impl Conv2d {
     }
 }
 
+impl Conv2d {
+    /// The convolution on the input's device (the CPU branch is [`Module::forward`]'s call).
+    pub fn forward_device(&self, x: &kernels::DeviceTensor) -> Result<kernels::DeviceTensor> {
+        x.conv2d(&self.weight, self.bias.as_ref(), self.stride, self.padding)
+    }
+}
+
 impl Module for Conv2d {
     fn forward(&self, x: &Tensor) -> Result<Tensor> {
         kernels::conv2d(
@@ -116,6 +125,11 @@ impl LayerNorm {
     pub fn forward(&self, x: &Tensor) -> Result<Tensor> {
         kernels::layer_norm(x, &self.weight, &self.bias, self.eps)
     }
+
+    /// [`Self::forward`] on the input's device.
+    pub fn forward_device(&self, x: &kernels::DeviceTensor) -> Result<kernels::DeviceTensor> {
+        x.layer_norm(&self.weight, &self.bias, self.eps)
+    }
 }
 
 /// `nn.GroupNorm` with affine weight/bias (keys `weight`, `bias`) over [batch, channels, ...].
@@ -144,14 +158,34 @@ impl GroupNorm {
         })
     }
 
-    /// Group norm alone.
+    /// Group norm alone (CPU; networks call [`Self::forward_device`]).
+    #[cfg(test)]
     pub fn forward(&self, x: &Tensor) -> Result<Tensor> {
         self.run(x, false)
     }
 
     /// Group norm followed by SiLU (the pairing used throughout ResNet blocks), fused on the fast path.
+    #[cfg(test)]
     pub fn forward_silu(&self, x: &Tensor) -> Result<Tensor> {
         self.run(x, true)
+    }
+
+    /// Group norm (then SiLU when `with_silu`) on the input's device.
+    pub fn forward_device(
+        &self,
+        x: &kernels::DeviceTensor,
+        with_silu: bool,
+    ) -> Result<kernels::DeviceTensor> {
+        match x {
+            kernels::DeviceTensor::Cpu(t) => Ok(self.run(t, with_silu)?.into()),
+            kernels::DeviceTensor::Gpu(_) => x.group_norm(
+                &self.weight,
+                &self.bias,
+                self.num_groups,
+                self.eps,
+                with_silu,
+            ),
+        }
     }
 
     fn run(&self, x: &Tensor, with_silu: bool) -> Result<Tensor> {
@@ -267,35 +301,49 @@ impl ResnetBlock2D {
         })
     }
 
-    /// `x` [batch, in, h, w]; `temb` [batch, temb_channels] (ignored by blocks loaded without one).
-    pub fn forward(&self, x: &Tensor, temb: Option<&Tensor>) -> Result<Tensor> {
-        let h = self.conv1.forward(&self.norm1.forward_silu(x)?)?;
+    /// `x` [batch, in, h, w]; `temb` [batch, temb_channels] on the same device (ignored by blocks loaded
+    /// without one).
+    pub fn forward_device(
+        &self,
+        x: &DeviceTensor,
+        temb: Option<&DeviceTensor>,
+    ) -> Result<DeviceTensor> {
+        let h = self
+            .conv1
+            .forward_device(&self.norm1.forward_device(x, true)?)?;
         let emb = match (&self.time_emb_proj, temb) {
-            (Some(proj), Some(t)) => Some(proj.forward(&t.silu()?)?.unsqueeze(2)?.unsqueeze(3)?),
+            (Some(proj), Some(t)) => {
+                let e = t.unary_op(|t| t.silu(), ops::silu)?.linear(proj)?;
+                let &[b, c] = e.dims() else {
+                    candle_core::bail!("time embedding {:?} is not [batch, channels]", e.dims());
+                };
+                Some(e.reshape(&[b, c, 1, 1])?)
+            }
             _ => None,
         };
         let h = match (self.time_embedding_norm, emb) {
             (TimeEmbeddingNorm::ScaleShift, Some(emb)) => {
-                let chunks = emb.chunk(2, 1)?;
-                let normed = self.norm2.forward(&h)?;
+                let half = emb.dims()[1] / 2;
+                let (scale, shift) = (emb.narrow(1, 0, half)?, emb.narrow(1, half, half)?);
+                let normed = self.norm2.forward_device(&h, false)?;
                 normed
-                    .broadcast_mul(&(&chunks[0] + 1.0)?)?
-                    .broadcast_add(&chunks[1])?
-                    .silu()?
+                    .broadcast_mul(&scale.add_scalar(1.0)?)?
+                    .broadcast_add(&shift)?
+                    .unary_op(|t| t.silu(), ops::silu)?
             }
-            (_, Some(emb)) => self.norm2.forward_silu(&h.broadcast_add(&emb)?)?,
-            (_, None) => self.norm2.forward_silu(&h)?,
+            (_, Some(emb)) => self.norm2.forward_device(&h.broadcast_add(&emb)?, true)?,
+            (_, None) => self.norm2.forward_device(&h, true)?,
         };
-        let h = self.conv2.forward(&h)?;
+        let h = self.conv2.forward_device(&h)?;
         let shortcut = match &self.conv_shortcut {
-            Some(conv) => conv.forward(x)?,
+            Some(conv) => conv.forward_device(x)?,
             None => x.clone(),
         };
-        let out = (shortcut + h)?;
+        let out = shortcut.add(&h)?;
         if self.output_scale_factor == 1.0 {
             Ok(out)
         } else {
-            out / self.output_scale_factor
+            out.div_scalar(self.output_scale_factor)
         }
     }
 }
@@ -321,14 +369,13 @@ impl Downsample2D {
         })
     }
 
-    pub fn forward(&self, x: &Tensor) -> Result<Tensor> {
+    /// The downsampling on the input's device.
+    pub fn forward_device(&self, x: &DeviceTensor) -> Result<DeviceTensor> {
         if self.padding == 0 {
-            let x = x
-                .pad_with_zeros(D::Minus1, 0, 1)?
-                .pad_with_zeros(D::Minus2, 0, 1)?;
-            self.conv.forward(&x)
+            let x = x.pad_bottom_right_with_zeros()?;
+            self.conv.forward_device(&x)
         } else {
-            self.conv.forward(x)
+            self.conv.forward_device(x)
         }
     }
 }
@@ -348,10 +395,14 @@ impl Upsample2D {
 
     /// Doubles the spatial size, or resizes to `size` = (h, w) when given (the UNet passes the skip
     /// connection's size when the latent is not a multiple of the total downsampling factor).
-    pub fn forward(&self, x: &Tensor, size: Option<(usize, usize)>) -> Result<Tensor> {
+    pub fn forward_device(
+        &self,
+        x: &DeviceTensor,
+        size: Option<(usize, usize)>,
+    ) -> Result<DeviceTensor> {
         let (_, _, h, w) = x.dims4()?;
         let (th, tw) = size.unwrap_or((2 * h, 2 * w));
-        self.conv.forward(&x.upsample_nearest2d(th, tw)?)
+        self.conv.forward_device(&x.upsample_nearest2d(th, tw)?)
     }
 }
 
@@ -403,31 +454,32 @@ impl SpatialSelfAttention {
         })
     }
 
-    pub fn forward(&self, x: &Tensor) -> Result<Tensor> {
+    /// The attention block on the input's device.
+    pub fn forward_device(&self, x: &DeviceTensor) -> Result<DeviceTensor> {
         let (b, c, h, w) = x.dims4()?;
-        let normed = self.group_norm.forward(x)?;
+        let normed = self.group_norm.forward_device(x, false)?;
         let tokens = normed
-            .reshape((b, c, h * w))?
-            .transpose(1, 2)?
-            .contiguous()?;
+            .reshape(&[b, c, h * w])?
+            .permute_contiguous(&[0, 2, 1])?;
         let head_dim = c / self.heads;
-        let split = |t: Tensor| -> Result<Tensor> {
-            t.reshape((b, h * w, self.heads, head_dim))?
-                .transpose(1, 2)?
-                .contiguous()
+        let split = |t: DeviceTensor| -> Result<DeviceTensor> {
+            t.reshape(&[b, h * w, self.heads, head_dim])?
+                .permute_contiguous(&[0, 2, 1, 3])
         };
-        let q = split(self.to_q.forward(&tokens)?)?;
-        let k = split(self.to_k.forward(&tokens)?)?;
-        let v = split(self.to_v.forward(&tokens)?)?;
-        let attn = kernels::attention(&q, &k, &v, 1.0 / (head_dim as f64).sqrt())?;
-        let attn = attn.transpose(1, 2)?.reshape((b, h * w, c))?;
-        let out = self.to_out.forward(&attn)?;
-        let out = out.transpose(1, 2)?.reshape((b, c, h, w))?;
-        let out = (out + x)?;
+        let q = split(tokens.linear(&self.to_q)?)?;
+        let k = split(tokens.linear(&self.to_k)?)?;
+        let v = split(tokens.linear(&self.to_v)?)?;
+        let attn = DeviceTensor::attention(&q, &k, &v, 1.0 / (head_dim as f64).sqrt())?;
+        let attn = attn
+            .permute_contiguous(&[0, 2, 1, 3])?
+            .reshape(&[b, h * w, c])?;
+        let out = attn.linear(&self.to_out)?;
+        let out = out.permute_contiguous(&[0, 2, 1])?.reshape(&[b, c, h, w])?;
+        let out = out.add(x)?;
         if self.rescale_output_factor == 1.0 {
             Ok(out)
         } else {
-            out / self.rescale_output_factor
+            out.div_scalar(self.rescale_output_factor)
         }
     }
 }

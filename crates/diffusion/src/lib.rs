@@ -5,6 +5,11 @@
 
 pub mod clip;
 mod kernels;
+/// Where a network runs: [`DeviceTensor`](device::DeviceTensor) on the CPU or a [`GpuDevice`](device::GpuDevice).
+pub mod device {
+    pub use crate::kernels::gpu::{ops, GpuDevice, GpuTensor};
+    pub use crate::kernels::DeviceTensor;
+}
 mod layers;
 pub mod loader;
 pub mod model_check;

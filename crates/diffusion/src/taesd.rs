@@ -25,9 +25,11 @@
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
-use candle_core::{DType, Device, Module, Tensor};
+use candle_core::{DType, Device, Tensor};
 use candle_nn::{Activation, VarBuilder};
 
+use crate::kernels::gpu::GpuDevice;
+use crate::kernels::DeviceTensor;
 use crate::layers::Conv2d;
 use serde::Deserialize;
 
@@ -226,11 +228,11 @@ impl TinyBlock {
         })
     }
 
-    fn forward(&self, x: &Tensor) -> candle_core::Result<Tensor> {
-        let h = self.act.forward(&self.convs[0].forward(x)?)?;
-        let h = self.act.forward(&self.convs[1].forward(&h)?)?;
-        let h = self.convs[2].forward(&h)?;
-        (h + x)?.relu()
+    fn forward(&self, x: &DeviceTensor) -> candle_core::Result<DeviceTensor> {
+        let h = self.convs[0].forward_device(x)?.activation(self.act)?;
+        let h = self.convs[1].forward_device(&h)?.activation(self.act)?;
+        let h = self.convs[2].forward_device(&h)?;
+        h.add(x)?.relu()
     }
 }
 
@@ -243,11 +245,11 @@ enum Layer {
 }
 
 impl Layer {
-    fn forward(&self, x: &Tensor) -> candle_core::Result<Tensor> {
+    fn forward(&self, x: &DeviceTensor) -> candle_core::Result<DeviceTensor> {
         match self {
-            Layer::Conv(c) => c.forward(x),
+            Layer::Conv(c) => c.forward_device(x),
             Layer::Block(b) => b.forward(x),
-            Layer::Act(a) => a.forward(x),
+            Layer::Act(a) => x.activation(*a),
             Layer::Upsample(f) => {
                 let (_, _, h, w) = x.dims4()?;
                 x.upsample_nearest2d(h * f, w * f)
@@ -256,7 +258,7 @@ impl Layer {
     }
 }
 
-fn run(layers: &[Layer], x: Tensor) -> candle_core::Result<Tensor> {
+fn run(layers: &[Layer], x: DeviceTensor) -> candle_core::Result<DeviceTensor> {
     layers.iter().try_fold(x, |x, layer| layer.forward(&x))
 }
 
@@ -305,7 +307,12 @@ impl TinyEncoder {
 
     /// Image in [0, 1] → latents.
     pub fn forward(&self, image_unit: &Tensor) -> Result<Tensor> {
-        check_nchw(image_unit, self.in_channels, "encoder input")?;
+        Ok(self.forward_device(&image_unit.clone().into())?.to_cpu()?)
+    }
+
+    /// [`Self::forward`] on the input's device.
+    pub fn forward_device(&self, image_unit: &DeviceTensor) -> Result<DeviceTensor> {
+        check_nchw(image_unit.dims(), self.in_channels, "encoder input")?;
         Ok(run(&self.layers, image_unit.clone())?)
     }
 }
@@ -365,14 +372,18 @@ impl TinyDecoder {
 
     /// Latents → image in [0, 1] (not clamped).
     pub fn forward(&self, latents: &Tensor) -> Result<Tensor> {
-        check_nchw(latents, self.latent_channels, "decoder input")?;
-        let clamped = ((latents / 3.0)?.tanh()? * 3.0)?;
+        Ok(self.forward_device(&latents.clone().into())?.to_cpu()?)
+    }
+
+    /// [`Self::forward`] on the input's device.
+    pub fn forward_device(&self, latents: &DeviceTensor) -> Result<DeviceTensor> {
+        check_nchw(latents.dims(), self.latent_channels, "decoder input")?;
+        let clamped = latents.div_scalar(3.0)?.tanh()?.mul_scalar(3.0)?;
         Ok(run(&self.layers, clamped)?)
     }
 }
 
-fn check_nchw(x: &Tensor, channels: usize, what: &'static str) -> Result<()> {
-    let dims = x.dims();
+fn check_nchw(dims: &[usize], channels: usize, what: &'static str) -> Result<()> {
     if dims.len() != 4 || dims[1] != channels || dims[2] == 0 || dims[3] == 0 || dims[0] == 0 {
         return Err(TaesdError::Input {
             what,
@@ -481,8 +492,7 @@ impl AutoencoderTiny {
 
     /// Image in [-1, 1] → latents (diffusers `AutoencoderTiny.encode(x).latents`).
     pub fn encode(&self, image: &Tensor) -> Result<Tensor> {
-        let unit = ((image + 1.0)? / 2.0)?;
-        self.encoder.forward(&unit)
+        self.encode_on(image, None)
     }
 
     /// Image in [0, 1] → latents (taesd.py convention).
@@ -492,13 +502,36 @@ impl AutoencoderTiny {
 
     /// Latents → image in [-1, 1], unclamped (diffusers `AutoencoderTiny.decode(z).sample`).
     pub fn decode(&self, latents: &Tensor) -> Result<Tensor> {
-        let unit = self.decoder.forward(latents)?;
-        Ok(((unit * 2.0)? - 1.0)?)
+        self.decode_on(latents, None)
     }
 
     /// Latents → image in [0, 1], unclamped (taesd.py convention).
     pub fn decode_unit(&self, latents: &Tensor) -> Result<Tensor> {
         self.decoder.forward(latents)
+    }
+
+    /// [`Self::encode`] on `device` (the GPU, or the CPU for `None`); the result is read back.
+    pub fn encode_on(&self, image: &Tensor, device: Option<&GpuDevice>) -> Result<Tensor> {
+        let image = DeviceTensor::on(image, device)?;
+        Ok(self.encode_device(&image)?.to_cpu()?)
+    }
+
+    /// [`Self::decode`] on `device` (the GPU, or the CPU for `None`); the result is read back.
+    pub fn decode_on(&self, latents: &Tensor, device: Option<&GpuDevice>) -> Result<Tensor> {
+        let latents = DeviceTensor::on(latents, device)?;
+        Ok(self.decode_device(&latents)?.to_cpu()?)
+    }
+
+    /// [`Self::encode`] on the image's device; the latents stay there.
+    pub fn encode_device(&self, image: &DeviceTensor) -> Result<DeviceTensor> {
+        let unit = image.add_scalar(1.0)?.div_scalar(2.0)?;
+        self.encoder.forward_device(&unit)
+    }
+
+    /// [`Self::decode`] on the latents' device; the image stays there.
+    pub fn decode_device(&self, latents: &DeviceTensor) -> Result<DeviceTensor> {
+        let unit = self.decoder.forward_device(latents)?;
+        Ok(unit.mul_scalar(2.0)?.sub_scalar(1.0)?)
     }
 
     /// Image in [-1, 1] → UNet-scale latents: `(encode(x) − shift_factor) · scaling_factor` (identity for SD TAESD).

@@ -13,12 +13,14 @@
 
 use std::path::{Path, PathBuf};
 
-use candle_core::{DType, Device, Module, Tensor};
+use candle_core::{DType, Device, Tensor};
 use candle_nn::VarBuilder;
 use rand::Rng;
 use rand_distr::{Distribution, StandardNormal};
 use serde::Deserialize;
 
+use crate::kernels::gpu::GpuDevice;
+use crate::kernels::DeviceTensor;
 use crate::layers::{
     conv2d, Conv2d, Downsample2D, GroupNorm, ResnetBlock2D, ResnetConfig, SpatialSelfAttention,
     Upsample2D,
@@ -239,12 +241,12 @@ impl MidBlock {
         })
     }
 
-    fn forward(&self, x: &Tensor) -> candle_core::Result<Tensor> {
-        let mut h = self.resnet_in.forward(x, None)?;
+    fn forward(&self, x: &DeviceTensor) -> candle_core::Result<DeviceTensor> {
+        let mut h = self.resnet_in.forward_device(x, None)?;
         if let Some(attention) = &self.attention {
-            h = attention.forward(&h)?;
+            h = attention.forward_device(&h)?;
         }
-        self.resnet_out.forward(&h, None)
+        self.resnet_out.forward_device(&h, None)
     }
 }
 
@@ -322,19 +324,24 @@ impl VaeEncoder {
     }
 
     pub fn forward(&self, image: &Tensor) -> candle_core::Result<Tensor> {
-        let mut h = self.conv_in.forward(image)?;
+        self.forward_device(&image.clone().into())?.to_cpu()
+    }
+
+    /// [`Self::forward`] on the image's device.
+    pub fn forward_device(&self, image: &DeviceTensor) -> candle_core::Result<DeviceTensor> {
+        let mut h = self.conv_in.forward_device(image)?;
         for block in &self.down_blocks {
             for resnet in &block.resnets {
-                h = resnet.forward(&h, None)?;
+                h = resnet.forward_device(&h, None)?;
             }
             if let Some(down) = &block.downsample {
-                h = down.forward(&h)?;
+                h = down.forward_device(&h)?;
             }
         }
         let h = self.mid_block.forward(&h)?;
         // conv_act is always SiLU in diffusers' Encoder.
-        let h = self.conv_norm_out.forward_silu(&h)?;
-        self.conv_out.forward(&h)
+        let h = self.conv_norm_out.forward_device(&h, true)?;
+        self.conv_out.forward_device(&h)
     }
 }
 
@@ -395,18 +402,23 @@ impl VaeDecoder {
     }
 
     pub fn forward(&self, latents: &Tensor) -> candle_core::Result<Tensor> {
-        let h = self.conv_in.forward(latents)?;
+        self.forward_device(&latents.clone().into())?.to_cpu()
+    }
+
+    /// [`Self::forward`] on the latents' device.
+    pub fn forward_device(&self, latents: &DeviceTensor) -> candle_core::Result<DeviceTensor> {
+        let h = self.conv_in.forward_device(latents)?;
         let mut h = self.mid_block.forward(&h)?;
         for block in &self.up_blocks {
             for resnet in &block.resnets {
-                h = resnet.forward(&h, None)?;
+                h = resnet.forward_device(&h, None)?;
             }
             if let Some(up) = &block.upsample {
-                h = up.forward(&h, None)?;
+                h = up.forward_device(&h, None)?;
             }
         }
-        let h = self.conv_norm_out.forward_silu(&h)?;
-        self.conv_out.forward(&h)
+        let h = self.conv_norm_out.forward_device(&h, true)?;
+        self.conv_out.forward_device(&h)
     }
 }
 
@@ -538,13 +550,25 @@ impl AutoencoderKL {
 
     /// Image in [-1, 1] → posterior over raw latents.
     pub fn encode(&self, image: &Tensor) -> Result<DiagonalGaussian> {
-        check_nchw(image, self.config.in_channels, "image")?;
-        let h = self.encoder.forward(image)?;
+        self.encode_on(image, None)
+    }
+
+    /// [`Self::encode`] with the network on `device` (the GPU, or the CPU for `None`); the moments are
+    /// read back for the posterior.
+    pub fn encode_on(
+        &self,
+        image: &Tensor,
+        device: Option<&GpuDevice>,
+    ) -> Result<DiagonalGaussian> {
+        check_nchw(image.dims(), self.config.in_channels, "image")?;
+        let h = self
+            .encoder
+            .forward_device(&DeviceTensor::on(image, device)?)?;
         let moments = match &self.quant_conv {
-            Some(conv) => conv.forward(&h)?,
+            Some(conv) => conv.forward_device(&h)?,
             None => h,
         };
-        Ok(DiagonalGaussian::from_moments(&moments)?)
+        Ok(DiagonalGaussian::from_moments(&moments.to_cpu()?)?)
     }
 
     /// Image in [-1, 1] → posterior mean (raw latents).
@@ -580,12 +604,24 @@ impl AutoencoderKL {
 
     /// Raw latents → image in [-1, 1] (unclamped).
     pub fn decode(&self, latents: &Tensor) -> Result<Tensor> {
-        check_nchw(latents, self.config.latent_channels, "latents")?;
+        self.decode_on(latents, None)
+    }
+
+    /// [`Self::decode`] on `device` (the GPU, or the CPU for `None`); the image is read back.
+    pub fn decode_on(&self, latents: &Tensor, device: Option<&GpuDevice>) -> Result<Tensor> {
+        Ok(self
+            .decode_device(&DeviceTensor::on(latents, device)?)?
+            .to_cpu()?)
+    }
+
+    /// [`Self::decode`] on the latents' device; the image stays there.
+    pub fn decode_device(&self, latents: &DeviceTensor) -> Result<DeviceTensor> {
+        check_nchw(latents.dims(), self.config.latent_channels, "latents")?;
         let z = match &self.post_quant_conv {
-            Some(conv) => conv.forward(latents)?,
+            Some(conv) => conv.forward_device(latents)?,
             None => latents.clone(),
         };
-        Ok(self.decoder.forward(&z)?)
+        Ok(self.decoder.forward_device(&z)?)
     }
 
     /// UNet latents → image in [-1, 1]: `decode(latents / scaling_factor + shift)`.
@@ -604,8 +640,7 @@ impl AutoencoderKL {
     }
 }
 
-fn check_nchw(x: &Tensor, channels: usize, what: &'static str) -> Result<()> {
-    let dims = x.dims();
+fn check_nchw(dims: &[usize], channels: usize, what: &'static str) -> Result<()> {
     if dims.len() != 4 || dims[1] != channels || dims.contains(&0) {
         return Err(VaeError::Input {
             what,

@@ -103,3 +103,33 @@ fn autoencoder_enum_picks_the_right_model() {
     let out = tiny.decode_scaled(&refs["decode_in"]).unwrap();
     assert!(max_abs_diff(&out, &refs["decoded"]) <= 1e-4);
 }
+
+/// One definition on both devices: the AutoencoderKL (ResNet blocks, mid-block attention, down/up
+/// sampling) on the GPU (lavapipe in CI) matches the CPU to f32 precision.
+#[test]
+fn tiny_vae_on_gpu_matches_cpu() {
+    let Some(gpu) = common::gpu_or_skip() else {
+        return;
+    };
+    for model in ["tiny-lcm", "tiny-ip2p"] {
+        let vae =
+            AutoencoderKL::load(&repo().join("fixtures/models").join(model).join("vae")).unwrap();
+        let refs = fixture(&format!("kl-{model}.safetensors"));
+        let cpu = vae.encode(&refs["image"]).unwrap();
+        let on_gpu = vae.encode_on(&refs["image"], Some(&gpu)).unwrap();
+        let decoded_cpu = vae.decode(&refs["latents"]).unwrap();
+        let decoded_gpu = vae.decode_on(&refs["latents"], Some(&gpu)).unwrap();
+        let errs = [
+            ("mean", common::relative_error(&on_gpu.mean, &cpu.mean)),
+            (
+                "logvar",
+                common::relative_error(&on_gpu.logvar, &cpu.logvar),
+            ),
+            ("decode", common::relative_error(&decoded_gpu, &decoded_cpu)),
+        ];
+        println!("{model} on {}: relative errors {errs:?}", gpu.name());
+        for (what, err) in errs {
+            assert!(err <= 1e-4, "{model} {what}: relative error {err}");
+        }
+    }
+}

@@ -3,11 +3,12 @@
 //!
 //! Keys under the layer: `layer_norm1`, `self_attn.{q,k,v,out}_proj`, `layer_norm2`, `mlp.fc1`, `mlp.fc2`.
 
-use candle_core::{Module, Result, Tensor};
+use candle_core::{Result, Tensor};
 use candle_nn::{linear, Linear, VarBuilder};
 use serde::Deserialize;
 
-use crate::kernels::softmax_last_dim;
+use crate::kernels::gpu::ops;
+use crate::kernels::DeviceTensor;
 use crate::layers::LayerNorm;
 
 /// `hidden_act` of a CLIP config.
@@ -25,11 +26,16 @@ pub enum ClipActivation {
 }
 
 impl ClipActivation {
-    fn apply(self, x: &Tensor) -> Result<Tensor> {
+    fn apply(self, x: &DeviceTensor) -> Result<DeviceTensor> {
         match self {
-            ClipActivation::QuickGelu => x * candle_nn::ops::sigmoid(&(x * 1.702)?)?,
-            ClipActivation::Gelu => x.gelu_erf(),
-            ClipActivation::GeluNew | ClipActivation::GeluPytorchTanh => x.gelu(),
+            ClipActivation::QuickGelu => x.unary_op(
+                |x| x * candle_nn::ops::sigmoid(&(x * 1.702)?)?,
+                ops::quick_gelu,
+            ),
+            ClipActivation::Gelu => x.unary_op(|x| x.gelu_erf(), ops::gelu),
+            ClipActivation::GeluNew | ClipActivation::GeluPytorchTanh => {
+                x.unary_op(|x| x.gelu(), ops::gelu_tanh)
+            }
             ClipActivation::Relu => x.relu(),
         }
     }
@@ -69,26 +75,33 @@ impl SelfAttention {
     }
 
     /// x [B, S, D]; `mask` [S, S] is added to the scores (−∞ hides a position).
-    fn forward(&self, x: &Tensor, mask: Option<&Tensor>) -> Result<Tensor> {
-        let (b, s, d) = x.dims3()?;
-        let split = |t: Tensor| -> Result<Tensor> {
-            t.reshape((b, s, self.heads, self.head_dim))?
-                .transpose(1, 2)?
-                .contiguous()
+    fn forward(&self, x: &DeviceTensor, mask: Option<&Tensor>) -> Result<DeviceTensor> {
+        let &[b, s, d] = x.dims() else {
+            candle_core::bail!(
+                "CLIP attention expects [batch, seq, dim], got {:?}",
+                x.dims()
+            );
+        };
+        let split = |t: DeviceTensor| -> Result<DeviceTensor> {
+            t.reshape(&[b, s, self.heads, self.head_dim])?
+                .permute_contiguous(&[0, 2, 1, 3])
         };
         let scale = (self.head_dim as f64).powf(-0.5);
-        let q = split((self.q_proj.forward(x)? * scale)?)?;
-        let k = split(self.k_proj.forward(x)?)?;
-        let v = split(self.v_proj.forward(x)?)?;
-        let scores = q.matmul(&k.t()?)?;
+        let q = split(x.linear(&self.q_proj)?.mul_scalar(scale)?)?;
+        let k = split(x.linear(&self.k_proj)?)?;
+        let v = split(x.linear(&self.v_proj)?)?;
+        let scores = q.matmul_t(&k)?;
         let scores = match mask {
-            Some(mask) => scores.broadcast_add(mask)?,
+            Some(mask) => scores.broadcast_add_tensor(mask)?,
             None => scores,
         };
         // The kernel softmax has a backward pass, so the towers can be trained (the demo's text encoder is).
-        let probs = softmax_last_dim(&scores)?;
-        let out = probs.matmul(&v)?.transpose(1, 2)?.reshape((b, s, d))?;
-        self.out_proj.forward(&out)
+        let probs = scores.softmax_last_dim()?;
+        let out = probs
+            .matmul(&v)?
+            .permute_contiguous(&[0, 2, 1, 3])?
+            .reshape(&[b, s, d])?;
+        out.linear(&self.out_proj)
     }
 }
 
@@ -118,12 +131,17 @@ impl EncoderLayer {
 
     /// x [B, S, D] → [B, S, D]; `mask` as in self-attention.
     pub fn forward(&self, x: &Tensor, mask: Option<&Tensor>) -> Result<Tensor> {
+        self.forward_device(&x.clone().into(), mask)?.to_cpu()
+    }
+
+    /// [`Self::forward`] on the input's device.
+    pub fn forward_device(&self, x: &DeviceTensor, mask: Option<&Tensor>) -> Result<DeviceTensor> {
         let h = self
             .self_attn
-            .forward(&self.layer_norm1.forward(x)?, mask)?;
-        let x = (x + h)?;
-        let h = self.fc1.forward(&self.layer_norm2.forward(&x)?)?;
-        let h = self.fc2.forward(&self.act.apply(&h)?)?;
-        x + h
+            .forward(&self.layer_norm1.forward_device(x)?, mask)?;
+        let x = x.add(&h)?;
+        let h = self.layer_norm2.forward_device(&x)?.linear(&self.fc1)?;
+        let h = self.act.apply(&h)?.linear(&self.fc2)?;
+        x.add(&h)
     }
 }

@@ -10,6 +10,8 @@ use candle_nn::{embedding, Embedding, VarBuilder};
 use serde::Deserialize;
 
 use super::encoder::{ClipActivation, EncoderLayer, EncoderLayerConfig};
+use crate::kernels::gpu::GpuDevice;
+use crate::kernels::DeviceTensor;
 use crate::layers::LayerNorm;
 use crate::loader::{Component, LoadError, ModelDir};
 use crate::tokenizer::{ClipTokenizer, Encoding};
@@ -190,6 +192,17 @@ impl ClipTextModel {
         input_ids: &Tensor,
         clip_skip: usize,
     ) -> candle_core::Result<Tensor> {
+        self.forward_skip_on(input_ids, clip_skip, None)
+    }
+
+    /// [`Self::forward_skip`] with the encoder layers on `device` (the GPU, or the CPU for `None`): the
+    /// embedding lookup runs on the CPU, the hidden states are read back at the end.
+    pub fn forward_skip_on(
+        &self,
+        input_ids: &Tensor,
+        clip_skip: usize,
+        device: Option<&GpuDevice>,
+    ) -> candle_core::Result<Tensor> {
         let (_, s) = input_ids.dims2()?;
         if s > self.config.max_position_embeddings {
             candle_core::bail!(
@@ -198,16 +211,17 @@ impl ClipTextModel {
             );
         }
         let positions = self.position_embedding.narrow(0, 0, s)?;
-        let mut x = self
+        let x = self
             .token_embedding
             .forward(input_ids)?
             .broadcast_add(&positions)?;
         let mask = causal_mask(s, x.dtype(), x.device())?;
+        let mut x = DeviceTensor::on(&x, device)?;
         let used = self.layers.len().saturating_sub(clip_skip);
         for layer in &self.layers[..used] {
-            x = layer.forward(&x, Some(&mask))?;
+            x = layer.forward_device(&x, Some(&mask))?;
         }
-        self.final_layer_norm.forward(&x)
+        self.final_layer_norm.forward_device(&x)?.to_cpu()
     }
 
     /// The pooled output: the final hidden state at each sequence's first end token (transformers' rule;

@@ -12,7 +12,11 @@
 //! - anything else (other dtypes or devices): composite candle ops, differentiable.
 //!
 //! Inference and training share their forward kernels, so a model computes the same values whether or
-//! not it is being trained. A GPU variant of an op belongs inside its function, beside the CPU branch.
+//! not it is being trained.
+//!
+//! The GPU path: networks pass a [`DeviceTensor`] from layer to layer; on the CPU each of its ops is the
+//! very function above (or candle call), on the GPU the CubeCL twin in [`gpu::ops`] (tested against the
+//! CPU function on lavapipe). One network definition thus runs on either device.
 
 use candle_core::{CpuStorage, Layout, Result, Tensor};
 
@@ -49,12 +53,15 @@ macro_rules! simd_dispatch {
 mod approx;
 mod attention;
 mod conv;
+mod device;
 mod geglu;
+pub mod gpu;
 mod norm;
 mod softmax;
 
 pub use attention::attention;
 pub use conv::conv2d;
+pub use device::DeviceTensor;
 pub use geglu::geglu;
 pub use norm::{group_norm, layer_norm};
 pub use softmax::softmax_last_dim;

@@ -4,10 +4,10 @@
 //! whether it is self- or cross-attention, the spatial size of its queries and the batch/head counts, and
 //! the hook may replace Q/K/V before the softmax and read or replace the probabilities after it.
 
-use candle_core::{Module, Result, Tensor};
+use candle_core::{Result, Tensor};
 use candle_nn::{Linear, VarBuilder};
 
-use crate::kernels::{attention, softmax_last_dim};
+use crate::kernels::DeviceTensor;
 use crate::layers::linear;
 
 /// Self-attention (keys from the image tokens) or cross-attention (keys from the text embedding).
@@ -100,15 +100,24 @@ impl Attention {
         })
     }
 
-    /// `x` [batch, h·w, query_dim]; `context` [batch, tokens, context_dim] for cross-attention.
-    pub fn forward(
+    /// `x` [batch, h·w, query_dim]; `context` [batch, tokens, context_dim] for cross-attention, on one
+    /// device. Without a hook the GPU runs the flash kernel (no
+    /// probability matrix); the hook itself always sees CPU tensors (read back from the GPU, and its
+    /// results uploaded again).
+    pub fn forward_device(
         &self,
-        x: &Tensor,
-        context: Option<&Tensor>,
+        x: &DeviceTensor,
+        context: Option<&DeviceTensor>,
         (height, width): (usize, usize),
         hook: Option<&mut (dyn AttentionHook + '_)>,
-    ) -> Result<Tensor> {
-        let (batch, tokens, _) = x.dims3()?;
+    ) -> Result<DeviceTensor> {
+        let &[batch, tokens, _] = x.dims() else {
+            candle_core::bail!(
+                "{}: expected [batch, tokens, dim], got {:?}",
+                self.name,
+                x.dims()
+            );
+        };
         let kv_source = match self.kind {
             AttnKind::CrossAttn => context.ok_or_else(|| {
                 candle_core::Error::Msg(format!(
@@ -118,18 +127,17 @@ impl Attention {
             })?,
             AttnKind::SelfAttn => x,
         };
-        let split = |t: Tensor| -> Result<Tensor> {
-            let n = t.dim(1)?;
-            t.reshape((batch, n, self.heads, self.head_dim))?
-                .transpose(1, 2)?
-                .contiguous()
+        let split = |t: DeviceTensor| -> Result<DeviceTensor> {
+            let n = t.dims()[1];
+            t.reshape(&[batch, n, self.heads, self.head_dim])?
+                .permute_contiguous(&[0, 2, 1, 3])
         };
-        let q = split(self.to_q.forward(x)?)?;
-        let k = split(self.to_k.forward(kv_source)?)?;
-        let v = split(self.to_v.forward(kv_source)?)?;
+        let q = split(x.linear(&self.to_q)?)?;
+        let k = split(kv_source.linear(&self.to_k)?)?;
+        let v = split(kv_source.linear(&self.to_v)?)?;
         let scale = 1.0 / (self.head_dim as f64).sqrt();
         let out = match hook {
-            None => attention(&q, &k, &v, scale)?,
+            None => DeviceTensor::attention(&q, &k, &v, scale)?,
             Some(hook) => {
                 let call = AttnCall {
                     layer: &self.name,
@@ -139,19 +147,22 @@ impl Attention {
                     batch,
                     heads: self.heads,
                 };
-                let (q, k, v) = hook.qkv(&call, q, k, v)?;
+                // On the CPU these round trips are clones of the same tensors.
+                let device = q.gpu_device().cloned();
+                let (q, k, v) = hook.qkv(&call, q.to_cpu()?, k.to_cpu()?, v.to_cpu()?)?;
+                let on_device = |t: &Tensor| DeviceTensor::on(t, device.as_ref());
+                let (q, k, v) = (on_device(&q)?, on_device(&k)?, on_device(&v)?);
                 if hook.wants_probs(&call) {
-                    let scores = (q.matmul(&k.t()?)? * scale)?;
-                    let probs = hook.probs(&call, softmax_last_dim(&scores)?)?;
-                    probs.matmul(&v)?
+                    let scores = q.matmul_t(&k)?.mul_scalar(scale)?;
+                    let probs = hook.probs(&call, scores.softmax_last_dim()?.to_cpu()?)?;
+                    on_device(&probs)?.matmul(&v)?
                 } else {
-                    attention(&q, &k, &v, scale)?
+                    DeviceTensor::attention(&q, &k, &v, scale)?
                 }
             }
         };
-        let out = out
-            .transpose(1, 2)?
-            .reshape((batch, tokens, self.heads * self.head_dim))?;
-        self.to_out.forward(&out)
+        out.permute_contiguous(&[0, 2, 1, 3])?
+            .reshape(&[batch, tokens, self.heads * self.head_dim])?
+            .linear(&self.to_out)
     }
 }

@@ -1,11 +1,12 @@
 //! The UNet's down, mid and up blocks (diffusers `CrossAttnDownBlock2D`, `DownBlock2D`,
 //! `UNetMidBlock2DCrossAttn`, `CrossAttnUpBlock2D`, `UpBlock2D`).
 
-use candle_core::{Result, Tensor};
+use candle_core::Result;
 use candle_nn::VarBuilder;
 
 use super::attention::AttentionHook;
 use super::transformer::{Transformer2D, Transformer2DConfig};
+use crate::kernels::DeviceTensor;
 use crate::layers::{Downsample2D, ResnetBlock2D, ResnetConfig, TimeEmbeddingNorm, Upsample2D};
 
 /// Numbers shared by all ResNets of the UNet.
@@ -54,10 +55,10 @@ impl BlockAttention {
 /// Runs the transformer when present and passes the hook on.
 fn attend(
     attention: Option<&Transformer2D>,
-    h: Tensor,
-    context: &Tensor,
+    h: DeviceTensor,
+    context: &DeviceTensor,
     hook: Option<&mut (dyn AttentionHook + '_)>,
-) -> Result<Tensor> {
+) -> Result<DeviceTensor> {
     match attention {
         Some(t) => t.forward(&h, context, hook),
         None => Ok(h),
@@ -110,20 +111,20 @@ impl DownBlock {
     /// downsampled output).
     pub fn forward(
         &self,
-        x: &Tensor,
-        temb: &Tensor,
-        context: &Tensor,
+        x: &DeviceTensor,
+        temb: &DeviceTensor,
+        context: &DeviceTensor,
         mut hook: Option<&mut (dyn AttentionHook + '_)>,
-    ) -> Result<(Tensor, Vec<Tensor>)> {
+    ) -> Result<(DeviceTensor, Vec<DeviceTensor>)> {
         let mut h = x.clone();
         let mut skips = Vec::with_capacity(self.resnets.len() + 1);
         for (i, resnet) in self.resnets.iter().enumerate() {
-            h = resnet.forward(&h, Some(temb))?;
+            h = resnet.forward_device(&h, Some(temb))?;
             h = attend(self.attentions.get(i), h, context, hook.as_deref_mut())?;
             skips.push(h.clone());
         }
         if let Some(down) = &self.downsampler {
-            h = down.forward(&h)?;
+            h = down.forward_device(&h)?;
             skips.push(h.clone());
         }
         Ok((h, skips))
@@ -158,14 +159,14 @@ impl MidBlock {
 
     pub fn forward(
         &self,
-        x: &Tensor,
-        temb: &Tensor,
-        context: &Tensor,
+        x: &DeviceTensor,
+        temb: &DeviceTensor,
+        context: &DeviceTensor,
         hook: Option<&mut (dyn AttentionHook + '_)>,
-    ) -> Result<Tensor> {
-        let h = self.resnets[0].forward(x, Some(temb))?;
+    ) -> Result<DeviceTensor> {
+        let h = self.resnets[0].forward_device(x, Some(temb))?;
         let h = self.attentions[0].forward(&h, context, hook)?;
-        self.resnets[1].forward(&h, Some(temb))
+        self.resnets[1].forward_device(&h, Some(temb))
     }
 }
 
@@ -222,21 +223,21 @@ impl UpBlock {
     /// spatial size the upsampler must produce.
     pub fn forward(
         &self,
-        x: &Tensor,
-        skips: &[Tensor],
-        temb: &Tensor,
-        context: &Tensor,
+        x: &DeviceTensor,
+        skips: &[DeviceTensor],
+        temb: &DeviceTensor,
+        context: &DeviceTensor,
         upsample_size: Option<(usize, usize)>,
         mut hook: Option<&mut (dyn AttentionHook + '_)>,
-    ) -> Result<Tensor> {
+    ) -> Result<DeviceTensor> {
         let mut h = x.clone();
         for (i, resnet) in self.resnets.iter().enumerate() {
             let skip = &skips[skips.len() - 1 - i];
-            h = resnet.forward(&Tensor::cat(&[&h, skip], 1)?, Some(temb))?;
+            h = resnet.forward_device(&DeviceTensor::cat(&[&h, skip], 1)?, Some(temb))?;
             h = attend(self.attentions.get(i), h, context, hook.as_deref_mut())?;
         }
         match &self.upsampler {
-            Some(up) => up.forward(&h, upsample_size),
+            Some(up) => up.forward_device(&h, upsample_size),
             None => Ok(h),
         }
     }

@@ -11,7 +11,7 @@ mod transformer;
 
 use std::path::{Path, PathBuf};
 
-use candle_core::{DType, Module, Tensor};
+use candle_core::{DType, Tensor};
 use candle_nn::VarBuilder;
 
 pub use attention::{AttentionHook, AttnCall, AttnKind};
@@ -20,6 +20,8 @@ pub use config::UNetConfig;
 use config::{BlockKind, ResolvedBlocks};
 use embeddings::{timestep_embedding, TimestepEmbedding};
 
+use crate::kernels::gpu::GpuDevice;
+use crate::kernels::DeviceTensor;
 use crate::layers::{conv2d, Conv2d, GroupNorm, TimeEmbeddingNorm};
 
 /// Errors from building a UNet.
@@ -213,7 +215,28 @@ impl UNet2DConditionModel {
         timesteps: &Tensor,
         encoder_hidden_states: &Tensor,
         timestep_cond: Option<&Tensor>,
+        hook: Option<&mut (dyn AttentionHook + '_)>,
+    ) -> candle_core::Result<Tensor> {
+        self.forward_on(
+            sample,
+            timesteps,
+            encoder_hidden_states,
+            timestep_cond,
+            hook,
+            None,
+        )
+    }
+
+    /// [`Self::forward`] with the network on `device` (the GPU, or the CPU for `None`): the timestep
+    /// embedding is computed on the CPU, the blocks run on the device, the prediction is read back.
+    pub fn forward_on(
+        &self,
+        sample: &Tensor,
+        timesteps: &Tensor,
+        encoder_hidden_states: &Tensor,
+        timestep_cond: Option<&Tensor>,
         mut hook: Option<&mut (dyn AttentionHook + '_)>,
+        device: Option<&GpuDevice>,
     ) -> candle_core::Result<Tensor> {
         let (batch, _, _, _) = sample.dims4()?;
         let timesteps = match timesteps.dims() {
@@ -245,7 +268,10 @@ impl UNet2DConditionModel {
         } else {
             sample.clone()
         };
-        let mut h = self.conv_in.forward(&sample)?;
+        let sample = DeviceTensor::on(&sample, device)?;
+        let emb = DeviceTensor::on(&emb, device)?;
+        let encoder_hidden_states = &DeviceTensor::on(encoder_hidden_states, device)?;
+        let mut h = self.conv_in.forward_device(&sample)?;
         let mut skips = vec![h.clone()];
         for block in &self.down_blocks {
             let (out, produced) =
@@ -281,7 +307,7 @@ impl UNet2DConditionModel {
                 hook.as_deref_mut(),
             )?;
         }
-        let h = self.conv_norm_out.forward_silu(&h)?;
-        self.conv_out.forward(&h)
+        let h = self.conv_norm_out.forward_device(&h, true)?;
+        self.conv_out.forward_device(&h)?.to_cpu()
     }
 }

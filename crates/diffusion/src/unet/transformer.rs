@@ -1,10 +1,10 @@
 //! diffusers `Transformer2DModel` (continuous input) and `BasicTransformerBlock`.
 
-use candle_core::{Module, Result, Tensor};
+use candle_core::Result;
 use candle_nn::{Linear, VarBuilder};
 
 use super::attention::{Attention, AttentionHook};
-use crate::kernels::geglu;
+use crate::kernels::DeviceTensor;
 use crate::layers::{conv2d, linear, Conv2d, GroupNorm, LayerNorm};
 
 /// diffusers `GEGLU` + output linear (`ff.net.0.proj`, `ff.net.2`): `W2 (h ⊙ gelu(g))` with `[h, g] = W1 x`.
@@ -23,9 +23,9 @@ impl FeedForward {
         })
     }
 
-    pub fn forward(&self, x: &Tensor) -> Result<Tensor> {
+    pub fn forward_device(&self, x: &DeviceTensor) -> Result<DeviceTensor> {
         // diffusers uses the exact (erf) GELU here.
-        self.out.forward(&geglu(&self.proj.forward(x)?)?)
+        x.linear(&self.proj)?.geglu()?.linear(&self.out)
     }
 }
 
@@ -64,25 +64,28 @@ impl BasicTransformerBlock {
 
     pub fn forward(
         &self,
-        x: &Tensor,
-        context: &Tensor,
+        x: &DeviceTensor,
+        context: &DeviceTensor,
         size: (usize, usize),
         mut hook: Option<&mut (dyn AttentionHook + '_)>,
-    ) -> Result<Tensor> {
+    ) -> Result<DeviceTensor> {
         let attn1_context = self.only_cross_attention.then_some(context);
-        let h = self.attn1.forward(
-            &self.norm1.forward(x)?,
+        let h = self.attn1.forward_device(
+            &self.norm1.forward_device(x)?,
             attn1_context,
             size,
             hook.as_deref_mut(),
         )?;
-        let x = (h + x)?;
-        let h = self
-            .attn2
-            .forward(&self.norm2.forward(&x)?, Some(context), size, hook)?;
-        let x = (h + x)?;
-        let h = self.ff.forward(&self.norm3.forward(&x)?)?;
-        h + x
+        let x = h.add(x)?;
+        let h = self.attn2.forward_device(
+            &self.norm2.forward_device(&x)?,
+            Some(context),
+            size,
+            hook,
+        )?;
+        let x = h.add(&x)?;
+        let h = self.ff.forward_device(&self.norm3.forward_device(&x)?)?;
+        h.add(&x)
     }
 }
 
@@ -148,29 +151,29 @@ impl Transformer2D {
     /// `x` [batch, channels, h, w]; `context` [batch, tokens, context_dim].
     pub fn forward(
         &self,
-        x: &Tensor,
-        context: &Tensor,
+        x: &DeviceTensor,
+        context: &DeviceTensor,
         mut hook: Option<&mut (dyn AttentionHook + '_)>,
-    ) -> Result<Tensor> {
+    ) -> Result<DeviceTensor> {
         let (b, c, h, w) = x.dims4()?;
-        let normed = self.norm.forward(x)?;
-        let to_tokens = |t: &Tensor| -> Result<Tensor> {
-            t.reshape((b, c, h * w))?.transpose(1, 2)?.contiguous()
+        let normed = self.norm.forward_device(x, false)?;
+        let to_tokens = |t: &DeviceTensor| -> Result<DeviceTensor> {
+            t.reshape(&[b, c, h * w])?.permute_contiguous(&[0, 2, 1])
         };
         let mut tokens = match &self.proj_in {
-            Projection::Conv(conv) => to_tokens(&conv.forward(&normed)?)?,
-            Projection::Linear(lin) => lin.forward(&to_tokens(&normed)?)?,
+            Projection::Conv(conv) => to_tokens(&conv.forward_device(&normed)?)?,
+            Projection::Linear(lin) => to_tokens(&normed)?.linear(lin)?,
         };
         for block in &self.blocks {
             tokens = block.forward(&tokens, context, (h, w), hook.as_deref_mut())?;
         }
-        let to_image = |t: &Tensor| -> Result<Tensor> {
-            t.transpose(1, 2)?.contiguous()?.reshape((b, c, h, w))
+        let to_image = |t: &DeviceTensor| -> Result<DeviceTensor> {
+            t.permute_contiguous(&[0, 2, 1])?.reshape(&[b, c, h, w])
         };
         let out = match &self.proj_out {
-            Projection::Conv(conv) => conv.forward(&to_image(&tokens)?)?,
-            Projection::Linear(lin) => to_image(&lin.forward(&tokens)?)?,
+            Projection::Conv(conv) => conv.forward_device(&to_image(&tokens)?)?,
+            Projection::Linear(lin) => to_image(&tokens.linear(lin)?)?,
         };
-        out + x
+        out.add(x)
     }
 }

@@ -43,3 +43,22 @@ pub fn max_abs_diff(a: &Tensor, b: &Tensor) -> f32 {
         .to_scalar::<f32>()
         .unwrap()
 }
+
+/// The test GPU (lavapipe in CI), or `None` after one printed line when there is no Vulkan device.
+pub fn gpu_or_skip() -> Option<diffusion::device::GpuDevice> {
+    gpu::testing::context_or_skip().map(diffusion::device::GpuDevice::new)
+}
+
+/// Max abs difference relative to the reference's max abs value.
+pub fn relative_error(got: &Tensor, want: &Tensor) -> f32 {
+    let scale: f32 = want
+        .abs()
+        .unwrap()
+        .flatten_all()
+        .unwrap()
+        .max(0)
+        .unwrap()
+        .to_scalar()
+        .unwrap();
+    max_abs_diff(got, want) / scale.max(1e-6)
+}

@@ -1,0 +1,577 @@
+//! CubeCL kernels of the GPU path (f32 storage, f32 accumulation). Every tensor is a contiguous row-major
+//! buffer; shapes and strides travel in a small `meta` buffer of u32 so one compiled kernel serves every
+//! shape. Launch sizes are 2D (`CUBE_COUNT_X` ≤ 65535), read back as one linear position by [`linear_pos`].
+//!
+//! Kept simple and bounds-checked first: they are tested on Mesa lavapipe, where barriers are expensive,
+//! and tuned on real GPUs later.
+
+use cubecl::prelude::*;
+
+/// Units per cube of the elementwise kernels.
+pub const ELEMENTWISE_UNITS: u32 = 256;
+/// Units per cube of the row reductions (norms, softmax): one cube per row or group.
+pub const REDUCE_UNITS: u32 = 128;
+/// Side of the square output tile of [`matmul`]; the cube has `MATMUL_TILE²` units.
+pub const MATMUL_TILE: u32 = 16;
+/// Query rows per cube and keys per shared-memory tile of [`flash_attention`].
+pub const ATTENTION_QUERIES: u32 = 32;
+pub const ATTENTION_KEYS: u32 = 16;
+
+/// The linear index of this unit over a 2D launch of 1D cubes.
+#[cube]
+fn linear_pos() -> u32 {
+    (CUBE_POS_Y * CUBE_COUNT_X + CUBE_POS_X) * CUBE_DIM_X + UNIT_POS_X
+}
+
+/// The linear index of this cube over a 2D launch.
+#[cube]
+fn cube_index() -> u32 {
+    CUBE_POS_Y * CUBE_COUNT_X + CUBE_POS_X
+}
+
+/// Elementwise op codes of [`unary`].
+pub mod unary_op {
+    pub const AFFINE: u32 = 0;
+    pub const RELU: u32 = 1;
+    pub const SILU: u32 = 2;
+    pub const GELU_ERF: u32 = 3;
+    pub const TANH: u32 = 4;
+    /// `tanh(x·a)·b` (the TAESD decoder's soft clamp).
+    pub const SCALED_TANH: u32 = 5;
+    pub const EXP: u32 = 6;
+    /// `x·tanh(softplus(x))`.
+    pub const MISH: u32 = 7;
+    /// `x·σ(1.702x)` (OpenAI CLIP).
+    pub const QUICK_GELU: u32 = 8;
+    /// GELU, tanh approximation.
+    pub const GELU_TANH: u32 = 9;
+    /// The constant `a` (x is not read).
+    pub const FILL: u32 = 10;
+}
+
+/// Binary op codes of [`binary`].
+pub mod binary_op {
+    pub const ADD: u32 = 0;
+    pub const SUB: u32 = 1;
+    pub const MUL: u32 = 2;
+    pub const DIV: u32 = 3;
+}
+
+#[cube]
+fn gelu_erf(x: f32) -> f32 {
+    0.5f32 * x * (1.0f32 + Erf::erf(x * 0.70710677f32))
+}
+
+#[cube]
+fn apply_unary(x: f32, a: f32, b: f32, #[comptime] op: u32) -> f32 {
+    if comptime!(op == unary_op::AFFINE) {
+        x * a + b
+    } else if comptime!(op == unary_op::RELU) {
+        f32::max(x, 0.0f32)
+    } else if comptime!(op == unary_op::SILU) {
+        x / (1.0f32 + f32::exp(-x))
+    } else if comptime!(op == unary_op::GELU_ERF) {
+        gelu_erf(x)
+    } else if comptime!(op == unary_op::TANH) {
+        f32::tanh(x)
+    } else if comptime!(op == unary_op::SCALED_TANH) {
+        f32::tanh(x * a) * b
+    } else if comptime!(op == unary_op::EXP) {
+        f32::exp(x)
+    } else if comptime!(op == unary_op::QUICK_GELU) {
+        x / (1.0f32 + f32::exp(-1.702f32 * x))
+    } else if comptime!(op == unary_op::GELU_TANH) {
+        // 0.5·x·(1 + tanh(√(2/π)·(x + 0.044715·x³)))
+        0.5f32 * x * (1.0f32 + f32::tanh(0.7978846f32 * (x + 0.044715f32 * x * x * x)))
+    } else {
+        // softplus = ln(1 + eˣ), computed as max(x, 0) + ln(1 + e^-|x|) so large x does not overflow.
+        let softplus = f32::max(x, 0.0f32) + f32::ln(1.0f32 + f32::exp(-f32::abs(x)));
+        x * f32::tanh(softplus)
+    }
+}
+
+/// `out[i] = op(x[i])`, with scalar parameters `a`, `b` (see [`unary_op`]).
+#[cube(launch_unchecked)]
+pub fn unary(x: &[f32], out: &mut [f32], a: f32, b: f32, #[comptime] op: u32) {
+    let i = linear_pos() as usize;
+    if i < out.len() {
+        if comptime!(op == unary_op::FILL) {
+            out[i] = a;
+        } else {
+            out[i] = apply_unary(x[i], a, b, op);
+        }
+    }
+}
+
+/// `out = a op b` with broadcasting: `meta = [shape; rank][a strides; rank][b strides; rank]`
+/// (stride 0 on a broadcast dimension); `out` is contiguous in `shape`.
+#[cube(launch_unchecked)]
+pub fn binary(
+    a: &[f32],
+    b: &[f32],
+    out: &mut [f32],
+    meta: &[u32],
+    #[comptime] rank: u32,
+    #[comptime] op: u32,
+) {
+    let i = linear_pos();
+    if (i as usize) < out.len() {
+        let mut rest = i;
+        let mut ia = 0u32;
+        let mut ib = 0u32;
+        #[unroll]
+        for d in 0..rank {
+            let axis = rank - 1 - d;
+            let size = meta[axis as usize];
+            let coord = rest % size;
+            rest /= size;
+            ia += coord * meta[(rank + axis) as usize];
+            ib += coord * meta[(2 * rank + axis) as usize];
+        }
+        let x = a[ia as usize];
+        let y = b[ib as usize];
+        let v = if comptime!(op == binary_op::ADD) {
+            x + y
+        } else if comptime!(op == binary_op::SUB) {
+            x - y
+        } else if comptime!(op == binary_op::MUL) {
+            x * y
+        } else {
+            x / y
+        };
+        out[i as usize] = v;
+    }
+}
+
+/// Strided copy over `shape`: `out[out_offset + Σ cᵢ·out_strideᵢ] = x[in_offset + Σ cᵢ·in_strideᵢ]`;
+/// `meta = [shape; rank][in strides; rank][out strides; rank][in_offset, out_offset, count]`.
+/// Serves permutes, narrows, broadcasts and concatenation (one copy per part).
+#[cube(launch_unchecked)]
+pub fn strided_copy(x: &[f32], out: &mut [f32], meta: &[u32], #[comptime] rank: u32) {
+    let i = linear_pos();
+    if i < meta[(3 * rank + 2) as usize] {
+        let mut rest = i;
+        let mut ix = meta[(3 * rank) as usize];
+        let mut io = meta[(3 * rank + 1) as usize];
+        #[unroll]
+        for d in 0..rank {
+            let axis = rank - 1 - d;
+            let size = meta[axis as usize];
+            let coord = rest % size;
+            rest /= size;
+            ix += coord * meta[(rank + axis) as usize];
+            io += coord * meta[(2 * rank + axis) as usize];
+        }
+        out[io as usize] = x[ix as usize];
+    }
+}
+
+/// Nearest-neighbour resize of [planes, h, w] to [planes, oh, ow] through source-index tables:
+/// `meta = [h, w, oh, ow, source row of each output row; oh, source column of each output column; ow]`.
+#[cube(launch_unchecked)]
+pub fn upsample_nearest(x: &[f32], out: &mut [f32], meta: &[u32]) {
+    let i = linear_pos();
+    if (i as usize) < out.len() {
+        let h = meta[0];
+        let w = meta[1];
+        let oh = meta[2];
+        let ow = meta[3];
+        let ox = i % ow;
+        let oy = (i / ow) % oh;
+        let plane = i / (ow * oh);
+        let sy = meta[(4 + oy) as usize];
+        let sx = meta[(4 + oh + ox) as usize];
+        out[i as usize] = x[((plane * h + sy) * w + sx) as usize];
+    }
+}
+
+/// Batched `out[b] = alpha · A[b] B[b] (+ bias)`, out contiguous [batch, m, n]; A and B are read through
+/// strides, so transposes and broadcast operands need no copy.
+/// `meta = [batch, m, n, k, a_batch, a_row, a_col, b_batch, b_row, b_col]` (strides in elements).
+/// `bias_mode`: 0 none, 1 one bias per column (linear layers), 2 one per row (convolutions).
+/// One cube computes a `MATMUL_TILE²` output tile through shared-memory tiles of A and B.
+#[cube(launch_unchecked)]
+pub fn matmul(
+    a: &[f32],
+    b: &[f32],
+    bias: &[f32],
+    out: &mut [f32],
+    meta: &[u32],
+    alpha: f32,
+    #[comptime] bias_mode: u32,
+) {
+    let tile = comptime!(MATMUL_TILE);
+    let m = meta[1];
+    let n = meta[2];
+    let k = meta[3];
+    let batch = CUBE_POS_Z;
+    let row = CUBE_POS_Y * tile + UNIT_POS_Y;
+    let col = CUBE_POS_X * tile + UNIT_POS_X;
+    let a_base = batch * meta[4];
+    let b_base = batch * meta[7];
+    let mut sa = Shared::<[f32]>::new_slice(comptime!((MATMUL_TILE * MATMUL_TILE) as usize));
+    let mut sb = Shared::<[f32]>::new_slice(comptime!((MATMUL_TILE * MATMUL_TILE) as usize));
+    let mut acc = 0.0f32;
+    // Spelt out: `div_ceil` is not part of CubeCL's kernel language.
+    #[allow(clippy::manual_div_ceil)]
+    let tiles = (k + tile - 1) / tile;
+    for t in 0..tiles {
+        let ka = t * tile + UNIT_POS_X;
+        sa[(UNIT_POS_Y * tile + UNIT_POS_X) as usize] = if row < m && ka < k {
+            a[(a_base + row * meta[5] + ka * meta[6]) as usize]
+        } else {
+            0.0f32
+        };
+        let kb = t * tile + UNIT_POS_Y;
+        sb[(UNIT_POS_Y * tile + UNIT_POS_X) as usize] = if kb < k && col < n {
+            b[(b_base + kb * meta[8] + col * meta[9]) as usize]
+        } else {
+            0.0f32
+        };
+        sync_cube();
+        #[unroll]
+        for kk in 0..tile {
+            acc += sa[(UNIT_POS_Y * tile + kk) as usize] * sb[(kk * tile + UNIT_POS_X) as usize];
+        }
+        sync_cube();
+    }
+    if row < m && col < n {
+        let mut v = acc * alpha;
+        if comptime!(bias_mode == 1) {
+            v += bias[col as usize];
+        } else if comptime!(bias_mode == 2) {
+            v += bias[row as usize];
+        }
+        out[((batch * m + row) * n + col) as usize] = v;
+    }
+}
+
+/// im2col of one convolution: x [batch, cin, h, w] → cols [batch, cin·kh·kw, oh·ow] (zero padding).
+/// `meta = [cin, h, w, kh, kw, stride, padding, oh, ow]`.
+#[cube(launch_unchecked)]
+pub fn im2col(x: &[f32], cols: &mut [f32], meta: &[u32]) {
+    let i = linear_pos();
+    if (i as usize) < cols.len() {
+        let cin = meta[0];
+        let h = meta[1];
+        let w = meta[2];
+        let kh = meta[3];
+        let kw = meta[4];
+        let stride = meta[5];
+        let pad = meta[6];
+        let oh = meta[7];
+        let ow = meta[8];
+        let ox = i % ow;
+        let oy = (i / ow) % oh;
+        let r = (i / (ow * oh)) % (cin * kh * kw);
+        let n = i / (ow * oh * cin * kh * kw);
+        let kx = r % kw;
+        let ky = (r / kw) % kh;
+        let ci = r / (kw * kh);
+        // Padded coordinates stay unsigned: compare against [pad, pad + size).
+        let py = oy * stride + ky;
+        let px = ox * stride + kx;
+        let mut v = 0.0f32;
+        if py >= pad && py < pad + h && px >= pad && px < pad + w {
+            v = x[(((n * cin + ci) * h + py - pad) * w + px - pad) as usize];
+        }
+        cols[i as usize] = v;
+    }
+}
+
+/// Sum of `v` over the cube's `units` units (a shared-memory tree; every unit gets the total).
+#[cube]
+fn cube_sum(v: f32, #[comptime] units: u32) -> f32 {
+    let mut s = Shared::<[f32]>::new_slice(comptime!(units as usize));
+    s[UNIT_POS as usize] = v;
+    sync_cube();
+    let mut stride = comptime!(units / 2).runtime();
+    #[unroll]
+    for _ in 0..comptime!(units.trailing_zeros()) {
+        if UNIT_POS < stride {
+            s[UNIT_POS as usize] += s[(UNIT_POS + stride) as usize];
+        }
+        sync_cube();
+        stride /= 2;
+    }
+    let total = s[0];
+    sync_cube();
+    total
+}
+
+/// Maximum of `v` over the cube's units (as [`cube_sum`]).
+#[cube]
+fn cube_max(v: f32, #[comptime] units: u32) -> f32 {
+    let mut s = Shared::<[f32]>::new_slice(comptime!(units as usize));
+    s[UNIT_POS as usize] = v;
+    sync_cube();
+    let mut stride = comptime!(units / 2).runtime();
+    #[unroll]
+    for _ in 0..comptime!(units.trailing_zeros()) {
+        if UNIT_POS < stride {
+            s[UNIT_POS as usize] = f32::max(s[UNIT_POS as usize], s[(UNIT_POS + stride) as usize]);
+        }
+        sync_cube();
+        stride /= 2;
+    }
+    let total = s[0];
+    sync_cube();
+    total
+}
+
+/// Mean of `x[base..base + len]`, computed by the whole cube.
+#[cube]
+fn segment_mean(x: &[f32], base: u32, len: u32, #[comptime] units: u32) -> f32 {
+    let mut sum = 0.0f32;
+    let mut i = UNIT_POS;
+    while i < len {
+        sum += x[(base + i) as usize];
+        i += units;
+    }
+    cube_sum(sum, units) / f32::cast_from(len)
+}
+
+/// `1/√(variance + eps)` of `x[base..base + len]` around `mean` (a second pass, for accuracy).
+#[cube]
+fn segment_inv_std(
+    x: &[f32],
+    base: u32,
+    len: u32,
+    mean: f32,
+    eps: f32,
+    #[comptime] units: u32,
+) -> f32 {
+    let mut sq = 0.0f32;
+    let mut i = UNIT_POS;
+    while i < len {
+        let d = x[(base + i) as usize] - mean;
+        sq += d * d;
+        i += units;
+    }
+    1.0f32 / f32::sqrt(cube_sum(sq, units) / f32::cast_from(len) + eps)
+}
+
+/// Group norm (+ optional SiLU) of x [batch, channels, spatial]: one cube per (batch, group), two passes
+/// (mean, then the mean squared deviation) for accuracy. `meta = [channels, spatial, groups, cubes]`.
+#[cube(launch_unchecked)]
+pub fn group_norm(
+    x: &[f32],
+    weight: &[f32],
+    bias: &[f32],
+    out: &mut [f32],
+    meta: &[u32],
+    eps: f32,
+    #[comptime] silu: bool,
+) {
+    let units = comptime!(REDUCE_UNITS);
+    let channels = meta[0];
+    let spatial = meta[1];
+    let groups = meta[2];
+    // Cubes past the last group (the 2D launch rounds up) redo the last one without writing.
+    let valid = cube_index() < meta[3];
+    let cube = u32::min(cube_index(), meta[3] - 1);
+    let per_group = channels / groups;
+    let len = per_group * spatial;
+    let group = cube % groups;
+    let base = cube * len;
+    let mean = segment_mean(x, base, len, units);
+    let inv = segment_inv_std(x, base, len, mean, eps, units);
+    let mut i = UNIT_POS;
+    while i < len {
+        let c = group * per_group + i / spatial;
+        let mut v = (x[(base + i) as usize] - mean) * inv * weight[c as usize] + bias[c as usize];
+        if comptime!(silu) {
+            v = v / (1.0f32 + f32::exp(-v));
+        }
+        if valid {
+            out[(base + i) as usize] = v;
+        }
+        i += units;
+    }
+}
+
+/// Layer norm over the last dimension, one cube per row; `meta = [width, rows]`.
+#[cube(launch_unchecked)]
+pub fn layer_norm(
+    x: &[f32],
+    weight: &[f32],
+    bias: &[f32],
+    out: &mut [f32],
+    meta: &[u32],
+    eps: f32,
+) {
+    let units = comptime!(REDUCE_UNITS);
+    let width = meta[0];
+    let valid = cube_index() < meta[1];
+    let base = u32::min(cube_index(), meta[1] - 1) * width;
+    let mean = segment_mean(x, base, width, units);
+    let inv = segment_inv_std(x, base, width, mean, eps, units);
+    let mut i = UNIT_POS;
+    while i < width {
+        if valid {
+            out[(base + i) as usize] =
+                (x[(base + i) as usize] - mean) * inv * weight[i as usize] + bias[i as usize];
+        }
+        i += units;
+    }
+}
+
+/// Softmax over the last dimension, one cube per row; `meta = [width, rows]`.
+#[cube(launch_unchecked)]
+pub fn softmax_rows(x: &[f32], out: &mut [f32], meta: &[u32]) {
+    let units = comptime!(REDUCE_UNITS);
+    let width = meta[0];
+    let valid = cube_index() < meta[1];
+    let base = u32::min(cube_index(), meta[1] - 1) * width;
+    // −∞ stand-in: finite for WGSL; exp(it − any score) = 0. Built at run time so it is a runtime value.
+    let mut floor = 0.0f32;
+    floor -= 3.0e38f32;
+    let mut m = floor;
+    let mut i = UNIT_POS;
+    while i < width {
+        m = f32::max(m, x[(base + i) as usize]);
+        i += units;
+    }
+    let m = cube_max(m, units);
+    let mut sum = 0.0f32;
+    i = UNIT_POS;
+    while i < width {
+        sum += f32::exp(x[(base + i) as usize] - m);
+        i += units;
+    }
+    let inv = 1.0f32 / cube_sum(sum, units);
+    i = UNIT_POS;
+    while i < width {
+        if valid {
+            out[(base + i) as usize] = f32::exp(x[(base + i) as usize] - m) * inv;
+        }
+        i += units;
+    }
+}
+
+/// GEGLU: x [rows, 2·inner] → out [rows, inner] = hidden · gelu(gate).
+#[cube(launch_unchecked)]
+pub fn geglu(x: &[f32], out: &mut [f32], inner: u32) {
+    let i = linear_pos();
+    if (i as usize) < out.len() {
+        let row = i / inner;
+        let j = i % inner;
+        let hidden = x[(row * 2 * inner + j) as usize];
+        let gate = x[(row * 2 * inner + inner + j) as usize];
+        out[i as usize] = hidden * gelu_erf(gate);
+    }
+}
+
+/// Memory-efficient attention `softmax(q kᵀ · scale) v` that never stores the probabilities: q [batch,
+/// q_len, d], k [batch, k_len, d], v [batch, k_len, dv]. A cube handles `ATTENTION_QUERIES` query rows of
+/// one batch entry (one unit per row); key/value tiles of `ATTENTION_KEYS` rows go through shared memory
+/// and each unit keeps a running max, running sum and output accumulator (online softmax).
+/// `meta = [q_len, k_len]`.
+#[cube(launch_unchecked)]
+pub fn flash_attention(
+    q: &[f32],
+    k: &[f32],
+    v: &[f32],
+    out: &mut [f32],
+    meta: &[u32],
+    scale: f32,
+    #[comptime] d: u32,
+    #[comptime] dv: u32,
+) {
+    let tile = comptime!(ATTENTION_KEYS);
+    let queries = comptime!(ATTENTION_QUERIES);
+    let q_len = meta[0];
+    let k_len = meta[1];
+    let batch = CUBE_POS_Y;
+    let row = CUBE_POS_X * queries + UNIT_POS_X;
+    let valid = row < q_len;
+    let mut qr = Array::<f32>::new(comptime!(d as usize));
+    #[unroll]
+    for c in 0..d {
+        qr[c as usize] = if valid {
+            q[((batch * q_len + row) * d + c) as usize] * scale
+        } else {
+            0.0f32
+        };
+    }
+    let mut acc = Array::<f32>::new(comptime!(dv as usize));
+    #[unroll]
+    for c in 0..dv {
+        acc[c as usize] = 0.0f32;
+    }
+    // −∞ stand-in: finite for WGSL; exp(it − any score) = 0. Built at run time so it is a runtime value.
+    let mut floor = 0.0f32;
+    floor -= 3.0e38f32;
+    let mut run_max = floor;
+    let mut run_sum = 0.0f32;
+    let mut sk = Shared::<[f32]>::new_slice(comptime!((ATTENTION_KEYS * d) as usize));
+    let mut sv = Shared::<[f32]>::new_slice(comptime!((ATTENTION_KEYS * dv) as usize));
+    let mut scores = Array::<f32>::new(comptime!(ATTENTION_KEYS as usize));
+    #[allow(clippy::manual_div_ceil)]
+    let tiles = (k_len + tile - 1) / tile;
+    for t in 0..tiles {
+        let key0 = t * tile;
+        // Cooperative loads of the key and value tiles (zeros past k_len).
+        let mut e = UNIT_POS_X;
+        while e < tile * d {
+            let key = key0 + e / d;
+            sk[e as usize] = if key < k_len {
+                k[((batch * k_len + key0) * d + e) as usize]
+            } else {
+                0.0f32
+            };
+            e += queries;
+        }
+        e = UNIT_POS_X;
+        while e < tile * dv {
+            let key = key0 + e / dv;
+            sv[e as usize] = if key < k_len {
+                v[((batch * k_len + key0) * dv + e) as usize]
+            } else {
+                0.0f32
+            };
+            e += queries;
+        }
+        sync_cube();
+        let mut tile_max = floor;
+        #[unroll]
+        for j in 0..tile {
+            let mut s = 0.0f32;
+            #[unroll]
+            for c in 0..d {
+                s += qr[c as usize] * sk[(j * d + c) as usize];
+            }
+            if key0 + j >= k_len {
+                s = floor;
+            }
+            scores[j as usize] = s;
+            tile_max = f32::max(tile_max, s);
+        }
+        let new_max = f32::max(run_max, tile_max);
+        // exp(−3e38 − finite) = 0: nothing to rescale on the first tile.
+        let correction = f32::exp(run_max - new_max);
+        run_sum *= correction;
+        #[unroll]
+        for c in 0..dv {
+            acc[c as usize] *= correction;
+        }
+        #[unroll]
+        for j in 0..tile {
+            let p = f32::exp(scores[j as usize] - new_max);
+            run_sum += p;
+            #[unroll]
+            for c in 0..dv {
+                acc[c as usize] += p * sv[(j * dv + c) as usize];
+            }
+        }
+        run_max = new_max;
+        sync_cube();
+    }
+    if valid {
+        let inv = 1.0f32 / run_sum;
+        #[unroll]
+        for c in 0..dv {
+            out[((batch * q_len + row) * dv + c) as usize] = acc[c as usize] * inv;
+        }
+    }
+}

@@ -1,0 +1,806 @@
+//! Host side of the GPU kernels: one function per op on [`GpuTensor`]s, the same semantics (shapes,
+//! broadcasting, layouts) as the CPU op it mirrors. Launches are asynchronous; errors surface when a result
+//! is read back ([`GpuTensor::to_cpu`]).
+
+use candle_core::Result;
+use cubecl::prelude::*;
+use cubecl::server::Handle;
+
+use super::cube::{
+    self, binary_op, unary_op, ATTENTION_QUERIES, ELEMENTWISE_UNITS, MATMUL_TILE, REDUCE_UNITS,
+};
+use super::GpuTensor;
+
+/// Largest head width the flash kernel is compiled for (its rows live in registers); wider heads go
+/// through the explicit-probabilities path.
+const FLASH_MAX_HEAD_DIM: usize = 256;
+
+/// A 2D launch of `cubes` cubes (the X count is capped at 65535; kernels bound-check the excess).
+fn grid(cubes: usize) -> CubeCount {
+    let cubes = cubes.max(1) as u32;
+    let x = cubes.min(65535);
+    CubeCount::Static(x, cubes.div_ceil(x), 1)
+}
+
+/// Cubes of `units` units covering `n` elements.
+fn grid_for(n: usize, units: u32) -> CubeCount {
+    grid(n.div_ceil(units as usize))
+}
+
+fn to_u32(v: usize, what: &str) -> Result<u32> {
+    u32::try_from(v).map_err(|_| candle_core::Error::msg(format!("gpu: {what} {v} exceeds u32")))
+}
+
+/// Uploads a small u32 parameter block.
+struct Meta(Handle, usize);
+
+impl Meta {
+    fn new(x: &GpuTensor, values: &[usize]) -> Result<Meta> {
+        let values = values
+            .iter()
+            .map(|&v| to_u32(v, "shape value"))
+            .collect::<Result<Vec<u32>>>()?;
+        Ok(Meta(
+            x.client().create_from_slice(u32::as_bytes(&values)),
+            values.len(),
+        ))
+    }
+
+    fn arg(&self) -> BufferArg {
+        // SAFETY: the handle holds exactly `self.1` u32 values.
+        unsafe { BufferArg::from_raw_parts(self.0.clone(), self.1) }
+    }
+}
+
+fn contiguous_strides(shape: &[usize]) -> Vec<usize> {
+    let mut strides = vec![1; shape.len()];
+    for d in (0..shape.len().saturating_sub(1)).rev() {
+        strides[d] = strides[d + 1] * shape[d + 1];
+    }
+    strides
+}
+
+// ------------------------------------------------------------------------------------------ elementwise
+
+fn unary(x: &GpuTensor, op: u32, a: f32, b: f32) -> GpuTensor {
+    let out = x.empty_like_device(x.dims().to_vec());
+    // SAFETY: out and x have the same element count; the kernel bound-checks against out.
+    unsafe {
+        cube::unary::launch_unchecked(
+            x.client(),
+            grid_for(x.elem_count(), ELEMENTWISE_UNITS),
+            CubeDim::new_1d(ELEMENTWISE_UNITS),
+            x.arg(),
+            out.arg(),
+            a,
+            b,
+            op,
+        )
+    };
+    out
+}
+
+/// `x·mul + add`.
+pub fn affine(x: &GpuTensor, mul: f32, add: f32) -> GpuTensor {
+    unary(x, unary_op::AFFINE, mul, add)
+}
+pub fn relu(x: &GpuTensor) -> GpuTensor {
+    unary(x, unary_op::RELU, 0.0, 0.0)
+}
+pub fn silu(x: &GpuTensor) -> GpuTensor {
+    unary(x, unary_op::SILU, 0.0, 0.0)
+}
+/// GELU, exact (erf) form.
+pub fn gelu(x: &GpuTensor) -> GpuTensor {
+    unary(x, unary_op::GELU_ERF, 0.0, 0.0)
+}
+pub fn tanh(x: &GpuTensor) -> GpuTensor {
+    unary(x, unary_op::TANH, 0.0, 0.0)
+}
+/// `tanh(x·inner)·outer`.
+pub fn scaled_tanh(x: &GpuTensor, inner: f32, outer: f32) -> GpuTensor {
+    unary(x, unary_op::SCALED_TANH, inner, outer)
+}
+pub fn exp(x: &GpuTensor) -> GpuTensor {
+    unary(x, unary_op::EXP, 0.0, 0.0)
+}
+pub fn mish(x: &GpuTensor) -> GpuTensor {
+    unary(x, unary_op::MISH, 0.0, 0.0)
+}
+/// A tensor of `shape` filled with `value`, on `like`'s device.
+pub fn full(like: &GpuTensor, shape: Vec<usize>, value: f32) -> GpuTensor {
+    let out = like.empty_like_device(shape);
+    // The kernel does not read its input; a separate one-element buffer avoids binding `out` twice.
+    let unused = GpuTensor::from_slice(like.device(), &[0.0], vec![1]);
+    // SAFETY: the kernel writes out only, bound-checked.
+    unsafe {
+        cube::unary::launch_unchecked(
+            like.client(),
+            grid_for(out.elem_count(), ELEMENTWISE_UNITS),
+            CubeDim::new_1d(ELEMENTWISE_UNITS),
+            unused.arg(),
+            out.arg(),
+            value,
+            0.0,
+            unary_op::FILL,
+        )
+    };
+    out
+}
+
+/// Zero padding of the last two dimensions: `bottom` rows and `right` columns appended.
+pub fn pad_bottom_right(x: &GpuTensor, bottom: usize, right: usize) -> Result<GpuTensor> {
+    let rank = x.dims().len();
+    if rank < 2 {
+        candle_core::bail!("gpu pad: rank {rank} < 2");
+    }
+    let mut shape = x.dims().to_vec();
+    shape[rank - 2] += bottom;
+    shape[rank - 1] += right;
+    let out = full(x, shape.clone(), 0.0);
+    copy_strided(
+        x,
+        &out,
+        x.dims(),
+        &contiguous_strides(x.dims()),
+        0,
+        &contiguous_strides(&shape),
+        0,
+    )?;
+    Ok(out)
+}
+
+/// `x·σ(1.702x)`.
+pub fn quick_gelu(x: &GpuTensor) -> GpuTensor {
+    unary(x, unary_op::QUICK_GELU, 0.0, 0.0)
+}
+/// GELU, tanh approximation (candle `gelu`).
+pub fn gelu_tanh(x: &GpuTensor) -> GpuTensor {
+    unary(x, unary_op::GELU_TANH, 0.0, 0.0)
+}
+
+/// The broadcast shape of two shapes (numpy/candle rules, aligned on the right).
+fn broadcast_shape(a: &[usize], b: &[usize]) -> Result<Vec<usize>> {
+    let rank = a.len().max(b.len());
+    let dim = |s: &[usize], d: usize| {
+        if d + s.len() < rank {
+            1
+        } else {
+            s[d + s.len() - rank]
+        }
+    };
+    (0..rank)
+        .map(|d| match (dim(a, d), dim(b, d)) {
+            (x, y) if x == y || y == 1 => Ok(x),
+            (1, y) => Ok(y),
+            _ => candle_core::bail!("gpu: shapes {a:?} and {b:?} do not broadcast"),
+        })
+        .collect()
+}
+
+/// Strides of `shape` read as `out_shape` (0 on broadcast dimensions).
+fn broadcast_strides(shape: &[usize], out_shape: &[usize]) -> Vec<usize> {
+    let strides = contiguous_strides(shape);
+    let pad = out_shape.len() - shape.len();
+    (0..out_shape.len())
+        .map(|d| {
+            if d < pad || shape[d - pad] == 1 {
+                0
+            } else {
+                strides[d - pad]
+            }
+        })
+        .collect()
+}
+
+fn binary(a: &GpuTensor, b: &GpuTensor, op: u32) -> Result<GpuTensor> {
+    let shape = broadcast_shape(a.dims(), b.dims())?;
+    let mut meta = shape.clone();
+    meta.extend(broadcast_strides(a.dims(), &shape));
+    meta.extend(broadcast_strides(b.dims(), &shape));
+    let meta = Meta::new(a, &meta)?;
+    let rank = shape.len().max(1) as u32;
+    let out = a.empty_like_device(shape);
+    // SAFETY: the strides address within a and b for every coordinate of the broadcast shape.
+    unsafe {
+        cube::binary::launch_unchecked(
+            a.client(),
+            grid_for(out.elem_count(), ELEMENTWISE_UNITS),
+            CubeDim::new_1d(ELEMENTWISE_UNITS),
+            a.arg(),
+            b.arg(),
+            out.arg(),
+            meta.arg(),
+            rank,
+            op,
+        )
+    };
+    Ok(out)
+}
+
+pub fn add(a: &GpuTensor, b: &GpuTensor) -> Result<GpuTensor> {
+    binary(a, b, binary_op::ADD)
+}
+pub fn sub(a: &GpuTensor, b: &GpuTensor) -> Result<GpuTensor> {
+    binary(a, b, binary_op::SUB)
+}
+pub fn mul(a: &GpuTensor, b: &GpuTensor) -> Result<GpuTensor> {
+    binary(a, b, binary_op::MUL)
+}
+pub fn div(a: &GpuTensor, b: &GpuTensor) -> Result<GpuTensor> {
+    binary(a, b, binary_op::DIV)
+}
+
+// ---------------------------------------------------------------------------------------------- copies
+
+/// Copies `shape` elements read at `src_strides`/`src_offset` of `src` into `dst` at
+/// `dst_strides`/`dst_offset`.
+fn copy_strided(
+    src: &GpuTensor,
+    dst: &GpuTensor,
+    shape: &[usize],
+    src_strides: &[usize],
+    src_offset: usize,
+    dst_strides: &[usize],
+    dst_offset: usize,
+) -> Result<()> {
+    let count: usize = shape.iter().product();
+    if count == 0 {
+        return Ok(());
+    }
+    let mut meta = shape.to_vec();
+    meta.extend(src_strides);
+    meta.extend(dst_strides);
+    meta.extend([src_offset, dst_offset, count]);
+    let meta = Meta::new(src, &meta)?;
+    // SAFETY: the caller's strides and offsets address within both buffers.
+    unsafe {
+        cube::strided_copy::launch_unchecked(
+            src.client(),
+            grid_for(count, ELEMENTWISE_UNITS),
+            CubeDim::new_1d(ELEMENTWISE_UNITS),
+            src.arg(),
+            dst.arg(),
+            meta.arg(),
+            shape.len() as u32,
+        )
+    };
+    Ok(())
+}
+
+/// `x.permute(dims)` materialised (contiguous).
+pub fn permute(x: &GpuTensor, dims: &[usize]) -> Result<GpuTensor> {
+    let rank = x.dims().len();
+    let mut seen = vec![false; rank];
+    if dims.len() != rank
+        || dims
+            .iter()
+            .any(|&d| d >= rank || std::mem::replace(&mut seen[d], true))
+    {
+        candle_core::bail!("gpu permute: {dims:?} is not a permutation of rank {rank}");
+    }
+    let strides = contiguous_strides(x.dims());
+    let shape: Vec<usize> = dims.iter().map(|&d| x.dims()[d]).collect();
+    let src_strides: Vec<usize> = dims.iter().map(|&d| strides[d]).collect();
+    let out = x.empty_like_device(shape.clone());
+    copy_strided(
+        x,
+        &out,
+        &shape,
+        &src_strides,
+        0,
+        &contiguous_strides(&shape),
+        0,
+    )?;
+    Ok(out)
+}
+
+/// `x.transpose(d0, d1)` materialised.
+pub fn transpose(x: &GpuTensor, d0: usize, d1: usize) -> Result<GpuTensor> {
+    let mut dims: Vec<usize> = (0..x.dims().len()).collect();
+    dims.swap(d0, d1);
+    permute(x, &dims)
+}
+
+/// `x.narrow(dim, start, len)` materialised.
+pub fn narrow(x: &GpuTensor, dim: usize, start: usize, len: usize) -> Result<GpuTensor> {
+    if dim >= x.dims().len() || start + len > x.dims()[dim] {
+        candle_core::bail!("gpu narrow: {start}+{len} on dim {dim} of {:?}", x.dims());
+    }
+    let strides = contiguous_strides(x.dims());
+    let mut shape = x.dims().to_vec();
+    shape[dim] = len;
+    let out = x.empty_like_device(shape.clone());
+    copy_strided(
+        x,
+        &out,
+        &shape,
+        &strides,
+        start * strides[dim],
+        &contiguous_strides(&shape),
+        0,
+    )?;
+    Ok(out)
+}
+
+/// Concatenation along `dim` (e.g. channels of NCHW tensors for the UNet's skip connections).
+pub fn cat(parts: &[&GpuTensor], dim: usize) -> Result<GpuTensor> {
+    let Some(first) = parts.first() else {
+        candle_core::bail!("gpu cat: no tensors");
+    };
+    let rank = first.dims().len();
+    let mut shape = first.dims().to_vec();
+    if dim >= rank {
+        candle_core::bail!("gpu cat: dim {dim} out of range for rank {rank}");
+    }
+    shape[dim] = 0;
+    for p in parts {
+        let ok =
+            p.dims().len() == rank && (0..rank).all(|d| d == dim || p.dims()[d] == first.dims()[d]);
+        if !ok {
+            candle_core::bail!(
+                "gpu cat: {:?} does not match {:?} off dim {dim}",
+                p.dims(),
+                first.dims()
+            );
+        }
+        shape[dim] += p.dims()[dim];
+    }
+    let out = first.empty_like_device(shape.clone());
+    let out_strides = contiguous_strides(&shape);
+    let mut offset = 0;
+    for p in parts {
+        copy_strided(
+            p,
+            &out,
+            p.dims(),
+            &contiguous_strides(p.dims()),
+            0,
+            &out_strides,
+            offset * out_strides[dim],
+        )?;
+        offset += p.dims()[dim];
+    }
+    Ok(out)
+}
+
+/// Nearest-neighbour resize of [.., h, w] to [.., out_h, out_w], choosing source pixels exactly as
+/// candle's CPU `upsample_nearest2d` does (`floor(i · in / out)` in f64), so odd sizes agree too.
+pub fn upsample_nearest2d(x: &GpuTensor, out_h: usize, out_w: usize) -> Result<GpuTensor> {
+    let rank = x.dims().len();
+    if rank < 2 {
+        candle_core::bail!("gpu upsample: rank {rank} < 2");
+    }
+    let (h, w) = (x.dims()[rank - 2], x.dims()[rank - 1]);
+    if h == 0 || w == 0 || out_h == 0 || out_w == 0 {
+        candle_core::bail!("gpu upsample: {h}x{w} to {out_h}x{out_w}");
+    }
+    let source = |len: usize, out: usize| {
+        let scale = len as f64 / out as f64;
+        (0..out).map(move |i| ((i as f64 * scale) as usize).min(len - 1))
+    };
+    let mut meta = vec![h, w, out_h, out_w];
+    meta.extend(source(h, out_h));
+    meta.extend(source(w, out_w));
+    let meta = Meta::new(x, &meta)?;
+    let mut shape = x.dims().to_vec();
+    shape[rank - 2] = out_h;
+    shape[rank - 1] = out_w;
+    let out = x.empty_like_device(shape);
+    // SAFETY: the kernel bound-checks against out; the index tables stay inside the source planes.
+    unsafe {
+        cube::upsample_nearest::launch_unchecked(
+            x.client(),
+            grid_for(out.elem_count(), ELEMENTWISE_UNITS),
+            CubeDim::new_1d(ELEMENTWISE_UNITS),
+            x.arg(),
+            out.arg(),
+            meta.arg(),
+        )
+    };
+    Ok(out)
+}
+
+// ---------------------------------------------------------------------------------------------- matmul
+
+/// One batched product's geometry: `out[b] = alpha · A[b] B[b] (+ bias)`, strides in elements.
+struct Gemm {
+    batch: usize,
+    m: usize,
+    n: usize,
+    k: usize,
+    /// (batch, row, column) strides of A and B.
+    a_strides: [usize; 3],
+    b_strides: [usize; 3],
+    alpha: f32,
+}
+
+/// Bias of a product: none, one per output column (linear), one per output row (convolution).
+enum GemmBias<'a> {
+    None,
+    PerColumn(&'a GpuTensor),
+    PerRow(&'a GpuTensor),
+}
+
+fn gemm(
+    a: &GpuTensor,
+    b: &GpuTensor,
+    bias: GemmBias,
+    g: &Gemm,
+    out_shape: Vec<usize>,
+) -> Result<GpuTensor> {
+    let out = a.empty_like_device(out_shape);
+    let mut meta = vec![g.batch, g.m, g.n, g.k];
+    meta.extend(g.a_strides);
+    meta.extend(g.b_strides);
+    let meta = Meta::new(a, &meta)?;
+    let (bias_arg, mode) = match bias {
+        GemmBias::None => (a.arg(), 0u32),
+        GemmBias::PerColumn(t) => (t.arg(), 1),
+        GemmBias::PerRow(t) => (t.arg(), 2),
+    };
+    let tiles = |v: usize| to_u32(v.div_ceil(MATMUL_TILE as usize), "matmul tiles");
+    // SAFETY: the strides describe in-bounds views of a and b; the kernel bound-checks rows/columns.
+    unsafe {
+        cube::matmul::launch_unchecked(
+            a.client(),
+            CubeCount::Static(tiles(g.n)?, tiles(g.m)?, to_u32(g.batch, "batch")?),
+            CubeDim::new_2d(MATMUL_TILE, MATMUL_TILE),
+            a.arg(),
+            b.arg(),
+            bias_arg,
+            out.arg(),
+            meta.arg(),
+            g.alpha,
+            mode,
+        )
+    };
+    Ok(out)
+}
+
+/// Batched matrix product a [.., m, k] × b [.., k, n] → [.., m, n]; a rank-2 `b` is shared by every batch.
+pub fn matmul(a: &GpuTensor, b: &GpuTensor) -> Result<GpuTensor> {
+    matmul_scaled(a, b, false, 1.0)
+}
+
+/// `alpha · a × b`, or `alpha · a × bᵀ` when `transpose_b` (b then [.., n, k]), without copying b.
+pub fn matmul_scaled(
+    a: &GpuTensor,
+    b: &GpuTensor,
+    transpose_b: bool,
+    alpha: f32,
+) -> Result<GpuTensor> {
+    let (ra, rb) = (a.dims().len(), b.dims().len());
+    if ra < 2 || rb < 2 {
+        candle_core::bail!("gpu matmul: ranks {ra} and {rb} (need >= 2)");
+    }
+    let (m, k) = (a.dims()[ra - 2], a.dims()[ra - 1]);
+    let (kb, n) = if transpose_b {
+        (b.dims()[rb - 1], b.dims()[rb - 2])
+    } else {
+        (b.dims()[rb - 2], b.dims()[rb - 1])
+    };
+    let batch: usize = a.dims()[..ra - 2].iter().product();
+    let b_batch: usize = b.dims()[..rb - 2].iter().product();
+    if k != kb || (rb > 2 && (b_batch != batch || b.dims()[..rb - 2] != a.dims()[..ra - 2])) {
+        candle_core::bail!(
+            "gpu matmul: shapes {:?} x {:?}{}",
+            a.dims(),
+            b.dims(),
+            if transpose_b { "ᵀ" } else { "" }
+        );
+    }
+    let b_batch_stride = if rb > 2 {
+        b.dims()[rb - 2] * b.dims()[rb - 1]
+    } else {
+        0
+    };
+    let b_strides = if transpose_b {
+        [b_batch_stride, 1, k]
+    } else {
+        [b_batch_stride, n, 1]
+    };
+    let mut out_shape = a.dims()[..ra - 2].to_vec();
+    out_shape.extend([m, n]);
+    let g = Gemm {
+        batch,
+        m,
+        n,
+        k,
+        a_strides: [m * k, k, 1],
+        b_strides,
+        alpha,
+    };
+    gemm(a, b, GemmBias::None, &g, out_shape)
+}
+
+/// A linear layer: x [.., in] × weightᵀ (weight [out, in]) + bias [out].
+pub fn linear(x: &GpuTensor, weight: &GpuTensor, bias: Option<&GpuTensor>) -> Result<GpuTensor> {
+    let rank = x.dims().len();
+    let (out_dim, in_dim) = match weight.dims() {
+        [o, i] => (*o, *i),
+        other => candle_core::bail!("gpu linear: weight shape {other:?}"),
+    };
+    if rank == 0 || x.dims()[rank - 1] != in_dim {
+        candle_core::bail!(
+            "gpu linear: input {:?} for weight {:?}",
+            x.dims(),
+            weight.dims()
+        );
+    }
+    let rows = x.elem_count() / in_dim;
+    let mut out_shape = x.dims().to_vec();
+    out_shape[rank - 1] = out_dim;
+    let g = Gemm {
+        batch: 1,
+        m: rows,
+        n: out_dim,
+        k: in_dim,
+        a_strides: [0, in_dim, 1],
+        b_strides: [0, 1, in_dim],
+        alpha: 1.0,
+    };
+    let bias = bias.map_or(GemmBias::None, GemmBias::PerColumn);
+    gemm(x, weight, bias, &g, out_shape)
+}
+
+/// 2D convolution of x [batch, cin, h, w] with weight [cout, cin, kh, kw], as im2col + one product per
+/// image (the bias is added in the product).
+pub fn conv2d(
+    x: &GpuTensor,
+    weight: &GpuTensor,
+    bias: Option<&GpuTensor>,
+    stride: usize,
+    padding: usize,
+) -> Result<GpuTensor> {
+    let (&[n, cin, h, w], &[cout, wcin, kh, kw]) = (x.dims(), weight.dims()) else {
+        candle_core::bail!(
+            "gpu conv2d: input {:?}, weight {:?} are not 4D",
+            x.dims(),
+            weight.dims()
+        );
+    };
+    if cin != wcin || stride == 0 || h + 2 * padding < kh || w + 2 * padding < kw {
+        candle_core::bail!(
+            "gpu conv2d: input {:?}, weight {:?}, stride {stride}, padding {padding}",
+            x.dims(),
+            weight.dims()
+        );
+    }
+    let oh = (h + 2 * padding - kh) / stride + 1;
+    let ow = (w + 2 * padding - kw) / stride + 1;
+    let depth = cin * kh * kw;
+    let cols = x.empty_like_device(vec![n, depth, oh * ow]);
+    let meta = Meta::new(x, &[cin, h, w, kh, kw, stride, padding, oh, ow])?;
+    // SAFETY: the kernel bound-checks against cols and reads x only inside [0, h) × [0, w).
+    unsafe {
+        cube::im2col::launch_unchecked(
+            x.client(),
+            grid_for(cols.elem_count(), ELEMENTWISE_UNITS),
+            CubeDim::new_1d(ELEMENTWISE_UNITS),
+            x.arg(),
+            cols.arg(),
+            meta.arg(),
+        )
+    };
+    let g = Gemm {
+        batch: n,
+        m: cout,
+        n: oh * ow,
+        k: depth,
+        a_strides: [0, depth, 1],
+        b_strides: [depth * oh * ow, oh * ow, 1],
+        alpha: 1.0,
+    };
+    let bias = bias.map_or(GemmBias::None, GemmBias::PerRow);
+    gemm(weight, &cols, bias, &g, vec![n, cout, oh, ow])
+}
+
+// ------------------------------------------------------------------------------------------ reductions
+
+/// Group norm of x [batch, channels, ..] with per-channel weight and bias, optionally followed by SiLU.
+pub fn group_norm(
+    x: &GpuTensor,
+    weight: &GpuTensor,
+    bias: &GpuTensor,
+    groups: usize,
+    eps: f64,
+    silu: bool,
+) -> Result<GpuTensor> {
+    let dims = x.dims();
+    if dims.len() < 2
+        || groups == 0
+        || !dims[1].is_multiple_of(groups)
+        || weight.elem_count() != dims[1]
+    {
+        candle_core::bail!(
+            "gpu group_norm: input {dims:?}, {groups} groups, weight {:?}",
+            weight.dims()
+        );
+    }
+    let channels = dims[1];
+    let spatial: usize = dims[2..].iter().product();
+    let cubes = dims[0] * groups;
+    let meta = Meta::new(x, &[channels, spatial, groups, cubes])?;
+    let out = x.empty_like_device(dims.to_vec());
+    // SAFETY: one cube per (batch, group) reads/writes that group's channels only.
+    unsafe {
+        cube::group_norm::launch_unchecked(
+            x.client(),
+            grid(cubes),
+            CubeDim::new_1d(REDUCE_UNITS),
+            x.arg(),
+            weight.arg(),
+            bias.arg(),
+            out.arg(),
+            meta.arg(),
+            eps as f32,
+            silu,
+        )
+    };
+    Ok(out)
+}
+
+/// Layer norm over the last dimension.
+pub fn layer_norm(
+    x: &GpuTensor,
+    weight: &GpuTensor,
+    bias: &GpuTensor,
+    eps: f64,
+) -> Result<GpuTensor> {
+    let width = *x.dims().last().unwrap_or(&0);
+    if width == 0 || weight.elem_count() != width || bias.elem_count() != width {
+        candle_core::bail!(
+            "gpu layer_norm: input {:?}, weight {:?}",
+            x.dims(),
+            weight.dims()
+        );
+    }
+    let rows = x.elem_count() / width;
+    let meta = Meta::new(x, &[width, rows])?;
+    let out = x.empty_like_device(x.dims().to_vec());
+    // SAFETY: one cube per row.
+    unsafe {
+        cube::layer_norm::launch_unchecked(
+            x.client(),
+            grid(rows),
+            CubeDim::new_1d(REDUCE_UNITS),
+            x.arg(),
+            weight.arg(),
+            bias.arg(),
+            out.arg(),
+            meta.arg(),
+            eps as f32,
+        )
+    };
+    Ok(out)
+}
+
+/// Softmax over the last dimension.
+pub fn softmax_last_dim(x: &GpuTensor) -> Result<GpuTensor> {
+    let width = *x.dims().last().unwrap_or(&0);
+    if width == 0 {
+        candle_core::bail!("gpu softmax: empty last dimension in {:?}", x.dims());
+    }
+    let rows = x.elem_count() / width;
+    let meta = Meta::new(x, &[width, rows])?;
+    let out = x.empty_like_device(x.dims().to_vec());
+    // SAFETY: one cube per row.
+    unsafe {
+        cube::softmax_rows::launch_unchecked(
+            x.client(),
+            grid(rows),
+            CubeDim::new_1d(REDUCE_UNITS),
+            x.arg(),
+            out.arg(),
+            meta.arg(),
+        )
+    };
+    Ok(out)
+}
+
+/// GEGLU over the last dimension: [.., 2·inner] → hidden · gelu(gate), [.., inner].
+pub fn geglu(x: &GpuTensor) -> Result<GpuTensor> {
+    let width = *x.dims().last().unwrap_or(&0);
+    if width == 0 || !width.is_multiple_of(2) {
+        candle_core::bail!("geglu: last dimension {width} is not a positive even number");
+    }
+    let mut shape = x.dims().to_vec();
+    *shape.last_mut().expect("rank >= 1") = width / 2;
+    let out = x.empty_like_device(shape);
+    // SAFETY: the kernel bound-checks against out.
+    unsafe {
+        cube::geglu::launch_unchecked(
+            x.client(),
+            grid_for(out.elem_count(), ELEMENTWISE_UNITS),
+            CubeDim::new_1d(ELEMENTWISE_UNITS),
+            x.arg(),
+            out.arg(),
+            to_u32(width / 2, "geglu width")?,
+        )
+    };
+    Ok(out)
+}
+
+// ------------------------------------------------------------------------------------------- attention
+
+/// Checks q [.., q_len, d], k [.., k_len, d], v [.., k_len, dv]; returns (batch, q_len, k_len, d, dv).
+fn attention_dims(
+    q: &GpuTensor,
+    k: &GpuTensor,
+    v: &GpuTensor,
+) -> Result<(usize, usize, usize, usize, usize)> {
+    let r = q.dims().len();
+    let ok = r >= 2
+        && k.dims().len() == r
+        && v.dims().len() == r
+        && q.dims()[..r - 2] == k.dims()[..r - 2]
+        && k.dims()[..r - 2] == v.dims()[..r - 2]
+        && q.dims()[r - 1] == k.dims()[r - 1]
+        && k.dims()[r - 2] == v.dims()[r - 2];
+    if !ok {
+        candle_core::bail!(
+            "gpu attention: q {:?}, k {:?}, v {:?}",
+            q.dims(),
+            k.dims(),
+            v.dims()
+        );
+    }
+    let batch = q.dims()[..r - 2].iter().product();
+    Ok((
+        batch,
+        q.dims()[r - 2],
+        k.dims()[r - 2],
+        q.dims()[r - 1],
+        v.dims()[r - 1],
+    ))
+}
+
+/// `softmax(q kᵀ · scale) v` without storing the probabilities (flash-style, online softmax). Heads wider
+/// than the flash kernel's limit take [`attention_with_probs`].
+pub fn attention(q: &GpuTensor, k: &GpuTensor, v: &GpuTensor, scale: f64) -> Result<GpuTensor> {
+    let (batch, q_len, k_len, d, dv) = attention_dims(q, k, v)?;
+    if d > FLASH_MAX_HEAD_DIM || dv > FLASH_MAX_HEAD_DIM || k_len == 0 {
+        return Ok(attention_with_probs(q, k, v, scale)?.0);
+    }
+    let mut shape = q.dims().to_vec();
+    *shape.last_mut().expect("rank >= 2") = dv;
+    let out = q.empty_like_device(shape);
+    let meta = Meta::new(q, &[q_len, k_len])?;
+    let blocks = q_len.div_ceil(ATTENTION_QUERIES as usize);
+    // SAFETY: rows past q_len and keys past k_len are masked in the kernel.
+    unsafe {
+        cube::flash_attention::launch_unchecked(
+            q.client(),
+            CubeCount::Static(to_u32(blocks, "query blocks")?, to_u32(batch, "batch")?, 1),
+            CubeDim::new_1d(ATTENTION_QUERIES),
+            q.arg(),
+            k.arg(),
+            v.arg(),
+            out.arg(),
+            meta.arg(),
+            scale as f32,
+            d as u32,
+            dv as u32,
+        )
+    };
+    Ok(out)
+}
+
+/// Attention that also returns its probabilities [.., q_len, k_len] (for the attention hook of
+/// cross-attention layers, whose maps the edit controller reads): two products and a row softmax.
+pub fn attention_with_probs(
+    q: &GpuTensor,
+    k: &GpuTensor,
+    v: &GpuTensor,
+    scale: f64,
+) -> Result<(GpuTensor, GpuTensor)> {
+    attention_dims(q, k, v)?;
+    let scores = matmul_scaled(q, k, true, scale as f32)?;
+    let probs = softmax_last_dim(&scores)?;
+    let out = matmul(&probs, v)?;
+    Ok((out, probs))
+}
+
+#[cfg(test)]
+mod tests;

@@ -1,0 +1,318 @@
+//! Every GPU op against its CPU twin on tiny random shapes (lavapipe runs ~0.3 GFLOP/s): f32 results agree
+//! to a relative error of 1e-4 (max abs difference over the reference's max abs value).
+
+use candle_core::{Device, Tensor};
+
+use super::super::testing::device_or_skip;
+use super::super::{GpuDevice, GpuTensor};
+use super::*;
+
+const TOLERANCE: f32 = 1e-4;
+
+fn randn(shape: &[usize]) -> Tensor {
+    Tensor::randn(0f32, 1.0, shape, &Device::Cpu).unwrap()
+}
+
+fn up(device: &GpuDevice, t: &Tensor) -> GpuTensor {
+    GpuTensor::upload(device, t).unwrap()
+}
+
+/// Asserts `gpu` matches `cpu` in shape and to the relative tolerance.
+fn check(what: &str, gpu: &GpuTensor, cpu: &Tensor) {
+    let got = gpu.to_cpu().unwrap();
+    assert_eq!(got.dims(), cpu.dims(), "{what}: shape");
+    let diff: f32 = (&got - cpu)
+        .unwrap()
+        .abs()
+        .unwrap()
+        .flatten_all()
+        .unwrap()
+        .max(0)
+        .unwrap()
+        .to_scalar()
+        .unwrap();
+    let scale: f32 = cpu
+        .abs()
+        .unwrap()
+        .flatten_all()
+        .unwrap()
+        .max(0)
+        .unwrap()
+        .to_scalar()
+        .unwrap();
+    let rel = diff / scale.max(1e-6);
+    assert!(
+        rel <= TOLERANCE,
+        "{what}: relative error {rel:.3e} (max abs diff {diff:.3e}, scale {scale:.3e})"
+    );
+}
+
+#[test]
+fn elementwise_ops_match_cpu() {
+    let Some(dev) = device_or_skip() else {
+        return;
+    };
+    let x = (randn(&[3, 5, 7]) * 3.0).unwrap();
+    let g = up(&dev, &x);
+    check(
+        "affine",
+        &affine(&g, 0.5, -2.0),
+        &x.affine(0.5, -2.0).unwrap(),
+    );
+    check("relu", &relu(&g), &x.relu().unwrap());
+    check("silu", &silu(&g), &candle_nn::ops::silu(&x).unwrap());
+    check("gelu", &gelu(&g), &x.gelu_erf().unwrap());
+    check("tanh", &tanh(&g), &x.tanh().unwrap());
+    check(
+        "scaled tanh",
+        &scaled_tanh(&g, 1.0 / 3.0, 3.0),
+        &((&x / 3.0).unwrap().tanh().unwrap() * 3.0).unwrap(),
+    );
+    check("exp", &exp(&g), &x.exp().unwrap());
+    let quick = (&x * candle_nn::ops::sigmoid(&(&x * 1.702).unwrap()).unwrap()).unwrap();
+    check("quick gelu", &quick_gelu(&g), &quick);
+    check("gelu tanh", &gelu_tanh(&g), &x.gelu().unwrap());
+    let mish_cpu = candle_nn::Activation::Mish;
+    check(
+        "mish",
+        &mish(&g),
+        &candle_core::Module::forward(&mish_cpu, &x).unwrap(),
+    );
+}
+
+#[test]
+fn broadcasting_binary_ops_match_cpu() {
+    let Some(dev) = device_or_skip() else {
+        return;
+    };
+    let a = randn(&[2, 3, 4, 5]);
+    for shape in [
+        vec![2, 3, 4, 5],
+        vec![3, 1, 1],
+        vec![1, 3, 1, 5],
+        vec![5],
+        vec![2, 1, 4, 1],
+    ] {
+        let b = (randn(&shape).abs().unwrap() + 0.5).unwrap();
+        let (ga, gb) = (up(&dev, &a), up(&dev, &b));
+        check(
+            "add",
+            &add(&ga, &gb).unwrap(),
+            &a.broadcast_add(&b).unwrap(),
+        );
+        check(
+            "sub",
+            &sub(&ga, &gb).unwrap(),
+            &a.broadcast_sub(&b).unwrap(),
+        );
+        check(
+            "mul",
+            &mul(&ga, &gb).unwrap(),
+            &a.broadcast_mul(&b).unwrap(),
+        );
+        check(
+            "div",
+            &div(&ga, &gb).unwrap(),
+            &a.broadcast_div(&b).unwrap(),
+        );
+        // The broadcast operand on the left.
+        check(
+            "add (swapped)",
+            &add(&gb, &ga).unwrap(),
+            &b.broadcast_add(&a).unwrap(),
+        );
+    }
+    assert!(add(&up(&dev, &a), &up(&dev, &randn(&[3]))).is_err());
+}
+
+#[test]
+fn copies_match_cpu() {
+    let Some(dev) = device_or_skip() else {
+        return;
+    };
+    let x = randn(&[2, 3, 4, 5]);
+    let g = up(&dev, &x);
+    check(
+        "permute",
+        &permute(&g, &[0, 2, 3, 1]).unwrap(),
+        &x.permute((0, 2, 3, 1)).unwrap().contiguous().unwrap(),
+    );
+    check(
+        "transpose",
+        &transpose(&g, 1, 2).unwrap(),
+        &x.transpose(1, 2).unwrap().contiguous().unwrap(),
+    );
+    check(
+        "narrow",
+        &narrow(&g, 1, 1, 2).unwrap(),
+        &x.narrow(1, 1, 2).unwrap().contiguous().unwrap(),
+    );
+    let y = randn(&[2, 6, 4, 5]);
+    check(
+        "cat",
+        &cat(&[&g, &up(&dev, &y)], 1).unwrap(),
+        &Tensor::cat(&[&x, &y], 1).unwrap(),
+    );
+    check(
+        "reshape",
+        &g.reshape(&[6, 20]).unwrap(),
+        &x.reshape((6, 20)).unwrap(),
+    );
+    check(
+        "upsample",
+        &upsample_nearest2d(&g, 8, 15).unwrap(),
+        &x.upsample_nearest2d(8, 15).unwrap(),
+    );
+    let padded = x
+        .pad_with_zeros(3, 0, 1)
+        .unwrap()
+        .pad_with_zeros(2, 0, 1)
+        .unwrap();
+    check("pad", &pad_bottom_right(&g, 1, 1).unwrap(), &padded);
+    assert!(permute(&g, &[0, 0, 1, 2]).is_err());
+}
+
+#[test]
+fn matmul_and_linear_match_cpu() {
+    let Some(dev) = device_or_skip() else {
+        return;
+    };
+    let a = randn(&[2, 3, 17, 19]);
+    let b = randn(&[2, 3, 19, 21]);
+    check(
+        "batched",
+        &matmul(&up(&dev, &a), &up(&dev, &b)).unwrap(),
+        &a.matmul(&b).unwrap(),
+    );
+    let shared = randn(&[19, 5]);
+    check(
+        "shared rhs",
+        &matmul(&up(&dev, &a), &up(&dev, &shared)).unwrap(),
+        &a.broadcast_matmul(&shared).unwrap(),
+    );
+    let bt = randn(&[2, 3, 21, 19]);
+    check(
+        "transposed rhs, scaled",
+        &matmul_scaled(&up(&dev, &a), &up(&dev, &bt), true, 0.25).unwrap(),
+        &(a.matmul(&bt.t().unwrap()).unwrap() * 0.25).unwrap(),
+    );
+    let x = randn(&[2, 5, 19]);
+    let w = randn(&[7, 19]);
+    let bias = randn(&[7]);
+    let cpu = candle_nn::Linear::new(w.clone(), Some(bias.clone()));
+    let want = candle_core::Module::forward(&cpu, &x).unwrap();
+    check(
+        "linear",
+        &linear(&up(&dev, &x), &up(&dev, &w), Some(&up(&dev, &bias))).unwrap(),
+        &want,
+    );
+    assert!(matmul(&up(&dev, &a), &up(&dev, &a)).is_err());
+}
+
+#[test]
+fn conv2d_matches_cpu() {
+    let Some(dev) = device_or_skip() else {
+        return;
+    };
+    // (batch, cin, cout, h, w, kernel, stride, padding, bias)
+    for (n, cin, cout, h, w, k, stride, padding, with_bias) in [
+        (1, 3, 5, 9, 7, 3, 1, 1, true),
+        (2, 4, 6, 9, 8, 3, 2, 1, false),
+        (2, 5, 3, 6, 6, 1, 1, 0, true),
+        (1, 2, 4, 5, 7, 3, 2, 0, true),
+    ] {
+        let x = randn(&[n, cin, h, w]);
+        let weight = randn(&[cout, cin, k, k]);
+        let bias = with_bias.then(|| randn(&[cout]));
+        let want = crate::kernels::conv2d(&x, &weight, bias.as_ref(), stride, padding).unwrap();
+        let gbias = bias.as_ref().map(|b| up(&dev, b));
+        let got = conv2d(
+            &up(&dev, &x),
+            &up(&dev, &weight),
+            gbias.as_ref(),
+            stride,
+            padding,
+        )
+        .unwrap();
+        check(&format!("conv2d k{k} s{stride} p{padding}"), &got, &want);
+    }
+}
+
+#[test]
+fn norms_match_cpu() {
+    let Some(dev) = device_or_skip() else {
+        return;
+    };
+    // Offset inputs test the two-pass variance.
+    let x = randn(&[2, 8, 5, 7]).affine(2.0, 3.0).unwrap();
+    let (w, b) = (randn(&[8]), randn(&[8]));
+    for silu in [false, true] {
+        let want = crate::kernels::group_norm(&x, &w, &b, 4, 1e-5, silu).unwrap();
+        let got = group_norm(&up(&dev, &x), &up(&dev, &w), &up(&dev, &b), 4, 1e-5, silu).unwrap();
+        check(&format!("group_norm silu={silu}"), &got, &want);
+    }
+    let x = (randn(&[3, 4, 300]) + 1.0).unwrap();
+    let (w, b) = (randn(&[300]), randn(&[300]));
+    let want = crate::kernels::layer_norm(&x, &w, &b, 1e-5).unwrap();
+    check(
+        "layer_norm",
+        &layer_norm(&up(&dev, &x), &up(&dev, &w), &up(&dev, &b), 1e-5).unwrap(),
+        &want,
+    );
+}
+
+#[test]
+fn softmax_and_geglu_match_cpu() {
+    let Some(dev) = device_or_skip() else {
+        return;
+    };
+    for width in [1, 7, 300] {
+        let x = (randn(&[3, 5, width]) * 4.0).unwrap();
+        let want = crate::kernels::softmax_last_dim(&x).unwrap();
+        check(
+            &format!("softmax width {width}"),
+            &softmax_last_dim(&up(&dev, &x)).unwrap(),
+            &want,
+        );
+    }
+    let x = randn(&[2, 6, 40]);
+    check(
+        "geglu",
+        &geglu(&up(&dev, &x)).unwrap(),
+        &crate::kernels::geglu(&x).unwrap(),
+    );
+    assert!(geglu(&up(&dev, &randn(&[2, 3]))).is_err());
+}
+
+#[test]
+fn attention_matches_cpu() {
+    let Some(dev) = device_or_skip() else {
+        return;
+    };
+    // Query and key counts off the tile sizes; a value width different from the key width.
+    let q = randn(&[2, 2, 37, 8]);
+    let k = randn(&[2, 2, 45, 8]);
+    let v = randn(&[2, 2, 45, 12]);
+    let scale = 1.0 / 8f64.sqrt();
+    let want = crate::kernels::attention(&q, &k, &v, scale).unwrap();
+    let (gq, gk, gv) = (up(&dev, &q), up(&dev, &k), up(&dev, &v));
+    check(
+        "flash attention",
+        &attention(&gq, &gk, &gv, scale).unwrap(),
+        &want,
+    );
+    let (out, probs) = attention_with_probs(&gq, &gk, &gv, scale).unwrap();
+    check("attention with probabilities", &out, &want);
+    let want_probs =
+        crate::kernels::softmax_last_dim(&(q.matmul(&k.t().unwrap()).unwrap() * scale).unwrap())
+            .unwrap();
+    check("attention probabilities", &probs, &want_probs);
+    // Few keys (one partial tile) and a single query.
+    let (q1, k1, v1) = (randn(&[1, 1, 8]), randn(&[1, 3, 8]), randn(&[1, 3, 8]));
+    let want = crate::kernels::attention(&q1, &k1, &v1, scale).unwrap();
+    check(
+        "flash attention, 3 keys",
+        &attention(&up(&dev, &q1), &up(&dev, &k1), &up(&dev, &v1), scale).unwrap(),
+        &want,
+    );
+}
