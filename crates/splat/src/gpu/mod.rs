@@ -15,6 +15,7 @@
 //! device buffers only (one 4-byte read: the number of tile intersections), and [`render`] /
 //! [`render_backward`] are host-side conveniences with the CPU renderer's types.
 
+mod densify;
 mod lift;
 mod optim;
 pub(crate) mod project;
@@ -32,6 +33,7 @@ use ::gpu::prims::{
 pub use ::gpu::{
     list_adapters, open, DeviceChoice, GpuContext, GpuError, ALLOW_SOFTWARE_ENV, DEVICE_ENV,
 };
+pub use densify::GpuDensifyStats;
 pub use lift::lift;
 pub use optim::GpuAdam;
 use project::{CAM_F, GRAD_F, INFO_U, SPLAT_F};

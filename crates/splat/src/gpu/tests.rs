@@ -376,3 +376,49 @@ fn adam_on_the_device_matches_the_cpu() {
     assert_ne!(got.means, scene.means);
     assert_eq!(gpu_rates.steps(), cpu.steps());
 }
+
+/// Densification statistics accumulated on the device over two views equal `DensifyStats::add` fed with
+/// the same gradients read back.
+#[test]
+fn densify_stats_on_the_device_match_the_cpu() {
+    use crate::densify::DensifyStats;
+    let Some(ctx) = context_or_skip() else {
+        return;
+    };
+    let c = &ctx.client;
+    let scene = random_scene(200, 1, 17);
+    let settings = RenderSettings::default();
+    let dev = GpuScene::upload(&ctx, &scene);
+    let mut on_device = GpuDensifyStats::new(&ctx, scene.len());
+    let mut on_host = DensifyStats::new(scene.len());
+    for (w, h) in [(40, 30), (24, 36)] {
+        let cam = camera(w, h);
+        let frame = render_device(&ctx, &dev, &cam, &settings, None).unwrap();
+        let npix = (w * h) as usize;
+        let grad: Vec<f32> = (0..3 * npix).map(|i| (i as f32 * 0.3).sin()).collect();
+        let grad = upload_f32(c, &grad);
+        let g = render_backward_device(
+            &ctx,
+            &dev,
+            &settings,
+            None,
+            &frame,
+            &GpuOutputGrads {
+                rgb: &grad,
+                alpha: None,
+                depth: None,
+                extra: None,
+            },
+        )
+        .unwrap();
+        on_device.add(&ctx, &frame, &g, 2).unwrap();
+        let host = read_grads(&ctx, &g, scene.len(), scene.sh_degree, None).unwrap();
+        let radii = download(&ctx, &frame, scene.len()).unwrap().radii;
+        on_host.add(&host.means2d, &radii, w, h, 2);
+    }
+    let got = on_device.download(&ctx).unwrap();
+    assert!(on_host.count.iter().any(|&k| k == 2.0));
+    assert_eq!(got.count, on_host.count);
+    assert_eq!(got.max_radius, on_host.max_radius);
+    assert!(rel_err(&got.grad2d, &on_host.grad2d) < 1e-6);
+}
