@@ -417,7 +417,7 @@ fn densify_stats_on_the_device_match_the_cpu() {
         on_host.add(&host.means2d, &radii, w, h, 2);
     }
     let got = on_device.download(&ctx).unwrap();
-    assert!(on_host.count.iter().any(|&k| k == 2.0));
+    assert!(on_host.count.contains(&2.0));
     assert_eq!(got.count, on_host.count);
     assert_eq!(got.max_radius, on_host.max_radius);
     assert!(rel_err(&got.grad2d, &on_host.grad2d) < 1e-6);
