@@ -17,6 +17,7 @@
 
 mod densify;
 mod lift;
+mod loss;
 mod optim;
 pub(crate) mod project;
 pub(crate) mod raster;
@@ -35,6 +36,7 @@ pub use ::gpu::{
 };
 pub use densify::GpuDensifyStats;
 pub use lift::lift;
+pub use loss::{l1_dssim, GpuLoss};
 pub use optim::GpuAdam;
 use project::{CAM_F, GRAD_F, INFO_U, SPLAT_F};
 

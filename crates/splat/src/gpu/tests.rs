@@ -422,3 +422,41 @@ fn densify_stats_on_the_device_match_the_cpu() {
     assert_eq!(got.max_radius, on_host.max_radius);
     assert!(rel_err(&got.grad2d, &on_host.grad2d) < 1e-6);
 }
+
+/// The device loss against `crate::loss::l1_dssim`: value and gradient.
+#[test]
+fn l1_dssim_on_the_device_matches_the_cpu() {
+    let Some(ctx) = context_or_skip() else {
+        return;
+    };
+    let c = &ctx.client;
+    let (w, h, ch) = (23, 17, 3);
+    let pred: Vec<f32> = (0..w * h * ch)
+        .map(|i| ((i as f32 * 0.37).sin() + 1.0) * 0.5)
+        .collect();
+    let target: Vec<f32> = (0..w * h * ch)
+        .map(|i| ((i as f32 * 0.11).cos() + 1.0) * 0.45)
+        .collect();
+    for weight in [0.0, 0.2, 1.0] {
+        let want = crate::loss::l1_dssim(&pred, &target, w, h, ch, weight);
+        let got = super::l1_dssim(
+            &ctx,
+            &upload_f32(c, &pred),
+            &upload_f32(c, &target),
+            w,
+            h,
+            ch,
+            weight,
+        )
+        .unwrap();
+        let grad = read_f32(c, &got.grad, w * h * ch).unwrap();
+        let value = got.value(&ctx).unwrap();
+        let e = rel_err(&grad, &want.grad);
+        assert!(e < 1e-4, "weight {weight}: gradient relative error {e}");
+        assert!(
+            (value - want.value).abs() < 1e-5,
+            "{value} vs {}",
+            want.value
+        );
+    }
+}
