@@ -7,7 +7,7 @@ use ::gpu::cubecl;
 use ::gpu::cubecl::prelude::*;
 use ::gpu::cubecl::server::Handle;
 use ::gpu::gpu_call;
-use ::gpu::prims::{grid, read_f32, zeros32};
+use ::gpu::prims::{grid, read_f32, upload_f32, zeros32};
 
 #[cube(launch)]
 #[allow(clippy::too_many_arguments)]
@@ -51,6 +51,17 @@ impl GpuDensifyStats {
             grad2d: zeros32(c, n),
             count: zeros32(c, n),
             max_radius: zeros32(c, n),
+        }
+    }
+
+    /// Host statistics, uploaded.
+    pub fn from_host(ctx: &GpuContext, stats: &DensifyStats) -> Self {
+        let c = &ctx.client;
+        Self {
+            len: stats.len(),
+            grad2d: upload_f32(c, &stats.grad2d),
+            count: upload_f32(c, &stats.count),
+            max_radius: upload_f32(c, &stats.max_radius),
         }
     }
 

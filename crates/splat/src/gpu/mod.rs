@@ -22,6 +22,7 @@ mod optim;
 pub(crate) mod project;
 pub(crate) mod raster;
 pub(crate) mod sh;
+mod train;
 
 use crate::render::{ExtraChannels, OutputGrads, RenderSettings, SceneGrads, TILE};
 use crate::{Camera, GaussianScene};
@@ -39,6 +40,7 @@ pub use lift::lift;
 pub use loss::{l1_dssim, GpuLoss};
 pub use optim::GpuAdam;
 use project::{CAM_F, GRAD_F, INFO_U, SPLAT_F};
+pub use train::DeviceTrainer;
 
 /// Scene parameters on the device (layouts of [`GaussianScene`]).
 pub struct GpuScene {

@@ -259,19 +259,35 @@ fn fit_on_the_gpu_tracks_the_cpu_fit() {
         test: views[..1].to_vec(),
         points: None,
     };
-    let config = FitConfig {
+    let plain = FitConfig {
         init_points: 400,
         ..FitConfig::for_steps(40)
     };
-    let cpu = fit(&dataset, &config, &mut |_| {});
-    let gpu = fit_on(&dataset, &config, Some(&ctx), &mut |_| {}).unwrap();
-    eprintln!(
-        "fit 40 steps: train PSNR CPU {:.3} GPU {:.3}, test {:?} / {:?}",
-        cpu.train_psnr, gpu.train_psnr, cpu.test_psnr, gpu.test_psnr
-    );
-    assert!((cpu.train_psnr - gpu.train_psnr).abs() < 0.1);
-    assert!((cpu.test_psnr.unwrap() - gpu.test_psnr.unwrap()).abs() < 0.1);
-    assert_eq!(cpu.scene.len(), gpu.scene.len());
+    // Densification at steps 10 and 20: host steps between device-resident runs.
+    let mut densifying = plain.clone();
+    densifying.strategy.refine_start = 5;
+    densifying.strategy.refine_every = 10;
+    densifying.strategy.refine_stop = 30;
+    densifying.strategy.grow_grad2d = 0.00005;
+    // Without densification the two fits agree to float noise; with it, one borderline clone changes the
+    // random splits that follow, so the comparison is the criterion (0.3 dB).
+    for (config, tolerance) in [(plain, 0.01), (densifying, 0.3)] {
+        let cpu = fit(&dataset, &config, &mut |_| {});
+        let gpu = fit_on(&dataset, &config, Some(&ctx), &mut |_| {}).unwrap();
+        eprintln!(
+            "fit 40 steps: train PSNR CPU {:.3} GPU {:.3}, test {:?} / {:?}, {} / {} Gaussians",
+            cpu.train_psnr,
+            gpu.train_psnr,
+            cpu.test_psnr,
+            gpu.test_psnr,
+            cpu.scene.len(),
+            gpu.scene.len()
+        );
+        assert!((cpu.train_psnr - gpu.train_psnr).abs() < tolerance);
+        assert!((cpu.test_psnr.unwrap() - gpu.test_psnr.unwrap()).abs() < tolerance);
+        let (a, b) = (cpu.scene.len() as f64, gpu.scene.len() as f64);
+        assert!((a - b).abs() <= 0.02 * a, "{a} vs {b} Gaussians");
+    }
 }
 
 /// GPU lifting against `crate::lift::lift` on a constructed scene with three views.
