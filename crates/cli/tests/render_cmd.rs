@@ -129,3 +129,41 @@ fn negative_and_malformed_values_name_the_option() {
         assert!(!err.contains("unexpected argument"), "{err}");
     }
 }
+
+/// `--device gpu` without any Vulkan driver: one error line and a non-zero exit; `--device auto` falls
+/// back to the CPU and says so.
+#[test]
+fn device_gpu_without_a_gpu_is_one_error_line() {
+    let dir = tempfile::tempdir().unwrap();
+    let ply = dir.path().join("ball.ply");
+    write_ply(&ply, &ball_scene()).unwrap();
+    let out = dir.path().join("out");
+    let run = |device: &str| {
+        Command::new(env!("CARGO_BIN_EXE_vcedit"))
+            .args([
+                "render",
+                ply.to_str().unwrap(),
+                "--orbit",
+                "1",
+                "--size",
+                "16",
+            ])
+            .args(["--out", out.to_str().unwrap(), "--device", device])
+            .env("VK_ICD_FILENAMES", "/nonexistent")
+            .env_remove("VCEDIT_ALLOW_SOFTWARE_GPU")
+            .output()
+            .expect("run vcedit")
+    };
+    let o = run("gpu");
+    assert!(!o.status.success());
+    let err = String::from_utf8_lossy(&o.stderr);
+    let lines: Vec<&str> = err.lines().filter(|l| l.starts_with("error")).collect();
+    assert_eq!(
+        lines,
+        ["error: no GPU found (no Vulkan, Metal or DX12 adapter)"],
+        "{err}"
+    );
+    let o = run("auto");
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    assert!(String::from_utf8_lossy(&o.stderr).contains("device: CPU (auto: no GPU found)"));
+}

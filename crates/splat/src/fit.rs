@@ -560,6 +560,21 @@ pub fn evaluate(scene: &GaussianScene, views: &[View], background: [f32; 3]) -> 
     total / views.len() as f64
 }
 
+/// Whether step `step` must run with the state on the host: it densifies, resets opacities, evaluates
+/// or is the last one (the conditions of `DefaultStrategy::after_backward`, taken broadly).
+fn host_step(config: &FitConfig, step: u64) -> bool {
+    let s = &config.strategy;
+    let done = step + 1;
+    let refine = step < s.refine_stop
+        && step > s.refine_start
+        && s.refine_every > 0
+        && step.is_multiple_of(s.refine_every);
+    let reset = (s.reset_every > 0 && step > 0 && step.is_multiple_of(s.reset_every))
+        || (s.reset_at_refine_start && step == s.refine_start);
+    let eval = config.eval_every > 0 && done.is_multiple_of(config.eval_every);
+    refine || reset || eval || done == config.steps
+}
+
 /// Trains a scene on `dataset.train`; `progress` is called after every step.
 pub fn fit(
     dataset: &Dataset,
@@ -572,9 +587,9 @@ pub fn fit(
     }
 }
 
-/// [`fit`] with the render and its backward on `device` when one is given (the loss, Adam and
-/// densification stay on the host for now, so every step moves the scene and gradients across).
-/// Errors only come from the device (out of memory, lost device).
+/// [`fit`] on `device` when one is given: ordinary steps keep the scene, Adam moments and densification
+/// statistics on the device; densification, opacity resets, SH degree changes and evaluations run on the
+/// host (the render and its backward still on the device). Errors only come from the device.
 pub fn fit_on(
     dataset: &Dataset,
     config: &FitConfig,
@@ -594,13 +609,57 @@ pub fn fit_on(
     let mut times = StageTimes::default();
     let mut order: Vec<usize> = Vec::new();
     let clock = std::time::Instant::now;
+    // On a device, ordinary steps run entirely there (`DeviceTrainer`); steps that change the scene's
+    // structure or read it (densification, opacity reset, SH degree change, evaluation, the last step)
+    // bring the state back and run with the host doing all but the render.
+    let targets: Vec<_> = device.map_or_else(Vec::new, |ctx| {
+        dataset
+            .train
+            .iter()
+            .map(|v| ::gpu::prims::upload_f32(&ctx.client, &v.image))
+            .collect()
+    });
+    let mut trainer: Option<crate::gpu::DeviceTrainer> = None;
     for step in 0..config.steps {
         if order.is_empty() {
             order = (0..dataset.train.len()).collect();
             order.shuffle(&mut rng);
         }
-        let view = &dataset.train[order.pop().expect("refilled")];
+        let view_index = order.pop().expect("refilled");
+        let view = &dataset.train[view_index];
         let degree = ((step / config.sh_degree_interval.max(1)) as u32).min(config.sh_degree);
+        if let Some(ctx) = device {
+            if degree == state.scene.sh_degree && !host_step(config, step) {
+                let tr = match &mut trainer {
+                    Some(tr) => tr,
+                    None => trainer.insert(crate::gpu::DeviceTrainer::upload(ctx, &state)),
+                };
+                state.adam.set_iteration(step);
+                let t = clock();
+                let loss = tr.step(
+                    ctx,
+                    &mut state.adam,
+                    &view.camera,
+                    &targets[view_index],
+                    &settings,
+                    config.ssim_weight,
+                    step < config.strategy.refine_stop,
+                )?;
+                times.render += t.elapsed().as_secs_f64();
+                progress(&FitProgress {
+                    step: step + 1,
+                    steps: config.steps,
+                    loss,
+                    gaussians: state.len(),
+                    test_psnr: None,
+                    refine: None,
+                });
+                continue;
+            }
+            if let Some(tr) = trainer.take() {
+                tr.download_into(ctx, &mut state)?;
+            }
+        }
         if degree != state.scene.sh_degree {
             state.set_sh_degree(degree);
         }

@@ -15,11 +15,14 @@
 //! device buffers only (one 4-byte read: the number of tile intersections), and [`render`] /
 //! [`render_backward`] are host-side conveniences with the CPU renderer's types.
 
+mod densify;
 mod lift;
+mod loss;
 mod optim;
 pub(crate) mod project;
 pub(crate) mod raster;
 pub(crate) mod sh;
+mod train;
 
 use crate::render::{ExtraChannels, OutputGrads, RenderSettings, SceneGrads, TILE};
 use crate::{Camera, GaussianScene};
@@ -32,9 +35,12 @@ use ::gpu::prims::{
 pub use ::gpu::{
     list_adapters, open, DeviceChoice, GpuContext, GpuError, ALLOW_SOFTWARE_ENV, DEVICE_ENV,
 };
+pub use densify::GpuDensifyStats;
 pub use lift::lift;
+pub use loss::{l1_dssim, GpuLoss};
 pub use optim::GpuAdam;
 use project::{CAM_F, GRAD_F, INFO_U, SPLAT_F};
+pub use train::DeviceTrainer;
 
 /// Scene parameters on the device (layouts of [`GaussianScene`]).
 pub struct GpuScene {

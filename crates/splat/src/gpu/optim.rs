@@ -8,7 +8,7 @@ use ::gpu::cubecl;
 use ::gpu::cubecl::prelude::*;
 use ::gpu::cubecl::server::Handle;
 use ::gpu::gpu_call;
-use ::gpu::prims::{grid, zeros32};
+use ::gpu::prims::{grid, read_f32, upload_f32, zeros32};
 
 /// One Adam update of an array of `width` values per Gaussian: the first `first` values of each block
 /// use `lr_first`, the rest `lr_rest` (SH: DC and higher coefficients).
@@ -65,6 +65,38 @@ impl GpuAdam {
                 pair(3 * k * n),
             ],
         }
+    }
+
+    /// The moments of a host optimiser, uploaded.
+    pub fn from_host(ctx: &GpuContext, adam: &Adam) -> Self {
+        let c = &ctx.client;
+        let pair = |m: &crate::optim::Moments| (upload_f32(c, &m.m), upload_f32(c, &m.v));
+        Self {
+            moments: [
+                pair(&adam.means),
+                pair(&adam.log_scales),
+                pair(&adam.quats),
+                pair(&adam.opacity),
+                pair(&adam.sh),
+            ],
+        }
+    }
+
+    /// Reads the moments back into `adam` (sized for the same scene).
+    pub fn download_into(&self, ctx: &GpuContext, adam: &mut Adam) -> Result<(), GpuError> {
+        let c = &ctx.client;
+        for ((m, v), host) in self.moments.iter().zip([
+            &mut adam.means,
+            &mut adam.log_scales,
+            &mut adam.quats,
+            &mut adam.opacity,
+            &mut adam.sh,
+        ]) {
+            let len = host.m.len();
+            host.m = read_f32(c, m, len)?;
+            host.v = read_f32(c, v, len)?;
+        }
+        Ok(())
     }
 
     /// One step of every parameter (no trainable mask) with `adam`'s rates and hyper-parameters;

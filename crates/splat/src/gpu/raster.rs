@@ -11,6 +11,17 @@ use cubecl::prelude::*;
 
 use crate::render::{ALPHA_MAX, ALPHA_MIN, TILE, T_MIN};
 
+/// σ of the Gaussian whose record starts at `s` at pixel centre (fx, fy), with d = mean − centre:
+/// σ = ½(a dx² + c dy²) + b dx dy (the CPU's `sigma_at`). Returns (σ, dx, dy).
+#[cube]
+fn sigma_at(splats: &[f32], s: usize, fx: f32, fy: f32) -> (f32, f32, f32) {
+    let dx = splats[s] - fx;
+    let dy = splats[s + 1] - fy;
+    let sigma =
+        0.5f32 * (splats[s + 2] * dx * dx + splats[s + 4] * dy * dy) + splats[s + 3] * dx * dy;
+    (sigma, dx, dy)
+}
+
 /// Forward. `channels` extra channels (`extra_vals` N*C) are composited over 0 into `extra` (H*W*C).
 #[cube(launch)]
 #[allow(clippy::too_many_arguments)]
@@ -55,10 +66,7 @@ pub fn raster_forward(
         let mut n_last = 0u32;
         for k in start..end {
             let s = ids[k as usize] as usize * 10;
-            let dx = splats[s] - fx;
-            let dy = splats[s + 1] - fy;
-            let sigma = 0.5f32 * (splats[s + 2] * dx * dx + splats[s + 4] * dy * dy)
-                + splats[s + 3] * dx * dy;
+            let (sigma, _dx, _dy) = sigma_at(splats, s, fx, fy);
             let a = f32::min(splats[s + 5] * (-sigma).exp(), ALPHA_MAX as f32);
             if sigma >= 0.0 && a >= ALPHA_MIN as f32 {
                 let next = t * (1.0f32 - a);
@@ -142,13 +150,11 @@ pub fn raster_backward(
             let k = (start + n_last - 1 - j) as usize;
             let gi = ids[k] as usize;
             let s = gi * 10;
-            let dx = splats[s] - fx;
-            let dy = splats[s + 1] - fy;
+            let (sigma, dx, dy) = sigma_at(splats, s, fx, fy);
             let ca = splats[s + 2];
             let cb = splats[s + 3];
             let cc = splats[s + 4];
             let o = splats[s + 5];
-            let sigma = 0.5f32 * (ca * dx * dx + cc * dy * dy) + cb * dx * dy;
             let vis = (-sigma).exp();
             let a = f32::min(o * vis, ALPHA_MAX as f32);
             if sigma >= 0.0 && a >= ALPHA_MIN as f32 {
@@ -289,10 +295,7 @@ pub fn lift_accumulate(
         for k in tile_start[tile]..tile_end[tile] {
             let gi = ids[k as usize] as usize;
             let s = gi * 10;
-            let dx = splats[s] - fx;
-            let dy = splats[s + 1] - fy;
-            let sigma = 0.5f32 * (splats[s + 2] * dx * dx + splats[s + 4] * dy * dy)
-                + splats[s + 3] * dx * dy;
+            let (sigma, _dx, _dy) = sigma_at(splats, s, fx, fy);
             let a = f32::min(splats[s + 5] * (-sigma).exp(), ALPHA_MAX as f32);
             if sigma >= 0.0 && a >= ALPHA_MIN as f32 {
                 let next = t * (1.0f32 - a);
