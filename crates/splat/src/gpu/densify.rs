@@ -1,8 +1,8 @@
-//! Densification statistics on the device: [`crate::densify::DensifyStats::add`] for a frame whose
+//! Densification statistics on the device: [`crate::train::DensifyStats::add`] for a frame whose
 //! gradients are still on the device (one kernel; read back with [`GpuDensifyStats::download`]).
 
 use super::{arg, GpuContext, GpuError, GpuFrame, GpuSceneGrads, GRAD_F, INFO_U};
-use crate::densify::DensifyStats;
+use crate::train::DensifyStats;
 use ::gpu::cubecl;
 use ::gpu::cubecl::prelude::*;
 use ::gpu::cubecl::server::Handle;

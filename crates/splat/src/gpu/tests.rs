@@ -399,7 +399,7 @@ fn adam_on_the_device_matches_the_cpu() {
 /// the same gradients read back.
 #[test]
 fn densify_stats_on_the_device_match_the_cpu() {
-    use crate::densify::DensifyStats;
+    use crate::train::DensifyStats;
     let Some(ctx) = context_or_skip() else {
         return;
     };
@@ -432,7 +432,15 @@ fn densify_stats_on_the_device_match_the_cpu() {
         on_device.add(&ctx, &frame, &g, 2).unwrap();
         let host = read_grads(&ctx, &g, scene.len(), scene.sh_degree, None).unwrap();
         let radii = download(&ctx, &frame, scene.len()).unwrap().radii;
-        on_host.add(&host.means2d, &radii, w, h, 2);
+        on_host.add(
+            &crate::train::RenderedView {
+                means2d: &host.means2d,
+                radii: &radii,
+                width: w,
+                height: h,
+            },
+            2,
+        );
     }
     let got = on_device.download(&ctx).unwrap();
     assert!(on_host.count.contains(&2.0));
