@@ -1,15 +1,15 @@
 //! GaussianEditor's hierarchical Gaussian splatting (HGS) anchor loss (docs/algorithm.md §3.2).
 //!
 //! Every Gaussian has a generation: 0 for the loaded ones, and each densification gives the Gaussians it
-//! creates a new generation number. A weight schedule w[g] pulls older generations harder towards their
+//! creates a new generation number. A weight schedule w\[g\] pulls older generations harder towards their
 //! anchored parameters P̂ (a snapshot refreshed after every densification):
 //!
-//! - start: w = [init_g0];
-//! - at every densification: w[g] ← min(multiplier·w[g], 10) for all g, then the previous newest generation
-//!   (weight 0) gets `init` (except at the first densification, when there is none), and a new entry 0 is
-//!   appended for the Gaussians just born — they are free until the next densification.
+//! - start: w = \[init_g0\];
+//! - at every densification: w\[g\] ← min(multiplier·w\[g\], 10) for all g, then the previous newest
+//!   generation (weight 0) gets `init` (except at the first densification, when there is none), and a new
+//!   entry 0 is appended for the Gaussians just born — they are free until the next densification.
 //!
-//! L_attr = mean over the masked Gaussians and the attribute's elements of w[g_j]·(P_j − P̂_j)², on the raw
+//! L_attr = mean over the masked Gaussians and the attribute's elements of w\[g_j\]·(P_j − P̂_j)², on the raw
 //! (trainable) parameters; geo = positions + quaternions, color = SH DC + SH rest, opacity, scale; the total
 //! is Σ λ_attr·L_attr.
 
@@ -19,7 +19,7 @@ use crate::GaussianScene;
 use serde::{Deserialize, Serialize};
 
 /// GaussianEditor caps every generation weight at this value.
-pub const MAX_ANCHOR_WEIGHT: f32 = 10.0;
+pub(crate) const MAX_ANCHOR_WEIGHT: f32 = 10.0;
 
 /// Weights of the anchor loss (serialised as is in training-state checkpoints).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -98,12 +98,12 @@ impl Anchor {
     }
 
     /// The generation number the next densification gives its new Gaussians.
-    pub fn next_generation(&self) -> u32 {
+    pub(crate) fn next_generation(&self) -> u32 {
         self.schedule.len() as u32
     }
 
     /// Anchors the current parameters (GaussianEditor's `update_anchor`).
-    pub fn refresh(&mut self, scene: &GaussianScene) {
+    pub(crate) fn refresh(&mut self, scene: &GaussianScene) {
         self.snapshot.clone_from(scene);
     }
 
@@ -117,7 +117,7 @@ impl Anchor {
 
     /// Advances the weight schedule after a densification (GaussianEditor's `update_anchor_loss_schedule`)
     /// and anchors the densified scene.
-    pub fn finish_densify(&mut self, scene: &GaussianScene) {
+    pub(crate) fn finish_densify(&mut self, scene: &GaussianScene) {
         let c = &self.config;
         for w in &mut self.schedule {
             *w = (c.weight_multiplier * *w).min(MAX_ANCHOR_WEIGHT);
@@ -131,7 +131,7 @@ impl Anchor {
     }
 
     /// Re-lays the anchored SH coefficients after the scene's SH degree changed.
-    pub fn set_sh_degree(&mut self, degree: u32) {
+    pub(crate) fn set_sh_degree(&mut self, degree: u32) {
         set_scene_sh_degree(&mut self.snapshot, degree);
     }
 
@@ -140,7 +140,7 @@ impl Anchor {
     ///
     /// # Panics
     /// When the scene does not match the anchored one in size or SH degree (programming errors: call
-    /// [`Anchor::remap`] / [`Anchor::set_sh_degree`] alongside the scene's changes).
+    /// `Anchor::remap` / `Anchor::set_sh_degree` alongside the scene's changes; `TrainState` does).
     pub fn loss(
         &self,
         scene: &GaussianScene,

@@ -89,7 +89,7 @@ pub fn split<R: Rng + ?Sized>(state: &mut TrainState, selected: &[bool], rng: &m
 }
 
 /// Removes the selected Gaussians with all their per-Gaussian state.
-pub fn prune(state: &mut TrainState, selected: &[bool]) -> usize {
+pub(crate) fn prune(state: &mut TrainState, selected: &[bool]) -> usize {
     let remap = Remap::remove(selected);
     let n = selected.iter().filter(|&&s| s).count();
     if n > 0 {
@@ -99,7 +99,7 @@ pub fn prune(state: &mut TrainState, selected: &[bool]) -> usize {
 }
 
 /// Clamps every opacity to at most `value` and zeroes the opacity moments (INRIA `reset_opacity`).
-pub fn reset_opacity(state: &mut TrainState, value: f32) {
+pub(crate) fn reset_opacity(state: &mut TrainState, value: f32) {
     let cap = (value / (1.0 - value)).ln();
     for v in &mut state.scene.opacity_logits {
         *v = v.min(cap);
@@ -213,7 +213,7 @@ impl DefaultStrategy {
     }
 
     /// Prunes transparent Gaussians and, after the first opacity reset, too large ones.
-    pub fn prune(&self, state: &mut TrainState, step: u64) -> usize {
+    pub(crate) fn prune(&self, state: &mut TrainState, step: u64) -> usize {
         let big = self.prune_scale3d * state.extent;
         let check_big = step > self.reset_every;
         let sel: Vec<bool> = (0..state.len())
@@ -292,7 +292,7 @@ impl EditStrategy {
 
     /// GaussianEditor's `densify_and_prune`: masked gradient statistics, top-quantile cut, clone, split,
     /// masked prune, then statistics cleared, anchors refreshed and the generation schedule advanced.
-    pub fn densify_and_prune<R: Rng + ?Sized>(
+    pub(crate) fn densify_and_prune<R: Rng + ?Sized>(
         &self,
         state: &mut TrainState,
         rng: &mut R,

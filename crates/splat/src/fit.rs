@@ -221,7 +221,7 @@ fn resample_area(
 
 /// Scene extent as the INRIA trainer computes it (1.1 × the largest distance of a camera centre from
 /// their mean) and that mean.
-pub fn camera_extent(cameras: &[Camera]) -> ([f32; 3], f32) {
+pub(crate) fn camera_extent(cameras: &[Camera]) -> ([f32; 3], f32) {
     let set = crate::cameras::CameraSet {
         cameras: cameras.to_vec(),
         ..Default::default()

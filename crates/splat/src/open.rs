@@ -52,7 +52,7 @@ pub fn open_scene(path: &Path) -> Result<(GaussianScene, Option<CameraSet>), Ope
 }
 
 /// `point_cloud/iteration_N/point_cloud.ply` with the largest N that exists.
-pub fn latest_iteration_ply(dir: &Path) -> Option<PathBuf> {
+pub(crate) fn latest_iteration_ply(dir: &Path) -> Option<PathBuf> {
     let entries = std::fs::read_dir(dir.join("point_cloud")).ok()?;
     entries
         .filter_map(|e| e.ok())

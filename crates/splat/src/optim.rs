@@ -361,7 +361,7 @@ impl Adam {
 
     /// Zeroes the moments of one group (the trainer's `replace_tensor_to_optimizer`, used by the opacity
     /// reset). The step count is kept, as torch keeps it.
-    pub fn reset_group(&mut self, group: Group) {
+    pub(crate) fn reset_group(&mut self, group: Group) {
         fn zero(m: &mut Moments) {
             m.m.iter_mut().for_each(|x| *x = 0.0);
             m.v.iter_mut().for_each(|x| *x = 0.0);
@@ -402,7 +402,8 @@ impl Adam {
     }
 
     /// A copy of the first moments (torch's `exp_avg`) of one group, in the scene's layout order.
-    pub fn exp_avg(&self, group: Group) -> Vec<f32> {
+    #[cfg(test)]
+    pub(crate) fn exp_avg(&self, group: Group) -> Vec<f32> {
         match group {
             Group::Means => self.means.m.clone(),
             Group::LogScales => self.log_scales.m.clone(),
@@ -424,7 +425,7 @@ impl Adam {
 
     /// Re-lays the SH moments for a scene whose SH degree changed to `degree` (coefficients kept where
     /// both layouts have them, new ones start at zero).
-    pub fn set_sh_degree(&mut self, degree: u32) {
+    pub(crate) fn set_sh_degree(&mut self, degree: u32) {
         let new_k = crate::scene::sh_coeffs(degree);
         self.sh.m = relayout_sh(&self.sh.m, self.sh_coeffs, new_k);
         self.sh.v = relayout_sh(&self.sh.v, self.sh_coeffs, new_k);

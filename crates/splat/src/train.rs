@@ -68,7 +68,7 @@ impl TrainState {
 
     /// Changes the scene's SH degree (the INRIA trainer raises the active degree during fitting); new
     /// coefficients start at zero, removed ones are dropped.
-    pub fn set_sh_degree(&mut self, degree: u32) {
+    pub(crate) fn set_sh_degree(&mut self, degree: u32) {
         if self.scene.sh_coeffs() == crate::scene::sh_coeffs(degree) {
             return;
         }

@@ -1,17 +1,17 @@
 //! Differentiable CPU rasteriser for 3D Gaussians, following gsplat/3DGS exactly, in three stages that each
 //! have a hand-written backward:
 //!
-//! 1. [`project`]: EWA projection (0.3 px low-pass, near plane 0.01, 3σ radius), SH colour, opacity.
-//! 2. [`tiles`]: 16x16 tile binning, lists sorted front to back by camera depth.
-//! 3. [`raster`]: front-to-back alpha compositing per pixel (alpha ≤ 0.99, skip < 1/255, stop at T < 1e-4)
+//! 1. `project`: EWA projection (0.3 px low-pass, near plane 0.01, 3σ radius), SH colour, opacity.
+//! 2. `tiles`: 16x16 tile binning, lists sorted front to back by camera depth.
+//! 3. `raster`: front-to-back alpha compositing per pixel (alpha ≤ 0.99, skip < 1/255, stop at T < 1e-4)
 //!    of RGB, alpha, depth and any number of extra per-Gaussian channels in the same pass;
-//!    [`raster_backward`] walks each pixel back to front from the saved final T and last contributor.
+//!    `raster_backward` walks each pixel back to front from the saved final T and last contributor.
 //!
-//! Both compositing passes (and lifting) work in the units of [`segment`]: 16x16 tiles and 8-pixel
+//! Both compositing passes (and lifting) work in the units of `segment`: 16x16 tiles and 8-pixel
 //! segments. `cpu` picks the AVX2+FMA or portable build of each stage; `simd` holds the hand-written
 //! AVX2 segment kernels. The modules stand in layers: segment → simd → raster, raster_backward.
 //!
-//! The math is generic over [`real::Real`] so the gradient tests run the very same code in `f64`; the
+//! The math is generic over `real::Real` so the gradient tests run the very same code in `f64`; the
 //! public API below is `f32`.
 
 // `!(a > b)` is deliberate throughout: it also rejects NaN. Index loops over 2/3/4-element arrays read
