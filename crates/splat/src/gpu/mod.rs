@@ -2,12 +2,12 @@
 //! [`crate::render`] as the reference it must match.
 //!
 //! Stages, each one kernel per op:
-//! 1. [`project`]: projection + SH colour per Gaussian (depth keys and covered tile counts included);
+//! 1. `project`: projection + SH colour per Gaussian (depth keys and covered tile counts included);
 //! 2. binning: a stable radix sort of the drawable Gaussians by depth, an exclusive scan of their tile
 //!    counts in that order, one (tile, Gaussian) pair per covered tile, a stable radix sort of the pairs
 //!    by tile and the per-tile ranges: every tile list comes out sorted by depth, ties by index, as on
 //!    the CPU;
-//! 3. [`raster`]: per-pixel compositing of RGB, alpha, depth and extra channels.
+//! 3. `raster`: per-pixel compositing of RGB, alpha, depth and extra channels.
 //!
 //! The backward runs 3 then 1 with the state the forward left on the device.
 //!
