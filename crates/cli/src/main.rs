@@ -69,7 +69,15 @@ fn main() {
         Command::DemoModel(a) => cmd::demo_model::run(a),
     };
     if let Err(err) = result {
-        eprintln!("error: {}", one_line(&err));
+        let mut line = one_line(&err);
+        if line.contains("GPU out of memory") {
+            // wgpu cannot tell how much GPU memory is free (gfx-rs/wgpu#2447), so the check before a run
+            // is an estimate; when the device still runs out, say which knobs shrink the work.
+            line.push_str(
+                "; lower --max-views or --size (edit), --size (fit, render), or run with --device cpu",
+            );
+        }
+        eprintln!("error: {line}");
         std::process::exit(1);
     }
 }

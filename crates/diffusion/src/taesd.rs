@@ -536,14 +536,24 @@ impl AutoencoderTiny {
 
     /// Image in [-1, 1] → UNet-scale latents: `(encode(x) − shift_factor) · scaling_factor` (identity for SD TAESD).
     pub fn encode_scaled(&self, image: &Tensor) -> Result<Tensor> {
-        let z = self.encode(image)?;
+        self.encode_scaled_on(image, None)
+    }
+
+    /// [`Self::encode_scaled`] on `device` (the GPU, or the CPU for `None`).
+    pub fn encode_scaled_on(&self, image: &Tensor, device: Option<&GpuDevice>) -> Result<Tensor> {
+        let z = self.encode_on(image, device)?;
         Ok(scale_latents(&z, self.config.scaling_factor, self.shift())?)
     }
 
     /// UNet-scale latents → image in [-1, 1]: `decode(z / scaling_factor + shift_factor)`.
     pub fn decode_scaled(&self, latents: &Tensor) -> Result<Tensor> {
+        self.decode_scaled_on(latents, None)
+    }
+
+    /// [`Self::decode_scaled`] on `device` (the GPU, or the CPU for `None`).
+    pub fn decode_scaled_on(&self, latents: &Tensor, device: Option<&GpuDevice>) -> Result<Tensor> {
         let z = unscale_latents(latents, self.config.scaling_factor, self.shift())?;
-        self.decode(&z)
+        self.decode_on(&z, device)
     }
 
     /// diffusers' `scale_latents`: raw latents → [0, 1] via `z / (2·magnitude) + shift`, clamped.

@@ -626,8 +626,13 @@ impl AutoencoderKL {
 
     /// UNet latents → image in [-1, 1]: `decode(latents / scaling_factor + shift)`.
     pub fn decode_scaled(&self, latents: &Tensor) -> Result<Tensor> {
+        self.decode_scaled_on(latents, None)
+    }
+
+    /// [`Self::decode_scaled`] on `device` (the GPU, or the CPU for `None`).
+    pub fn decode_scaled_on(&self, latents: &Tensor, device: Option<&GpuDevice>) -> Result<Tensor> {
         let z = taesd::unscale_latents(latents, self.config.scaling_factor, self.shift())?;
-        self.decode(&z)
+        self.decode_on(&z, device)
     }
 
     /// Raw → UNet latents.
@@ -691,17 +696,41 @@ impl Autoencoder {
 
     /// Image in [-1, 1] → UNet latents (posterior mean for the KL autoencoder).
     pub fn encode_scaled(&self, image: &Tensor) -> Result<Tensor> {
+        self.encode_scaled_on(image, None, None)
+    }
+
+    /// Image in [-1, 1] → UNet latents with the network on `device` (the GPU, or the CPU for `None`): the
+    /// KL autoencoder's posterior sample `mean + std · noise` when `noise` is given, else its mean; TAESD is
+    /// deterministic and ignores `noise`.
+    pub fn encode_scaled_on(
+        &self,
+        image: &Tensor,
+        noise: Option<&Tensor>,
+        device: Option<&GpuDevice>,
+    ) -> Result<Tensor> {
         match self {
-            Self::Kl(vae) => vae.encode_mean_scaled(image),
-            Self::Tiny(tiny) => Ok(tiny.encode_scaled(image)?),
+            Self::Kl(vae) => {
+                let posterior = vae.encode_on(image, device)?;
+                let z = match noise {
+                    Some(noise) => posterior.sample_with_noise(noise)?,
+                    None => posterior.mean,
+                };
+                Ok(vae.scale(&z)?)
+            }
+            Self::Tiny(tiny) => Ok(tiny.encode_scaled_on(image, device)?),
         }
     }
 
     /// UNet latents → image in [-1, 1] (unclamped).
     pub fn decode_scaled(&self, latents: &Tensor) -> Result<Tensor> {
+        self.decode_scaled_on(latents, None)
+    }
+
+    /// [`Self::decode_scaled`] with the network on `device` (the GPU, or the CPU for `None`).
+    pub fn decode_scaled_on(&self, latents: &Tensor, device: Option<&GpuDevice>) -> Result<Tensor> {
         match self {
-            Self::Kl(vae) => vae.decode_scaled(latents),
-            Self::Tiny(tiny) => Ok(tiny.decode_scaled(latents)?),
+            Self::Kl(vae) => vae.decode_scaled_on(latents, device),
+            Self::Tiny(tiny) => Ok(tiny.decode_scaled_on(latents, device)?),
         }
     }
 

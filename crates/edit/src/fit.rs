@@ -15,6 +15,7 @@ use rand_chacha::ChaCha8Rng;
 use serde::Serialize;
 use splat::anchor::{Anchor, AnchorConfig};
 use splat::densify::EditStrategy;
+use splat::gpu::{GpuContext, GpuError};
 use splat::loss;
 use splat::optim::LearningRates;
 use splat::render::{render, render_backward, OutputGrads, RenderSettings};
@@ -34,6 +35,8 @@ pub enum TrainError {
     },
     #[error(transparent)]
     Lpips(#[from] LpipsError),
+    #[error(transparent)]
+    Gpu(#[from] GpuError),
 }
 
 /// The image loss of every fit.
@@ -157,7 +160,9 @@ impl<'a> Targets<'a> {
     }
 }
 
-/// Renders view `v`, evaluates the loss against its target and back-propagates into scene gradients.
+/// Renders view `v`, evaluates the loss against its target and back-propagates into scene gradients; the
+/// render and its backward run on `device` when one is given (the loss itself is evaluated on the host:
+/// LPIPS-VGG is a CPU network).
 pub(crate) fn loss_and_grads(
     scene: &GaussianScene,
     cam: &Camera,
@@ -165,8 +170,20 @@ pub(crate) fn loss_and_grads(
     targets: &mut Targets<'_>,
     loss: &ImageLoss,
     background: [f32; 3],
+    device: Option<&GpuContext>,
 ) -> Result<(f32, splat::render::SceneGrads, Vec<u32>), TrainError> {
     let settings = RenderSettings { background };
+    if let Some(ctx) = device {
+        let (radii, value, grads) =
+            splat::gpu::render_with_loss(ctx, scene, cam, &settings, |rgb| {
+                match loss.eval(rgb, v, targets) {
+                    Ok((value, grad)) => (Ok(value), grad),
+                    // The backward still runs on a zero gradient; its result is dropped with the error.
+                    Err(e) => (Err(e), vec![0.0; rgb.len()]),
+                }
+            })?;
+        return Ok((value?, grads, radii));
+    }
     let out = render(scene, cam, &settings, None);
     let (value, grad) = loss.eval(&out.rgb, v, targets)?;
     let grads = render_backward(
@@ -212,6 +229,9 @@ pub struct EditTrainer {
     pub global_step: u64,
     /// Background of the renders fitted (the targets' background).
     pub background: [f32; 3],
+    /// Where renders and their backward run (`None`: the CPU). The optimiser, anchors and densification
+    /// stay on the host, which keeps the editing fit's masks and anchor loss in one place.
+    pub device: Option<GpuContext>,
 }
 
 impl EditTrainer {
@@ -239,6 +259,7 @@ impl EditTrainer {
             settings,
             global_step: 0,
             background,
+            device: None,
         }
     }
 
@@ -275,6 +296,7 @@ impl EditTrainer {
                 &mut prepared,
                 loss,
                 self.background,
+                self.device.as_ref(),
             )?;
             if let Some(anchor) = &self.state.anchor {
                 anchor.loss(
@@ -336,6 +358,7 @@ impl EditTrainer {
             settings,
             global_step,
             background,
+            device: None,
         })
     }
 }

@@ -7,7 +7,7 @@
 //! | [`WorkingSize`]   | `--size` (default 512)                    | edit, edit-image (via `SamplerArgs`) |
 //! | [`BackgroundArg`] | `--background`                            | render, metrics, fit, edit           |
 //! | [`CameraArgs`]    | `--cameras`, `--orbit`, `--max-views`     | render, metrics, edit                |
-//! | [`DeviceArg`]     | `--device`                                | render, fit                          |
+//! | [`DeviceArg`]     | `--device`                                | render, fit, edit, edit-image, demo, metrics |
 //! | [`editing`]       | model, prompts, InfEdit sampler knobs     | edit, edit-image                     |
 //! | [`output::ForceArg`] | `--force`                              | render, edit, demo                   |
 //! | [`memory::MemoryCheckArg`] | `--ignore-memory-check`          | edit, fit                            |
@@ -35,7 +35,7 @@ use splat::{Camera, GaussianScene};
 
 use parse::{parse_colour, parse_size, positive, whole};
 
-/// `--device`: where rendering and fitting run.
+/// `--device`: where rendering, fitting and the networks run.
 #[derive(clap::Args, Debug, Clone)]
 pub struct DeviceArg {
     /// Compute device: cpu, gpu (an error without one) or auto (a hardware GPU when one is found, else

@@ -3,6 +3,7 @@
 use std::path::PathBuf;
 
 use anyhow::bail;
+use edit::compute::Compute;
 
 use demo::run::{
     demo_scene, load_model, reference_rows, reference_table, run_variant, table, variant_dir,
@@ -11,6 +12,7 @@ use demo::run::{
 
 use crate::args::output::{files_under, fingerprint, ForceArg, OutputDir};
 use crate::args::parse::{positive, whole};
+use crate::args::DeviceArg;
 use crate::progress::Reporter;
 
 /// Run the whole pipeline on a built-in procedural scene with the self-made demo model.
@@ -25,6 +27,8 @@ pub struct Args {
     pub out: PathBuf,
     #[command(flatten)]
     pub force: ForceArg,
+    #[command(flatten)]
+    pub device: DeviceArg,
     /// Which built-in edit to run (0-based; see --list).
     #[arg(long, default_value_t = 0, value_parser = whole::<usize>, allow_negative_numbers = true)]
     pub pair: usize,
@@ -83,7 +87,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     opts.steps = args.steps;
     opts.seed = args.seed;
     let scene = demo_scene(&opts)?;
-    let model = load_model(&model_dir)?;
+    let model = load_model(&model_dir)?.on(Compute::on(args.device.open()?));
     eprintln!(
         "demo: \"{}\" → \"{}\", {} Gaussians, {} views at {}², model {}",
         scene.prompts.source,

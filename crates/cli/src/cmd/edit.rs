@@ -4,6 +4,7 @@ use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use anyhow::{bail, Context};
+use edit::compute::Compute;
 use edit::consistency::{ConsistencySettings, EcmParams, EcmScope};
 use edit::fit::{ImageLoss, TrainSettings};
 use edit::run::{run_edit, write_outputs, Box3, EditJob, GuidanceMode, MaskSource, RunInputs};
@@ -13,7 +14,7 @@ use crate::args::editing::{ModelArgs, PromptArgs, SamplerArgs};
 use crate::args::memory::MemoryCheckArg;
 use crate::args::output::{files_under, fingerprint, ForceArg, OutputDir};
 use crate::args::parse::{finite, positive, whole};
-use crate::args::{BackgroundArg, CameraArgs};
+use crate::args::{BackgroundArg, CameraArgs, DeviceArg};
 use crate::progress::Reporter;
 
 /// Orbit views edited when neither --cameras nor --orbit is given and the scene has no cameras.
@@ -77,6 +78,8 @@ pub struct Args {
     pub out: PathBuf,
     #[command(flatten)]
     pub force: ForceArg,
+    #[command(flatten)]
+    pub device: DeviceArg,
     #[command(flatten)]
     pub sampler: SamplerArgs,
     /// Render → edit → fit iterations.
@@ -264,7 +267,8 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     };
 
     let model = EditModel::load(&args.model.model, args.model.taesd.as_deref())
-        .with_context(|| format!("loading model {}", args.model.model.display()))?;
+        .with_context(|| format!("loading model {}", args.model.model.display()))?
+        .on(Compute::on(args.device.open()?));
     args.sampler.check_size(&model)?;
     args.prompts
         .check_words(&model.tokenizer, args.mask_word.as_deref())?;

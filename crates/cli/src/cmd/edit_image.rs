@@ -4,6 +4,7 @@ use std::path::PathBuf;
 use std::time::Instant;
 
 use anyhow::Context;
+use edit::compute::Compute;
 use edit::present::viz;
 use edit::sampler::{
     edit_image, image_to_tensor, tensor_to_images, EditModel, EditPlan, SeededNoise,
@@ -12,6 +13,7 @@ use splat::Image;
 
 use crate::args::editing::{ModelArgs, PromptArgs, SamplerArgs};
 use crate::args::output::{output_file, probe_folder, require_extension};
+use crate::args::DeviceArg;
 use crate::progress::Reporter;
 
 /// Edit one image from a source prompt to a target prompt (InfEdit: inversion-free, LCM, attention control).
@@ -35,6 +37,8 @@ pub struct Args {
     #[arg(long, value_name = "DIR")]
     pub save_attention: Option<PathBuf>,
     #[command(flatten)]
+    pub device: DeviceArg,
+    #[command(flatten)]
     pub sampler: SamplerArgs,
 }
 
@@ -56,7 +60,8 @@ pub fn run(args: Args) -> anyhow::Result<()> {
 
     let t0 = Instant::now();
     let model = EditModel::load(&args.model.model, args.model.taesd.as_deref())
-        .with_context(|| format!("loading model {}", args.model.model.display()))?;
+        .with_context(|| format!("loading model {}", args.model.model.display()))?
+        .on(Compute::on(args.device.open()?));
     let load_time = t0.elapsed();
     args.sampler.check_size(&model)?;
     args.prompts.check_words(&model.tokenizer, None)?;

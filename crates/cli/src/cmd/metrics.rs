@@ -6,6 +6,7 @@
 //! - with `--clip DIR`: the CLIP directional similarity of the renders for the prompt change.
 
 use anyhow::{bail, Context, Result};
+use edit::compute::{host_frame, Compute};
 use edit::eval::clip_score::ClipModel;
 use edit::eval::metrics::{
     preservation, render_consistency, ConsistencySummary, PreservationReport, WarpSettings,
@@ -14,14 +15,15 @@ use edit::present::report::MetricsSummary;
 use edit::run::{mask_from_box, Box3};
 use rayon::prelude::*;
 use serde::Serialize;
-use splat::render::{render, ExtraChannels, RenderOutput, RenderSettings};
+use splat::gpu::HostFrame;
+use splat::render::{render, ExtraChannels, RenderSettings};
 use splat::{Camera, GaussianScene, Image};
 use std::path::PathBuf;
 use std::time::Instant;
 
 use crate::args::output::output_file;
 use crate::args::parse::{finite, positive};
-use crate::args::{BackgroundArg, CameraArgs, CameraSource, SizeArg};
+use crate::args::{BackgroundArg, CameraArgs, CameraSource, DeviceArg, SizeArg};
 
 /// Views compared when neither --cameras nor --orbit is given and the source scene has no cameras.
 const DEFAULT_ORBIT_VIEWS: usize = 16;
@@ -65,6 +67,8 @@ pub struct Args {
     pub depth_tolerance: f32,
     #[command(flatten)]
     pub background: BackgroundArg,
+    #[command(flatten)]
+    pub device: DeviceArg,
     /// A transformers CLIPModel folder (e.g. openai/clip-vit-large-patch14) for the CLIP directional similarity.
     #[arg(long, value_name = "DIR", requires_all = ["source_prompt", "target_prompt"])]
     pub clip: Option<PathBuf>,
@@ -116,28 +120,30 @@ fn choose_cameras(
 
 /// Renders of `scene` from every camera, with the box mask (1 inside, 0 outside) as an extra channel.
 fn render_all(
+    compute: &Compute,
     scene: &GaussianScene,
     cameras: &[Camera],
     settings: &RenderSettings,
     mask_box: Option<&Box3>,
-) -> Vec<RenderOutput> {
+) -> Result<Vec<HostFrame>> {
     let inside: Option<Vec<f32>> = mask_box.map(|b| {
         mask_from_box(scene, b)
             .into_iter()
             .map(|m| if m { 1.0 } else { 0.0 })
             .collect()
     });
+    let extra = inside.as_ref().map(|v| ExtraChannels {
+        values: v,
+        channels: 1,
+    });
+    if compute.splat().is_some() {
+        return Ok(compute.render_views(scene, cameras, settings, extra)?);
+    }
     // Views in parallel; the renderer parallelises inside a view too, which rayon balances.
-    cameras
+    Ok(cameras
         .par_iter()
-        .map(|c| {
-            let extra = inside.as_ref().map(|v| ExtraChannels {
-                values: v,
-                channels: 1,
-            });
-            render(scene, c, settings, extra)
-        })
-        .collect()
+        .map(|c| host_frame(render(scene, c, settings, extra)))
+        .collect())
 }
 
 fn fmt_consistency(c: &ConsistencySummary) -> String {
@@ -210,8 +216,21 @@ pub fn run(args: Args) -> Result<()> {
         h
     );
     let settings = RenderSettings { background };
-    let renders_a = render_all(&source, &cameras, &settings, args.mask_box.as_ref());
-    let renders_b = render_all(&edited, &cameras, &settings, args.mask_box.as_ref());
+    let compute = Compute::on(args.device.open()?);
+    let renders_a = render_all(
+        &compute,
+        &source,
+        &cameras,
+        &settings,
+        args.mask_box.as_ref(),
+    )?;
+    let renders_b = render_all(
+        &compute,
+        &edited,
+        &cameras,
+        &settings,
+        args.mask_box.as_ref(),
+    )?;
 
     let consistency_settings = WarpSettings {
         neighbours: args.neighbours,

@@ -33,6 +33,7 @@ impl MultiView<'_> {
             };
             let src = maps.clone();
             make_consistent(
+                &self.model.compute,
                 self.scene,
                 self.cameras,
                 (lh, lw),

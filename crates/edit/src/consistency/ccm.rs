@@ -54,6 +54,7 @@ impl MultiView<'_> {
             let rec = &recorded;
             let mut backs: Vec<Option<Vec<f32>>> = vec![None; views.len()];
             make_consistent(
+                &self.model.compute,
                 self.scene,
                 self.cameras,
                 (sh, sw),

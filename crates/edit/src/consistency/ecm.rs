@@ -11,12 +11,13 @@ use rand::seq::SliceRandom;
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use serde::{Deserialize, Serialize};
+use splat::gpu::GpuContext;
 use splat::optim::Group;
-use splat::render::{render, RenderSettings};
 use splat::train::TrainState;
 use splat::{Camera, GaussianScene, Image};
 
 use super::{MultiView, MultiViewError};
+use crate::compute::candle_err;
 use crate::fit::{check_targets, loss_and_grads, EditTrainer, ImageLoss, Targets};
 use crate::sampler::{image_to_tensor, NoiseSource, ViewState};
 
@@ -107,6 +108,7 @@ pub struct EcmFitter<'a> {
     loss: &'a ImageLoss,
     settings: &'a EcmSettings,
     background: [f32; 3],
+    device: Option<&'a GpuContext>,
 }
 
 impl<'a> EcmFitter<'a> {
@@ -116,6 +118,7 @@ impl<'a> EcmFitter<'a> {
             loss,
             settings,
             background: trainer.background,
+            device: trainer.device.as_ref(),
         }
     }
 }
@@ -162,6 +165,7 @@ impl SceneFitter for EcmFitter<'_> {
                     &mut prepared,
                     self.loss,
                     self.background,
+                    self.device,
                 )
                 .map_err(|e| e.to_string())?;
                 state.step(&grads);
@@ -197,19 +201,19 @@ impl MultiView<'_> {
         let fit_m = fitter
             .fit(self.scene, self.cameras, &layouts, seed + 1)
             .map_err(MultiViewError::Fit)?;
-        let settings = RenderSettings {
-            background: self.background,
-        };
-        for (v, view) in views.iter_mut().enumerate() {
-            let cam = &self.cameras[v];
-            let mut encode = |scene: &GaussianScene| -> candle_core::Result<Tensor> {
-                let out = render(scene, cam, &settings, None);
-                let img = Image::from_data(cam.width, cam.height, 3, out.rgb);
-                let t = image_to_tensor(&img)?.clamp(-1f32, 1f32)?;
-                model.encode(&t, noise)
+        let compute = &model.compute;
+        let render_t = compute
+            .render_images(&fit_t, self.cameras, self.background)
+            .map_err(candle_err)?;
+        let render_m = compute
+            .render_images(&fit_m, self.cameras, self.background)
+            .map_err(candle_err)?;
+        for ((view, img_t), img_m) in views.iter_mut().zip(&render_t).zip(&render_m) {
+            let mut encode = |img: &Image| -> candle_core::Result<Tensor> {
+                model.encode(&image_to_tensor(img)?.clamp(-1f32, 1f32)?, noise)
             };
-            let pred_t = encode(&fit_t)?;
-            let pred_m = encode(&fit_m)?;
+            let pred_t = encode(img_t)?;
+            let pred_m = encode(img_m)?;
             self.plan.rebase(view, i, pred_t, pred_m)?;
         }
         Ok(())

@@ -7,8 +7,11 @@
 //! come back as one map per view of a single 3D quantity, so they agree wherever the views see the same
 //! surface.
 
-use splat::render::{render, ExtraChannels, RenderSettings};
+use splat::render::{ExtraChannels, RenderSettings};
 use splat::{Camera, GaussianScene};
+
+use super::MultiViewError;
+use crate::compute::Compute;
 
 /// How maps are resampled between their native grid and the render resolution.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -91,6 +94,7 @@ pub fn bilinear(
 /// resampled to the camera's resolution with `up`, lifted over all views, rendered back, resampled to
 /// `native` with `down`, and handed to `sink(v, map)`. Cameras must share one resolution.
 pub fn make_consistent(
+    compute: &Compute,
     scene: &GaussianScene,
     cameras: &[Camera],
     native: (usize, usize),
@@ -99,33 +103,32 @@ pub fn make_consistent(
     down: Resample,
     map_of: &mut dyn FnMut(usize) -> candle_core::Result<Vec<f32>>,
     sink: &mut dyn FnMut(usize, Vec<f32>) -> candle_core::Result<()>,
-) -> candle_core::Result<()> {
+) -> Result<(), MultiViewError> {
     if cameras.is_empty() || channels == 0 {
         return Ok(());
     }
     let (rh, rw) = (cameras[0].height as usize, cameras[0].width as usize);
-    let mut lift = splat::lift::LiftAccumulator::new(scene, channels);
+    let mut lift = compute.lifter(scene, channels);
     for (v, cam) in cameras.iter().enumerate() {
         let native_map = map_of(v)?;
         let full = resample(&native_map, native.0, native.1, rh, rw, channels, up);
-        lift.add_view(cam, &full);
+        lift.add_view(cam, &full)?;
     }
-    let lifted = lift.finish();
-    let settings = RenderSettings::default();
-    for (v, cam) in cameras.iter().enumerate() {
-        let out = render(
-            scene,
-            cam,
-            &settings,
-            Some(ExtraChannels {
-                values: &lifted.values,
-                channels,
-            }),
-        );
-        let back = resample(&out.extra, rh, rw, native.0, native.1, channels, down);
-        sink(v, back)?;
-    }
-    Ok(())
+    let lifted = lift.finish()?;
+    let extra = ExtraChannels {
+        values: &lifted.values,
+        channels,
+    };
+    compute.for_each_render(
+        scene,
+        cameras,
+        &RenderSettings::default(),
+        Some(extra),
+        &mut |v, out| {
+            let back = resample(&out.extra, rh, rw, native.0, native.1, channels, down);
+            Ok(sink(v, back)?)
+        },
+    )
 }
 
 #[cfg(test)]
@@ -227,6 +230,7 @@ mod consistency_tests {
         ];
         let mut back = [Vec::new(), Vec::new()];
         make_consistent(
+            &Compute::cpu(),
             &scene,
             &cams,
             (size as usize, size as usize),

@@ -113,6 +113,8 @@ pub struct MultiViewOutcome {
 pub enum MultiViewError {
     #[error("{0}")]
     Candle(#[from] candle_core::Error),
+    #[error(transparent)]
+    Gpu(#[from] splat::gpu::GpuError),
     #[error("ECM fit failed: {0}")]
     Fit(String),
     #[error("{0}")]

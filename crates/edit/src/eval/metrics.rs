@@ -15,6 +15,7 @@
 
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
+use splat::gpu::HostFrame;
 use splat::loss::{ssim_blur, SSIM_C1, SSIM_C2};
 use splat::render::RenderOutput;
 use splat::{Camera, Image};
@@ -57,12 +58,45 @@ pub struct ViewGeometry<'a> {
 
 impl<'a> ViewGeometry<'a> {
     /// The geometry of a render of `camera`.
-    pub fn from_render(camera: &'a Camera, render: &'a RenderOutput) -> Self {
+    pub fn from_render(camera: &'a Camera, render: &'a impl Rendered) -> Self {
         Self {
             camera,
-            depth: &render.depth,
-            alpha: &render.alpha,
+            depth: render.depth(),
+            alpha: render.alpha(),
         }
+    }
+}
+
+/// A render as the metrics read it, from the CPU renderer or read back from the GPU.
+pub trait Rendered {
+    fn rgb_image(&self) -> Image;
+    /// H*W expected depth (not divided by alpha).
+    fn depth(&self) -> &[f32];
+    /// H*W accumulated opacity.
+    fn alpha(&self) -> &[f32];
+}
+
+impl Rendered for RenderOutput {
+    fn rgb_image(&self) -> Image {
+        RenderOutput::rgb_image(self)
+    }
+    fn depth(&self) -> &[f32] {
+        &self.depth
+    }
+    fn alpha(&self) -> &[f32] {
+        &self.alpha
+    }
+}
+
+impl Rendered for HostFrame {
+    fn rgb_image(&self) -> Image {
+        HostFrame::rgb_image(self)
+    }
+    fn depth(&self) -> &[f32] {
+        &self.depth
+    }
+    fn alpha(&self) -> &[f32] {
+        &self.alpha
     }
 }
 
@@ -431,7 +465,7 @@ fn ratio(a: u64, b: u64) -> f64 {
 /// depth and alpha): what the final renders of an edited scene are measured with.
 pub fn render_consistency(
     cameras: &[Camera],
-    renders: &[RenderOutput],
+    renders: &[impl Rendered],
     settings: &WarpSettings,
 ) -> Result<ConsistencyReport, MetricsError> {
     if cameras.len() != renders.len() {

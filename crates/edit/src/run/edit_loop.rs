@@ -6,7 +6,8 @@ use std::time::Instant;
 use rand::seq::SliceRandom;
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
-use splat::render::{render, RenderOutput, RenderSettings};
+use splat::gpu::HostFrame;
+use splat::render::RenderSettings;
 use splat::{Camera, GaussianScene, Image};
 
 use crate::consistency::{ConsistencySettings, EcmFitter, MultiView, MultiViewOutcome, Stage};
@@ -47,9 +48,11 @@ pub fn run_edit(
         loss,
         out,
     };
+    let compute = &model.compute;
     let (mut trainer, mut state, resumed_from) = run.start(scene, cameras, resume, progress)?;
+    trainer.device = compute.splat().cloned();
     let cams: Vec<Camera> = state.views.iter().map(|&i| cameras[i].clone()).collect();
-    let before = render_views(scene, &cams, job.background);
+    let before = compute.render_images(scene, &cams, job.background)?;
     let mut guidance = outputs::read_guidance(out, state.iterations_done, cams.len())?;
 
     for k in state.iterations_done..job.iterations {
@@ -61,10 +64,7 @@ pub fn run_edit(
         let settings = RenderSettings {
             background: job.background,
         };
-        let renders: Vec<RenderOutput> = cams
-            .iter()
-            .map(|c| render(trainer.scene(), c, &settings, None))
-            .collect();
+        let renders = compute.render_views(trainer.scene(), &cams, &settings, None)?;
         let sources: Vec<Image> = renders.iter().map(|r| r.rgb_image()).collect();
         progress.advance(cams.len() as u64);
         times.render = t.elapsed().as_secs_f64();
@@ -236,7 +236,7 @@ impl Run<'_> {
 fn guidance_consistency(
     images: &[Image],
     cams: &[Camera],
-    renders: &[RenderOutput],
+    renders: &[HostFrame],
 ) -> Option<ConsistencySummary> {
     let geometry: Vec<ViewGeometry> = cams
         .iter()
@@ -281,11 +281,14 @@ fn editable_mask(
         }
         MaskSource::Dir(dir) => {
             let maps = masks::load_mask_images(dir, cams)?;
-            masks::threshold(&masks::lift_maps(scene, cams, &maps), job.mask_threshold)
+            masks::threshold(
+                &masks::lift_maps(&model.compute, scene, cams, &maps)?,
+                job.mask_threshold,
+            )
         }
         MaskSource::Word(word) => {
             progress.stage("mask: attention to the mask word", cams.len() as u64);
-            let images = render_views(scene, cams, job.background);
+            let images = model.compute.render_images(scene, cams, job.background)?;
             let (w, h) = job.size;
             let plan = EditPlan::new(model, &job.prompts, &job.infedit, (w as usize, h as usize))?;
             let mut noise = SeededNoise::new(job.seed_for(0, SeedPurpose::Mask));
@@ -301,7 +304,10 @@ fn editable_mask(
                 &mut noise,
             )?;
             progress.advance(cams.len() as u64);
-            masks::threshold(&masks::lift_maps(scene, cams, &maps), job.mask_threshold)
+            masks::threshold(
+                &masks::lift_maps(&model.compute, scene, cams, &maps)?,
+                job.mask_threshold,
+            )
         }
     };
     let n = mask.iter().filter(|&&m| m).count();
@@ -324,15 +330,6 @@ fn select_views(n: usize, max: usize, seed: u64) -> Vec<usize> {
         idx.sort_unstable();
     }
     idx
-}
-
-/// Renders `scene` from every camera over `background` as RGB images.
-fn render_views(scene: &GaussianScene, cameras: &[Camera], background: [f32; 3]) -> Vec<Image> {
-    let settings = RenderSettings { background };
-    cameras
-        .iter()
-        .map(|c| Image::from_data(c.width, c.height, 3, render(scene, c, &settings, None).rgb))
-        .collect()
 }
 
 /// The INRIA trainer's scene extent: 1.1 × the largest distance of a camera centre from their mean.

@@ -120,6 +120,8 @@ pub enum RunError {
     Train(#[from] TrainError),
     #[error("{0}")]
     Candle(#[from] candle_core::Error),
+    #[error(transparent)]
+    Gpu(#[from] splat::gpu::GpuError),
 }
 
 pub(super) fn io_err(path: &Path, e: impl std::fmt::Display) -> RunError {

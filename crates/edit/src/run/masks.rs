@@ -8,10 +8,11 @@ use std::path::Path;
 
 use candle_core::{DType, Device, Tensor};
 use diffusion::unet::{AttentionHook, AttnCall, AttnKind};
-use splat::lift::LiftAccumulator;
+use splat::gpu::GpuError;
 use splat::render::{render, ExtraChannels, RenderSettings};
 use splat::{Camera, GaussianScene, Image};
 
+use crate::compute::Compute;
 use crate::present::viz::resize_map;
 use crate::sampler::{image_to_tensor, EditModel, NoiseSource};
 
@@ -28,6 +29,8 @@ pub enum MaskError {
     Image(#[from] splat::image::ImageError),
     #[error("{0}")]
     Candle(#[from] candle_core::Error),
+    #[error(transparent)]
+    Gpu(#[from] GpuError),
 }
 
 /// An axis-aligned box `[min, max]`.
@@ -80,12 +83,17 @@ pub fn threshold(values: &[f32], threshold: f32) -> Vec<bool> {
 }
 
 /// Lifts single-channel per-view maps (each H*W for its camera) onto the Gaussians.
-pub fn lift_maps(scene: &GaussianScene, cameras: &[Camera], maps: &[Vec<f32>]) -> Vec<f32> {
-    let mut acc = LiftAccumulator::new(scene, 1);
+pub fn lift_maps(
+    compute: &Compute,
+    scene: &GaussianScene,
+    cameras: &[Camera],
+    maps: &[Vec<f32>],
+) -> Result<Vec<f32>, GpuError> {
+    let mut acc = compute.lifter(scene, 1);
     for (cam, m) in cameras.iter().zip(maps) {
-        acc.add_view(cam, m);
+        acc.add_view(cam, m)?;
     }
-    acc.finish().values
+    Ok(acc.finish()?.values)
 }
 
 /// Per-view mask images from a folder: `<camera name>.png` (or .jpg), white = editable, resized to the camera.
@@ -196,7 +204,7 @@ pub fn word_attention_maps(
         .encode_strict(prompt)
         .map_err(|e| MaskError::Invalid(e.to_string()))?;
     let ids = diffusion::clip::ids_tensor(&[enc], &Device::Cpu)?;
-    let context = model.text_encoder.forward(&ids)?.to_dtype(DType::F32)?;
+    let context = model.encode_text(&ids)?;
     let sched = diffusion::scheduler::LcmScheduler::new(
         model.scheduler_config.clone(),
         diffusion::scheduler::LcmVariant::Diffusers022,
@@ -218,9 +226,7 @@ pub fn word_attention_maps(
             layers: 0,
         };
         let ts = Tensor::new(&[t as f32], &Device::Cpu)?;
-        model
-            .unet
-            .forward(&zt, &ts, &context, None, Some(&mut rec))?;
+        model.predict(&zt, &ts, &context, Some(&mut rec))?;
         let sum = rec.sum.ok_or_else(|| {
             MaskError::Invalid("the UNet has no cross-attention at the blend resolution".into())
         })?;

@@ -20,13 +20,18 @@ pub struct WorkPlan {
     pub fit_steps: usize,
     pub lifts: usize,
     pub memory_bytes: u64,
+    /// GPU memory the run needs on its device (`None` on the CPU).
+    pub gpu_memory_bytes: Option<u64>,
 }
 
 impl WorkPlan {
     pub fn describe(&self) -> String {
+        let gpu = self.gpu_memory_bytes.map_or(String::new(), |b| {
+            format!(", GPU memory ≈ {:.1} GB", b as f64 / 1e9)
+        });
         format!(
             "work: {} views × {} iterations: {} UNet calls (batch 6), {} renders, {} lifting passes, {} fitting steps; \
-             memory needed ≈ {:.1} GB",
+             memory needed ≈ {:.1} GB{gpu}",
             self.views,
             self.iterations,
             self.unet_calls,
@@ -99,6 +104,13 @@ pub fn work_plan(
     let lpips = LPIPS_BUDGET.min(v as u64 * w * h * 4 * 128);
     let memory_bytes =
         weights + unet + v as u64 * per_view + images + train + lift + lpips + 300_000_000;
+    // On a GPU: the networks' weights (f32 copies in the device cache), one batch-6 UNet pass (flash
+    // self-attention keeps no probability matrix; the maps the hook reads are at most 32² × 77), the scene
+    // being fitted with its gradients (the optimiser stays on the host), one lifting's sums and one frame.
+    let gpu_memory_bytes = model.compute.networks().map(|_| {
+        let frame = w * h * 4 * (3 + 1 + 1 + 3 * heads * 8);
+        weights + unet + params * 3 + n * 4 * (3 * heads * 8 + 1) + frame + 100_000_000
+    });
     WorkPlan {
         views: v,
         iterations: job.iterations,
@@ -107,6 +119,7 @@ pub fn work_plan(
         fit_steps,
         lifts,
         memory_bytes,
+        gpu_memory_bytes,
     }
 }
 

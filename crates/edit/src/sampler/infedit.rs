@@ -10,7 +10,7 @@
 //! σ² = η(1−ᾱ_prev);  dir = √(1−ᾱ_prev−σ²)(ε_B − ε_S + ε_c);
 //! z_B ← √ᾱ_prev x̂0_B + dir + σ n;  z_S ← √ᾱ_prev x0 + dir + σ n   (the same n for every branch).
 
-use candle_core::{DType, Device, Tensor};
+use candle_core::{Device, Tensor};
 use diffusion::scheduler::{LcmScheduler, LcmVariant};
 
 use super::align::{align_prompts, AlignError, AlignInputs, TokenAlignment};
@@ -196,7 +196,7 @@ impl EditPlan {
         let device = Device::Cpu;
         let ids =
             diffusion::clip::ids_tensor(&[enc_pos, enc_neg, enc_source, enc_target], &device)?;
-        let hidden = model.text_encoder.forward(&ids)?.to_dtype(DType::F32)?;
+        let hidden = model.encode_text(&ids)?;
         let (pos, neg, src, tgt) = (
             hidden.get(0)?,
             hidden.get(1)?,
@@ -350,13 +350,7 @@ impl EditPlan {
         };
         let t = Tensor::new(&[self.timesteps[i] as f32], &Device::Cpu)?;
         // The reference does not pass LCM's guidance embedding (timestep_cond); classic CFG is done here.
-        let out = model.unet.forward(
-            &input,
-            &t,
-            &self.embeddings,
-            None,
-            Some(&mut view.controller),
-        )?;
+        let out = model.predict(&input, &t, &self.embeddings, Some(&mut view.controller))?;
         if !self.cfg {
             return Ok([
                 out.get(0)?.unsqueeze(0)?,

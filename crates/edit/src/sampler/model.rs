@@ -9,11 +9,12 @@ use diffusion::clip::ClipTextModel;
 use diffusion::loader::{Component, ModelDir};
 use diffusion::scheduler::LcmConfig;
 use diffusion::tokenizer::ClipTokenizer;
-use diffusion::unet::UNet2DConditionModel;
+use diffusion::unet::{AttentionHook, UNet2DConditionModel};
 use diffusion::vae::Autoencoder;
 use splat::Image;
 
 use super::noise::NoiseSource;
+use crate::compute::Compute;
 
 #[derive(Debug, thiserror::Error)]
 pub enum ModelError {
@@ -50,6 +51,8 @@ pub struct EditModel {
     pub scheduler_config: LcmConfig,
     /// Parameters of the UNet, text encoder and codec (held in f32).
     pub parameters: u64,
+    /// Where the networks (and the run's renders and fits) run: the CPU unless [`Self::on`] says else.
+    pub compute: Compute,
 }
 
 impl EditModel {
@@ -107,7 +110,39 @@ impl EditModel {
             codec_is_vae: taesd.is_none(),
             scheduler_config,
             parameters,
+            compute: Compute::cpu(),
         })
+    }
+
+    /// The model with its networks (and the run's splatting) on `compute`'s device.
+    pub fn on(mut self, compute: Compute) -> Self {
+        self.compute = compute;
+        self
+    }
+
+    /// Text embeddings (`last_hidden_state`, f32) of token ids [B, S].
+    pub fn encode_text(&self, ids: &Tensor) -> candle_core::Result<Tensor> {
+        self.text_encoder
+            .forward_skip_on(ids, 0, self.compute.networks())?
+            .to_dtype(DType::F32)
+    }
+
+    /// The UNet's prediction for `sample` (see [`UNet2DConditionModel::forward`]) on the model's device.
+    pub fn predict(
+        &self,
+        sample: &Tensor,
+        timesteps: &Tensor,
+        context: &Tensor,
+        hook: Option<&mut (dyn AttentionHook + '_)>,
+    ) -> candle_core::Result<Tensor> {
+        self.unet.forward_on(
+            sample,
+            timesteps,
+            context,
+            None,
+            hook,
+            self.compute.networks(),
+        )
     }
 
     /// Latent channels of the UNet input (4 for SD; 8-channel InstructPix2Pix UNets take image latents too).
@@ -128,21 +163,27 @@ impl EditModel {
         noise: &mut dyn NoiseSource,
     ) -> candle_core::Result<Tensor> {
         let err = |e: diffusion::vae::VaeError| candle_core::Error::Msg(e.to_string());
+        let device = self.compute.networks();
         match &self.codec {
             Autoencoder::Kl(vae) => {
                 let (b, _, h, w) = image.dims4()?;
                 let f = self.downscale();
                 let n = noise.sample(&[b, vae.config().latent_channels, h / f, w / f])?;
-                vae.encode_sample_scaled(image, &n).map_err(err)
+                self.codec
+                    .encode_scaled_on(image, Some(&n), device)
+                    .map_err(err)
             }
-            Autoencoder::Tiny(_) => self.codec.encode_scaled(image).map_err(err),
+            Autoencoder::Tiny(_) => self
+                .codec
+                .encode_scaled_on(image, None, device)
+                .map_err(err),
         }
     }
 
     /// Decodes UNet latents to images in [-1, 1] (unclamped).
     pub fn decode(&self, latents: &Tensor) -> candle_core::Result<Tensor> {
         self.codec
-            .decode_scaled(latents)
+            .decode_scaled_on(latents, self.compute.networks())
             .map_err(|e| candle_core::Error::Msg(e.to_string()))
     }
 

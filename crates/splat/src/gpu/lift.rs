@@ -6,6 +6,7 @@ use super::{arg, project_and_bin, GpuContext, GpuError, GpuScene, TILE};
 use crate::lift::Lifted;
 use crate::{Camera, GaussianScene};
 use ::gpu::cubecl::prelude::*;
+use ::gpu::cubecl::server::Handle;
 use ::gpu::gpu_call;
 use ::gpu::prims::{read_f32, read_u32, upload_f32, zeros32};
 
@@ -21,21 +22,57 @@ pub fn lift(
     channels: usize,
 ) -> Result<Lifted, GpuError> {
     assert_eq!(cameras.len(), maps.len(), "one map per camera");
-    let c = &ctx.client;
-    let n = scene.len();
-    let dev = GpuScene::upload(ctx, scene);
-    let sums = zeros32(c, n * channels);
-    let counts = zeros32(c, n);
-    gpu_call(|| {
-        for (cam, map) in cameras.iter().zip(maps) {
-            let npix = (cam.width * cam.height) as usize;
-            assert_eq!(map.len(), npix * channels, "map must be H*W*C");
-            if npix == 0 || n == 0 {
-                continue;
-            }
-            let b = project_and_bin(ctx, &dev, cam)?;
+    let mut acc = GpuLiftAccumulator::new(ctx, scene, channels);
+    for (cam, map) in cameras.iter().zip(maps) {
+        acc.add_view(ctx, cam, map)?;
+    }
+    acc.finish(ctx)
+}
+
+/// Lifting one view at a time (the GPU twin of [`crate::lift::LiftAccumulator`]): the scene and the
+/// per-Gaussian sums stay on the device, so only one view's map is ever held on the host.
+pub struct GpuLiftAccumulator {
+    scene: GpuScene,
+    n: usize,
+    channels: usize,
+    sums: Handle,
+    counts: Handle,
+}
+
+impl GpuLiftAccumulator {
+    /// Uploads `scene` with zeroed sums for `channels` channels.
+    pub fn new(ctx: &GpuContext, scene: &GaussianScene, channels: usize) -> Self {
+        let n = scene.len();
+        Self {
+            scene: GpuScene::upload(ctx, scene),
+            n,
+            channels,
+            sums: zeros32(&ctx.client, n * channels),
+            counts: zeros32(&ctx.client, n),
+        }
+    }
+
+    /// Adds `map` (H*W*C) seen from `cam`.
+    ///
+    /// # Panics
+    /// When the map has the wrong size (a programming error).
+    pub fn add_view(
+        &mut self,
+        ctx: &GpuContext,
+        cam: &Camera,
+        map: &[f32],
+    ) -> Result<(), GpuError> {
+        let c = &ctx.client;
+        let (n, channels) = (self.n, self.channels);
+        let npix = (cam.width * cam.height) as usize;
+        assert_eq!(map.len(), npix * channels, "map must be H*W*C");
+        if npix == 0 || n == 0 {
+            return Ok(());
+        }
+        gpu_call(|| {
+            let b = project_and_bin(ctx, &self.scene, cam)?;
             if b.intersections == 0 {
-                continue;
+                return Ok(());
             }
             let map = upload_f32(c, map);
             let num_tiles = (b.tiles_x * b.tiles_y) as usize;
@@ -51,24 +88,33 @@ pub fn lift(
                 cam.width,
                 cam.height,
                 b.tiles_x,
-                arg(&sums, n * channels),
-                arg(&counts, n),
+                arg(&self.sums, n * channels),
+                arg(&self.counts, n),
                 channels as u32,
             );
-        }
-        let counts: Vec<f32> = read_u32(c, &counts, n)?
-            .into_iter()
-            .map(|k| k as f32)
-            .collect();
-        let mut values = read_f32(c, &sums, n * channels)?;
-        if channels > 0 {
-            for (row, &k) in values.chunks_mut(channels).zip(&counts) {
-                let inv = 1.0 / (k + 1e-7);
-                for v in row {
-                    *v *= inv;
+            Ok(())
+        })
+    }
+
+    /// The per-Gaussian averages and hit counts, read back.
+    pub fn finish(self, ctx: &GpuContext) -> Result<Lifted, GpuError> {
+        let c = &ctx.client;
+        let (n, channels) = (self.n, self.channels);
+        gpu_call(|| {
+            let counts: Vec<f32> = read_u32(c, &self.counts, n)?
+                .into_iter()
+                .map(|k| k as f32)
+                .collect();
+            let mut values = read_f32(c, &self.sums, n * channels)?;
+            if channels > 0 {
+                for (row, &k) in values.chunks_mut(channels).zip(&counts) {
+                    let inv = 1.0 / (k + 1e-7);
+                    for v in row {
+                        *v *= inv;
+                    }
                 }
             }
-        }
-        Ok(Lifted { values, counts })
-    })
+            Ok(Lifted { values, counts })
+        })
+    }
 }

@@ -36,7 +36,7 @@ pub use ::gpu::{
     list_adapters, open, DeviceChoice, GpuContext, GpuError, ALLOW_SOFTWARE_ENV, DEVICE_ENV,
 };
 pub use densify::GpuDensifyStats;
-pub use lift::lift;
+pub use lift::{lift, GpuLiftAccumulator};
 pub use loss::{l1_dssim, GpuLoss};
 pub use optim::GpuAdam;
 use project::{CAM_F, GRAD_F, INFO_U, SPLAT_F};
