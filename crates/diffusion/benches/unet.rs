@@ -254,6 +254,17 @@ fn main() {
                 cpu_times.push(cpu);
             }
         }
+        if let Some(device) = &device {
+            let estimate = config
+                .activation_estimate(batch, size, size, 77, false)
+                .unwrap();
+            eprintln!(
+                "  GPU memory: weights {:.0} MB ({} weights), activations estimated {:.0} MB",
+                device.weight_bytes() as f64 / 1e6,
+                device.precision(),
+                estimate.total() as f64 / 1e6
+            );
+        }
         cpu_times.sort_by(|a, b| a.partial_cmp(b).unwrap());
         times.sort_by(|a, b| a.partial_cmp(b).unwrap());
         println!(
