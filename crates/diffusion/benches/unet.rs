@@ -2,6 +2,9 @@
 //! memory of loading SD 1.5 weights stored in f16.
 //!
 //! `cargo bench -p vcedit-diffusion --bench unet [-- --batches 1,6 --runs 2 --size 64]`
+//! `-- --device gpu` runs the forward on the GPU (VCEDIT_DEVICE rules: lavapipe needs
+//! VCEDIT_ALLOW_SOFTWARE_GPU=1 or an explicit `gpu`); `-- --small` shrinks the channels to
+//! [64, 128, 256, 256] (same blocks, heads and context), a UNet lavapipe runs in seconds.
 //! Prints one `RESULT {json}` line per measurement (tools/bench_unet_torch.py --compare parses them).
 //! Thread count: RAYON_NUM_THREADS (candle's matmul and our kernels use the rayon pool).
 //!
@@ -42,6 +45,13 @@ const SD15_UNET_CONFIG: &str = r#"{
 
 fn config() -> UNetConfig {
     UNetConfig::from_json(SD15_UNET_CONFIG).expect("embedded SD 1.5 config parses")
+}
+
+/// The SD 1.5 architecture with a fifth of its channels (for software GPUs).
+fn small_config() -> UNetConfig {
+    let mut c = config();
+    c.block_out_channels = vec![64, 128, 256, 256];
+    c
 }
 
 /// Hands out deterministic pseudo-random weights (uniform, variance 1/fan_in; norm weights near 1) by name,
@@ -100,7 +110,7 @@ impl SimpleBackend for RandomWeights {
 }
 
 /// Builds the SD 1.5 UNet with random weights; also returns the weights by name.
-fn random_model() -> (UNet2DConditionModel, HashMap<String, Tensor>) {
+fn random_model(config: &UNetConfig) -> (UNet2DConditionModel, HashMap<String, Tensor>) {
     let backend = std::sync::Arc::new(RandomWeights {
         made: Mutex::new(HashMap::new()),
     });
@@ -109,7 +119,7 @@ fn random_model() -> (UNet2DConditionModel, HashMap<String, Tensor>) {
         DType::F32,
         Device::Cpu,
     );
-    let model = UNet2DConditionModel::load(&config(), vb).expect("SD 1.5 UNet builds");
+    let model = UNet2DConditionModel::load(config, vb).expect("SD 1.5 UNet builds");
     let weights = std::mem::take(&mut *backend.made.lock().unwrap());
     (model, weights)
 }
@@ -202,15 +212,27 @@ fn main() {
     let size: usize = arg_value(&args, "--size")
         .map(|r| r.parse().unwrap())
         .unwrap_or(64);
+    let small = args.iter().any(|a| a == "--small");
+    let device = match arg_value(&args, "--device").as_deref() {
+        None | Some("cpu") => None,
+        Some(choice) => {
+            let choice: gpu::DeviceChoice = choice.parse().expect("--device cpu|gpu|auto");
+            diffusion::device::GpuDevice::open(choice).expect("a GPU opens")
+        }
+    };
     // Recommended for any inference binary (see its doc comment).
     diffusion::runtime::tune_allocator_for_inference();
     let threads = candle_core::utils::get_num_threads();
-    eprintln!(
-        "unet bench: SD 1.5 config, {size}x{size} latents, {threads} threads, {runs} timed runs"
+    let on = device.as_ref().map_or_else(
+        || format!("CPU, {threads} threads"),
+        |d| d.name().to_string(),
     );
+    let which = if small { "small SD 1.5" } else { "SD 1.5" };
+    eprintln!("unet bench: {which} config, {size}x{size} latents, {on}, {runs} timed runs");
 
     let start = Instant::now();
-    let (model, weights) = random_model();
+    let config = if small { small_config() } else { config() };
+    let (model, weights) = random_model(&config);
     eprintln!("  random weights: {:.1} s", start.elapsed().as_secs_f64());
     for &batch in &batches {
         let sample = Tensor::randn(0f32, 1.0, (batch, 4, size, size), &Device::Cpu).unwrap();
@@ -220,7 +242,9 @@ fn main() {
         let mut cpu_times = Vec::new();
         for run in 0..=runs {
             let (start, cpu_start) = (Instant::now(), cpu_seconds());
-            let out = model.forward(&sample, &t, &context, None, None).unwrap();
+            let out = model
+                .forward_on(&sample, &t, &context, None, None, device.as_ref())
+                .unwrap();
             let (secs, cpu) = (start.elapsed().as_secs_f64(), cpu_seconds() - cpu_start);
             assert_eq!(out.dims(), &[batch, 4, size, size]);
             let note = if run == 0 { " (warm-up)" } else { "" };
@@ -230,10 +254,22 @@ fn main() {
                 cpu_times.push(cpu);
             }
         }
+        if let Some(device) = &device {
+            let estimate = config
+                .activation_estimate(batch, size, size, 77, false)
+                .unwrap();
+            eprintln!(
+                "  GPU memory: weights {:.0} MB ({} weights), activations estimated {:.0} MB",
+                device.weight_bytes() as f64 / 1e6,
+                device.precision(),
+                estimate.total() as f64 / 1e6
+            );
+        }
         cpu_times.sort_by(|a, b| a.partial_cmp(b).unwrap());
         times.sort_by(|a, b| a.partial_cmp(b).unwrap());
         println!(
-            "RESULT {{\"impl\":\"candle\",\"what\":\"forward\",\"batch\":{batch},\"size\":{size},\"threads\":{threads},\"seconds\":{:.3},\"cpu_seconds\":{:.2},\"peak_rss_mb\":{:.0}}}",
+            "RESULT {{\"impl\":\"{}\",\"what\":\"forward\",\"batch\":{batch},\"size\":{size},\"threads\":{threads},\"seconds\":{:.3},\"cpu_seconds\":{:.2},\"peak_rss_mb\":{:.0}}}",
+            if device.is_some() { "vcedit-gpu" } else { "candle" },
             times[0],
             cpu_times[0],
             peak_rss_mb()
@@ -241,7 +277,7 @@ fn main() {
     }
     drop(model);
 
-    if args.iter().any(|a| a == "--skip-load") {
+    if small || device.is_some() || args.iter().any(|a| a == "--skip-load") {
         drop(weights);
         return;
     }

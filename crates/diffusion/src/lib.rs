@@ -7,7 +7,7 @@ pub mod clip;
 mod kernels;
 /// Where a network runs: [`DeviceTensor`](device::DeviceTensor) on the CPU or a [`GpuDevice`](device::GpuDevice).
 pub mod device {
-    pub use crate::kernels::gpu::{ops, GpuDevice, GpuTensor};
+    pub use crate::kernels::gpu::{ops, GpuDevice, GpuTensor, Precision, UnknownPrecision};
     pub use crate::kernels::DeviceTensor;
 }
 mod layers;

@@ -235,60 +235,64 @@ fn lcm_without_condition_matches_diffusers() {
 }
 
 /// One definition on both devices: the tiny UNets on the GPU (lavapipe in CI) match the CPU to f32
-/// precision without a hook (flash attention), with a hook that reads every probability map (explicit
-/// probabilities, read back to the CPU) and with one that rewrites K/V (mutual self-attention).
+/// precision (to 1e-2 with f16 weights) without a hook (flash attention), with a hook that reads every
+/// probability map (explicit probabilities, read back to the CPU) and with one that rewrites K/V (mutual
+/// self-attention).
 #[test]
 fn tiny_unet_on_gpu_matches_cpu() {
-    let Some(gpu) = common::gpu_or_skip() else {
-        return;
-    };
-    for name in ["tiny-lcm", "tiny-ip2p"] {
-        let model = load_model(name);
-        let fx = load_fixture(name);
-        let on = |hook: Option<&mut dyn AttentionHook>, device| {
-            model
-                .forward_on(
-                    &fx["sample"],
-                    &fx["timesteps"],
-                    &fx["encoder_hidden_states"],
-                    fx.get("timestep_cond"),
-                    hook,
-                    device,
-                )
-                .unwrap()
-        };
-        let plain = common::relative_error(&on(None, Some(&gpu)), &on(None, None));
-        let capture = || Capture {
-            wanted: layers_with_prefix(&fx, "probs.").into_iter().collect(),
-            seen: HashMap::new(),
-            calls: Vec::new(),
-        };
-        let (mut on_cpu, mut on_gpu) = (capture(), capture());
-        let want = on(Some(&mut on_cpu), None);
-        let maps = common::relative_error(&on(Some(&mut on_gpu), Some(&gpu)), &want);
-        assert_eq!(
-            on_cpu.calls, on_gpu.calls,
-            "{name}: the hook sees the same calls"
-        );
-        let mut map_err = 0f32;
-        for (layer, (_, probs)) in &on_cpu.seen {
-            map_err = map_err.max(common::relative_error(&on_gpu.seen[layer].1, probs));
-        }
-        let swapped = common::relative_error(
-            &on(Some(&mut SwapLastKv), Some(&gpu)),
-            &on(Some(&mut SwapLastKv), None),
-        );
-        println!(
-            "{name} on {}: relative errors plain {plain:.2e}, hooked {maps:.2e}, maps {map_err:.2e}, swapped K/V {swapped:.2e}",
+    for (gpu, tolerance) in common::gpus_or_skip() {
+        for name in ["tiny-lcm", "tiny-ip2p"] {
+            let model = load_model(name);
+            let fx = load_fixture(name);
+            let on = |hook: Option<&mut dyn AttentionHook>, device| {
+                model
+                    .forward_on(
+                        &fx["sample"],
+                        &fx["timesteps"],
+                        &fx["encoder_hidden_states"],
+                        fx.get("timestep_cond"),
+                        hook,
+                        device,
+                    )
+                    .unwrap()
+            };
+            let plain = common::relative_error(&on(None, Some(&gpu)), &on(None, None));
+            let capture = || Capture {
+                wanted: layers_with_prefix(&fx, "probs.").into_iter().collect(),
+                seen: HashMap::new(),
+                calls: Vec::new(),
+            };
+            let (mut on_cpu, mut on_gpu) = (capture(), capture());
+            let want = on(Some(&mut on_cpu), None);
+            let maps = common::relative_error(&on(Some(&mut on_gpu), Some(&gpu)), &want);
+            assert_eq!(
+                on_cpu.calls, on_gpu.calls,
+                "{name}: the hook sees the same calls"
+            );
+            let mut map_err = 0f32;
+            for (layer, (_, probs)) in &on_cpu.seen {
+                map_err = map_err.max(common::relative_error(&on_gpu.seen[layer].1, probs));
+            }
+            let swapped = common::relative_error(
+                &on(Some(&mut SwapLastKv), Some(&gpu)),
+                &on(Some(&mut SwapLastKv), None),
+            );
+            let precision = gpu.precision();
+            println!(
+            "{name} on {}, {precision} weights: relative errors plain {plain:.2e}, hooked {maps:.2e}, maps {map_err:.2e}, swapped K/V {swapped:.2e}",
             gpu.name()
         );
-        for (what, err) in [
-            ("plain", plain),
-            ("hooked", maps),
-            ("maps", map_err),
-            ("swapped", swapped),
-        ] {
-            assert!(err <= 1e-4, "{name} {what}: relative error {err}");
+            for (what, err) in [
+                ("plain", plain),
+                ("hooked", maps),
+                ("maps", map_err),
+                ("swapped", swapped),
+            ] {
+                assert!(
+                    err <= tolerance,
+                    "{name} {what}, {precision} weights: relative error {err}"
+                );
+            }
         }
     }
 }

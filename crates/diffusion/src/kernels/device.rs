@@ -62,10 +62,18 @@ impl DeviceTensor {
         }
     }
 
-    /// A weight (or any CPU constant) on this tensor's device.
+    /// A weight (or any CPU constant) on this tensor's device, in f32.
     fn constant(&self, t: &Tensor) -> Result<GpuTensor> {
         match self {
             DeviceTensor::Gpu(g) => g.device().cached(t),
+            DeviceTensor::Cpu(_) => unreachable!("constants are only needed on the GPU"),
+        }
+    }
+
+    /// The weight of a matrix product on this tensor's device, in the device's precision.
+    fn matrix_constant(&self, t: &Tensor) -> Result<GpuTensor> {
+        match self {
+            DeviceTensor::Gpu(g) => g.device().cached_matrix(t),
             DeviceTensor::Cpu(_) => unreachable!("constants are only needed on the GPU"),
         }
     }
@@ -261,7 +269,13 @@ impl DeviceTensor {
             |t| super::conv2d(t, weight, bias, stride, padding),
             |g| {
                 let bias = bias.map(|b| self.constant(b)).transpose()?;
-                ops::conv2d(g, &self.constant(weight)?, bias.as_ref(), stride, padding)
+                ops::conv2d(
+                    g,
+                    &self.matrix_constant(weight)?,
+                    bias.as_ref(),
+                    stride,
+                    padding,
+                )
             },
         )
     }
@@ -272,7 +286,7 @@ impl DeviceTensor {
             |t| candle_core::Module::forward(layer, t),
             |g| {
                 let bias = layer.bias().map(|b| self.constant(b)).transpose()?;
-                ops::linear(g, &self.constant(layer.weight())?, bias.as_ref())
+                ops::linear(g, &self.matrix_constant(layer.weight())?, bias.as_ref())
             },
         )
     }

@@ -7,6 +7,7 @@ mod attention;
 mod blocks;
 mod config;
 mod embeddings;
+mod memory;
 mod transformer;
 
 use std::path::{Path, PathBuf};
@@ -17,6 +18,7 @@ use candle_nn::VarBuilder;
 pub use attention::{AttentionHook, AttnCall, AttnKind};
 use blocks::{BlockAttention, DownBlock, MidBlock, ResnetShared, UpBlock};
 pub use config::UNetConfig;
+pub use memory::ActivationEstimate;
 use config::{BlockKind, ResolvedBlocks};
 use embeddings::{timestep_embedding, TimestepEmbedding};
 

@@ -7,6 +7,7 @@ use std::collections::HashMap;
 use std::path::{Path, PathBuf};
 
 use candle_core::{Device, Tensor};
+use diffusion::device::Precision;
 
 /// A folder in the original `taesd.py` layout (`taesd_encoder.safetensors` + `taesd_decoder.safetensors`)
 /// holding the tiny random bf16 weights. They are committed as one file with `encoder.`/`decoder.` key
@@ -44,9 +45,27 @@ pub fn max_abs_diff(a: &Tensor, b: &Tensor) -> f32 {
         .unwrap()
 }
 
-/// The test GPU (lavapipe in CI), or `None` after one printed line when there is no Vulkan device.
+/// The test GPU (lavapipe in CI) with f32 weights, or `None` after one printed line when there is no
+/// Vulkan device.
 pub fn gpu_or_skip() -> Option<diffusion::device::GpuDevice> {
-    gpu::testing::context_or_skip().map(diffusion::device::GpuDevice::new)
+    gpu::testing::context_or_skip()
+        .map(|ctx| diffusion::device::GpuDevice::with_precision(ctx, Precision::F32))
+}
+
+/// The test GPU twice, each with the relative error its output may have against the CPU: f32 weights
+/// (1e-4, the CPU's numbers up to summation order) and f16 weights with f32 arithmetic (1e-2). Empty
+/// after one printed line when there is no Vulkan device.
+pub fn gpus_or_skip() -> Vec<(diffusion::device::GpuDevice, f32)> {
+    let Some(ctx) = gpu::testing::context_or_skip() else {
+        return Vec::new();
+    };
+    [(Precision::F32, 1e-4), (Precision::F16, 1e-2)]
+        .into_iter()
+        .map(|(p, tolerance)| {
+            let device = diffusion::device::GpuDevice::with_precision(ctx.clone(), p);
+            (device, tolerance)
+        })
+        .collect()
 }
 
 /// Max abs difference relative to the reference's max abs value.

@@ -1,4 +1,4 @@
-//! CubeCL kernels of the GPU path (f32 storage, f32 accumulation). Every tensor is a contiguous row-major
+//! CubeCL kernels of the GPU path (f32 activations, f32 or packed-f16 weights, f32 accumulation). Every tensor is a contiguous row-major
 //! buffer; shapes and strides travel in a small `meta` buffer of u32 so one compiled kernel serves every
 //! shape. Launch sizes are 2D (`CUBE_COUNT_X` ≤ 65535), read back as one linear position by [`linear_pos`].
 //!
@@ -11,8 +11,14 @@ use cubecl::prelude::*;
 pub const ELEMENTWISE_UNITS: u32 = 256;
 /// Units per cube of the row reductions (norms, softmax): one cube per row or group.
 pub const REDUCE_UNITS: u32 = 128;
-/// Side of the square output tile of [`matmul`]; the cube has `MATMUL_TILE²` units.
-pub const MATMUL_TILE: u32 = 16;
+/// Units per side of a [`matmul`] cube (`MATMUL_UNITS²` units).
+pub const MATMUL_UNITS: u32 = 16;
+/// Side of the block of outputs each [`matmul`] unit computes in registers.
+pub const MATMUL_REG: u32 = 4;
+/// Side of the square output tile of one [`matmul`] cube.
+pub const MATMUL_TILE: u32 = MATMUL_UNITS * MATMUL_REG;
+/// Depth (along k) of the shared-memory slices of A and B in [`matmul`].
+pub const MATMUL_DEPTH: u32 = 16;
 /// Query rows per cube and keys per shared-memory tile of [`flash_attention`].
 pub const ATTENTION_QUERIES: u32 = 32;
 pub const ATTENTION_KEYS: u32 = 16;
@@ -185,64 +191,163 @@ pub fn upsample_nearest(x: &[f32], out: &mut [f32], meta: &[u32]) {
     }
 }
 
+/// Element `index` of a matrix operand held as f32 words, or as f16 halves packed two per word (see
+/// `precision::pack_f16`), as f32.
+#[cube]
+fn load_operand(buf: &[u32], index: u32, #[comptime] half: bool) -> f32 {
+    if comptime!(half) {
+        let word = buf[(index / 2) as usize];
+        f16_bits_to_f32((word >> ((index % 2) * 16)) & 0xFFFFu32)
+    } else {
+        f32::reinterpret(buf[index as usize])
+    }
+}
+
+/// The f32 value of f16 `bits` with bit operations only (no `shader-f16` needed). Weights are finite,
+/// so infinities and NaNs are not decoded.
+#[cube]
+fn f16_bits_to_f32(bits: u32) -> f32 {
+    let sign = (bits & 0x8000u32) << 16u32;
+    let exponent = (bits >> 10u32) & 0x1Fu32;
+    let mantissa = bits & 0x3FFu32;
+    // Normal numbers: the exponent rebiased from 15 to 127, the mantissa widened.
+    let normal = f32::reinterpret(sign | ((exponent + 112u32) << 23u32) | (mantissa << 13u32));
+    // Zero and subnormals: mantissa · 2⁻²⁴, exact in f32 without relying on f32 subnormals.
+    let magnitude = f32::cast_from(mantissa) * 5.9604645e-8f32;
+    let small = if sign != 0u32 { -magnitude } else { magnitude };
+    if exponent == 0u32 {
+        small
+    } else {
+        normal
+    }
+}
+
 /// Batched `out[b] = alpha · A[b] B[b] (+ bias)`, out contiguous [batch, m, n]; A and B are read through
 /// strides, so transposes and broadcast operands need no copy.
 /// `meta = [batch, m, n, k, a_batch, a_row, a_col, b_batch, b_row, b_col]` (strides in elements).
 /// `bias_mode`: 0 none, 1 one bias per column (linear layers), 2 one per row (convolutions).
-/// One cube computes a `MATMUL_TILE²` output tile through shared-memory tiles of A and B.
+/// `a_half`/`b_half`: the operand is f16 packed two per word (weights), else f32 bits; sums are f32.
+/// `b_k_contiguous`: B's elements are adjacent along k (a transposed weight), which sets how the units
+/// share the loads of a B slice so that neighbouring units read neighbouring addresses.
+///
+/// Register-blocked and tiled: a cube of `MATMUL_UNITS²` units computes a `MATMUL_TILE²` output tile,
+/// each unit a `MATMUL_REG²` block of it (rows `UNIT_POS_Y + i·MATMUL_UNITS`, columns likewise, so the
+/// units of a row write adjacent columns). Slices of A and B `MATMUL_DEPTH` deep are staged in shared
+/// memory; per depth step a unit reads `2·MATMUL_REG` values for `MATMUL_REG²` multiply-adds (a naive
+/// tiled kernel reads 2 per multiply-add). Each output sums over k in order, as the CPU does.
 #[cube(launch_unchecked)]
 pub fn matmul(
-    a: &[f32],
-    b: &[f32],
+    a: &[u32],
+    b: &[u32],
     bias: &[f32],
     out: &mut [f32],
     meta: &[u32],
     alpha: f32,
     #[comptime] bias_mode: u32,
+    #[comptime] a_half: bool,
+    #[comptime] b_half: bool,
+    #[comptime] b_k_contiguous: bool,
 ) {
+    let units = comptime!(MATMUL_UNITS);
+    let reg = comptime!(MATMUL_REG);
+    let depth = comptime!(MATMUL_DEPTH);
     let tile = comptime!(MATMUL_TILE);
+    let cube_units = comptime!(MATMUL_UNITS * MATMUL_UNITS);
+    // Elements of one slice each unit loads.
+    let loads = comptime!(MATMUL_TILE * MATMUL_DEPTH / (MATMUL_UNITS * MATMUL_UNITS));
     let m = meta[1];
     let n = meta[2];
     let k = meta[3];
     let batch = CUBE_POS_Z;
-    let row = CUBE_POS_Y * tile + UNIT_POS_Y;
-    let col = CUBE_POS_X * tile + UNIT_POS_X;
+    let row0 = CUBE_POS_Y * tile;
+    let col0 = CUBE_POS_X * tile;
     let a_base = batch * meta[4];
     let b_base = batch * meta[7];
-    let mut sa = Shared::<[f32]>::new_slice(comptime!((MATMUL_TILE * MATMUL_TILE) as usize));
-    let mut sb = Shared::<[f32]>::new_slice(comptime!((MATMUL_TILE * MATMUL_TILE) as usize));
-    let mut acc = 0.0f32;
+    let a_row = meta[5];
+    let a_col = meta[6];
+    let b_row = meta[8];
+    let b_col = meta[9];
+    let unit = UNIT_POS_Y * units + UNIT_POS_X;
+    // Both slices are stored depth-major: [depth][tile].
+    let mut sa = Shared::<[f32]>::new_slice(comptime!((MATMUL_DEPTH * MATMUL_TILE) as usize));
+    let mut sb = Shared::<[f32]>::new_slice(comptime!((MATMUL_DEPTH * MATMUL_TILE) as usize));
+    let mut acc = Array::<f32>::new(comptime!((MATMUL_REG * MATMUL_REG) as usize));
+    #[unroll]
+    for i in 0..reg * reg {
+        acc[i as usize] = 0.0f32;
+    }
+    let mut ar = Array::<f32>::new(comptime!(MATMUL_REG as usize));
+    let mut br = Array::<f32>::new(comptime!(MATMUL_REG as usize));
     // Spelt out: `div_ceil` is not part of CubeCL's kernel language.
     #[allow(clippy::manual_div_ceil)]
-    let tiles = (k + tile - 1) / tile;
-    for t in 0..tiles {
-        let ka = t * tile + UNIT_POS_X;
-        sa[(UNIT_POS_Y * tile + UNIT_POS_X) as usize] = if row < m && ka < k {
-            a[(a_base + row * meta[5] + ka * meta[6]) as usize]
-        } else {
-            0.0f32
-        };
-        let kb = t * tile + UNIT_POS_Y;
-        sb[(UNIT_POS_Y * tile + UNIT_POS_X) as usize] = if kb < k && col < n {
-            b[(b_base + kb * meta[8] + col * meta[9]) as usize]
-        } else {
-            0.0f32
-        };
+    let slices = (k + depth - 1) / depth;
+    for t in 0..slices {
+        let k0 = t * depth;
+        // A rows are contiguous along k in every caller: neighbouring units take neighbouring k.
+        #[unroll]
+        for l in 0..loads {
+            let e = unit + l * cube_units;
+            let r = e / depth;
+            let kk = e % depth;
+            let row = row0 + r;
+            let ka = k0 + kk;
+            sa[(kk * tile + r) as usize] = if row < m && ka < k {
+                load_operand(a, a_base + row * a_row + ka * a_col, a_half)
+            } else {
+                0.0f32
+            };
+        }
+        #[unroll]
+        for l in 0..loads {
+            let e = unit + l * cube_units;
+            let mut c = e % tile;
+            let mut kk = e / tile;
+            if comptime!(b_k_contiguous) {
+                c = e / depth;
+                kk = e % depth;
+            }
+            let col = col0 + c;
+            let kb = k0 + kk;
+            sb[(kk * tile + c) as usize] = if col < n && kb < k {
+                load_operand(b, b_base + kb * b_row + col * b_col, b_half)
+            } else {
+                0.0f32
+            };
+        }
         sync_cube();
         #[unroll]
-        for kk in 0..tile {
-            acc += sa[(UNIT_POS_Y * tile + kk) as usize] * sb[(kk * tile + UNIT_POS_X) as usize];
+        for kk in 0..depth {
+            #[unroll]
+            for i in 0..reg {
+                ar[i as usize] = sa[(kk * tile + UNIT_POS_Y + i * units) as usize];
+                br[i as usize] = sb[(kk * tile + UNIT_POS_X + i * units) as usize];
+            }
+            #[unroll]
+            for i in 0..reg {
+                #[unroll]
+                for j in 0..reg {
+                    acc[(i * reg + j) as usize] += ar[i as usize] * br[j as usize];
+                }
+            }
         }
         sync_cube();
     }
-    if row < m && col < n {
-        let mut v = acc * alpha;
-        if comptime!(bias_mode == 1) {
-            v += bias[col as usize];
-        } else if comptime!(bias_mode == 2) {
-            v += bias[row as usize];
+    #[unroll]
+    for i in 0..reg {
+        let row = row0 + UNIT_POS_Y + i * units;
+        #[unroll]
+        for j in 0..reg {
+            let col = col0 + UNIT_POS_X + j * units;
+            if row < m && col < n {
+                let mut v = acc[(i * reg + j) as usize] * alpha;
+                if comptime!(bias_mode == 1) {
+                    v += bias[col as usize];
+                } else if comptime!(bias_mode == 2) {
+                    v += bias[row as usize];
+                }
+                out[((batch * m + row) * n + col) as usize] = v;
+            }
         }
-        out[((batch * m + row) * n + col) as usize] = v;
     }
 }
 

@@ -5,10 +5,15 @@
 //! A [`GpuDevice`] wraps the [`gpu::GpuContext`] of crates/gpu, so the splatting engine and the diffusion
 //! networks share one adapter and one CubeCL client. Weights live in the network as candle CPU tensors;
 //! the first GPU use of a weight uploads it into the device's cache, keyed by the tensor's id, so a model
-//! runs on the GPU without a second, GPU-side copy of its definition.
+//! runs on the GPU without a second, GPU-side copy of its definition. The weights of matrix products
+//! are cached in the device's [`Precision`] (f16 by default, packed two per u32 word); everything else
+//! is f32.
 
 mod cube;
 pub mod ops;
+mod precision;
+
+pub use precision::{Precision, UnknownPrecision};
 
 use std::collections::HashMap;
 use std::sync::{Arc, Mutex};
@@ -27,25 +32,49 @@ pub struct GpuDevice {
 
 struct Inner {
     context: GpuContext,
-    /// Weights already on the device: the CPU tensor is kept beside its copy so its id stays unique.
-    weights: Mutex<HashMap<TensorId, (Tensor, Handle)>>,
+    precision: Precision,
+    /// Weights already on the device, keyed by tensor id and whether the copy is f16. The CPU tensor is
+    /// kept beside its copy so its id stays unique.
+    weights: Mutex<HashMap<(TensorId, bool), CachedWeight>>,
+}
+
+struct CachedWeight {
+    _source: Tensor,
+    copy: GpuTensor,
 }
 
 impl std::fmt::Debug for GpuDevice {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        write!(f, "GpuDevice({})", self.inner.context.describe())
+        write!(
+            f,
+            "GpuDevice({}, {} weights)",
+            self.inner.context.describe(),
+            self.inner.precision
+        )
     }
 }
 
 impl GpuDevice {
-    /// The networks' view of an opened GPU (with an empty weight cache).
+    /// The networks' view of an opened GPU (with an empty weight cache), storing matrix weights in the
+    /// default precision (f16; see [`Precision`]).
     pub fn new(context: GpuContext) -> GpuDevice {
+        GpuDevice::with_precision(context, Precision::default())
+    }
+
+    /// [`GpuDevice::new`] with the weights of matrix products stored in `precision`.
+    pub fn with_precision(context: GpuContext, precision: Precision) -> GpuDevice {
         GpuDevice {
             inner: Arc::new(Inner {
                 context,
+                precision,
                 weights: Mutex::new(HashMap::new()),
             }),
         }
+    }
+
+    /// How the weights of matrix products are stored.
+    pub fn precision(&self) -> Precision {
+        self.inner.precision
     }
 
     /// Opens the device `choice` names (`None` for the CPU); see [`gpu::open`].
@@ -67,19 +96,42 @@ impl GpuDevice {
         &self.inner.context.client
     }
 
-    /// The device copy of a (weight) tensor, uploaded on first use.
+    /// The f32 device copy of a (weight) tensor, uploaded on first use.
     pub fn cached(&self, weight: &Tensor) -> candle_core::Result<GpuTensor> {
+        self.cached_as(weight, false)
+    }
+
+    /// The device copy of the weight of a matrix product (a linear or convolution weight), in the
+    /// device's [`Precision`], uploaded on first use. An f16 copy is only an operand of
+    /// [`ops::linear`] and [`ops::conv2d`] (and can be read back); other ops take f32 tensors.
+    pub fn cached_matrix(&self, weight: &Tensor) -> candle_core::Result<GpuTensor> {
+        self.cached_as(weight, self.inner.precision == Precision::F16)
+    }
+
+    fn cached_as(&self, weight: &Tensor, half: bool) -> candle_core::Result<GpuTensor> {
         let mut weights = self.inner.weights.lock().unwrap_or_else(|e| e.into_inner());
-        if let Some((_, handle)) = weights.get(&weight.id()) {
-            return Ok(GpuTensor {
-                device: self.clone(),
-                handle: handle.clone(),
-                shape: weight.dims().to_vec(),
-            });
+        if let Some(cached) = weights.get(&(weight.id(), half)) {
+            return Ok(cached.copy.clone());
         }
-        let copy = GpuTensor::upload(self, weight)?;
-        weights.insert(weight.id(), (weight.clone(), copy.handle.clone()));
+        let copy = if half {
+            GpuTensor::upload_f16(self, weight)?
+        } else {
+            GpuTensor::upload(self, weight)?
+        };
+        weights.insert(
+            (weight.id(), half),
+            CachedWeight {
+                _source: weight.clone(),
+                copy: copy.clone(),
+            },
+        );
         Ok(copy)
+    }
+
+    /// Bytes of device memory the weight cache holds.
+    pub fn weight_bytes(&self) -> usize {
+        let weights = self.inner.weights.lock().unwrap_or_else(|e| e.into_inner());
+        weights.values().map(|w| w.copy.storage_bytes()).sum()
     }
 
     /// Drops every cached weight (after a model is dropped or its weights change).
@@ -92,17 +144,20 @@ impl GpuDevice {
     }
 }
 
-/// A contiguous row-major f32 tensor in GPU memory.
+/// A contiguous row-major tensor in GPU memory: f32, or (weights only) f16 packed two per u32 word.
 #[derive(Clone)]
 pub struct GpuTensor {
     device: GpuDevice,
     handle: Handle,
     shape: Vec<usize>,
+    /// Packed f16 storage (see [`GpuDevice::cached_matrix`]).
+    half: bool,
 }
 
 impl std::fmt::Debug for GpuTensor {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        write!(f, "GpuTensor{:?}", self.shape)
+        let dtype = if self.half { " f16" } else { "" };
+        write!(f, "GpuTensor{:?}{dtype}", self.shape)
     }
 }
 
@@ -118,6 +173,22 @@ impl GpuTensor {
         Ok(Self::from_slice(device, &data, t.dims().to_vec()))
     }
 
+    /// Copies a CPU tensor to the device as f16 (rounded to nearest), packed two per word.
+    fn upload_f16(device: &GpuDevice, t: &Tensor) -> Result<GpuTensor> {
+        let data: Vec<f32> = t.to_dtype(DType::F32)?.flatten_all()?.to_vec1()?;
+        let mut words = precision::pack_f16(&data);
+        // wgpu rejects empty buffers: keep at least one word.
+        if words.is_empty() {
+            words.push(0);
+        }
+        Ok(GpuTensor {
+            device: device.clone(),
+            handle: device.client().create_from_slice(u32::as_bytes(&words)),
+            shape: t.dims().to_vec(),
+            half: true,
+        })
+    }
+
     pub(crate) fn from_slice(device: &GpuDevice, data: &[f32], shape: Vec<usize>) -> GpuTensor {
         let client = device.client();
         debug_assert_eq!(data.len(), shape.iter().product::<usize>());
@@ -131,6 +202,7 @@ impl GpuTensor {
             device: device.clone(),
             handle,
             shape,
+            half: false,
         }
     }
 
@@ -141,6 +213,7 @@ impl GpuTensor {
             device: self.device.clone(),
             handle: self.client().empty(n * std::mem::size_of::<f32>()),
             shape,
+            half: false,
         }
     }
 
@@ -150,8 +223,12 @@ impl GpuTensor {
             .client()
             .read_one(self.handle.clone())
             .map_err(|e| gpu_error("read-back", e))?;
-        let data = f32::from_bytes(&bytes);
         let n = self.elem_count();
+        if self.half {
+            let data = precision::unpack_f16(u32::from_bytes(&bytes), n);
+            return Tensor::from_vec(data, self.shape.as_slice(), &Device::Cpu);
+        }
+        let data = f32::from_bytes(&bytes);
         Tensor::from_slice(&data[..n], self.shape.as_slice(), &Device::Cpu)
     }
 
@@ -175,6 +252,7 @@ impl GpuTensor {
             device: self.device.clone(),
             handle: self.handle.clone(),
             shape: shape.to_vec(),
+            half: self.half,
         })
     }
 
@@ -192,10 +270,33 @@ impl GpuTensor {
         self.device.client()
     }
 
-    /// The buffer as a kernel argument (its length in f32 elements).
+    /// Whether the tensor is stored as packed f16 (a weight matrix of an f16 device).
+    pub fn is_f16(&self) -> bool {
+        self.half
+    }
+
+    /// 32-bit words of the buffer: one per f32 element, one per two f16 elements (at least one).
+    fn storage_words(&self) -> usize {
+        let n = self.elem_count();
+        if self.half { n.div_ceil(2) } else { n }.max(1)
+    }
+
+    /// Bytes of device memory the tensor's buffer holds.
+    pub fn storage_bytes(&self) -> usize {
+        self.storage_words() * 4
+    }
+
+    /// The buffer as a kernel argument of an f32 kernel (its length in f32 elements). An f16 tensor here
+    /// is a caller's bug (only the matrix products read packed weights).
     pub(crate) fn arg(&self) -> BufferArg {
-        // SAFETY: the handle holds at least max(1, elem_count) f32 elements (see from_slice/empty_like).
-        unsafe { BufferArg::from_raw_parts(self.handle.clone(), self.elem_count().max(1)) }
+        debug_assert!(!self.half, "an f16 weight passed to an f32 kernel");
+        self.word_arg()
+    }
+
+    /// The buffer as 32-bit words (f32 bits or two packed halves), for the matrix-product kernel.
+    pub(crate) fn word_arg(&self) -> BufferArg {
+        // SAFETY: the handle holds exactly storage_words() words (see from_slice, upload_f16, empty_like).
+        unsafe { BufferArg::from_raw_parts(self.handle.clone(), self.storage_words()) }
     }
 }
 
@@ -203,7 +304,7 @@ impl GpuTensor {
 pub(crate) mod testing {
     use std::sync::OnceLock;
 
-    use super::GpuDevice;
+    use super::{GpuDevice, Precision};
 
     /// The test GPU (lavapipe in CI) shared by the tests of this binary, or `None` after the one line
     /// `gpu::testing::context_or_skip` prints when there is no Vulkan device.
@@ -212,7 +313,7 @@ pub(crate) mod testing {
         if let Some(device) = DEVICE.get() {
             return Some(device.clone());
         }
-        let device = GpuDevice::new(gpu::testing::context_or_skip()?);
+        let device = GpuDevice::with_precision(gpu::testing::context_or_skip()?, Precision::F32);
         Some(DEVICE.get_or_init(|| device).clone())
     }
 }

@@ -7,7 +7,8 @@ use cubecl::prelude::*;
 use cubecl::server::Handle;
 
 use super::cube::{
-    self, binary_op, unary_op, ATTENTION_QUERIES, ELEMENTWISE_UNITS, MATMUL_TILE, REDUCE_UNITS,
+    self, binary_op, unary_op, ATTENTION_QUERIES, ELEMENTWISE_UNITS, MATMUL_TILE, MATMUL_UNITS,
+    REDUCE_UNITS,
 };
 use super::GpuTensor;
 
@@ -435,24 +436,30 @@ fn gemm(
     meta.extend(g.b_strides);
     let meta = Meta::new(a, &meta)?;
     let (bias_arg, mode) = match bias {
-        GemmBias::None => (a.arg(), 0u32),
+        // Not read: any buffer will do.
+        GemmBias::None => (out.arg(), 0u32),
         GemmBias::PerColumn(t) => (t.arg(), 1),
         GemmBias::PerRow(t) => (t.arg(), 2),
     };
     let tiles = |v: usize| to_u32(v.div_ceil(MATMUL_TILE as usize), "matmul tiles");
+    // B adjacent along k and not along n: a transposed weight (linear layers, `q kᵀ`).
+    let b_k_contiguous = g.b_strides[1] == 1 && g.b_strides[2] != 1;
     // SAFETY: the strides describe in-bounds views of a and b; the kernel bound-checks rows/columns.
     unsafe {
         cube::matmul::launch_unchecked(
             a.client(),
             CubeCount::Static(tiles(g.n)?, tiles(g.m)?, to_u32(g.batch, "batch")?),
-            CubeDim::new_2d(MATMUL_TILE, MATMUL_TILE),
-            a.arg(),
-            b.arg(),
+            CubeDim::new_2d(MATMUL_UNITS, MATMUL_UNITS),
+            a.word_arg(),
+            b.word_arg(),
             bias_arg,
             out.arg(),
             meta.arg(),
             g.alpha,
             mode,
+            a.is_f16(),
+            b.is_f16(),
+            b_k_contiguous,
         )
     };
     Ok(out)

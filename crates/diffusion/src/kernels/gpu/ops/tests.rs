@@ -4,7 +4,7 @@
 use candle_core::{Device, Tensor};
 
 use super::super::testing::device_or_skip;
-use super::super::{GpuDevice, GpuTensor};
+use super::super::{GpuDevice, GpuTensor, Precision};
 use super::*;
 
 const TOLERANCE: f32 = 1e-4;
@@ -19,6 +19,12 @@ fn up(device: &GpuDevice, t: &Tensor) -> GpuTensor {
 
 /// Asserts `gpu` matches `cpu` in shape and to the relative tolerance.
 fn check(what: &str, gpu: &GpuTensor, cpu: &Tensor) {
+    check_within(what, gpu, cpu, TOLERANCE);
+}
+
+/// Asserts `gpu` matches `cpu` in shape and to `tolerance` (max abs difference over max abs value);
+/// returns the relative error.
+fn check_within(what: &str, gpu: &GpuTensor, cpu: &Tensor, tolerance: f32) -> f32 {
     let got = gpu.to_cpu().unwrap();
     assert_eq!(got.dims(), cpu.dims(), "{what}: shape");
     let diff: f32 = (&got - cpu)
@@ -42,9 +48,10 @@ fn check(what: &str, gpu: &GpuTensor, cpu: &Tensor) {
         .unwrap();
     let rel = diff / scale.max(1e-6);
     assert!(
-        rel <= TOLERANCE,
+        rel <= tolerance,
         "{what}: relative error {rel:.3e} (max abs diff {diff:.3e}, scale {scale:.3e})"
     );
+    rel
 }
 
 #[test]
@@ -207,6 +214,112 @@ fn matmul_and_linear_match_cpu() {
         &want,
     );
     assert!(matmul(&up(&dev, &a), &up(&dev, &a)).is_err());
+}
+
+/// The register-blocked kernel on shapes off its tiles: single elements, odd sizes, several tiles with
+/// ragged edges, k shorter and longer than a shared-memory slice, batches, shared and transposed B.
+#[test]
+fn tiled_matmul_matches_cpu_on_odd_shapes() {
+    let Some(dev) = device_or_skip() else {
+        return;
+    };
+    // (batch dims, m, k, n)
+    for (batch, m, k, n) in [
+        (vec![], 1, 1, 1),
+        (vec![], 7, 13, 5),
+        (vec![3], 7, 13, 5),
+        (vec![2, 2], 65, 17, 63),
+        (vec![], 130, 70, 150),
+        (vec![], 1, 300, 129),
+        (vec![2], 64, 16, 64),
+    ] {
+        let shape = |r: usize, c: usize| [batch.clone(), vec![r, c]].concat();
+        let a = randn(&shape(m, k));
+        let b = randn(&shape(k, n));
+        let want = a.matmul(&b).unwrap();
+        let what = format!("matmul {batch:?} {m}x{k}x{n}");
+        check_within(
+            &what,
+            &matmul(&up(&dev, &a), &up(&dev, &b)).unwrap(),
+            &want,
+            1e-5,
+        );
+        let bt = b.t().unwrap().contiguous().unwrap();
+        check_within(
+            &format!("{what}, transposed rhs"),
+            &matmul_scaled(&up(&dev, &a), &up(&dev, &bt), true, 1.0).unwrap(),
+            &want,
+            1e-5,
+        );
+        let shared = randn(&[k, n]);
+        check_within(
+            &format!("{what}, shared rhs"),
+            &matmul(&up(&dev, &a), &up(&dev, &shared)).unwrap(),
+            &a.broadcast_matmul(&shared).unwrap(),
+            1e-5,
+        );
+    }
+}
+
+/// f16 weights (packed two per word, unpacked in the kernel) with f32 arithmetic: exactly the CPU product
+/// with the weights rounded to f16, and within 1e-2 of the f32 product.
+#[test]
+fn f16_weights_match_cpu() {
+    let Some(dev) = device_or_skip() else {
+        return;
+    };
+    let half_dev = GpuDevice::with_precision(dev.context().clone(), Precision::F16);
+    let rounded = |t: &Tensor| {
+        t.to_dtype(candle_core::DType::F16)
+            .unwrap()
+            .to_dtype(candle_core::DType::F32)
+            .unwrap()
+    };
+    // Odd element counts leave half a word unused.
+    let x = randn(&[2, 5, 19]);
+    let w = randn(&[7, 19]);
+    let bias = randn(&[7]);
+    let gw = half_dev.cached_matrix(&w).unwrap();
+    assert!(gw.is_f16() && gw.storage_bytes() == (7 * 19 + 1) / 2 * 4);
+    check_within("f16 weight read-back", &gw, &rounded(&w), 0.0);
+    let gx = up(&half_dev, &x);
+    let gbias = up(&half_dev, &bias);
+    let got = linear(&gx, &gw, Some(&gbias)).unwrap();
+    let cpu = |w: Tensor| {
+        candle_core::Module::forward(&candle_nn::Linear::new(w, Some(bias.clone())), &x).unwrap()
+    };
+    check_within(
+        "f16 linear vs rounded weights",
+        &got,
+        &cpu(rounded(&w)),
+        1e-5,
+    );
+    let rel = check_within("f16 linear vs f32", &got, &cpu(w.clone()), 1e-2);
+    assert!(rel > 0.0, "the weights were rounded");
+
+    let x = randn(&[2, 5, 9, 7]);
+    let weight = randn(&[6, 5, 3, 3]);
+    let gw = half_dev.cached_matrix(&weight).unwrap();
+    let got = conv2d(
+        &up(&half_dev, &x),
+        &gw,
+        Some(&narrow(&gbias, 0, 0, 6).unwrap()),
+        1,
+        1,
+    )
+    .unwrap();
+    let want = |w: &Tensor| {
+        crate::kernels::conv2d(&x, w, Some(&bias.narrow(0, 0, 6).unwrap()), 1, 1).unwrap()
+    };
+    check_within(
+        "f16 conv2d vs rounded weights",
+        &got,
+        &want(&rounded(&weight)),
+        1e-5,
+    );
+    check_within("f16 conv2d vs f32", &got, &want(&weight), 1e-2);
+    // An f32 device keeps f32 matrix weights.
+    assert!(!dev.cached_matrix(&weight).unwrap().is_f16());
 }
 
 #[test]

@@ -1,0 +1,136 @@
+//! An estimate of the device memory a UNet call's activations need, from the config alone, so a caller
+//! can choose how many views to put in one call before running it (the weights are extra:
+//! [`GpuDevice::weight_bytes`](crate::device::GpuDevice::weight_bytes) once uploaded, about
+//! parameters × 2 bytes with f16 weights).
+//!
+//! Assumptions (how the GPU path of `forward_on` allocates; f32 activations, 4 bytes each):
+//! - the skip connections of the down path stay alive until the up path consumes them; the estimate
+//!   counts all of them at once (they are all alive at the bottom of the UNet);
+//! - on top of that, the largest working set of a single layer, taken over all levels:
+//!   - a ResNet block (the first one of an up block is the worst: its input concatenates the previous
+//!     level's output and a skip): the input, its group norm, the im2col buffer of the 3×3 convolution
+//!     (9 × input channels × pixels), the convolution's output, plus the tensor the concatenation read
+//!     (about 12 × input channels + output channels, per pixel);
+//!   - a transformer block: the residual stream, its norm, Q/K/V and their head-split copies, and the
+//!     feed-forward's GEGLU projection (8 × channels) and its output (4 × channels): 17 × channels per
+//!     pixel; flash attention stores no probability matrix;
+//!   - with a hook, Q/K/V also make a round trip through the CPU (3 more copies) and the cross-attention
+//!     layers hold their scores and probabilities (2 × heads × pixels × context tokens). Self-attention
+//!     probabilities are assumed not requested (InfEdit's controller and the blend masks read
+//!     cross-attention maps only); a hook that asks for them at 64² latents needs gigabytes more;
+//! - the counts are a little above the true live set (the two terms peak at different layers), so the
+//!   estimate is an upper bound of the bytes in use; CubeCL's memory pools round allocations up and keep
+//!   freed pages, so leave ~20 % of the adapter's memory free beyond it.
+
+use super::config::UNetConfig;
+use super::UNetError;
+
+/// Bytes a UNet call's activations occupy on the device (see the module documentation).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct ActivationEstimate {
+    /// Skip connections held from the down path to the up path.
+    pub skips: usize,
+    /// The largest single layer's working set (im2col buffers, attention and feed-forward tensors).
+    pub working: usize,
+    /// Cross-attention scores and probabilities held for a hook (0 without one).
+    pub probabilities: usize,
+}
+
+impl ActivationEstimate {
+    /// The estimated peak in bytes.
+    pub fn total(&self) -> usize {
+        self.skips + self.working + self.probabilities
+    }
+}
+
+const F32_BYTES: usize = 4;
+
+impl UNetConfig {
+    /// The activation memory of one [`forward_on`](super::UNet2DConditionModel::forward_on) call on the GPU
+    /// for `batch` latents of `height`×`width` with `context_tokens` text tokens (77 for CLIP), with or
+    /// without an attention hook. Scales linearly with `batch`.
+    pub fn activation_estimate(
+        &self,
+        batch: usize,
+        height: usize,
+        width: usize,
+        context_tokens: usize,
+        hooked: bool,
+    ) -> Result<ActivationEstimate, UNetError> {
+        let r = self.resolve().map_err(UNetError::Unsupported)?;
+        let ch = &self.block_out_channels;
+        let n = ch.len();
+        // Pixels per level: each downsampler (3×3, stride 2, padding 1) halves a side, rounding up.
+        let mut pixels = Vec::with_capacity(n);
+        let (mut h, mut w) = (height, width);
+        for _ in 0..n {
+            pixels.push(h * w);
+            h = h.div_ceil(2);
+            w = w.div_ceil(2);
+        }
+        // Elements per image.
+        let mut skips = ch[0] * pixels[0];
+        let mut working = 0usize;
+        let mut probabilities = 0usize;
+        for l in 0..n {
+            let (c, s) = (ch[l], pixels[l]);
+            skips += r.layers[l] * c * s;
+            if l + 1 < n {
+                skips += c * pixels[l + 1];
+            }
+            let input = ch[(l + 1).min(n - 1)] + c;
+            working = working.max((12 * input + c) * s);
+            // The mid block has attention at the last level whatever the block types say.
+            let has_attention = r.down[l] == super::config::BlockKind::CrossAttn
+                || r.up[n - 1 - l] == super::config::BlockKind::CrossAttn
+                || l + 1 == n;
+            if has_attention {
+                let copies = if hooked { 20 } else { 17 };
+                working = working.max(copies * c * s);
+                if hooked {
+                    probabilities = probabilities.max(2 * r.heads[l] * s * context_tokens);
+                }
+            }
+        }
+        let bytes = |elements: usize| elements * batch * F32_BYTES;
+        Ok(ActivationEstimate {
+            skips: bytes(skips),
+            working: bytes(working),
+            probabilities: bytes(probabilities),
+        })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn sd15_estimate_is_dominated_by_the_first_level_and_scales_with_the_batch() {
+        let cfg = UNetConfig::sd15();
+        let one = cfg.activation_estimate(1, 64, 64, 77, false).unwrap();
+        // The first up block's ResNet at 64²: (12 × (640 + 320) + 320) × 4096 × 4 bytes.
+        assert_eq!(one.working, (12 * 960 + 320) * 4096 * 4);
+        assert_eq!(one.probabilities, 0);
+        // Skips: conv_in + 2 per level + 3 downsamplers, in f32.
+        let skips = 320 * 4096 * 3 + 320 * 1024 + 640 * 1024 * 2 + 640 * 256 + 1280 * 256 * 2
+            + 1280 * 64
+            + 1280 * 64 * 2;
+        assert_eq!(one.skips, skips * 4);
+        let six = cfg.activation_estimate(6, 64, 64, 77, true).unwrap();
+        assert_eq!(six.skips, 6 * one.skips);
+        // Cross-attention maps at 64²: scores and probabilities, 8 heads × 4096 × 77, per image.
+        assert_eq!(six.probabilities, 6 * 2 * 8 * 4096 * 77 * 4);
+        assert!(six.total() > 6 * one.total());
+        // About 0.25 GB per 512² image: six branches of 16 views fit in a 40 GB card.
+        assert!((200 << 20..300 << 20).contains(&one.total()), "{one:?}");
+    }
+
+    #[test]
+    fn odd_latent_sizes_round_up_per_level() {
+        let cfg = UNetConfig::sd15();
+        let odd = cfg.activation_estimate(1, 63, 65, 77, false).unwrap();
+        let even = cfg.activation_estimate(1, 64, 64, 77, false).unwrap();
+        assert!(odd.total() > 0 && odd.total().abs_diff(even.total()) < even.total() / 20);
+    }
+}
