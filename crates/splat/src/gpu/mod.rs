@@ -386,6 +386,18 @@ pub struct GpuSceneGrads {
     pub splat: Handle,
 }
 
+/// Pixels each unit of the raster backward owns (a power of two dividing `TILE`): its gradients are
+/// summed over them before the atomics. Measured on lavapipe (see the bench); on hardware 4, as brush.
+fn backward_pixels_per_unit(ctx: &GpuContext) -> u32 {
+    if ctx.software {
+        BACKWARD_PPU_SOFTWARE
+    } else {
+        4
+    }
+}
+
+const BACKWARD_PPU_SOFTWARE: u32 = 4;
+
 /// Backward of [`render_device`]: `scene`, `camera`, `settings` and `extra` must be those of `frame`.
 pub fn render_backward_device(
     ctx: &GpuContext,
@@ -395,6 +407,25 @@ pub fn render_backward_device(
     frame: &GpuFrame,
     grads: &GpuOutputGrads<'_>,
 ) -> Result<GpuSceneGrads, GpuError> {
+    let ppu = backward_pixels_per_unit(ctx);
+    render_backward_device_with(ctx, scene, settings, extra, frame, grads, ppu)
+}
+
+/// [`render_backward_device`] with `ppu` pixels per raster unit (every layout gives the same gradients
+/// up to the order of float sums; the tests try each).
+fn render_backward_device_with(
+    ctx: &GpuContext,
+    scene: &GpuScene,
+    settings: &RenderSettings,
+    extra: Option<(&Handle, usize)>,
+    frame: &GpuFrame,
+    grads: &GpuOutputGrads<'_>,
+    ppu: u32,
+) -> Result<GpuSceneGrads, GpuError> {
+    assert!(
+        ppu.is_power_of_two() && ppu <= TILE,
+        "pixels per unit must be a power of two ≤ {TILE}"
+    );
     gpu_call(|| {
         let c = &ctx.client;
         let n = scene.len;
@@ -420,7 +451,7 @@ pub fn render_backward_device(
             raster::raster_backward::launch(
                 c,
                 CubeCount::new_2d(frame.tiles_x, frame.tiles_y),
-                CubeDim::new_2d(TILE, TILE),
+                CubeDim::new_2d(TILE, TILE / ppu),
                 arg(&frame.splats, SPLAT_F * n),
                 arg(&frame.ids, frame.intersections),
                 arg(&frame.tile_start, num_tiles),
@@ -441,6 +472,7 @@ pub fn render_backward_device(
                 arg(&splat, GRAD_F * n),
                 arg(g_extra.as_ref().unwrap_or(&dummy), channels * n),
                 channels as u32,
+                ppu,
             );
         }
         let out = GpuSceneGrads {
@@ -553,6 +585,20 @@ pub fn render_backward(
     extra: Option<ExtraChannels<'_>>,
     grads: &OutputGrads<'_>,
 ) -> Result<SceneGrads, GpuError> {
+    let ppu = backward_pixels_per_unit(ctx);
+    render_backward_with(ctx, scene, camera, settings, extra, grads, ppu)
+}
+
+/// [`render_backward`] with `ppu` pixels per raster backward unit.
+fn render_backward_with(
+    ctx: &GpuContext,
+    scene: &GaussianScene,
+    camera: &Camera,
+    settings: &RenderSettings,
+    extra: Option<ExtraChannels<'_>>,
+    grads: &OutputGrads<'_>,
+    ppu: u32,
+) -> Result<SceneGrads, GpuError> {
     let c = &ctx.client;
     let n = scene.len();
     let npix = (camera.width * camera.height) as usize;
@@ -565,7 +611,7 @@ pub fn render_backward(
     let alpha = grads.alpha.map(|a| upload_f32(c, a));
     let depth = grads.depth.map(|d| upload_f32(c, d));
     let ext = grads.extra.map(|e| upload_f32(c, e));
-    let g = render_backward_device(
+    let g = render_backward_device_with(
         ctx,
         &dev,
         settings,
@@ -577,6 +623,7 @@ pub fn render_backward(
             depth: depth.as_ref(),
             extra: ext.as_ref(),
         },
+        ppu,
     )?;
     read_grads(ctx, &g, n, scene.sh_degree, extra_ref.map(|e| e.1))
 }

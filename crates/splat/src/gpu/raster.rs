@@ -3,8 +3,9 @@
 //! T < 1e-4). One cube per 16x16 tile, one unit per pixel, each unit walking its tile's depth-sorted list
 //! independently: no shared memory and no barriers.
 //!
-//! The backward walks each pixel's contributors back to front from the saved final T and last index and
-//! adds the per-Gaussian gradients with f32 atomics (layout in `project.rs`).
+//! The backward walks each pixel's contributors back to front from the saved final T and last index, the
+//! tile's units in step over shared-memory batches of Gaussians, and adds the per-Gaussian gradients
+//! with f32 atomics, summed over each unit's pixels first (layout in `project.rs`).
 
 use ::gpu::cubecl;
 use cubecl::prelude::*;
@@ -96,8 +97,37 @@ pub fn raster_forward(
     }
 }
 
+/// Largest value of `v` over the cube's `units` units (a shared-memory tree; every unit gets it).
+#[cube]
+fn cube_max_u32(v: u32, #[comptime] units: u32) -> u32 {
+    let mut s = Shared::<[u32]>::new_slice(comptime!(units as usize));
+    s[UNIT_POS as usize] = v;
+    sync_cube();
+    let mut stride = comptime!(units / 2).runtime();
+    #[unroll]
+    for _ in 0..comptime!(units.trailing_zeros()) {
+        if UNIT_POS < stride {
+            s[UNIT_POS as usize] = u32::max(s[UNIT_POS as usize], s[(UNIT_POS + stride) as usize]);
+        }
+        sync_cube();
+        stride /= 2;
+    }
+    let total = s[0];
+    sync_cube();
+    total
+}
+
 /// Backward. `channels` is the extra channel count when their gradient is wanted, else 0;
 /// `behind` is per-pixel scratch (H*W*C) for the extra channels composited behind the current Gaussian.
+///
+/// One cube per tile with `TILE * TILE / ppu` units; unit (x, y) owns the `ppu` pixels of column x,
+/// rows y·ppu.. of the tile. The whole cube walks the tile's list back to front in step, from the
+/// largest `last` of its pixels, in batches of one Gaussian per unit loaded into shared memory; each
+/// pixel skips the Gaussians at or after its own `last`. A unit sums its pixels' gradients for the
+/// current Gaussian in registers and adds them with one atomic per parameter: `ppu` times fewer global
+/// atomics than one per pixel, without barriers per Gaussian (plane reductions are not available on
+/// every adapter, lavapipe's included). Per pixel the arithmetic is that of the CPU backward, in the
+/// same order.
 #[cube(launch)]
 #[allow(clippy::too_many_arguments)]
 pub fn raster_backward(
@@ -121,83 +151,208 @@ pub fn raster_backward(
     grads: &mut [Atomic<f32>],
     g_extra: &mut [Atomic<f32>],
     #[comptime] channels: u32,
+    #[comptime] ppu: u32,
 ) {
+    let units = comptime!(TILE * TILE / ppu);
+    let np = comptime!(ppu as usize);
+    let c = channels as usize;
+    let tile = (CUBE_POS_Y * tiles_x + CUBE_POS_X) as usize;
+    let start = tile_start[tile];
     let px = CUBE_POS_X * TILE + UNIT_POS_X;
-    let py = CUBE_POS_Y * TILE + UNIT_POS_Y;
-    if px < width && py < height {
-        let p = (py * width + px) as usize;
-        let c = channels as usize;
-        for ch in 0..c {
-            behind[p * c + ch] = 0.0;
+    let py0 = CUBE_POS_Y * TILE + UNIT_POS_Y * ppu;
+    let fx = px as f32 + 0.5;
+
+    // Per-pixel state: index, contributor count, T, output gradients and what lies behind.
+    let mut pix = Array::<u32>::new(np);
+    let mut n_last = Array::<u32>::new(np);
+    let mut t = Array::<f32>::new(np);
+    let mut vr = Array::<f32>::new(np);
+    let mut vg = Array::<f32>::new(np);
+    let mut vb = Array::<f32>::new(np);
+    let mut vd = Array::<f32>::new(np);
+    let mut v_final = Array::<f32>::new(np);
+    let mut br = Array::<f32>::new(np);
+    let mut bgc = Array::<f32>::new(np);
+    let mut bb = Array::<f32>::new(np);
+    let mut bd = Array::<f32>::new(np);
+    // Per-pixel values for the current Gaussian.
+    let mut hit = Array::<u32>::new(np);
+    let mut fac = Array::<f32>::new(np);
+    let mut tn = Array::<f32>::new(np);
+    let mut ra = Array::<f32>::new(np);
+    let mut v_alpha = Array::<f32>::new(np);
+    let mut dxs = Array::<f32>::new(np);
+    let mut dys = Array::<f32>::new(np);
+    let mut vis = Array::<f32>::new(np);
+    let mut unit_last = 0u32;
+    #[unroll]
+    for q in 0..np {
+        let py = py0 + q as u32;
+        pix[q] = 0;
+        n_last[q] = 0;
+        t[q] = 0.0;
+        vr[q] = 0.0;
+        vg[q] = 0.0;
+        vb[q] = 0.0;
+        vd[q] = 0.0;
+        v_final[q] = 0.0;
+        br[q] = 0.0;
+        bgc[q] = 0.0;
+        bb[q] = 0.0;
+        bd[q] = 0.0;
+        if px < width && py < height {
+            let p = py * width + px;
+            let pu = p as usize;
+            pix[q] = p;
+            n_last[q] = last[pu];
+            t[q] = t_final[pu];
+            vr[q] = v_rgb[3 * pu];
+            vg[q] = v_rgb[3 * pu + 1];
+            vb[q] = v_rgb[3 * pu + 2];
+            vd[q] = v_depth[pu];
+            // Every alpha also changes the final T: d out/d T_final = background·v_rgb − v_alpha.
+            v_final[q] = t[q] * (v_alpha_out[pu] - bg_r * vr[q] - bg_g * vg[q] - bg_b * vb[q]);
+            for ch in 0..c {
+                behind[pu * c + ch] = 0.0;
+            }
+            unit_last = u32::max(unit_last, n_last[q]);
         }
-        let tile = (CUBE_POS_Y * tiles_x + CUBE_POS_X) as usize;
-        let start = tile_start[tile];
-        let fx = px as f32 + 0.5;
-        let fy = py as f32 + 0.5;
-        let mut t = t_final[p];
-        let vr = v_rgb[3 * p];
-        let vg = v_rgb[3 * p + 1];
-        let vb = v_rgb[3 * p + 2];
-        let vd = v_depth[p];
-        // Every alpha also changes the final T: d out/d T_final = background·v_rgb − v_alpha.
-        let v_final = t * (v_alpha_out[p] - bg_r * vr - bg_g * vg - bg_b * vb);
-        let mut br = 0.0f32;
-        let mut bgc = 0.0f32;
-        let mut bb = 0.0f32;
-        let mut bd = 0.0f32;
-        let n_last = last[p];
-        for j in 0..n_last {
-            let k = (start + n_last - 1 - j) as usize;
-            let gi = ids[k] as usize;
-            let s = gi * 10;
-            let (sigma, dx, dy) = sigma_at(splats, s, fx, fy);
-            let ca = splats[s + 2];
-            let cb = splats[s + 3];
-            let cc = splats[s + 4];
-            let o = splats[s + 5];
-            let vis = (-sigma).exp();
-            let a = f32::min(o * vis, ALPHA_MAX as f32);
-            if sigma >= 0.0 && a >= ALPHA_MIN as f32 {
-                let ra = 1.0f32 / (1.0f32 - a);
-                let tn = t * ra;
-                let cr = splats[s + 6];
-                let cg = splats[s + 7];
-                let cbl = splats[s + 8];
-                let dep = splats[s + 9];
-                let fac = a * tn;
-                let mut v_alpha = (cr * tn - br * ra) * vr
-                    + (cg * tn - bgc * ra) * vg
-                    + (cbl * tn - bb * ra) * vb
-                    + (dep * tn - bd * ra) * vd
-                    + v_final * ra;
-                for ch in 0..c {
-                    let v = v_extra[p * c + ch];
-                    let val = extra_vals[gi * c + ch];
-                    g_extra[gi * c + ch].fetch_add(fac * v);
-                    v_alpha += (val * tn - behind[p * c + ch] * ra) * v;
-                    behind[p * c + ch] += val * fac;
-                }
-                t = tn;
-                br += cr * fac;
-                bgc += cg * fac;
-                bb += cbl * fac;
-                bd += dep * fac;
-                grads[s + 6].fetch_add(fac * vr);
-                grads[s + 7].fetch_add(fac * vg);
-                grads[s + 8].fetch_add(fac * vb);
-                grads[s + 9].fetch_add(fac * vd);
-                // Where alpha was clamped at 0.99 it depends on neither σ nor the opacity.
-                if o * vis <= ALPHA_MAX as f32 {
-                    let v_sigma = -(o * vis) * v_alpha;
-                    grads[s].fetch_add(v_sigma * (ca * dx + cb * dy));
-                    grads[s + 1].fetch_add(v_sigma * (cb * dx + cc * dy));
-                    grads[s + 2].fetch_add(0.5f32 * v_sigma * dx * dx);
-                    grads[s + 3].fetch_add(v_sigma * dx * dy);
-                    grads[s + 4].fetch_add(0.5f32 * v_sigma * dy * dy);
-                    grads[s + 5].fetch_add(vis * v_alpha);
-                }
+    }
+    let count = cube_max_u32(unit_last, units);
+
+    let mut batch = Shared::<[f32]>::new_slice(comptime!((units * 10) as usize));
+    let mut batch_ids = Shared::<[u32]>::new_slice(comptime!(units as usize));
+    // Spelt out: `div_ceil` is not part of CubeCL's kernel language.
+    #[allow(clippy::manual_div_ceil)]
+    let batches = (count + units - 1) / units;
+    let mut hi = count;
+    for _ in 0..batches {
+        let lo = if hi > units { hi - units } else { 0u32 };
+        // The previous batch is consumed before it is overwritten.
+        sync_cube();
+        let idx = lo + UNIT_POS;
+        if idx < hi {
+            let gi = ids[(start + idx) as usize];
+            batch_ids[UNIT_POS as usize] = gi;
+            let src = gi as usize * 10;
+            let dst = UNIT_POS as usize * 10;
+            #[unroll]
+            for f in 0..10 {
+                batch[dst + f] = splats[src + f];
             }
         }
+        sync_cube();
+        let size = hi - lo;
+        for j in 0..size {
+            let local = size - 1 - j;
+            let rel = lo + local;
+            let s = local as usize * 10;
+            let mx = batch[s];
+            let my = batch[s + 1];
+            let ca = batch[s + 2];
+            let cb = batch[s + 3];
+            let cc = batch[s + 4];
+            let o = batch[s + 5];
+            let cr = batch[s + 6];
+            let cg = batch[s + 7];
+            let cbl = batch[s + 8];
+            let dep = batch[s + 9];
+            let mut any_hit = false;
+            let mut g_r = 0.0f32;
+            let mut g_g = 0.0f32;
+            let mut g_b = 0.0f32;
+            let mut g_d = 0.0f32;
+            #[unroll]
+            for q in 0..np {
+                hit[q] = 0;
+                if rel < n_last[q] {
+                    let fy = (py0 + q as u32) as f32 + 0.5;
+                    let dx = mx - fx;
+                    let dy = my - fy;
+                    let sigma = 0.5f32 * (ca * dx * dx + cc * dy * dy) + cb * dx * dy;
+                    let vv = (-sigma).exp();
+                    let a = f32::min(o * vv, ALPHA_MAX as f32);
+                    if sigma >= 0.0 && a >= ALPHA_MIN as f32 {
+                        hit[q] = 1;
+                        any_hit = true;
+                        let r_a = 1.0f32 / (1.0f32 - a);
+                        let t_n = t[q] * r_a;
+                        let f = a * t_n;
+                        v_alpha[q] = (cr * t_n - br[q] * r_a) * vr[q]
+                            + (cg * t_n - bgc[q] * r_a) * vg[q]
+                            + (cbl * t_n - bb[q] * r_a) * vb[q]
+                            + (dep * t_n - bd[q] * r_a) * vd[q]
+                            + v_final[q] * r_a;
+                        t[q] = t_n;
+                        br[q] += cr * f;
+                        bgc[q] += cg * f;
+                        bb[q] += cbl * f;
+                        bd[q] += dep * f;
+                        g_r += f * vr[q];
+                        g_g += f * vg[q];
+                        g_b += f * vb[q];
+                        g_d += f * vd[q];
+                        fac[q] = f;
+                        tn[q] = t_n;
+                        ra[q] = r_a;
+                        dxs[q] = dx;
+                        dys[q] = dy;
+                        vis[q] = vv;
+                    }
+                }
+            }
+            if any_hit {
+                let gi = batch_ids[local as usize] as usize;
+                for ch in 0..c {
+                    let val = extra_vals[gi * c + ch];
+                    let mut g_ch = 0.0f32;
+                    #[unroll]
+                    for q in 0..np {
+                        if hit[q] == 1 {
+                            let e = pix[q] as usize * c + ch;
+                            let v = v_extra[e];
+                            g_ch += fac[q] * v;
+                            v_alpha[q] += (val * tn[q] - behind[e] * ra[q]) * v;
+                            behind[e] += val * fac[q];
+                        }
+                    }
+                    g_extra[gi * c + ch].fetch_add(g_ch);
+                }
+                let mut g_mx = 0.0f32;
+                let mut g_my = 0.0f32;
+                let mut g_ca = 0.0f32;
+                let mut g_cb = 0.0f32;
+                let mut g_cc = 0.0f32;
+                let mut g_o = 0.0f32;
+                #[unroll]
+                for q in 0..np {
+                    // Where alpha was clamped at 0.99 it depends on neither σ nor the opacity.
+                    if hit[q] == 1 && o * vis[q] <= ALPHA_MAX as f32 {
+                        let dx = dxs[q];
+                        let dy = dys[q];
+                        let v_sigma = -(o * vis[q]) * v_alpha[q];
+                        g_mx += v_sigma * (ca * dx + cb * dy);
+                        g_my += v_sigma * (cb * dx + cc * dy);
+                        g_ca += 0.5f32 * v_sigma * dx * dx;
+                        g_cb += v_sigma * dx * dy;
+                        g_cc += 0.5f32 * v_sigma * dy * dy;
+                        g_o += vis[q] * v_alpha[q];
+                    }
+                }
+                let g = gi * 10;
+                grads[g].fetch_add(g_mx);
+                grads[g + 1].fetch_add(g_my);
+                grads[g + 2].fetch_add(g_ca);
+                grads[g + 3].fetch_add(g_cb);
+                grads[g + 4].fetch_add(g_cc);
+                grads[g + 5].fetch_add(g_o);
+                grads[g + 6].fetch_add(g_r);
+                grads[g + 7].fetch_add(g_g);
+                grads[g + 8].fetch_add(g_b);
+                grads[g + 9].fetch_add(g_d);
+            }
+        }
+        hi = lo;
     }
 }
 

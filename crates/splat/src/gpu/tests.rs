@@ -212,22 +212,29 @@ fn backward_matches_the_cpu_per_parameter_kind() {
     };
     let out = render::render(&scene, &cam, &settings, extra);
     let want = render::render_backward(&scene, &cam, &settings, extra, &out, &grads);
-    let got = super::render_backward(&ctx, &scene, &cam, &settings, extra, &grads).unwrap();
     let flat2 = |v: &[[f32; 2]]| v.iter().flatten().copied().collect::<Vec<_>>();
-    let kinds: [(&str, &[f32], &[f32]); 7] = [
-        ("means", &got.means, &want.means),
-        ("log_scales", &got.log_scales, &want.log_scales),
-        ("quats", &got.quats, &want.quats),
-        ("opacity_logits", &got.opacity_logits, &want.opacity_logits),
-        ("sh", &got.sh, &want.sh),
-        ("extra", &got.extra, &want.extra),
-        ("means2d", &flat2(&got.means2d), &flat2(&want.means2d)),
-    ];
-    for (name, g, w) in kinds {
-        let e = rel_err(g, w);
-        eprintln!("{name}: relative error {e:.2e}");
-        assert!(w.iter().any(|v| *v != 0.0), "{name}: no gradient at all");
-        assert!(e <= 1e-3, "{name}: relative error {e}");
+    // The adapter's raster layout, then every other one (pixels per unit of the raster backward).
+    let default = super::render_backward(&ctx, &scene, &cam, &settings, extra, &grads).unwrap();
+    let layouts = [1, 2, 4, 8, 16].map(|ppu| {
+        let g = super::render_backward_with(&ctx, &scene, &cam, &settings, extra, &grads, ppu);
+        (ppu, g.unwrap())
+    });
+    for (ppu, got) in std::iter::once((0, default)).chain(layouts) {
+        let kinds: [(&str, &[f32], &[f32]); 7] = [
+            ("means", &got.means, &want.means),
+            ("log_scales", &got.log_scales, &want.log_scales),
+            ("quats", &got.quats, &want.quats),
+            ("opacity_logits", &got.opacity_logits, &want.opacity_logits),
+            ("sh", &got.sh, &want.sh),
+            ("extra", &got.extra, &want.extra),
+            ("means2d", &flat2(&got.means2d), &flat2(&want.means2d)),
+        ];
+        for (name, g, w) in kinds {
+            let e = rel_err(g, w);
+            eprintln!("{ppu} pixels/unit (0 = default), {name}: relative error {e:.2e}");
+            assert!(w.iter().any(|v| *v != 0.0), "{name}: no gradient at all");
+            assert!(e <= 1e-3, "{name}: relative error {e}");
+        }
     }
 }
 
