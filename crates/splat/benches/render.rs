@@ -7,7 +7,8 @@
 //! `-- gpu`: forward, backward and a full fit step (render, L1 + D-SSIM, backward, Adam, densification
 //! statistics) on the GPU beside the CPU, at 125k and 1M Gaussians, 512² and 1920x1080; `-- gpu quick`:
 //! 30k at 512². Filters select cases: `n=125k,1m size=512,1080p device=cpu,gpu
-//! stage=forward,backward,step runs=3`, e.g. `-- gpu n=1m size=1080p device=gpu runs=1`. One
+//! stage=forward,backward,step runs=3 sh=3`, e.g. `-- gpu n=1m size=1080p device=gpu runs=1` (lavapipe
+//! binds at most 128 MiB per buffer: 1M Gaussians need `sh=2` there). One
 //! `BENCH {json}` line per measurement, then a markdown table.
 //!
 //! Synthetic scenes fill a unit ball the way trained scenes fill their volume:
@@ -25,11 +26,17 @@ use splat::{Camera, GaussianScene};
 use std::time::{Duration, Instant};
 
 fn ball_scene(n: usize, seed: u64) -> GaussianScene {
+    ball_scene_with_degree(n, seed, 3)
+}
+
+/// [`ball_scene`] with SH degree `degree` (the colours of degree 3's first coefficients).
+fn ball_scene_with_degree(n: usize, seed: u64, degree: u32) -> GaussianScene {
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
     let normal = Normal::new(0.0f32, 1.0).unwrap();
     // Typical spacing of n points in the unit ball; scales are log-normal around half of it.
     let spacing = (4.19f32 / n as f32).cbrt();
-    let mut s = GaussianScene::new(3);
+    let coeffs = (degree as usize + 1).pow(2);
+    let mut s = GaussianScene::new(degree);
     for _ in 0..n {
         let dir: [f32; 3] = std::array::from_fn(|_| normal.sample(&mut rng));
         let len = (dir[0] * dir[0] + dir[1] * dir[1] + dir[2] * dir[2])
@@ -45,11 +52,14 @@ fn ball_scene(n: usize, seed: u64) -> GaussianScene {
         s.opacity_logits.push(1.0 + 2.0 * normal.sample(&mut rng));
         for k in 0..16 {
             for _ in 0..3 {
-                s.sh.push(if k == 0 {
+                let v = if k == 0 {
                     normal.sample(&mut rng)
                 } else {
                     0.1 * normal.sample(&mut rng)
-                });
+                };
+                if k < coeffs {
+                    s.sh.push(v);
+                }
             }
         }
     }
@@ -254,7 +264,7 @@ struct Timings {
 }
 
 /// What the command line selects: `n=125k,1m size=512,1080p device=cpu,gpu stage=forward,backward,step
-/// runs=N` (each optional; comma-separated values).
+/// runs=N sh=D` (each optional; comma-separated values; `sh`: the scenes' SH degree, 3 by default).
 struct Selection {
     counts: Vec<usize>,
     sizes: Vec<(u32, u32)>,
@@ -262,6 +272,7 @@ struct Selection {
     gpu: bool,
     stages: [bool; 3],
     runs: Option<usize>,
+    sh_degree: u32,
 }
 
 const STAGES: [&str; 3] = ["forward", "backward", "step"];
@@ -305,6 +316,7 @@ impl Selection {
             gpu: true,
             stages: [true; 3],
             runs: None,
+            sh_degree: 3,
         };
         for a in args {
             let Some((key, value)) = a.split_once('=') else {
@@ -335,9 +347,15 @@ impl Selection {
                     sel.stages = STAGES.map(|s| values.contains(&s));
                 }
                 "runs" => sel.runs = Some(value.parse().map_err(|_| bad())?),
+                "sh" => {
+                    sel.sh_degree = value.parse().map_err(|_| bad())?;
+                    if sel.sh_degree > 3 {
+                        return Err(bad());
+                    }
+                }
                 _ => {
                     return Err(format!(
-                        "unknown filter '{key}' (n, size, device, stage, runs)"
+                        "unknown filter '{key}' (n, size, device, stage, runs, sh)"
                     ))
                 }
             }
@@ -583,7 +601,7 @@ fn main_gpu(args: &[String], quick: bool) {
     );
     let mut rows = vec![];
     for &n in &sel.counts {
-        let scene = ball_scene(n, 1);
+        let scene = ball_scene_with_degree(n, 1, sel.sh_degree);
         for &(width, height) in &sel.sizes {
             let case = Case {
                 gaussians: n,
@@ -607,7 +625,10 @@ fn main_gpu(args: &[String], quick: bool) {
         }
     }
     let device = ctx.as_ref().map_or("no GPU".into(), |c| c.describe());
-    println!("\nGPU = {device}; medians in ms (runs in brackets).\n");
+    println!(
+        "\nGPU = {device}; SH degree {}; medians in ms (runs in brackets).\n",
+        sel.sh_degree
+    );
     println!("| Gaussians | size | device | forward | backward | fwd+bwd | fit step |");
     println!("| --- | --- | --- | --- | --- | --- | --- |");
     let ms =

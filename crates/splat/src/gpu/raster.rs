@@ -1,7 +1,8 @@
 //! Stage (c) on the GPU: front-to-back compositing per pixel and its backward, with the rules of
 //! `render/raster.rs` (pixel centres at +0.5, skip σ < 0 or alpha < 1/255, alpha ≤ 0.99, stop before
-//! T < 1e-4). One cube per 16x16 tile, one unit per pixel, each unit walking its tile's depth-sorted list
-//! independently: no shared memory and no barriers.
+//! T < 1e-4). One cube per 16x16 tile; each unit owns a few pixels of one column (`ppu`, a launch-time
+//! choice), and the cube walks the tile's depth-sorted list in step, one shared-memory batch of
+//! Gaussians at a time (the gsplat/brush structure).
 //!
 //! The backward walks each pixel's contributors back to front from the saved final T and last index, the
 //! tile's units in step over shared-memory batches of Gaussians, and adds the per-Gaussian gradients
@@ -23,7 +24,16 @@ fn sigma_at(splats: &[f32], s: usize, fx: f32, fy: f32) -> (f32, f32, f32) {
     (sigma, dx, dy)
 }
 
+/// Gaussians per shared-memory batch at least (each unit loads several when the cube has fewer units):
+/// fewer barriers per Gaussian.
+const MIN_BATCH: u32 = 64;
+
 /// Forward. `channels` extra channels (`extra_vals` N*C) are composited over 0 into `extra` (H*W*C).
+///
+/// One cube per tile with `TILE * TILE / ppu` units, unit (x, y) owning the `ppu` pixels of column x,
+/// rows y·ppu.. of the tile (as the backward). The cube walks the tile's list front to back in batches
+/// of one Gaussian per unit loaded into shared memory, and stops once every pixel of the tile is done.
+/// Per pixel the arithmetic is that of the CPU renderer, in the same order.
 #[cube(launch)]
 #[allow(clippy::too_many_arguments)]
 pub fn raster_forward(
@@ -45,55 +55,140 @@ pub fn raster_forward(
     t_final: &mut [f32],
     last: &mut [u32],
     #[comptime] channels: u32,
+    #[comptime] ppu: u32,
 ) {
+    let units = comptime!(TILE * TILE / ppu);
+    let np = comptime!(ppu as usize);
+    let c = channels as usize;
+    let tile = (CUBE_POS_Y * tiles_x + CUBE_POS_X) as usize;
+    let start = tile_start[tile];
+    let count = tile_end[tile] - start;
     let px = CUBE_POS_X * TILE + UNIT_POS_X;
-    let py = CUBE_POS_Y * TILE + UNIT_POS_Y;
-    if px < width && py < height {
-        let p = (py * width + px) as usize;
-        let c = channels as usize;
-        for ch in 0..c {
-            extra[p * c + ch] = 0.0;
-        }
-        let tile = (CUBE_POS_Y * tiles_x + CUBE_POS_X) as usize;
-        let start = tile_start[tile];
-        let end = tile_end[tile];
-        let fx = px as f32 + 0.5;
-        let fy = py as f32 + 0.5;
-        let mut t = 1.0f32;
-        let mut r = 0.0f32;
-        let mut g = 0.0f32;
-        let mut b = 0.0f32;
-        let mut d = 0.0f32;
-        let mut n_last = 0u32;
-        for k in start..end {
-            let s = ids[k as usize] as usize * 10;
-            let (sigma, _dx, _dy) = sigma_at(splats, s, fx, fy);
-            let a = f32::min(splats[s + 5] * (-sigma).exp(), ALPHA_MAX as f32);
-            if sigma >= 0.0 && a >= ALPHA_MIN as f32 {
-                let next = t * (1.0f32 - a);
-                if next < T_MIN as f32 {
-                    break;
-                }
-                let w = a * t;
-                r += w * splats[s + 6];
-                g += w * splats[s + 7];
-                b += w * splats[s + 8];
-                d += w * splats[s + 9];
-                let gi = ids[k as usize] as usize;
-                for ch in 0..c {
-                    extra[p * c + ch] += w * extra_vals[gi * c + ch];
-                }
-                t = next;
-                n_last = k - start + 1;
+    let py0 = CUBE_POS_Y * TILE + UNIT_POS_Y * ppu;
+    let fx = px as f32 + 0.5;
+
+    let mut pix = Array::<u32>::new(np);
+    let mut done = Array::<u32>::new(np);
+    let mut t = Array::<f32>::new(np);
+    let mut r = Array::<f32>::new(np);
+    let mut g = Array::<f32>::new(np);
+    let mut b = Array::<f32>::new(np);
+    let mut d = Array::<f32>::new(np);
+    let mut n_last = Array::<u32>::new(np);
+    #[unroll]
+    for q in 0..np {
+        let py = py0 + q as u32;
+        pix[q] = 0;
+        // Pixels outside the image are done from the start.
+        done[q] = 1;
+        t[q] = 1.0;
+        r[q] = 0.0;
+        g[q] = 0.0;
+        b[q] = 0.0;
+        d[q] = 0.0;
+        n_last[q] = 0;
+        if px < width && py < height {
+            let p = py * width + px;
+            pix[q] = p;
+            done[q] = 0;
+            for ch in 0..c {
+                extra[p as usize * c + ch] = 0.0;
             }
         }
-        rgb[3 * p] = r + t * bg_r;
-        rgb[3 * p + 1] = g + t * bg_g;
-        rgb[3 * p + 2] = b + t * bg_b;
-        alpha[p] = 1.0f32 - t;
-        depth[p] = d;
-        t_final[p] = t;
-        last[p] = n_last;
+    }
+
+    let batch_len = comptime!(u32::max(units, MIN_BATCH));
+    let mut batch = Shared::<[f32]>::new_slice(comptime!((batch_len * 10) as usize));
+    let mut batch_ids = Shared::<[u32]>::new_slice(comptime!(batch_len as usize));
+    // Per unit: 1 while it has a pixel still compositing (read by every unit to stop together).
+    let mut busy = Shared::<[u32]>::new_slice(comptime!(units as usize));
+    let mut lo = 0u32;
+    while lo < count {
+        let size = u32::min(batch_len, count - lo);
+        let mut e = UNIT_POS;
+        while e < size {
+            let gi = ids[(start + lo + e) as usize];
+            batch_ids[e as usize] = gi;
+            let src = gi as usize * 10;
+            let dst = e as usize * 10;
+            #[unroll]
+            for f in 0..10 {
+                batch[dst + f] = splats[src + f];
+            }
+            e += units;
+        }
+        sync_cube();
+        for j in 0..size {
+            let s = j as usize * 10;
+            let mx = batch[s];
+            let my = batch[s + 1];
+            let ca = batch[s + 2];
+            let cb = batch[s + 3];
+            let cc = batch[s + 4];
+            let o = batch[s + 5];
+            #[unroll]
+            for q in 0..np {
+                if done[q] == 0 {
+                    let fy = (py0 + q as u32) as f32 + 0.5;
+                    let dx = mx - fx;
+                    let dy = my - fy;
+                    let sigma = 0.5f32 * (ca * dx * dx + cc * dy * dy) + cb * dx * dy;
+                    let a = f32::min(o * (-sigma).exp(), ALPHA_MAX as f32);
+                    if sigma >= 0.0 && a >= ALPHA_MIN as f32 {
+                        let next = t[q] * (1.0f32 - a);
+                        if next < T_MIN as f32 {
+                            done[q] = 1;
+                        } else {
+                            let w = a * t[q];
+                            r[q] += w * batch[s + 6];
+                            g[q] += w * batch[s + 7];
+                            b[q] += w * batch[s + 8];
+                            d[q] += w * batch[s + 9];
+                            if c > 0 {
+                                let gi = batch_ids[j as usize] as usize;
+                                let p = pix[q] as usize;
+                                for ch in 0..c {
+                                    extra[p * c + ch] += w * extra_vals[gi * c + ch];
+                                }
+                            }
+                            t[q] = next;
+                            n_last[q] = lo + j + 1;
+                        }
+                    }
+                }
+            }
+        }
+        let mut mine = 0u32;
+        #[unroll]
+        for q in 0..np {
+            if done[q] == 0 {
+                mine = 1;
+            }
+        }
+        busy[UNIT_POS as usize] = mine;
+        // Everyone has finished with the batch and published its flag.
+        sync_cube();
+        let mut any = 0u32;
+        for u in 0..units {
+            any |= busy[u as usize];
+        }
+        lo += batch_len;
+        if any == 0 {
+            lo = count;
+        }
+    }
+    #[unroll]
+    for q in 0..np {
+        if px < width && py0 + (q as u32) < height {
+            let p = pix[q] as usize;
+            rgb[3 * p] = r[q] + t[q] * bg_r;
+            rgb[3 * p + 1] = g[q] + t[q] * bg_g;
+            rgb[3 * p + 2] = b[q] + t[q] * bg_b;
+            alpha[p] = 1.0f32 - t[q];
+            depth[p] = d[q];
+            t_final[p] = t[q];
+            last[p] = n_last[q];
+        }
     }
 }
 
@@ -220,29 +315,33 @@ pub fn raster_backward(
     }
     let count = cube_max_u32(unit_last, units);
 
-    let mut batch = Shared::<[f32]>::new_slice(comptime!((units * 10) as usize));
-    let mut batch_ids = Shared::<[u32]>::new_slice(comptime!(units as usize));
+    let batch_len = comptime!(u32::max(units, MIN_BATCH));
+    let mut batch = Shared::<[f32]>::new_slice(comptime!((batch_len * 10) as usize));
+    let mut batch_ids = Shared::<[u32]>::new_slice(comptime!(batch_len as usize));
     // Spelt out: `div_ceil` is not part of CubeCL's kernel language.
     #[allow(clippy::manual_div_ceil)]
-    let batches = (count + units - 1) / units;
+    let batches = (count + batch_len - 1) / batch_len;
     let mut hi = count;
     for _ in 0..batches {
-        let lo = if hi > units { hi - units } else { 0u32 };
+        // Spelt out: `saturating_sub` is not part of CubeCL's kernel language.
+        #[allow(clippy::implicit_saturating_sub)]
+        let lo = if hi > batch_len { hi - batch_len } else { 0u32 };
+        let size = hi - lo;
         // The previous batch is consumed before it is overwritten.
         sync_cube();
-        let idx = lo + UNIT_POS;
-        if idx < hi {
-            let gi = ids[(start + idx) as usize];
-            batch_ids[UNIT_POS as usize] = gi;
+        let mut e = UNIT_POS;
+        while e < size {
+            let gi = ids[(start + lo + e) as usize];
+            batch_ids[e as usize] = gi;
             let src = gi as usize * 10;
-            let dst = UNIT_POS as usize * 10;
+            let dst = e as usize * 10;
             #[unroll]
             for f in 0..10 {
                 batch[dst + f] = splats[src + f];
             }
+            e += units;
         }
         sync_cube();
-        let size = hi - lo;
         for j in 0..size {
             let local = size - 1 - j;
             let rel = lo + local;

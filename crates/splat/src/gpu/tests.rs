@@ -102,6 +102,14 @@ fn compare_forward(ctx: &GpuContext, scene: &GaussianScene, cam: &Camera, channe
         cpu.alpha.iter().filter(|&&a| a > 0.5).count() > 10,
         "scene too empty"
     );
+    // Every raster layout (pixels per unit) composites each pixel with the same operations.
+    for ppu in [1, 2, 4, 8, 16] {
+        let other = super::render_with(ctx, scene, cam, &settings, extra, ppu).unwrap();
+        assert_eq!(other.rgb, gpu.rgb, "{ppu} pixels per unit");
+        assert_eq!(other.alpha, gpu.alpha, "{ppu} pixels per unit");
+        assert_eq!(other.depth, gpu.depth, "{ppu} pixels per unit");
+        assert_eq!(other.extra, gpu.extra, "{ppu} pixels per unit");
+    }
 }
 
 #[test]
