@@ -521,7 +521,8 @@ pub fn depth_keys(info: &[u32], n: u32, keys: &mut [u32], vals: &mut [u32]) {
 
 /// Lifting (GaussianEditor's `apply_weights`, as `crate::lift`): the forward walk with T from 1, and at
 /// every hit (an unweighted one) the pixel's C map values are added to the Gaussian's sums and its count
-/// goes up by one.
+/// goes up by one. Laid out as [`raster_forward`] (`ppu` pixels per unit, shared-memory batches, the
+/// cube stops when every pixel is done); a unit adds its pixels' hits and sums with one atomic each.
 #[cube(launch)]
 #[allow(clippy::too_many_arguments)]
 pub fn lift_accumulate(
@@ -536,32 +537,115 @@ pub fn lift_accumulate(
     sums: &mut [Atomic<f32>],
     counts: &mut [Atomic<u32>],
     #[comptime] channels: u32,
+    #[comptime] ppu: u32,
 ) {
+    let units = comptime!(TILE * TILE / ppu);
+    let np = comptime!(ppu as usize);
+    let c = channels as usize;
+    let tile = (CUBE_POS_Y * tiles_x + CUBE_POS_X) as usize;
+    let start = tile_start[tile];
+    let count = tile_end[tile] - start;
     let px = CUBE_POS_X * TILE + UNIT_POS_X;
-    let py = CUBE_POS_Y * TILE + UNIT_POS_Y;
-    if px < width && py < height {
-        let p = (py * width + px) as usize;
-        let c = channels as usize;
-        let tile = (CUBE_POS_Y * tiles_x + CUBE_POS_X) as usize;
-        let fx = px as f32 + 0.5;
-        let fy = py as f32 + 0.5;
-        let mut t = 1.0f32;
-        for k in tile_start[tile]..tile_end[tile] {
-            let gi = ids[k as usize] as usize;
-            let s = gi * 10;
-            let (sigma, _dx, _dy) = sigma_at(splats, s, fx, fy);
-            let a = f32::min(splats[s + 5] * (-sigma).exp(), ALPHA_MAX as f32);
-            if sigma >= 0.0 && a >= ALPHA_MIN as f32 {
-                let next = t * (1.0f32 - a);
-                if next < T_MIN as f32 {
-                    break;
-                }
-                counts[gi].fetch_add(1u32);
-                for ch in 0..c {
-                    sums[gi * c + ch].fetch_add(map[p * c + ch]);
-                }
-                t = next;
+    let py0 = CUBE_POS_Y * TILE + UNIT_POS_Y * ppu;
+    let fx = px as f32 + 0.5;
+
+    let mut pix = Array::<u32>::new(np);
+    let mut done = Array::<u32>::new(np);
+    let mut t = Array::<f32>::new(np);
+    let mut hit = Array::<u32>::new(np);
+    #[unroll]
+    for q in 0..np {
+        let py = py0 + q as u32;
+        pix[q] = 0;
+        done[q] = 1;
+        t[q] = 1.0;
+        if px < width && py < height {
+            pix[q] = py * width + px;
+            done[q] = 0;
+        }
+    }
+
+    let batch_len = comptime!(u32::max(units, MIN_BATCH));
+    let mut batch = Shared::<[f32]>::new_slice(comptime!((batch_len * 6) as usize));
+    let mut batch_ids = Shared::<[u32]>::new_slice(comptime!(batch_len as usize));
+    let mut busy = Shared::<[u32]>::new_slice(comptime!(units as usize));
+    let mut lo = 0u32;
+    while lo < count {
+        let size = u32::min(batch_len, count - lo);
+        let mut e = UNIT_POS;
+        while e < size {
+            let gi = ids[(start + lo + e) as usize];
+            batch_ids[e as usize] = gi;
+            let src = gi as usize * 10;
+            let dst = e as usize * 6;
+            #[unroll]
+            for f in 0..6 {
+                batch[dst + f] = splats[src + f];
             }
+            e += units;
+        }
+        sync_cube();
+        for j in 0..size {
+            let s = j as usize * 6;
+            let mx = batch[s];
+            let my = batch[s + 1];
+            let ca = batch[s + 2];
+            let cb = batch[s + 3];
+            let cc = batch[s + 4];
+            let o = batch[s + 5];
+            let mut hits = 0u32;
+            #[unroll]
+            for q in 0..np {
+                hit[q] = 0;
+                if done[q] == 0 {
+                    let fy = (py0 + q as u32) as f32 + 0.5;
+                    let dx = mx - fx;
+                    let dy = my - fy;
+                    let sigma = 0.5f32 * (ca * dx * dx + cc * dy * dy) + cb * dx * dy;
+                    let a = f32::min(o * (-sigma).exp(), ALPHA_MAX as f32);
+                    if sigma >= 0.0 && a >= ALPHA_MIN as f32 {
+                        let next = t[q] * (1.0f32 - a);
+                        if next < T_MIN as f32 {
+                            done[q] = 1;
+                        } else {
+                            hit[q] = 1;
+                            hits += 1;
+                            t[q] = next;
+                        }
+                    }
+                }
+            }
+            if hits > 0 {
+                let gi = batch_ids[j as usize] as usize;
+                counts[gi].fetch_add(hits);
+                for ch in 0..c {
+                    let mut sum = 0.0f32;
+                    #[unroll]
+                    for q in 0..np {
+                        if hit[q] == 1 {
+                            sum += map[pix[q] as usize * c + ch];
+                        }
+                    }
+                    sums[gi * c + ch].fetch_add(sum);
+                }
+            }
+        }
+        let mut mine = 0u32;
+        #[unroll]
+        for q in 0..np {
+            if done[q] == 0 {
+                mine = 1;
+            }
+        }
+        busy[UNIT_POS as usize] = mine;
+        sync_cube();
+        let mut any = 0u32;
+        for u in 0..units {
+            any |= busy[u as usize];
+        }
+        lo += batch_len;
+        if any == 0 {
+            lo = count;
         }
     }
 }

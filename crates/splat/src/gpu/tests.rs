@@ -351,6 +351,13 @@ fn lifting_matches_the_cpu() {
     let e = rel_err(&got.values, &want.values);
     eprintln!("lifting: {mismatched} counts differ, values relative error {e:.2e}");
     assert!(e < 1e-3, "values relative error {e}");
+    // Every layout (pixels per unit) hits the same Gaussians.
+    for ppu in [1, 2, 4, 8, 16] {
+        let other = super::lift::lift_with(&ctx, &scene, &cams, &refs, channels, ppu).unwrap();
+        assert_eq!(other.counts, got.counts, "{ppu} pixels per unit");
+        let e = rel_err(&other.values, &got.values);
+        assert!(e < 1e-6, "{ppu} pixels per unit: values relative error {e}");
+    }
 }
 
 /// Three device Adam steps land where `Adam::step` does.
