@@ -2,7 +2,16 @@
 //! plus the real playbot-31k scene when the shared assets are present.
 //!
 //! Run: `cargo bench -p vcedit-splat --bench render` (add `-- quick` for one size, `-- stages` for a
-//! per-stage breakdown, `-- gpu` for the GPU renderer at 125k 512² beside the CPU (`-- gpu quick`: 30k), `-- channels` for extra-channel rendering and lifting with 24..300 channels). Synthetic scenes fill a unit ball the way trained scenes fill their volume:
+//! per-stage breakdown, `-- channels` for extra-channel rendering and lifting with 24..300 channels).
+//!
+//! `-- gpu`: forward, backward and a full fit step (render, L1 + D-SSIM, backward, Adam, densification
+//! statistics) on the GPU beside the CPU, at 125k and 1M Gaussians, 512² and 1920x1080; `-- gpu quick`:
+//! 30k at 512². Filters select cases: `n=125k,1m size=512,1080p device=cpu,gpu
+//! stage=forward,backward,step runs=3 sh=3`, e.g. `-- gpu n=1m size=1080p device=gpu runs=1` (lavapipe
+//! binds at most 128 MiB per buffer: 1M Gaussians need `sh=2` there). One
+//! `BENCH {json}` line per measurement, then a markdown table.
+//!
+//! Synthetic scenes fill a unit ball the way trained scenes fill their volume:
 //! log-normal, anisotropic scales around the typical neighbour spacing, random rotations, opacities
 //! spread over (0, 1) with many near-opaque Gaussians, and SH degree 3.
 
@@ -17,11 +26,17 @@ use splat::{Camera, GaussianScene};
 use std::time::{Duration, Instant};
 
 fn ball_scene(n: usize, seed: u64) -> GaussianScene {
+    ball_scene_with_degree(n, seed, 3)
+}
+
+/// [`ball_scene`] with SH degree `degree` (the colours of degree 3's first coefficients).
+fn ball_scene_with_degree(n: usize, seed: u64, degree: u32) -> GaussianScene {
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
     let normal = Normal::new(0.0f32, 1.0).unwrap();
     // Typical spacing of n points in the unit ball; scales are log-normal around half of it.
     let spacing = (4.19f32 / n as f32).cbrt();
-    let mut s = GaussianScene::new(3);
+    let coeffs = (degree as usize + 1).pow(2);
+    let mut s = GaussianScene::new(degree);
     for _ in 0..n {
         let dir: [f32; 3] = std::array::from_fn(|_| normal.sample(&mut rng));
         let len = (dir[0] * dir[0] + dir[1] * dir[1] + dir[2] * dir[2])
@@ -37,11 +52,14 @@ fn ball_scene(n: usize, seed: u64) -> GaussianScene {
         s.opacity_logits.push(1.0 + 2.0 * normal.sample(&mut rng));
         for k in 0..16 {
             for _ in 0..3 {
-                s.sh.push(if k == 0 {
+                let v = if k == 0 {
                     normal.sample(&mut rng)
                 } else {
                     0.1 * normal.sample(&mut rng)
-                });
+                };
+                if k < coeffs {
+                    s.sh.push(v);
+                }
             }
         }
     }
@@ -49,15 +67,20 @@ fn ball_scene(n: usize, seed: u64) -> GaussianScene {
 }
 
 fn camera(size: u32) -> Camera {
-    // 50° field of view from distance 3: the ball fills most of the frame.
-    let focal = size as f64 / 2.0 / (25f64.to_radians()).tan();
+    camera_wh(size, size)
+}
+
+/// A camera `width`x`height` with a 50° vertical field of view, looking at the ball from distance 3:
+/// the ball fills most of the frame.
+fn camera_wh(width: u32, height: u32) -> Camera {
+    let focal = height as f64 / 2.0 / (25f64.to_radians()).tan();
     look_at(
         "bench".into(),
         [0.6, -0.8, -2.8],
         [0.0; 3],
         [0.0, -1.0, 0.0],
-        size,
-        size,
+        width,
+        height,
         focal,
     )
 }
@@ -197,72 +220,430 @@ fn bench_channels(scene: &GaussianScene, size: u32, channels: usize) {
     );
 }
 
-/// Forward and backward on the GPU with the scene and frame on the device (the timings include waiting
-/// for the device; the only host read is the pair count inside the forward).
-fn bench_gpu(ctx: &gpu::GpuContext, label: &str, scene: &GaussianScene, cam: &Camera, runs: usize) {
-    use splat::gpu::{render_backward_device, render_device, GpuOutputGrads, GpuScene};
+/// One measured case of the `gpu` matrix.
+#[derive(Clone, Copy, Debug)]
+struct Case {
+    gaussians: usize,
+    width: u32,
+    height: u32,
+}
+
+impl Case {
+    fn size_label(&self) -> String {
+        match (self.width, self.height) {
+            (1920, 1080) => "1080p".into(),
+            (w, h) if w == h => format!("{w}²"),
+            (w, h) => format!("{w}x{h}"),
+        }
+    }
+
+    fn count_label(&self) -> String {
+        match self.gaussians {
+            n if n >= 1_000_000 && n.is_multiple_of(1_000_000) => format!("{}M", n / 1_000_000),
+            n => format!("{}k", n / 1000),
+        }
+    }
+}
+
+/// The 1-minute load average (Linux), printed with every measurement: the machine is shared.
+fn load_average() -> Option<f64> {
+    std::fs::read_to_string("/proc/loadavg")
+        .ok()?
+        .split_whitespace()
+        .next()?
+        .parse()
+        .ok()
+}
+
+/// Timings of one case on one device; `None` = stage not selected.
+#[derive(Default)]
+struct Timings {
+    forward: Option<Duration>,
+    backward: Option<Duration>,
+    step: Option<Duration>,
+}
+
+/// What the command line selects: `n=125k,1m size=512,1080p device=cpu,gpu stage=forward,backward,step
+/// runs=N sh=D` (each optional; comma-separated values; `sh`: the scenes' SH degree, 3 by default).
+struct Selection {
+    counts: Vec<usize>,
+    sizes: Vec<(u32, u32)>,
+    cpu: bool,
+    gpu: bool,
+    stages: [bool; 3],
+    runs: Option<usize>,
+    sh_degree: u32,
+}
+
+const STAGES: [&str; 3] = ["forward", "backward", "step"];
+
+fn parse_count(s: &str) -> Option<usize> {
+    let s = s.to_ascii_lowercase();
+    if let Some(k) = s.strip_suffix('k') {
+        k.parse::<usize>().ok().map(|v| v * 1000)
+    } else if let Some(m) = s.strip_suffix('m') {
+        m.parse::<usize>().ok().map(|v| v * 1_000_000)
+    } else {
+        s.parse().ok()
+    }
+}
+
+fn parse_size(s: &str) -> Option<(u32, u32)> {
+    match s.to_ascii_lowercase().as_str() {
+        "1080p" => Some((1920, 1080)),
+        "720p" => Some((1280, 720)),
+        s => match s.split_once('x') {
+            Some((w, h)) => Some((w.parse().ok()?, h.parse().ok()?)),
+            None => s.parse().ok().map(|v| (v, v)),
+        },
+    }
+}
+
+impl Selection {
+    fn parse(args: &[String], quick: bool) -> Result<Self, String> {
+        let mut sel = Self {
+            counts: if quick {
+                vec![30_000]
+            } else {
+                vec![125_000, 1_000_000]
+            },
+            sizes: if quick {
+                vec![(512, 512)]
+            } else {
+                vec![(512, 512), (1920, 1080)]
+            },
+            cpu: true,
+            gpu: true,
+            stages: [true; 3],
+            runs: None,
+            sh_degree: 3,
+        };
+        for a in args {
+            let Some((key, value)) = a.split_once('=') else {
+                continue;
+            };
+            let values: Vec<&str> = value.split(',').filter(|v| !v.is_empty()).collect();
+            let bad = || format!("bad filter '{a}'");
+            match key {
+                "n" => {
+                    sel.counts = values
+                        .iter()
+                        .map(|v| parse_count(v))
+                        .collect::<Option<_>>()
+                        .ok_or_else(bad)?
+                }
+                "size" => {
+                    sel.sizes = values
+                        .iter()
+                        .map(|v| parse_size(v))
+                        .collect::<Option<_>>()
+                        .ok_or_else(bad)?
+                }
+                "device" => {
+                    sel.cpu = values.contains(&"cpu");
+                    sel.gpu = values.contains(&"gpu");
+                }
+                "stage" => {
+                    sel.stages = STAGES.map(|s| values.contains(&s));
+                }
+                "runs" => sel.runs = Some(value.parse().map_err(|_| bad())?),
+                "sh" => {
+                    sel.sh_degree = value.parse().map_err(|_| bad())?;
+                    if sel.sh_degree > 3 {
+                        return Err(bad());
+                    }
+                }
+                _ => {
+                    return Err(format!(
+                        "unknown filter '{key}' (n, size, device, stage, runs, sh)"
+                    ))
+                }
+            }
+        }
+        Ok(sel)
+    }
+
+    /// Runs per measurement: a few for the small cases, fewer where one run takes seconds.
+    fn runs(&self, case: &Case, software_gpu: bool) -> usize {
+        if let Some(r) = self.runs {
+            return r.max(1);
+        }
+        let small = case.gaussians <= 125_000 && case.width * case.height <= 512 * 512;
+        match (small, software_gpu) {
+            (true, false) => 5,
+            (true, true) | (false, false) => 3,
+            (false, true) => 1,
+        }
+    }
+}
+
+/// Prints one machine-readable line per measurement.
+fn report_line(device: &str, case: &Case, stage: &str, times: &[Duration], extra: &str) {
+    let ms = |d: Duration| d.as_secs_f64() * 1e3;
+    let min = times.iter().min().copied().unwrap_or_default();
+    println!(
+        "BENCH {{\"device\":\"{device}\",\"gaussians\":{},\"width\":{},\"height\":{},\"stage\":\"{stage}\",\
+         \"runs\":{},\"median_ms\":{:.2},\"min_ms\":{:.2},\"load\":{}{extra}}}",
+        case.gaussians,
+        case.width,
+        case.height,
+        times.len(),
+        ms(median(times.to_vec())),
+        ms(min),
+        load_average().map_or("null".into(), |l| format!("{l:.2}")),
+    );
+}
+
+/// CPU: forward, backward and one fit step (render, L1 + D-SSIM, backward, Adam, densification stats).
+fn measure_cpu(scene: &GaussianScene, case: &Case, runs: usize, stages: [bool; 3]) -> Timings {
+    use splat::loss::l1_dssim;
+    use splat::optim::LearningRates;
+    use splat::train::{RenderedView, TrainState};
+    let cam = camera_wh(case.width, case.height);
     let settings = RenderSettings::default();
     let npix = (cam.width * cam.height) as usize;
-    let grad: Vec<f32> = (0..3 * npix)
-        .map(|i| ((i % 7) as f32 - 3.0) * 0.01)
-        .collect();
-    let dev = GpuScene::upload(ctx, scene);
-    let grad = gpu::prims::upload_f32(&ctx.client, &grad);
-    let sync = || gpu::cubecl::future::block_on(ctx.client.sync()).expect("device failed");
-    let grads = GpuOutputGrads {
+    let grad = pattern_grad(npix);
+    let grads = OutputGrads {
         rgb: &grad,
         alpha: None,
         depth: None,
         extra: None,
     };
-    // Warm-up: kernel compilation.
-    let frame = render_device(ctx, &dev, cam, &settings, None).expect("forward");
-    render_backward_device(ctx, &dev, &settings, None, &frame, &grads).expect("backward");
-    sync();
-    let (mut fwd, mut bwd) = (vec![], vec![]);
-    let mut isects = 0;
-    for _ in 0..runs {
-        let t = Instant::now();
-        let frame = render_device(ctx, &dev, cam, &settings, None).expect("forward");
-        sync();
-        fwd.push(t.elapsed());
-        isects = frame.intersections;
-        let t = Instant::now();
-        let g =
-            render_backward_device(ctx, &dev, &settings, None, &frame, &grads).expect("backward");
-        sync();
-        bwd.push(t.elapsed());
-        std::hint::black_box(g);
+    let mut out = Timings::default();
+    let mut fwd = vec![];
+    let mut bwd = vec![];
+    let frame = render(scene, &cam, &settings, None);
+    if stages[0] || stages[1] {
+        for _ in 0..runs {
+            let t = Instant::now();
+            let frame = std::hint::black_box(render(scene, &cam, &settings, None));
+            fwd.push(t.elapsed());
+            if stages[1] {
+                let t = Instant::now();
+                std::hint::black_box(render_backward(
+                    scene, &cam, &settings, None, &frame, &grads,
+                ));
+                bwd.push(t.elapsed());
+            }
+        }
+        let isects = format!(",\"intersections\":{}", frame.tile_intersections());
+        if stages[0] {
+            report_line("cpu", case, "forward", &fwd, &isects);
+            out.forward = Some(median(fwd));
+        }
+        if stages[1] {
+            report_line("cpu", case, "backward", &bwd, &isects);
+            out.backward = Some(median(bwd));
+        }
     }
-    let (f, b) = (median(fwd), median(bwd));
-    println!(
-        "{label:<14} {:>4}x{:<4} GPU forward {:>7.1} ms  backward {:>7.1} ms  fwd+bwd {:>7.1} ms  ({} tile entries)",
-        cam.width,
-        cam.height,
-        f.as_secs_f64() * 1e3,
-        b.as_secs_f64() * 1e3,
-        (f + b).as_secs_f64() * 1e3,
-        isects
-    );
+    if stages[2] {
+        let target = pattern_target(npix);
+        let mut state = TrainState::new(scene.clone(), LearningRates::inria(30_000), 3.0);
+        let (w, h) = (cam.width as usize, cam.height as usize);
+        let mut steps = vec![];
+        for _ in 0..runs {
+            let t = Instant::now();
+            let frame = render(&state.scene, &cam, &settings, None);
+            let loss = l1_dssim(&frame.rgb, &target, w, h, 3, 0.2);
+            let g = render_backward(
+                &state.scene,
+                &cam,
+                &settings,
+                None,
+                &frame,
+                &OutputGrads {
+                    rgb: &loss.grad,
+                    alpha: None,
+                    depth: None,
+                    extra: None,
+                },
+            );
+            state.step(&g);
+            state
+                .stats
+                .add(&RenderedView::new(&g, &frame.radii, &cam), 1);
+            steps.push(t.elapsed());
+        }
+        report_line("cpu", case, "step", &steps, "");
+        out.step = Some(median(steps));
+    }
+    out
 }
 
-/// `-- gpu`: the GPU renderer (any adapter, software ones included) beside the CPU one.
-fn main_gpu(quick: bool) {
-    let ctx = match gpu::open(gpu::DeviceChoice::Gpu) {
-        Ok(Some(ctx)) => ctx,
-        Ok(None) | Err(_) => {
-            println!("SKIP gpu: no GPU adapter");
-            return;
+/// A fixed dL/d rgb for the backward benches.
+fn pattern_grad(npix: usize) -> Vec<f32> {
+    (0..3 * npix)
+        .map(|i| ((i % 7) as f32 - 3.0) * 0.01)
+        .collect()
+}
+
+/// A fixed target image for the fit-step benches.
+fn pattern_target(npix: usize) -> Vec<f32> {
+    (0..3 * npix).map(|i| (i % 11) as f32 / 10.0).collect()
+}
+
+/// GPU: the same three stages with the scene, frame, target and optimiser state on the device. Times
+/// include waiting for the device (each stage ends with a sync); the forward reads one 4-byte count.
+fn measure_gpu(
+    ctx: &gpu::GpuContext,
+    scene: &GaussianScene,
+    case: &Case,
+    runs: usize,
+    stages: [bool; 3],
+) -> Result<Timings, gpu::GpuError> {
+    use splat::gpu::{
+        render_backward_device, render_device, DeviceTrainer, GpuOutputGrads, GpuScene,
+    };
+    use splat::optim::LearningRates;
+    use splat::train::TrainState;
+    let cam = camera_wh(case.width, case.height);
+    let settings = RenderSettings::default();
+    let npix = (cam.width * cam.height) as usize;
+    let sync = || gpu::cubecl::future::block_on(ctx.client.sync()).map_err(gpu::server_error);
+    let mut out = Timings::default();
+    if stages[0] || stages[1] {
+        let dev = GpuScene::upload(ctx, scene);
+        let grad = gpu::prims::upload_f32(&ctx.client, &pattern_grad(npix));
+        let grads = GpuOutputGrads {
+            rgb: &grad,
+            alpha: None,
+            depth: None,
+            extra: None,
+        };
+        // Warm-up: kernel compilation.
+        let frame = render_device(ctx, &dev, &cam, &settings, None)?;
+        if stages[1] {
+            render_backward_device(ctx, &dev, &settings, None, &frame, &grads)?;
+        }
+        sync()?;
+        let isects = format!(",\"intersections\":{}", frame.intersections);
+        drop(frame);
+        let (mut fwd, mut bwd) = (vec![], vec![]);
+        for _ in 0..runs {
+            let t = Instant::now();
+            let frame = render_device(ctx, &dev, &cam, &settings, None)?;
+            sync()?;
+            fwd.push(t.elapsed());
+            if stages[1] {
+                let t = Instant::now();
+                let g = render_backward_device(ctx, &dev, &settings, None, &frame, &grads)?;
+                sync()?;
+                bwd.push(t.elapsed());
+                std::hint::black_box(g);
+            }
+        }
+        if stages[0] {
+            report_line("gpu", case, "forward", &fwd, &isects);
+            out.forward = Some(median(fwd));
+        }
+        if stages[1] {
+            report_line("gpu", case, "backward", &bwd, &isects);
+            out.backward = Some(median(bwd));
+        }
+    }
+    if stages[2] {
+        let mut state = TrainState::new(scene.clone(), LearningRates::inria(30_000), 3.0);
+        let mut trainer = DeviceTrainer::upload(ctx, &state);
+        let target = gpu::prims::upload_f32(&ctx.client, &pattern_target(npix));
+        trainer.step(ctx, &mut state.adam, &cam, &target, &settings, 0.2, true)?;
+        sync()?;
+        let mut steps = vec![];
+        for _ in 0..runs {
+            let t = Instant::now();
+            std::hint::black_box(trainer.step(
+                ctx,
+                &mut state.adam,
+                &cam,
+                &target,
+                &settings,
+                0.2,
+                true,
+            )?);
+            sync()?;
+            steps.push(t.elapsed());
+        }
+        report_line("gpu", case, "step", &steps, "");
+        out.step = Some(median(steps));
+    }
+    Ok(out)
+}
+
+/// `-- gpu [quick] [filters]`: forward, backward and a full fit step of the GPU renderer (any adapter,
+/// software ones included) beside the CPU one, for 125k and 1M Gaussians at 512² and 1080p (`quick`: 30k
+/// at 512²). Filters: see [`Selection`]. Prints one `BENCH {json}` line per measurement, then a markdown
+/// table of medians.
+fn main_gpu(args: &[String], quick: bool) {
+    let sel = match Selection::parse(args, quick) {
+        Ok(s) => s,
+        Err(e) => {
+            eprintln!("{e}");
+            std::process::exit(2);
         }
     };
-    println!("GPU: {}", ctx.describe());
-    let counts: &[usize] = if quick { &[30_000] } else { &[125_000] };
-    for &n in counts {
-        let scene = ball_scene(n, 1);
-        let cam = camera(512);
-        let label = format!("ball {}k", n / 1000);
-        bench_gpu(&ctx, &label, &scene, &cam, 3);
-        bench(&label, &scene, &cam, 3, false);
+    let ctx = if sel.gpu {
+        match gpu::open(gpu::DeviceChoice::Gpu) {
+            Ok(Some(ctx)) => Some(ctx),
+            Ok(None) | Err(_) => {
+                println!("SKIP gpu: no GPU adapter");
+                None
+            }
+        }
+    } else {
+        None
+    };
+    if let Some(ctx) = &ctx {
+        println!("GPU: {}", ctx.describe());
+    }
+    println!(
+        "CPU: {} rayon threads; load average {}",
+        rayon::current_num_threads(),
+        load_average().map_or("n/a".into(), |l| format!("{l:.2}"))
+    );
+    let mut rows = vec![];
+    for &n in &sel.counts {
+        let scene = ball_scene_with_degree(n, 1, sel.sh_degree);
+        for &(width, height) in &sel.sizes {
+            let case = Case {
+                gaussians: n,
+                width,
+                height,
+            };
+            if let Some(ctx) = &ctx {
+                let runs = sel.runs(&case, ctx.software);
+                match measure_gpu(ctx, &scene, &case, runs, sel.stages) {
+                    Ok(t) => rows.push((case, "GPU", runs, t)),
+                    Err(e) => {
+                        println!("SKIP gpu {} {}: {e}", case.count_label(), case.size_label())
+                    }
+                }
+            }
+            if sel.cpu {
+                let runs = sel.runs(&case, false);
+                let t = measure_cpu(&scene, &case, runs, sel.stages);
+                rows.push((case, "CPU", runs, t));
+            }
+        }
+    }
+    let device = ctx.as_ref().map_or("no GPU".into(), |c| c.describe());
+    println!(
+        "\nGPU = {device}; SH degree {}; medians in ms (runs in brackets).\n",
+        sel.sh_degree
+    );
+    println!("| Gaussians | size | device | forward | backward | fwd+bwd | fit step |");
+    println!("| --- | --- | --- | --- | --- | --- | --- |");
+    let ms =
+        |d: Option<Duration>| d.map_or("–".into(), |d| format!("{:.1}", d.as_secs_f64() * 1e3));
+    for (case, dev, runs, t) in rows {
+        let both = t.forward.zip(t.backward).map(|(f, b)| f + b);
+        println!(
+            "| {} | {} | {dev} ({runs}) | {} | {} | {} | {} |",
+            case.count_label(),
+            case.size_label(),
+            ms(t.forward),
+            ms(t.backward),
+            ms(both),
+            ms(t.step)
+        );
     }
 }
 
@@ -270,7 +651,7 @@ fn main() {
     let args: Vec<String> = std::env::args().collect();
     let quick = args.iter().any(|a| a == "quick");
     if args.iter().any(|a| a == "gpu") {
-        return main_gpu(quick);
+        return main_gpu(&args, quick);
     }
     if args.iter().any(|a| a == "channels") {
         let scene = ball_scene(125_000, 1);

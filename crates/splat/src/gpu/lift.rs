@@ -1,6 +1,6 @@
 //! Lifting 2D maps onto Gaussians on the GPU, as [`crate::lift`] does on the CPU: per view the scene is
-//! projected and binned as for rendering, then one kernel walks every pixel and adds its map values to
-//! the Gaussians it hits.
+//! projected and binned as for rendering, then one kernel walks every pixel (laid out as the raster
+//! forward) and adds its map values to the Gaussians it hits.
 
 use super::{arg, project_and_bin, GpuContext, GpuError, GpuScene, TILE};
 use crate::lift::Lifted;
@@ -20,6 +20,19 @@ pub fn lift(
     cameras: &[Camera],
     maps: &[&[f32]],
     channels: usize,
+) -> Result<Lifted, GpuError> {
+    let ppu = super::forward_pixels_per_unit(ctx);
+    lift_with(ctx, scene, cameras, maps, channels, ppu)
+}
+
+/// [`lift`] with `ppu` pixels per unit (same counts; sums up to the order of float additions).
+pub(super) fn lift_with(
+    ctx: &GpuContext,
+    scene: &GaussianScene,
+    cameras: &[Camera],
+    maps: &[&[f32]],
+    channels: usize,
+    ppu: u32,
 ) -> Result<Lifted, GpuError> {
     assert_eq!(cameras.len(), maps.len(), "one map per camera");
     let mut acc = GpuLiftAccumulator::new(ctx, scene, channels);
@@ -79,7 +92,7 @@ impl GpuLiftAccumulator {
             super::raster::lift_accumulate::launch(
                 c,
                 CubeCount::new_2d(b.tiles_x, b.tiles_y),
-                CubeDim::new_2d(TILE, TILE),
+                CubeDim::new_2d(TILE, TILE / ppu),
                 arg(&b.splats, super::SPLAT_F * n),
                 arg(&b.ids, b.intersections),
                 arg(&b.tile_start, num_tiles),
@@ -91,6 +104,7 @@ impl GpuLiftAccumulator {
                 arg(&self.sums, n * channels),
                 arg(&self.counts, n),
                 channels as u32,
+                ppu,
             );
             Ok(())
         })

@@ -1,10 +1,12 @@
 //! Stage (c) on the GPU: front-to-back compositing per pixel and its backward, with the rules of
 //! `render/raster.rs` (pixel centres at +0.5, skip σ < 0 or alpha < 1/255, alpha ≤ 0.99, stop before
-//! T < 1e-4). One cube per 16x16 tile, one unit per pixel, each unit walking its tile's depth-sorted list
-//! independently: no shared memory and no barriers.
+//! T < 1e-4). One cube per 16x16 tile; each unit owns a few pixels of one column (`ppu`, a launch-time
+//! choice), and the cube walks the tile's depth-sorted list in step, one shared-memory batch of
+//! Gaussians at a time (the gsplat/brush structure).
 //!
-//! The backward walks each pixel's contributors back to front from the saved final T and last index and
-//! adds the per-Gaussian gradients with f32 atomics (layout in `project.rs`).
+//! The backward walks each pixel's contributors back to front from the saved final T and last index, the
+//! tile's units in step over shared-memory batches of Gaussians, and adds the per-Gaussian gradients
+//! with f32 atomics, summed over each unit's pixels first (layout in `project.rs`).
 
 use ::gpu::cubecl;
 use cubecl::prelude::*;
@@ -22,7 +24,16 @@ fn sigma_at(splats: &[f32], s: usize, fx: f32, fy: f32) -> (f32, f32, f32) {
     (sigma, dx, dy)
 }
 
+/// Gaussians per shared-memory batch at least (each unit loads several when the cube has fewer units):
+/// fewer barriers per Gaussian.
+const MIN_BATCH: u32 = 64;
+
 /// Forward. `channels` extra channels (`extra_vals` N*C) are composited over 0 into `extra` (H*W*C).
+///
+/// One cube per tile with `TILE * TILE / ppu` units, unit (x, y) owning the `ppu` pixels of column x,
+/// rows y·ppu.. of the tile (as the backward). The cube walks the tile's list front to back in batches
+/// of one Gaussian per unit loaded into shared memory, and stops once every pixel of the tile is done.
+/// Per pixel the arithmetic is that of the CPU renderer, in the same order.
 #[cube(launch)]
 #[allow(clippy::too_many_arguments)]
 pub fn raster_forward(
@@ -44,60 +55,174 @@ pub fn raster_forward(
     t_final: &mut [f32],
     last: &mut [u32],
     #[comptime] channels: u32,
+    #[comptime] ppu: u32,
 ) {
+    let units = comptime!(TILE * TILE / ppu);
+    let np = comptime!(ppu as usize);
+    let c = channels as usize;
+    let tile = (CUBE_POS_Y * tiles_x + CUBE_POS_X) as usize;
+    let start = tile_start[tile];
+    let count = tile_end[tile] - start;
     let px = CUBE_POS_X * TILE + UNIT_POS_X;
-    let py = CUBE_POS_Y * TILE + UNIT_POS_Y;
-    if px < width && py < height {
-        let p = (py * width + px) as usize;
-        let c = channels as usize;
-        for ch in 0..c {
-            extra[p * c + ch] = 0.0;
-        }
-        let tile = (CUBE_POS_Y * tiles_x + CUBE_POS_X) as usize;
-        let start = tile_start[tile];
-        let end = tile_end[tile];
-        let fx = px as f32 + 0.5;
-        let fy = py as f32 + 0.5;
-        let mut t = 1.0f32;
-        let mut r = 0.0f32;
-        let mut g = 0.0f32;
-        let mut b = 0.0f32;
-        let mut d = 0.0f32;
-        let mut n_last = 0u32;
-        for k in start..end {
-            let s = ids[k as usize] as usize * 10;
-            let (sigma, _dx, _dy) = sigma_at(splats, s, fx, fy);
-            let a = f32::min(splats[s + 5] * (-sigma).exp(), ALPHA_MAX as f32);
-            if sigma >= 0.0 && a >= ALPHA_MIN as f32 {
-                let next = t * (1.0f32 - a);
-                if next < T_MIN as f32 {
-                    break;
-                }
-                let w = a * t;
-                r += w * splats[s + 6];
-                g += w * splats[s + 7];
-                b += w * splats[s + 8];
-                d += w * splats[s + 9];
-                let gi = ids[k as usize] as usize;
-                for ch in 0..c {
-                    extra[p * c + ch] += w * extra_vals[gi * c + ch];
-                }
-                t = next;
-                n_last = k - start + 1;
+    let py0 = CUBE_POS_Y * TILE + UNIT_POS_Y * ppu;
+    let fx = px as f32 + 0.5;
+
+    let mut pix = Array::<u32>::new(np);
+    let mut done = Array::<u32>::new(np);
+    let mut t = Array::<f32>::new(np);
+    let mut r = Array::<f32>::new(np);
+    let mut g = Array::<f32>::new(np);
+    let mut b = Array::<f32>::new(np);
+    let mut d = Array::<f32>::new(np);
+    let mut n_last = Array::<u32>::new(np);
+    #[unroll]
+    for q in 0..np {
+        let py = py0 + q as u32;
+        pix[q] = 0;
+        // Pixels outside the image are done from the start.
+        done[q] = 1;
+        t[q] = 1.0;
+        r[q] = 0.0;
+        g[q] = 0.0;
+        b[q] = 0.0;
+        d[q] = 0.0;
+        n_last[q] = 0;
+        if px < width && py < height {
+            let p = py * width + px;
+            pix[q] = p;
+            done[q] = 0;
+            for ch in 0..c {
+                extra[p as usize * c + ch] = 0.0;
             }
         }
-        rgb[3 * p] = r + t * bg_r;
-        rgb[3 * p + 1] = g + t * bg_g;
-        rgb[3 * p + 2] = b + t * bg_b;
-        alpha[p] = 1.0f32 - t;
-        depth[p] = d;
-        t_final[p] = t;
-        last[p] = n_last;
     }
+
+    let batch_len = comptime!(u32::max(units, MIN_BATCH));
+    let mut batch = Shared::<[f32]>::new_slice(comptime!((batch_len * 10) as usize));
+    let mut batch_ids = Shared::<[u32]>::new_slice(comptime!(batch_len as usize));
+    // Per unit: 1 while it has a pixel still compositing (read by every unit to stop together).
+    let mut busy = Shared::<[u32]>::new_slice(comptime!(units as usize));
+    let mut lo = 0u32;
+    while lo < count {
+        let size = u32::min(batch_len, count - lo);
+        let mut e = UNIT_POS;
+        while e < size {
+            let gi = ids[(start + lo + e) as usize];
+            batch_ids[e as usize] = gi;
+            let src = gi as usize * 10;
+            let dst = e as usize * 10;
+            #[unroll]
+            for f in 0..10 {
+                batch[dst + f] = splats[src + f];
+            }
+            e += units;
+        }
+        sync_cube();
+        for j in 0..size {
+            let s = j as usize * 10;
+            let mx = batch[s];
+            let my = batch[s + 1];
+            let ca = batch[s + 2];
+            let cb = batch[s + 3];
+            let cc = batch[s + 4];
+            let o = batch[s + 5];
+            #[unroll]
+            for q in 0..np {
+                if done[q] == 0 {
+                    let fy = (py0 + q as u32) as f32 + 0.5;
+                    let dx = mx - fx;
+                    let dy = my - fy;
+                    let sigma = 0.5f32 * (ca * dx * dx + cc * dy * dy) + cb * dx * dy;
+                    let a = f32::min(o * (-sigma).exp(), ALPHA_MAX as f32);
+                    if sigma >= 0.0 && a >= ALPHA_MIN as f32 {
+                        let next = t[q] * (1.0f32 - a);
+                        if next < T_MIN as f32 {
+                            done[q] = 1;
+                        } else {
+                            let w = a * t[q];
+                            r[q] += w * batch[s + 6];
+                            g[q] += w * batch[s + 7];
+                            b[q] += w * batch[s + 8];
+                            d[q] += w * batch[s + 9];
+                            if c > 0 {
+                                let gi = batch_ids[j as usize] as usize;
+                                let p = pix[q] as usize;
+                                for ch in 0..c {
+                                    extra[p * c + ch] += w * extra_vals[gi * c + ch];
+                                }
+                            }
+                            t[q] = next;
+                            n_last[q] = lo + j + 1;
+                        }
+                    }
+                }
+            }
+        }
+        let mut mine = 0u32;
+        #[unroll]
+        for q in 0..np {
+            if done[q] == 0 {
+                mine = 1;
+            }
+        }
+        busy[UNIT_POS as usize] = mine;
+        // Everyone has finished with the batch and published its flag.
+        sync_cube();
+        let mut any = 0u32;
+        for u in 0..units {
+            any |= busy[u as usize];
+        }
+        lo += batch_len;
+        if any == 0 {
+            lo = count;
+        }
+    }
+    #[unroll]
+    for q in 0..np {
+        if px < width && py0 + (q as u32) < height {
+            let p = pix[q] as usize;
+            rgb[3 * p] = r[q] + t[q] * bg_r;
+            rgb[3 * p + 1] = g[q] + t[q] * bg_g;
+            rgb[3 * p + 2] = b[q] + t[q] * bg_b;
+            alpha[p] = 1.0f32 - t[q];
+            depth[p] = d[q];
+            t_final[p] = t[q];
+            last[p] = n_last[q];
+        }
+    }
+}
+
+/// Largest value of `v` over the cube's `units` units (a shared-memory tree; every unit gets it).
+#[cube]
+fn cube_max_u32(v: u32, #[comptime] units: u32) -> u32 {
+    let mut s = Shared::<[u32]>::new_slice(comptime!(units as usize));
+    s[UNIT_POS as usize] = v;
+    sync_cube();
+    let mut stride = comptime!(units / 2).runtime();
+    #[unroll]
+    for _ in 0..comptime!(units.trailing_zeros()) {
+        if UNIT_POS < stride {
+            s[UNIT_POS as usize] = u32::max(s[UNIT_POS as usize], s[(UNIT_POS + stride) as usize]);
+        }
+        sync_cube();
+        stride /= 2;
+    }
+    let total = s[0];
+    sync_cube();
+    total
 }
 
 /// Backward. `channels` is the extra channel count when their gradient is wanted, else 0;
 /// `behind` is per-pixel scratch (H*W*C) for the extra channels composited behind the current Gaussian.
+///
+/// One cube per tile with `TILE * TILE / ppu` units; unit (x, y) owns the `ppu` pixels of column x,
+/// rows y·ppu.. of the tile. The whole cube walks the tile's list back to front in step, from the
+/// largest `last` of its pixels, in batches of one Gaussian per unit loaded into shared memory; each
+/// pixel skips the Gaussians at or after its own `last`. A unit sums its pixels' gradients for the
+/// current Gaussian in registers and adds them with one atomic per parameter: `ppu` times fewer global
+/// atomics than one per pixel, without barriers per Gaussian (plane reductions are not available on
+/// every adapter, lavapipe's included). Per pixel the arithmetic is that of the CPU backward, in the
+/// same order.
 #[cube(launch)]
 #[allow(clippy::too_many_arguments)]
 pub fn raster_backward(
@@ -121,83 +246,212 @@ pub fn raster_backward(
     grads: &mut [Atomic<f32>],
     g_extra: &mut [Atomic<f32>],
     #[comptime] channels: u32,
+    #[comptime] ppu: u32,
 ) {
+    let units = comptime!(TILE * TILE / ppu);
+    let np = comptime!(ppu as usize);
+    let c = channels as usize;
+    let tile = (CUBE_POS_Y * tiles_x + CUBE_POS_X) as usize;
+    let start = tile_start[tile];
     let px = CUBE_POS_X * TILE + UNIT_POS_X;
-    let py = CUBE_POS_Y * TILE + UNIT_POS_Y;
-    if px < width && py < height {
-        let p = (py * width + px) as usize;
-        let c = channels as usize;
-        for ch in 0..c {
-            behind[p * c + ch] = 0.0;
+    let py0 = CUBE_POS_Y * TILE + UNIT_POS_Y * ppu;
+    let fx = px as f32 + 0.5;
+
+    // Per-pixel state: index, contributor count, T, output gradients and what lies behind.
+    let mut pix = Array::<u32>::new(np);
+    let mut n_last = Array::<u32>::new(np);
+    let mut t = Array::<f32>::new(np);
+    let mut vr = Array::<f32>::new(np);
+    let mut vg = Array::<f32>::new(np);
+    let mut vb = Array::<f32>::new(np);
+    let mut vd = Array::<f32>::new(np);
+    let mut v_final = Array::<f32>::new(np);
+    let mut br = Array::<f32>::new(np);
+    let mut bgc = Array::<f32>::new(np);
+    let mut bb = Array::<f32>::new(np);
+    let mut bd = Array::<f32>::new(np);
+    // Per-pixel values for the current Gaussian.
+    let mut hit = Array::<u32>::new(np);
+    let mut fac = Array::<f32>::new(np);
+    let mut tn = Array::<f32>::new(np);
+    let mut ra = Array::<f32>::new(np);
+    let mut v_alpha = Array::<f32>::new(np);
+    let mut dxs = Array::<f32>::new(np);
+    let mut dys = Array::<f32>::new(np);
+    let mut vis = Array::<f32>::new(np);
+    let mut unit_last = 0u32;
+    #[unroll]
+    for q in 0..np {
+        let py = py0 + q as u32;
+        pix[q] = 0;
+        n_last[q] = 0;
+        t[q] = 0.0;
+        vr[q] = 0.0;
+        vg[q] = 0.0;
+        vb[q] = 0.0;
+        vd[q] = 0.0;
+        v_final[q] = 0.0;
+        br[q] = 0.0;
+        bgc[q] = 0.0;
+        bb[q] = 0.0;
+        bd[q] = 0.0;
+        if px < width && py < height {
+            let p = py * width + px;
+            let pu = p as usize;
+            pix[q] = p;
+            n_last[q] = last[pu];
+            t[q] = t_final[pu];
+            vr[q] = v_rgb[3 * pu];
+            vg[q] = v_rgb[3 * pu + 1];
+            vb[q] = v_rgb[3 * pu + 2];
+            vd[q] = v_depth[pu];
+            // Every alpha also changes the final T: d out/d T_final = background·v_rgb − v_alpha.
+            v_final[q] = t[q] * (v_alpha_out[pu] - bg_r * vr[q] - bg_g * vg[q] - bg_b * vb[q]);
+            for ch in 0..c {
+                behind[pu * c + ch] = 0.0;
+            }
+            unit_last = u32::max(unit_last, n_last[q]);
         }
-        let tile = (CUBE_POS_Y * tiles_x + CUBE_POS_X) as usize;
-        let start = tile_start[tile];
-        let fx = px as f32 + 0.5;
-        let fy = py as f32 + 0.5;
-        let mut t = t_final[p];
-        let vr = v_rgb[3 * p];
-        let vg = v_rgb[3 * p + 1];
-        let vb = v_rgb[3 * p + 2];
-        let vd = v_depth[p];
-        // Every alpha also changes the final T: d out/d T_final = background·v_rgb − v_alpha.
-        let v_final = t * (v_alpha_out[p] - bg_r * vr - bg_g * vg - bg_b * vb);
-        let mut br = 0.0f32;
-        let mut bgc = 0.0f32;
-        let mut bb = 0.0f32;
-        let mut bd = 0.0f32;
-        let n_last = last[p];
-        for j in 0..n_last {
-            let k = (start + n_last - 1 - j) as usize;
-            let gi = ids[k] as usize;
-            let s = gi * 10;
-            let (sigma, dx, dy) = sigma_at(splats, s, fx, fy);
-            let ca = splats[s + 2];
-            let cb = splats[s + 3];
-            let cc = splats[s + 4];
-            let o = splats[s + 5];
-            let vis = (-sigma).exp();
-            let a = f32::min(o * vis, ALPHA_MAX as f32);
-            if sigma >= 0.0 && a >= ALPHA_MIN as f32 {
-                let ra = 1.0f32 / (1.0f32 - a);
-                let tn = t * ra;
-                let cr = splats[s + 6];
-                let cg = splats[s + 7];
-                let cbl = splats[s + 8];
-                let dep = splats[s + 9];
-                let fac = a * tn;
-                let mut v_alpha = (cr * tn - br * ra) * vr
-                    + (cg * tn - bgc * ra) * vg
-                    + (cbl * tn - bb * ra) * vb
-                    + (dep * tn - bd * ra) * vd
-                    + v_final * ra;
-                for ch in 0..c {
-                    let v = v_extra[p * c + ch];
-                    let val = extra_vals[gi * c + ch];
-                    g_extra[gi * c + ch].fetch_add(fac * v);
-                    v_alpha += (val * tn - behind[p * c + ch] * ra) * v;
-                    behind[p * c + ch] += val * fac;
-                }
-                t = tn;
-                br += cr * fac;
-                bgc += cg * fac;
-                bb += cbl * fac;
-                bd += dep * fac;
-                grads[s + 6].fetch_add(fac * vr);
-                grads[s + 7].fetch_add(fac * vg);
-                grads[s + 8].fetch_add(fac * vb);
-                grads[s + 9].fetch_add(fac * vd);
-                // Where alpha was clamped at 0.99 it depends on neither σ nor the opacity.
-                if o * vis <= ALPHA_MAX as f32 {
-                    let v_sigma = -(o * vis) * v_alpha;
-                    grads[s].fetch_add(v_sigma * (ca * dx + cb * dy));
-                    grads[s + 1].fetch_add(v_sigma * (cb * dx + cc * dy));
-                    grads[s + 2].fetch_add(0.5f32 * v_sigma * dx * dx);
-                    grads[s + 3].fetch_add(v_sigma * dx * dy);
-                    grads[s + 4].fetch_add(0.5f32 * v_sigma * dy * dy);
-                    grads[s + 5].fetch_add(vis * v_alpha);
+    }
+    let count = cube_max_u32(unit_last, units);
+
+    let batch_len = comptime!(u32::max(units, MIN_BATCH));
+    let mut batch = Shared::<[f32]>::new_slice(comptime!((batch_len * 10) as usize));
+    let mut batch_ids = Shared::<[u32]>::new_slice(comptime!(batch_len as usize));
+    // Spelt out: `div_ceil` is not part of CubeCL's kernel language.
+    #[allow(clippy::manual_div_ceil)]
+    let batches = (count + batch_len - 1) / batch_len;
+    let mut hi = count;
+    for _ in 0..batches {
+        // Spelt out: `saturating_sub` is not part of CubeCL's kernel language.
+        #[allow(clippy::implicit_saturating_sub)]
+        let lo = if hi > batch_len { hi - batch_len } else { 0u32 };
+        let size = hi - lo;
+        // The previous batch is consumed before it is overwritten.
+        sync_cube();
+        let mut e = UNIT_POS;
+        while e < size {
+            let gi = ids[(start + lo + e) as usize];
+            batch_ids[e as usize] = gi;
+            let src = gi as usize * 10;
+            let dst = e as usize * 10;
+            #[unroll]
+            for f in 0..10 {
+                batch[dst + f] = splats[src + f];
+            }
+            e += units;
+        }
+        sync_cube();
+        for j in 0..size {
+            let local = size - 1 - j;
+            let rel = lo + local;
+            let s = local as usize * 10;
+            let mx = batch[s];
+            let my = batch[s + 1];
+            let ca = batch[s + 2];
+            let cb = batch[s + 3];
+            let cc = batch[s + 4];
+            let o = batch[s + 5];
+            let cr = batch[s + 6];
+            let cg = batch[s + 7];
+            let cbl = batch[s + 8];
+            let dep = batch[s + 9];
+            let mut any_hit = false;
+            let mut g_r = 0.0f32;
+            let mut g_g = 0.0f32;
+            let mut g_b = 0.0f32;
+            let mut g_d = 0.0f32;
+            #[unroll]
+            for q in 0..np {
+                hit[q] = 0;
+                if rel < n_last[q] {
+                    let fy = (py0 + q as u32) as f32 + 0.5;
+                    let dx = mx - fx;
+                    let dy = my - fy;
+                    let sigma = 0.5f32 * (ca * dx * dx + cc * dy * dy) + cb * dx * dy;
+                    let vv = (-sigma).exp();
+                    let a = f32::min(o * vv, ALPHA_MAX as f32);
+                    if sigma >= 0.0 && a >= ALPHA_MIN as f32 {
+                        hit[q] = 1;
+                        any_hit = true;
+                        let r_a = 1.0f32 / (1.0f32 - a);
+                        let t_n = t[q] * r_a;
+                        let f = a * t_n;
+                        v_alpha[q] = (cr * t_n - br[q] * r_a) * vr[q]
+                            + (cg * t_n - bgc[q] * r_a) * vg[q]
+                            + (cbl * t_n - bb[q] * r_a) * vb[q]
+                            + (dep * t_n - bd[q] * r_a) * vd[q]
+                            + v_final[q] * r_a;
+                        t[q] = t_n;
+                        br[q] += cr * f;
+                        bgc[q] += cg * f;
+                        bb[q] += cbl * f;
+                        bd[q] += dep * f;
+                        g_r += f * vr[q];
+                        g_g += f * vg[q];
+                        g_b += f * vb[q];
+                        g_d += f * vd[q];
+                        fac[q] = f;
+                        tn[q] = t_n;
+                        ra[q] = r_a;
+                        dxs[q] = dx;
+                        dys[q] = dy;
+                        vis[q] = vv;
+                    }
                 }
             }
+            if any_hit {
+                let gi = batch_ids[local as usize] as usize;
+                for ch in 0..c {
+                    let val = extra_vals[gi * c + ch];
+                    let mut g_ch = 0.0f32;
+                    #[unroll]
+                    for q in 0..np {
+                        if hit[q] == 1 {
+                            let e = pix[q] as usize * c + ch;
+                            let v = v_extra[e];
+                            g_ch += fac[q] * v;
+                            v_alpha[q] += (val * tn[q] - behind[e] * ra[q]) * v;
+                            behind[e] += val * fac[q];
+                        }
+                    }
+                    g_extra[gi * c + ch].fetch_add(g_ch);
+                }
+                let mut g_mx = 0.0f32;
+                let mut g_my = 0.0f32;
+                let mut g_ca = 0.0f32;
+                let mut g_cb = 0.0f32;
+                let mut g_cc = 0.0f32;
+                let mut g_o = 0.0f32;
+                #[unroll]
+                for q in 0..np {
+                    // Where alpha was clamped at 0.99 it depends on neither σ nor the opacity.
+                    if hit[q] == 1 && o * vis[q] <= ALPHA_MAX as f32 {
+                        let dx = dxs[q];
+                        let dy = dys[q];
+                        let v_sigma = -(o * vis[q]) * v_alpha[q];
+                        g_mx += v_sigma * (ca * dx + cb * dy);
+                        g_my += v_sigma * (cb * dx + cc * dy);
+                        g_ca += 0.5f32 * v_sigma * dx * dx;
+                        g_cb += v_sigma * dx * dy;
+                        g_cc += 0.5f32 * v_sigma * dy * dy;
+                        g_o += vis[q] * v_alpha[q];
+                    }
+                }
+                let g = gi * 10;
+                grads[g].fetch_add(g_mx);
+                grads[g + 1].fetch_add(g_my);
+                grads[g + 2].fetch_add(g_ca);
+                grads[g + 3].fetch_add(g_cb);
+                grads[g + 4].fetch_add(g_cc);
+                grads[g + 5].fetch_add(g_o);
+                grads[g + 6].fetch_add(g_r);
+                grads[g + 7].fetch_add(g_g);
+                grads[g + 8].fetch_add(g_b);
+                grads[g + 9].fetch_add(g_d);
+            }
         }
+        hi = lo;
     }
 }
 
@@ -267,7 +521,8 @@ pub fn depth_keys(info: &[u32], n: u32, keys: &mut [u32], vals: &mut [u32]) {
 
 /// Lifting (GaussianEditor's `apply_weights`, as `crate::lift`): the forward walk with T from 1, and at
 /// every hit (an unweighted one) the pixel's C map values are added to the Gaussian's sums and its count
-/// goes up by one.
+/// goes up by one. Laid out as [`raster_forward`] (`ppu` pixels per unit, shared-memory batches, the
+/// cube stops when every pixel is done); a unit adds its pixels' hits and sums with one atomic each.
 #[cube(launch)]
 #[allow(clippy::too_many_arguments)]
 pub fn lift_accumulate(
@@ -282,32 +537,115 @@ pub fn lift_accumulate(
     sums: &mut [Atomic<f32>],
     counts: &mut [Atomic<u32>],
     #[comptime] channels: u32,
+    #[comptime] ppu: u32,
 ) {
+    let units = comptime!(TILE * TILE / ppu);
+    let np = comptime!(ppu as usize);
+    let c = channels as usize;
+    let tile = (CUBE_POS_Y * tiles_x + CUBE_POS_X) as usize;
+    let start = tile_start[tile];
+    let count = tile_end[tile] - start;
     let px = CUBE_POS_X * TILE + UNIT_POS_X;
-    let py = CUBE_POS_Y * TILE + UNIT_POS_Y;
-    if px < width && py < height {
-        let p = (py * width + px) as usize;
-        let c = channels as usize;
-        let tile = (CUBE_POS_Y * tiles_x + CUBE_POS_X) as usize;
-        let fx = px as f32 + 0.5;
-        let fy = py as f32 + 0.5;
-        let mut t = 1.0f32;
-        for k in tile_start[tile]..tile_end[tile] {
-            let gi = ids[k as usize] as usize;
-            let s = gi * 10;
-            let (sigma, _dx, _dy) = sigma_at(splats, s, fx, fy);
-            let a = f32::min(splats[s + 5] * (-sigma).exp(), ALPHA_MAX as f32);
-            if sigma >= 0.0 && a >= ALPHA_MIN as f32 {
-                let next = t * (1.0f32 - a);
-                if next < T_MIN as f32 {
-                    break;
-                }
-                counts[gi].fetch_add(1u32);
-                for ch in 0..c {
-                    sums[gi * c + ch].fetch_add(map[p * c + ch]);
-                }
-                t = next;
+    let py0 = CUBE_POS_Y * TILE + UNIT_POS_Y * ppu;
+    let fx = px as f32 + 0.5;
+
+    let mut pix = Array::<u32>::new(np);
+    let mut done = Array::<u32>::new(np);
+    let mut t = Array::<f32>::new(np);
+    let mut hit = Array::<u32>::new(np);
+    #[unroll]
+    for q in 0..np {
+        let py = py0 + q as u32;
+        pix[q] = 0;
+        done[q] = 1;
+        t[q] = 1.0;
+        if px < width && py < height {
+            pix[q] = py * width + px;
+            done[q] = 0;
+        }
+    }
+
+    let batch_len = comptime!(u32::max(units, MIN_BATCH));
+    let mut batch = Shared::<[f32]>::new_slice(comptime!((batch_len * 6) as usize));
+    let mut batch_ids = Shared::<[u32]>::new_slice(comptime!(batch_len as usize));
+    let mut busy = Shared::<[u32]>::new_slice(comptime!(units as usize));
+    let mut lo = 0u32;
+    while lo < count {
+        let size = u32::min(batch_len, count - lo);
+        let mut e = UNIT_POS;
+        while e < size {
+            let gi = ids[(start + lo + e) as usize];
+            batch_ids[e as usize] = gi;
+            let src = gi as usize * 10;
+            let dst = e as usize * 6;
+            #[unroll]
+            for f in 0..6 {
+                batch[dst + f] = splats[src + f];
             }
+            e += units;
+        }
+        sync_cube();
+        for j in 0..size {
+            let s = j as usize * 6;
+            let mx = batch[s];
+            let my = batch[s + 1];
+            let ca = batch[s + 2];
+            let cb = batch[s + 3];
+            let cc = batch[s + 4];
+            let o = batch[s + 5];
+            let mut hits = 0u32;
+            #[unroll]
+            for q in 0..np {
+                hit[q] = 0;
+                if done[q] == 0 {
+                    let fy = (py0 + q as u32) as f32 + 0.5;
+                    let dx = mx - fx;
+                    let dy = my - fy;
+                    let sigma = 0.5f32 * (ca * dx * dx + cc * dy * dy) + cb * dx * dy;
+                    let a = f32::min(o * (-sigma).exp(), ALPHA_MAX as f32);
+                    if sigma >= 0.0 && a >= ALPHA_MIN as f32 {
+                        let next = t[q] * (1.0f32 - a);
+                        if next < T_MIN as f32 {
+                            done[q] = 1;
+                        } else {
+                            hit[q] = 1;
+                            hits += 1;
+                            t[q] = next;
+                        }
+                    }
+                }
+            }
+            if hits > 0 {
+                let gi = batch_ids[j as usize] as usize;
+                counts[gi].fetch_add(hits);
+                for ch in 0..c {
+                    let mut sum = 0.0f32;
+                    #[unroll]
+                    for q in 0..np {
+                        if hit[q] == 1 {
+                            sum += map[pix[q] as usize * c + ch];
+                        }
+                    }
+                    sums[gi * c + ch].fetch_add(sum);
+                }
+            }
+        }
+        let mut mine = 0u32;
+        #[unroll]
+        for q in 0..np {
+            if done[q] == 0 {
+                mine = 1;
+            }
+        }
+        busy[UNIT_POS as usize] = mine;
+        sync_cube();
+        let mut any = 0u32;
+        for u in 0..units {
+            any |= busy[u as usize];
+        }
+        lo += batch_len;
+        if any == 0 {
+            lo = count;
         }
     }
 }

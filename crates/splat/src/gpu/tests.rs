@@ -102,6 +102,14 @@ fn compare_forward(ctx: &GpuContext, scene: &GaussianScene, cam: &Camera, channe
         cpu.alpha.iter().filter(|&&a| a > 0.5).count() > 10,
         "scene too empty"
     );
+    // Every raster layout (pixels per unit) composites each pixel with the same operations.
+    for ppu in [1, 2, 4, 8, 16] {
+        let other = super::render_with(ctx, scene, cam, &settings, extra, ppu).unwrap();
+        assert_eq!(other.rgb, gpu.rgb, "{ppu} pixels per unit");
+        assert_eq!(other.alpha, gpu.alpha, "{ppu} pixels per unit");
+        assert_eq!(other.depth, gpu.depth, "{ppu} pixels per unit");
+        assert_eq!(other.extra, gpu.extra, "{ppu} pixels per unit");
+    }
 }
 
 #[test]
@@ -212,22 +220,29 @@ fn backward_matches_the_cpu_per_parameter_kind() {
     };
     let out = render::render(&scene, &cam, &settings, extra);
     let want = render::render_backward(&scene, &cam, &settings, extra, &out, &grads);
-    let got = super::render_backward(&ctx, &scene, &cam, &settings, extra, &grads).unwrap();
     let flat2 = |v: &[[f32; 2]]| v.iter().flatten().copied().collect::<Vec<_>>();
-    let kinds: [(&str, &[f32], &[f32]); 7] = [
-        ("means", &got.means, &want.means),
-        ("log_scales", &got.log_scales, &want.log_scales),
-        ("quats", &got.quats, &want.quats),
-        ("opacity_logits", &got.opacity_logits, &want.opacity_logits),
-        ("sh", &got.sh, &want.sh),
-        ("extra", &got.extra, &want.extra),
-        ("means2d", &flat2(&got.means2d), &flat2(&want.means2d)),
-    ];
-    for (name, g, w) in kinds {
-        let e = rel_err(g, w);
-        eprintln!("{name}: relative error {e:.2e}");
-        assert!(w.iter().any(|v| *v != 0.0), "{name}: no gradient at all");
-        assert!(e <= 1e-3, "{name}: relative error {e}");
+    // The adapter's raster layout, then every other one (pixels per unit of the raster backward).
+    let default = super::render_backward(&ctx, &scene, &cam, &settings, extra, &grads).unwrap();
+    let layouts = [1, 2, 4, 8, 16].map(|ppu| {
+        let g = super::render_backward_with(&ctx, &scene, &cam, &settings, extra, &grads, ppu);
+        (ppu, g.unwrap())
+    });
+    for (ppu, got) in std::iter::once((0, default)).chain(layouts) {
+        let kinds: [(&str, &[f32], &[f32]); 7] = [
+            ("means", &got.means, &want.means),
+            ("log_scales", &got.log_scales, &want.log_scales),
+            ("quats", &got.quats, &want.quats),
+            ("opacity_logits", &got.opacity_logits, &want.opacity_logits),
+            ("sh", &got.sh, &want.sh),
+            ("extra", &got.extra, &want.extra),
+            ("means2d", &flat2(&got.means2d), &flat2(&want.means2d)),
+        ];
+        for (name, g, w) in kinds {
+            let e = rel_err(g, w);
+            eprintln!("{ppu} pixels/unit (0 = default), {name}: relative error {e:.2e}");
+            assert!(w.iter().any(|v| *v != 0.0), "{name}: no gradient at all");
+            assert!(e <= 1e-3, "{name}: relative error {e}");
+        }
     }
 }
 
@@ -336,6 +351,13 @@ fn lifting_matches_the_cpu() {
     let e = rel_err(&got.values, &want.values);
     eprintln!("lifting: {mismatched} counts differ, values relative error {e:.2e}");
     assert!(e < 1e-3, "values relative error {e}");
+    // Every layout (pixels per unit) hits the same Gaussians.
+    for ppu in [1, 2, 4, 8, 16] {
+        let other = super::lift::lift_with(&ctx, &scene, &cams, &refs, channels, ppu).unwrap();
+        assert_eq!(other.counts, got.counts, "{ppu} pixels per unit");
+        let e = rel_err(&other.values, &got.values);
+        assert!(e < 1e-6, "{ppu} pixels per unit: values relative error {e}");
+    }
 }
 
 /// Three device Adam steps land where `Adam::step` does.
