@@ -2,7 +2,7 @@
 //! `--device` means one adapter). Every render, lift and fit of the editing code goes through [`Compute`],
 //! so the CPU path stays the reference the GPU path is tested against.
 
-use diffusion::device::GpuDevice;
+use diffusion::device::{GpuDevice, Precision};
 use splat::gpu::{GpuContext, GpuError, GpuLiftAccumulator, GpuScene, HostFrame};
 use splat::lift::{LiftAccumulator, Lifted};
 use splat::render::{render, ExtraChannels, RenderOutput, RenderSettings};
@@ -20,10 +20,11 @@ impl Compute {
         Self { gpu: None }
     }
 
-    /// Everything on the GPU `context` opens (`None`: the CPU).
-    pub fn on(context: Option<GpuContext>) -> Self {
+    /// Everything on the GPU `context` opens (`None`: the CPU), the networks' matrix weights held in
+    /// `precision` there.
+    pub fn on(context: Option<GpuContext>, precision: Precision) -> Self {
         Self {
-            gpu: context.map(GpuDevice::new),
+            gpu: context.map(|c| GpuDevice::with_precision(c, precision)),
         }
     }
 
@@ -37,10 +38,10 @@ impl Compute {
         self.gpu.as_ref().map(GpuDevice::context)
     }
 
-    /// "CPU" or the adapter, for logs and run.json.
+    /// "CPU" or the adapter and the weights' precision, for logs and run.json.
     pub fn describe(&self) -> String {
-        match self.splat() {
-            Some(ctx) => ctx.describe(),
+        match &self.gpu {
+            Some(gpu) => format!("{}, {} weights", gpu.context().describe(), gpu.precision()),
             None => "CPU".into(),
         }
     }

@@ -5,6 +5,7 @@
 use std::path::PathBuf;
 
 use candle_core::Tensor;
+use diffusion::device::Precision;
 use edit::compute::Compute;
 use edit::sampler::{EditModel, EditPlan, EditPrompts, InfEditSettings, NoiseSource, SeededNoise};
 
@@ -77,7 +78,7 @@ fn infedit_steps_on_the_gpu_match_the_cpu() {
     };
     let cpu = EditModel::load(&fixtures().join("models/tiny-lcm"), None).unwrap();
     let want = infedit_trace(&cpu);
-    let gpu = cpu.on(Compute::on(Some(ctx)));
+    let gpu = cpu.on(Compute::on(Some(ctx), Precision::F32));
     let got = infedit_trace(&gpu);
     assert_eq!(want.len(), got.len());
     let mut worst = [0f32; 2];

@@ -8,6 +8,7 @@
 //! | [`BackgroundArg`] | `--background`                            | render, metrics, fit, edit           |
 //! | [`CameraArgs`]    | `--cameras`, `--orbit`, `--max-views`     | render, metrics, edit                |
 //! | [`DeviceArg`]     | `--device`                                | render, fit, edit, edit-image, demo, metrics |
+//! | [`PrecisionArg`]  | `--precision` (network weights on a GPU)  | edit, edit-image, demo               |
 //! | [`editing`]       | model, prompts, InfEdit sampler knobs     | edit, edit-image                     |
 //! | [`output::ForceArg`] | `--force`                              | render, edit, demo                   |
 //! | [`memory::MemoryCheckArg`] | `--ignore-memory-check`          | edit, fit                            |
@@ -27,6 +28,7 @@ use std::fmt;
 use std::path::PathBuf;
 
 use anyhow::{bail, Context, Result};
+use diffusion::device::Precision;
 use splat::cameras::{
     load_cameras, orbit_cameras, robust_bounds, to_working_resolution, CameraSet,
 };
@@ -70,6 +72,15 @@ impl DeviceArg {
         }
         Ok(ctx)
     }
+}
+
+/// `--precision`: how the networks' weights are held on a GPU.
+#[derive(clap::Args, Debug, Clone)]
+pub struct PrecisionArg {
+    /// Network weights on a GPU: f16 (half the memory, f32 arithmetic; relative error ~1e-3) or f32 (the
+    /// CPU's numbers up to summation order). No effect on the CPU.
+    #[arg(long, value_name = "f16|f32", default_value = "f16")]
+    pub precision: Precision,
 }
 
 /// The most views `--orbit` makes without `--allow-many-views`: a typo (100000 for 100) must not start

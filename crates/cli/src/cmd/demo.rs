@@ -12,7 +12,7 @@ use demo::run::{
 
 use crate::args::output::{files_under, fingerprint, ForceArg, OutputDir};
 use crate::args::parse::{positive, whole};
-use crate::args::DeviceArg;
+use crate::args::{DeviceArg, PrecisionArg};
 use crate::progress::Reporter;
 
 /// Run the whole pipeline on a built-in procedural scene with the self-made demo model.
@@ -29,6 +29,8 @@ pub struct Args {
     pub force: ForceArg,
     #[command(flatten)]
     pub device: DeviceArg,
+    #[command(flatten)]
+    pub precision: PrecisionArg,
     /// Which built-in edit to run (0-based; see --list).
     #[arg(long, default_value_t = 0, value_parser = whole::<usize>, allow_negative_numbers = true)]
     pub pair: usize,
@@ -87,7 +89,8 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     opts.steps = args.steps;
     opts.seed = args.seed;
     let scene = demo_scene(&opts)?;
-    let model = load_model(&model_dir)?.on(Compute::on(args.device.open()?));
+    let model =
+        load_model(&model_dir)?.on(Compute::on(args.device.open()?, args.precision.precision));
     eprintln!(
         "demo: \"{}\" → \"{}\", {} Gaussians, {} views at {}², model {}",
         scene.prompts.source,

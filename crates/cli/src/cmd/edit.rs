@@ -14,7 +14,7 @@ use crate::args::editing::{ModelArgs, PromptArgs, SamplerArgs};
 use crate::args::memory::MemoryCheckArg;
 use crate::args::output::{files_under, fingerprint, ForceArg, OutputDir};
 use crate::args::parse::{finite, positive, whole};
-use crate::args::{BackgroundArg, CameraArgs, DeviceArg};
+use crate::args::{BackgroundArg, CameraArgs, DeviceArg, PrecisionArg};
 use crate::progress::Reporter;
 
 /// Orbit views edited when neither --cameras nor --orbit is given and the scene has no cameras.
@@ -81,6 +81,8 @@ pub struct Args {
     #[command(flatten)]
     pub device: DeviceArg,
     #[command(flatten)]
+    pub precision: PrecisionArg,
+    #[command(flatten)]
     pub sampler: SamplerArgs,
     /// Render → edit → fit iterations.
     #[arg(long, default_value_t = 2, value_parser = positive::<usize>, allow_negative_numbers = true)]
@@ -124,6 +126,10 @@ pub struct Args {
     /// Which attributes ECM's fits may change.
     #[arg(long, value_enum, default_value = "appearance")]
     pub ecm_params: EcmParamsArg,
+    /// Fewest Adam steps of each ECM fit: its epochs grow to reach them with few views (the reference's
+    /// 6 epochs × 96 views).
+    #[arg(long, default_value_t = 576, value_parser = whole::<usize>, allow_negative_numbers = true)]
+    pub ecm_min_steps: usize,
     /// Editable region: the source prompt's attention to this word.
     #[arg(long, value_name = "WORD", group = "maskgroup")]
     pub mask_word: Option<String>,
@@ -231,6 +237,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         EcmParamsArg::Appearance => EcmParams::Appearance,
         EcmParamsArg::All => EcmParams::All,
     };
+    consistency.ecm.min_steps = args.ecm_min_steps;
     if args.no_blend_consistency {
         consistency.blend_consistency = false;
     }
@@ -268,7 +275,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
 
     let model = EditModel::load(&args.model.model, args.model.taesd.as_deref())
         .with_context(|| format!("loading model {}", args.model.model.display()))?
-        .on(Compute::on(args.device.open()?));
+        .on(Compute::on(args.device.open()?, args.precision.precision));
     args.sampler.check_size(&model)?;
     args.prompts
         .check_words(&model.tokenizer, args.mask_word.as_deref())?;

@@ -13,7 +13,7 @@ use splat::Image;
 
 use crate::args::editing::{ModelArgs, PromptArgs, SamplerArgs};
 use crate::args::output::{output_file, probe_folder, require_extension};
-use crate::args::DeviceArg;
+use crate::args::{DeviceArg, PrecisionArg};
 use crate::progress::Reporter;
 
 /// Edit one image from a source prompt to a target prompt (InfEdit: inversion-free, LCM, attention control).
@@ -39,6 +39,8 @@ pub struct Args {
     #[command(flatten)]
     pub device: DeviceArg,
     #[command(flatten)]
+    pub precision: PrecisionArg,
+    #[command(flatten)]
     pub sampler: SamplerArgs,
 }
 
@@ -61,7 +63,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     let t0 = Instant::now();
     let model = EditModel::load(&args.model.model, args.model.taesd.as_deref())
         .with_context(|| format!("loading model {}", args.model.model.display()))?
-        .on(Compute::on(args.device.open()?));
+        .on(Compute::on(args.device.open()?, args.precision.precision));
     let load_time = t0.elapsed();
     args.sampler.check_size(&model)?;
     args.prompts.check_words(&model.tokenizer, None)?;

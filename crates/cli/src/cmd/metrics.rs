@@ -6,6 +6,7 @@
 //! - with `--clip DIR`: the CLIP directional similarity of the renders for the prompt change.
 
 use anyhow::{bail, Context, Result};
+use diffusion::device::Precision;
 use edit::compute::{host_frame, Compute};
 use edit::eval::clip_score::ClipModel;
 use edit::eval::metrics::{
@@ -216,7 +217,7 @@ pub fn run(args: Args) -> Result<()> {
         h
     );
     let settings = RenderSettings { background };
-    let compute = Compute::on(args.device.open()?);
+    let compute = Compute::on(args.device.open()?, Precision::F32);
     let renders_a = render_all(
         &compute,
         &source,

@@ -113,7 +113,11 @@ mod tests {
         assert_eq!(one.working, (12 * 960 + 320) * 4096 * 4);
         assert_eq!(one.probabilities, 0);
         // Skips: conv_in + 2 per level + 3 downsamplers, in f32.
-        let skips = 320 * 4096 * 3 + 320 * 1024 + 640 * 1024 * 2 + 640 * 256 + 1280 * 256 * 2
+        let skips = 320 * 4096 * 3
+            + 320 * 1024
+            + 640 * 1024 * 2
+            + 640 * 256
+            + 1280 * 256 * 2
             + 1280 * 64
             + 1280 * 64 * 2;
         assert_eq!(one.skips, skips * 4);

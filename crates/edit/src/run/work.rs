@@ -1,5 +1,6 @@
 //! What a run will cost: the work it does and the memory it needs, shown (and checked) before it starts.
 
+use diffusion::device::Precision;
 use serde::Serialize;
 use splat::GaussianScene;
 
@@ -104,12 +105,23 @@ pub fn work_plan(
     let lpips = LPIPS_BUDGET.min(v as u64 * w * h * 4 * 128);
     let memory_bytes =
         weights + unet + v as u64 * per_view + images + train + lift + lpips + 300_000_000;
-    // On a GPU: the networks' weights (f32 copies in the device cache), one batch-6 UNet pass (flash
-    // self-attention keeps no probability matrix; the maps the hook reads are at most 32² × 77), the scene
-    // being fitted with its gradients (the optimiser stays on the host), one lifting's sums and one frame.
-    let gpu_memory_bytes = model.compute.networks().map(|_| {
+    // On a GPU: the networks' weights (f16 or f32 copies in the device cache), one hooked batch-6 UNet
+    // pass (diffusion's documented upper bound; flash self-attention keeps no probability matrix), the
+    // scene being fitted with its gradients (the optimiser stays on the host), one lifting's sums and one
+    // frame with CCM's channels.
+    let gpu_memory_bytes = model.compute.networks().map(|gpu| {
+        let weight_bytes = match gpu.precision() {
+            Precision::F16 => model.parameters * 2,
+            Precision::F32 => model.parameters * 4,
+        };
+        let (lh, lw) = ((h / f) as usize, (w / f) as usize);
+        let activations = model
+            .unet
+            .config()
+            .activation_estimate(6, lh, lw, 77, true)
+            .map_or(unet, |e| e.total() as u64);
         let frame = w * h * 4 * (3 + 1 + 1 + 3 * heads * 8);
-        weights + unet + params * 3 + n * 4 * (3 * heads * 8 + 1) + frame + 100_000_000
+        weight_bytes + activations + params * 3 + n * 4 * (3 * heads * 8 + 1) + frame + 100_000_000
     });
     WorkPlan {
         views: v,

@@ -35,7 +35,7 @@ pub(super) fn lift_with(
     ppu: u32,
 ) -> Result<Lifted, GpuError> {
     assert_eq!(cameras.len(), maps.len(), "one map per camera");
-    let mut acc = GpuLiftAccumulator::new(ctx, scene, channels);
+    let mut acc = GpuLiftAccumulator::with_layout(ctx, scene, channels, ppu);
     for (cam, map) in cameras.iter().zip(maps) {
         acc.add_view(ctx, cam, map)?;
     }
@@ -50,13 +50,20 @@ pub struct GpuLiftAccumulator {
     channels: usize,
     sums: Handle,
     counts: Handle,
+    /// Pixels per unit of the accumulation kernel (laid out as the raster forward).
+    ppu: u32,
 }
 
 impl GpuLiftAccumulator {
     /// Uploads `scene` with zeroed sums for `channels` channels.
     pub fn new(ctx: &GpuContext, scene: &GaussianScene, channels: usize) -> Self {
+        Self::with_layout(ctx, scene, channels, super::forward_pixels_per_unit(ctx))
+    }
+
+    fn with_layout(ctx: &GpuContext, scene: &GaussianScene, channels: usize, ppu: u32) -> Self {
         let n = scene.len();
         Self {
+            ppu,
             scene: GpuScene::upload(ctx, scene),
             n,
             channels,
@@ -76,7 +83,7 @@ impl GpuLiftAccumulator {
         map: &[f32],
     ) -> Result<(), GpuError> {
         let c = &ctx.client;
-        let (n, channels) = (self.n, self.channels);
+        let (n, channels, ppu) = (self.n, self.channels, self.ppu);
         let npix = (cam.width * cam.height) as usize;
         assert_eq!(map.len(), npix * channels, "map must be H*W*C");
         if npix == 0 || n == 0 {
