@@ -18,9 +18,9 @@ use candle_nn::VarBuilder;
 pub use attention::{AttentionHook, AttnCall, AttnKind};
 use blocks::{BlockAttention, DownBlock, MidBlock, ResnetShared, UpBlock};
 pub use config::UNetConfig;
-pub use memory::ActivationEstimate;
 use config::{BlockKind, ResolvedBlocks};
 use embeddings::{timestep_embedding, TimestepEmbedding};
+pub use memory::ActivationEstimate;
 
 use crate::kernels::gpu::GpuDevice;
 use crate::kernels::DeviceTensor;
