@@ -258,11 +258,13 @@ fn main() {
             let estimate = config
                 .activation_estimate(batch, size, size, 77, false)
                 .unwrap();
+            let (reserved, _) = device.memory_reserved_and_in_use();
             eprintln!(
-                "  GPU memory: weights {:.0} MB ({} weights), activations estimated {:.0} MB",
+                "  GPU memory: weights {:.0} MB ({} weights), activations estimated {:.0} MB, pools reserve {:.0} MB",
                 device.weight_bytes() as f64 / 1e6,
                 device.precision(),
-                estimate.total() as f64 / 1e6
+                estimate.total() as f64 / 1e6,
+                reserved as f64 / 1e6
             );
         }
         cpu_times.sort_by(|a, b| a.partial_cmp(b).unwrap());

@@ -18,9 +18,13 @@
 //!     layers hold their scores and probabilities (2 × heads × pixels × context tokens). Self-attention
 //!     probabilities are assumed not requested (InfEdit's controller and the blend masks read
 //!     cross-attention maps only); a hook that asks for them at 64² latents needs gigabytes more;
-//! - the counts are a little above the true live set (the two terms peak at different layers), so the
-//!   estimate is an upper bound of the bytes in use; CubeCL's memory pools round allocations up and keep
-//!   freed pages, so leave ~20 % of the adapter's memory free beyond it.
+//! - the counts are a little above the true live set (the two terms peak at different layers), so
+//!   [`ActivationEstimate::total`] bounds the bytes in use; CubeCL's pools carve allocations out of pages
+//!   sized to the largest allocation and keep freed pages, so they reserve more. Measured on lavapipe
+//!   (the SD 1.5 blocks with channels [64, 128, 256, 256], `benches/unet.rs --small --device gpu`): the
+//!   pools reserved, beyond the weights and ~16 MB of fixed pages, 3, 11, 31 and 70 MB where the estimate
+//!   says 3, 11 (16², 32²), 22 (32², batch 2) and 44 MB (32² batch 4, and 64²). Check
+//!   [`ActivationEstimate::budget`] (1.75 × the estimate) against the adapter's free memory.
 
 use super::config::UNetConfig;
 use super::UNetError;
@@ -37,9 +41,15 @@ pub struct ActivationEstimate {
 }
 
 impl ActivationEstimate {
-    /// The estimated peak in bytes.
+    /// The estimated peak of the bytes in use.
     pub fn total(&self) -> usize {
         self.skips + self.working + self.probabilities
+    }
+
+    /// What the memory pools may reserve for that peak (see the module documentation): the figure to
+    /// check against the adapter's free memory, beside the weights.
+    pub fn budget(&self) -> usize {
+        self.total() / 4 * 7
     }
 }
 

@@ -128,6 +128,17 @@ impl GpuDevice {
         Ok(copy)
     }
 
+    /// Bytes of device memory CubeCL's pools hold for the shared client (weights, activations, freed
+    /// pages kept for reuse, the splatting engine's buffers), and the bytes of it in use now. Pools keep
+    /// their pages, so after a UNet call the reserved figure includes that call's peak.
+    pub fn memory_reserved_and_in_use(&self) -> (usize, usize) {
+        let usage = self
+            .client()
+            .memory_report(cubecl_runtime::memory_management::MemoryScope::Device)
+            .usage();
+        (usage.bytes_reserved as usize, usage.bytes_in_use as usize)
+    }
+
     /// Bytes of device memory the weight cache holds.
     pub fn weight_bytes(&self) -> usize {
         let weights = self.inner.weights.lock().unwrap_or_else(|e| e.into_inner());

@@ -280,7 +280,7 @@ fn f16_weights_match_cpu() {
     let w = randn(&[7, 19]);
     let bias = randn(&[7]);
     let gw = half_dev.cached_matrix(&w).unwrap();
-    assert!(gw.is_f16() && gw.storage_bytes() == (7 * 19 + 1) / 2 * 4);
+    assert!(gw.is_f16() && gw.storage_bytes() == (7 * 19usize).div_ceil(2) * 4);
     check_within("f16 weight read-back", &gw, &rounded(&w), 0.0);
     let gx = up(&half_dev, &x);
     let gbias = up(&half_dev, &bias);
