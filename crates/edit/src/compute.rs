@@ -113,7 +113,10 @@ impl Compute {
     /// A lifting of per-view maps onto the Gaussians of `scene`, one view at a time.
     pub fn lifter<'s>(&self, scene: &'s GaussianScene, channels: usize) -> Lifter<'s> {
         match self.splat() {
-            Some(ctx) => Lifter::Gpu(ctx.clone(), GpuLiftAccumulator::new(ctx, scene, channels)),
+            Some(ctx) => Lifter::Gpu(
+                ctx.clone(),
+                Box::new(GpuLiftAccumulator::new(ctx, scene, channels)),
+            ),
             None => Lifter::Cpu(LiftAccumulator::new(scene, channels)),
         }
     }
@@ -122,7 +125,7 @@ impl Compute {
 /// A lifting under way on the CPU or the GPU (see [`Compute::lifter`]).
 pub enum Lifter<'s> {
     Cpu(LiftAccumulator<'s>),
-    Gpu(GpuContext, GpuLiftAccumulator),
+    Gpu(GpuContext, Box<GpuLiftAccumulator>),
 }
 
 impl Lifter<'_> {
@@ -141,7 +144,7 @@ impl Lifter<'_> {
     pub fn finish(self) -> Result<Lifted, GpuError> {
         match self {
             Lifter::Cpu(acc) => Ok(acc.finish()),
-            Lifter::Gpu(ctx, acc) => acc.finish(&ctx),
+            Lifter::Gpu(ctx, acc) => (*acc).finish(&ctx),
         }
     }
 }

@@ -1,5 +1,6 @@
 //! The consistency modules do their job on constructed cases.
 
+use edit::compute::Compute;
 use edit::consistency::{EcmFitter, EcmParams, EcmScope, EcmSettings, SceneFitter};
 use edit::eval::metrics::{multiview_consistency, ViewGeometry, WarpSettings};
 use edit::fit::{EditTrainer, ImageLoss, TrainSettings};
@@ -152,6 +153,7 @@ fn blend_map_consistency_makes_masks_agree() {
     let before = consistency(&as_images(&maps), &cams, &scene);
     let mut back = vec![Vec::new(); cams.len()];
     make_consistent(
+        &Compute::cpu(),
         &scene,
         &cams,
         (32, 32),
