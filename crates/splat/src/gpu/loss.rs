@@ -1,10 +1,12 @@
 //! The fits' loss on the device: `(1 − λ)·L1 + λ·(1 − SSIM)` and its gradient, as
 //! [`crate::loss::l1_dssim`] computes them (11-tap Gaussian window, σ 1.5, zero padding, per channel).
 //!
-//! Maps are planar on the device (plane `q` = pixels `q·H·W ..`). Kernels: `ssim_inputs` (x, y, x², y²,
-//! xy per channel), a separable blur (`blur_rows`, `blur_columns`), `ssim_terms` (the SSIM map and the
-//! partial derivatives with respect to the blurred maps), blurred again (the window is its own adjoint),
-//! and `l1_dssim_grad` (the gradient in the image's interleaved layout, plus |pred − target|).
+//! Maps are planar on the device (plane `q` = pixels `q·H·W ..`). The separable blur's two passes are
+//! fused into their neighbours (four kernels, each sum in the order of the unfused passes):
+//! `ssim_rows` (row pass of x, y, x², y², xy per channel, read from the images), `ssim_terms` (column
+//! pass, then the SSIM map and the partial derivatives with respect to the blurred maps), `blur_rows`
+//! of the partials (the window is its own adjoint) and `l1_dssim_grad` (their column pass, then the
+//! gradient in the image's interleaved layout, plus |pred − target|).
 
 use super::{arg, GpuContext, GpuError};
 use crate::loss::{ssim_window, SSIM_C1, SSIM_C2, SSIM_WINDOW};
@@ -14,23 +16,73 @@ use ::gpu::cubecl::server::Handle;
 use ::gpu::gpu_call;
 use ::gpu::prims::{empty32, grid, read_f32, upload_f32};
 
+/// The horizontal blur pass of the five SSIM inputs (x, y, x², y², xy per channel), read straight
+/// from the interleaved images: 5 planes per channel into `out` (plane `5·ch + k`).
 #[cube(launch)]
-fn ssim_inputs(pred: &[f32], target: &[f32], npix: u32, channels: u32, planes: &mut [f32]) {
-    let i = ABSOLUTE_POS;
-    let total = (npix * channels) as usize;
-    if i < total {
-        let p = i / channels as usize;
-        let ch = i % channels as usize;
-        let n = npix as usize;
-        let x = pred[i];
-        let y = target[i];
-        let base = ch * 5 * n;
-        planes[base + p] = x;
-        planes[base + n + p] = y;
-        planes[base + 2 * n + p] = x * x;
-        planes[base + 3 * n + p] = y * y;
-        planes[base + 4 * n + p] = x * y;
+fn ssim_rows(
+    pred: &[f32],
+    target: &[f32],
+    taps: &[f32],
+    width: u32,
+    height: u32,
+    channels: u32,
+    out: &mut [f32],
+) {
+    let i = ABSOLUTE_POS as u32;
+    let n = width * height;
+    if i < n * channels {
+        let ch = i / n;
+        let p = i % n;
+        let x = p % width;
+        let row = p - x;
+        let r = (SSIM_WINDOW / 2) as u32;
+        let lo = select(x >= r, x - r, 0u32);
+        let hi = u32::min(x + r, width - 1);
+        let mut sx = 0.0f32;
+        let mut sy = 0.0f32;
+        let mut sxx = 0.0f32;
+        let mut syy = 0.0f32;
+        let mut sxy = 0.0f32;
+        for xi in lo..hi + 1 {
+            let tap = taps[(xi + r - x) as usize];
+            let e = ((row + xi) * channels + ch) as usize;
+            let a = pred[e];
+            let b = target[e];
+            sx += tap * a;
+            sy += tap * b;
+            sxx += tap * (a * a);
+            syy += tap * (b * b);
+            sxy += tap * (a * b);
+        }
+        let base = (ch * 5 * n + p) as usize;
+        let nu = n as usize;
+        out[base] = sx;
+        out[base + nu] = sy;
+        out[base + 2 * nu] = sxx;
+        out[base + 3 * nu] = syy;
+        out[base + 4 * nu] = sxy;
     }
+}
+
+/// The vertical pass of the zero-padded blur at (x, y) of the plane starting at `base`.
+#[cube]
+fn column_blur(
+    src: &[f32],
+    taps: &[f32],
+    base: u32,
+    x: u32,
+    y: u32,
+    width: u32,
+    height: u32,
+) -> f32 {
+    let r = (SSIM_WINDOW / 2) as u32;
+    let lo = select(y >= r, y - r, 0u32);
+    let hi = u32::min(y + r, height - 1);
+    let mut acc = 0.0f32;
+    for yi in lo..hi + 1 {
+        acc += taps[(yi + r - y) as usize] * src[(base + yi * width + x) as usize];
+    }
+    acc
 }
 
 /// Horizontal pass of the zero-padded blur over `planes` planes of `width x height`.
@@ -51,48 +103,35 @@ fn blur_rows(src: &[f32], taps: &[f32], width: u32, height: u32, planes: u32, ou
     }
 }
 
-/// Vertical pass of the zero-padded blur.
+/// The vertical blur pass of the row-blurred SSIM inputs (5 planes per channel) finishes the local
+/// statistics μx, μy, E[x²], E[y²], E[xy]; from them the SSIM map and the scaled partial derivatives
+/// with respect to μx, E[x²], E[xy] (3 planes per channel).
 #[cube(launch)]
-fn blur_columns(src: &[f32], taps: &[f32], width: u32, height: u32, planes: u32, out: &mut [f32]) {
-    let i = ABSOLUTE_POS as u32;
-    let plane_len = width * height;
-    if i < plane_len * planes {
-        let q = i / plane_len;
-        let y = (i % plane_len) / width;
-        let x = i % width;
-        let r = (SSIM_WINDOW / 2) as u32;
-        let lo = select(y >= r, y - r, 0u32);
-        let hi = u32::min(y + r, height - 1);
-        let mut acc = 0.0f32;
-        for yi in lo..hi + 1 {
-            acc += taps[(yi + r - y) as usize] * src[(q * plane_len + yi * width + x) as usize];
-        }
-        out[i as usize] = acc;
-    }
-}
-
-/// From the blurred maps (5 planes per channel: μx, μy, E[x²], E[y²], E[xy]) the SSIM map and the
-/// scaled partial derivatives with respect to μx, E[x²], E[xy] (3 planes per channel).
-#[cube(launch)]
+#[allow(clippy::too_many_arguments)]
 fn ssim_terms(
-    blurred: &[f32],
-    npix: u32,
+    rows: &[f32],
+    taps: &[f32],
+    width: u32,
+    height: u32,
     channels: u32,
     scale: f32,
     ssim_map: &mut [f32],
     partials: &mut [f32],
 ) {
     let i = ABSOLUTE_POS;
-    let n = npix as usize;
+    let n = (width * height) as usize;
     if i < n * channels as usize {
         let ch = i / n;
         let p = i % n;
-        let b = ch * 5 * n;
-        let mx = blurred[b + p];
-        let my = blurred[b + n + p];
-        let sxx = blurred[b + 2 * n + p] - mx * mx;
-        let syy = blurred[b + 3 * n + p] - my * my;
-        let sxy = blurred[b + 4 * n + p] - mx * my;
+        let x = p as u32 % width;
+        let y = p as u32 / width;
+        let b = (ch * 5 * n) as u32;
+        let nu = n as u32;
+        let mx = column_blur(rows, taps, b, x, y, width, height);
+        let my = column_blur(rows, taps, b + nu, x, y, width, height);
+        let sxx = column_blur(rows, taps, b + 2 * nu, x, y, width, height) - mx * mx;
+        let syy = column_blur(rows, taps, b + 3 * nu, x, y, width, height) - my * my;
+        let sxy = column_blur(rows, taps, b + 4 * nu, x, y, width, height) - mx * my;
         let c1 = SSIM_C1 as f32;
         let c2 = SSIM_C2 as f32;
         let a = 2.0f32 * mx * my + c1;
@@ -114,8 +153,10 @@ fn ssim_terms(
 fn l1_dssim_grad(
     pred: &[f32],
     target: &[f32],
-    blurred_partials: &[f32],
-    npix: u32,
+    partial_rows: &[f32],
+    taps: &[f32],
+    width: u32,
+    height: u32,
     channels: u32,
     w_l1: f32,
     w_ssim: f32,
@@ -123,19 +164,24 @@ fn l1_dssim_grad(
     abs_diff: &mut [f32],
 ) {
     let i = ABSOLUTE_POS;
-    let n = npix as usize;
+    let n = (width * height) as usize;
     let total = n * channels as usize;
     if i < total {
         let p = i / channels as usize;
         let ch = i % channels as usize;
+        let px = p as u32 % width;
+        let py = p as u32 / width;
         let x = pred[i];
         let d = x - target[i];
         let step = 1.0f32 / total as f32;
         let g_l1 = select(d > 0.0, step, select(d < 0.0, -step, 0.0f32));
-        let o = ch * 3 * n;
-        let g_ssim = blurred_partials[o + p]
-            + 2.0f32 * x * blurred_partials[o + n + p]
-            + target[i] * blurred_partials[o + 2 * n + p];
+        // The vertical pass of the partials' blur (the window is its own adjoint).
+        let o = (ch * 3 * n) as u32;
+        let nu = n as u32;
+        let b0 = column_blur(partial_rows, taps, o, px, py, width, height);
+        let b1 = column_blur(partial_rows, taps, o + nu, px, py, width, height);
+        let b2 = column_blur(partial_rows, taps, o + 2 * nu, px, py, width, height);
+        let g_ssim = b0 + 2.0f32 * x * b1 + target[i] * b2;
         grad[i] = w_l1 * g_l1 - w_ssim * g_ssim;
         abs_diff[i] = f32::abs(d);
     }
@@ -187,74 +233,62 @@ pub fn l1_dssim(
     let total = npix * channels;
     gpu_call(|| {
         let taps = upload_f32(c, &ssim_window().map(|v| v as f32));
-        let blur = |src: &Handle, planes: usize| {
-            let len = planes * npix;
-            let tmp = empty32(c, len);
-            let out = empty32(c, len);
-            let (count, dim) = grid(len);
-            let dims = (width as u32, height as u32, planes as u32);
-            blur_rows::launch(
-                c,
-                count.clone(),
-                dim,
-                arg(src, len),
-                arg(&taps, SSIM_WINDOW),
-                dims.0,
-                dims.1,
-                dims.2,
-                arg(&tmp, len),
-            );
-            blur_columns::launch(
-                c,
-                count,
-                dim,
-                arg(&tmp, len),
-                arg(&taps, SSIM_WINDOW),
-                dims.0,
-                dims.1,
-                dims.2,
-                arg(&out, len),
-            );
-            out
-        };
         let grad = empty32(c, total);
         let abs_diff = empty32(c, total);
         let ssim_map = empty32(c, total);
         if total > 0 {
             let (count, dim) = grid(total);
-            let inputs = empty32(c, 5 * total);
-            ssim_inputs::launch(
+            let (w, h) = (width as u32, height as u32);
+            let rows = empty32(c, 5 * total);
+            ssim_rows::launch(
                 c,
                 count.clone(),
                 dim,
                 arg(pred, total),
                 arg(target, total),
-                npix as u32,
+                arg(&taps, SSIM_WINDOW),
+                w,
+                h,
                 channels as u32,
-                arg(&inputs, 5 * total),
+                arg(&rows, 5 * total),
             );
-            let blurred = blur(&inputs, 5 * channels);
             let partials = empty32(c, 3 * total);
             ssim_terms::launch(
                 c,
                 count.clone(),
                 dim,
-                arg(&blurred, 5 * total),
-                npix as u32,
+                arg(&rows, 5 * total),
+                arg(&taps, SSIM_WINDOW),
+                w,
+                h,
                 channels as u32,
                 1.0 / total as f32,
                 arg(&ssim_map, total),
                 arg(&partials, 3 * total),
             );
-            let blurred_partials = blur(&partials, 3 * channels);
+            let partial_rows = empty32(c, 3 * total);
+            let (count3, dim3) = grid(3 * total);
+            blur_rows::launch(
+                c,
+                count3,
+                dim3,
+                arg(&partials, 3 * total),
+                arg(&taps, SSIM_WINDOW),
+                w,
+                h,
+                3 * channels as u32,
+                arg(&partial_rows, 3 * total),
+            );
             l1_dssim_grad::launch(
                 c,
                 count,
                 dim,
                 arg(pred, total),
                 arg(target, total),
-                arg(&blurred_partials, 3 * total),
-                npix as u32,
+                arg(&partial_rows, 3 * total),
+                arg(&taps, SSIM_WINDOW),
+                w,
+                h,
                 channels as u32,
                 1.0 - ssim_weight,
                 ssim_weight,

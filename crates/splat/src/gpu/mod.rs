@@ -7,7 +7,8 @@
 //!    counts in that order, one (tile, Gaussian) pair per covered tile, a stable radix sort of the pairs
 //!    by tile and the per-tile ranges: every tile list comes out sorted by depth, ties by index, as on
 //!    the CPU;
-//! 3. `raster`: per-pixel compositing of RGB, alpha, depth and extra channels.
+//! 3. `raster`: compositing of RGB, alpha, depth and extra channels, one cube per tile walking the
+//!    tile's list in shared-memory batches, each unit owning a few pixels (`forward_pixels_per_unit`).
 //!
 //! The backward runs 3 then 1 with the state the forward left on the device.
 //!

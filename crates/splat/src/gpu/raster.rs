@@ -13,15 +13,69 @@ use cubecl::prelude::*;
 
 use crate::render::{ALPHA_MAX, ALPHA_MIN, TILE, T_MIN};
 
-/// σ of the Gaussian whose record starts at `s` at pixel centre (fx, fy), with d = mean − centre:
-/// σ = ½(a dx² + c dy²) + b dx dy (the CPU's `sigma_at`). Returns (σ, dx, dy).
+/// σ and e^−σ of a Gaussian (mean (mx, my), conic (ca, cb, cc)) at pixel centre (fx, fy), with
+/// d = mean − centre: σ = ½(a dx² + c dy²) + b dx dy (the CPU's `sigma_at`). Returns (σ, e^−σ, dx, dy).
 #[cube]
-fn sigma_at(splats: &[f32], s: usize, fx: f32, fy: f32) -> (f32, f32, f32) {
-    let dx = splats[s] - fx;
-    let dy = splats[s + 1] - fy;
-    let sigma =
-        0.5f32 * (splats[s + 2] * dx * dx + splats[s + 4] * dy * dy) + splats[s + 3] * dx * dy;
-    (sigma, dx, dy)
+fn falloff(mx: f32, my: f32, ca: f32, cb: f32, cc: f32, fx: f32, fy: f32) -> (f32, f32, f32, f32) {
+    let dx = mx - fx;
+    let dy = my - fy;
+    let sigma = 0.5f32 * (ca * dx * dx + cc * dy * dy) + cb * dx * dy;
+    (sigma, (-sigma).exp(), dx, dy)
+}
+
+/// Loads the tile list entries `first..first + size` into shared memory: ids into `batch_ids`, the first
+/// `fields` floats of each splat record into `batch` (`fields` per entry). Each unit loads every
+/// `units`-th entry.
+#[cube]
+#[allow(clippy::too_many_arguments)]
+fn load_batch(
+    splats: &[f32],
+    ids: &[u32],
+    first: u32,
+    size: u32,
+    batch: &mut Shared<[f32]>,
+    batch_ids: &mut Shared<[u32]>,
+    #[comptime] fields: u32,
+    #[comptime] units: u32,
+) {
+    let mut e = UNIT_POS;
+    while e < size {
+        let gi = ids[(first + e) as usize];
+        batch_ids[e as usize] = gi;
+        let src = gi as usize * 10;
+        let dst = (e * fields) as usize;
+        #[unroll]
+        for f in 0..fields {
+            batch[dst + f as usize] = splats[src + f as usize];
+        }
+        e += units;
+    }
+}
+
+/// Whether any unit of the cube still has a pixel compositing (`done[q]` = 0). Every unit gets the same
+/// answer; `busy` is one flag per unit. Includes a barrier: the batch just walked may be overwritten
+/// after it.
+#[cube]
+fn cube_busy(
+    done: &Array<u32>,
+    busy: &mut Shared<[u32]>,
+    #[comptime] np: usize,
+    #[comptime] units: u32,
+) -> bool {
+    let mut mine = 0u32;
+    #[unroll]
+    for q in 0..np {
+        if done[q] == 0 {
+            mine = 1;
+        }
+    }
+    busy[UNIT_POS as usize] = mine;
+    sync_cube();
+    let mut any = 0u32;
+    for u in 0..units {
+        any |= busy[u as usize];
+    }
+    any != 0
 }
 
 /// Gaussians per shared-memory batch at least (each unit loads several when the cube has fewer units):
@@ -105,18 +159,16 @@ pub fn raster_forward(
     let mut lo = 0u32;
     while lo < count {
         let size = u32::min(batch_len, count - lo);
-        let mut e = UNIT_POS;
-        while e < size {
-            let gi = ids[(start + lo + e) as usize];
-            batch_ids[e as usize] = gi;
-            let src = gi as usize * 10;
-            let dst = e as usize * 10;
-            #[unroll]
-            for f in 0..10 {
-                batch[dst + f] = splats[src + f];
-            }
-            e += units;
-        }
+        load_batch(
+            splats,
+            ids,
+            start + lo,
+            size,
+            &mut batch,
+            &mut batch_ids,
+            10u32,
+            units,
+        );
         sync_cube();
         for j in 0..size {
             let s = j as usize * 10;
@@ -130,10 +182,8 @@ pub fn raster_forward(
             for q in 0..np {
                 if done[q] == 0 {
                     let fy = (py0 + q as u32) as f32 + 0.5;
-                    let dx = mx - fx;
-                    let dy = my - fy;
-                    let sigma = 0.5f32 * (ca * dx * dx + cc * dy * dy) + cb * dx * dy;
-                    let a = f32::min(o * (-sigma).exp(), ALPHA_MAX as f32);
+                    let (sigma, vis, _dx, _dy) = falloff(mx, my, ca, cb, cc, fx, fy);
+                    let a = f32::min(o * vis, ALPHA_MAX as f32);
                     if sigma >= 0.0 && a >= ALPHA_MIN as f32 {
                         let next = t[q] * (1.0f32 - a);
                         if next < T_MIN as f32 {
@@ -158,22 +208,8 @@ pub fn raster_forward(
                 }
             }
         }
-        let mut mine = 0u32;
-        #[unroll]
-        for q in 0..np {
-            if done[q] == 0 {
-                mine = 1;
-            }
-        }
-        busy[UNIT_POS as usize] = mine;
-        // Everyone has finished with the batch and published its flag.
-        sync_cube();
-        let mut any = 0u32;
-        for u in 0..units {
-            any |= busy[u as usize];
-        }
         lo += batch_len;
-        if any == 0 {
+        if !cube_busy(&done, &mut busy, np, units) {
             lo = count;
         }
     }
@@ -329,18 +365,16 @@ pub fn raster_backward(
         let size = hi - lo;
         // The previous batch is consumed before it is overwritten.
         sync_cube();
-        let mut e = UNIT_POS;
-        while e < size {
-            let gi = ids[(start + lo + e) as usize];
-            batch_ids[e as usize] = gi;
-            let src = gi as usize * 10;
-            let dst = e as usize * 10;
-            #[unroll]
-            for f in 0..10 {
-                batch[dst + f] = splats[src + f];
-            }
-            e += units;
-        }
+        load_batch(
+            splats,
+            ids,
+            start + lo,
+            size,
+            &mut batch,
+            &mut batch_ids,
+            10u32,
+            units,
+        );
         sync_cube();
         for j in 0..size {
             let local = size - 1 - j;
@@ -366,10 +400,7 @@ pub fn raster_backward(
                 hit[q] = 0;
                 if rel < n_last[q] {
                     let fy = (py0 + q as u32) as f32 + 0.5;
-                    let dx = mx - fx;
-                    let dy = my - fy;
-                    let sigma = 0.5f32 * (ca * dx * dx + cc * dy * dy) + cb * dx * dy;
-                    let vv = (-sigma).exp();
+                    let (sigma, vv, dx, dy) = falloff(mx, my, ca, cb, cc, fx, fy);
                     let a = f32::min(o * vv, ALPHA_MAX as f32);
                     if sigma >= 0.0 && a >= ALPHA_MIN as f32 {
                         hit[q] = 1;
@@ -572,18 +603,16 @@ pub fn lift_accumulate(
     let mut lo = 0u32;
     while lo < count {
         let size = u32::min(batch_len, count - lo);
-        let mut e = UNIT_POS;
-        while e < size {
-            let gi = ids[(start + lo + e) as usize];
-            batch_ids[e as usize] = gi;
-            let src = gi as usize * 10;
-            let dst = e as usize * 6;
-            #[unroll]
-            for f in 0..6 {
-                batch[dst + f] = splats[src + f];
-            }
-            e += units;
-        }
+        load_batch(
+            splats,
+            ids,
+            start + lo,
+            size,
+            &mut batch,
+            &mut batch_ids,
+            6u32,
+            units,
+        );
         sync_cube();
         for j in 0..size {
             let s = j as usize * 6;
@@ -599,10 +628,8 @@ pub fn lift_accumulate(
                 hit[q] = 0;
                 if done[q] == 0 {
                     let fy = (py0 + q as u32) as f32 + 0.5;
-                    let dx = mx - fx;
-                    let dy = my - fy;
-                    let sigma = 0.5f32 * (ca * dx * dx + cc * dy * dy) + cb * dx * dy;
-                    let a = f32::min(o * (-sigma).exp(), ALPHA_MAX as f32);
+                    let (sigma, vis, _dx, _dy) = falloff(mx, my, ca, cb, cc, fx, fy);
+                    let a = f32::min(o * vis, ALPHA_MAX as f32);
                     if sigma >= 0.0 && a >= ALPHA_MIN as f32 {
                         let next = t[q] * (1.0f32 - a);
                         if next < T_MIN as f32 {
@@ -630,21 +657,8 @@ pub fn lift_accumulate(
                 }
             }
         }
-        let mut mine = 0u32;
-        #[unroll]
-        for q in 0..np {
-            if done[q] == 0 {
-                mine = 1;
-            }
-        }
-        busy[UNIT_POS as usize] = mine;
-        sync_cube();
-        let mut any = 0u32;
-        for u in 0..units {
-            any |= busy[u as usize];
-        }
         lo += batch_len;
-        if any == 0 {
+        if !cube_busy(&done, &mut busy, np, units) {
             lo = count;
         }
     }
