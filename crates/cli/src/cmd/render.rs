@@ -1,7 +1,9 @@
 //! `vcedit render SCENE`: render a scene to PNG files from given or generated cameras.
 
 use anyhow::{Context, Result};
-use splat::render::{render, RenderSettings};
+use diffusion::device::Precision;
+use edit::compute::Compute;
+use splat::render::RenderSettings;
 use splat::Image;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
@@ -144,39 +146,29 @@ pub fn run(args: Args) -> Result<()> {
     let settings = RenderSettings {
         background: args.background.background,
     };
-    let device = args.device.open()?;
-    let on_device = device
-        .as_ref()
-        .map(|ctx| (ctx, splat::gpu::GpuScene::upload(ctx, &scene)));
+    // The networks are not used here: their weight precision does not matter.
+    let compute = Compute::on(args.device.open()?, Precision::F32);
     let mut progress = Reporter::new();
     progress.stage("rendering views", cameras.len() as u64);
     let t_render = Instant::now();
-    for (i, cam) in cameras.iter().enumerate() {
-        let (rgb, alpha, depth) = match &on_device {
-            Some((ctx, dev)) => {
-                let frame = splat::gpu::render_device(ctx, dev, cam, &settings, None)?;
-                let out = splat::gpu::download(ctx, &frame, scene.len())?;
-                (out.rgb_image(), out.alpha, out.depth)
-            }
-            None => {
-                let out = render(&scene, cam, &settings, None);
-                (out.rgb_image(), out.alpha, out.depth)
-            }
-        };
+    compute.for_each_render(&scene, &cameras, &settings, None, &mut |i, out| {
+        let cam = &cameras[i];
+        let rgb = out.rgb_image();
         let stem = file_stem(i, &cam.name);
         save(&rgb, &args.out.join(format!("{stem}.png")))?;
         if args.depth {
             save(
-                &depth_image(rgb.width, rgb.height, &depth, &alpha),
+                &depth_image(rgb.width, rgb.height, &out.depth, &out.alpha),
                 &args.out.join(format!("{stem}_depth.png")),
             )?;
         }
         if args.alpha {
-            let alpha = Image::from_data(rgb.width, rgb.height, 1, alpha);
+            let alpha = Image::from_data(rgb.width, rgb.height, 1, out.alpha);
             save(&alpha, &args.out.join(format!("{stem}_alpha.png")))?;
         }
         progress.advance(1);
-    }
+        anyhow::Ok(())
+    })?;
     progress.finish();
     out_dir.finish();
     let per_view = t_render.elapsed().as_secs_f64() / cameras.len().max(1) as f64;
