@@ -223,6 +223,7 @@ fn job(opts: &DemoOptions, scene: &DemoScene, variant: Variant) -> EditJob {
         size: (opts.size, opts.size),
         background: scene.source.background,
         stop_after_iteration: None,
+        view_batch: None,
     }
 }
 

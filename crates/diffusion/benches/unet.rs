@@ -5,6 +5,10 @@
 //! `-- --device gpu` runs the forward on the GPU (VCEDIT_DEVICE rules: lavapipe needs
 //! VCEDIT_ALLOW_SOFTWARE_GPU=1 or an explicit `gpu`); `-- --small` shrinks the channels to
 //! [64, 128, 256, 256] (same blocks, heads and context), a UNet lavapipe runs in seconds.
+//! `-- --hook device|host` runs every call through an InfEdit-shaped attention hook (batch swaps of the
+//! self-attention Q/K/V, the cross-attention probabilities read and rebuilt): `device` keeps the hook's
+//! tensors where the UNet runs (as the editing controller does), `host` reads them back and uploads them
+//! again (what a host-side hook costs; the A/B for a GPU).
 //! Prints one `RESULT {json}` line per measurement (tools/bench_unet_torch.py --compare parses them).
 //! Thread count: RAYON_NUM_THREADS (candle's matmul and our kernels use the rayon pool).
 //!
@@ -18,7 +22,8 @@ use std::sync::Mutex;
 use candle_core::{DType, Device, Result, Shape, Tensor};
 use candle_nn::var_builder::SimpleBackend;
 use candle_nn::VarBuilder;
-use diffusion::unet::{UNet2DConditionModel, UNetConfig};
+use diffusion::device::DeviceTensor;
+use diffusion::unet::{AttentionHook, AttnCall, AttnKind, UNet2DConditionModel, UNetConfig};
 
 /// `unet/config.json` of runwayml/stable-diffusion-v1-5 (diffusers 0.6 era, as published).
 const SD15_UNET_CONFIG: &str = r#"{
@@ -106,6 +111,59 @@ impl SimpleBackend for RandomWeights {
 
     fn contains_tensor(&self, _name: &str) -> bool {
         false
+    }
+}
+
+/// The controller's work without its bookkeeping: in batches of six (InfEdit's `[S,T,M]` × CFG) the
+/// self-attention Q/K/V of each half come from its first items, and the conditional half's
+/// cross-attention probabilities are split per branch and concatenated back.
+struct InfEditShaped {
+    /// Read every tensor back and upload it again (a host-side hook).
+    via_host: bool,
+}
+
+impl InfEditShaped {
+    fn route(&self, t: DeviceTensor) -> Result<DeviceTensor> {
+        if self.via_host {
+            t.same_device(&t.to_cpu()?)
+        } else {
+            Ok(t)
+        }
+    }
+}
+
+impl AttentionHook for InfEditShaped {
+    fn qkv(
+        &mut self,
+        call: &AttnCall,
+        q: DeviceTensor,
+        k: DeviceTensor,
+        v: DeviceTensor,
+    ) -> Result<(DeviceTensor, DeviceTensor, DeviceTensor)> {
+        if call.kind != AttnKind::SelfAttn || !call.batch.is_multiple_of(6) {
+            return Ok((q, k, v));
+        }
+        let (q, k, v) = (self.route(q)?, self.route(k)?, self.route(v)?);
+        let idx: Vec<u32> = (0..call.batch as u32)
+            .map(|b| b - b % 3 + u32::from(b % 3 == 1))
+            .collect();
+        Ok((
+            q.index_select(&idx, 0)?,
+            k.index_select(&idx, 0)?,
+            v.index_select(&idx, 0)?,
+        ))
+    }
+
+    fn wants_probs(&self, call: &AttnCall) -> bool {
+        call.kind == AttnKind::CrossAttn
+    }
+
+    fn probs(&mut self, call: &AttnCall, probs: DeviceTensor) -> Result<DeviceTensor> {
+        let probs = self.route(probs)?;
+        let parts = (0..call.batch)
+            .map(|b| probs.narrow(0, b, 1))
+            .collect::<Result<Vec<_>>>()?;
+        DeviceTensor::cat(&parts.iter().collect::<Vec<_>>(), 0)
     }
 }
 
@@ -213,6 +271,12 @@ fn main() {
         .map(|r| r.parse().unwrap())
         .unwrap_or(64);
     let small = args.iter().any(|a| a == "--small");
+    let mut hook = match arg_value(&args, "--hook").as_deref() {
+        None | Some("none") => None,
+        Some("device") => Some(InfEditShaped { via_host: false }),
+        Some("host") => Some(InfEditShaped { via_host: true }),
+        Some(other) => panic!("--hook none|device|host, not {other}"),
+    };
     let device = match arg_value(&args, "--device").as_deref() {
         None | Some("cpu") => None,
         Some(choice) => {
@@ -228,7 +292,14 @@ fn main() {
         |d| d.name().to_string(),
     );
     let which = if small { "small SD 1.5" } else { "SD 1.5" };
-    eprintln!("unet bench: {which} config, {size}x{size} latents, {on}, {runs} timed runs");
+    let hooked = match &hook {
+        None => "no hook",
+        Some(h) if h.via_host => "InfEdit-shaped hook via the host",
+        Some(_) => "InfEdit-shaped hook on the device",
+    };
+    eprintln!(
+        "unet bench: {which} config, {size}x{size} latents, {on}, {hooked}, {runs} timed runs"
+    );
 
     let start = Instant::now();
     let config = if small { small_config() } else { config() };
@@ -243,7 +314,14 @@ fn main() {
         for run in 0..=runs {
             let (start, cpu_start) = (Instant::now(), cpu_seconds());
             let out = model
-                .forward_on(&sample, &t, &context, None, None, device.as_ref())
+                .forward_on(
+                    &sample,
+                    &t,
+                    &context,
+                    None,
+                    hook.as_mut().map(|h| h as &mut dyn AttentionHook),
+                    device.as_ref(),
+                )
                 .unwrap();
             let (secs, cpu) = (start.elapsed().as_secs_f64(), cpu_seconds() - cpu_start);
             assert_eq!(out.dims(), &[batch, 4, size, size]);
@@ -270,8 +348,13 @@ fn main() {
         cpu_times.sort_by(|a, b| a.partial_cmp(b).unwrap());
         times.sort_by(|a, b| a.partial_cmp(b).unwrap());
         println!(
-            "RESULT {{\"impl\":\"{}\",\"what\":\"forward\",\"batch\":{batch},\"size\":{size},\"threads\":{threads},\"seconds\":{:.3},\"cpu_seconds\":{:.2},\"peak_rss_mb\":{:.0}}}",
+            "RESULT {{\"impl\":\"{}\",\"what\":\"forward\",\"hook\":\"{}\",\"batch\":{batch},\"size\":{size},\"threads\":{threads},\"seconds\":{:.3},\"cpu_seconds\":{:.2},\"peak_rss_mb\":{:.0}}}",
             if device.is_some() { "vcedit-gpu" } else { "candle" },
+            match &hook {
+                None => "none",
+                Some(h) if h.via_host => "host",
+                Some(_) => "device",
+            },
             times[0],
             cpu_times[0],
             peak_rss_mb()

@@ -4,6 +4,7 @@ use std::collections::{HashMap, HashSet};
 use std::path::PathBuf;
 
 use candle_core::{Device, Result, Tensor};
+use diffusion::device::DeviceTensor;
 use diffusion::unet::{AttentionHook, AttnCall, AttnKind, UNet2DConditionModel};
 
 mod common;
@@ -66,10 +67,10 @@ impl AttentionHook for Capture {
     fn qkv(
         &mut self,
         call: &AttnCall,
-        q: Tensor,
-        k: Tensor,
-        v: Tensor,
-    ) -> Result<(Tensor, Tensor, Tensor)> {
+        q: DeviceTensor,
+        k: DeviceTensor,
+        v: DeviceTensor,
+    ) -> Result<(DeviceTensor, DeviceTensor, DeviceTensor)> {
         self.calls
             .push((call.layer.to_string(), call.kind, call.height, call.width));
         assert_eq!(q.dims()[0], call.batch);
@@ -80,9 +81,9 @@ impl AttentionHook for Capture {
     fn wants_probs(&self, call: &AttnCall) -> bool {
         self.wanted.contains(call.layer)
     }
-    fn probs(&mut self, call: &AttnCall, probs: Tensor) -> Result<Tensor> {
+    fn probs(&mut self, call: &AttnCall, probs: DeviceTensor) -> Result<DeviceTensor> {
         self.seen
-            .insert(call.layer.to_string(), (call.kind, probs.clone()));
+            .insert(call.layer.to_string(), (call.kind, probs.to_cpu()?));
         Ok(probs)
     }
 }
@@ -94,10 +95,10 @@ impl AttentionHook for ReplaceMaps {
     fn wants_probs(&self, call: &AttnCall) -> bool {
         self.0.contains_key(call.layer)
     }
-    fn probs(&mut self, call: &AttnCall, probs: Tensor) -> Result<Tensor> {
+    fn probs(&mut self, call: &AttnCall, probs: DeviceTensor) -> Result<DeviceTensor> {
         let maps = &self.0[call.layer];
-        let rest = maps.narrow(0, 1, call.batch - 1)?;
-        Tensor::cat(&[&probs.narrow(0, 0, 1)?, &rest], 0)
+        let rest = probs.same_device(&maps.narrow(0, 1, call.batch - 1)?)?;
+        DeviceTensor::cat(&[&probs.narrow(0, 0, 1)?, &rest], 0)
     }
 }
 
@@ -108,15 +109,15 @@ impl AttentionHook for SwapLastKv {
     fn qkv(
         &mut self,
         call: &AttnCall,
-        q: Tensor,
-        k: Tensor,
-        v: Tensor,
-    ) -> Result<(Tensor, Tensor, Tensor)> {
+        q: DeviceTensor,
+        k: DeviceTensor,
+        v: DeviceTensor,
+    ) -> Result<(DeviceTensor, DeviceTensor, DeviceTensor)> {
         if call.kind != AttnKind::SelfAttn {
             return Ok((q, k, v));
         }
-        let swap = |t: &Tensor| -> Result<Tensor> {
-            Tensor::cat(&[&t.narrow(0, 0, call.batch - 1)?, &t.narrow(0, 0, 1)?], 0)
+        let swap = |t: &DeviceTensor| -> Result<DeviceTensor> {
+            DeviceTensor::cat(&[&t.narrow(0, 0, call.batch - 1)?, &t.narrow(0, 0, 1)?], 0)
         };
         Ok((q, swap(&k)?, swap(&v)?))
     }

@@ -130,6 +130,10 @@ pub struct Args {
     /// 6 epochs × 96 views).
     #[arg(long, default_value_t = 576, value_parser = whole::<usize>, allow_negative_numbers = true)]
     pub ecm_min_steps: usize,
+    /// Views per UNet call (default: 1 on the CPU; on a GPU as many as fit about 6 GB of activations,
+    /// at most 8). Batching views keeps a GPU busy; each view's result is the same.
+    #[arg(long, value_name = "N", value_parser = clap::value_parser!(u16).range(1..=64))]
+    pub view_batch: Option<u16>,
     /// Editable region: the source prompt's attention to this word.
     #[arg(long, value_name = "WORD", group = "maskgroup")]
     pub mask_word: Option<String>,
@@ -271,6 +275,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         size: (w, h),
         background: args.background.background,
         stop_after_iteration: args.stop_after_iteration,
+        view_batch: args.view_batch.map(usize::from),
     };
 
     let model = EditModel::load(&args.model.model, args.model.taesd.as_deref())

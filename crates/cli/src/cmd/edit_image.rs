@@ -86,7 +86,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
 
     if let Some(dir) = &args.save_attention {
         let maps = viz::word_maps(
-            outcome.state.controller.blend_store(),
+            &outcome.state.controller.blend_store()?,
             plan.blend_size,
             &plan.target_tokens,
             (h as usize, w as usize),

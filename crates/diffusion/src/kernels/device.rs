@@ -215,6 +215,19 @@ impl DeviceTensor {
         )
     }
 
+    /// The slices of `dim` at `indices`, in that order (candle `index_select`).
+    pub fn index_select(&self, indices: &[u32], dim: usize) -> Result<DeviceTensor> {
+        self.map(
+            |t| t.index_select(&Tensor::new(indices, t.device())?, dim),
+            |g| ops::index_select(g, indices, dim),
+        )
+    }
+
+    /// A CPU tensor (a constant, a map from elsewhere) on this tensor's device.
+    pub fn same_device(&self, t: &Tensor) -> Result<DeviceTensor> {
+        DeviceTensor::on(t, self.gpu_device())
+    }
+
     /// One zero row at the bottom and one zero column at the right (diffusers' `Downsample2D` with
     /// padding 0).
     pub fn pad_bottom_right_with_zeros(&self) -> Result<DeviceTensor> {

@@ -4,7 +4,7 @@
 //! whether it is self- or cross-attention, the spatial size of its queries and the batch/head counts, and
 //! the hook may replace Q/K/V before the softmax and read or replace the probabilities after it.
 
-use candle_core::{Result, Tensor};
+use candle_core::Result;
 use candle_nn::{Linear, VarBuilder};
 
 use crate::kernels::DeviceTensor;
@@ -32,15 +32,19 @@ pub struct AttnCall<'a> {
 }
 
 /// Observes and rewrites attention inside the UNet. All methods have pass-through defaults.
+///
+/// The tensors live where the UNet runs ([`DeviceTensor`]: a candle tensor on the CPU, a buffer on the
+/// GPU), so a hook that only rearranges or mixes them (InfEdit's controller) costs no transfers; a hook
+/// that must read values on the host calls [`DeviceTensor::to_cpu`] itself, for just what it reads.
 pub trait AttentionHook {
     /// May replace Q, K, V (each [batch, heads, tokens, head_dim]) before the scores are computed.
     fn qkv(
         &mut self,
         call: &AttnCall,
-        q: Tensor,
-        k: Tensor,
-        v: Tensor,
-    ) -> Result<(Tensor, Tensor, Tensor)> {
+        q: DeviceTensor,
+        k: DeviceTensor,
+        v: DeviceTensor,
+    ) -> Result<(DeviceTensor, DeviceTensor, DeviceTensor)> {
         let _ = call;
         Ok((q, k, v))
     }
@@ -53,7 +57,7 @@ pub trait AttentionHook {
     }
 
     /// May read/replace the probabilities [batch, heads, q_len, k_len] after the softmax.
-    fn probs(&mut self, call: &AttnCall, probs: Tensor) -> Result<Tensor> {
+    fn probs(&mut self, call: &AttnCall, probs: DeviceTensor) -> Result<DeviceTensor> {
         let _ = call;
         Ok(probs)
     }
@@ -101,9 +105,8 @@ impl Attention {
     }
 
     /// `x` [batch, h·w, query_dim]; `context` [batch, tokens, context_dim] for cross-attention, on one
-    /// device. Without a hook the GPU runs the flash kernel (no
-    /// probability matrix); the hook itself always sees CPU tensors (read back from the GPU, and its
-    /// results uploaded again).
+    /// device. Without a hook, or when the hook does not read this call's probabilities, the flash kernel
+    /// runs (no probability matrix); the hook sees the tensors on the device they are on.
     pub fn forward_device(
         &self,
         x: &DeviceTensor,
@@ -147,15 +150,11 @@ impl Attention {
                     batch,
                     heads: self.heads,
                 };
-                // On the CPU these round trips are clones of the same tensors.
-                let device = q.gpu_device().cloned();
-                let (q, k, v) = hook.qkv(&call, q.to_cpu()?, k.to_cpu()?, v.to_cpu()?)?;
-                let on_device = |t: &Tensor| DeviceTensor::on(t, device.as_ref());
-                let (q, k, v) = (on_device(&q)?, on_device(&k)?, on_device(&v)?);
+                let (q, k, v) = hook.qkv(&call, q, k, v)?;
                 if hook.wants_probs(&call) {
                     let scores = q.matmul_t(&k)?.mul_scalar(scale)?;
-                    let probs = hook.probs(&call, scores.softmax_last_dim()?.to_cpu()?)?;
-                    on_device(&probs)?.matmul(&v)?
+                    let probs = hook.probs(&call, scores.softmax_last_dim()?)?;
+                    probs.matmul(&v)?
                 } else {
                     DeviceTensor::attention(&q, &k, &v, scale)?
                 }

@@ -20,7 +20,7 @@ impl MultiView<'_> {
         let mut maps = Vec::with_capacity(views.len());
         for view in views.iter() {
             maps.push(blend_maps(
-                view.controller.blend_store(),
+                &view.controller.blend_store()?,
                 plan.blend_size,
                 &plan.alignment,
                 plan.latent_size,

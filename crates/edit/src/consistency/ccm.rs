@@ -23,10 +23,15 @@ impl MultiView<'_> {
     ) -> Result<(), MultiViewError> {
         let plan = self.plan;
         let mut recorded = Vec::with_capacity(views.len());
-        for view in views.iter_mut() {
-            view.controller.start_recording();
-            plan.predict(self.model, view, i)?;
-            recorded.push(view.controller.finish_recording());
+        for batch in views.chunks_mut(self.view_batch.max(1)) {
+            let mut batch: Vec<&mut ViewState> = batch.iter_mut().collect();
+            for view in batch.iter_mut() {
+                view.controller.start_recording();
+            }
+            plan.predict_views(self.model, &mut batch, i)?;
+            for view in batch {
+                recorded.push(view.controller.finish_recording());
+            }
         }
         let layers = recorded[0].len();
         if recorded.iter().any(|r| r.len() != layers) {

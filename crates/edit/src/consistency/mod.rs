@@ -135,6 +135,8 @@ pub struct MultiView<'a> {
     pub seed: u64,
     /// Background of ECM's renders.
     pub background: [f32; 3],
+    /// Views per UNet call (see [`crate::sampler::EditPlan::predict_views`]); 1 = one view at a time.
+    pub view_batch: usize,
 }
 
 impl MultiView<'_> {
@@ -186,10 +188,13 @@ impl MultiView<'_> {
                 timed(Stage::Ccm, t, &mut times);
             }
             let t = Instant::now();
-            for view in views.iter_mut() {
-                let eps = plan.predict(model, view, i)?;
-                view.controller.end_step();
-                plan.update(view, i, &eps, &n)?;
+            for batch in views.chunks_mut(self.view_batch.max(1)) {
+                let mut batch: Vec<&mut ViewState> = batch.iter_mut().collect();
+                let eps = plan.predict_views(model, &mut batch, i)?;
+                for (view, eps) in batch.into_iter().zip(eps) {
+                    view.controller.end_step();
+                    plan.update(view, i, &eps, &n)?;
+                }
             }
             progress(i, Stage::Unet);
             timed(Stage::Unet, t, &mut times);

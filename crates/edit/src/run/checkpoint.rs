@@ -165,6 +165,7 @@ mod tests {
             size: (64, 64),
             background: [0.0; 3],
             stop_after_iteration: None,
+            view_batch: None,
         }
     }
 
@@ -174,9 +175,11 @@ mod tests {
         let base = fingerprint(&job(), &scene, &[]);
         let stopping = EditJob {
             stop_after_iteration: Some(1),
+            view_batch: Some(3),
             ..job()
         };
-        // A run stopped after an iteration must be resumable without the stop.
+        // A run stopped after an iteration must be resumable without the stop, and with another view
+        // batch (how the work is scheduled, not what it computes).
         assert_eq!(fingerprint(&stopping, &scene, &[]), base);
         let other = EditJob { seed: 1, ..job() };
         assert_ne!(fingerprint(&other, &scene, &[]), base);

@@ -7,6 +7,7 @@
 use std::path::Path;
 
 use candle_core::{DType, Device, Tensor};
+use diffusion::device::DeviceTensor;
 use diffusion::unet::{AttentionHook, AttnCall, AttnKind};
 use splat::gpu::GpuError;
 use splat::render::{render, ExtraChannels, RenderSettings};
@@ -157,10 +158,11 @@ impl AttentionHook for WordAttention {
         call.kind == AttnKind::CrossAttn && (call.height, call.width) == self.size
     }
 
-    fn probs(&mut self, call: &AttnCall, probs: Tensor) -> candle_core::Result<Tensor> {
+    fn probs(&mut self, call: &AttnCall, probs: DeviceTensor) -> candle_core::Result<DeviceTensor> {
         if self.wants_probs(call) && !call.layer.starts_with("mid") {
-            // [batch, heads, N, tokens] → mean over batch and heads: [N, tokens].
-            let m = probs.to_dtype(DType::F32)?.mean(0)?.mean(0)?;
+            // [batch, heads, N, tokens] → mean over batch and heads: [N, tokens]. The maps are small (the
+            // blend resolution), so they are read back whole.
+            let m = probs.to_cpu()?.to_dtype(DType::F32)?.mean(0)?.mean(0)?;
             self.sum = Some(match self.sum.take() {
                 Some(s) => s.add(&m)?,
                 None => m,

@@ -99,7 +99,7 @@ pub(super) fn write_word_maps(
 ) -> Result<Vec<(String, String)>, RunError> {
     let (w, h) = size;
     let maps = viz::word_maps(
-        view.controller.blend_store(),
+        &view.controller.blend_store()?,
         plan.blend_size,
         &plan.target_tokens,
         (h as usize, w as usize),

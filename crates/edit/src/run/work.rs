@@ -23,6 +23,8 @@ pub struct WorkPlan {
     pub memory_bytes: u64,
     /// GPU memory the run needs on its device (`None` on the CPU).
     pub gpu_memory_bytes: Option<u64>,
+    /// Views per UNet call.
+    pub view_batch: usize,
 }
 
 impl WorkPlan {
@@ -30,8 +32,12 @@ impl WorkPlan {
         let gpu = self.gpu_memory_bytes.map_or(String::new(), |b| {
             format!(", GPU memory ≈ {:.1} GB", b as f64 / 1e9)
         });
+        let batch = match self.view_batch {
+            1 => "batch 6".to_string(),
+            n => format!("batch 6 per view, {n} views per call"),
+        };
         format!(
-            "work: {} views × {} iterations: {} UNet calls (batch 6), {} renders, {} lifting passes, {} fitting steps; \
+            "work: {} views × {} iterations: {} UNet passes ({batch}), {} renders, {} lifting passes, {} fitting steps; \
              memory needed ≈ {:.1} GB{gpu}",
             self.views,
             self.iterations,
@@ -44,6 +50,40 @@ impl WorkPlan {
     }
 }
 
+/// Most views one UNet call takes when the choice is automatic.
+pub const MAX_AUTO_VIEW_BATCH: usize = 8;
+
+/// GPU memory the automatic view batch may give the UNet's activations. wgpu cannot report free memory
+/// (gfx-rs/wgpu#2447), so this is a fixed share that leaves room for SD-1.5-sized weights, the scene and
+/// the display on a 12 GB card; `--view-batch` overrides it either way.
+pub const AUTO_VIEW_BATCH_GPU_BYTES: u64 = 6_000_000_000;
+
+/// Views per UNet call: the job's choice, else 1 on the CPU (one view's batch of six already keeps every
+/// core busy, and a larger batch only adds memory) and on a GPU the most views, up to
+/// [`MAX_AUTO_VIEW_BATCH`] and the number of views, whose hooked call's activations fit in
+/// [`AUTO_VIEW_BATCH_GPU_BYTES`].
+pub fn view_batch(job: &EditJob, model: &EditModel, views: usize) -> usize {
+    if let Some(n) = job.view_batch {
+        return n.max(1);
+    }
+    if model.compute.networks().is_none() {
+        return 1;
+    }
+    let f = model.downscale();
+    let (lh, lw) = (job.size.1 as usize / f, job.size.0 as usize / f);
+    let fits = |n: usize| {
+        model
+            .unet
+            .config()
+            .activation_estimate(6 * n, lh, lw, 77, true)
+            .is_ok_and(|e| e.total() as u64 <= AUTO_VIEW_BATCH_GPU_BYTES)
+    };
+    (1..=MAX_AUTO_VIEW_BATCH.min(views.max(1)))
+        .rev()
+        .find(|&n| fits(n))
+        .unwrap_or(1)
+}
+
 /// Counts the work of a run and estimates its peak memory.
 pub fn work_plan(
     job: &EditJob,
@@ -52,6 +92,7 @@ pub fn work_plan(
     cameras: usize,
 ) -> WorkPlan {
     let v = cameras.min(job.max_views);
+    let view_batch = view_batch(job, model, v);
     let steps = job.infedit.steps;
     let (ccm, ecm, blend) = match job.guidance {
         GuidanceMode::Joint => (
@@ -118,7 +159,7 @@ pub fn work_plan(
         let activations = model
             .unet
             .config()
-            .activation_estimate(6, lh, lw, 77, true)
+            .activation_estimate(6 * view_batch, lh, lw, 77, true)
             .map_or(unet, |e| e.total() as u64);
         let frame = w * h * 4 * (3 + 1 + 1 + 3 * heads * 8);
         weight_bytes + activations + params * 3 + n * 4 * (3 * heads * 8 + 1) + frame + 100_000_000
@@ -132,6 +173,7 @@ pub fn work_plan(
         lifts,
         memory_bytes,
         gpu_memory_bytes,
+        view_batch,
     }
 }
 

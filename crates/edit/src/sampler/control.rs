@@ -12,10 +12,15 @@
 //!   them with the 3D-consistent maps during the following real pass.
 //!
 //! The step counter is explicit: the sampler calls [`EditController::end_step`] after each real UNet pass.
+//!
+//! Everything runs where the UNet runs (the hook's tensors are [`DeviceTensor`]s): the swaps, the refinement
+//! and the blend accumulation never leave the GPU. Only CCM's recorded maps (the small layers) are read
+//! back, since they are lifted onto the scene; the blend store is read when the blend needs it.
 
 use std::collections::HashMap;
 
-use candle_core::{DType, Device, IndexOp, Result, Tensor, D};
+use candle_core::{DType, Device, Result, Tensor};
+use diffusion::device::DeviceTensor;
 use diffusion::unet::{AttentionHook, AttnCall, AttnKind};
 
 use super::align::TokenAlignment;
@@ -52,12 +57,13 @@ pub struct RecordedMaps {
 pub struct EditController {
     settings: ControlSettings,
     /// `mapper` as gather indices over the source's token axis (unmatched → 0, weight 0).
-    mapper: Tensor,
+    mapper: Vec<u32>,
     /// `alphas` as a [tokens] tensor.
     alphas: Tensor,
     cur_step: usize,
-    /// Σ over steps of [refine(A_S), refine(A_M)] per blend layer, `[2, heads, h*w, tokens]`, in call order.
-    blend_store: Vec<(String, Tensor)>,
+    /// Σ over steps of [refine(A_S), refine(A_M)] per blend layer, `[2, heads, h*w, tokens]`, in call order,
+    /// on the UNet's device.
+    blend_store: Vec<(String, DeviceTensor)>,
     /// True during CCM's recording pass: nothing is accumulated, maps are recorded instead.
     recording: Option<Vec<RecordedMaps>>,
     /// 3D-consistent conditional maps to substitute in the next real pass (CCM).
@@ -78,7 +84,7 @@ impl EditController {
         let n = mapper.len();
         Ok(Self {
             settings,
-            mapper: Tensor::from_vec(mapper, n, device)?,
+            mapper,
             alphas: Tensor::from_vec(alignment.alphas.clone(), n, device)?,
             cur_step: 0,
             blend_store: Vec::new(),
@@ -108,9 +114,12 @@ impl EditController {
         self.consistent = None;
     }
 
-    /// The accumulated blend-layer maps: (layer, `[2, heads, h*w, tokens]`).
-    pub fn blend_store(&self) -> &[(String, Tensor)] {
-        &self.blend_store
+    /// The accumulated blend-layer maps: (layer, `[2, heads, h*w, tokens]`), read back to the host.
+    pub fn blend_store(&self) -> Result<Vec<(String, Tensor)>> {
+        self.blend_store
+            .iter()
+            .map(|(name, maps)| Ok((name.clone(), maps.to_cpu()?)))
+            .collect()
     }
 
     /// Starts a recording pass (CCM): the next UNet pass records the small layers' conditional maps and
@@ -143,24 +152,24 @@ impl EditController {
     }
 
     /// `refine(base → target)`: A'[.., j] = α_j · base[.., mapper_j] + (1 − α_j) · target[.., j].
-    fn refine(&self, base: &Tensor, target: &Tensor) -> Result<Tensor> {
-        let tokens = base.dim(D::Minus1)?;
-        let (mapper, alphas) = if tokens == self.mapper.dim(0)? {
+    fn refine(&self, base: &DeviceTensor, target: &DeviceTensor) -> Result<DeviceTensor> {
+        let last = base.dims().len() - 1;
+        let tokens = base.dims()[last];
+        let (mapper, alphas) = if tokens == self.mapper.len() {
             (self.mapper.clone(), self.alphas.clone())
         } else {
             // The encoder length differs from the alignment's: align the overlap, keep the rest.
-            let n = tokens.min(self.mapper.dim(0)?);
-            let mut m: Vec<u32> = self.mapper.narrow(0, 0, n)?.to_vec1()?;
+            let n = tokens.min(self.mapper.len());
+            let mut m = self.mapper[..n].to_vec();
             let mut a: Vec<f32> = self.alphas.narrow(0, 0, n)?.to_vec1()?;
             m.extend((n..tokens).map(|j| j as u32));
             a.extend(std::iter::repeat_n(0.0, tokens - n));
-            (
-                Tensor::new(m, base.device())?,
-                Tensor::new(a, base.device())?,
-            )
+            (m, Tensor::new(a, self.alphas.device())?)
         };
-        let gathered = base.index_select(&mapper, base.rank() - 1)?;
-        let one_minus = alphas.affine(-1.0, 1.0)?;
+        let gathered = base.index_select(&mapper, last)?;
+        // Two tiny uploads per call on a GPU (the weights of 77 tokens).
+        let one_minus = base.same_device(&alphas.affine(-1.0, 1.0)?)?;
+        let alphas = base.same_device(&alphas)?;
         gathered
             .broadcast_mul(&alphas)?
             .add(&target.broadcast_mul(&one_minus)?)
@@ -179,19 +188,14 @@ impl EditController {
     }
 }
 
-fn gather_batch(x: &Tensor, idx: &[u32]) -> Result<Tensor> {
-    let i = Tensor::new(idx, x.device())?;
-    x.index_select(&i, 0)
-}
-
 impl AttentionHook for EditController {
     fn qkv(
         &mut self,
         call: &AttnCall,
-        q: Tensor,
-        k: Tensor,
-        v: Tensor,
-    ) -> Result<(Tensor, Tensor, Tensor)> {
+        q: DeviceTensor,
+        k: DeviceTensor,
+        v: DeviceTensor,
+    ) -> Result<(DeviceTensor, DeviceTensor, DeviceTensor)> {
         if call.kind != AttnKind::SelfAttn || (call.batch != 6 && call.batch != 3) {
             return Ok((q, k, v));
         }
@@ -204,9 +208,9 @@ impl AttentionHook for EditController {
             vi.extend(c);
         }
         Ok((
-            gather_batch(&q, &qi)?,
-            gather_batch(&k, &ki)?,
-            gather_batch(&v, &vi)?,
+            q.index_select(&qi, 0)?,
+            k.index_select(&ki, 0)?,
+            v.index_select(&vi, 0)?,
         ))
     }
 
@@ -214,7 +218,7 @@ impl AttentionHook for EditController {
         call.kind == AttnKind::CrossAttn
     }
 
-    fn probs(&mut self, call: &AttnCall, probs: Tensor) -> Result<Tensor> {
+    fn probs(&mut self, call: &AttnCall, probs: DeviceTensor) -> Result<DeviceTensor> {
         if call.kind != AttnKind::CrossAttn || (call.batch != 6 && call.batch != 3) {
             return Ok(probs);
         }
@@ -226,31 +230,36 @@ impl AttentionHook for EditController {
         let mut cond = probs.narrow(0, cond_start, 3)?;
         if small {
             if let Some(maps) = self.consistent.as_ref().and_then(|m| m.get(call.layer)) {
-                cond = maps.to_dtype(cond.dtype())?;
+                cond = cond.same_device(&maps.to_dtype(DType::F32)?)?;
             }
         }
-        let (a_s, a_t, a_m) = (cond.i(0)?, cond.i(1)?, cond.i(2)?);
+        // Each branch keeps its batch axis ([1, heads, h*w, tokens]) so the parts concatenate back.
+        let (a_s, a_t, a_m) = (
+            cond.narrow(0, 0, 1)?,
+            cond.narrow(0, 1, 1)?,
+            cond.narrow(0, 2, 1)?,
+        );
         let refined_s = self.refine(&a_s, &a_t)?;
         let new_t = if self.settings.cross_replace >= self.progress() {
             refined_s.clone()
         } else {
             a_t.clone()
         };
-        let cond = Tensor::stack(&[&a_s, &new_t, &a_m], 0)?;
+        let cond = DeviceTensor::cat(&[&a_s, &new_t, &a_m], 0)?;
 
         if let Some(rec) = self.recording.as_mut() {
             if small {
                 rec.push(RecordedMaps {
                     layer: call.layer.to_string(),
                     size: (call.height, call.width),
-                    maps: cond.clone(),
+                    maps: cond.to_cpu()?,
                 });
             }
         } else if (call.height, call.width) == self.settings.blend_size
             && !call.layer.starts_with("mid")
         {
             let refined_m = self.refine(&a_m, &a_t)?;
-            let both = Tensor::stack(&[&refined_s, &refined_m], 0)?.to_dtype(DType::F32)?;
+            let both = DeviceTensor::cat(&[&refined_s, &refined_m], 0)?;
             match self
                 .blend_store
                 .iter_mut()
@@ -264,7 +273,7 @@ impl AttentionHook for EditController {
         if cond_start == 0 {
             Ok(cond)
         } else {
-            Tensor::cat(&[&probs.narrow(0, 0, 3)?, &cond], 0)
+            DeviceTensor::cat(&[&probs.narrow(0, 0, 3)?, &cond], 0)
         }
     }
 }
@@ -272,6 +281,7 @@ impl AttentionHook for EditController {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use candle_core::IndexOp;
 
     fn alignment(mapper: Vec<Option<usize>>, alphas: Vec<f32>) -> TokenAlignment {
         let n = mapper.len();
@@ -318,7 +328,11 @@ mod tests {
         let al = alignment(vec![Some(0), Some(2), None], vec![1.0, 1.0, 0.0]);
         let mut c = EditController::new(settings(1.0, 0.0), &al, &Device::Cpu).unwrap();
         let p = probs();
-        let out = c.probs(&call(AttnKind::CrossAttn, 6), p.clone()).unwrap();
+        let out = c
+            .probs(&call(AttnKind::CrossAttn, 6), p.clone().into())
+            .unwrap()
+            .to_cpu()
+            .unwrap();
         let src = p.i((3, 0)).unwrap().to_vec2::<f32>().unwrap();
         let tgt = p.i((4, 0)).unwrap().to_vec2::<f32>().unwrap();
         let new_t = out.i((4, 0)).unwrap().to_vec2::<f32>().unwrap();
@@ -335,8 +349,8 @@ mod tests {
             p.i(1).unwrap().to_vec3::<f32>().unwrap()
         );
         // Stored for blending: [refine(S), refine(M)].
-        assert_eq!(c.blend_store().len(), 1);
-        let stored = &c.blend_store()[0].1;
+        assert_eq!(c.blend_store().unwrap().len(), 1);
+        let stored = &c.blend_store().unwrap()[0].1;
         assert_eq!(stored.dims(), &[2, 1, 4, 3]);
         assert_eq!(stored.i((0, 0)).unwrap().to_vec2::<f32>().unwrap(), new_t);
     }
@@ -348,7 +362,11 @@ mod tests {
         let p = probs();
         c.end_step();
         c.end_step(); // progress 3/4 > 0.5
-        let out = c.probs(&call(AttnKind::CrossAttn, 6), p.clone()).unwrap();
+        let out = c
+            .probs(&call(AttnKind::CrossAttn, 6), p.clone().into())
+            .unwrap()
+            .to_cpu()
+            .unwrap();
         assert_eq!(
             out.i(4).unwrap().to_vec3::<f32>().unwrap(),
             p.i(4).unwrap().to_vec3::<f32>().unwrap()
@@ -363,14 +381,21 @@ mod tests {
             .unwrap()
             .reshape((6, 1, 1, 1))
             .unwrap();
-        let flat = |t: &Tensor| t.flatten_all().unwrap().to_vec1::<f32>().unwrap();
+        let flat = |t: &DeviceTensor| {
+            t.to_cpu()
+                .unwrap()
+                .flatten_all()
+                .unwrap()
+                .to_vec1::<f32>()
+                .unwrap()
+        };
         // progress 1/4 < 0.5: early.
         let (q, k, v) = c
             .qkv(
                 &call(AttnKind::SelfAttn, 6),
-                x.clone(),
-                x.clone(),
-                x.clone(),
+                x.clone().into(),
+                x.clone().into(),
+                x.clone().into(),
             )
             .unwrap();
         assert_eq!(flat(&q), vec![0., 0., 0., 3., 3., 3.]);
@@ -380,9 +405,9 @@ mod tests {
         let (q, k, v) = c
             .qkv(
                 &call(AttnKind::SelfAttn, 6),
-                x.clone(),
-                x.clone(),
-                x.clone(),
+                x.clone().into(),
+                x.clone().into(),
+                x.clone().into(),
             )
             .unwrap();
         assert_eq!(flat(&q), vec![0., 1., 1., 3., 4., 4.]);
@@ -396,17 +421,24 @@ mod tests {
         let mut c = EditController::new(settings(0.0, 0.0), &al, &Device::Cpu).unwrap();
         c.start_recording();
         let p = probs();
-        c.probs(&call(AttnKind::CrossAttn, 6), p.clone()).unwrap();
+        c.probs(&call(AttnKind::CrossAttn, 6), p.clone().into())
+            .unwrap()
+            .to_cpu()
+            .unwrap();
         let rec = c.finish_recording();
         assert_eq!(rec.len(), 1);
         assert_eq!(rec[0].maps.dims(), &[3, 1, 4, 3]);
-        assert!(c.blend_store().is_empty(), "recording must not accumulate");
+        assert!(c.blend_store.is_empty(), "recording must not accumulate");
         // Replace with constant maps: the conditional half becomes them (cross_replace 0 → no refine).
         let ones = Tensor::ones((3, 1, 4, 3), DType::F32, &Device::Cpu).unwrap();
         let mut m = HashMap::new();
         m.insert(call(AttnKind::CrossAttn, 6).layer.to_string(), ones);
         c.set_consistent_maps(m);
-        let out = c.probs(&call(AttnKind::CrossAttn, 6), p).unwrap();
+        let out = c
+            .probs(&call(AttnKind::CrossAttn, 6), p.into())
+            .unwrap()
+            .to_cpu()
+            .unwrap();
         let cond = out
             .narrow(0, 3, 3)
             .unwrap()

@@ -11,7 +11,9 @@
 //! z_B ← √ᾱ_prev x̂0_B + dir + σ n;  z_S ← √ᾱ_prev x0 + dir + σ n   (the same n for every branch).
 
 use candle_core::{Device, Tensor};
+use diffusion::device::DeviceTensor;
 use diffusion::scheduler::{LcmScheduler, LcmVariant};
+use diffusion::unet::{AttentionHook, AttnCall};
 
 use super::align::{align_prompts, AlignError, AlignInputs, TokenAlignment};
 use super::control::{ControlSettings, EditController, DEFAULT_STORE_MAX_TOKENS};
@@ -342,15 +344,46 @@ impl EditPlan {
         view: &mut ViewState,
         i: usize,
     ) -> candle_core::Result<[Tensor; 3]> {
-        let (zs, zt, zm) = (&view.z_s, &view.z_t, &view.z_m);
-        let input = if self.cfg {
-            Tensor::cat(&[zs, zt, zm, zs, zt, zm], 0)?
+        let mut out = self.predict_views(model, &mut [view], i)?;
+        Ok(out.remove(0))
+    }
+
+    /// One UNet pass for several views at step `i`: their branch batches stacked into one call (a GPU
+    /// keeps busy where one view's batch of six would leave it idle), each view's controller hooked to
+    /// its own slice of the batch. Per view, the same result as [`Self::predict`].
+    pub fn predict_views(
+        &self,
+        model: &EditModel,
+        views: &mut [&mut ViewState],
+        i: usize,
+    ) -> candle_core::Result<Vec<[Tensor; 3]>> {
+        let mut inputs = Vec::with_capacity(views.len() * 6);
+        for view in views.iter() {
+            let (zs, zt, zm) = (&view.z_s, &view.z_t, &view.z_m);
+            inputs.extend([zs, zt, zm]);
+            if self.cfg {
+                inputs.extend([zs, zt, zm]);
+            }
+        }
+        let input = Tensor::cat(&inputs, 0)?;
+        let context = if views.len() == 1 {
+            self.embeddings.clone()
         } else {
-            Tensor::cat(&[zs, zt, zm], 0)?
+            Tensor::cat(&vec![&self.embeddings; views.len()], 0)?
         };
         let t = Tensor::new(&[self.timesteps[i] as f32], &Device::Cpu)?;
+        let mut hook = ViewBatch(views.iter_mut().map(|view| &mut view.controller).collect());
         // The reference does not pass LCM's guidance embedding (timestep_cond); classic CFG is done here.
-        let out = model.predict(&input, &t, &self.embeddings, Some(&mut view.controller))?;
+        let out = model.predict(&input, &t, &context, Some(&mut hook))?;
+        let per = if self.cfg { 6 } else { 3 };
+        (0..views.len())
+            .map(|v| self.guide(&out.narrow(0, v * per, per)?))
+            .collect()
+    }
+
+    /// (ε_S, ε_T, ε_M) of one view from its slice of the UNet output (`[S, T, M]`, or with CFG
+    /// `[S_u, T_u, M_u, S_c, T_c, M_c]`).
+    fn guide(&self, out: &Tensor) -> candle_core::Result<[Tensor; 3]> {
         if !self.cfg {
             return Ok([
                 out.get(0)?.unsqueeze(0)?,
@@ -472,7 +505,7 @@ impl EditPlan {
     /// The local blend of step `i` from the view's own attention store (InfEdit's single-image path).
     pub fn local_blend(&self, view: &mut ViewState, i: usize) -> candle_core::Result<Tensor> {
         let maps = blend_maps(
-            view.controller.blend_store(),
+            &view.controller.blend_store()?,
             self.blend_size,
             &self.alignment,
             self.latent_size,
@@ -500,6 +533,83 @@ impl EditPlan {
             self.use_layout_branch(view),
         )?;
         Ok(())
+    }
+}
+
+/// The controllers of the views batched into one UNet call, each given its own equal slice of every
+/// attention call's batch. With one view the controller sees the call unchanged.
+struct ViewBatch<'a>(Vec<&'a mut EditController>);
+
+impl ViewBatch<'_> {
+    /// Splits `tensors` (same batch) into per-view slices, lets `f` rewrite each view's slices, and
+    /// concatenates the results back in view order.
+    fn per_view<const N: usize>(
+        &mut self,
+        call: &AttnCall,
+        tensors: [DeviceTensor; N],
+        mut f: impl FnMut(
+            &mut EditController,
+            &AttnCall,
+            [DeviceTensor; N],
+        ) -> candle_core::Result<[DeviceTensor; N]>,
+    ) -> candle_core::Result<[DeviceTensor; N]> {
+        let views = self.0.len();
+        if views == 1 {
+            return f(self.0[0], call, tensors);
+        }
+        if !call.batch.is_multiple_of(views) {
+            candle_core::bail!(
+                "{}: batch {} does not split into {views} views",
+                call.layer,
+                call.batch
+            );
+        }
+        let per = call.batch / views;
+        let slice_call = AttnCall {
+            batch: per,
+            ..*call
+        };
+        let mut parts: Vec<Vec<DeviceTensor>> = vec![Vec::with_capacity(views); N];
+        for (v, controller) in self.0.iter_mut().enumerate() {
+            let slices = tensors
+                .iter()
+                .map(|t| t.narrow(0, v * per, per))
+                .collect::<candle_core::Result<Vec<_>>>()?;
+            let slices: [DeviceTensor; N] = slices.try_into().expect("N slices");
+            for (k, t) in f(controller, &slice_call, slices)?.into_iter().enumerate() {
+                parts[k].push(t);
+            }
+        }
+        let joined = parts
+            .iter()
+            .map(|p| DeviceTensor::cat(&p.iter().collect::<Vec<_>>(), 0))
+            .collect::<candle_core::Result<Vec<_>>>()?;
+        Ok(joined.try_into().expect("N joined"))
+    }
+}
+
+impl AttentionHook for ViewBatch<'_> {
+    fn qkv(
+        &mut self,
+        call: &AttnCall,
+        q: DeviceTensor,
+        k: DeviceTensor,
+        v: DeviceTensor,
+    ) -> candle_core::Result<(DeviceTensor, DeviceTensor, DeviceTensor)> {
+        let [q, k, v] = self.per_view(call, [q, k, v], |c, call, [q, k, v]| {
+            let (q, k, v) = c.qkv(call, q, k, v)?;
+            Ok([q, k, v])
+        })?;
+        Ok((q, k, v))
+    }
+
+    fn wants_probs(&self, call: &AttnCall) -> bool {
+        self.0.iter().any(|c| c.wants_probs(call))
+    }
+
+    fn probs(&mut self, call: &AttnCall, probs: DeviceTensor) -> candle_core::Result<DeviceTensor> {
+        let [probs] = self.per_view(call, [probs], |c, call, [p]| Ok([c.probs(call, p)?]))?;
+        Ok(probs)
     }
 }
 

@@ -172,6 +172,22 @@ pub fn strided_copy(x: &[f32], out: &mut [f32], meta: &[u32], #[comptime] rank: 
     }
 }
 
+/// Gather along one axis of a tensor seen as `[outer, len, inner]`: `out[o, j, i] = x[o, idx[j], i]`;
+/// `meta = [len_in, len_out, inner, count, idx; len_out]`.
+#[cube(launch_unchecked)]
+pub fn index_select(x: &[f32], out: &mut [f32], meta: &[u32]) {
+    let p = linear_pos();
+    if p < meta[3] {
+        let inner = meta[2];
+        let len_out = meta[1];
+        let i = p % inner;
+        let j = (p / inner) % len_out;
+        let o = p / (inner * len_out);
+        let src = (o * meta[0] + meta[(4 + j) as usize]) * inner + i;
+        out[p as usize] = x[src as usize];
+    }
+}
+
 /// Nearest-neighbour resize of [planes, h, w] to [planes, oh, ow] through source-index tables:
 /// `meta = [h, w, oh, ow, source row of each output row; oh, source column of each output column; ow]`.
 #[cube(launch_unchecked)]

@@ -365,6 +365,40 @@ pub fn cat(parts: &[&GpuTensor], dim: usize) -> Result<GpuTensor> {
     Ok(out)
 }
 
+/// `x.index_select(indices, dim)`: the slices of `dim` at `indices`, in that order (repeats allowed).
+pub fn index_select(x: &GpuTensor, indices: &[u32], dim: usize) -> Result<GpuTensor> {
+    let dims = x.dims();
+    if dim >= dims.len() {
+        candle_core::bail!("gpu index_select: dim {dim} out of range for {dims:?}");
+    }
+    if let Some(&bad) = indices.iter().find(|&&i| i as usize >= dims[dim]) {
+        candle_core::bail!("gpu index_select: index {bad} out of range for dim {dim} of {dims:?}");
+    }
+    let mut shape = dims.to_vec();
+    shape[dim] = indices.len();
+    let inner: usize = dims[dim + 1..].iter().product();
+    let out = x.empty_like_device(shape);
+    let count = out.elem_count();
+    if count == 0 {
+        return Ok(out);
+    }
+    let mut meta = vec![dims[dim], indices.len(), inner, count];
+    meta.extend(indices.iter().map(|&i| i as usize));
+    let meta = Meta::new(x, &meta)?;
+    // SAFETY: every index is below `dims[dim]`, so each source offset lies within x.
+    unsafe {
+        cube::index_select::launch_unchecked(
+            x.client(),
+            grid_for(count, ELEMENTWISE_UNITS),
+            CubeDim::new_1d(ELEMENTWISE_UNITS),
+            x.arg(),
+            out.arg(),
+            meta.arg(),
+        )
+    };
+    Ok(out)
+}
+
 /// Nearest-neighbour resize of [.., h, w] to [.., out_h, out_w], choosing source pixels exactly as
 /// candle's CPU `upsample_nearest2d` does (`floor(i · in / out)` in f64), so odd sizes agree too.
 pub fn upsample_nearest2d(x: &GpuTensor, out_h: usize, out_w: usize) -> Result<GpuTensor> {

@@ -176,6 +176,16 @@ fn copies_match_cpu() {
         .pad_with_zeros(2, 0, 1)
         .unwrap();
     check("pad", &pad_bottom_right(&g, 1, 1).unwrap(), &padded);
+    for (dim, idx) in [(0, vec![1u32, 0, 1]), (3, vec![4, 0, 0, 2]), (1, vec![2])] {
+        let cpu_idx = Tensor::new(idx.as_slice(), &Device::Cpu).unwrap();
+        check(
+            "index_select",
+            &index_select(&g, &idx, dim).unwrap(),
+            &x.index_select(&cpu_idx, dim).unwrap(),
+        );
+    }
+    assert_eq!(index_select(&g, &[], 1).unwrap().dims(), &[2, 0, 4, 5]);
+    assert!(index_select(&g, &[5], 3).is_err());
     assert!(permute(&g, &[0, 0, 1, 2]).is_err());
 }
 
