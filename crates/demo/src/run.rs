@@ -196,7 +196,8 @@ pub fn demo_infedit_settings(steps: usize) -> InfEditSettings {
     }
 }
 
-fn job(opts: &DemoOptions, scene: &DemoScene, variant: Variant) -> EditJob {
+/// The edit job of one variant of the demo.
+pub fn demo_job(opts: &DemoOptions, scene: &DemoScene, variant: Variant) -> EditJob {
     let infedit = demo_infedit_settings(opts.steps);
     let mut consistency = ConsistencySettings::reference(opts.steps);
     match variant {
@@ -237,7 +238,7 @@ pub fn run_variant(
     progress: &mut dyn Progress,
 ) -> Result<DemoScores, DemoError> {
     let t = Instant::now();
-    let job = job(opts, scene, variant);
+    let job = demo_job(opts, scene, variant);
     let loss = ImageLoss::dssim();
     let result = run_edit(
         &job,
