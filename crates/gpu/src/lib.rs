@@ -21,6 +21,7 @@ use cubecl::device::{WgpuBackend, WgpuDeviceKind};
 use cubecl::wgpu::{wgpu, AutoGraphicsApi, RuntimeOptions, WgpuDevice};
 
 pub mod prims;
+pub mod reduce;
 pub mod testing;
 
 /// Environment variable holding the default device choice.

@@ -9,6 +9,7 @@
 //! with f32 atomics, summed over each unit's pixels first (layout in `project.rs`).
 
 use ::gpu::cubecl;
+use ::gpu::reduce::cube_max;
 use cubecl::prelude::*;
 
 use crate::render::{ALPHA_MAX, ALPHA_MIN, TILE, T_MIN};
@@ -228,26 +229,6 @@ pub fn raster_forward(
     }
 }
 
-/// Largest value of `v` over the cube's `units` units (a shared-memory tree; every unit gets it).
-#[cube]
-fn cube_max_u32(v: u32, #[comptime] units: u32) -> u32 {
-    let mut s = Shared::<[u32]>::new_slice(comptime!(units as usize));
-    s[UNIT_POS as usize] = v;
-    sync_cube();
-    let mut stride = comptime!(units / 2).runtime();
-    #[unroll]
-    for _ in 0..comptime!(units.trailing_zeros()) {
-        if UNIT_POS < stride {
-            s[UNIT_POS as usize] = u32::max(s[UNIT_POS as usize], s[(UNIT_POS + stride) as usize]);
-        }
-        sync_cube();
-        stride /= 2;
-    }
-    let total = s[0];
-    sync_cube();
-    total
-}
-
 /// Backward. `channels` is the extra channel count when their gradient is wanted, else 0;
 /// `behind` is per-pixel scratch (H*W*C) for the extra channels composited behind the current Gaussian.
 ///
@@ -349,7 +330,7 @@ pub fn raster_backward(
             unit_last = u32::max(unit_last, n_last[q]);
         }
     }
-    let count = cube_max_u32(unit_last, units);
+    let count = cube_max::<u32>(unit_last, units);
 
     let batch_len = comptime!(u32::max(units, MIN_BATCH));
     let mut batch = Shared::<[f32]>::new_slice(comptime!((batch_len * 10) as usize));

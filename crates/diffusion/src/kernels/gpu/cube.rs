@@ -6,6 +6,7 @@
 //! and tuned on real GPUs later.
 
 use cubecl::prelude::*;
+use gpu::reduce::cube_max;
 
 /// Units per cube of the elementwise kernels.
 pub const ELEMENTWISE_UNITS: u32 = 256;
@@ -420,26 +421,6 @@ fn cube_sum(v: f32, #[comptime] units: u32) -> f32 {
     total
 }
 
-/// Maximum of `v` over the cube's units (as [`cube_sum`]).
-#[cube]
-fn cube_max(v: f32, #[comptime] units: u32) -> f32 {
-    let mut s = Shared::<[f32]>::new_slice(comptime!(units as usize));
-    s[UNIT_POS as usize] = v;
-    sync_cube();
-    let mut stride = comptime!(units / 2).runtime();
-    #[unroll]
-    for _ in 0..comptime!(units.trailing_zeros()) {
-        if UNIT_POS < stride {
-            s[UNIT_POS as usize] = f32::max(s[UNIT_POS as usize], s[(UNIT_POS + stride) as usize]);
-        }
-        sync_cube();
-        stride /= 2;
-    }
-    let total = s[0];
-    sync_cube();
-    total
-}
-
 /// Mean of `x[base..base + len]`, computed by the whole cube.
 #[cube]
 fn segment_mean(x: &[f32], base: u32, len: u32, #[comptime] units: u32) -> f32 {
@@ -553,7 +534,7 @@ pub fn softmax_rows(x: &[f32], out: &mut [f32], meta: &[u32]) {
         m = f32::max(m, x[(base + i) as usize]);
         i += units;
     }
-    let m = cube_max(m, units);
+    let m = cube_max::<f32>(m, units);
     let mut sum = 0.0f32;
     i = UNIT_POS;
     while i < width {
