@@ -74,7 +74,7 @@ fn main() {
             // wgpu cannot tell how much GPU memory is free (gfx-rs/wgpu#2447), so the check before a run
             // is an estimate; when the device still runs out, say which knobs shrink the work.
             line.push_str(
-                "; lower --max-views or --size (edit), --size (fit, render), or run with --device cpu",
+                "; lower --view-batch, --max-views or --size (edit), --size (fit, render), or run with --device cpu",
             );
         }
         eprintln!("error: {line}");

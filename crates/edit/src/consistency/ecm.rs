@@ -185,15 +185,12 @@ impl MultiView<'_> {
     ) -> Result<(), MultiViewError> {
         let fitter = self.fitter.expect("checked in run");
         let model = self.model;
-        let decode = |pred: &Tensor| -> candle_core::Result<Image> {
-            Ok(model.decode_images(pred)?.remove(0))
+        let batch = self.view_batch;
+        let preds = |pick: fn(&ViewState) -> Option<&Tensor>| -> Vec<&Tensor> {
+            views.iter().map(|v| pick(v).expect("updated")).collect()
         };
-        let mut targets = Vec::with_capacity(views.len());
-        let mut layouts = Vec::with_capacity(views.len());
-        for view in views.iter() {
-            targets.push(decode(view.pred_t.as_ref().expect("updated"))?);
-            layouts.push(decode(view.pred_m.as_ref().expect("updated"))?);
-        }
+        let targets = model.decode_each(&preds(|v| v.pred_t.as_ref()), batch)?;
+        let layouts = model.decode_each(&preds(|v| v.pred_m.as_ref()), batch)?;
         let seed = self.seed.wrapping_mul(1_000_003).wrapping_add(i as u64 * 2);
         let fit_t = fitter
             .fit(self.scene, self.cameras, &targets, seed)
@@ -208,13 +205,18 @@ impl MultiView<'_> {
         let render_m = compute
             .render_images(&fit_m, self.cameras, self.background)
             .map_err(candle_err)?;
-        for ((view, img_t), img_m) in views.iter_mut().zip(&render_t).zip(&render_m) {
-            let mut encode = |img: &Image| -> candle_core::Result<Tensor> {
-                model.encode(&image_to_tensor(img)?.clamp(-1f32, 1f32)?, noise)
-            };
-            let pred_t = encode(img_t)?;
-            let pred_m = encode(img_m)?;
-            self.plan.rebase(view, i, pred_t, pred_m)?;
+        // Encoded in the order [t₀, m₀, t₁, m₁, …], the noise draws of one view at a time.
+        let mut images = Vec::with_capacity(2 * views.len());
+        for (img_t, img_m) in render_t.iter().zip(&render_m) {
+            images.push(image_to_tensor(img_t)?.clamp(-1f32, 1f32)?);
+            images.push(image_to_tensor(img_m)?.clamp(-1f32, 1f32)?);
+        }
+        // One view's pair at a time unless views are batched (a batch of two would change the CPU's bits).
+        let encode_batch = if batch > 1 { 2 * batch } else { 1 };
+        let latents = model.encode_each(&images, encode_batch, noise)?;
+        for (view, pair) in views.iter_mut().zip(latents.chunks_exact(2)) {
+            self.plan
+                .rebase(view, i, pair[0].clone(), pair[1].clone())?;
         }
         Ok(())
     }

@@ -167,10 +167,11 @@ impl MultiView<'_> {
         let t = Instant::now();
         let mut views = Vec::with_capacity(images.len());
         let shape = plan.latent_shape();
-        let mut x0s = Vec::with_capacity(images.len());
-        for img in images {
-            x0s.push(model.encode(&image_to_tensor(img)?, noise)?);
-        }
+        let images = images
+            .iter()
+            .map(image_to_tensor)
+            .collect::<candle_core::Result<Vec<_>>>()?;
+        let x0s = model.encode_each(&images, self.view_batch, noise)?;
         // One initial noise for every view (the reference repeats view 0's).
         let init = noise.sample(&shape)?;
         for x0 in x0s {
@@ -212,14 +213,12 @@ impl MultiView<'_> {
             }
         }
         let t = Instant::now();
-        let mut out = Vec::with_capacity(views.len());
-        for view in &views {
-            let pred = view
-                .pred_t
-                .as_ref()
-                .ok_or_else(|| MultiViewError::Input("no step ran".into()))?;
-            out.push(model.decode_images(pred)?.remove(0));
-        }
+        let preds = views
+            .iter()
+            .map(|view| view.pred_t.as_ref())
+            .collect::<Option<Vec<_>>>()
+            .ok_or_else(|| MultiViewError::Input("no step ran".into()))?;
+        let out = model.decode_each(&preds, self.view_batch)?;
         timed(Stage::Decode, t, &mut times);
         Ok(MultiViewOutcome {
             images: out,

@@ -180,6 +180,44 @@ impl EditModel {
         }
     }
 
+    /// Encodes images (each `[1, 3, H, W]` in [-1, 1]) `batch` at a time, one latent per image. The noise
+    /// is drawn in image order, so the result is the one-at-a-time result (up to the arithmetic of a
+    /// larger batch).
+    pub fn encode_each(
+        &self,
+        images: &[Tensor],
+        batch: usize,
+        noise: &mut dyn NoiseSource,
+    ) -> candle_core::Result<Vec<Tensor>> {
+        let mut out = Vec::with_capacity(images.len());
+        for chunk in images.chunks(batch.max(1)) {
+            let latents = match chunk {
+                [one] => self.encode(one, noise)?,
+                _ => self.encode(&Tensor::cat(chunk, 0)?, noise)?,
+            };
+            for v in 0..chunk.len() {
+                out.push(latents.narrow(0, v, 1)?);
+            }
+        }
+        Ok(out)
+    }
+
+    /// Decodes latents (each `[1, C, h, w]`) to RGB images, `batch` at a time (see [`Self::decode_images`]).
+    pub fn decode_each(
+        &self,
+        latents: &[&Tensor],
+        batch: usize,
+    ) -> candle_core::Result<Vec<Image>> {
+        let mut out = Vec::with_capacity(latents.len());
+        for chunk in latents.chunks(batch.max(1)) {
+            match chunk {
+                [one] => out.extend(self.decode_images(one)?),
+                _ => out.extend(self.decode_images(&Tensor::cat(chunk, 0)?)?),
+            }
+        }
+        Ok(out)
+    }
+
     /// Decodes UNet latents to images in [-1, 1] (unclamped).
     pub fn decode(&self, latents: &Tensor) -> candle_core::Result<Tensor> {
         self.codec
