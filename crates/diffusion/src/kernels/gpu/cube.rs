@@ -6,7 +6,7 @@
 //! and tuned on real GPUs later.
 
 use cubecl::prelude::*;
-use gpu::reduce::cube_max;
+use gpu::reduce::{cube_max, cube_sum};
 
 /// Units per cube of the elementwise kernels.
 pub const ELEMENTWISE_UNITS: u32 = 256;
@@ -401,26 +401,6 @@ pub fn im2col(x: &[f32], cols: &mut [f32], meta: &[u32]) {
     }
 }
 
-/// Sum of `v` over the cube's `units` units (a shared-memory tree; every unit gets the total).
-#[cube]
-fn cube_sum(v: f32, #[comptime] units: u32) -> f32 {
-    let mut s = Shared::<[f32]>::new_slice(comptime!(units as usize));
-    s[UNIT_POS as usize] = v;
-    sync_cube();
-    let mut stride = comptime!(units / 2).runtime();
-    #[unroll]
-    for _ in 0..comptime!(units.trailing_zeros()) {
-        if UNIT_POS < stride {
-            s[UNIT_POS as usize] += s[(UNIT_POS + stride) as usize];
-        }
-        sync_cube();
-        stride /= 2;
-    }
-    let total = s[0];
-    sync_cube();
-    total
-}
-
 /// Mean of `x[base..base + len]`, computed by the whole cube.
 #[cube]
 fn segment_mean(x: &[f32], base: u32, len: u32, #[comptime] units: u32) -> f32 {
@@ -430,7 +410,7 @@ fn segment_mean(x: &[f32], base: u32, len: u32, #[comptime] units: u32) -> f32 {
         sum += x[(base + i) as usize];
         i += units;
     }
-    cube_sum(sum, units) / f32::cast_from(len)
+    cube_sum::<f32>(sum, units) / f32::cast_from(len)
 }
 
 /// `1/√(variance + eps)` of `x[base..base + len]` around `mean` (a second pass, for accuracy).
@@ -450,7 +430,7 @@ fn segment_inv_std(
         sq += d * d;
         i += units;
     }
-    1.0f32 / f32::sqrt(cube_sum(sq, units) / f32::cast_from(len) + eps)
+    1.0f32 / f32::sqrt(cube_sum::<f32>(sq, units) / f32::cast_from(len) + eps)
 }
 
 /// Group norm (+ optional SiLU) of x [batch, channels, spatial]: one cube per (batch, group), two passes
@@ -541,7 +521,7 @@ pub fn softmax_rows(x: &[f32], out: &mut [f32], meta: &[u32]) {
         sum += f32::exp(x[(base + i) as usize] - m);
         i += units;
     }
-    let inv = 1.0f32 / cube_sum(sum, units);
+    let inv = 1.0f32 / cube_sum::<f32>(sum, units);
     i = UNIT_POS;
     while i < width {
         if valid {
