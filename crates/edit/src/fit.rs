@@ -15,7 +15,7 @@ use rand_chacha::ChaCha8Rng;
 use serde::Serialize;
 use splat::anchor::{Anchor, AnchorConfig};
 use splat::densify::EditStrategy;
-use splat::gpu::{GpuContext, GpuError};
+use splat::gpu::{DeviceTrainer, GpuContext, GpuError, L1DssimWeights};
 use splat::loss;
 use splat::optim::LearningRates;
 use splat::render::{render, render_backward, OutputGrads, RenderSettings};
@@ -221,6 +221,15 @@ pub(crate) fn check_targets(cameras: &[Camera], targets: &[Image]) -> Result<(),
     Ok(())
 }
 
+/// The next view of a fit: views are drawn without replacement and reshuffled when exhausted.
+fn next_view(order: &mut Vec<usize>, views: usize, rng: &mut ChaCha8Rng) -> usize {
+    if order.is_empty() {
+        *order = (0..views).collect();
+        order.shuffle(rng);
+    }
+    order.pop().expect("refilled")
+}
+
 /// The editing loop's fit: GaussianEditor's optimiser, anchors and mask-restricted densification.
 pub struct EditTrainer {
     pub state: TrainState,
@@ -229,8 +238,9 @@ pub struct EditTrainer {
     pub global_step: u64,
     /// Background of the renders fitted (the targets' background).
     pub background: [f32; 3],
-    /// Where renders and their backward run (`None`: the CPU). The optimiser, anchors and densification
-    /// stay on the host, which keeps the editing fit's masks and anchor loss in one place.
+    /// Where the fit runs (`None`: the CPU). With the D-SSIM loss the scene, Adam moments, statistics,
+    /// mask and anchors stay on the device between densifications ([`splat::gpu::DeviceTrainer`]); with
+    /// LPIPS (a CPU network) only renders and their backward run there.
     pub device: Option<GpuContext>,
 }
 
@@ -279,43 +289,119 @@ impl EditTrainer {
         on_step: &mut dyn FnMut(u64),
     ) -> Result<(), TrainError> {
         check_targets(cameras, targets)?;
+        if let (Some(ctx), ImageLoss::Dssim { l1, dssim }) = (self.device.clone(), loss) {
+            let weights = L1DssimWeights::new(*l1, *dssim);
+            return self.fit_on_device(&ctx, cameras, targets, steps, loss, weights, seed, on_step);
+        }
         let mut prepared = Targets::new(targets);
         let mut rng = ChaCha8Rng::seed_from_u64(seed);
         let mut order: Vec<usize> = Vec::new();
         for _ in 0..steps {
-            if order.is_empty() {
-                order = (0..cameras.len()).collect();
-                order.shuffle(&mut rng);
-            }
-            let v = order.pop().expect("refilled");
-            self.state.adam.set_iteration(self.global_step);
-            let (_, mut grads, radii) = loss_and_grads(
-                &self.state.scene,
-                &cameras[v],
-                v,
-                &mut prepared,
-                loss,
-                self.background,
-                self.device.as_ref(),
-            )?;
-            if let Some(anchor) = &self.state.anchor {
-                anchor.loss(
-                    &self.state.scene,
-                    self.state.trainable.as_deref(),
-                    Some(&mut grads),
-                );
-            }
-            self.state.step(&grads);
-            let cam = &cameras[v];
-            let strategy = self.settings.strategy.clone();
-            strategy.after_backward(
-                &mut self.state,
-                self.global_step,
-                &RenderedView::new(&grads, &radii, cam),
-                &mut rng,
-            );
-            self.global_step += 1;
+            let v = next_view(&mut order, cameras.len(), &mut rng);
+            self.host_step(cameras, v, &mut prepared, loss, &mut rng)?;
             on_step(1);
+        }
+        Ok(())
+    }
+
+    /// One step with the optimiser, anchors and densification on the host (the render and its backward
+    /// on `self.device` when there is one).
+    fn host_step(
+        &mut self,
+        cameras: &[Camera],
+        v: usize,
+        targets: &mut Targets<'_>,
+        loss: &ImageLoss,
+        rng: &mut ChaCha8Rng,
+    ) -> Result<(), TrainError> {
+        self.state.adam.set_iteration(self.global_step);
+        let (_, mut grads, radii) = loss_and_grads(
+            &self.state.scene,
+            &cameras[v],
+            v,
+            targets,
+            loss,
+            self.background,
+            self.device.as_ref(),
+        )?;
+        if let Some(anchor) = &self.state.anchor {
+            anchor.loss(
+                &self.state.scene,
+                self.state.trainable.as_deref(),
+                Some(&mut grads),
+            );
+        }
+        self.state.step(&grads);
+        let cam = &cameras[v];
+        let strategy = self.settings.strategy.clone();
+        strategy.after_backward(
+            &mut self.state,
+            self.global_step,
+            &RenderedView::new(&grads, &radii, cam),
+            rng,
+        );
+        self.global_step += 1;
+        Ok(())
+    }
+
+    /// [`EditTrainer::fit`] with the D-SSIM loss on a device: ordinary steps run entirely there (render,
+    /// loss, backward, anchor gradient, masked Adam, statistics); a densification step brings the state
+    /// back and runs as [`EditTrainer::host_step`], and the device trainer is rebuilt from the result.
+    /// Views are drawn and densification samples from the same generator as on the host, and `state` is
+    /// up to date on return.
+    #[allow(clippy::too_many_arguments)]
+    fn fit_on_device(
+        &mut self,
+        ctx: &GpuContext,
+        cameras: &[Camera],
+        targets: &[Image],
+        steps: usize,
+        loss: &ImageLoss,
+        weights: L1DssimWeights,
+        seed: u64,
+        on_step: &mut dyn FnMut(u64),
+    ) -> Result<(), TrainError> {
+        let mut prepared = Targets::new(targets);
+        let mut rng = ChaCha8Rng::seed_from_u64(seed);
+        let mut order: Vec<usize> = Vec::new();
+        let on_device: Vec<_> = targets
+            .iter()
+            .map(|t| ::gpu::prims::upload_f32(&ctx.client, &t.data))
+            .collect();
+        let settings = RenderSettings {
+            background: self.background,
+        };
+        let mut trainer: Option<DeviceTrainer> = None;
+        for _ in 0..steps {
+            let v = next_view(&mut order, cameras.len(), &mut rng);
+            let strategy = &self.settings.strategy;
+            if strategy.densifies_at(self.global_step) {
+                if let Some(tr) = trainer.take() {
+                    tr.download_into(ctx, &mut self.state)?;
+                }
+                self.host_step(cameras, v, &mut prepared, loss, &mut rng)?;
+            } else {
+                let track_stats = strategy.tracks_stats_at(self.global_step);
+                let tr = match &mut trainer {
+                    Some(tr) => tr,
+                    None => trainer.insert(DeviceTrainer::upload(ctx, &self.state)),
+                };
+                self.state.adam.set_iteration(self.global_step);
+                tr.step_weighted(
+                    ctx,
+                    &mut self.state.adam,
+                    &cameras[v],
+                    &on_device[v],
+                    &settings,
+                    weights,
+                    track_stats,
+                )?;
+                self.global_step += 1;
+            }
+            on_step(1);
+        }
+        if let Some(tr) = trainer {
+            tr.download_into(ctx, &mut self.state)?;
         }
         Ok(())
     }
