@@ -448,3 +448,185 @@ impl EditTrainer {
         })
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use splat::densify::EditStrategy;
+
+    /// A 7³ box of Gaussians with position-dependent colours, two sizes (so densification both clones
+    /// and splits) and SH degree 1.
+    fn blob(shift: f32) -> GaussianScene {
+        let mut s = GaussianScene::new(1);
+        let n = 7;
+        for i in 0..n {
+            for j in 0..n {
+                for k in 0..n {
+                    let p = [i, j, k].map(|v| v as f32 / (n - 1) as f32 - 0.5 + shift);
+                    s.means.extend_from_slice(&p);
+                    let size = if (i + j + k) % 2 == 0 { 0.015f32 } else { 0.07 };
+                    s.log_scales.extend_from_slice(&[size.ln(); 3]);
+                    s.quats.extend_from_slice(&[1.0, 0.1 * p[0], 0.0, 0.0]);
+                    s.opacity_logits.push(2.0);
+                    let c = [
+                        0.5 + 0.4 * (6.0 * p[0]).sin(),
+                        0.5 + 0.4 * (5.0 * p[1] + shift * 20.0).cos(),
+                        0.5 + 0.4 * p[2],
+                    ];
+                    s.sh.extend(c.iter().map(|v| (v - 0.5) / 0.282_094_8));
+                    s.sh.extend((0..9).map(|e| 0.05 * ((e as f32) * p[1]).sin()));
+                }
+            }
+        }
+        s
+    }
+
+    fn trainer(scene: &GaussianScene, mask: &[bool]) -> EditTrainer {
+        let mut settings = TrainSettings::new(100);
+        // A densification at global step 5, with enough candidates to change the counts.
+        settings.strategy = EditStrategy {
+            densify_from: 5,
+            interval: 5,
+            max_densify_percent: 0.2,
+            max_grad: 1e-9,
+            ..settings.strategy
+        };
+        EditTrainer::new(scene, Some(mask.to_vec()), settings, 2.0, [0.0; 3])
+    }
+
+    /// The Gaussians `mask` leaves out, as one vector of all their parameters.
+    fn frozen(s: &GaussianScene, mask: &[bool]) -> Vec<f32> {
+        let k3 = 3 * s.sh_coeffs();
+        let mut out = Vec::new();
+        for j in (0..s.len()).filter(|&j| !mask[j]) {
+            out.extend(&s.means[3 * j..3 * j + 3]);
+            out.extend(&s.log_scales[3 * j..3 * j + 3]);
+            out.extend(&s.quats[4 * j..4 * j + 4]);
+            out.push(s.opacity_logits[j]);
+            out.extend(&s.sh[k3 * j..k3 * (j + 1)]);
+        }
+        out
+    }
+
+    /// ‖a − b‖ / ‖b‖ over every parameter.
+    fn rel_diff(a: &GaussianScene, b: &GaussianScene) -> f64 {
+        let (mut num, mut den) = (0.0f64, 0.0f64);
+        for (x, y) in [
+            (&a.means, &b.means),
+            (&a.log_scales, &b.log_scales),
+            (&a.quats, &b.quats),
+            (&a.opacity_logits, &b.opacity_logits),
+            (&a.sh, &b.sh),
+        ] {
+            assert_eq!(x.len(), y.len());
+            for (p, q) in x.iter().zip(y) {
+                num += ((p - q) as f64).powi(2);
+                den += (*q as f64).powi(2);
+            }
+        }
+        (num / den).sqrt()
+    }
+
+    /// The mean editing loss of `scene` over the views (on the CPU).
+    fn mean_loss(scene: &GaussianScene, cams: &[Camera], targets: &[Image]) -> f32 {
+        let loss = ImageLoss::dssim();
+        let mut prepared = Targets::new(targets);
+        let settings = RenderSettings::default();
+        let sum: f32 = cams
+            .iter()
+            .enumerate()
+            .map(|(v, c)| {
+                let out = render(scene, c, &settings, None);
+                loss.eval(&out.rgb, v, &mut prepared).unwrap().0
+            })
+            .sum();
+        sum / cams.len() as f32
+    }
+
+    /// The device editing fit (state on the device between densifications) follows the host fit from the
+    /// same state and seeds: frozen Gaussians untouched, trainable ones close before the densification,
+    /// the same counts after it, and the same loss.
+    #[test]
+    fn device_editing_fit_tracks_the_host_fit() {
+        let Some(ctx) = ::gpu::testing::context_or_skip() else {
+            return;
+        };
+        let scene = blob(0.0);
+        let cams = splat::cameras::orbit_cameras([-0.5; 3], [0.5; 3], 3, 40, 40);
+        let target_scene = blob(0.03);
+        let targets: Vec<Image> = cams
+            .iter()
+            .map(|c| render(&target_scene, c, &RenderSettings::default(), None).rgb_image())
+            .collect();
+        let mask: Vec<bool> = (0..scene.len())
+            .map(|j| scene.means[3 * j] > -0.1)
+            .collect();
+        let loss = ImageLoss::dssim();
+        let mut host = trainer(&scene, &mask);
+        let mut dev = trainer(&scene, &mask);
+        dev.device = Some(ctx);
+        let start_loss = mean_loss(&scene, &cams, &targets);
+
+        // Five steps (global 0..4): no densification yet.
+        for t in [&mut host, &mut dev] {
+            t.fit(&cams, &targets, 5, &loss, 1, &mut |_| {}).unwrap();
+        }
+        assert_eq!(dev.global_step, 5);
+        assert_eq!(dev.state.adam.steps(), host.state.adam.steps());
+        assert_eq!(frozen(dev.scene(), &mask), frozen(&scene, &mask));
+        assert_eq!(frozen(host.scene(), &mask), frozen(&scene, &mask));
+        let e = rel_diff(dev.scene(), host.scene());
+        eprintln!("parameters after 5 steps: relative difference {e}");
+        assert!(e < 1e-3, "parameters after 5 steps: {e}");
+        assert!(rel_diff(host.scene(), &scene) > 1e-4, "the fit must move");
+        let (l_dev, l_host) = (
+            mean_loss(dev.scene(), &cams, &targets),
+            mean_loss(host.scene(), &cams, &targets),
+        );
+        eprintln!("loss after 5 steps: {start_loss} → host {l_host}, device {l_dev}");
+        assert!(
+            (l_dev - l_host).abs() < 1e-4 * l_host,
+            "loss {l_dev} vs {l_host}"
+        );
+        let stats = (&dev.state.stats.grad2d, &host.state.stats.grad2d);
+        assert_eq!(dev.state.stats.count, host.state.stats.count);
+        let num: f64 = stats
+            .0
+            .iter()
+            .zip(stats.1)
+            .map(|(a, b)| ((a - b) as f64).powi(2))
+            .sum();
+        let den: f64 = stats.1.iter().map(|b| (*b as f64).powi(2)).sum();
+        assert!((num / den).sqrt() < 1e-3, "densification statistics differ");
+
+        // Five more (global 5..9): densification at 5 on the host, then the device again.
+        for t in [&mut host, &mut dev] {
+            t.fit(&cams, &targets, 5, &loss, 2, &mut |_| {}).unwrap();
+        }
+        assert!(
+            host.state.len() > scene.len(),
+            "densification must add Gaussians"
+        );
+        assert_eq!(dev.state.len(), host.state.len());
+        dev.state.check().unwrap();
+        let dev_mask = dev.state.trainable.clone().unwrap();
+        assert_eq!(&dev_mask, host.state.trainable.as_ref().unwrap());
+        assert_eq!(frozen(dev.scene(), &dev_mask), frozen(&scene, &mask));
+        let e = rel_diff(dev.scene(), host.scene());
+        eprintln!(
+            "{} → {} Gaussians; parameters 5 steps later: relative difference {e}",
+            scene.len(),
+            dev.state.len()
+        );
+        assert!(e < 1e-3, "parameters after densification: {e}");
+        let (l_dev, l_host) = (
+            mean_loss(dev.scene(), &cams, &targets),
+            mean_loss(host.scene(), &cams, &targets),
+        );
+        eprintln!("loss after 10 steps: host {l_host}, device {l_dev}");
+        assert!(
+            (l_dev - l_host).abs() < 1e-3 * l_host,
+            "loss {l_dev} vs {l_host}"
+        );
+    }
+}
