@@ -629,4 +629,101 @@ mod tests {
             "loss {l_dev} vs {l_host}"
         );
     }
+
+    /// Times the editing fit step (no densification) on the CPU, with only the render and its backward
+    /// on the device (the path before the state moved there; LPIPS still takes it), and with the state
+    /// on the device. A measurement, not a check: `cargo test -p vcedit-edit --release --lib --
+    /// --ignored time_editing_fit_step --nocapture` (`VCEDIT_TIME_N` Gaussians, `VCEDIT_TIME_SIZE` px).
+    #[test]
+    #[ignore]
+    fn time_editing_fit_step() {
+        let Some(ctx) = ::gpu::testing::context_or_skip() else {
+            return;
+        };
+        let env = |name: &str, default: usize| {
+            std::env::var(name)
+                .ok()
+                .and_then(|v| v.parse().ok())
+                .unwrap_or(default)
+        };
+        let (n, size, steps) = (env("VCEDIT_TIME_N", 4000), env("VCEDIT_TIME_SIZE", 128), 8);
+        // Random Gaussians in a unit box, as the edit tests' blobs.
+        let mut rng = ChaCha8Rng::seed_from_u64(3);
+        let mut scene = GaussianScene::new(1);
+        for _ in 0..n {
+            use rand::Rng;
+            let p: [f32; 3] = std::array::from_fn(|_| rng.gen_range(-0.5..0.5));
+            scene.means.extend_from_slice(&p);
+            scene.log_scales.extend_from_slice(&[(0.04f32).ln(); 3]);
+            scene.quats.extend_from_slice(&[1.0, 0.1 * p[0], 0.0, 0.0]);
+            scene.opacity_logits.push(2.0);
+            scene.sh.extend(p.map(|v| v * 2.0));
+            scene.sh.extend(std::iter::repeat_n(0.0, 9));
+        }
+        let cams = splat::cameras::orbit_cameras([-0.5; 3], [0.5; 3], 4, size as u32, size as u32);
+        let mut shifted = scene.clone();
+        shifted.sh.iter_mut().step_by(12).for_each(|v| *v += 0.3);
+        let targets: Vec<Image> = cams
+            .iter()
+            .map(|c| render(&shifted, c, &RenderSettings::default(), None).rgb_image())
+            .collect();
+        let mask: Vec<bool> = (0..n).map(|j| scene.means[3 * j] > 0.0).collect();
+        let loss = ImageLoss::dssim();
+        let mut settings = TrainSettings::new(1000);
+        settings.strategy.densify_from = u64::MAX;
+        let make = |device: Option<GpuContext>| {
+            let mut t =
+                EditTrainer::new(&scene, Some(mask.clone()), settings.clone(), 2.0, [0.0; 3]);
+            t.device = device;
+            t
+        };
+        let time = |label: &str, run: &mut dyn FnMut(usize)| {
+            run(1); // warm-up: kernel compilation, first uploads
+            let t = std::time::Instant::now();
+            run(steps);
+            let ms = t.elapsed().as_secs_f64() * 1e3 / steps as f64;
+            eprintln!("{n} Gaussians, {size}²: {label}: {ms:.1} ms/step");
+        };
+        let mut cpu = make(None);
+        time("CPU", &mut |k| {
+            cpu.fit(&cams, &targets, k, &loss, 1, &mut |_| {}).unwrap()
+        });
+        let mut split = make(Some(ctx.clone()));
+        let mut prepared = Targets::new(&targets);
+        let mut order = Vec::new();
+        let mut rng = ChaCha8Rng::seed_from_u64(1);
+        time(
+            "render+backward on the device, the rest on the host",
+            &mut |k| {
+                for _ in 0..k {
+                    let v = next_view(&mut order, cams.len(), &mut rng);
+                    split
+                        .host_step(&cams, v, &mut prepared, &loss, &mut rng)
+                        .unwrap();
+                }
+            },
+        );
+        // The loss alone (the part that moves from the host to the device).
+        let (a, b) = (&targets[0].data, &targets[1].data);
+        time("loss alone on the host", &mut |k| {
+            for _ in 0..k {
+                std::hint::black_box(loss.eval(a, 1, &mut prepared).map(|(v, _)| v).unwrap());
+            }
+        });
+        let up = |v: &[f32]| ::gpu::prims::upload_f32(&ctx.client, v);
+        let (a, b) = (up(a), up(b));
+        let weights = L1DssimWeights::new(10.0, 2.5);
+        time("loss alone on the device", &mut |k| {
+            for _ in 0..k {
+                let l =
+                    splat::gpu::l1_dssim_weighted(&ctx, &a, &b, size, size, 3, weights).unwrap();
+                std::hint::black_box(l.value(&ctx).unwrap());
+            }
+        });
+        let mut dev = make(Some(ctx.clone()));
+        time(
+            "state on the device (per fit call: one upload, one download)",
+            &mut |k| dev.fit(&cams, &targets, k, &loss, 1, &mut |_| {}).unwrap(),
+        );
+    }
 }

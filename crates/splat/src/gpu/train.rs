@@ -5,7 +5,7 @@
 
 use super::{
     l1_dssim_weighted, render_backward_device, render_device, GpuAdam, GpuAnchor, GpuContext,
-    GpuDensifyStats, GpuError, GpuOutputGrads, GpuScene, L1DssimWeights,
+    GpuDensifyStats, GpuError, GpuLoss, GpuOutputGrads, GpuScene, L1DssimWeights,
 };
 use crate::optim::Adam;
 use crate::render::RenderSettings;
@@ -76,12 +76,14 @@ impl DeviceTrainer {
             settings,
             L1DssimWeights::blend(ssim_weight),
             track_stats,
-        )
+        )?
+        .value(ctx)
     }
 
     /// [`DeviceTrainer::step`] with the loss `weights.l1·L1 + weights.dssim·D-SSIM` (the editing fit's
     /// 10 : 2.5). The anchor gradient, when there are anchors, is added before Adam, as the editing fit
-    /// does on the host; the returned value is the image loss alone.
+    /// does on the host. Returns the image loss (anchor term excluded) still on the device: reading its
+    /// value copies two image-sized maps back, which a caller that does not need it skips.
     #[allow(clippy::too_many_arguments)]
     pub fn step_weighted(
         &mut self,
@@ -92,7 +94,7 @@ impl DeviceTrainer {
         settings: &RenderSettings,
         weights: L1DssimWeights,
         track_stats: bool,
-    ) -> Result<f32, GpuError> {
+    ) -> Result<GpuLoss, GpuError> {
         let frame = render_device(ctx, &self.scene, camera, settings, None)?;
         let (w, h) = (camera.width as usize, camera.height as usize);
         let loss = l1_dssim_weighted(ctx, &frame.rgb, target, w, h, 3, weights)?;
@@ -117,6 +119,6 @@ impl DeviceTrainer {
         if track_stats {
             self.stats.add(ctx, &frame, &grads, 1)?;
         }
-        loss.value(ctx)
+        Ok(loss)
     }
 }
