@@ -9,6 +9,7 @@
 
 use std::path::Path;
 
+use gpu::cubecl::server::Handle;
 use rand::seq::SliceRandom;
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
@@ -221,6 +222,78 @@ pub(crate) fn check_targets(cameras: &[Camera], targets: &[Image]) -> Result<(),
     Ok(())
 }
 
+/// A fit whose state lives on a device between [`DeviceFit::sync`]s: scene, Adam moments, statistics,
+/// trainable mask and anchors ([`DeviceTrainer`]), with the targets uploaded once. Only for the D-SSIM
+/// loss: LPIPS-VGG is a CPU network, so those fits render on the device and do the rest on the host.
+pub(crate) struct DeviceFit {
+    ctx: GpuContext,
+    weights: L1DssimWeights,
+    settings: RenderSettings,
+    targets: Vec<Handle>,
+    /// Built from the host state at the first step after a sync.
+    trainer: Option<DeviceTrainer>,
+}
+
+impl DeviceFit {
+    /// `None` without a device or with a loss the device does not evaluate (LPIPS).
+    pub(crate) fn new(
+        device: Option<&GpuContext>,
+        loss: &ImageLoss,
+        targets: &[Image],
+        background: [f32; 3],
+    ) -> Option<Self> {
+        let (ctx, &ImageLoss::Dssim { l1, dssim }) = (device?, loss) else {
+            return None;
+        };
+        Some(Self {
+            ctx: ctx.clone(),
+            weights: L1DssimWeights::new(l1, dssim),
+            settings: RenderSettings { background },
+            targets: targets
+                .iter()
+                .map(|t| ::gpu::prims::upload_f32(&ctx.client, &t.data))
+                .collect(),
+            trainer: None,
+        })
+    }
+
+    /// One step on view `v` (render, loss, backward, anchor gradient, masked Adam, statistics when
+    /// `track_stats`). `state` supplies the rates and counts the step; its parameters, moments and
+    /// statistics are stale until [`DeviceFit::sync`].
+    pub(crate) fn step(
+        &mut self,
+        state: &mut TrainState,
+        camera: &Camera,
+        v: usize,
+        track_stats: bool,
+    ) -> Result<(), GpuError> {
+        let ctx = &self.ctx;
+        let trainer = match &mut self.trainer {
+            Some(t) => t,
+            None => self.trainer.insert(DeviceTrainer::upload(ctx, state)),
+        };
+        // The loss value stays on the device: the fits never read it.
+        trainer.step_weighted(
+            ctx,
+            &mut state.adam,
+            camera,
+            &self.targets[v],
+            &self.settings,
+            self.weights,
+            track_stats,
+        )?;
+        Ok(())
+    }
+
+    /// Brings `state` up to date; the next step re-uploads it (after the host changed it).
+    pub(crate) fn sync(&mut self, state: &mut TrainState) -> Result<(), GpuError> {
+        if let Some(trainer) = self.trainer.take() {
+            trainer.download_into(&self.ctx, state)?;
+        }
+        Ok(())
+    }
+}
+
 /// The next view of a fit: views are drawn without replacement and reshuffled when exhausted.
 fn next_view(order: &mut Vec<usize>, views: usize, rng: &mut ChaCha8Rng) -> usize {
     if order.is_empty() {
@@ -289,9 +362,8 @@ impl EditTrainer {
         on_step: &mut dyn FnMut(u64),
     ) -> Result<(), TrainError> {
         check_targets(cameras, targets)?;
-        if let (Some(ctx), ImageLoss::Dssim { l1, dssim }) = (self.device.clone(), loss) {
-            let weights = L1DssimWeights::new(*l1, *dssim);
-            return self.fit_on_device(&ctx, cameras, targets, steps, loss, weights, seed, on_step);
+        if let Some(device) = DeviceFit::new(self.device.as_ref(), loss, targets, self.background) {
+            return self.fit_on_device(device, cameras, targets, steps, loss, seed, on_step);
         }
         let mut prepared = Targets::new(targets);
         let mut rng = ChaCha8Rng::seed_from_u64(seed);
@@ -344,66 +416,38 @@ impl EditTrainer {
         Ok(())
     }
 
-    /// [`EditTrainer::fit`] with the D-SSIM loss on a device: ordinary steps run entirely there (render,
-    /// loss, backward, anchor gradient, masked Adam, statistics); a densification step brings the state
-    /// back and runs as [`EditTrainer::host_step`], and the device trainer is rebuilt from the result.
-    /// Views are drawn and densification samples from the same generator as on the host, and `state` is
-    /// up to date on return.
-    #[allow(clippy::too_many_arguments)]
+    /// [`EditTrainer::fit`] on a device ([`DeviceFit`]): ordinary steps run entirely there; a
+    /// densification step brings the state back and runs as [`EditTrainer::host_step`], and the device
+    /// trainer is rebuilt from the result. Views are drawn and densification samples from the same
+    /// generator as on the host, and `state` is up to date on return.
     fn fit_on_device(
         &mut self,
-        ctx: &GpuContext,
+        mut device: DeviceFit,
         cameras: &[Camera],
         targets: &[Image],
         steps: usize,
         loss: &ImageLoss,
-        weights: L1DssimWeights,
         seed: u64,
         on_step: &mut dyn FnMut(u64),
     ) -> Result<(), TrainError> {
         let mut prepared = Targets::new(targets);
         let mut rng = ChaCha8Rng::seed_from_u64(seed);
         let mut order: Vec<usize> = Vec::new();
-        let on_device: Vec<_> = targets
-            .iter()
-            .map(|t| ::gpu::prims::upload_f32(&ctx.client, &t.data))
-            .collect();
-        let settings = RenderSettings {
-            background: self.background,
-        };
-        let mut trainer: Option<DeviceTrainer> = None;
         for _ in 0..steps {
             let v = next_view(&mut order, cameras.len(), &mut rng);
             let strategy = &self.settings.strategy;
             if strategy.densifies_at(self.global_step) {
-                if let Some(tr) = trainer.take() {
-                    tr.download_into(ctx, &mut self.state)?;
-                }
+                device.sync(&mut self.state)?;
                 self.host_step(cameras, v, &mut prepared, loss, &mut rng)?;
             } else {
                 let track_stats = strategy.tracks_stats_at(self.global_step);
-                let tr = match &mut trainer {
-                    Some(tr) => tr,
-                    None => trainer.insert(DeviceTrainer::upload(ctx, &self.state)),
-                };
                 self.state.adam.set_iteration(self.global_step);
-                tr.step_weighted(
-                    ctx,
-                    &mut self.state.adam,
-                    &cameras[v],
-                    &on_device[v],
-                    &settings,
-                    weights,
-                    track_stats,
-                )?;
+                device.step(&mut self.state, &cameras[v], v, track_stats)?;
                 self.global_step += 1;
             }
             on_step(1);
         }
-        if let Some(tr) = trainer {
-            tr.download_into(ctx, &mut self.state)?;
-        }
-        Ok(())
+        Ok(device.sync(&mut self.state)?)
     }
 
     /// Saves the state that is not the scene itself (optimiser moments, statistics, mask, anchors, step).
