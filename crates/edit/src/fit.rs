@@ -674,6 +674,45 @@ mod tests {
         );
     }
 
+    /// ECM's mini-GS fit on the device (appearance only, masked) follows the host's: frozen Gaussians and
+    /// geometry untouched, colours and opacities close.
+    #[test]
+    fn device_ecm_fit_tracks_the_host_fit() {
+        use crate::consistency::{EcmFitter, EcmSettings, SceneFitter};
+        let Some(ctx) = ::gpu::testing::context_or_skip() else {
+            return;
+        };
+        let scene = blob(0.0);
+        let cams = splat::cameras::orbit_cameras([-0.5; 3], [0.5; 3], 3, 40, 40);
+        let target_scene = blob(0.03);
+        let targets: Vec<Image> = cams
+            .iter()
+            .map(|c| render(&target_scene, c, &RenderSettings::default(), None).rgb_image())
+            .collect();
+        let mask: Vec<bool> = (0..scene.len())
+            .map(|j| scene.means[3 * j] > -0.1)
+            .collect();
+        let loss = ImageLoss::dssim();
+        let ecm = EcmSettings {
+            min_steps: 9,
+            epochs: 3,
+            halve_every: 1,
+            ..EcmSettings::reference(0)
+        };
+        let host = trainer(&scene, &mask);
+        let mut dev = trainer(&scene, &mask);
+        dev.device = Some(ctx);
+        let fit = |t: &EditTrainer| EcmFitter::new(t, &loss, &ecm).fit(&scene, &cams, &targets, 4);
+        let (on_host, on_device) = (fit(&host).unwrap(), fit(&dev).unwrap());
+        assert_eq!(frozen(&on_device, &mask), frozen(&scene, &mask));
+        assert_eq!(on_device.means, scene.means);
+        assert_eq!(on_device.log_scales, scene.log_scales);
+        assert!(rel_diff(&on_host, &scene) > 1e-4, "the fit must move");
+        let e = rel_diff(&on_device, &on_host);
+        eprintln!("ECM fit, 9 steps: relative difference {e}");
+        assert!(e < 1e-3, "ECM fit: {e}");
+    }
+
     /// Times the editing fit step (no densification) on the CPU, with only the render and its backward
     /// on the device (the path before the state moved there; LPIPS still takes it), and with the state
     /// on the device. A measurement, not a check: `cargo test -p vcedit-edit --release --lib --
