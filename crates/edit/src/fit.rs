@@ -525,6 +525,22 @@ mod tests {
         s
     }
 
+    /// The blob, three 40² views of a shifted copy as targets, and a mask freezing the left three
+    /// columns of Gaussians.
+    fn fixture() -> (GaussianScene, Vec<Camera>, Vec<Image>, Vec<bool>) {
+        let scene = blob(0.0);
+        let cams = splat::cameras::orbit_cameras([-0.5; 3], [0.5; 3], 3, 40, 40);
+        let target_scene = blob(0.03);
+        let targets: Vec<Image> = cams
+            .iter()
+            .map(|c| render(&target_scene, c, &RenderSettings::default(), None).rgb_image())
+            .collect();
+        let mask: Vec<bool> = (0..scene.len())
+            .map(|j| scene.means[3 * j] > -0.1)
+            .collect();
+        (scene, cams, targets, mask)
+    }
+
     fn trainer(scene: &GaussianScene, mask: &[bool]) -> EditTrainer {
         let mut settings = TrainSettings::new(100);
         // A densification at global step 5, with enough candidates to change the counts.
@@ -587,6 +603,29 @@ mod tests {
         sum / cams.len() as f32
     }
 
+    /// Device and host trainers agree: parameters within 1e-3 (relative), mean loss within
+    /// `loss_tol` (relative).
+    fn assert_close(
+        dev: &EditTrainer,
+        host: &EditTrainer,
+        cams: &[Camera],
+        targets: &[Image],
+        loss_tol: f32,
+        when: &str,
+    ) {
+        let e = rel_diff(dev.scene(), host.scene());
+        let l_dev = mean_loss(dev.scene(), cams, targets);
+        let l_host = mean_loss(host.scene(), cams, targets);
+        eprintln!(
+            "{when}: parameters differ by {e} (relative); loss host {l_host}, device {l_dev}"
+        );
+        assert!(e < 1e-3, "{when}: parameters differ by {e}");
+        assert!(
+            (l_dev - l_host).abs() < loss_tol * l_host,
+            "{when}: loss {l_dev} vs {l_host}"
+        );
+    }
+
     /// The device editing fit (state on the device between densifications) follows the host fit from the
     /// same state and seeds: frozen Gaussians untouched, trainable ones close before the densification,
     /// the same counts after it, and the same loss.
@@ -595,16 +634,7 @@ mod tests {
         let Some(ctx) = ::gpu::testing::context_or_skip() else {
             return;
         };
-        let scene = blob(0.0);
-        let cams = splat::cameras::orbit_cameras([-0.5; 3], [0.5; 3], 3, 40, 40);
-        let target_scene = blob(0.03);
-        let targets: Vec<Image> = cams
-            .iter()
-            .map(|c| render(&target_scene, c, &RenderSettings::default(), None).rgb_image())
-            .collect();
-        let mask: Vec<bool> = (0..scene.len())
-            .map(|j| scene.means[3 * j] > -0.1)
-            .collect();
+        let (scene, cams, targets, mask) = fixture();
         let loss = ImageLoss::dssim();
         let mut host = trainer(&scene, &mask);
         let mut dev = trainer(&scene, &mask);
@@ -619,19 +649,9 @@ mod tests {
         assert_eq!(dev.state.adam.steps(), host.state.adam.steps());
         assert_eq!(frozen(dev.scene(), &mask), frozen(&scene, &mask));
         assert_eq!(frozen(host.scene(), &mask), frozen(&scene, &mask));
-        let e = rel_diff(dev.scene(), host.scene());
-        eprintln!("parameters after 5 steps: relative difference {e}");
-        assert!(e < 1e-3, "parameters after 5 steps: {e}");
         assert!(rel_diff(host.scene(), &scene) > 1e-4, "the fit must move");
-        let (l_dev, l_host) = (
-            mean_loss(dev.scene(), &cams, &targets),
-            mean_loss(host.scene(), &cams, &targets),
-        );
-        eprintln!("loss after 5 steps: {start_loss} → host {l_host}, device {l_dev}");
-        assert!(
-            (l_dev - l_host).abs() < 1e-4 * l_host,
-            "loss {l_dev} vs {l_host}"
-        );
+        eprintln!("loss before: {start_loss}");
+        assert_close(&dev, &host, &cams, &targets, 1e-4, "after 5 steps");
         let stats = (&dev.state.stats.grad2d, &host.state.stats.grad2d);
         assert_eq!(dev.state.stats.count, host.state.stats.count);
         let num: f64 = stats
@@ -656,22 +676,12 @@ mod tests {
         let dev_mask = dev.state.trainable.clone().unwrap();
         assert_eq!(&dev_mask, host.state.trainable.as_ref().unwrap());
         assert_eq!(frozen(dev.scene(), &dev_mask), frozen(&scene, &mask));
-        let e = rel_diff(dev.scene(), host.scene());
-        eprintln!(
-            "{} → {} Gaussians; parameters 5 steps later: relative difference {e}",
+        let when = format!(
+            "after 10 steps ({} → {} Gaussians)",
             scene.len(),
             dev.state.len()
         );
-        assert!(e < 1e-3, "parameters after densification: {e}");
-        let (l_dev, l_host) = (
-            mean_loss(dev.scene(), &cams, &targets),
-            mean_loss(host.scene(), &cams, &targets),
-        );
-        eprintln!("loss after 10 steps: host {l_host}, device {l_dev}");
-        assert!(
-            (l_dev - l_host).abs() < 1e-3 * l_host,
-            "loss {l_dev} vs {l_host}"
-        );
+        assert_close(&dev, &host, &cams, &targets, 1e-3, &when);
     }
 
     /// ECM's mini-GS fit on the device (appearance only, masked) follows the host's: frozen Gaussians and
@@ -682,16 +692,7 @@ mod tests {
         let Some(ctx) = ::gpu::testing::context_or_skip() else {
             return;
         };
-        let scene = blob(0.0);
-        let cams = splat::cameras::orbit_cameras([-0.5; 3], [0.5; 3], 3, 40, 40);
-        let target_scene = blob(0.03);
-        let targets: Vec<Image> = cams
-            .iter()
-            .map(|c| render(&target_scene, c, &RenderSettings::default(), None).rgb_image())
-            .collect();
-        let mask: Vec<bool> = (0..scene.len())
-            .map(|j| scene.means[3 * j] > -0.1)
-            .collect();
+        let (scene, cams, targets, mask) = fixture();
         let loss = ImageLoss::dssim();
         let ecm = EcmSettings {
             min_steps: 9,

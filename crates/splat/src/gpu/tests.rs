@@ -367,35 +367,14 @@ fn adam_on_the_device_matches_the_cpu() {
     let Some(ctx) = context_or_skip() else {
         return;
     };
-    let c = &ctx.client;
     let scene = random_scene(60, 2, 9);
-    let wave = |len: usize, f: f32| -> Vec<f32> {
-        (0..len).map(|i| (i as f32 * f).sin() * 0.01).collect()
-    };
-    let grads = SceneGrads {
-        means: wave(scene.means.len(), 0.3),
-        log_scales: wave(scene.log_scales.len(), 0.7),
-        quats: wave(scene.quats.len(), 1.1),
-        opacity_logits: wave(scene.len(), 0.5),
-        sh: wave(scene.sh.len(), 0.9),
-        extra: vec![],
-        means2d: vec![],
-    };
+    let grads = wave_grads(&scene);
     let mut cpu_scene = scene.clone();
     let mut cpu = Adam::new(&scene, LearningRates::inria(100), 2.0);
     let dev = GpuScene::upload(&ctx, &scene);
     let mut gpu_adam = GpuAdam::new(&ctx, &dev);
     let mut gpu_rates = Adam::new(&scene, LearningRates::inria(100), 2.0);
-    let up = |v: &[f32]| upload_f32(c, v);
-    let dev_grads = GpuSceneGrads {
-        means: up(&grads.means),
-        log_scales: up(&grads.log_scales),
-        quats: up(&grads.quats),
-        opacity_logits: up(&grads.opacity_logits),
-        sh: up(&grads.sh),
-        extra: None,
-        splat: up(&[0.0]),
-    };
+    let dev_grads = upload_grads(&ctx, &grads);
     for _ in 0..3 {
         cpu.step(&mut cpu_scene, &grads, None);
         gpu_adam
