@@ -419,7 +419,8 @@ impl EditTrainer {
     /// [`EditTrainer::fit`] on a device ([`DeviceFit`]): ordinary steps run entirely there; a
     /// densification step brings the state back and runs as [`EditTrainer::host_step`], and the device
     /// trainer is rebuilt from the result. Views are drawn and densification samples from the same
-    /// generator as on the host, and `state` is up to date on return.
+    /// generator as on the host, and `state` is up to date on return (after a device error it holds the
+    /// last synced state; the run is over then anyway).
     fn fit_on_device(
         &mut self,
         mut device: DeviceFit,
