@@ -9,13 +9,14 @@
 
 use std::path::Path;
 
+use gpu::cubecl::server::Handle;
 use rand::seq::SliceRandom;
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use serde::Serialize;
 use splat::anchor::{Anchor, AnchorConfig};
 use splat::densify::EditStrategy;
-use splat::gpu::{GpuContext, GpuError};
+use splat::gpu::{DeviceTrainer, GpuContext, GpuError, L1DssimWeights};
 use splat::loss;
 use splat::optim::LearningRates;
 use splat::render::{render, render_backward, OutputGrads, RenderSettings};
@@ -221,6 +222,87 @@ pub(crate) fn check_targets(cameras: &[Camera], targets: &[Image]) -> Result<(),
     Ok(())
 }
 
+/// A fit whose state lives on a device between [`DeviceFit::sync`]s: scene, Adam moments, statistics,
+/// trainable mask and anchors ([`DeviceTrainer`]), with the targets uploaded once. Only for the D-SSIM
+/// loss: LPIPS-VGG is a CPU network, so those fits render on the device and do the rest on the host.
+pub(crate) struct DeviceFit {
+    ctx: GpuContext,
+    weights: L1DssimWeights,
+    settings: RenderSettings,
+    targets: Vec<Handle>,
+    /// Built from the host state at the first step after a sync.
+    trainer: Option<DeviceTrainer>,
+}
+
+impl DeviceFit {
+    /// `None` without a device or with a loss the device does not evaluate (LPIPS).
+    pub(crate) fn new(
+        device: Option<&GpuContext>,
+        loss: &ImageLoss,
+        targets: &[Image],
+        background: [f32; 3],
+    ) -> Option<Self> {
+        let (ctx, &ImageLoss::Dssim { l1, dssim }) = (device?, loss) else {
+            return None;
+        };
+        Some(Self {
+            ctx: ctx.clone(),
+            weights: L1DssimWeights::new(l1, dssim),
+            settings: RenderSettings { background },
+            targets: targets
+                .iter()
+                .map(|t| ::gpu::prims::upload_f32(&ctx.client, &t.data))
+                .collect(),
+            trainer: None,
+        })
+    }
+
+    /// One step on view `v` (render, loss, backward, anchor gradient, masked Adam, statistics when
+    /// `track_stats`). `state` supplies the rates and counts the step; its parameters, moments and
+    /// statistics are stale until [`DeviceFit::sync`].
+    pub(crate) fn step(
+        &mut self,
+        state: &mut TrainState,
+        camera: &Camera,
+        v: usize,
+        track_stats: bool,
+    ) -> Result<(), GpuError> {
+        let ctx = &self.ctx;
+        let trainer = match &mut self.trainer {
+            Some(t) => t,
+            None => self.trainer.insert(DeviceTrainer::upload(ctx, state)),
+        };
+        // The loss value stays on the device: the fits never read it.
+        trainer.step_weighted(
+            ctx,
+            &mut state.adam,
+            camera,
+            &self.targets[v],
+            &self.settings,
+            self.weights,
+            track_stats,
+        )?;
+        Ok(())
+    }
+
+    /// Brings `state` up to date; the next step re-uploads it (after the host changed it).
+    pub(crate) fn sync(&mut self, state: &mut TrainState) -> Result<(), GpuError> {
+        if let Some(trainer) = self.trainer.take() {
+            trainer.download_into(&self.ctx, state)?;
+        }
+        Ok(())
+    }
+}
+
+/// The next view of a fit: views are drawn without replacement and reshuffled when exhausted.
+fn next_view(order: &mut Vec<usize>, views: usize, rng: &mut ChaCha8Rng) -> usize {
+    if order.is_empty() {
+        *order = (0..views).collect();
+        order.shuffle(rng);
+    }
+    order.pop().expect("refilled")
+}
+
 /// The editing loop's fit: GaussianEditor's optimiser, anchors and mask-restricted densification.
 pub struct EditTrainer {
     pub state: TrainState,
@@ -229,8 +311,9 @@ pub struct EditTrainer {
     pub global_step: u64,
     /// Background of the renders fitted (the targets' background).
     pub background: [f32; 3],
-    /// Where renders and their backward run (`None`: the CPU). The optimiser, anchors and densification
-    /// stay on the host, which keeps the editing fit's masks and anchor loss in one place.
+    /// Where the fit runs (`None`: the CPU). With the D-SSIM loss the scene, Adam moments, statistics,
+    /// mask and anchors stay on the device between densifications ([`splat::gpu::DeviceTrainer`]); with
+    /// LPIPS (a CPU network) only renders and their backward run there.
     pub device: Option<GpuContext>,
 }
 
@@ -279,45 +362,93 @@ impl EditTrainer {
         on_step: &mut dyn FnMut(u64),
     ) -> Result<(), TrainError> {
         check_targets(cameras, targets)?;
+        if let Some(device) = DeviceFit::new(self.device.as_ref(), loss, targets, self.background) {
+            return self.fit_on_device(device, cameras, targets, steps, loss, seed, on_step);
+        }
         let mut prepared = Targets::new(targets);
         let mut rng = ChaCha8Rng::seed_from_u64(seed);
         let mut order: Vec<usize> = Vec::new();
         for _ in 0..steps {
-            if order.is_empty() {
-                order = (0..cameras.len()).collect();
-                order.shuffle(&mut rng);
-            }
-            let v = order.pop().expect("refilled");
-            self.state.adam.set_iteration(self.global_step);
-            let (_, mut grads, radii) = loss_and_grads(
-                &self.state.scene,
-                &cameras[v],
-                v,
-                &mut prepared,
-                loss,
-                self.background,
-                self.device.as_ref(),
-            )?;
-            if let Some(anchor) = &self.state.anchor {
-                anchor.loss(
-                    &self.state.scene,
-                    self.state.trainable.as_deref(),
-                    Some(&mut grads),
-                );
-            }
-            self.state.step(&grads);
-            let cam = &cameras[v];
-            let strategy = self.settings.strategy.clone();
-            strategy.after_backward(
-                &mut self.state,
-                self.global_step,
-                &RenderedView::new(&grads, &radii, cam),
-                &mut rng,
-            );
-            self.global_step += 1;
+            let v = next_view(&mut order, cameras.len(), &mut rng);
+            self.host_step(cameras, v, &mut prepared, loss, &mut rng)?;
             on_step(1);
         }
         Ok(())
+    }
+
+    /// One step with the optimiser, anchors and densification on the host (the render and its backward
+    /// on `self.device` when there is one).
+    fn host_step(
+        &mut self,
+        cameras: &[Camera],
+        v: usize,
+        targets: &mut Targets<'_>,
+        loss: &ImageLoss,
+        rng: &mut ChaCha8Rng,
+    ) -> Result<(), TrainError> {
+        self.state.adam.set_iteration(self.global_step);
+        let (_, mut grads, radii) = loss_and_grads(
+            &self.state.scene,
+            &cameras[v],
+            v,
+            targets,
+            loss,
+            self.background,
+            self.device.as_ref(),
+        )?;
+        if let Some(anchor) = &self.state.anchor {
+            anchor.loss(
+                &self.state.scene,
+                self.state.trainable.as_deref(),
+                Some(&mut grads),
+            );
+        }
+        self.state.step(&grads);
+        let cam = &cameras[v];
+        let strategy = self.settings.strategy.clone();
+        strategy.after_backward(
+            &mut self.state,
+            self.global_step,
+            &RenderedView::new(&grads, &radii, cam),
+            rng,
+        );
+        self.global_step += 1;
+        Ok(())
+    }
+
+    /// [`EditTrainer::fit`] on a device ([`DeviceFit`]): ordinary steps run entirely there; a
+    /// densification step brings the state back and runs as [`EditTrainer::host_step`], and the device
+    /// trainer is rebuilt from the result. Views are drawn and densification samples from the same
+    /// generator as on the host, and `state` is up to date on return (after a device error it holds the
+    /// last synced state; the run is over then anyway).
+    fn fit_on_device(
+        &mut self,
+        mut device: DeviceFit,
+        cameras: &[Camera],
+        targets: &[Image],
+        steps: usize,
+        loss: &ImageLoss,
+        seed: u64,
+        on_step: &mut dyn FnMut(u64),
+    ) -> Result<(), TrainError> {
+        let mut prepared = Targets::new(targets);
+        let mut rng = ChaCha8Rng::seed_from_u64(seed);
+        let mut order: Vec<usize> = Vec::new();
+        for _ in 0..steps {
+            let v = next_view(&mut order, cameras.len(), &mut rng);
+            let strategy = &self.settings.strategy;
+            if strategy.densifies_at(self.global_step) {
+                device.sync(&mut self.state)?;
+                self.host_step(cameras, v, &mut prepared, loss, &mut rng)?;
+            } else {
+                let track_stats = strategy.tracks_stats_at(self.global_step);
+                self.state.adam.set_iteration(self.global_step);
+                device.step(&mut self.state, &cameras[v], v, track_stats)?;
+                self.global_step += 1;
+            }
+            on_step(1);
+        }
+        Ok(device.sync(&mut self.state)?)
     }
 
     /// Saves the state that is not the scene itself (optimiser moments, statistics, mask, anchors, step).
@@ -360,5 +491,324 @@ impl EditTrainer {
             background,
             device: None,
         })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use splat::densify::EditStrategy;
+
+    /// A 7³ box of Gaussians with position-dependent colours, two sizes (so densification both clones
+    /// and splits) and SH degree 1.
+    fn blob(shift: f32) -> GaussianScene {
+        let mut s = GaussianScene::new(1);
+        let n = 7;
+        for i in 0..n {
+            for j in 0..n {
+                for k in 0..n {
+                    let p = [i, j, k].map(|v| v as f32 / (n - 1) as f32 - 0.5 + shift);
+                    s.means.extend_from_slice(&p);
+                    let size = if (i + j + k) % 2 == 0 { 0.015f32 } else { 0.07 };
+                    s.log_scales.extend_from_slice(&[size.ln(); 3]);
+                    s.quats.extend_from_slice(&[1.0, 0.1 * p[0], 0.0, 0.0]);
+                    s.opacity_logits.push(2.0);
+                    let c = [
+                        0.5 + 0.4 * (6.0 * p[0]).sin(),
+                        0.5 + 0.4 * (5.0 * p[1] + shift * 20.0).cos(),
+                        0.5 + 0.4 * p[2],
+                    ];
+                    s.sh.extend(c.iter().map(|v| (v - 0.5) / 0.282_094_8));
+                    s.sh.extend((0..9).map(|e| 0.05 * ((e as f32) * p[1]).sin()));
+                }
+            }
+        }
+        s
+    }
+
+    /// The blob, three 40² views of a shifted copy as targets, and a mask freezing the left three
+    /// columns of Gaussians.
+    fn fixture() -> (GaussianScene, Vec<Camera>, Vec<Image>, Vec<bool>) {
+        let scene = blob(0.0);
+        let cams = splat::cameras::orbit_cameras([-0.5; 3], [0.5; 3], 3, 40, 40);
+        let target_scene = blob(0.03);
+        let targets: Vec<Image> = cams
+            .iter()
+            .map(|c| render(&target_scene, c, &RenderSettings::default(), None).rgb_image())
+            .collect();
+        let mask: Vec<bool> = (0..scene.len())
+            .map(|j| scene.means[3 * j] > -0.1)
+            .collect();
+        (scene, cams, targets, mask)
+    }
+
+    fn trainer(scene: &GaussianScene, mask: &[bool]) -> EditTrainer {
+        let mut settings = TrainSettings::new(100);
+        // A densification at global step 5, with enough candidates to change the counts.
+        settings.strategy = EditStrategy {
+            densify_from: 5,
+            interval: 5,
+            max_densify_percent: 0.2,
+            max_grad: 1e-9,
+            ..settings.strategy
+        };
+        EditTrainer::new(scene, Some(mask.to_vec()), settings, 2.0, [0.0; 3])
+    }
+
+    /// The Gaussians `mask` leaves out, as one vector of all their parameters.
+    fn frozen(s: &GaussianScene, mask: &[bool]) -> Vec<f32> {
+        let k3 = 3 * s.sh_coeffs();
+        let mut out = Vec::new();
+        for j in (0..s.len()).filter(|&j| !mask[j]) {
+            out.extend(&s.means[3 * j..3 * j + 3]);
+            out.extend(&s.log_scales[3 * j..3 * j + 3]);
+            out.extend(&s.quats[4 * j..4 * j + 4]);
+            out.push(s.opacity_logits[j]);
+            out.extend(&s.sh[k3 * j..k3 * (j + 1)]);
+        }
+        out
+    }
+
+    /// ‖a − b‖ / ‖b‖ over every parameter.
+    fn rel_diff(a: &GaussianScene, b: &GaussianScene) -> f64 {
+        let (mut num, mut den) = (0.0f64, 0.0f64);
+        for (x, y) in [
+            (&a.means, &b.means),
+            (&a.log_scales, &b.log_scales),
+            (&a.quats, &b.quats),
+            (&a.opacity_logits, &b.opacity_logits),
+            (&a.sh, &b.sh),
+        ] {
+            assert_eq!(x.len(), y.len());
+            for (p, q) in x.iter().zip(y) {
+                num += ((p - q) as f64).powi(2);
+                den += (*q as f64).powi(2);
+            }
+        }
+        (num / den).sqrt()
+    }
+
+    /// The mean editing loss of `scene` over the views (on the CPU).
+    fn mean_loss(scene: &GaussianScene, cams: &[Camera], targets: &[Image]) -> f32 {
+        let loss = ImageLoss::dssim();
+        let mut prepared = Targets::new(targets);
+        let settings = RenderSettings::default();
+        let sum: f32 = cams
+            .iter()
+            .enumerate()
+            .map(|(v, c)| {
+                let out = render(scene, c, &settings, None);
+                loss.eval(&out.rgb, v, &mut prepared).unwrap().0
+            })
+            .sum();
+        sum / cams.len() as f32
+    }
+
+    /// Device and host trainers agree: parameters within 1e-3 (relative), mean loss within
+    /// `loss_tol` (relative).
+    fn assert_close(
+        dev: &EditTrainer,
+        host: &EditTrainer,
+        cams: &[Camera],
+        targets: &[Image],
+        loss_tol: f32,
+        when: &str,
+    ) {
+        let e = rel_diff(dev.scene(), host.scene());
+        let l_dev = mean_loss(dev.scene(), cams, targets);
+        let l_host = mean_loss(host.scene(), cams, targets);
+        eprintln!(
+            "{when}: parameters differ by {e} (relative); loss host {l_host}, device {l_dev}"
+        );
+        assert!(e < 1e-3, "{when}: parameters differ by {e}");
+        assert!(
+            (l_dev - l_host).abs() < loss_tol * l_host,
+            "{when}: loss {l_dev} vs {l_host}"
+        );
+    }
+
+    /// The device editing fit (state on the device between densifications) follows the host fit from the
+    /// same state and seeds: frozen Gaussians untouched, trainable ones close before the densification,
+    /// the same counts after it, and the same loss.
+    #[test]
+    fn device_editing_fit_tracks_the_host_fit() {
+        let Some(ctx) = ::gpu::testing::context_or_skip() else {
+            return;
+        };
+        let (scene, cams, targets, mask) = fixture();
+        let loss = ImageLoss::dssim();
+        let mut host = trainer(&scene, &mask);
+        let mut dev = trainer(&scene, &mask);
+        dev.device = Some(ctx);
+        let start_loss = mean_loss(&scene, &cams, &targets);
+
+        // Five steps (global 0..4): no densification yet.
+        for t in [&mut host, &mut dev] {
+            t.fit(&cams, &targets, 5, &loss, 1, &mut |_| {}).unwrap();
+        }
+        assert_eq!(dev.global_step, 5);
+        assert_eq!(dev.state.adam.steps(), host.state.adam.steps());
+        assert_eq!(frozen(dev.scene(), &mask), frozen(&scene, &mask));
+        assert_eq!(frozen(host.scene(), &mask), frozen(&scene, &mask));
+        assert!(rel_diff(host.scene(), &scene) > 1e-4, "the fit must move");
+        eprintln!("loss before: {start_loss}");
+        assert_close(&dev, &host, &cams, &targets, 1e-4, "after 5 steps");
+        let stats = (&dev.state.stats.grad2d, &host.state.stats.grad2d);
+        assert_eq!(dev.state.stats.count, host.state.stats.count);
+        let num: f64 = stats
+            .0
+            .iter()
+            .zip(stats.1)
+            .map(|(a, b)| ((a - b) as f64).powi(2))
+            .sum();
+        let den: f64 = stats.1.iter().map(|b| (*b as f64).powi(2)).sum();
+        assert!((num / den).sqrt() < 1e-3, "densification statistics differ");
+
+        // Five more (global 5..9): densification at 5 on the host, then the device again.
+        for t in [&mut host, &mut dev] {
+            t.fit(&cams, &targets, 5, &loss, 2, &mut |_| {}).unwrap();
+        }
+        assert!(
+            host.state.len() > scene.len(),
+            "densification must add Gaussians"
+        );
+        assert_eq!(dev.state.len(), host.state.len());
+        dev.state.check().unwrap();
+        let dev_mask = dev.state.trainable.clone().unwrap();
+        assert_eq!(&dev_mask, host.state.trainable.as_ref().unwrap());
+        assert_eq!(frozen(dev.scene(), &dev_mask), frozen(&scene, &mask));
+        let when = format!(
+            "after 10 steps ({} → {} Gaussians)",
+            scene.len(),
+            dev.state.len()
+        );
+        assert_close(&dev, &host, &cams, &targets, 1e-3, &when);
+    }
+
+    /// ECM's mini-GS fit on the device (appearance only, masked) follows the host's: frozen Gaussians and
+    /// geometry untouched, colours and opacities close.
+    #[test]
+    fn device_ecm_fit_tracks_the_host_fit() {
+        use crate::consistency::{EcmFitter, EcmSettings, SceneFitter};
+        let Some(ctx) = ::gpu::testing::context_or_skip() else {
+            return;
+        };
+        let (scene, cams, targets, mask) = fixture();
+        let loss = ImageLoss::dssim();
+        let ecm = EcmSettings {
+            min_steps: 9,
+            epochs: 3,
+            halve_every: 1,
+            ..EcmSettings::reference(0)
+        };
+        let host = trainer(&scene, &mask);
+        let mut dev = trainer(&scene, &mask);
+        dev.device = Some(ctx);
+        let fit = |t: &EditTrainer| EcmFitter::new(t, &loss, &ecm).fit(&scene, &cams, &targets, 4);
+        let (on_host, on_device) = (fit(&host).unwrap(), fit(&dev).unwrap());
+        assert_eq!(frozen(&on_device, &mask), frozen(&scene, &mask));
+        assert_eq!(on_device.means, scene.means);
+        assert_eq!(on_device.log_scales, scene.log_scales);
+        assert!(rel_diff(&on_host, &scene) > 1e-4, "the fit must move");
+        let e = rel_diff(&on_device, &on_host);
+        eprintln!("ECM fit, 9 steps: relative difference {e}");
+        assert!(e < 1e-3, "ECM fit: {e}");
+    }
+
+    /// Times the editing fit step (no densification) on the CPU, with only the render and its backward
+    /// on the device (the path before the state moved there; LPIPS still takes it), and with the state
+    /// on the device. A measurement, not a check: `cargo test -p vcedit-edit --release --lib --
+    /// --ignored time_editing_fit_step --nocapture` (`VCEDIT_TIME_N` Gaussians, `VCEDIT_TIME_SIZE` px).
+    #[test]
+    #[ignore]
+    fn time_editing_fit_step() {
+        let Some(ctx) = ::gpu::testing::context_or_skip() else {
+            return;
+        };
+        let env = |name: &str, default: usize| {
+            std::env::var(name)
+                .ok()
+                .and_then(|v| v.parse().ok())
+                .unwrap_or(default)
+        };
+        let (n, size, steps) = (env("VCEDIT_TIME_N", 4000), env("VCEDIT_TIME_SIZE", 128), 8);
+        // Random Gaussians in a unit box, as the edit tests' blobs.
+        let mut rng = ChaCha8Rng::seed_from_u64(3);
+        let mut scene = GaussianScene::new(1);
+        for _ in 0..n {
+            use rand::Rng;
+            let p: [f32; 3] = std::array::from_fn(|_| rng.gen_range(-0.5..0.5));
+            scene.means.extend_from_slice(&p);
+            scene.log_scales.extend_from_slice(&[(0.04f32).ln(); 3]);
+            scene.quats.extend_from_slice(&[1.0, 0.1 * p[0], 0.0, 0.0]);
+            scene.opacity_logits.push(2.0);
+            scene.sh.extend(p.map(|v| v * 2.0));
+            scene.sh.extend(std::iter::repeat_n(0.0, 9));
+        }
+        let cams = splat::cameras::orbit_cameras([-0.5; 3], [0.5; 3], 4, size as u32, size as u32);
+        let mut shifted = scene.clone();
+        shifted.sh.iter_mut().step_by(12).for_each(|v| *v += 0.3);
+        let targets: Vec<Image> = cams
+            .iter()
+            .map(|c| render(&shifted, c, &RenderSettings::default(), None).rgb_image())
+            .collect();
+        let mask: Vec<bool> = (0..n).map(|j| scene.means[3 * j] > 0.0).collect();
+        let loss = ImageLoss::dssim();
+        let mut settings = TrainSettings::new(1000);
+        settings.strategy.densify_from = u64::MAX;
+        let make = |device: Option<GpuContext>| {
+            let mut t =
+                EditTrainer::new(&scene, Some(mask.clone()), settings.clone(), 2.0, [0.0; 3]);
+            t.device = device;
+            t
+        };
+        let time = |label: &str, run: &mut dyn FnMut(usize)| {
+            run(1); // warm-up: kernel compilation, first uploads
+            let t = std::time::Instant::now();
+            run(steps);
+            let ms = t.elapsed().as_secs_f64() * 1e3 / steps as f64;
+            eprintln!("{n} Gaussians, {size}²: {label}: {ms:.1} ms/step");
+        };
+        let mut cpu = make(None);
+        time("CPU", &mut |k| {
+            cpu.fit(&cams, &targets, k, &loss, 1, &mut |_| {}).unwrap()
+        });
+        let mut split = make(Some(ctx.clone()));
+        let mut prepared = Targets::new(&targets);
+        let mut order = Vec::new();
+        let mut rng = ChaCha8Rng::seed_from_u64(1);
+        time(
+            "render+backward on the device, the rest on the host",
+            &mut |k| {
+                for _ in 0..k {
+                    let v = next_view(&mut order, cams.len(), &mut rng);
+                    split
+                        .host_step(&cams, v, &mut prepared, &loss, &mut rng)
+                        .unwrap();
+                }
+            },
+        );
+        // The loss alone (the part that moves from the host to the device).
+        let (a, b) = (&targets[0].data, &targets[1].data);
+        time("loss alone on the host", &mut |k| {
+            for _ in 0..k {
+                std::hint::black_box(loss.eval(a, 1, &mut prepared).map(|(v, _)| v).unwrap());
+            }
+        });
+        let up = |v: &[f32]| ::gpu::prims::upload_f32(&ctx.client, v);
+        let (a, b) = (up(a), up(b));
+        let weights = L1DssimWeights::new(10.0, 2.5);
+        time("loss alone on the device", &mut |k| {
+            for _ in 0..k {
+                let l =
+                    splat::gpu::l1_dssim_weighted(&ctx, &a, &b, size, size, 3, weights).unwrap();
+                std::hint::black_box(l.value(&ctx).unwrap());
+            }
+        });
+        let mut dev = make(Some(ctx.clone()));
+        time(
+            "state on the device (per fit call: one upload, one download)",
+            &mut |k| dev.fit(&cams, &targets, k, &loss, 1, &mut |_| {}).unwrap(),
+        );
     }
 }

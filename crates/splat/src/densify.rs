@@ -279,15 +279,29 @@ impl EditStrategy {
         view: &RenderedView<'_>,
         rng: &mut R,
     ) -> Option<RefineReport> {
-        if step >= self.densify_until {
+        if !self.tracks_stats_at(step) {
             return None;
         }
         state.stats.add(view, 1);
-        if step >= self.densify_from && self.interval > 0 && step.is_multiple_of(self.interval) {
+        if self.densifies_at(step) {
             Some(self.densify_and_prune(state, rng))
         } else {
             None
         }
+    }
+
+    /// Whether [`EditStrategy::after_backward`] densifies at `step` (a fit that keeps its state elsewhere
+    /// brings it back to the host for those steps).
+    pub fn densifies_at(&self, step: u64) -> bool {
+        step < self.densify_until
+            && step >= self.densify_from
+            && self.interval > 0
+            && step.is_multiple_of(self.interval)
+    }
+
+    /// Whether [`EditStrategy::after_backward`] accumulates statistics at `step`.
+    pub fn tracks_stats_at(&self, step: u64) -> bool {
+        step < self.densify_until
     }
 
     /// GaussianEditor's `densify_and_prune`: masked gradient statistics, top-quantile cut, clone, split,

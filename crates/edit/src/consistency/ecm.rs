@@ -18,7 +18,7 @@ use splat::{Camera, GaussianScene, Image};
 
 use super::{MultiView, MultiViewError};
 use crate::compute::candle_err;
-use crate::fit::{check_targets, loss_and_grads, EditTrainer, ImageLoss, Targets};
+use crate::fit::{check_targets, loss_and_grads, DeviceFit, EditTrainer, ImageLoss, Targets};
 use crate::sampler::{image_to_tensor, NoiseSource, ViewState};
 
 /// Everything ECM is configured with: when it runs and how its fits go.
@@ -150,6 +150,7 @@ impl SceneFitter for EcmFitter<'_> {
                 state.adam.group_lr_scale[g.index()] = 0.0;
             }
         }
+        let mut device = DeviceFit::new(self.device, self.loss, images, self.background);
         let base_scale = state.adam.lr_scale;
         let (epochs, halve_every) = self.settings.schedule(cameras.len());
         for epoch in 0..epochs {
@@ -158,6 +159,13 @@ impl SceneFitter for EcmFitter<'_> {
             let mut order: Vec<usize> = (0..cameras.len()).collect();
             order.shuffle(&mut rng);
             for v in order {
+                if let Some(device) = &mut device {
+                    // Parameters and moments stay on the device (D-SSIM loss).
+                    device
+                        .step(&mut state, &cameras[v], v, false)
+                        .map_err(|e| e.to_string())?;
+                    continue;
+                }
                 let (_, grads, _) = loss_and_grads(
                     &state.scene,
                     &cameras[v],
@@ -170,6 +178,9 @@ impl SceneFitter for EcmFitter<'_> {
                 .map_err(|e| e.to_string())?;
                 state.step(&grads);
             }
+        }
+        if let Some(device) = &mut device {
+            device.sync(&mut state).map_err(|e| e.to_string())?;
         }
         Ok(state.scene)
     }

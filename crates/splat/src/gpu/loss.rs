@@ -1,5 +1,6 @@
 //! The fits' loss on the device: `(1 − λ)·L1 + λ·(1 − SSIM)` and its gradient, as
-//! [`crate::loss::l1_dssim`] computes them (11-tap Gaussian window, σ 1.5, zero padding, per channel).
+//! [`crate::loss::l1_dssim`] computes them (11-tap Gaussian window, σ 1.5, zero padding, per channel),
+//! or with free weights `a·L1 + b·(1 − SSIM)` ([`l1_dssim_weighted`], the editing fit's 10 : 2.5).
 //!
 //! Maps are planar on the device (plane `q` = pixels `q·H·W ..`). The separable blur's two passes are
 //! fused into their neighbours (four kernels, each sum in the order of the unfused passes):
@@ -187,13 +188,39 @@ fn l1_dssim_grad(
     }
 }
 
+/// The weights of `l1·L1 + dssim·(1 − SSIM)`. Kept in f64 so that the value of the blended form
+/// `(1 − λ)·L1 + λ·D-SSIM` is computed exactly as before the weights were split.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct L1DssimWeights {
+    pub l1: f64,
+    pub dssim: f64,
+}
+
+impl L1DssimWeights {
+    /// The fits' blend `(1 − λ)·L1 + λ·D-SSIM`.
+    pub fn blend(ssim_weight: f32) -> Self {
+        Self {
+            l1: 1.0 - ssim_weight as f64,
+            dssim: ssim_weight as f64,
+        }
+    }
+
+    /// Free weights `l1·L1 + dssim·D-SSIM` (the editing fit: 10 and 2.5).
+    pub fn new(l1: f32, dssim: f32) -> Self {
+        Self {
+            l1: l1 as f64,
+            dssim: dssim as f64,
+        }
+    }
+}
+
 /// The loss on the device: the gradient (interleaved like `pred`) stays there; the value needs a read.
 pub struct GpuLoss {
     pub grad: Handle,
     abs_diff: Handle,
     ssim_map: Handle,
     len: usize,
-    ssim_weight: f32,
+    weights: L1DssimWeights,
 }
 
 impl GpuLoss {
@@ -213,8 +240,8 @@ impl GpuLoss {
             .map(|&v| v as f64)
             .sum::<f64>()
             / self.len as f64;
-        let w = self.ssim_weight as f64;
-        Ok(((1.0 - w) * l1 + w * (1.0 - ssim)) as f32)
+        let w = self.weights;
+        Ok((w.l1 * l1 + w.dssim * (1.0 - ssim)) as f32)
     }
 }
 
@@ -227,6 +254,28 @@ pub fn l1_dssim(
     height: usize,
     channels: usize,
     ssim_weight: f32,
+) -> Result<GpuLoss, GpuError> {
+    l1_dssim_weighted(
+        ctx,
+        pred,
+        target,
+        width,
+        height,
+        channels,
+        L1DssimWeights::blend(ssim_weight),
+    )
+}
+
+/// `l1·L1 + dssim·D-SSIM` of `pred` against `target` (both H*W*C interleaved, on the device); value and
+/// gradient as the host's weighted sum of [`crate::loss::l1`] and [`crate::loss::ssim`].
+pub fn l1_dssim_weighted(
+    ctx: &GpuContext,
+    pred: &Handle,
+    target: &Handle,
+    width: usize,
+    height: usize,
+    channels: usize,
+    weights: L1DssimWeights,
 ) -> Result<GpuLoss, GpuError> {
     let c = &ctx.client;
     let npix = width * height;
@@ -290,8 +339,8 @@ pub fn l1_dssim(
                 w,
                 h,
                 channels as u32,
-                1.0 - ssim_weight,
-                ssim_weight,
+                weights.l1 as f32,
+                weights.dssim as f32,
                 arg(&grad, total),
                 arg(&abs_diff, total),
             );
@@ -301,7 +350,7 @@ pub fn l1_dssim(
             abs_diff,
             ssim_map,
             len: total,
-            ssim_weight,
+            weights,
         })
     })
 }

@@ -16,6 +16,7 @@
 //! device buffers only (one 4-byte read: the number of tile intersections), and [`render`] /
 //! [`render_backward`] are host-side conveniences with the CPU renderer's types.
 
+mod anchor;
 mod densify;
 mod lift;
 mod loss;
@@ -36,9 +37,10 @@ use ::gpu::prims::{
 pub use ::gpu::{
     list_adapters, open, DeviceChoice, GpuContext, GpuError, ALLOW_SOFTWARE_ENV, DEVICE_ENV,
 };
+pub use anchor::GpuAnchor;
 pub use densify::GpuDensifyStats;
 pub use lift::{lift, GpuLiftAccumulator};
-pub use loss::{l1_dssim, GpuLoss};
+pub use loss::{l1_dssim, l1_dssim_weighted, GpuLoss, L1DssimWeights};
 pub use optim::GpuAdam;
 use project::{CAM_F, GRAD_F, INFO_U, SPLAT_F};
 pub use train::DeviceTrainer;

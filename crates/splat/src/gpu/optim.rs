@@ -1,6 +1,7 @@
 //! Adam on the device: the update of `crate::optim::Adam::step` (torch's Adam with the trainer's eps),
 //! with the moments kept beside a [`GpuScene`]. The CPU [`Adam`] still holds the learning rates and the
-//! step count, so both paths share one schedule.
+//! step count, so both paths share one schedule. A per-Gaussian trainable mask (u32 flags on the device)
+//! skips frozen Gaussians as [`Adam::step`] does: parameters and moments untouched.
 
 use super::{arg, GpuContext, GpuError, GpuScene, GpuSceneGrads};
 use crate::optim::{Adam, Group};
@@ -8,10 +9,11 @@ use ::gpu::cubecl;
 use ::gpu::cubecl::prelude::*;
 use ::gpu::cubecl::server::Handle;
 use ::gpu::gpu_call;
-use ::gpu::prims::{grid, read_f32, upload_f32, zeros32};
+use ::gpu::prims::{empty32, grid, read_f32, upload_f32, zeros32};
 
 /// One Adam update of an array of `width` values per Gaussian: the first `first` values of each block
-/// use `lr_first`, the rest `lr_rest` (SH: DC and higher coefficients).
+/// use `lr_first`, the rest `lr_rest` (SH: DC and higher coefficients). With `use_mask` set, Gaussians
+/// whose `mask` flag is 0 are skipped.
 #[cube(launch)]
 #[allow(clippy::too_many_arguments)]
 fn adam_update(
@@ -19,6 +21,8 @@ fn adam_update(
     grads: &[f32],
     m: &mut [f32],
     v: &mut [f32],
+    mask: &[u32],
+    use_mask: u32,
     len: u32,
     width: u32,
     first: u32,
@@ -31,7 +35,12 @@ fn adam_update(
     inv_sqrt_bias2: f32,
 ) {
     let i = ABSOLUTE_POS;
-    if i < len as usize {
+    let mut live = i < len as usize;
+    // Nested so that the mask (a 1-element dummy when unused) is only read when it is there.
+    if live && use_mask != 0 {
+        live = mask[i / width as usize] != 0;
+    }
+    if live {
         let lr = select((i as u32 % width) < first, lr_first, lr_rest);
         let g = grads[i];
         let mi = beta1 * m[i] + (1.0f32 - beta1) * g;
@@ -108,6 +117,20 @@ impl GpuAdam {
         scene: &GpuScene,
         grads: &GpuSceneGrads,
     ) -> Result<(), GpuError> {
+        self.step_masked(ctx, adam, scene, grads, None)
+    }
+
+    /// [`GpuAdam::step`] with a per-Gaussian `trainable` mask (u32 flags, N): as [`Adam::step`] with a
+    /// mask, frozen Gaussians keep their parameters and moments in the groups the mask hooks, rotations
+    /// included only when `adam.mask_rotation`.
+    pub fn step_masked(
+        &mut self,
+        ctx: &GpuContext,
+        adam: &mut Adam,
+        scene: &GpuScene,
+        grads: &GpuSceneGrads,
+        trainable: Option<&Handle>,
+    ) -> Result<(), GpuError> {
         let c = &ctx.client;
         let n = scene.len;
         let k = crate::scene::sh_coeffs(scene.sh_degree);
@@ -117,8 +140,18 @@ impl GpuAdam {
         let bias1 = 1.0 - (p.beta1 as f64).powi(t);
         let bias2 = 1.0 - (p.beta2 as f64).powi(t);
         let (inv_bias1, inv_sqrt_bias2) = ((1.0 / bias1) as f32, (1.0 / bias2.sqrt()) as f32);
+        // The mask of each array: rotations only when `mask_rotation` (as `Adam::step`).
+        let rot_mask = if adam.mask_rotation { trainable } else { None };
         let arrays = [
-            (&scene.means, &grads.means, 3, 3, adam.lr(Group::Means), 0.0),
+            (
+                &scene.means,
+                &grads.means,
+                3,
+                3,
+                adam.lr(Group::Means),
+                0.0,
+                trainable,
+            ),
             (
                 &scene.log_scales,
                 &grads.log_scales,
@@ -126,8 +159,17 @@ impl GpuAdam {
                 3,
                 adam.lr(Group::LogScales),
                 0.0,
+                trainable,
             ),
-            (&scene.quats, &grads.quats, 4, 4, adam.lr(Group::Quats), 0.0),
+            (
+                &scene.quats,
+                &grads.quats,
+                4,
+                4,
+                adam.lr(Group::Quats),
+                0.0,
+                rot_mask,
+            ),
             (
                 &scene.opacity_logits,
                 &grads.opacity_logits,
@@ -135,6 +177,7 @@ impl GpuAdam {
                 1,
                 adam.lr(Group::Opacity),
                 0.0,
+                trainable,
             ),
             (
                 &scene.sh,
@@ -143,10 +186,12 @@ impl GpuAdam {
                 3,
                 adam.lr(Group::ShDc),
                 adam.lr(Group::ShRest),
+                trainable,
             ),
         ];
         gpu_call(|| {
-            for ((param, grad, width, first, lr_first, lr_rest), (m, v)) in
+            let dummy = empty32(c, 1);
+            for ((param, grad, width, first, lr_first, lr_rest, mask), (m, v)) in
                 arrays.into_iter().zip(&self.moments)
             {
                 let len = width * n;
@@ -154,6 +199,7 @@ impl GpuAdam {
                     continue;
                 }
                 let (count, dim) = grid(len);
+                let (mask, mask_len, use_mask) = mask.map_or((&dummy, 1, 0u32), |h| (h, n, 1));
                 adam_update::launch(
                     c,
                     count,
@@ -162,6 +208,8 @@ impl GpuAdam {
                     arg(grad, len),
                     arg(m, len),
                     arg(v, len),
+                    arg(mask, mask_len),
+                    use_mask,
                     len as u32,
                     width as u32,
                     first as u32,

@@ -367,35 +367,14 @@ fn adam_on_the_device_matches_the_cpu() {
     let Some(ctx) = context_or_skip() else {
         return;
     };
-    let c = &ctx.client;
     let scene = random_scene(60, 2, 9);
-    let wave = |len: usize, f: f32| -> Vec<f32> {
-        (0..len).map(|i| (i as f32 * f).sin() * 0.01).collect()
-    };
-    let grads = SceneGrads {
-        means: wave(scene.means.len(), 0.3),
-        log_scales: wave(scene.log_scales.len(), 0.7),
-        quats: wave(scene.quats.len(), 1.1),
-        opacity_logits: wave(scene.len(), 0.5),
-        sh: wave(scene.sh.len(), 0.9),
-        extra: vec![],
-        means2d: vec![],
-    };
+    let grads = wave_grads(&scene);
     let mut cpu_scene = scene.clone();
     let mut cpu = Adam::new(&scene, LearningRates::inria(100), 2.0);
     let dev = GpuScene::upload(&ctx, &scene);
     let mut gpu_adam = GpuAdam::new(&ctx, &dev);
     let mut gpu_rates = Adam::new(&scene, LearningRates::inria(100), 2.0);
-    let up = |v: &[f32]| upload_f32(c, v);
-    let dev_grads = GpuSceneGrads {
-        means: up(&grads.means),
-        log_scales: up(&grads.log_scales),
-        quats: up(&grads.quats),
-        opacity_logits: up(&grads.opacity_logits),
-        sh: up(&grads.sh),
-        extra: None,
-        splat: up(&[0.0]),
-    };
+    let dev_grads = upload_grads(&ctx, &grads);
     for _ in 0..3 {
         cpu.step(&mut cpu_scene, &grads, None);
         gpu_adam
@@ -506,5 +485,157 @@ fn l1_dssim_on_the_device_matches_the_cpu() {
             "{value} vs {}",
             want.value
         );
+    }
+}
+
+/// Waves of small gradients shaped like `scene`.
+fn wave_grads(scene: &GaussianScene) -> SceneGrads {
+    let wave = |len: usize, f: f32| -> Vec<f32> {
+        (0..len).map(|i| (i as f32 * f).sin() * 0.01).collect()
+    };
+    SceneGrads {
+        means: wave(scene.means.len(), 0.3),
+        log_scales: wave(scene.log_scales.len(), 0.7),
+        quats: wave(scene.quats.len(), 1.1),
+        opacity_logits: wave(scene.len(), 0.5),
+        sh: wave(scene.sh.len(), 0.9),
+        extra: vec![],
+        means2d: vec![],
+    }
+}
+
+fn upload_grads(ctx: &GpuContext, g: &SceneGrads) -> GpuSceneGrads {
+    let up = |v: &[f32]| upload_f32(&ctx.client, v);
+    GpuSceneGrads {
+        means: up(&g.means),
+        log_scales: up(&g.log_scales),
+        quats: up(&g.quats),
+        opacity_logits: up(&g.opacity_logits),
+        sh: up(&g.sh),
+        extra: None,
+        splat: zeros32(&ctx.client, GRAD_F * g.opacity_logits.len()),
+    }
+}
+
+/// The anchor gradient added on the device equals what `Anchor::loss` adds on the host: mixed
+/// generations (one of weight 0), a partial mask or none, with and without the colour term.
+#[test]
+fn anchor_gradient_on_the_device_matches_the_cpu() {
+    use crate::anchor::{Anchor, AnchorConfig};
+    let Some(ctx) = context_or_skip() else {
+        return;
+    };
+    let anchored = random_scene(90, 2, 21);
+    // Same size and SH degree, different values everywhere: every term has a non-zero difference.
+    let scene = random_scene(90, 2, 22);
+    for config in [AnchorConfig::gaussian_editor(), AnchorConfig::vcedit()] {
+        let mut anchor = Anchor::new(&anchored, config);
+        anchor.schedule = vec![1.5, 0.4, 0.0, 3.0];
+        anchor.generations = (0..scene.len() as u32).map(|j| j % 4).collect();
+        let mask: Vec<bool> = (0..scene.len()).map(|j| j % 3 != 1).collect();
+        for mask in [Some(mask.as_slice()), None] {
+            let mut want = wave_grads(&scene);
+            let before = want.clone();
+            anchor.loss(&scene, mask, Some(&mut want));
+            let dev_grads = upload_grads(&ctx, &before);
+            GpuAnchor::upload(&ctx, &anchor, mask)
+                .add_grad(&ctx, &GpuScene::upload(&ctx, &scene), &dev_grads)
+                .unwrap();
+            let got = read_grads(&ctx, &dev_grads, scene.len(), scene.sh_degree, None).unwrap();
+            for (name, g, w, b) in [
+                ("means", &got.means, &want.means, &before.means),
+                (
+                    "log_scales",
+                    &got.log_scales,
+                    &want.log_scales,
+                    &before.log_scales,
+                ),
+                ("quats", &got.quats, &want.quats, &before.quats),
+                (
+                    "opacity",
+                    &got.opacity_logits,
+                    &want.opacity_logits,
+                    &before.opacity_logits,
+                ),
+                ("sh", &got.sh, &want.sh, &before.sh),
+            ] {
+                // The anchor's part of the gradient, compared on its own.
+                let delta =
+                    |x: &[f32]| -> Vec<f32> { x.iter().zip(b).map(|(x, b)| x - b).collect() };
+                let e = rel_err(&delta(g), &delta(w));
+                assert!(
+                    e < 1e-5,
+                    "{name} (mask {}): relative error {e}",
+                    mask.is_some()
+                );
+            }
+            assert_ne!(want.means, before.means);
+        }
+    }
+}
+
+/// Masked Adam on the device equals `Adam::step` with the same mask: frozen Gaussians keep their
+/// parameters and moments bit for bit in the hooked groups (rotations only with `mask_rotation`).
+#[test]
+fn masked_adam_on_the_device_matches_the_cpu() {
+    use crate::optim::{Adam, LearningRates};
+    let Some(ctx) = context_or_skip() else {
+        return;
+    };
+    let scene = random_scene(70, 1, 31);
+    let grads = wave_grads(&scene);
+    let mask: Vec<bool> = (0..scene.len()).map(|j| j % 4 != 0).collect();
+    let flags: Vec<u32> = mask.iter().map(|&t| u32::from(t)).collect();
+    let dev_mask = ::gpu::prims::upload_u32(&ctx.client, &flags);
+    for mask_rotation in [false, true] {
+        let mut cpu_scene = scene.clone();
+        let mut cpu = Adam::new(&scene, LearningRates::gaussian_editor(100), 1.5);
+        cpu.mask_rotation = mask_rotation;
+        let mut rates = cpu.clone();
+        let dev = GpuScene::upload(&ctx, &scene);
+        let mut gpu_adam = GpuAdam::new(&ctx, &dev);
+        let dev_grads = upload_grads(&ctx, &grads);
+        for _ in 0..3 {
+            cpu.step(&mut cpu_scene, &grads, Some(&mask));
+            gpu_adam
+                .step_masked(&ctx, &mut rates, &dev, &dev_grads, Some(&dev_mask))
+                .unwrap();
+        }
+        let got = dev.download(&ctx).unwrap();
+        gpu_adam.download_into(&ctx, &mut rates).unwrap();
+        for (name, g, w) in [
+            ("means", &got.means, &cpu_scene.means),
+            ("log_scales", &got.log_scales, &cpu_scene.log_scales),
+            ("quats", &got.quats, &cpu_scene.quats),
+            ("opacity", &got.opacity_logits, &cpu_scene.opacity_logits),
+            ("sh", &got.sh, &cpu_scene.sh),
+            ("means m", &rates.means.m, &cpu.means.m),
+            ("quats v", &rates.quats.v, &cpu.quats.v),
+            ("sh m", &rates.sh.m, &cpu.sh.m),
+        ] {
+            let e = rel_err(g, w);
+            assert!(
+                e < 1e-6,
+                "{name} (mask_rotation {mask_rotation}): relative error {e}"
+            );
+        }
+        let k = scene.sh_coeffs();
+        for j in (0..scene.len()).filter(|&j| !mask[j]) {
+            assert_eq!(got.means[3 * j..3 * j + 3], scene.means[3 * j..3 * j + 3]);
+            assert_eq!(
+                got.log_scales[3 * j..3 * j + 3],
+                scene.log_scales[3 * j..3 * j + 3]
+            );
+            assert_eq!(got.opacity_logits[j], scene.opacity_logits[j]);
+            assert_eq!(
+                got.sh[3 * k * j..3 * k * (j + 1)],
+                scene.sh[3 * k * j..3 * k * (j + 1)]
+            );
+            assert!(rates.means.m[3 * j..3 * j + 3].iter().all(|&m| m == 0.0));
+            let quat_frozen = got.quats[4 * j..4 * j + 4] == scene.quats[4 * j..4 * j + 4];
+            assert_eq!(quat_frozen, mask_rotation, "Gaussian {j}: rotation frozen");
+        }
+        assert_ne!(got.means, scene.means);
+        assert_eq!(rates.steps(), cpu.steps());
     }
 }

@@ -1,36 +1,52 @@
-//! A fit step with everything on the device: render, L1 + D-SSIM, backward, Adam and the densification
-//! statistics. The host [`TrainState`] is the reference copy: structural changes (densification,
-//! opacity resets, SH degree changes) run there after [`DeviceTrainer::download_into`], and the trainer
-//! is rebuilt from it afterwards.
+//! A fit step with everything on the device: render, L1 + D-SSIM, backward, the HGS anchor gradient,
+//! Adam (with the trainable mask) and the densification statistics. The host [`TrainState`] is the
+//! reference copy: structural changes (densification, opacity resets, SH degree changes) run there after
+//! [`DeviceTrainer::download_into`], and the trainer is rebuilt from it afterwards.
 
 use super::{
-    l1_dssim, render_backward_device, render_device, GpuAdam, GpuContext, GpuDensifyStats,
-    GpuError, GpuOutputGrads, GpuScene,
+    l1_dssim_weighted, render_backward_device, render_device, GpuAdam, GpuAnchor, GpuContext,
+    GpuDensifyStats, GpuError, GpuLoss, GpuOutputGrads, GpuScene, L1DssimWeights,
 };
 use crate::optim::Adam;
 use crate::render::RenderSettings;
 use crate::train::TrainState;
 use crate::Camera;
 use ::gpu::cubecl::server::Handle;
+use ::gpu::prims::upload_u32;
 
-/// Scene parameters, Adam moments and densification statistics on the device.
+/// Scene parameters, Adam moments, densification statistics and, when the state has them, the
+/// trainable mask and the anchors, on the device.
 pub struct DeviceTrainer {
     scene: GpuScene,
     adam: GpuAdam,
     stats: GpuDensifyStats,
+    /// One u32 flag per Gaussian (`TrainState::trainable`).
+    trainable: Option<Handle>,
+    anchor: Option<GpuAnchor>,
 }
 
 impl DeviceTrainer {
-    /// Uploads the host state (no trainable mask or anchor support: `fit` uses neither).
+    /// Uploads the host state: parameters, moments, statistics, and the trainable mask and anchors when
+    /// it has them (the mask and anchors only change with the structure, when the trainer is rebuilt).
     pub fn upload(ctx: &GpuContext, state: &TrainState) -> Self {
+        let trainable = state.trainable.as_ref().map(|mask| {
+            let flags: Vec<u32> = mask.iter().map(|&t| u32::from(t)).collect();
+            upload_u32(&ctx.client, &flags)
+        });
+        let anchor = state
+            .anchor
+            .as_ref()
+            .map(|a| GpuAnchor::upload(ctx, a, state.trainable.as_deref()));
         Self {
             scene: GpuScene::upload(ctx, &state.scene),
             adam: GpuAdam::from_host(ctx, &state.adam),
             stats: GpuDensifyStats::from_host(ctx, &state.stats),
+            trainable,
+            anchor,
         }
     }
 
-    /// Writes the device state back into `state`.
+    /// Writes the device state back into `state` (the mask and anchors never change on the device).
     pub fn download_into(&self, ctx: &GpuContext, state: &mut TrainState) -> Result<(), GpuError> {
         state.scene = self.scene.download(ctx)?;
         self.adam.download_into(ctx, &mut state.adam)?;
@@ -38,8 +54,9 @@ impl DeviceTrainer {
         Ok(())
     }
 
-    /// One step on `target` (H*W*3 on the device) seen from `camera`; `adam` gives the rates and counts
-    /// the step. Returns the loss value.
+    /// One step on `target` (H*W*3 on the device) seen from `camera` with the loss
+    /// `(1 − ssim_weight)·L1 + ssim_weight·D-SSIM`; `adam` gives the rates and counts the step. Returns
+    /// the loss value.
     #[allow(clippy::too_many_arguments)]
     pub fn step(
         &mut self,
@@ -51,9 +68,36 @@ impl DeviceTrainer {
         ssim_weight: f32,
         track_stats: bool,
     ) -> Result<f32, GpuError> {
+        self.step_weighted(
+            ctx,
+            adam,
+            camera,
+            target,
+            settings,
+            L1DssimWeights::blend(ssim_weight),
+            track_stats,
+        )?
+        .value(ctx)
+    }
+
+    /// [`DeviceTrainer::step`] with the loss `weights.l1·L1 + weights.dssim·D-SSIM` (the editing fit's
+    /// 10 : 2.5). The anchor gradient, when there are anchors, is added before Adam, as the editing fit
+    /// does on the host. Returns the image loss (anchor term excluded) still on the device: reading its
+    /// value copies two image-sized maps back, which a caller that does not need it skips.
+    #[allow(clippy::too_many_arguments)]
+    pub fn step_weighted(
+        &mut self,
+        ctx: &GpuContext,
+        adam: &mut Adam,
+        camera: &Camera,
+        target: &Handle,
+        settings: &RenderSettings,
+        weights: L1DssimWeights,
+        track_stats: bool,
+    ) -> Result<GpuLoss, GpuError> {
         let frame = render_device(ctx, &self.scene, camera, settings, None)?;
         let (w, h) = (camera.width as usize, camera.height as usize);
-        let loss = l1_dssim(ctx, &frame.rgb, target, w, h, 3, ssim_weight)?;
+        let loss = l1_dssim_weighted(ctx, &frame.rgb, target, w, h, 3, weights)?;
         let grads = render_backward_device(
             ctx,
             &self.scene,
@@ -67,10 +111,14 @@ impl DeviceTrainer {
                 extra: None,
             },
         )?;
-        self.adam.step(ctx, adam, &self.scene, &grads)?;
+        if let Some(anchor) = &self.anchor {
+            anchor.add_grad(ctx, &self.scene, &grads)?;
+        }
+        self.adam
+            .step_masked(ctx, adam, &self.scene, &grads, self.trainable.as_ref())?;
         if track_stats {
             self.stats.add(ctx, &frame, &grads, 1)?;
         }
-        loss.value(ctx)
+        Ok(loss)
     }
 }
