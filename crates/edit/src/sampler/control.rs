@@ -214,8 +214,28 @@ impl AttentionHook for EditController {
         ))
     }
 
+    /// Only the cross-attention calls whose maps [`Self::probs`] reads or changes: while the target's maps
+    /// are refined (every layer), the blend layers (accumulated), and CCM's small layers while recording
+    /// or substituting. Every other call keeps its maps, so it runs the fused attention (no probability
+    /// matrix; the large layers late in the schedule).
     fn wants_probs(&self, call: &AttnCall) -> bool {
-        call.kind == AttnKind::CrossAttn
+        if call.kind != AttnKind::CrossAttn || (call.batch != 6 && call.batch != 3) {
+            return false;
+        }
+        if self.settings.cross_replace >= self.progress() {
+            return true;
+        }
+        let small = call.height * call.width <= self.settings.store_max_tokens;
+        let substituted = self
+            .consistent
+            .as_ref()
+            .is_some_and(|m| m.contains_key(call.layer));
+        if small && (self.recording.is_some() || substituted) {
+            return true;
+        }
+        self.recording.is_none()
+            && (call.height, call.width) == self.settings.blend_size
+            && !call.layer.starts_with("mid")
     }
 
     fn probs(&mut self, call: &AttnCall, probs: DeviceTensor) -> Result<DeviceTensor> {
@@ -371,6 +391,41 @@ mod tests {
             out.i(4).unwrap().to_vec3::<f32>().unwrap(),
             p.i(4).unwrap().to_vec3::<f32>().unwrap()
         );
+    }
+
+    #[test]
+    fn probabilities_are_asked_for_only_where_they_are_read_or_changed() {
+        let al = alignment(vec![Some(0), Some(1)], vec![1.0, 1.0]);
+        let mut c = EditController::new(settings(0.5, 0.0), &al, &Device::Cpu).unwrap();
+        let large = AttnCall {
+            height: 64,
+            width: 64,
+            ..call(AttnKind::CrossAttn, 6)
+        };
+        let blend = call(AttnKind::CrossAttn, 6);
+        let mid = AttnCall {
+            layer: "mid_block.attentions.0.transformer_blocks.0.attn2",
+            ..blend
+        };
+        // Refining (progress 1/4 ≤ 0.5): every cross-attention call, no self-attention call.
+        assert!(c.wants_probs(&large) && c.wants_probs(&blend) && c.wants_probs(&mid));
+        assert!(!c.wants_probs(&call(AttnKind::SelfAttn, 6)));
+        c.end_step();
+        c.end_step(); // progress 3/4: refinement over
+        assert!(!c.wants_probs(&large), "nothing reads a large layer's maps");
+        assert!(c.wants_probs(&blend), "blend layers accumulate");
+        assert!(!c.wants_probs(&mid), "the mid block is not blended");
+        c.start_recording();
+        assert!(c.wants_probs(&mid), "CCM records the small layers");
+        assert!(!c.wants_probs(&large));
+        c.finish_recording();
+        let mut maps = HashMap::new();
+        maps.insert(
+            mid.layer.to_string(),
+            Tensor::zeros((3, 1, 4, 2), DType::F32, &Device::Cpu).unwrap(),
+        );
+        c.set_consistent_maps(maps);
+        assert!(c.wants_probs(&mid), "CCM substitutes its maps");
     }
 
     #[test]

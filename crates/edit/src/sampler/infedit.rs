@@ -604,7 +604,13 @@ impl AttentionHook for ViewBatch<'_> {
     }
 
     fn wants_probs(&self, call: &AttnCall) -> bool {
-        self.0.iter().any(|c| c.wants_probs(call))
+        // Each controller judges the call as it will see it: its own slice of the batch.
+        let views = self.0.len();
+        let slice_call = AttnCall {
+            batch: call.batch / views,
+            ..*call
+        };
+        self.0.iter().any(|c| c.wants_probs(&slice_call))
     }
 
     fn probs(&mut self, call: &AttnCall, probs: DeviceTensor) -> candle_core::Result<DeviceTensor> {
