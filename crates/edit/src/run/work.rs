@@ -146,10 +146,10 @@ pub fn work_plan(
     let lpips = LPIPS_BUDGET.min(v as u64 * w * h * 4 * 128);
     let memory_bytes =
         weights + unet + v as u64 * per_view + images + train + lift + lpips + 300_000_000;
-    // On a GPU: the networks' weights (f16 or f32 copies in the device cache), one hooked batch-6 UNet
-    // pass (diffusion's documented upper bound; flash self-attention keeps no probability matrix), the
-    // scene being fitted with its gradients (the optimiser stays on the host), one lifting's sums and one
-    // frame with CCM's channels.
+    // On a GPU: the networks' weights (f16 or f32 copies in the device cache), one hooked UNet call of
+    // `view_batch` views (diffusion's documented upper bound; flash self-attention keeps no probability
+    // matrix), the fit's device state (scene, gradients, two Adam moments, anchor snapshot) and the one
+    // ECM fit alive at a time, one lifting's sums and one frame with CCM's channels.
     let gpu_memory_bytes = model.compute.networks().map(|gpu| {
         let weight_bytes = match gpu.precision() {
             Precision::F16 => model.parameters * 2,
@@ -162,7 +162,7 @@ pub fn work_plan(
             .activation_estimate(6 * view_batch, lh, lw, 77, true)
             .map_or(unet, |e| e.total() as u64);
         let frame = w * h * 4 * (3 + 1 + 1 + 3 * heads * 8);
-        weight_bytes + activations + params * 3 + n * 4 * (3 * heads * 8 + 1) + frame + 100_000_000
+        weight_bytes + activations + params * 10 + n * 4 * (3 * heads * 8 + 1) + frame + 100_000_000
     });
     WorkPlan {
         views: v,
