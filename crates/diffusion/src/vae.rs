@@ -734,6 +734,39 @@ impl Autoencoder {
         }
     }
 
+    /// Bytes (f32) of the largest activation one `height × width` image makes in the encoder or decoder:
+    /// at each level the wider of its own and the next level's channels (the decoder upsamples before it
+    /// narrows) at that level's resolution. A batch's largest buffer is this times the batch; callers keep
+    /// it under the device's largest buffer (convolutions block their own im2col buffers).
+    pub fn largest_activation_bytes(&self, height: usize, width: usize) -> usize {
+        let levels: Vec<usize> = match self {
+            Self::Kl(vae) => {
+                let ch = &vae.config().block_out_channels;
+                (0..ch.len())
+                    .map(|j| ch[j].max(ch[(j + 1).min(ch.len() - 1)]))
+                    .collect()
+            }
+            // TAESD runs at full resolution with its widest block (conservative).
+            Self::Tiny(tiny) => {
+                let c = tiny.config();
+                let widest = c
+                    .encoder_block_out_channels
+                    .iter()
+                    .chain(&c.decoder_block_out_channels)
+                    .copied()
+                    .max()
+                    .unwrap_or(64);
+                vec![widest]
+            }
+        };
+        levels
+            .iter()
+            .enumerate()
+            .map(|(j, &c)| c * (height >> j).max(1) * (width >> j).max(1) * 4)
+            .max()
+            .unwrap_or(0)
+    }
+
     pub fn latent_channels(&self) -> usize {
         match self {
             Self::Kl(vae) => vae.config().latent_channels,
@@ -764,6 +797,15 @@ mod tests {
             latent_channels: 2,
             ..AutoencoderKLConfig::default()
         }
+    }
+
+    #[test]
+    fn the_largest_activation_is_the_decoders_full_resolution_upsample() {
+        let vae = AutoencoderKL::new(&small_config(), VarBuilder::zeros(DType::F32, &Device::Cpu))
+            .unwrap();
+        // Channels [4, 8]: the decoder upsamples 8 channels to full resolution before narrowing to 4.
+        let bytes = Autoencoder::Kl(Box::new(vae)).largest_activation_bytes(64, 32);
+        assert_eq!(bytes, 8 * 64 * 32 * 4);
     }
 
     #[test]

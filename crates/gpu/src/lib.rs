@@ -94,6 +94,11 @@ pub struct GpuLimits {
     /// Largest cube count per dimension.
     pub max_cube_count: u32,
     pub plane_size: u32,
+    /// Largest single buffer (the smaller of the storage-binding and buffer limits).
+    pub max_buffer_bytes: u64,
+    /// Device memory the runtime states for the adapter (`None` where its API has no figure, as wgpu's
+    /// portable path: gfx-rs/wgpu#2447).
+    pub memory_bytes: Option<u64>,
 }
 
 /// An opened GPU: the CubeCL client plus what the run log reports.
@@ -239,6 +244,8 @@ fn open_adapter(a: &AdapterEntry) -> Result<GpuContext, GpuError> {
         max_units_per_cube: hw.max_units_per_cube,
         max_cube_count: hw.max_cube_count.0,
         plane_size: hw.plane_size_max,
+        max_buffer_bytes: props.memory.max_page_size,
+        memory_bytes: props.memory.max_memory(),
     };
     Ok(GpuContext {
         adapter: props.identity.name.clone(),

@@ -61,22 +61,35 @@ pub const AUTO_VIEW_BATCH_GPU_BYTES: u64 = 6_000_000_000;
 /// Views per UNet call: the job's choice, else 1 on the CPU (one view's batch of six already keeps every
 /// core busy, and a larger batch only adds memory) and on a GPU the most views, up to
 /// [`MAX_AUTO_VIEW_BATCH`] and the number of views, whose hooked call's activations fit in
-/// [`AUTO_VIEW_BATCH_GPU_BYTES`].
+/// [`AUTO_VIEW_BATCH_GPU_BYTES`] (a third of the device's memory where the backend states it) and whose
+/// largest buffer fits the device's largest buffer.
 pub fn view_batch(job: &EditJob, model: &EditModel, views: usize) -> usize {
     if let Some(n) = job.view_batch {
         return n.max(1);
     }
-    if model.compute.networks().is_none() {
+    let Some(gpu) = model.compute.networks() else {
         return 1;
-    }
+    };
     let f = model.downscale();
     let (lh, lw) = (job.size.1 as usize / f, job.size.0 as usize / f);
+    let config = model.unet.config();
+    // The largest single buffer of one view's call: the first level's GEGLU projection (8 × its width
+    // per token) or a cross-attention map (heads × 77 per token), for six branches. Convolutions block
+    // their own im2col buffers. A batch must keep it within the device's largest buffer.
+    let width = config.block_out_channels.first().copied().unwrap_or(320);
+    let largest = 6 * lh * lw * (8 * width).max(8 * 77) * 4;
+    let max_buffer = gpu.context().limits.max_buffer_bytes;
+    // With a stated memory size (some backends report one), a third of it; else a fixed share.
+    let budget = gpu
+        .context()
+        .limits
+        .memory_bytes
+        .map_or(AUTO_VIEW_BATCH_GPU_BYTES, |m| m / 3);
     let fits = |n: usize| {
-        model
-            .unet
-            .config()
-            .activation_estimate(6 * n, lh, lw, 77, true)
-            .is_ok_and(|e| e.total() as u64 <= AUTO_VIEW_BATCH_GPU_BYTES)
+        (n * largest) as u64 <= max_buffer
+            && config
+                .activation_estimate(6 * n, lh, lw, 77, true)
+                .is_ok_and(|e| e.total() as u64 <= budget)
     };
     (1..=MAX_AUTO_VIEW_BATCH.min(views.max(1)))
         .rev()

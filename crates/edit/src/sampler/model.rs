@@ -189,8 +189,12 @@ impl EditModel {
         batch: usize,
         noise: &mut dyn NoiseSource,
     ) -> candle_core::Result<Vec<Tensor>> {
+        let (h, w) = images
+            .first()
+            .map_or((0, 0), |t| (t.dims()[t.rank() - 2], t.dims()[t.rank() - 1]));
+        let batch = self.codec_batch(batch, h, w);
         let mut out = Vec::with_capacity(images.len());
-        for chunk in images.chunks(batch.max(1)) {
+        for chunk in images.chunks(batch) {
             let latents = match chunk {
                 [one] => self.encode(one, noise)?,
                 _ => self.encode(&Tensor::cat(chunk, 0)?, noise)?,
@@ -208,14 +212,31 @@ impl EditModel {
         latents: &[&Tensor],
         batch: usize,
     ) -> candle_core::Result<Vec<Image>> {
+        let f = self.downscale();
+        let (h, w) = latents.first().map_or((0, 0), |t| {
+            (t.dims()[t.rank() - 2] * f, t.dims()[t.rank() - 1] * f)
+        });
+        let batch = self.codec_batch(batch, h, w);
         let mut out = Vec::with_capacity(latents.len());
-        for chunk in latents.chunks(batch.max(1)) {
+        for chunk in latents.chunks(batch) {
             match chunk {
                 [one] => out.extend(self.decode_images(one)?),
                 _ => out.extend(self.decode_images(&Tensor::cat(chunk, 0)?)?),
             }
         }
         Ok(out)
+    }
+
+    /// Images of `h × w` pixels the codec takes per call, at most `batch`: on a GPU as many as keep its
+    /// largest activation within the device's largest buffer.
+    fn codec_batch(&self, batch: usize, h: usize, w: usize) -> usize {
+        let batch = batch.max(1);
+        let Some(gpu) = self.compute.networks() else {
+            return batch;
+        };
+        let per_image = self.codec.largest_activation_bytes(h, w).max(1) as u64;
+        let limit = gpu.context().limits.max_buffer_bytes;
+        batch.min((limit / per_image).max(1) as usize)
     }
 
     /// Decodes UNet latents to images in [-1, 1] (unclamped).

@@ -368,8 +368,9 @@ pub fn matmul(
     }
 }
 
-/// im2col of one convolution: x [batch, cin, h, w] → cols [batch, cin·kh·kw, oh·ow] (zero padding).
-/// `meta = [cin, h, w, kh, kw, stride, padding, oh, ow]`.
+/// im2col of one convolution over a block of its output: images `n0..` of x [batch, cin, h, w] and output
+/// rows `oy0..oy0 + oh` → cols [images, cin·kh·kw, oh·ow] (zero padding).
+/// `meta = [cin, h, w, kh, kw, stride, padding, oh, ow, oy0, n0]`.
 #[cube(launch_unchecked)]
 pub fn im2col(x: &[f32], cols: &mut [f32], meta: &[u32]) {
     let i = linear_pos();
@@ -387,11 +388,12 @@ pub fn im2col(x: &[f32], cols: &mut [f32], meta: &[u32]) {
         let oy = (i / ow) % oh;
         let r = (i / (ow * oh)) % (cin * kh * kw);
         let n = i / (ow * oh * cin * kh * kw);
+        let n = n + meta[10];
         let kx = r % kw;
         let ky = (r / kw) % kh;
         let ci = r / (kw * kh);
         // Padded coordinates stay unsigned: compare against [pad, pad + size).
-        let py = oy * stride + ky;
+        let py = (oy + meta[9]) * stride + ky;
         let px = ox * stride + kx;
         let mut v = 0.0f32;
         if py >= pad && py < pad + h && px >= pad && px < pad + w {

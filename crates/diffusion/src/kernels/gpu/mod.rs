@@ -172,11 +172,6 @@ impl std::fmt::Debug for GpuTensor {
     }
 }
 
-/// A GPU failure as a candle error, so network code keeps one error type.
-fn gpu_error(what: &str, e: impl std::fmt::Display) -> candle_core::Error {
-    candle_core::Error::msg(format!("GPU {what}: {e}"))
-}
-
 impl GpuTensor {
     /// Copies a CPU tensor (any float dtype, any layout) to the device as f32.
     pub fn upload(device: &GpuDevice, t: &Tensor) -> Result<GpuTensor> {
@@ -233,7 +228,8 @@ impl GpuTensor {
         let bytes = self
             .client()
             .read_one(self.handle.clone())
-            .map_err(|e| gpu_error("read-back", e))?;
+            // Classified (out of memory, lost device) and cut to its informative line.
+            .map_err(|e| candle_core::Error::msg(gpu::server_error(e).to_string()))?;
         let n = self.elem_count();
         if self.half {
             let data = precision::unpack_f16(u32::from_bytes(&bytes), n);

@@ -594,7 +594,7 @@ pub fn conv2d(
     stride: usize,
     padding: usize,
 ) -> Result<GpuTensor> {
-    let (&[n, cin, h, w], &[cout, wcin, kh, kw]) = (x.dims(), weight.dims()) else {
+    let (&[_, cin, h, w], &[_, wcin, kh, kw]) = (x.dims(), weight.dims()) else {
         candle_core::bail!(
             "gpu conv2d: input {:?}, weight {:?} are not 4D",
             x.dims(),
@@ -608,33 +608,85 @@ pub fn conv2d(
             weight.dims()
         );
     }
+    // The im2col buffer is cin·kh·kw times the output's pixels: in a full-resolution VAE layer it alone
+    // outgrows a device's largest buffer (lavapipe: 128 MiB; 512² × 128 channels × 9 = 1.2 GB per image).
+    // Past the cap the convolution runs in blocks of whole images, then of output rows.
+    conv2d_blocked(x, weight, bias, stride, padding, im2col_cap(x))
+}
+
+/// [`conv2d`] with im2col blocks of at most `cap` bytes (where one output row does not fit, one row).
+fn conv2d_blocked(
+    x: &GpuTensor,
+    weight: &GpuTensor,
+    bias: Option<&GpuTensor>,
+    stride: usize,
+    padding: usize,
+    cap: usize,
+) -> Result<GpuTensor> {
+    let (&[n, cin, h, w], &[cout, _, kh, kw]) = (x.dims(), weight.dims()) else {
+        candle_core::bail!("gpu conv2d: input or weight not 4D");
+    };
     let oh = (h + 2 * padding - kh) / stride + 1;
     let ow = (w + 2 * padding - kw) / stride + 1;
     let depth = cin * kh * kw;
-    let cols = x.empty_like_device(vec![n, depth, oh * ow]);
-    let meta = Meta::new(x, &[cin, h, w, kh, kw, stride, padding, oh, ow])?;
-    // SAFETY: the kernel bound-checks against cols and reads x only inside [0, h) × [0, w).
-    unsafe {
-        cube::im2col::launch_unchecked(
-            x.client(),
-            grid_for(cols.elem_count(), ELEMENTWISE_UNITS),
-            CubeDim::new_1d(ELEMENTWISE_UNITS),
-            x.arg(),
-            cols.arg(),
-            meta.arg(),
-        )
+    let per_row = depth * ow * std::mem::size_of::<f32>();
+    let per_image = per_row * oh;
+    let block = |n0: usize, images: usize, oy0: usize, rows: usize| -> Result<GpuTensor> {
+        let cols = x.empty_like_device(vec![images, depth, rows * ow]);
+        let meta = Meta::new(x, &[cin, h, w, kh, kw, stride, padding, rows, ow, oy0, n0])?;
+        // SAFETY: the kernel bound-checks against cols and reads x only inside images n0.. of the batch
+        // and [0, h) × [0, w).
+        unsafe {
+            cube::im2col::launch_unchecked(
+                x.client(),
+                grid_for(cols.elem_count(), ELEMENTWISE_UNITS),
+                CubeDim::new_1d(ELEMENTWISE_UNITS),
+                x.arg(),
+                cols.arg(),
+                meta.arg(),
+            )
+        };
+        let g = Gemm {
+            batch: images,
+            m: cout,
+            n: rows * ow,
+            k: depth,
+            a_strides: [0, depth, 1],
+            b_strides: [depth * rows * ow, rows * ow, 1],
+            alpha: 1.0,
+        };
+        let bias = bias.map_or(GemmBias::None, GemmBias::PerRow);
+        gemm(weight, &cols, bias, &g, vec![images, cout, rows * ow])
     };
-    let g = Gemm {
-        batch: n,
-        m: cout,
-        n: oh * ow,
-        k: depth,
-        a_strides: [0, depth, 1],
-        b_strides: [depth * oh * ow, oh * ow, 1],
-        alpha: 1.0,
-    };
-    let bias = bias.map_or(GemmBias::None, GemmBias::PerRow);
-    gemm(weight, &cols, bias, &g, vec![n, cout, oh, ow])
+    if n * per_image <= cap {
+        return block(0, n, 0, oh)?.reshape(&[n, cout, oh, ow]);
+    }
+    let mut parts = Vec::new();
+    if per_image <= cap {
+        let images = cap / per_image;
+        for n0 in (0..n).step_by(images) {
+            parts.push(block(n0, images.min(n - n0), 0, oh)?);
+        }
+        return cat(&parts.iter().collect::<Vec<_>>(), 0)?.reshape(&[n, cout, oh, ow]);
+    }
+    let rows = (cap / per_row).max(1);
+    for n0 in 0..n {
+        let bands = (0..oh)
+            .step_by(rows)
+            .map(|oy0| block(n0, 1, oy0, rows.min(oh - oy0)))
+            .collect::<Result<Vec<_>>>()?;
+        parts.push(cat(&bands.iter().collect::<Vec<_>>(), 2)?);
+    }
+    cat(&parts.iter().collect::<Vec<_>>(), 0)?.reshape(&[n, cout, oh, ow])
+}
+
+/// Largest im2col buffer one convolution block may take: the device's largest buffer, at most 256 MiB
+/// (beyond that a larger block saves nothing: the product is already long).
+fn im2col_cap(x: &GpuTensor) -> usize {
+    const MOST: u64 = 256 << 20;
+    let limit = x.device().context().limits.max_buffer_bytes;
+    let limit = if limit == 0 { MOST } else { limit.min(MOST) };
+    usize::try_from(limit).unwrap_or(usize::MAX)
 }
 
 // ------------------------------------------------------------------------------------------ reductions

@@ -358,6 +358,27 @@ fn conv2d_matches_cpu() {
         )
         .unwrap();
         check(&format!("conv2d k{k} s{stride} p{padding}"), &got, &want);
+        // Blocked: one image per block, then bands of one and of three output rows (the last band
+        // shorter where the rows do not divide).
+        let oh = (h + 2 * padding - k) / stride + 1;
+        let ow = (w + 2 * padding - k) / stride + 1;
+        let per_row = cin * k * k * ow * 4;
+        for cap in [per_row * oh, per_row, 3 * per_row] {
+            let got = conv2d_blocked(
+                &up(&dev, &x),
+                &up(&dev, &weight),
+                gbias.as_ref(),
+                stride,
+                padding,
+                cap,
+            )
+            .unwrap();
+            check(
+                &format!("conv2d k{k} s{stride} p{padding}, im2col cap {cap}"),
+                &got,
+                &want,
+            );
+        }
     }
 }
 
