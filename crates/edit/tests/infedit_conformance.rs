@@ -153,8 +153,8 @@ fn infedit_matches_the_reference_every_step() {
     }
 }
 
-/// Every step's latents and predictions of one InfEdit run (the model's device decides where it runs).
-fn infedit_trace(model: &EditModel) -> Vec<Tensor> {
+/// "a ball" → "a red ball" (blending on "red") in `steps` steps at 64².
+fn ball_plan(model: &EditModel, steps: usize) -> EditPlan {
     let prompts = EditPrompts {
         source: "a ball".into(),
         target: "a red ball".into(),
@@ -162,10 +162,15 @@ fn infedit_trace(model: &EditModel) -> Vec<Tensor> {
         ..Default::default()
     };
     let settings = InfEditSettings {
-        steps: 4,
+        steps,
         ..Default::default()
     };
-    let plan = EditPlan::new(model, &prompts, &settings, (64, 64)).unwrap();
+    EditPlan::new(model, &prompts, &settings, (64, 64)).unwrap()
+}
+
+/// Every step's latents and predictions of one InfEdit run (the model's device decides where it runs).
+fn infedit_trace(model: &EditModel) -> Vec<Tensor> {
+    let plan = ball_plan(model, 4);
     let mut noise = SeededNoise::new(7);
     let image = noise
         .sample(&[1, 3, 64, 64])
@@ -236,17 +241,7 @@ fn infedit_steps_on_the_gpu_match_the_cpu() {
 /// Two views edited together, their UNet passes one call each (`batched = false`) or one call for both:
 /// each view's latents after every step.
 fn two_view_trace(model: &EditModel, batched: bool) -> Vec<Tensor> {
-    let prompts = EditPrompts {
-        source: "a ball".into(),
-        target: "a red ball".into(),
-        target_blend: "red".into(),
-        ..Default::default()
-    };
-    let settings = InfEditSettings {
-        steps: 2,
-        ..Default::default()
-    };
-    let plan = EditPlan::new(model, &prompts, &settings, (64, 64)).unwrap();
+    let plan = ball_plan(model, 2);
     let mut noise = SeededNoise::new(11);
     let init = noise.sample(&plan.latent_shape()).unwrap();
     let mut views = (0..2)
