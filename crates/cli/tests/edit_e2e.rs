@@ -101,7 +101,7 @@ fn edit_writes_every_output_and_changes_only_the_mask() {
         "{stdout}"
     );
     assert!(
-        stderr.contains("UNet calls") && stderr.contains("memory needed"),
+        stderr.contains("UNet passes") && stderr.contains("memory needed"),
         "work plan printed: {stderr}"
     );
     assert_eq!(

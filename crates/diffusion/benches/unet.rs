@@ -23,7 +23,9 @@ use candle_core::{DType, Device, Result, Shape, Tensor};
 use candle_nn::var_builder::SimpleBackend;
 use candle_nn::VarBuilder;
 use diffusion::device::DeviceTensor;
-use diffusion::unet::{AttentionHook, AttnCall, AttnKind, UNet2DConditionModel, UNetConfig};
+use diffusion::unet::{
+    AttentionHook, AttnCall, AttnKind, MapEdit, UNet2DConditionModel, UNetConfig,
+};
 
 /// `unet/config.json` of runwayml/stable-diffusion-v1-5 (diffusers 0.6 era, as published).
 const SD15_UNET_CONFIG: &str = r#"{
@@ -154,8 +156,25 @@ impl AttentionHook for InfEditShaped {
         ))
     }
 
+    /// Like InfEdit's controller while it refines: the maps of the blend-sized (16²) and smaller layers
+    /// are read, the larger layers' refinement goes to the values.
     fn wants_probs(&self, call: &AttnCall) -> bool {
-        call.kind == AttnKind::CrossAttn
+        call.kind == AttnKind::CrossAttn && call.height * call.width <= 16 * 16
+    }
+
+    fn map_edits(&self, call: &AttnCall) -> Vec<MapEdit> {
+        if call.kind != AttnKind::CrossAttn || !call.batch.is_multiple_of(6) {
+            return Vec::new();
+        }
+        // Each view's conditional target row takes the conditional source's maps, token for token.
+        (0..call.batch / 6)
+            .map(|view| MapEdit {
+                row: 6 * view + 4,
+                source: 6 * view + 3,
+                keep: vec![0.2; call.keys],
+                take: (0..call.keys).map(|j| (j, 0.8)).collect(),
+            })
+            .collect()
     }
 
     fn probs(&mut self, call: &AttnCall, probs: DeviceTensor) -> Result<DeviceTensor> {

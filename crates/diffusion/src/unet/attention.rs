@@ -2,9 +2,11 @@
 //!
 //! The hook is the one place where editing logic touches the UNet: every attention call reports its layer,
 //! whether it is self- or cross-attention, the spatial size of its queries and the batch/head counts, and
-//! the hook may replace Q/K/V before the softmax and read or replace the probabilities after it.
+//! the hook may replace Q/K/V before the softmax and read or replace the probabilities after it, or,
+//! where it changes the probabilities linearly without reading them, describe the change ([`MapEdit`]) so
+//! that the fused kernel still runs.
 
-use candle_core::Result;
+use candle_core::{Device, Result, Tensor};
 use candle_nn::{Linear, VarBuilder};
 
 use crate::kernels::DeviceTensor;
@@ -29,6 +31,8 @@ pub struct AttnCall<'a> {
     /// Batch size of the UNet call (the caller knows its layout, e.g. InfEdit's `[S_u,T_u,M_u,S_c,T_c,M_c]`).
     pub batch: usize,
     pub heads: usize,
+    /// Key tokens: `height * width` for self-attention, the encoder's sequence length for cross-attention.
+    pub keys: usize,
 }
 
 /// Observes and rewrites attention inside the UNet. All methods have pass-through defaults.
@@ -61,6 +65,182 @@ pub trait AttentionHook {
         let _ = call;
         Ok(probs)
     }
+
+    /// Linear edits of the probabilities of a call whose maps the hook does not read
+    /// ([`AttentionHook::wants_probs`] false), applied to the values so the fused kernel still runs.
+    fn map_edits(&self, call: &AttnCall) -> Vec<MapEdit> {
+        let _ = call;
+        Vec::new()
+    }
+}
+
+/// A change of one batch row's probabilities that is linear in the maps (Prompt-to-Prompt's refine, word
+/// swap and reweighting are of this form): for every query `q` and key token `j`,
+/// `P'[row][q, j] = keep[j] · P[row][q, j] + take[j].1 · P[source][q, take[j].0]`.
+///
+/// Since the output is `P' · V[row]`, it equals `attention(Q, K, keep ⊙ V)[row]` plus
+/// `attention(Q[source], K[source], V')` with `V'[t] = Σ_{j : take[j].0 = t} take[j].1 · V[row][j]`:
+/// two fused calls, no probability matrix.
+#[derive(Clone, Debug, PartialEq)]
+pub struct MapEdit {
+    /// The batch row whose probabilities change (at most one edit per row).
+    pub row: usize,
+    /// The batch row whose maps it takes from.
+    pub source: usize,
+    /// Per key token of `row`: the weight of its own map.
+    pub keep: Vec<f32>,
+    /// Per key token of `row`: the source's key token whose map it takes, and that map's weight.
+    pub take: Vec<(usize, f32)>,
+}
+
+impl MapEdit {
+    /// The edit applied to explicit probabilities `[batch, heads, q_len, k_len]` (the reference the fused
+    /// form is tested against).
+    pub fn apply_to_probs(&self, probs: &Tensor) -> Result<Tensor> {
+        let k_len = probs.dim(3)?;
+        self.check(probs.dim(0)?, k_len)?;
+        let own = probs.narrow(0, self.row, 1)?;
+        let source = probs.narrow(0, self.source, 1)?;
+        let index: Vec<u32> = self.take.iter().map(|&(t, _)| t as u32).collect();
+        let gathered = source.index_select(&Tensor::new(index, probs.device())?, 3)?;
+        let weights = |w: Vec<f32>| Tensor::from_vec(w, k_len, probs.device());
+        let edited = own.broadcast_mul(&weights(self.keep.clone())?)?.add(
+            &gathered.broadcast_mul(&weights(self.take.iter().map(|&(_, w)| w).collect())?)?,
+        )?;
+        let mut rows = Vec::with_capacity(probs.dim(0)?);
+        for b in 0..probs.dim(0)? {
+            rows.push(if b == self.row {
+                edited.clone()
+            } else {
+                probs.narrow(0, b, 1)?
+            });
+        }
+        Tensor::cat(&rows, 0)
+    }
+
+    fn check(&self, batch: usize, k_len: usize) -> Result<()> {
+        if self.row >= batch || self.source >= batch {
+            candle_core::bail!(
+                "map edit of row {} from row {}: the batch has {batch} rows",
+                self.row,
+                self.source
+            );
+        }
+        if self.keep.len() != k_len
+            || self.take.len() != k_len
+            || self.take.iter().any(|&(t, _)| t >= k_len)
+        {
+            candle_core::bail!("map edit: weights for {k_len} key tokens expected");
+        }
+        Ok(())
+    }
+
+    /// `V'` of the source's term, `[1, heads, k_len, head_dim]`: per source token, the weighted sum of
+    /// the row's values that take its map. Built from gathers, one per multiplicity of a source token.
+    fn source_values(&self, v_row: &DeviceTensor) -> Result<DeviceTensor> {
+        let k_len = self.take.len();
+        // takers[t]: the row's tokens that take source token t's map (with a weight).
+        let mut takers: Vec<Vec<(usize, f32)>> = vec![Vec::new(); k_len];
+        for (j, &(t, w)) in self.take.iter().enumerate() {
+            if w != 0.0 {
+                takers[t].push((j, w));
+            }
+        }
+        let layers = takers.iter().map(Vec::len).max().unwrap_or(0);
+        let mut sum: Option<DeviceTensor> = None;
+        for l in 0..layers.max(1) {
+            let index: Vec<u32> = takers
+                .iter()
+                .map(|t| t.get(l).map_or(0, |&(j, _)| j as u32))
+                .collect();
+            let weight: Vec<f32> = takers
+                .iter()
+                .map(|t| t.get(l).map_or(0.0, |&(_, w)| w))
+                .collect();
+            let term = v_row
+                .index_select(&index, 2)?
+                .broadcast_mul(&token_weights(v_row, weight)?)?;
+            sum = Some(match sum {
+                Some(s) => s.add(&term)?,
+                None => term,
+            });
+        }
+        Ok(sum.expect("at least one layer"))
+    }
+}
+
+/// Per-token weights shaped `[k_len, 1]` (they scale the rows of `[.., k_len, head_dim]` values), on
+/// `like`'s device.
+fn token_weights(like: &DeviceTensor, weights: Vec<f32>) -> Result<DeviceTensor> {
+    let n = weights.len();
+    like.same_device(&Tensor::from_vec(weights, (n, 1), &Device::Cpu)?)
+}
+
+/// The fused attention with `edits` applied to the values ([`MapEdit`]): one call over the batch with the
+/// edited rows' values scaled, one over the edits' source rows with their gathered values, summed per row.
+fn fused_with_edits(
+    q: &DeviceTensor,
+    k: &DeviceTensor,
+    v: &DeviceTensor,
+    scale: f64,
+    edits: &[MapEdit],
+) -> Result<DeviceTensor> {
+    if edits.is_empty() {
+        return DeviceTensor::attention(q, k, v, scale);
+    }
+    let (batch, _, k_len, _) = v.dims4()?;
+    let mut edit_of_row: Vec<Option<usize>> = vec![None; batch];
+    for (i, e) in edits.iter().enumerate() {
+        e.check(batch, k_len)?;
+        if edit_of_row[e.row].replace(i).is_some() {
+            candle_core::bail!("two map edits of batch row {}", e.row);
+        }
+    }
+    let mut values = Vec::with_capacity(batch);
+    let mut extra_values = Vec::with_capacity(edits.len());
+    for (b, edit) in edit_of_row.iter().enumerate() {
+        let v_row = v.narrow(0, b, 1)?;
+        values.push(match edit {
+            Some(i) => {
+                let e = &edits[*i];
+                extra_values.push(e.source_values(&v_row)?);
+                v_row.broadcast_mul(&token_weights(&v_row, e.keep.clone())?)?
+            }
+            None => v_row,
+        });
+    }
+    let sources: Vec<u32> = edit_of_row
+        .iter()
+        .flatten()
+        .map(|&i| edits[i].source as u32)
+        .collect();
+    let own = DeviceTensor::attention(
+        q,
+        k,
+        &DeviceTensor::cat(&values.iter().collect::<Vec<_>>(), 0)?,
+        scale,
+    )?;
+    let taken = DeviceTensor::attention(
+        &q.index_select(&sources, 0)?,
+        &k.index_select(&sources, 0)?,
+        &DeviceTensor::cat(&extra_values.iter().collect::<Vec<_>>(), 0)?,
+        scale,
+    )?;
+    // Rows in order; runs of unedited rows are copied as one block.
+    let mut parts = Vec::new();
+    let (mut b, mut next_extra) = (0, 0);
+    while b < batch {
+        if edit_of_row[b].is_some() {
+            parts.push(own.narrow(0, b, 1)?.add(&taken.narrow(0, next_extra, 1)?)?);
+            next_extra += 1;
+            b += 1;
+        } else {
+            let run = edit_of_row[b..].iter().take_while(|e| e.is_none()).count();
+            parts.push(own.narrow(0, b, run)?);
+            b += run;
+        }
+    }
+    DeviceTensor::cat(&parts.iter().collect::<Vec<_>>(), 0)
 }
 
 /// diffusers `Attention` inside `BasicTransformerBlock` (keys `to_q`, `to_k`, `to_v` without bias,
@@ -149,6 +329,7 @@ impl Attention {
                     width,
                     batch,
                     heads: self.heads,
+                    keys: k.dims()[2],
                 };
                 let (q, k, v) = hook.qkv(&call, q, k, v)?;
                 if hook.wants_probs(&call) {
@@ -156,12 +337,121 @@ impl Attention {
                     let probs = hook.probs(&call, scores.softmax_last_dim()?)?;
                     probs.matmul(&v)?
                 } else {
-                    DeviceTensor::attention(&q, &k, &v, scale)?
+                    fused_with_edits(&q, &k, &v, scale, &hook.map_edits(&call))?
                 }
             }
         };
         out.permute_contiguous(&[0, 2, 1, 3])?
             .reshape(&[batch, tokens, self.heads * self.head_dim])?
             .linear(&self.to_out)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use candle_core::{Device, Tensor};
+
+    use super::*;
+    use crate::kernels::gpu::testing::device_or_skip;
+
+    /// Two edits over a batch of 4 (one taking from another row with a token taken twice and an unmatched
+    /// one, one reweighting only), fused against the explicit maps.
+    fn edits() -> Vec<MapEdit> {
+        vec![
+            MapEdit {
+                row: 2,
+                source: 0,
+                keep: vec![0.0, 0.5, 1.0, 0.3, 0.2],
+                take: vec![(0, 1.0), (1, 0.5), (1, 0.4), (4, 0.7), (0, 0.0)],
+            },
+            MapEdit {
+                row: 3,
+                source: 3,
+                keep: vec![1.0, 2.0, 0.5, 1.0, 1.5],
+                take: vec![(0, 0.0); 5],
+            },
+        ]
+    }
+
+    fn qkv() -> (Tensor, Tensor, Tensor) {
+        let r = |shape: (usize, usize, usize, usize)| {
+            Tensor::randn(0f32, 1.0, shape, &Device::Cpu).unwrap()
+        };
+        (r((4, 2, 6, 3)), r((4, 2, 5, 3)), r((4, 2, 5, 3)))
+    }
+
+    fn explicit(q: &Tensor, k: &Tensor, v: &Tensor, scale: f64) -> Tensor {
+        let scores = (q.matmul(&k.t().unwrap()).unwrap() * scale).unwrap();
+        let mut probs = candle_nn::ops::softmax_last_dim(&scores).unwrap();
+        for e in edits() {
+            probs = e.apply_to_probs(&probs).unwrap();
+        }
+        probs.matmul(v).unwrap()
+    }
+
+    fn max_relative(a: &Tensor, b: &Tensor) -> f32 {
+        let a: Vec<f32> = a.flatten_all().unwrap().to_vec1().unwrap();
+        let b: Vec<f32> = b.flatten_all().unwrap().to_vec1().unwrap();
+        let scale = b.iter().fold(0f32, |m, x| m.max(x.abs()));
+        a.iter()
+            .zip(&b)
+            .fold(0f32, |m, (x, y)| m.max((x - y).abs()))
+            / scale
+    }
+
+    #[test]
+    fn edits_applied_to_the_values_match_the_edited_probabilities() {
+        let (q, k, v) = qkv();
+        let want = explicit(&q, &k, &v, 0.5);
+        let cpu = |t: &Tensor| DeviceTensor::Cpu(t.clone());
+        let got = fused_with_edits(&cpu(&q), &cpu(&k), &cpu(&v), 0.5, &edits())
+            .unwrap()
+            .to_cpu()
+            .unwrap();
+        let err = max_relative(&got, &want);
+        assert!(err < 1e-5, "CPU relative error {err}");
+        // Unedited rows are the plain fused attention.
+        let plain = fused_with_edits(&cpu(&q), &cpu(&k), &cpu(&v), 0.5, &[])
+            .unwrap()
+            .to_cpu()
+            .unwrap();
+        assert!(
+            max_relative(
+                &got.narrow(0, 0, 2).unwrap(),
+                &plain.narrow(0, 0, 2).unwrap()
+            ) < 1e-6
+        );
+        assert!(
+            max_relative(
+                &got.narrow(0, 2, 1).unwrap(),
+                &plain.narrow(0, 2, 1).unwrap()
+            ) > 1e-2
+        );
+
+        let Some(device) = device_or_skip() else {
+            return;
+        };
+        let gpu = |t: &Tensor| DeviceTensor::on(t, Some(&device)).unwrap();
+        let got = fused_with_edits(&gpu(&q), &gpu(&k), &gpu(&v), 0.5, &edits())
+            .unwrap()
+            .to_cpu()
+            .unwrap();
+        let err = max_relative(&got, &want);
+        assert!(err < 1e-5, "GPU relative error {err}");
+    }
+
+    #[test]
+    fn malformed_edits_are_errors() {
+        let (q, k, v) = qkv();
+        let cpu = |t: &Tensor| DeviceTensor::Cpu(t.clone());
+        let mut twice = edits();
+        twice[1].row = 2;
+        let mut short = edits();
+        short[0].keep.pop();
+        let mut outside = edits();
+        outside[0].source = 4;
+        for bad in [twice, short, outside] {
+            assert!(fused_with_edits(&cpu(&q), &cpu(&k), &cpu(&v), 0.5, &bad).is_err());
+        }
     }
 }

@@ -21,7 +21,7 @@ use std::collections::HashMap;
 
 use candle_core::{DType, Device, Result, Tensor};
 use diffusion::device::DeviceTensor;
-use diffusion::unet::{AttentionHook, AttnCall, AttnKind};
+use diffusion::unet::{AttentionHook, AttnCall, AttnKind, MapEdit};
 
 use super::align::TokenAlignment;
 
@@ -58,8 +58,8 @@ pub struct EditController {
     settings: ControlSettings,
     /// `mapper` as gather indices over the source's token axis (unmatched → 0, weight 0).
     mapper: Vec<u32>,
-    /// `alphas` as a [tokens] tensor.
-    alphas: Tensor,
+    /// The alignment's `alphas`, one per target token.
+    alphas: Vec<f32>,
     cur_step: usize,
     /// Σ over steps of [refine(A_S), refine(A_M)] per blend layer, `[2, heads, h*w, tokens]`, in call order,
     /// on the UNet's device.
@@ -71,26 +71,21 @@ pub struct EditController {
 }
 
 impl EditController {
-    pub fn new(
-        settings: ControlSettings,
-        alignment: &TokenAlignment,
-        device: &Device,
-    ) -> Result<Self> {
+    pub fn new(settings: ControlSettings, alignment: &TokenAlignment) -> Self {
         let mapper: Vec<u32> = alignment
             .mapper
             .iter()
             .map(|m| m.unwrap_or(0) as u32)
             .collect();
-        let n = mapper.len();
-        Ok(Self {
+        Self {
             settings,
             mapper,
-            alphas: Tensor::from_vec(alignment.alphas.clone(), n, device)?,
+            alphas: alignment.alphas.clone(),
             cur_step: 0,
             blend_store: Vec::new(),
             recording: None,
             consistent: None,
-        })
+        }
     }
 
     pub fn settings(&self) -> &ControlSettings {
@@ -151,28 +146,36 @@ impl EditController {
         }
     }
 
+    /// The alignment for `tokens` key tokens: (mapper, alphas). When the encoder length differs from the
+    /// alignment's, the overlap is aligned and the rest keeps its own maps.
+    fn alignment_for(&self, tokens: usize) -> (Vec<u32>, Vec<f32>) {
+        let n = tokens.min(self.mapper.len());
+        let mut mapper = self.mapper[..n].to_vec();
+        let mut alphas = self.alphas[..n].to_vec();
+        mapper.extend((n..tokens).map(|j| j as u32));
+        alphas.extend(std::iter::repeat_n(0.0, tokens - n));
+        (mapper, alphas)
+    }
+
+    /// Whether the target's maps are refined from the source's in the current pass.
+    fn refining(&self) -> bool {
+        self.settings.cross_replace >= self.progress()
+    }
+
     /// `refine(base → target)`: A'[.., j] = α_j · base[.., mapper_j] + (1 − α_j) · target[.., j].
     fn refine(&self, base: &DeviceTensor, target: &DeviceTensor) -> Result<DeviceTensor> {
         let last = base.dims().len() - 1;
-        let tokens = base.dims()[last];
-        let (mapper, alphas) = if tokens == self.mapper.len() {
-            (self.mapper.clone(), self.alphas.clone())
-        } else {
-            // The encoder length differs from the alignment's: align the overlap, keep the rest.
-            let n = tokens.min(self.mapper.len());
-            let mut m = self.mapper[..n].to_vec();
-            let mut a: Vec<f32> = self.alphas.narrow(0, 0, n)?.to_vec1()?;
-            m.extend((n..tokens).map(|j| j as u32));
-            a.extend(std::iter::repeat_n(0.0, tokens - n));
-            (m, Tensor::new(a, self.alphas.device())?)
-        };
+        let (mapper, alphas) = self.alignment_for(base.dims()[last]);
         let gathered = base.index_select(&mapper, last)?;
         // Two tiny uploads per call on a GPU (the weights of 77 tokens).
-        let one_minus = base.same_device(&alphas.affine(-1.0, 1.0)?)?;
-        let alphas = base.same_device(&alphas)?;
+        let one_minus: Vec<f32> = alphas.iter().map(|a| 1.0 - a).collect();
+        let weights = |w: Vec<f32>| {
+            let n = w.len();
+            base.same_device(&Tensor::from_vec(w, n, &Device::Cpu)?)
+        };
         gathered
-            .broadcast_mul(&alphas)?
-            .add(&target.broadcast_mul(&one_minus)?)
+            .broadcast_mul(&weights(alphas)?)?
+            .add(&target.broadcast_mul(&weights(one_minus)?)?)
     }
 
     /// Index along the batch axis for the self-attention swap, for one CFG half starting at `o`.
@@ -214,16 +217,12 @@ impl AttentionHook for EditController {
         ))
     }
 
-    /// Only the cross-attention calls whose maps [`Self::probs`] reads or changes: while the target's maps
-    /// are refined (every layer), the blend layers (accumulated), and CCM's small layers while recording
-    /// or substituting. Every other call keeps its maps, so it runs the fused attention (no probability
-    /// matrix; the large layers late in the schedule).
+    /// Only the cross-attention calls whose maps [`Self::probs`] reads or replaces: the blend layers
+    /// (accumulated) and CCM's small layers while recording or substituting. Every other call runs the
+    /// fused attention (no probability matrix); its refinement goes to the values ([`Self::map_edits`]).
     fn wants_probs(&self, call: &AttnCall) -> bool {
         if call.kind != AttnKind::CrossAttn || (call.batch != 6 && call.batch != 3) {
             return false;
-        }
-        if self.settings.cross_replace >= self.progress() {
-            return true;
         }
         let small = call.height * call.width <= self.settings.store_max_tokens;
         let substituted = self
@@ -236,6 +235,25 @@ impl AttentionHook for EditController {
         self.recording.is_none()
             && (call.height, call.width) == self.settings.blend_size
             && !call.layer.starts_with("mid")
+    }
+
+    /// The target's refinement as a [`MapEdit`] of the conditional target row from the conditional
+    /// source row (for the calls whose maps nothing reads).
+    fn map_edits(&self, call: &AttnCall) -> Vec<MapEdit> {
+        if call.kind != AttnKind::CrossAttn
+            || (call.batch != 6 && call.batch != 3)
+            || !self.refining()
+        {
+            return Vec::new();
+        }
+        let cond_start = if call.batch == 6 { 3 } else { 0 };
+        let (mapper, alphas) = self.alignment_for(call.keys);
+        vec![MapEdit {
+            row: cond_start + 1,
+            source: cond_start,
+            keep: alphas.iter().map(|a| 1.0 - a).collect(),
+            take: mapper.iter().map(|&m| m as usize).zip(alphas).collect(),
+        }]
     }
 
     fn probs(&mut self, call: &AttnCall, probs: DeviceTensor) -> Result<DeviceTensor> {
@@ -260,7 +278,7 @@ impl AttentionHook for EditController {
             cond.narrow(0, 2, 1)?,
         );
         let refined_s = self.refine(&a_s, &a_t)?;
-        let new_t = if self.settings.cross_replace >= self.progress() {
+        let new_t = if self.refining() {
             refined_s.clone()
         } else {
             a_t.clone()
@@ -333,6 +351,7 @@ mod tests {
             width: 2,
             batch,
             heads: 1,
+            keys: 3,
         }
     }
 
@@ -346,7 +365,7 @@ mod tests {
     fn cross_replace_maps_source_onto_target_tokens() {
         // Target token 1 takes source token 2; token 2 is new (alpha 0) and keeps its own map.
         let al = alignment(vec![Some(0), Some(2), None], vec![1.0, 1.0, 0.0]);
-        let mut c = EditController::new(settings(1.0, 0.0), &al, &Device::Cpu).unwrap();
+        let mut c = EditController::new(settings(1.0, 0.0), &al);
         let p = probs();
         let out = c
             .probs(&call(AttnKind::CrossAttn, 6), p.clone().into())
@@ -376,9 +395,36 @@ mod tests {
     }
 
     #[test]
+    fn refinement_as_a_map_edit_is_the_refinement_of_the_maps() {
+        // Token 3 of the encoder is beyond the alignment: it keeps its own map.
+        let al = alignment(vec![Some(0), Some(2), None], vec![1.0, 0.6, 0.0]);
+        let mut c = EditController::new(settings(1.0, 0.0), &al);
+        let unread = AttnCall {
+            height: 4,
+            width: 1,
+            keys: 4,
+            ..call(AttnKind::CrossAttn, 6)
+        };
+        assert!(!c.wants_probs(&unread));
+        let scores = Tensor::randn(0f32, 1.0, (6, 2, 5, 4), &Device::Cpu).unwrap();
+        let p = candle_nn::ops::softmax_last_dim(&scores).unwrap();
+        let refined = c
+            .probs(&unread, p.clone().into())
+            .unwrap()
+            .to_cpu()
+            .unwrap();
+        let edits = c.map_edits(&unread);
+        assert_eq!(edits.len(), 1);
+        let edited = edits[0].apply_to_probs(&p).unwrap();
+        let flat = |t: &Tensor| t.flatten_all().unwrap().to_vec1::<f32>().unwrap();
+        assert_eq!(flat(&edited), flat(&refined));
+        assert_ne!(flat(&edited), flat(&p));
+    }
+
+    #[test]
     fn after_cross_replace_the_target_keeps_its_maps() {
         let al = alignment(vec![Some(0), Some(2), None], vec![1.0, 1.0, 0.0]);
-        let mut c = EditController::new(settings(0.5, 0.0), &al, &Device::Cpu).unwrap();
+        let mut c = EditController::new(settings(0.5, 0.0), &al);
         let p = probs();
         c.end_step();
         c.end_step(); // progress 3/4 > 0.5
@@ -396,7 +442,7 @@ mod tests {
     #[test]
     fn probabilities_are_asked_for_only_where_they_are_read_or_changed() {
         let al = alignment(vec![Some(0), Some(1)], vec![1.0, 1.0]);
-        let mut c = EditController::new(settings(0.5, 0.0), &al, &Device::Cpu).unwrap();
+        let mut c = EditController::new(settings(0.5, 0.0), &al);
         let large = AttnCall {
             height: 64,
             width: 64,
@@ -407,11 +453,17 @@ mod tests {
             layer: "mid_block.attentions.0.transformer_blocks.0.attn2",
             ..blend
         };
-        // Refining (progress 1/4 ≤ 0.5): every cross-attention call, no self-attention call.
-        assert!(c.wants_probs(&large) && c.wants_probs(&blend) && c.wants_probs(&mid));
+        // Refining (progress 1/4 ≤ 0.5): the blend layers read their maps; elsewhere the refinement is
+        // a map edit of the conditional target row from the conditional source row.
+        assert!(!c.wants_probs(&large) && c.wants_probs(&blend) && !c.wants_probs(&mid));
         assert!(!c.wants_probs(&call(AttnKind::SelfAttn, 6)));
+        let edits = c.map_edits(&large);
+        assert_eq!((edits.len(), edits[0].row, edits[0].source), (1, 4, 3));
+        assert_eq!(c.map_edits(&AttnCall { batch: 3, ..large })[0].row, 1);
+        assert!(c.map_edits(&call(AttnKind::SelfAttn, 6)).is_empty());
         c.end_step();
         c.end_step(); // progress 3/4: refinement over
+        assert!(c.map_edits(&large).is_empty());
         assert!(!c.wants_probs(&large), "nothing reads a large layer's maps");
         assert!(c.wants_probs(&blend), "blend layers accumulate");
         assert!(!c.wants_probs(&mid), "the mid block is not blended");
@@ -431,7 +483,7 @@ mod tests {
     #[test]
     fn self_attention_swaps_follow_the_schedule() {
         let al = alignment(vec![Some(0)], vec![1.0]);
-        let mut c = EditController::new(settings(1.0, 0.5), &al, &Device::Cpu).unwrap();
+        let mut c = EditController::new(settings(1.0, 0.5), &al);
         let x = Tensor::arange(0f32, 6.0, &Device::Cpu)
             .unwrap()
             .reshape((6, 1, 1, 1))
@@ -473,7 +525,7 @@ mod tests {
     #[test]
     fn recording_and_consistent_replacement() {
         let al = alignment(vec![Some(0), Some(1), Some(2)], vec![1.0, 1.0, 1.0]);
-        let mut c = EditController::new(settings(0.0, 0.0), &al, &Device::Cpu).unwrap();
+        let mut c = EditController::new(settings(0.0, 0.0), &al);
         c.start_recording();
         let p = probs();
         c.probs(&call(AttnKind::CrossAttn, 6), p.clone().into())

@@ -13,7 +13,7 @@
 use candle_core::{Device, Tensor};
 use diffusion::device::DeviceTensor;
 use diffusion::scheduler::{LcmScheduler, LcmVariant};
-use diffusion::unet::{AttentionHook, AttnCall};
+use diffusion::unet::{AttentionHook, AttnCall, MapEdit};
 
 use super::align::{align_prompts, AlignError, AlignInputs, TokenAlignment};
 use super::control::{ControlSettings, EditController, DEFAULT_STORE_MAX_TOKENS};
@@ -288,7 +288,7 @@ impl EditPlan {
     }
 
     /// A fresh attention controller for one view.
-    pub fn controller(&self) -> candle_core::Result<EditController> {
+    pub fn controller(&self) -> EditController {
         EditController::new(
             ControlSettings {
                 num_steps: self.num_steps,
@@ -299,7 +299,6 @@ impl EditPlan {
                 store_max_tokens: DEFAULT_STORE_MAX_TOKENS,
             },
             &self.alignment,
-            &Device::Cpu,
         )
     }
 
@@ -332,7 +331,7 @@ impl EditPlan {
             pred_m: None,
             offset_t: None,
             offset_m: None,
-            controller: self.controller()?,
+            controller: self.controller(),
         })
     }
 
@@ -616,6 +615,24 @@ impl AttentionHook for ViewBatch<'_> {
     fn probs(&mut self, call: &AttnCall, probs: DeviceTensor) -> candle_core::Result<DeviceTensor> {
         let [probs] = self.per_view(call, [probs], |c, call, [p]| Ok([c.probs(call, p)?]))?;
         Ok(probs)
+    }
+
+    fn map_edits(&self, call: &AttnCall) -> Vec<MapEdit> {
+        // Each controller's edits of its own slice, moved to the slice's rows of the whole batch.
+        let per = call.batch / self.0.len();
+        let slice_call = AttnCall {
+            batch: per,
+            ..*call
+        };
+        let mut edits = Vec::new();
+        for (v, c) in self.0.iter().enumerate() {
+            edits.extend(c.map_edits(&slice_call).into_iter().map(|e| MapEdit {
+                row: e.row + v * per,
+                source: e.source + v * per,
+                ..e
+            }));
+        }
+        edits
     }
 }
 
