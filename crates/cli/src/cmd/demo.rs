@@ -6,8 +6,8 @@ use anyhow::bail;
 use edit::compute::Compute;
 
 use demo::run::{
-    demo_scene, load_model, reference_rows, reference_table, run_variant, table, variant_dir,
-    DemoOptions, Variant, PAIRS,
+    demo_job, demo_scene, load_model, reference_rows, reference_table, run_variant, table,
+    variant_dir, DemoOptions, Variant, PAIRS,
 };
 
 use crate::args::output::{files_under, fingerprint, ForceArg, OutputDir};
@@ -100,6 +100,10 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         opts.size,
         model_dir.display()
     );
+    // The same work plan `vcedit edit` prints (memory, and on a GPU the view batch), for the full variant.
+    let job = demo_job(&opts, &scene, Variant::Full);
+    let plan = edit::run::work_plan(&job, &model, &scene.built.scene, scene.cameras.len());
+    eprintln!("{}", plan.describe());
     let settings_key = fingerprint(&(
         &model_dir,
         args.pair,
