@@ -97,24 +97,19 @@ impl MapEdit {
     /// The edit applied to explicit probabilities `[batch, heads, q_len, k_len]` (the reference the fused
     /// form is tested against).
     pub fn apply_to_probs(&self, probs: &Tensor) -> Result<Tensor> {
-        let k_len = probs.dim(3)?;
-        self.check(probs.dim(0)?, k_len)?;
-        let own = probs.narrow(0, self.row, 1)?;
-        let source = probs.narrow(0, self.source, 1)?;
-        let index: Vec<u32> = self.take.iter().map(|&(t, _)| t as u32).collect();
-        let gathered = source.index_select(&Tensor::new(index, probs.device())?, 3)?;
-        let weights = |w: Vec<f32>| Tensor::from_vec(w, k_len, probs.device());
-        let edited = own.broadcast_mul(&weights(self.keep.clone())?)?.add(
-            &gathered.broadcast_mul(&weights(self.take.iter().map(|&(_, w)| w).collect())?)?,
-        )?;
-        let mut rows = Vec::with_capacity(probs.dim(0)?);
-        for b in 0..probs.dim(0)? {
-            rows.push(if b == self.row {
-                edited.clone()
-            } else {
-                probs.narrow(0, b, 1)?
-            });
-        }
+        self.check(probs.dim(0)?, probs.dim(3)?)?;
+        let row = |b| DeviceTensor::Cpu(probs.narrow(0, b, 1).expect("checked row"));
+        let edited =
+            edit_maps(&row(self.row), &row(self.source), &self.keep, &self.take)?.to_cpu()?;
+        let rows = (0..probs.dim(0)?)
+            .map(|b| {
+                if b == self.row {
+                    Ok(edited.clone())
+                } else {
+                    probs.narrow(0, b, 1)
+                }
+            })
+            .collect::<Result<Vec<_>>>()?;
         Tensor::cat(&rows, 0)
     }
 
@@ -174,6 +169,28 @@ impl MapEdit {
 fn token_weights(like: &DeviceTensor, weights: Vec<f32>) -> Result<DeviceTensor> {
     let n = weights.len();
     like.same_device(&Tensor::from_vec(weights, (n, 1), &Device::Cpu)?)
+}
+
+/// The maps of a [`MapEdit`] (`[.., k_len]`, the key tokens last), from the edited row's maps `own` and
+/// the source row's maps `source`: `keep[j] · own[.., j] + take[j].1 · source[.., take[j].0]`. The
+/// explicit form, for callers that hold the maps anyway (InfEdit's refinement of the maps it reads).
+pub fn edit_maps(
+    own: &DeviceTensor,
+    source: &DeviceTensor,
+    keep: &[f32],
+    take: &[(usize, f32)],
+) -> Result<DeviceTensor> {
+    let last = own.dims().len() - 1;
+    let index: Vec<u32> = take.iter().map(|&(t, _)| t as u32).collect();
+    let gathered = source.index_select(&index, last)?;
+    // Two tiny uploads per call on a GPU (the weights of 77 tokens).
+    let weights = |w: Vec<f32>| {
+        let n = w.len();
+        own.same_device(&Tensor::from_vec(w, n, &Device::Cpu)?)
+    };
+    gathered
+        .broadcast_mul(&weights(take.iter().map(|&(_, w)| w).collect())?)?
+        .add(&own.broadcast_mul(&weights(keep.to_vec())?)?)
 }
 
 /// The fused attention with `edits` applied to the values ([`MapEdit`]): one call over the batch with the
@@ -352,7 +369,7 @@ mod tests {
     use candle_core::{Device, Tensor};
 
     use super::*;
-    use crate::kernels::gpu::testing::device_or_skip;
+    use crate::kernels::gpu::testing::{device_or_skip, relative_error};
 
     /// Two edits over a batch of 4 (one taking from another row with a token taken twice and an unmatched
     /// one, one reweighting only), fused against the explicit maps.
@@ -373,11 +390,20 @@ mod tests {
         ]
     }
 
+    /// Fixed pseudo-random operands (every call the same), Q [4, 2, 6, 3] and K, V [4, 2, 5, 3].
     fn qkv() -> (Tensor, Tensor, Tensor) {
-        let r = |shape: (usize, usize, usize, usize)| {
-            Tensor::randn(0f32, 1.0, shape, &Device::Cpu).unwrap()
+        let r = |shape: (usize, usize, usize, usize), phase: f32| {
+            let n = shape.0 * shape.1 * shape.2 * shape.3;
+            let values: Vec<f32> = (0..n)
+                .map(|i| (i as f32 * 0.731 + phase).sin() * 1.5)
+                .collect();
+            Tensor::from_vec(values, shape, &Device::Cpu).unwrap()
         };
-        (r((4, 2, 6, 3)), r((4, 2, 5, 3)), r((4, 2, 5, 3)))
+        (
+            r((4, 2, 6, 3), 0.0),
+            r((4, 2, 5, 3), 1.0),
+            r((4, 2, 5, 3), 2.0),
+        )
     }
 
     fn explicit(q: &Tensor, k: &Tensor, v: &Tensor, scale: f64) -> Tensor {
@@ -389,14 +415,13 @@ mod tests {
         probs.matmul(v).unwrap()
     }
 
-    fn max_relative(a: &Tensor, b: &Tensor) -> f32 {
-        let a: Vec<f32> = a.flatten_all().unwrap().to_vec1().unwrap();
-        let b: Vec<f32> = b.flatten_all().unwrap().to_vec1().unwrap();
-        let scale = b.iter().fold(0f32, |m, x| m.max(x.abs()));
-        a.iter()
-            .zip(&b)
-            .fold(0f32, |m, (x, y)| m.max((x - y).abs()))
-            / scale
+    /// `fused_with_edits` on the device `on` puts the operands on, read back.
+    fn fused(on: &dyn Fn(&Tensor) -> DeviceTensor, edits: &[MapEdit]) -> Tensor {
+        let (q, k, v) = qkv();
+        fused_with_edits(&on(&q), &on(&k), &on(&v), 0.5, edits)
+            .unwrap()
+            .to_cpu()
+            .unwrap()
     }
 
     #[test]
@@ -404,39 +429,20 @@ mod tests {
         let (q, k, v) = qkv();
         let want = explicit(&q, &k, &v, 0.5);
         let cpu = |t: &Tensor| DeviceTensor::Cpu(t.clone());
-        let got = fused_with_edits(&cpu(&q), &cpu(&k), &cpu(&v), 0.5, &edits())
-            .unwrap()
-            .to_cpu()
-            .unwrap();
-        let err = max_relative(&got, &want);
+        let got = fused(&cpu, &edits());
+        let err = relative_error(&got, &want);
         assert!(err < 1e-5, "CPU relative error {err}");
         // Unedited rows are the plain fused attention.
-        let plain = fused_with_edits(&cpu(&q), &cpu(&k), &cpu(&v), 0.5, &[])
-            .unwrap()
-            .to_cpu()
-            .unwrap();
-        assert!(
-            max_relative(
-                &got.narrow(0, 0, 2).unwrap(),
-                &plain.narrow(0, 0, 2).unwrap()
-            ) < 1e-6
-        );
-        assert!(
-            max_relative(
-                &got.narrow(0, 2, 1).unwrap(),
-                &plain.narrow(0, 2, 1).unwrap()
-            ) > 1e-2
-        );
+        let plain = fused(&cpu, &[]);
+        let rows = |t: &Tensor, start, len| t.narrow(0, start, len).unwrap();
+        assert!(relative_error(&rows(&got, 0, 2), &rows(&plain, 0, 2)) < 1e-6);
+        assert!(relative_error(&rows(&got, 2, 1), &rows(&plain, 2, 1)) > 1e-2);
 
         let Some(device) = device_or_skip() else {
             return;
         };
-        let gpu = |t: &Tensor| DeviceTensor::on(t, Some(&device)).unwrap();
-        let got = fused_with_edits(&gpu(&q), &gpu(&k), &gpu(&v), 0.5, &edits())
-            .unwrap()
-            .to_cpu()
-            .unwrap();
-        let err = max_relative(&got, &want);
+        let got = fused(&|t| DeviceTensor::on(t, Some(&device)).unwrap(), &edits());
+        let err = relative_error(&got, &want);
         assert!(err < 1e-5, "GPU relative error {err}");
     }
 

@@ -15,7 +15,7 @@ use std::path::{Path, PathBuf};
 use candle_core::{DType, Tensor};
 use candle_nn::VarBuilder;
 
-pub use attention::{AttentionHook, AttnCall, AttnKind, MapEdit};
+pub use attention::{edit_maps, AttentionHook, AttnCall, AttnKind, MapEdit};
 use blocks::{BlockAttention, DownBlock, MidBlock, ResnetShared, UpBlock};
 pub use config::UNetConfig;
 use config::{BlockKind, ResolvedBlocks};

@@ -19,9 +19,9 @@
 
 use std::collections::HashMap;
 
-use candle_core::{DType, Device, Result, Tensor};
+use candle_core::{DType, Result, Tensor};
 use diffusion::device::DeviceTensor;
-use diffusion::unet::{AttentionHook, AttnCall, AttnKind, MapEdit};
+use diffusion::unet::{edit_maps, AttentionHook, AttnCall, AttnKind, MapEdit};
 
 use super::align::TokenAlignment;
 
@@ -146,15 +146,18 @@ impl EditController {
         }
     }
 
-    /// The alignment for `tokens` key tokens: (mapper, alphas). When the encoder length differs from the
-    /// alignment's, the overlap is aligned and the rest keeps its own maps.
-    fn alignment_for(&self, tokens: usize) -> (Vec<u32>, Vec<f32>) {
+    /// The refinement's weights for `tokens` key tokens, as a [`MapEdit`]'s (keep, take): target token j
+    /// keeps `1 − α_j` of its own map and takes `α_j` of the source's map of token `mapper_j`. When the
+    /// encoder length differs from the alignment's, the overlap is aligned and the rest keeps its own maps.
+    fn refinement(&self, tokens: usize) -> (Vec<f32>, Vec<(usize, f32)>) {
         let n = tokens.min(self.mapper.len());
-        let mut mapper = self.mapper[..n].to_vec();
-        let mut alphas = self.alphas[..n].to_vec();
-        mapper.extend((n..tokens).map(|j| j as u32));
-        alphas.extend(std::iter::repeat_n(0.0, tokens - n));
-        (mapper, alphas)
+        let aligned = self.mapper[..n].iter().zip(&self.alphas[..n]);
+        let take: Vec<(usize, f32)> = aligned
+            .map(|(&m, &a)| (m as usize, a))
+            .chain((n..tokens).map(|j| (j, 0.0)))
+            .collect();
+        let keep = take.iter().map(|&(_, a)| 1.0 - a).collect();
+        (keep, take)
     }
 
     /// Whether the target's maps are refined from the source's in the current pass.
@@ -164,18 +167,8 @@ impl EditController {
 
     /// `refine(base → target)`: A'[.., j] = α_j · base[.., mapper_j] + (1 − α_j) · target[.., j].
     fn refine(&self, base: &DeviceTensor, target: &DeviceTensor) -> Result<DeviceTensor> {
-        let last = base.dims().len() - 1;
-        let (mapper, alphas) = self.alignment_for(base.dims()[last]);
-        let gathered = base.index_select(&mapper, last)?;
-        // Two tiny uploads per call on a GPU (the weights of 77 tokens).
-        let one_minus: Vec<f32> = alphas.iter().map(|a| 1.0 - a).collect();
-        let weights = |w: Vec<f32>| {
-            let n = w.len();
-            base.same_device(&Tensor::from_vec(w, n, &Device::Cpu)?)
-        };
-        gathered
-            .broadcast_mul(&weights(alphas)?)?
-            .add(&target.broadcast_mul(&weights(one_minus)?)?)
+        let (keep, take) = self.refinement(base.dims()[base.dims().len() - 1]);
+        edit_maps(target, base, &keep, &take)
     }
 
     /// Index along the batch axis for the self-attention swap, for one CFG half starting at `o`.
@@ -247,12 +240,12 @@ impl AttentionHook for EditController {
             return Vec::new();
         }
         let cond_start = if call.batch == 6 { 3 } else { 0 };
-        let (mapper, alphas) = self.alignment_for(call.keys);
+        let (keep, take) = self.refinement(call.keys);
         vec![MapEdit {
             row: cond_start + 1,
             source: cond_start,
-            keep: alphas.iter().map(|a| 1.0 - a).collect(),
-            take: mapper.iter().map(|&m| m as usize).zip(alphas).collect(),
+            keep,
+            take,
         }]
     }
 
@@ -319,7 +312,7 @@ impl AttentionHook for EditController {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use candle_core::IndexOp;
+    use candle_core::{Device, IndexOp};
 
     fn alignment(mapper: Vec<Option<usize>>, alphas: Vec<f32>) -> TokenAlignment {
         let n = mapper.len();

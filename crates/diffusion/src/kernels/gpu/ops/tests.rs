@@ -3,7 +3,7 @@
 
 use candle_core::{Device, Tensor};
 
-use super::super::testing::device_or_skip;
+use super::super::testing::{device_or_skip, relative_error};
 use super::super::{GpuDevice, GpuTensor, Precision};
 use super::*;
 
@@ -25,32 +25,8 @@ fn check(what: &str, gpu: &GpuTensor, cpu: &Tensor) {
 /// Asserts `gpu` matches `cpu` in shape and to `tolerance` (max abs difference over max abs value);
 /// returns the relative error.
 fn check_within(what: &str, gpu: &GpuTensor, cpu: &Tensor, tolerance: f32) -> f32 {
-    let got = gpu.to_cpu().unwrap();
-    assert_eq!(got.dims(), cpu.dims(), "{what}: shape");
-    let diff: f32 = (&got - cpu)
-        .unwrap()
-        .abs()
-        .unwrap()
-        .flatten_all()
-        .unwrap()
-        .max(0)
-        .unwrap()
-        .to_scalar()
-        .unwrap();
-    let scale: f32 = cpu
-        .abs()
-        .unwrap()
-        .flatten_all()
-        .unwrap()
-        .max(0)
-        .unwrap()
-        .to_scalar()
-        .unwrap();
-    let rel = diff / scale.max(1e-6);
-    assert!(
-        rel <= tolerance,
-        "{what}: relative error {rel:.3e} (max abs diff {diff:.3e}, scale {scale:.3e})"
-    );
+    let rel = relative_error(&gpu.to_cpu().unwrap(), cpu);
+    assert!(rel <= tolerance, "{what}: relative error {rel:.3e}");
     rel
 }
 
