@@ -20,6 +20,7 @@ use cubecl::client::Client;
 use cubecl::device::{WgpuBackend, WgpuDeviceKind};
 use cubecl::wgpu::{wgpu, AutoGraphicsApi, RuntimeOptions, WgpuDevice};
 
+mod memory;
 pub mod prims;
 pub mod reduce;
 pub mod testing;
@@ -99,6 +100,10 @@ pub struct GpuLimits {
     /// Device memory the runtime states for the adapter (`None` where its API has no figure, as wgpu's
     /// portable path: gfx-rs/wgpu#2447).
     pub memory_bytes: Option<u64>,
+    /// The card's free memory when the device was opened, from the vendor's interface (NVML, amdgpu's
+    /// sysfs counters; `None` elsewhere, see `memory.rs`). Read once, so every plan made in one
+    /// process sees the same figure.
+    pub free_bytes_at_open: Option<u64>,
 }
 
 /// An opened GPU: the CubeCL client plus what the run log reports.
@@ -246,6 +251,12 @@ fn open_adapter(a: &AdapterEntry) -> Result<GpuContext, GpuError> {
         plane_size: hw.plane_size_max,
         max_buffer_bytes: props.memory.max_page_size,
         memory_bytes: props.memory.max_memory(),
+        free_bytes_at_open: props
+            .identity
+            .physical
+            .as_ref()
+            .and_then(|card| card.pci_address.as_ref())
+            .and_then(|pci| memory::free_bytes(&pci.to_string())),
     };
     Ok(GpuContext {
         adapter: props.identity.name.clone(),

@@ -301,6 +301,11 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     eprintln!("{}", plan.describe());
     args.memory
         .check(plan.memory_bytes, "--max-views or --size")?;
+    args.memory.check_gpu(
+        plan.gpu_memory_bytes,
+        plan.gpu_free_bytes,
+        "--view-batch, --max-views or --size",
+    )?;
 
     // One run per folder: the settings that decide the result (a resumed run has the same), and the
     // inputs, which no write or --force may touch.

@@ -217,7 +217,7 @@ impl Run<'_> {
             fitter: Some(&fitter),
             seed: job.seed_for(k, SeedPurpose::Ecm),
             background: job.background,
-            view_batch: super::work::view_batch(job, self.model, cams.len()),
+            view_batch: super::work::view_batch(job, self.model, trainer.scene(), cams.len()),
         };
         progress.stage(
             &self.stage(k, &format!("editing {} views", cams.len())),

@@ -23,6 +23,8 @@ pub struct WorkPlan {
     pub memory_bytes: u64,
     /// GPU memory the run needs on its device (`None` on the CPU).
     pub gpu_memory_bytes: Option<u64>,
+    /// The GPU's free memory when it was opened, where its driver reports it (NVIDIA, AMD).
+    pub gpu_free_bytes: Option<u64>,
     /// Views per UNet call.
     pub view_batch: usize,
 }
@@ -30,7 +32,10 @@ pub struct WorkPlan {
 impl WorkPlan {
     pub fn describe(&self) -> String {
         let gpu = self.gpu_memory_bytes.map_or(String::new(), |b| {
-            format!(", GPU memory ≈ {:.1} GB", b as f64 / 1e9)
+            let free = self.gpu_free_bytes.map_or(String::new(), |f| {
+                format!(" of {:.1} GB free", f as f64 / 1e9)
+            });
+            format!(", GPU memory ≈ {:.1} GB{free}", b as f64 / 1e9)
         });
         let batch = match self.view_batch {
             1 => "batch 6".to_string(),
@@ -53,17 +58,19 @@ impl WorkPlan {
 /// Most views one UNet call takes when the choice is automatic.
 pub const MAX_AUTO_VIEW_BATCH: usize = 8;
 
-/// GPU memory the automatic view batch may give the UNet's activations. wgpu cannot report free memory
-/// (gfx-rs/wgpu#2447), so this is a fixed share that leaves room for SD-1.5-sized weights, the scene and
-/// the display on a 12 GB card; `--view-batch` overrides it either way.
+/// GPU memory the automatic view batch may give the UNet's activations where the GPU's free memory is
+/// unknown (wgpu cannot report it, gfx-rs/wgpu#2447; NVIDIA and AMD cards report it through their
+/// drivers, see `gpu::GpuLimits::free_bytes_at_open`): a fixed share that leaves room for SD-1.5-sized
+/// weights, the scene and the display on a 12 GB card. `--view-batch` overrides it either way.
 pub const AUTO_VIEW_BATCH_GPU_BYTES: u64 = 6_000_000_000;
 
 /// Views per UNet call: the job's choice, else 1 on the CPU (one view's batch of six already keeps every
 /// core busy, and a larger batch only adds memory) and on a GPU the most views, up to
-/// [`MAX_AUTO_VIEW_BATCH`] and the number of views, whose hooked call's activations fit in
-/// [`AUTO_VIEW_BATCH_GPU_BYTES`] (a third of the device's memory where the backend states it) and whose
-/// largest buffer fits the device's largest buffer.
-pub fn view_batch(job: &EditJob, model: &EditModel, views: usize) -> usize {
+/// [`MAX_AUTO_VIEW_BATCH`] and the number of views, whose hooked call's activations fit in the GPU's
+/// free memory less what the run keeps there besides ([`gpu_state_bytes`]); where the free memory is
+/// unknown, in a third of the device's stated memory or else [`AUTO_VIEW_BATCH_GPU_BYTES`]. One call's
+/// largest buffer must also fit the device's largest buffer.
+pub fn view_batch(job: &EditJob, model: &EditModel, scene: &GaussianScene, views: usize) -> usize {
     if let Some(n) = job.view_batch {
         return n.max(1);
     }
@@ -78,15 +85,14 @@ pub fn view_batch(job: &EditJob, model: &EditModel, views: usize) -> usize {
     // their own im2col buffers. A batch must keep it within the device's largest buffer.
     let width = config.block_out_channels.first().copied().unwrap_or(320);
     let largest = 6 * lh * lw * (8 * width).max(8 * 77) * 4;
-    let max_buffer = gpu.context().limits.max_buffer_bytes;
-    // With a stated memory size (some backends report one), a third of it; else a fixed share.
-    let budget = gpu
-        .context()
-        .limits
-        .memory_bytes
-        .map_or(AUTO_VIEW_BATCH_GPU_BYTES, |m| m / 3);
+    let limits = gpu.context().limits;
+    let budget = match (limits.free_bytes_at_open, limits.memory_bytes) {
+        (Some(free), _) => free.saturating_sub(gpu_state_bytes(job, model, scene)),
+        (None, Some(stated)) => stated / 3,
+        (None, None) => AUTO_VIEW_BATCH_GPU_BYTES,
+    };
     let fits = |n: usize| {
-        (n * largest) as u64 <= max_buffer
+        (n * largest) as u64 <= limits.max_buffer_bytes
             && config
                 .activation_estimate(6 * n, lh, lw, 77, true)
                 .is_ok_and(|e| e.total() as u64 <= budget)
@@ -97,6 +103,33 @@ pub fn view_batch(job: &EditJob, model: &EditModel, views: usize) -> usize {
         .unwrap_or(1)
 }
 
+/// Attention heads assumed for the stores and lifting sums (SD 1.5's 8).
+const HEADS: u64 = 8;
+
+/// GPU memory a run keeps besides one UNet call's activations: the networks' weights (f16 or f32 copies
+/// in the device cache), the fit's device state (scene, gradients, two Adam moments, anchor snapshot)
+/// and the one ECM fit alive at a time, one lifting's sums and one frame with CCM's channels, plus
+/// 100 MB of pools and small buffers. 0 on the CPU.
+pub fn gpu_state_bytes(job: &EditJob, model: &EditModel, scene: &GaussianScene) -> u64 {
+    let Some(gpu) = model.compute.networks() else {
+        return 0;
+    };
+    let weight_bytes = match gpu.precision() {
+        Precision::F16 => model.parameters * 2,
+        Precision::F32 => model.parameters * 4,
+    };
+    let (w, h) = (job.size.0 as u64, job.size.1 as u64);
+    let n = scene.len() as u64;
+    let frame = w * h * 4 * (3 + 1 + 1 + 3 * HEADS * 8);
+    weight_bytes + scene_param_bytes(scene) * 10 + n * 4 * (3 * HEADS * 8 + 1) + frame + 100_000_000
+}
+
+/// The scene's trainable parameters in bytes (position, scale, rotation, opacity, SH).
+fn scene_param_bytes(scene: &GaussianScene) -> u64 {
+    let k = 3 * ((scene.sh_degree + 1) * (scene.sh_degree + 1)) as u64;
+    scene.len() as u64 * (11 + k) * 4
+}
+
 /// Counts the work of a run and estimates its peak memory.
 pub fn work_plan(
     job: &EditJob,
@@ -105,7 +138,7 @@ pub fn work_plan(
     cameras: usize,
 ) -> WorkPlan {
     let v = cameras.min(job.max_views);
-    let view_batch = view_batch(job, model, v);
+    let view_batch = view_batch(job, model, scene, v);
     let steps = job.infedit.steps;
     let (ccm, ecm, blend) = match job.guidance {
         GuidanceMode::Joint => (
@@ -138,7 +171,7 @@ pub fn work_plan(
     // A batch-6 UNet pass: roughly 40 activations of the first block's width at latent resolution.
     let unet = 6 * latent * cfg.first().copied().unwrap_or(320) as u64 * 4 * 40;
     // Per view: latents and attention stores (blend layers, CCM records at most 32² queries × 77 tokens).
-    let heads = 8u64;
+    let heads = HEADS;
     let per_view = 12 * latent * 4
         + 2 * heads * (latent / 16).max(1) * 77 * 4 * 5
         + if ccm > 0 {
@@ -148,8 +181,7 @@ pub fn work_plan(
         };
     let images = v as u64 * w * h * 3 * 4 * 6;
     let n = scene.len() as u64;
-    let k = 3 * ((scene.sh_degree + 1) * (scene.sh_degree + 1)) as u64;
-    let params = n * (11 + k) * 4;
+    let params = scene_param_bytes(scene);
     // Editing state (params, grads, 2 moments, anchors) + two ECM copies; splits can grow the scene.
     let train = params * 5 * 3 / 2 + params * 4 * 2;
     // Lifting: per-thread sums of the widest map (CCM: 3 branches × heads × tokens).
@@ -159,24 +191,21 @@ pub fn work_plan(
     let lpips = LPIPS_BUDGET.min(v as u64 * w * h * 4 * 128);
     let memory_bytes =
         weights + unet + v as u64 * per_view + images + train + lift + lpips + 300_000_000;
-    // On a GPU: the networks' weights (f16 or f32 copies in the device cache), one hooked UNet call of
-    // `view_batch` views (diffusion's documented upper bound; flash self-attention keeps no probability
-    // matrix), the fit's device state (scene, gradients, two Adam moments, anchor snapshot) and the one
-    // ECM fit alive at a time, one lifting's sums and one frame with CCM's channels.
-    let gpu_memory_bytes = model.compute.networks().map(|gpu| {
-        let weight_bytes = match gpu.precision() {
-            Precision::F16 => model.parameters * 2,
-            Precision::F32 => model.parameters * 4,
-        };
+    // On a GPU: what the run keeps there (`gpu_state_bytes`) plus one hooked UNet call of `view_batch`
+    // views (diffusion's documented upper bound; flash self-attention keeps no probability matrix).
+    let gpu_memory_bytes = model.compute.networks().map(|_| {
         let (lh, lw) = ((h / f) as usize, (w / f) as usize);
         let activations = model
             .unet
             .config()
             .activation_estimate(6 * view_batch, lh, lw, 77, true)
             .map_or(unet, |e| e.total() as u64);
-        let frame = w * h * 4 * (3 + 1 + 1 + 3 * heads * 8);
-        weight_bytes + activations + params * 10 + n * 4 * (3 * heads * 8 + 1) + frame + 100_000_000
+        gpu_state_bytes(job, model, scene) + activations
     });
+    let gpu_free_bytes = model
+        .compute
+        .networks()
+        .and_then(|gpu| gpu.context().limits.free_bytes_at_open);
     WorkPlan {
         views: v,
         iterations: job.iterations,
@@ -186,6 +215,7 @@ pub fn work_plan(
         lifts,
         memory_bytes,
         gpu_memory_bytes,
+        gpu_free_bytes,
         view_batch,
     }
 }
@@ -198,4 +228,96 @@ pub fn available_memory() -> Option<u64> {
     let line = text.lines().find(|l| l.starts_with("MemAvailable:"))?;
     let kb: u64 = line.split_whitespace().nth(1)?.parse().ok()?;
     Some(kb * 1024)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::compute::Compute;
+    use crate::consistency::ConsistencySettings;
+    use crate::run::MaskSource;
+    use crate::sampler::{EditPrompts, InfEditSettings};
+    use crate::fit::TrainSettings;
+
+    fn job() -> EditJob {
+        EditJob {
+            prompts: EditPrompts::new("a ball", "a red ball"),
+            infedit: InfEditSettings::default(),
+            consistency: ConsistencySettings::reference(15),
+            guidance: GuidanceMode::Joint,
+            iterations: 2,
+            fit_steps: 10,
+            max_views: 16,
+            seed: 0,
+            mask: MaskSource::None,
+            mask_threshold: 0.5,
+            train: TrainSettings::new(20),
+            size: (64, 64),
+            background: [0.0; 3],
+            stop_after_iteration: None,
+            view_batch: None,
+        }
+    }
+
+    /// With the card's free memory known, the automatic view batch is the most views whose call fits
+    /// in it beside the run's other device memory, and the plan reports the free memory it checked.
+    #[test]
+    fn view_batch_follows_the_free_memory_the_card_reports() {
+        let Some(mut ctx) = gpu::testing::context_or_skip() else {
+            return;
+        };
+        let fixtures = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../fixtures");
+        let cpu = EditModel::load(&fixtures.join("models/tiny-lcm"), None).unwrap();
+        let scene = GaussianScene::new(0);
+        let job = job();
+        let on = |free: Option<u64>, ctx: &mut gpu::GpuContext| {
+            ctx.limits.free_bytes_at_open = free;
+            EditModel::load(&fixtures.join("models/tiny-lcm"), None)
+                .unwrap()
+                .on(Compute::on(Some(ctx.clone()), Precision::F32))
+        };
+        let model = on(None, &mut ctx);
+        let f = model.downscale();
+        let (lh, lw) = (64 / f, 64 / f);
+        let state = gpu_state_bytes(&job, &model, &scene);
+        let needs = |views: usize| {
+            state
+                + model
+                    .unet
+                    .config()
+                    .activation_estimate(6 * views, lh, lw, 77, true)
+                    .unwrap()
+                    .total() as u64
+        };
+        assert!(state > 0 && needs(2) > needs(1));
+        assert_eq!(gpu_state_bytes(&job, &cpu, &scene), 0);
+
+        let exactly_three = on(Some(needs(3)), &mut ctx);
+        assert_eq!(view_batch(&job, &exactly_three, &scene, 16), 3);
+        let just_short_of_three = on(Some(needs(3) - 1), &mut ctx);
+        assert_eq!(view_batch(&job, &just_short_of_three, &scene, 16), 2);
+        // Too little for even one view: one view per call, and the plan's check refuses the run.
+        let too_little = on(Some(needs(1) - 1), &mut ctx);
+        assert_eq!(view_batch(&job, &too_little, &scene, 16), 1);
+        let plan = work_plan(&job, &too_little, &scene, 16);
+        assert_eq!(plan.gpu_memory_bytes, Some(needs(1)));
+        assert_eq!(plan.gpu_free_bytes, Some(needs(1) - 1));
+        assert!(
+            plan.describe().contains(" GB free"),
+            "{}",
+            plan.describe()
+        );
+        // Plenty: as many views as the cap and the number of views allow.
+        let plenty = on(Some(u64::MAX / 4), &mut ctx);
+        assert_eq!(view_batch(&job, &plenty, &scene, 16), MAX_AUTO_VIEW_BATCH);
+        assert_eq!(view_batch(&job, &plenty, &scene, 5), 5);
+        // An explicit --view-batch and the CPU are not the budget's business.
+        let fixed = EditJob {
+            view_batch: Some(4),
+            ..job.clone()
+        };
+        assert_eq!(view_batch(&fixed, &too_little, &scene, 16), 4);
+        assert_eq!(view_batch(&job, &cpu, &scene, 16), 1);
+        assert_eq!(work_plan(&job, &cpu, &scene, 16).gpu_free_bytes, None);
+    }
 }
