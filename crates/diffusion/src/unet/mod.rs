@@ -17,7 +17,7 @@ use candle_nn::VarBuilder;
 
 pub use attention::{edit_maps, AttentionHook, AttnCall, AttnKind, MapEdit};
 use blocks::{BlockAttention, DownBlock, MidBlock, ResnetShared, UpBlock};
-pub use config::UNetConfig;
+pub use config::{PerBlock, UNetConfig};
 use config::{BlockKind, ResolvedBlocks};
 use embeddings::{timestep_embedding, TimestepEmbedding};
 pub use memory::ActivationEstimate;

@@ -208,6 +208,15 @@ pub fn upsample_nearest(x: &[f32], out: &mut [f32], meta: &[u32]) {
     }
 }
 
+/// `out[i]` = element `i` of packed f16 `words` as f32 (a weight widened for the matrix-product library).
+#[cube(launch_unchecked)]
+pub fn widen_f16(words: &[u32], out: &mut [f32]) {
+    let i = linear_pos();
+    if (i as usize) < out.len() {
+        out[i as usize] = load_operand(words, i, true);
+    }
+}
+
 /// Element `index` of a matrix operand held as f32 words, or as f16 halves packed two per word (see
 /// `precision::pack_f16`), as f32.
 #[cube]

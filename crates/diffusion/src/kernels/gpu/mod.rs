@@ -300,6 +300,18 @@ impl GpuTensor {
         self.word_arg()
     }
 
+    /// The buffer as a strided f32 tensor argument of a library kernel (cubek); `shape`/`strides` in
+    /// elements describe a view inside the buffer.
+    pub(crate) fn binding(&self, shape: &[usize], strides: &[usize]) -> TensorBinding {
+        debug_assert!(!self.half, "an f16 weight passed to an f32 kernel");
+        TensorBinding {
+            handle: self.handle.clone().binding(),
+            strides: strides.into(),
+            shape: shape.into(),
+            tiling: cubecl::zspace::Tiling::UNTILED,
+        }
+    }
+
     /// The buffer as 32-bit words (f32 bits or two packed halves), for the matrix-product kernel.
     pub(crate) fn word_arg(&self) -> BufferArg {
         // SAFETY: the handle holds exactly storage_words() words (see from_slice, upload_f16, empty_like).

@@ -464,6 +464,22 @@ fn gemm(
     g: &Gemm,
     out_shape: Vec<usize>,
 ) -> Result<GpuTensor> {
+    if let Some(product) = library_gemm(a, b, g, &out_shape) {
+        // The library computes the plain product; scale and bias follow as one elementwise pass each.
+        let product = if g.alpha == 1.0 {
+            product
+        } else {
+            affine(&product, g.alpha, 0.0)
+        };
+        return match bias {
+            GemmBias::None => Ok(product),
+            GemmBias::PerColumn(t) => add(&product, t),
+            GemmBias::PerRow(t) => {
+                let rows = product.reshape(&[g.batch, g.m, g.n])?;
+                add(&rows, &t.reshape(&[g.m, 1])?)?.reshape(&out_shape)
+            }
+        };
+    }
     let out = a.empty_like_device(out_shape);
     let mut meta = vec![g.batch, g.m, g.n, g.k];
     meta.extend(g.a_strides);
@@ -497,6 +513,97 @@ fn gemm(
         )
     };
     Ok(out)
+}
+
+thread_local! {
+    /// Set by tests to run our own kernel on their thread (the environment is shared by test threads).
+    static OWN_MATMUL: std::cell::Cell<bool> = const { std::cell::Cell::new(false) };
+}
+
+/// Runs `f` with our own matrix-product kernel instead of the library's, on this thread (tests).
+#[cfg(test)]
+pub(crate) fn with_own_matmul<T>(f: impl FnOnce() -> T) -> T {
+    OWN_MATMUL.set(true);
+    let result = f();
+    OWN_MATMUL.set(false);
+    result
+}
+
+/// The matrix-product library's routine for every product, or `None` for our own register-blocked
+/// kernel: `VCEDIT_GPU_MATMUL=own` selects ours (an A/B switch for benchmarks). The library's `Auto`
+/// takes tensor-core routines where the device has them and its unit routine elsewhere (lavapipe:
+/// 13.6 GFLOP/s against our kernel's 2.1 on SD 1.5's 4096×320×1280 product).
+fn library_strategy() -> Option<cubek_matmul::strategy::Strategy> {
+    static OWN: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
+    let own = *OWN.get_or_init(|| {
+        std::env::var("VCEDIT_GPU_MATMUL").is_ok_and(|v| v.trim().eq_ignore_ascii_case("own"))
+    });
+    (!own && !OWN_MATMUL.get()).then_some(cubek_matmul::strategy::Strategy::Auto)
+}
+
+/// An f32 copy of a packed f16 tensor; an f32 tensor as it is (shared buffer).
+fn widen_f16(x: &GpuTensor) -> GpuTensor {
+    if !x.is_f16() {
+        return x.clone();
+    }
+    let out = x.empty_like_device(x.dims().to_vec());
+    // SAFETY: the kernel bound-checks against out, and out's element count is x's.
+    unsafe {
+        cube::widen_f16::launch_unchecked(
+            x.client(),
+            grid_for(out.elem_count(), ELEMENTWISE_UNITS),
+            CubeDim::new_1d(ELEMENTWISE_UNITS),
+            x.word_arg(),
+            out.arg(),
+        )
+    };
+    out
+}
+
+/// The product `A[b] B[b]` (no scale, no bias) by CubeCL's matrix-product library, or `None` where it
+/// does not apply (a shared B under a strided A, an empty product) or declines the problem; the caller
+/// then runs our own kernel.
+fn library_gemm(a: &GpuTensor, b: &GpuTensor, g: &Gemm, out_shape: &[usize]) -> Option<GpuTensor> {
+    use cubecl::ir::{ElemType, FloatKind};
+    use cubek_matmul::definition::{MatmulElems, MatmulGlobalElems};
+    use cubek_std::InputBinding;
+    if g.m == 0 || g.n == 0 || g.k == 0 {
+        return None;
+    }
+    let strategy = library_strategy()?;
+    // Packed f16 weights are widened into a transient f32 copy: one pass over the weight, small
+    // beside the product, and it keeps the library on plain f32 operands on every adapter.
+    let (a, b) = (&widen_f16(a), &widen_f16(b));
+    let (mut batch, mut m, mut a_strides) = (g.batch, g.m, g.a_strides);
+    let mut b_strides = g.b_strides;
+    if b_strides[0] == 0 && batch > 1 {
+        // One B for every batch: fold the batches into A's rows when they are contiguous.
+        if a_strides != [g.m * g.k, g.k, 1] {
+            return None;
+        }
+        (m, batch, a_strides) = (batch * g.m, 1, [batch * g.m * g.k, g.k, 1]);
+    }
+    if batch == 1 {
+        // A size-1 batch's stride is never stepped; give it the whole matrix so layouts classify.
+        a_strides[0] = m * g.k;
+        b_strides[0] = g.k * g.n;
+    }
+    let out = a.empty_like_device(out_shape.to_vec());
+    let f32_type = ElemType::Float(FloatKind::F32);
+    let mut dtypes = MatmulElems::from_globals(&MatmulGlobalElems {
+        lhs: f32_type,
+        rhs: f32_type,
+        out: f32_type,
+    });
+    let launched = cubek_matmul::launch::launch_ref(
+        &strategy,
+        a.client(),
+        InputBinding::new(a.binding(&[batch, m, g.k], &a_strides), f32_type),
+        InputBinding::new(b.binding(&[batch, g.k, g.n], &b_strides), f32_type),
+        out.binding(&[batch, m, g.n], &[m * g.n, g.n, 1]),
+        &mut dtypes,
+    );
+    launched.ok().map(|()| out)
 }
 
 /// Batched matrix product a [.., m, k] × b [.., k, n] → [.., m, n]; a rank-2 `b` is shared by every batch.

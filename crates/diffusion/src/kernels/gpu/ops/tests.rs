@@ -165,11 +165,23 @@ fn copies_match_cpu() {
     assert!(permute(&g, &[0, 0, 1, 2]).is_err());
 }
 
+/// Runs a product test on both engines: CubeCL's matrix-product library (the default) and our own
+/// register-blocked kernel (`VCEDIT_GPU_MATMUL=own`, and the fallback where the library declines).
+fn on_both_engines(test: impl Fn()) {
+    test();
+    with_own_matmul(test);
+}
+
 #[test]
 fn matmul_and_linear_match_cpu() {
     let Some(dev) = device_or_skip() else {
         return;
     };
+    on_both_engines(|| matmul_and_linear_match_cpu_on(&dev));
+}
+
+fn matmul_and_linear_match_cpu_on(dev: &GpuDevice) {
+    let dev = dev.clone();
     let a = randn(&[2, 3, 17, 19]);
     let b = randn(&[2, 3, 19, 21]);
     check(
@@ -209,6 +221,11 @@ fn tiled_matmul_matches_cpu_on_odd_shapes() {
     let Some(dev) = device_or_skip() else {
         return;
     };
+    on_both_engines(|| tiled_matmul_matches_cpu_on_odd_shapes_on(&dev));
+}
+
+fn tiled_matmul_matches_cpu_on_odd_shapes_on(dev: &GpuDevice) {
+    let dev = dev.clone();
     // (batch dims, m, k, n)
     for (batch, m, k, n) in [
         (vec![], 1, 1, 1),
@@ -254,6 +271,11 @@ fn f16_weights_match_cpu() {
     let Some(dev) = device_or_skip() else {
         return;
     };
+    on_both_engines(|| f16_weights_match_cpu_on(&dev));
+}
+
+fn f16_weights_match_cpu_on(dev: &GpuDevice) {
+    let dev = dev.clone();
     let half_dev = GpuDevice::with_precision(dev.context().clone(), Precision::F16);
     let rounded = |t: &Tensor| {
         t.to_dtype(candle_core::DType::F16)
@@ -313,6 +335,11 @@ fn conv2d_matches_cpu() {
     let Some(dev) = device_or_skip() else {
         return;
     };
+    on_both_engines(|| conv2d_matches_cpu_on(&dev));
+}
+
+fn conv2d_matches_cpu_on(dev: &GpuDevice) {
+    let dev = dev.clone();
     // (batch, cin, cout, h, w, kernel, stride, padding, bias)
     for (n, cin, cout, h, w, k, stride, padding, with_bias) in [
         (1, 3, 5, 9, 7, 3, 1, 1, true),
@@ -435,4 +462,40 @@ fn attention_matches_cpu() {
         &attention(&up(&dev, &q1), &up(&dev, &k1), &up(&dev, &v1), scale).unwrap(),
         &want,
     );
+}
+
+/// The library takes the products the networks make (were it to decline them all, every product would
+/// silently fall back to our kernel): batched, shared and transposed B, f16 weights.
+#[test]
+fn the_library_takes_the_networks_products() {
+    let Some(dev) = device_or_skip() else {
+        return;
+    };
+    let (m, k, n) = (17, 19, 21);
+    let a = up(&dev, &randn(&[2, m, k]));
+    let gemm = |b_strides: [usize; 3]| Gemm {
+        batch: 2,
+        m,
+        n,
+        k,
+        a_strides: [m * k, k, 1],
+        b_strides,
+        alpha: 1.0,
+    };
+    let batched = up(&dev, &randn(&[2, k, n]));
+    let shared = up(&dev, &randn(&[k, n]));
+    let transposed = up(&dev, &randn(&[2, n, k]));
+    let half_dev = GpuDevice::with_precision(dev.context().clone(), Precision::F16);
+    let half = half_dev.cached_matrix(&randn(&[k, n])).unwrap();
+    assert!(half.is_f16());
+    for (what, b, strides) in [
+        ("batched", &batched, [k * n, n, 1]),
+        ("shared", &shared, [0, n, 1]),
+        ("transposed", &transposed, [n * k, 1, k]),
+        ("f16 weight", &half, [0, n, 1]),
+    ] {
+        let out = library_gemm(&a, b, &gemm(strides), &[2, m, n]);
+        assert!(out.is_some(), "{what}: the library declined");
+    }
+    assert!(with_own_matmul(|| library_gemm(&a, &shared, &gemm([0, n, 1]), &[2, m, n])).is_none());
 }
