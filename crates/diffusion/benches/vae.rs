@@ -29,13 +29,16 @@ fn random_weights<T>(build: impl Fn(VarBuilder) -> candle_core::Result<T>) -> Va
 }
 
 fn time<T>(label: &str, runs: usize, mut f: impl FnMut() -> T) {
-    f(); // warm-up
+    // The first call also compiles the GPU kernels it meets (a per-process cost), so it is shown apart.
+    let start = Instant::now();
+    f();
+    let first = start.elapsed().as_secs_f64();
     let start = Instant::now();
     for _ in 0..runs {
         std::hint::black_box(f());
     }
     println!(
-        "{label}: {:.3} s",
+        "{label}: {:.3} s (first call {first:.3} s)",
         start.elapsed().as_secs_f64() / runs as f64
     );
 }
