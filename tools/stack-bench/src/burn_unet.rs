@@ -44,13 +44,21 @@ impl Config {
             PerBlock::One(n) => *n,
             PerBlock::Many(_) => panic!("burn unet: per-block {what} not covered"),
         };
-        assert!(!c.use_linear_projection, "burn unet: linear projections not covered");
-        assert_eq!(one(&c.transformer_layers_per_block, "transformer layers"), 1);
+        assert!(
+            !c.use_linear_projection,
+            "burn unet: linear projections not covered"
+        );
+        assert_eq!(
+            one(&c.transformer_layers_per_block, "transformer layers"),
+            1
+        );
         Self {
             block_out_channels: c.block_out_channels.clone(),
             layers_per_block: one(&c.layers_per_block, "layers_per_block"),
             heads: one(
-                c.num_attention_heads.as_ref().unwrap_or(&c.attention_head_dim),
+                c.num_attention_heads
+                    .as_ref()
+                    .unwrap_or(&c.attention_head_dim),
                 "heads",
             ),
             norm_num_groups: c.norm_num_groups.unwrap_or(32),
@@ -279,8 +287,10 @@ impl Transformer {
             .reshape([b, c, h * w])
             .swap_dims(1, 2);
         let tokens = tokens.clone() + self.attn1.forward(self.norm1.forward(tokens), None);
-        let tokens =
-            tokens.clone() + self.attn2.forward(self.norm2.forward(tokens), Some(context));
+        let tokens = tokens.clone()
+            + self
+                .attn2
+                .forward(self.norm2.forward(tokens), Some(context));
         // GEGLU: the projection's first half gated by GELU of its second half.
         let projected = self.ff_in.forward(self.norm3.forward(tokens.clone()));
         let inner = projected.dims()[2] / 2;
@@ -361,7 +371,14 @@ impl BurnUNet {
             .enumerate()
             .map(|(i, t)| {
                 let p = format!("up_blocks.{i}");
-                Block::load(&l, &p, config, config.layers_per_block + 1, cross(t), i + 1 < n)
+                Block::load(
+                    &l,
+                    &p,
+                    config,
+                    config.layers_per_block + 1,
+                    cross(t),
+                    i + 1 < n,
+                )
             })
             .collect();
         Self {

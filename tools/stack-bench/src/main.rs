@@ -134,7 +134,10 @@ impl Net {
                     burn_tensor(&inputs.sample, device),
                     &inputs.timesteps,
                     burn_tensor(&inputs.context, device),
-                    inputs.timestep_cond.as_ref().map(|c| burn_tensor(c, device)),
+                    inputs
+                        .timestep_cond
+                        .as_ref()
+                        .map(|c| burn_tensor(c, device)),
                 );
                 out.into_data().try_to_vec::<f32>().unwrap()
             }
@@ -166,8 +169,11 @@ fn conformance(args: &[String]) {
         .into_iter()
         .map(|(k, v)| (k, v.to_dtype(DType::F32).unwrap()))
         .collect();
-    let fx = candle_core::safetensors::load(repo().join("fixtures/unet/tiny-lcm.safetensors"), &Cpu::Cpu)
-        .unwrap();
+    let fx = candle_core::safetensors::load(
+        repo().join("fixtures/unet/tiny-lcm.safetensors"),
+        &Cpu::Cpu,
+    )
+    .unwrap();
     let batch = fx["sample"].dims()[0];
     let timesteps: Vec<f32> = fx["timesteps"]
         .to_dtype(DType::F32)
@@ -306,15 +312,33 @@ fn matmul(args: &[String]) {
         diffusion::device::GpuTensor::upload(&device, &b).unwrap(),
     );
     let (secs, err) = best(&mut || {
-        host(&diffusion::device::ops::matmul(&ga, &gb).unwrap().to_cpu().unwrap()).0
+        host(
+            &diffusion::device::ops::matmul(&ga, &gb)
+                .unwrap()
+                .to_cpu()
+                .unwrap(),
+        )
+        .0
     });
-    println!("  ours-gpu  matmul {m}x{k}x{n}: {:.1} ms, {:.2} GFLOP/s (error {err:.1e})", secs * 1e3, gflop / secs);
+    println!(
+        "  ours-gpu  matmul {m}x{k}x{n}: {:.1} ms, {:.2} GFLOP/s (error {err:.1e})",
+        secs * 1e3,
+        gflop / secs
+    );
     let device = Device::wgpu(DeviceKind::DefaultDevice);
     let (ba, bb): (Tensor<2>, Tensor<2>) = (burn_tensor(&a, &device), burn_tensor(&b, &device));
     let (secs, err) = best(&mut || {
-        ba.clone().matmul(bb.clone()).into_data().try_to_vec::<f32>().unwrap()
+        ba.clone()
+            .matmul(bb.clone())
+            .into_data()
+            .try_to_vec::<f32>()
+            .unwrap()
     });
-    println!("  burn-wgpu matmul {m}x{k}x{n}: {:.1} ms, {:.2} GFLOP/s (error {err:.1e})", secs * 1e3, gflop / secs);
+    println!(
+        "  burn-wgpu matmul {m}x{k}x{n}: {:.1} ms, {:.2} GFLOP/s (error {err:.1e})",
+        secs * 1e3,
+        gflop / secs
+    );
 }
 
 fn main() {

@@ -76,7 +76,8 @@ mod tests {
 
     #[test]
     fn refuses_only_what_does_not_fit() {
-        let host = |needed, avail, ignore| check_against(needed, avail, ignore, Memory::Host, "--size");
+        let host =
+            |needed, avail, ignore| check_against(needed, avail, ignore, Memory::Host, "--size");
         let err = host(8_000_000_000, Some(2_000_000_000), false)
             .unwrap_err()
             .to_string();
@@ -95,7 +96,11 @@ mod tests {
             ignore_memory_check: false,
         };
         let err = arg
-            .check_gpu(Some(30_000_000_000), Some(11_500_000_000), "--view-batch or --size")
+            .check_gpu(
+                Some(30_000_000_000),
+                Some(11_500_000_000),
+                "--view-batch or --size",
+            )
             .unwrap_err()
             .to_string();
         assert_eq!(

@@ -17,8 +17,8 @@ use candle_nn::VarBuilder;
 
 pub use attention::{edit_maps, AttentionHook, AttnCall, AttnKind, MapEdit};
 use blocks::{BlockAttention, DownBlock, MidBlock, ResnetShared, UpBlock};
-pub use config::{PerBlock, UNetConfig};
 use config::{BlockKind, ResolvedBlocks};
+pub use config::{PerBlock, UNetConfig};
 use embeddings::{timestep_embedding, TimestepEmbedding};
 pub use memory::ActivationEstimate;
 

@@ -235,9 +235,9 @@ mod tests {
     use super::*;
     use crate::compute::Compute;
     use crate::consistency::ConsistencySettings;
+    use crate::fit::TrainSettings;
     use crate::run::MaskSource;
     use crate::sampler::{EditPrompts, InfEditSettings};
-    use crate::fit::TrainSettings;
 
     fn job() -> EditJob {
         EditJob {
@@ -302,11 +302,7 @@ mod tests {
         let plan = work_plan(&job, &too_little, &scene, 16);
         assert_eq!(plan.gpu_memory_bytes, Some(needs(1)));
         assert_eq!(plan.gpu_free_bytes, Some(needs(1) - 1));
-        assert!(
-            plan.describe().contains(" GB free"),
-            "{}",
-            plan.describe()
-        );
+        assert!(plan.describe().contains(" GB free"), "{}", plan.describe());
         // Plenty: as many views as the cap and the number of views allow.
         let plenty = on(Some(u64::MAX / 4), &mut ctx);
         assert_eq!(view_batch(&job, &plenty, &scene, 16), MAX_AUTO_VIEW_BATCH);
