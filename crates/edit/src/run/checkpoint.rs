@@ -144,30 +144,8 @@ pub(super) fn fingerprint(job: &EditJob, scene: &GaussianScene, cameras: &[Camer
 
 #[cfg(test)]
 mod tests {
+    use super::super::job::tests::job;
     use super::*;
-    use crate::consistency::ConsistencySettings;
-    use crate::run::{GuidanceMode, MaskSource};
-    use crate::sampler::{EditPrompts, InfEditSettings};
-
-    fn job() -> EditJob {
-        EditJob {
-            prompts: EditPrompts::new("a ball", "a red ball"),
-            infedit: InfEditSettings::default(),
-            consistency: ConsistencySettings::reference(15),
-            guidance: GuidanceMode::Joint,
-            iterations: 2,
-            fit_steps: 10,
-            max_views: 4,
-            seed: 0,
-            mask: MaskSource::None,
-            mask_threshold: 0.5,
-            train: TrainSettings::new(20),
-            size: (64, 64),
-            background: [0.0; 3],
-            stop_after_iteration: None,
-            view_batch: None,
-        }
-    }
 
     #[test]
     fn the_fingerprint_follows_the_settings_but_not_where_a_run_stops() {

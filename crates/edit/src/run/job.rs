@@ -198,8 +198,29 @@ fn derive_seed(seed: u64, iteration: usize, purpose: u64) -> u64 {
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
+
+    /// A small joint-guidance job for tests (4 views at 64²).
+    pub(crate) fn job() -> EditJob {
+        EditJob {
+            prompts: EditPrompts::new("a ball", "a red ball"),
+            infedit: InfEditSettings::default(),
+            consistency: ConsistencySettings::reference(15),
+            guidance: GuidanceMode::Joint,
+            iterations: 2,
+            fit_steps: 10,
+            max_views: 4,
+            seed: 0,
+            mask: MaskSource::None,
+            mask_threshold: 0.5,
+            train: TrainSettings::new(20),
+            size: (64, 64),
+            background: [0.0; 3],
+            stop_after_iteration: None,
+            view_batch: None,
+        }
+    }
 
     #[test]
     fn derived_seeds_differ_by_iteration_and_purpose() {

@@ -234,28 +234,11 @@ pub fn available_memory() -> Option<u64> {
 mod tests {
     use super::*;
     use crate::compute::Compute;
-    use crate::consistency::ConsistencySettings;
-    use crate::fit::TrainSettings;
-    use crate::run::MaskSource;
-    use crate::sampler::{EditPrompts, InfEditSettings};
 
     fn job() -> EditJob {
         EditJob {
-            prompts: EditPrompts::new("a ball", "a red ball"),
-            infedit: InfEditSettings::default(),
-            consistency: ConsistencySettings::reference(15),
-            guidance: GuidanceMode::Joint,
-            iterations: 2,
-            fit_steps: 10,
             max_views: 16,
-            seed: 0,
-            mask: MaskSource::None,
-            mask_threshold: 0.5,
-            train: TrainSettings::new(20),
-            size: (64, 64),
-            background: [0.0; 3],
-            stop_after_iteration: None,
-            view_batch: None,
+            ..super::super::job::tests::job()
         }
     }
 
