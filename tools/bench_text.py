@@ -1,6 +1,6 @@
 #!/usr/bin/env python3
 """Times transformers' CLIPTokenizer and an SD 1.5-config CLIPTextModel (random weights, f32, CPU) on the shapes of
-crates/diffusion/benches/text.rs. Usage: python tools/bench_text.py [THREADS]"""
+crates/bench/src/text.rs (vcedit bench text). Usage: python tools/bench_text.py [THREADS]"""
 import os
 import sys
 import time

@@ -5,7 +5,7 @@ Runs diffusers' UNet2DConditionModel with the SD 1.5 config and random weights a
 6 by default), `torch.no_grad()`, f32, default attention processor (SDPA), on the given thread count.
 
   python tools/bench_unet_torch.py                 # PyTorch only
-  python tools/bench_unet_torch.py --compare       # also `cargo bench --bench unet` (same threads), ratio table
+  python tools/bench_unet_torch.py --compare       # also `cargo bench -p vcedit-bench --bench unet` (same threads), ratio table
 
 Timings are the best of --runs runs after one warm-up. Both sides print `RESULT {json}` lines.
 """
@@ -69,7 +69,7 @@ def torch_results(batches, runs, size, threads):
 def candle_results(batches, runs, size, threads):
     repo = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..")
     env = dict(os.environ, RAYON_NUM_THREADS=str(threads))
-    cmd = ["cargo", "bench", "-p", "vcedit-diffusion", "--bench", "unet", "--",
+    cmd = ["cargo", "bench", "-p", "vcedit-bench", "--bench", "unet", "--",
            "--batches", ",".join(map(str, batches)), "--runs", str(runs), "--size", str(size)]
     proc = subprocess.run(cmd, cwd=repo, env=env, stdout=subprocess.PIPE, text=True, check=True)
     results = [json.loads(line[len("RESULT "):]) for line in proc.stdout.splitlines() if line.startswith("RESULT ")]

@@ -1,6 +1,6 @@
 #!/usr/bin/env python3
 """Times diffusers' AutoencoderKL (SD 1.x config) and AutoencoderTiny (SD TAESD config) with random weights on the
-same shapes as `cargo bench -p vcedit-diffusion --bench vae -- SIZE`, for a side-by-side comparison.
+same shapes as `vcedit bench codec SIZE`, for a side-by-side comparison.
 
 Usage: python tools/bench_vae.py [SIZE=256] [THREADS=2]
 """

@@ -51,6 +51,8 @@ enum Command {
     Model(cmd::model::Args),
     /// Train the self-made demo model (`train --out DIR`) or sample images from a model (`sample`).
     DemoModel(cmd::demo_model::Args),
+    /// Measure this machine: GPU adapter, matrix products, UNet, codecs, text encoder, splatting.
+    Bench(cmd::bench::Args),
 }
 
 fn main() {
@@ -67,6 +69,7 @@ fn main() {
         Command::Convert(a) => cmd::convert::run(a),
         Command::Model(a) => cmd::model::run(a),
         Command::DemoModel(a) => cmd::demo_model::run(a),
+        Command::Bench(a) => cmd::bench::run(a),
     };
     if let Err(err) = result {
         let mut line = one_line(&err);

@@ -1,4 +1,5 @@
 //! One module per subcommand.
+pub mod bench;
 pub mod convert;
 pub mod demo;
 pub mod demo_model;

@@ -1,22 +1,16 @@
 //! Renderer benchmarks: forward and forward+backward at 256² and 512² with 30k, 125k and 500k Gaussians,
-//! plus the real playbot-31k scene when the shared assets are present.
+//! plus the real playbot-31k scene when the shared assets are present (or `--scene PLY`).
 //!
-//! Run: `cargo bench -p vcedit-splat --bench render` (add `-- quick` for one size, `-- stages` for a
-//! per-stage breakdown, `-- channels` for extra-channel rendering and lifting with 24..300 channels).
+//! `vcedit bench render` (add `quick` for one size, `stages` for a per-stage breakdown, `channels` for
+//! extra-channel rendering and lifting with 24..300 channels).
 //!
-//! `-- gpu`: forward, backward and a full fit step (render, L1 + D-SSIM, backward, Adam, densification
-//! statistics) on the GPU beside the CPU, at 125k and 1M Gaussians, 512² and 1920x1080; `-- gpu quick`:
+//! `gpu`: forward, backward and a full fit step (render, L1 + D-SSIM, backward, Adam, densification
+//! statistics) on the GPU beside the CPU, at 125k and 1M Gaussians, 512² and 1920x1080; `gpu quick`:
 //! 30k at 512². Filters select cases: `n=125k,1m size=512,1080p device=cpu,gpu
-//! stage=forward,backward,step runs=3 sh=3`, e.g. `-- gpu n=1m size=1080p device=gpu runs=1` (lavapipe
-//! binds at most 128 MiB per buffer: 1M Gaussians need `sh=2` there). One
-//! `BENCH {json}` line per measurement, then a markdown table.
-//!
-//! Synthetic scenes fill a unit ball the way trained scenes fill their volume:
-//! log-normal, anisotropic scales around the typical neighbour spacing, random rotations, opacities
-//! spread over (0, 1) with many near-opaque Gaussians, and SH degree 3.
+//! stage=forward,backward,step runs=3 sh=3`, e.g. `gpu n=1m size=1080p device=gpu runs=1` (lavapipe
+//! binds at most 128 MiB per buffer: 1M Gaussians need `sh=2` there). One `RESULT` line per
+//! measurement, then a markdown table. Scenes: [`crate::scenes`].
 
-use rand::{Rng, SeedableRng};
-use rand_distr::{Distribution, Normal};
 use splat::cameras::orbit::look_at;
 use splat::lift::lift;
 use splat::render::{
@@ -25,76 +19,8 @@ use splat::render::{
 use splat::{Camera, GaussianScene};
 use std::time::{Duration, Instant};
 
-fn ball_scene(n: usize, seed: u64) -> GaussianScene {
-    ball_scene_with_degree(n, seed, 3)
-}
-
-/// [`ball_scene`] with SH degree `degree` (the colours of degree 3's first coefficients).
-fn ball_scene_with_degree(n: usize, seed: u64, degree: u32) -> GaussianScene {
-    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
-    let normal = Normal::new(0.0f32, 1.0).unwrap();
-    // Typical spacing of n points in the unit ball; scales are log-normal around half of it.
-    let spacing = (4.19f32 / n as f32).cbrt();
-    let coeffs = (degree as usize + 1).pow(2);
-    let mut s = GaussianScene::new(degree);
-    for _ in 0..n {
-        let dir: [f32; 3] = std::array::from_fn(|_| normal.sample(&mut rng));
-        let len = (dir[0] * dir[0] + dir[1] * dir[1] + dir[2] * dir[2])
-            .sqrt()
-            .max(1e-6);
-        let r = rng.gen::<f32>().cbrt();
-        s.means.extend(dir.map(|v| v / len * r));
-        let base = (0.5 * spacing).ln() + 0.5 * normal.sample(&mut rng);
-        for _ in 0..3 {
-            s.log_scales.push(base + 0.4 * normal.sample(&mut rng));
-        }
-        s.quats.extend((0..4).map(|_| normal.sample(&mut rng)));
-        s.opacity_logits.push(1.0 + 2.0 * normal.sample(&mut rng));
-        for k in 0..16 {
-            for _ in 0..3 {
-                let v = if k == 0 {
-                    normal.sample(&mut rng)
-                } else {
-                    0.1 * normal.sample(&mut rng)
-                };
-                if k < coeffs {
-                    s.sh.push(v);
-                }
-            }
-        }
-    }
-    s
-}
-
-fn camera(size: u32) -> Camera {
-    camera_wh(size, size)
-}
-
-/// A camera `width`x`height` with a 50° vertical field of view, looking at the ball from distance 3:
-/// the ball fills most of the frame.
-fn camera_wh(width: u32, height: u32) -> Camera {
-    let focal = height as f64 / 2.0 / (25f64.to_radians()).tan();
-    look_at(
-        "bench".into(),
-        [0.6, -0.8, -2.8],
-        [0.0; 3],
-        [0.0, -1.0, 0.0],
-        width,
-        height,
-        focal,
-    )
-}
-
-/// CPU time (user + system) consumed so far by this process, from /proc (Linux; None elsewhere). On a
-/// busy machine this is a steadier measure than wall time: wall ≈ CPU / threads on an idle machine.
-fn process_cpu_time() -> Option<Duration> {
-    let stat = std::fs::read_to_string("/proc/self/stat").ok()?;
-    // Fields after the parenthesised command name; utime and stime are fields 14 and 15.
-    let rest = &stat[stat.rfind(')')? + 2..];
-    let f: Vec<&str> = rest.split_whitespace().collect();
-    let ticks: u64 = f.get(11)?.parse::<u64>().ok()? + f.get(12)?.parse::<u64>().ok()?;
-    Some(Duration::from_secs_f64(ticks as f64 / 100.0))
-}
+use crate::scenes::{ball_scene, ball_scene_with_degree, camera, camera_wh};
+use crate::{arg_value, cpu_seconds, has_flag, load_average, report, BenchError, Result};
 
 fn median(mut v: Vec<Duration>) -> Duration {
     v.sort();
@@ -118,7 +44,7 @@ fn bench(label: &str, scene: &GaussianScene, cam: &Camera, runs: usize, stages: 
     let _ = render_backward(scene, cam, &settings, None, &out, &grads);
     let (mut fwd, mut bwd) = (vec![], vec![]);
     let mut isects = 0;
-    let cpu_start = process_cpu_time();
+    let cpu_start = cpu_seconds();
     for _ in 0..runs {
         let t = Instant::now();
         let out = render(scene, cam, &settings, None);
@@ -129,10 +55,7 @@ fn bench(label: &str, scene: &GaussianScene, cam: &Camera, runs: usize, stages: 
         bwd.push(t.elapsed());
         std::hint::black_box(g);
     }
-    let cpu = match (cpu_start, process_cpu_time()) {
-        (Some(a), Some(b)) => format!("{:.1} ms", (b - a).as_secs_f64() * 1e3 / runs as f64),
-        _ => "n/a".into(),
-    };
+    let cpu = format!("{:.1} ms", (cpu_seconds() - cpu_start) * 1e3 / runs as f64);
     let (f, b) = (median(fwd), median(bwd));
     println!(
         "{label:<14} {:>4}x{:<4} forward {:>7.1} ms  backward {:>7.1} ms  fwd+bwd {:>7.1} ms  (CPU per fwd+bwd {cpu}; {} tile entries)",
@@ -245,16 +168,6 @@ impl Case {
     }
 }
 
-/// The 1-minute load average (Linux), printed with every measurement: the machine is shared.
-fn load_average() -> Option<f64> {
-    std::fs::read_to_string("/proc/loadavg")
-        .ok()?
-        .split_whitespace()
-        .next()?
-        .parse()
-        .ok()
-}
-
 /// Timings of one case on one device; `None` = stage not selected.
 #[derive(Default)]
 struct Timings {
@@ -300,7 +213,7 @@ fn parse_size(s: &str) -> Option<(u32, u32)> {
 }
 
 impl Selection {
-    fn parse(args: &[String], quick: bool) -> Result<Self, String> {
+    fn parse(args: &[String], quick: bool) -> std::result::Result<Self, String> {
         let mut sel = Self {
             counts: if quick {
                 vec![30_000]
@@ -378,20 +291,31 @@ impl Selection {
 }
 
 /// Prints one machine-readable line per measurement.
-fn report_line(device: &str, case: &Case, stage: &str, times: &[Duration], extra: &str) {
-    let ms = |d: Duration| d.as_secs_f64() * 1e3;
+fn report_line(
+    device: &str,
+    case: &Case,
+    stage: &str,
+    times: &[Duration],
+    extra: serde_json::Value,
+) {
+    let ms = |d: Duration| (d.as_secs_f64() * 1e5).round() / 1e2;
     let min = times.iter().min().copied().unwrap_or_default();
-    println!(
-        "BENCH {{\"device\":\"{device}\",\"gaussians\":{},\"width\":{},\"height\":{},\"stage\":\"{stage}\",\
-         \"runs\":{},\"median_ms\":{:.2},\"min_ms\":{:.2},\"load\":{}{extra}}}",
-        case.gaussians,
-        case.width,
-        case.height,
-        times.len(),
-        ms(median(times.to_vec())),
-        ms(min),
-        load_average().map_or("null".into(), |l| format!("{l:.2}")),
-    );
+    let mut fields = serde_json::json!({
+        "bench": "render",
+        "device": device,
+        "gaussians": case.gaussians,
+        "width": case.width,
+        "height": case.height,
+        "stage": stage,
+        "runs": times.len(),
+        "median_ms": ms(median(times.to_vec())),
+        "min_ms": ms(min),
+        "load": load_average(),
+    });
+    if let (Some(map), serde_json::Value::Object(more)) = (fields.as_object_mut(), extra) {
+        map.extend(more);
+    }
+    report(fields);
 }
 
 /// CPU: forward, backward and one fit step (render, L1 + D-SSIM, backward, Adam, densification stats).
@@ -426,13 +350,13 @@ fn measure_cpu(scene: &GaussianScene, case: &Case, runs: usize, stages: [bool; 3
                 bwd.push(t.elapsed());
             }
         }
-        let isects = format!(",\"intersections\":{}", frame.tile_intersections());
+        let isects = serde_json::json!({"intersections": frame.tile_intersections()});
         if stages[0] {
-            report_line("cpu", case, "forward", &fwd, &isects);
+            report_line("cpu", case, "forward", &fwd, isects.clone());
             out.forward = Some(median(fwd));
         }
         if stages[1] {
-            report_line("cpu", case, "backward", &bwd, &isects);
+            report_line("cpu", case, "backward", &bwd, isects);
             out.backward = Some(median(bwd));
         }
     }
@@ -464,7 +388,7 @@ fn measure_cpu(scene: &GaussianScene, case: &Case, runs: usize, stages: [bool; 3
                 .add(&RenderedView::new(&g, &frame.radii, &cam), 1);
             steps.push(t.elapsed());
         }
-        report_line("cpu", case, "step", &steps, "");
+        report_line("cpu", case, "step", &steps, serde_json::Value::Null);
         out.step = Some(median(steps));
     }
     out
@@ -490,7 +414,7 @@ fn measure_gpu(
     case: &Case,
     runs: usize,
     stages: [bool; 3],
-) -> Result<Timings, gpu::GpuError> {
+) -> std::result::Result<Timings, gpu::GpuError> {
     use splat::gpu::{
         render_backward_device, render_device, DeviceTrainer, GpuOutputGrads, GpuScene,
     };
@@ -510,13 +434,19 @@ fn measure_gpu(
             depth: None,
             extra: None,
         };
-        // Warm-up: kernel compilation.
+        // Warm-up: kernel compilation, timed apart.
+        let t = Instant::now();
         let frame = render_device(ctx, &dev, &cam, &settings, None)?;
+        sync()?;
+        let first_forward = t.elapsed();
+        let t = Instant::now();
         if stages[1] {
             render_backward_device(ctx, &dev, &settings, None, &frame, &grads)?;
         }
         sync()?;
-        let isects = format!(",\"intersections\":{}", frame.intersections);
+        let first_backward = t.elapsed();
+        let isects = |first: Duration| serde_json::json!({"intersections": frame.intersections, "first_ms": first.as_secs_f64() * 1e3});
+        let (extra_forward, extra_backward) = (isects(first_forward), isects(first_backward));
         drop(frame);
         let (mut fwd, mut bwd) = (vec![], vec![]);
         for _ in 0..runs {
@@ -533,11 +463,11 @@ fn measure_gpu(
             }
         }
         if stages[0] {
-            report_line("gpu", case, "forward", &fwd, &isects);
+            report_line("gpu", case, "forward", &fwd, extra_forward);
             out.forward = Some(median(fwd));
         }
         if stages[1] {
-            report_line("gpu", case, "backward", &bwd, &isects);
+            report_line("gpu", case, "backward", &bwd, extra_backward);
             out.backward = Some(median(bwd));
         }
     }
@@ -545,8 +475,10 @@ fn measure_gpu(
         let mut state = TrainState::new(scene.clone(), LearningRates::inria(30_000), 3.0);
         let mut trainer = DeviceTrainer::upload(ctx, &state);
         let target = gpu::prims::upload_f32(&ctx.client, &pattern_target(npix));
+        let t = Instant::now();
         trainer.step(ctx, &mut state.adam, &cam, &target, &settings, 0.2, true)?;
         sync()?;
+        let first_step = t.elapsed();
         let mut steps = vec![];
         for _ in 0..runs {
             let t = Instant::now();
@@ -562,7 +494,13 @@ fn measure_gpu(
             sync()?;
             steps.push(t.elapsed());
         }
-        report_line("gpu", case, "step", &steps, "");
+        report_line(
+            "gpu",
+            case,
+            "step",
+            &steps,
+            serde_json::json!({"first_ms": first_step.as_secs_f64() * 1e3}),
+        );
         out.step = Some(median(steps));
     }
     Ok(out)
@@ -572,14 +510,8 @@ fn measure_gpu(
 /// software ones included) beside the CPU one, for 125k and 1M Gaussians at 512² and 1080p (`quick`: 30k
 /// at 512²). Filters: see [`Selection`]. Prints one `BENCH {json}` line per measurement, then a markdown
 /// table of medians.
-fn main_gpu(args: &[String], quick: bool) {
-    let sel = match Selection::parse(args, quick) {
-        Ok(s) => s,
-        Err(e) => {
-            eprintln!("{e}");
-            std::process::exit(2);
-        }
-    };
+fn main_gpu(args: &[String], quick: bool) -> Result<()> {
+    let sel = Selection::parse(args, quick).map_err(BenchError::new)?;
     let ctx = if sel.gpu {
         match gpu::open(gpu::DeviceChoice::Gpu) {
             Ok(Some(ctx)) => Some(ctx),
@@ -645,22 +577,22 @@ fn main_gpu(args: &[String], quick: bool) {
             ms(t.step)
         );
     }
+    Ok(())
 }
 
-fn main() {
-    let args: Vec<String> = std::env::args().collect();
-    let quick = args.iter().any(|a| a == "quick");
-    if args.iter().any(|a| a == "gpu") {
-        return main_gpu(&args, quick);
+pub fn main(args: &[String]) -> Result<()> {
+    let quick = has_flag(args, "quick");
+    if has_flag(args, "gpu") {
+        return main_gpu(args, quick);
     }
-    if args.iter().any(|a| a == "channels") {
+    if has_flag(args, "channels") {
         let scene = ball_scene(125_000, 1);
         for channels in [24, 96, 300] {
             bench_channels(&scene, 512, channels);
         }
-        return;
+        return Ok(());
     }
-    let stages = args.iter().any(|a| a == "stages");
+    let stages = has_flag(args, "stages");
     println!("rayon threads: {}", rayon::current_num_threads());
     let counts: &[usize] = if quick {
         &[125_000]
@@ -681,8 +613,13 @@ fn main() {
             );
         }
     }
-    let playbot = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
-        .join("../../../shared/assets/scenes/playbot-31k.ply");
+    let playbot = arg_value(args, "--scene").map_or_else(
+        || {
+            std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
+                .join("../../../shared/assets/scenes/playbot-31k.ply")
+        },
+        std::path::PathBuf::from,
+    );
     match splat::ply::read_ply(&playbot) {
         Ok(scene) => {
             for &size in sizes {
@@ -701,4 +638,5 @@ fn main() {
         }
         Err(e) => println!("SKIP playbot-31k: {e}"),
     }
+    Ok(())
 }

@@ -1,0 +1,295 @@
+//! Measurements of vcedit's engines on this machine, one module per bench:
+//!
+//! | name | what |
+//! | --- | --- |
+//! | `device` | the adapter the GPU path opens: name, API, shader compiler, limits, free memory |
+//! | `matmul` | GPU matrix products at SD 1.5's shapes (f32 and f16 weights), first call apart |
+//! | `unet` | one UNet forward (SD 1.5 config with random weights, or a model folder), with or without an InfEdit-shaped attention hook |
+//! | `codec` | the latent codec's encode and decode (AutoencoderKL and TAESD, or a model folder's) |
+//! | `text` | tokenizer and CLIP text encoder |
+//! | `render` | the splatting renderer: CPU stages, and with `gpu` forward/backward/fit step on the GPU beside the CPU |
+//!
+//! Each runs as `vcedit bench NAME ARGS` (one binary carries them all, which is what a borrowed GPU
+//! machine without a Rust toolchain can run: tools/gpu-check) or `cargo bench -p vcedit-bench --bench NAME
+//! -- ARGS`. Every measurement is one `RESULT {json}` line on stdout (progress goes to stderr), with the
+//! first call (which compiles the GPU kernels it meets) reported apart from the warm ones.
+
+use std::time::{Duration, Instant};
+
+pub mod codec;
+pub mod device;
+pub mod matmul;
+pub mod render;
+pub mod scenes;
+pub mod text;
+pub mod unet;
+
+/// The benches, in the order `vcedit bench --help` lists them.
+pub const NAMES: [&str; 6] = ["device", "matmul", "unet", "codec", "text", "render"];
+
+/// A bench that could not run: a bad argument, a missing file, a GPU error. One line.
+#[derive(Debug, thiserror::Error)]
+#[error("{0}")]
+pub struct BenchError(pub String);
+
+impl BenchError {
+    pub fn new(message: impl std::fmt::Display) -> Self {
+        Self(message.to_string())
+    }
+}
+
+macro_rules! from_error {
+    ($($t:ty),*) => {$(
+        impl From<$t> for BenchError {
+            fn from(e: $t) -> Self {
+                Self(e.to_string())
+            }
+        }
+    )*};
+}
+from_error!(
+    candle_core::Error,
+    gpu::GpuError,
+    diffusion::loader::LoadError,
+    diffusion::unet::UNetError,
+    diffusion::vae::VaeError,
+    diffusion::clip::ClipError,
+    diffusion::tokenizer::TokenizerError,
+    std::io::Error
+);
+
+pub type Result<T> = std::result::Result<T, BenchError>;
+
+/// Runs bench `name` with `args` (the words after the name). `reexec` is the command line prefix that
+/// runs the same bench in a fresh process (the UNet's load-memory measurement needs one).
+pub fn run(name: &str, args: &[String], reexec: &[String]) -> Result<()> {
+    match name {
+        "device" => device::main(args),
+        "matmul" => matmul::main(args),
+        "unet" => unet::main(args, reexec),
+        "codec" => codec::main(args),
+        "text" => text::main(args),
+        "render" => render::main(args),
+        other => Err(BenchError(format!(
+            "unknown bench '{other}' (expected one of {})",
+            NAMES.join(", ")
+        ))),
+    }
+}
+
+/// The `main` of `cargo bench -p vcedit-bench --bench NAME`: cargo passes `--bench`, which is dropped.
+pub fn main_for_cargo_bench(name: &str) {
+    let args: Vec<String> = std::env::args()
+        .skip(1)
+        .filter(|a| a != "--bench")
+        .collect();
+    if let Err(e) = run(name, &args, &[]) {
+        eprintln!("error: {e}");
+        std::process::exit(1);
+    }
+}
+
+/// The value after `--name` in `args`.
+pub fn arg_value(args: &[String], name: &str) -> Option<String> {
+    args.iter()
+        .position(|a| a == name)
+        .and_then(|i| args.get(i + 1).cloned())
+}
+
+/// The value after `--name` parsed, or `default` when absent; a value that does not parse is an error
+/// naming the option.
+pub fn arg_parsed<T: std::str::FromStr>(args: &[String], name: &str, default: T) -> Result<T> {
+    match arg_value(args, name) {
+        None => Ok(default),
+        Some(v) => v
+            .parse()
+            .map_err(|_| BenchError(format!("{name}: cannot read '{v}'"))),
+    }
+}
+
+/// A comma-separated list after `--name`, each item parsed.
+pub fn arg_list<T: std::str::FromStr>(
+    args: &[String],
+    name: &str,
+    default: &str,
+) -> Result<Vec<T>> {
+    let text = arg_value(args, name).unwrap_or_else(|| default.to_string());
+    text.split(',')
+        .filter(|v| !v.is_empty())
+        .map(|v| {
+            v.trim()
+                .parse()
+                .map_err(|_| BenchError(format!("{name}: cannot read '{v}' in '{text}'")))
+        })
+        .collect()
+}
+
+/// Whether the bare word or flag `name` is among `args`.
+pub fn has_flag(args: &[String], name: &str) -> bool {
+    args.iter().any(|a| a == name)
+}
+
+/// Prints one measurement as `RESULT {json}` (the line tools parse).
+pub fn report(value: serde_json::Value) {
+    println!("RESULT {value}");
+}
+
+/// Timings of one measured operation: the first call (kernel compilation, uploads of cached weights)
+/// and the warm calls after it.
+#[derive(Clone, Debug)]
+pub struct Timed {
+    pub first: Duration,
+    pub warm: Vec<Duration>,
+}
+
+impl Timed {
+    /// Calls `f` once, then `runs` more times, timing each; `f` must wait for its own results.
+    pub fn measure<T>(runs: usize, mut f: impl FnMut() -> Result<T>) -> Result<Timed> {
+        let start = Instant::now();
+        std::hint::black_box(f()?);
+        let first = start.elapsed();
+        let mut warm = Vec::with_capacity(runs);
+        for _ in 0..runs {
+            let start = Instant::now();
+            std::hint::black_box(f()?);
+            warm.push(start.elapsed());
+        }
+        Ok(Timed { first, warm })
+    }
+
+    pub fn best(&self) -> Duration {
+        self.warm.iter().min().copied().unwrap_or(self.first)
+    }
+
+    pub fn median(&self) -> Duration {
+        if self.warm.is_empty() {
+            return self.first;
+        }
+        let mut v = self.warm.clone();
+        v.sort();
+        v[v.len() / 2]
+    }
+
+    /// `first_s`, `best_s`, `median_s`, `runs` as JSON fields, merged into `fields`.
+    pub fn json(&self, mut fields: serde_json::Value) -> serde_json::Value {
+        let map = fields.as_object_mut().expect("report fields are an object");
+        map.insert("first_s".into(), secs(self.first).into());
+        map.insert("best_s".into(), secs(self.best()).into());
+        map.insert("median_s".into(), secs(self.median()).into());
+        map.insert("runs".into(), self.warm.len().into());
+        fields
+    }
+}
+
+/// Seconds rounded to microseconds (JSON stays readable).
+pub fn secs(d: Duration) -> f64 {
+    (d.as_secs_f64() * 1e6).round() / 1e6
+}
+
+/// A `/proc/self/status` memory field in MB (`VmHWM` = peak RSS, `RssAnon` = heap, `RssFile` = mapped
+/// files); NaN where the file is missing (not Linux).
+pub fn status_mb(field: &str) -> f64 {
+    let status = std::fs::read_to_string("/proc/self/status").unwrap_or_default();
+    status
+        .lines()
+        .find_map(|l| l.strip_prefix(field).and_then(|v| v.strip_prefix(':')))
+        .and_then(|v| v.trim().trim_end_matches("kB").trim().parse::<f64>().ok())
+        .map(|kb| kb / 1024.0)
+        .unwrap_or(f64::NAN)
+}
+
+/// The process's peak resident memory in MB.
+pub fn peak_rss_mb() -> f64 {
+    status_mb("VmHWM")
+}
+
+/// User + system CPU seconds of this process (from /proc/self/stat, 100 Hz ticks), to judge runs on a
+/// machine shared with other work: wall time inflates under contention, CPU time much less.
+pub fn cpu_seconds() -> f64 {
+    let stat = std::fs::read_to_string("/proc/self/stat").unwrap_or_default();
+    // Fields after the parenthesised command name; utime and stime are fields 14 and 15 overall.
+    let rest = stat.rsplit_once(')').map(|(_, r)| r).unwrap_or("");
+    let fields: Vec<&str> = rest.split_whitespace().collect();
+    let ticks = |i: usize| {
+        fields
+            .get(i)
+            .and_then(|v| v.parse::<f64>().ok())
+            .unwrap_or(f64::NAN)
+    };
+    (ticks(11) + ticks(12)) / 100.0
+}
+
+/// The 1-minute load average (Linux), printed with CPU measurements: the machine may be shared.
+pub fn load_average() -> Option<f64> {
+    std::fs::read_to_string("/proc/loadavg")
+        .ok()?
+        .split_whitespace()
+        .next()?
+        .parse()
+        .ok()
+}
+
+/// Opens the GPU for the networks from `--device` (default `default`) and `--precision` (default f16):
+/// `None` for `cpu`, or for `auto` without a usable GPU.
+pub fn network_device(
+    args: &[String],
+    default: &str,
+) -> Result<Option<diffusion::device::GpuDevice>> {
+    let choice: gpu::DeviceChoice = arg_value(args, "--device")
+        .unwrap_or_else(|| default.into())
+        .parse()?;
+    let precision: diffusion::device::Precision =
+        arg_parsed(args, "--precision", diffusion::device::Precision::default())?;
+    Ok(gpu::open(choice)?.map(|ctx| diffusion::device::GpuDevice::with_precision(ctx, precision)))
+}
+
+/// Waits for every GPU command submitted so far.
+pub fn sync(ctx: &gpu::GpuContext) -> Result<()> {
+    gpu::cubecl::future::block_on(ctx.client.sync())
+        .map_err(gpu::server_error)
+        .map_err(BenchError::from)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn words(s: &str) -> Vec<String> {
+        s.split_whitespace().map(String::from).collect()
+    }
+
+    #[test]
+    fn arguments_parse_or_name_the_option() {
+        let args = words("--runs 3 --batches 1,6 gpu --size x");
+        assert_eq!(arg_parsed(&args, "--runs", 1usize).unwrap(), 3);
+        assert_eq!(arg_parsed(&args, "--missing", 7usize).unwrap(), 7);
+        assert_eq!(arg_list::<usize>(&args, "--batches", "2").unwrap(), [1, 6]);
+        assert_eq!(arg_list::<usize>(&args, "--other", "2,4").unwrap(), [2, 4]);
+        assert!(has_flag(&args, "gpu"));
+        let e = arg_parsed(&args, "--size", 1usize).unwrap_err();
+        assert_eq!(e.to_string(), "--size: cannot read 'x'");
+        assert!(run("nonesuch", &[], &[])
+            .unwrap_err()
+            .to_string()
+            .contains("unknown bench 'nonesuch'"));
+    }
+
+    #[test]
+    fn timings_keep_the_first_call_apart() {
+        let mut calls = 0;
+        let t = Timed::measure(3, || {
+            calls += 1;
+            std::thread::sleep(Duration::from_millis(if calls == 1 { 30 } else { 1 }));
+            Ok(())
+        })
+        .unwrap();
+        assert_eq!(calls, 4);
+        assert_eq!(t.warm.len(), 3);
+        assert!(t.first >= Duration::from_millis(30));
+        assert!(t.best() < Duration::from_millis(30) && t.best() <= t.median());
+        let j = t.json(serde_json::json!({"what": "x"}));
+        assert_eq!(j["runs"], 3);
+        assert_eq!(j["what"], "x");
+        assert!(j["first_s"].as_f64().unwrap() >= 0.03);
+    }
+}

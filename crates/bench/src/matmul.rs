@@ -1,0 +1,122 @@
+//! GPU matrix products at the shapes of SD 1.5's first level at 512² (4096 tokens × 320 channels): the
+//! projections (k = n = 320) and the feed-forward (n = 1280), as a linear layer (weight [n, k], read
+//! transposed, in the device's weight precision) and, for f32, as a plain activation × activation product.
+//!
+//! `vcedit bench matmul [--runs 3] [--repeat 20] [--device gpu] [--precisions f32,f16]
+//! [--shapes 4096x320x320,4096x320x1280]`
+//!
+//! The first call (kernel compilation) is timed on its own; each warm run then launches the product
+//! `--repeat` times and waits for the device once, so the time is the device's, not one read-back's
+//! round trip. One `RESULT` line per product and precision, with ms and TFLOP/s of the best run.
+
+use std::time::Instant;
+
+use candle_core::{Device, Tensor};
+use diffusion::device::{ops, GpuDevice, GpuTensor, Precision};
+
+use crate::{arg_list, arg_parsed, arg_value, report, secs, sync, BenchError, Result};
+
+/// One product launch (its result stays on the device).
+type Product<'a> = dyn Fn() -> candle_core::Result<GpuTensor> + 'a;
+
+/// `MxKxN`.
+fn parse_shape(s: &str) -> Result<(usize, usize, usize)> {
+    let dims: Vec<usize> = s.split('x').filter_map(|v| v.parse().ok()).collect();
+    match dims[..] {
+        [m, k, n] if m > 0 && k > 0 && n > 0 => Ok((m, k, n)),
+        _ => Err(BenchError::new(format!(
+            "--shapes: '{s}' is not MxKxN (e.g. 4096x320x1280)"
+        ))),
+    }
+}
+
+pub fn main(args: &[String]) -> Result<()> {
+    let runs: usize = arg_parsed(args, "--runs", 3)?;
+    let repeat: usize = arg_parsed(args, "--repeat", 20usize)?.max(1);
+    let choice: gpu::DeviceChoice = arg_value(args, "--device")
+        .unwrap_or_else(|| "gpu".into())
+        .parse()?;
+    let Some(context) = gpu::open(choice)? else {
+        return Err(BenchError::new(format!(
+            "matmul bench: no GPU (device {choice})"
+        )));
+    };
+    let precisions: Vec<Precision> = arg_list(args, "--precisions", "f32,f16")?;
+    let shapes = arg_value(args, "--shapes")
+        .unwrap_or_else(|| "4096x320x320,4096x320x1280".into())
+        .split(',')
+        .map(parse_shape)
+        .collect::<Result<Vec<_>>>()?;
+    for precision in precisions {
+        let device = GpuDevice::with_precision(context.clone(), precision);
+        eprintln!(
+            "matmul bench on {} ({}), {precision} weights",
+            device.name(),
+            context.client.name()
+        );
+        for &(m, k, n) in &shapes {
+            let a = Tensor::randn(0f32, 1.0, (m, k), &Device::Cpu)?;
+            let b = Tensor::randn(0f32, 1.0, (k, n), &Device::Cpu)?;
+            let w = Tensor::randn(0f32, 1.0, (n, k), &Device::Cpu)?;
+            let ga = GpuTensor::upload(&device, &a)?;
+            let gb = GpuTensor::upload(&device, &b)?;
+            let gw = device.cached(&w)?;
+            let mut products: Vec<(&str, Box<Product>)> =
+                vec![("linear", Box::new(|| ops::linear(&ga, &gw, None)))];
+            if precision == Precision::F32 {
+                // Activation × activation products do not depend on the weight precision.
+                products.push(("matmul", Box::new(|| ops::matmul(&ga, &gb))));
+            }
+            for (what, product) in products {
+                let start = Instant::now();
+                product()?.to_cpu()?;
+                let first = start.elapsed();
+                let mut best = f64::INFINITY;
+                for _ in 0..runs.max(1) {
+                    let start = Instant::now();
+                    for _ in 0..repeat {
+                        std::hint::black_box(product()?);
+                    }
+                    sync(&context)?;
+                    best = best.min(start.elapsed().as_secs_f64() / repeat as f64);
+                }
+                let tflops = 2.0 * (m * k * n) as f64 / best / 1e12;
+                eprintln!(
+                    "  {what} {m}x{k}x{n}: {:.3} ms, {tflops:.2} TFLOP/s (first call {:.1} ms)",
+                    best * 1e3,
+                    first.as_secs_f64() * 1e3
+                );
+                report(serde_json::json!({
+                    "bench": "matmul",
+                    "what": what,
+                    "precision": precision.to_string(),
+                    "m": m, "k": k, "n": n,
+                    "best_s": (best * 1e9).round() / 1e9,
+                    "ms": (best * 1e6).round() / 1e3,
+                    "tflops": (tflops * 1e3).round() / 1e3,
+                    "first_s": secs(first),
+                    "repeat": repeat,
+                    "device": device.name(),
+                    "compiler": context.client.name(),
+                }));
+            }
+        }
+    }
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn shapes_parse_or_say_what_is_wrong() {
+        assert_eq!(parse_shape("4096x320x1280").unwrap(), (4096, 320, 1280));
+        for bad in ["4096x320", "0x1x1", "ax1x1"] {
+            assert!(parse_shape(bad)
+                .unwrap_err()
+                .to_string()
+                .contains("is not MxKxN"));
+        }
+    }
+}

@@ -1,0 +1,207 @@
+#!/usr/bin/env bash
+# The hardware check: every measurement that decides vcedit's GPU direction, in one call on a borrowed GPU
+# machine (no Rust, no network), from what tools/gpu-check/prepare.sh packed into .gpu-check/.
+#
+#   tools/gpu-check/run.sh                  on the GPU machine (see README.md for the exact call)
+#   tools/gpu-check/run.sh --local          the same steps at small sizes here (Mesa lavapipe, CPU PyTorch
+#                                           when installed); CI runs this
+#   options: --budget SECONDS (default 450, 420 with --local: steps stop being started when it runs out)
+#            --only STEP,STEP  (rerun some steps, e.g. after one failed)
+#            --skip STEP,STEP
+#
+# Every step runs under its own `timeout`, so a hang or crash costs that step alone. After each step the
+# results so far are written to $OUT/gpu-check.json and $OUT/gpu-check.md (the table for
+# docs/gpu-results.md), the full output to $OUT/gpu-check.log: a call cut short still returns what it
+# measured. $OUT is the device tool's output folder; elsewhere it defaults to ./gpu-check-out.
+set -uo pipefail
+HERE=$(cd "$(dirname "$0")" && pwd)
+ROOT=$(cd "$HERE/../.." && pwd)
+cd "$ROOT"
+PACK="$ROOT/.gpu-check"
+
+MODE=device
+BUDGET=""
+ONLY=""
+SKIP=""
+while [ $# -gt 0 ]; do
+  case "$1" in
+    --local) MODE=local ;;
+    --budget) BUDGET="$2"; shift ;;
+    --only) ONLY="$2"; shift ;;
+    --skip) SKIP="$2"; shift ;;
+    *) echo "run.sh: unknown option $1 (--local, --budget S, --only A,B, --skip A,B)" >&2; exit 2 ;;
+  esac
+  shift
+done
+
+# The budget: what one device call affords (see README.md); locally, what CI affords.
+[ -z "$BUDGET" ] && { [ "$MODE" = device ] && BUDGET=450 || BUDGET=420; }
+OUT="${OUT:-$ROOT/gpu-check-out}"
+mkdir -p "$OUT"
+WORK=$(mktemp -d /tmp/gpu-check.XXXXXX)
+LOG="$OUT/gpu-check.log"
+: > "$LOG"
+: > "$WORK/steps.jsonl"
+START=$(date +%s)
+export PYTHONUNBUFFERED=1 RUST_BACKTRACE=0 XDG_RUNTIME_DIR="${XDG_RUNTIME_DIR:-/tmp}"
+
+say() { echo "$*" | tee -a "$LOG"; }
+elapsed() { echo $(( $(date +%s) - START )); }
+summarize() {
+  python3 "$HERE/summarize.py" --work "$WORK" --out "$OUT" --mode "$MODE" --pack "$PACK" >>"$LOG" 2>&1 ||
+    say "summarize.py failed (see the log)"
+}
+
+# step NAME TIMEOUT COMMAND...: runs COMMAND under `timeout`, records rc and seconds, keeps its output.
+step() {
+  local name=$1 limit=$2
+  shift 2
+  if [ -n "$ONLY" ] && [[ ",$ONLY," != *",$name,"* ]]; then return 0; fi
+  if [[ ",$SKIP," == *",$name,"* ]]; then return 0; fi
+  local left=$(( BUDGET - $(elapsed) ))
+  if [ "$left" -lt 15 ]; then
+    say "== $name: not started (budget of ${BUDGET}s used up)"
+    echo "{\"step\":\"$name\",\"status\":\"budget\",\"timeout\":$limit}" >> "$WORK/steps.jsonl"
+    summarize
+    return 0
+  fi
+  [ "$limit" -gt "$left" ] && limit=$left
+  say "== $name (timeout ${limit}s, at $(elapsed)s): $*"
+  local t0 rc status
+  t0=$(date +%s.%N)
+  timeout -k 5 "$limit" "$@" >"$WORK/$name.out" 2>"$WORK/$name.err" </dev/null
+  rc=$?
+  local secs
+  secs=$(python3 -c "import time,sys; print(round(time.time()-float(sys.argv[1]),2))" "$t0")
+  case $rc in
+    0) status=ok ;;
+    124|137) status=timeout ;;
+    *) status=failed ;;
+  esac
+  { echo "-- stdout"; cat "$WORK/$name.out"; echo "-- stderr"; tail -c 20000 "$WORK/$name.err"; } >> "$LOG"
+  echo "{\"step\":\"$name\",\"status\":\"$status\",\"rc\":$rc,\"seconds\":$secs,\"timeout\":$limit}" >> "$WORK/steps.jsonl"
+  if [ "$status" = ok ]; then
+    say "   $name: ok in ${secs}s"
+  else
+    say "   $name: $status (rc $rc) after ${secs}s: $(grep -v '^\s*$' "$WORK/$name.err" | tail -n 2 | tr '\n' ' ' | cut -c1-300)"
+  fi
+  summarize
+}
+
+# ---- unpacking: the binary, the inputs, and on the GPU machine the Vulkan loader and the wheels
+[ -f "$PACK/bin/vcedit.xz" ] || { say "run.sh: $PACK/bin/vcedit.xz is missing: run tools/gpu-check/prepare.sh first"; exit 1; }
+say "gpu-check ($MODE) in $WORK, budget ${BUDGET}s, output $OUT"
+unxz() { xz -dc "$1" 2>/dev/null || python3 -c "import lzma,sys,shutil; shutil.copyfileobj(lzma.open(sys.argv[1]), sys.stdout.buffer)" "$1"; }
+unxz "$PACK/bin/vcedit.xz" > "$WORK/vcedit" && chmod +x "$WORK/vcedit" || { say "cannot unpack vcedit"; exit 1; }
+unxz "$PACK/inputs.tar.xz" | tar -C "$WORK" -xf - || { say "cannot unpack the inputs"; exit 1; }
+V="$WORK/vcedit"
+IN="$WORK/inputs"
+SYSLIB="$WORK/sys/usr/lib/x86_64-linux-gnu"
+
+if [ "$MODE" = device ]; then
+  # The loader goes onto / (the device tool's instructions); vulkaninfo and its X/Wayland libraries into a
+  # private folder, so the image's own libraries are never replaced.
+  for f in "$PACK"/debs/libvulkan1_*.deb; do dpkg -x "$f" / 2>>"$LOG"; done
+  ldconfig 2>>"$LOG"
+  mkdir -p "$WORK/sys"
+  for f in "$PACK"/debs/*.deb; do case "$f" in *libvulkan1_*) ;; *) dpkg -x "$f" "$WORK/sys" 2>>"$LOG" ;; esac; done
+  # The NVIDIA ICD and EGL vendor files live under /usr/local/nvidia there; name them when the loader's
+  # default search does not find them.
+  if [ -z "${VK_DRIVER_FILES:-}" ] && [ -f /usr/local/nvidia/share/vulkan/icd.d/nvidia_icd.json ] &&
+     ! ls /usr/share/vulkan/icd.d/nvidia_icd*.json /etc/vulkan/icd.d/nvidia_icd*.json >/dev/null 2>&1; then
+    export VK_DRIVER_FILES=/usr/local/nvidia/share/vulkan/icd.d/nvidia_icd.json
+    export __EGL_VENDOR_LIBRARY_FILENAMES=/usr/local/nvidia/share/glvnd/egl_vendor.d/10_nvidia.json
+  fi
+  python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target "$WORK/site" \
+    "$PACK"/wheels/*.whl >>"$LOG" 2>&1 || say "pip install of the wheels failed (the PyTorch steps will fail)"
+  export PYTHONPATH="$WORK/site${PYTHONPATH:+:$PYTHONPATH}"
+  MODEL="$WORK/sd15"; LAT=64; IMG=512; RUNS=3
+  REQUIRE=--require-hardware
+else
+  # lavapipe is a software adapter: allowed here, and only here.
+  export VCEDIT_ALLOW_SOFTWARE_GPU=1
+  # The tiny diffusers pipeline of the conformance fixtures: every step runs, in a couple of minutes.
+  MODEL="$ROOT/fixtures/models/tiny-lcm"; LAT=8; IMG=64; RUNS=1
+  REQUIRE=""
+fi
+cp "$PACK/build.json" "$WORK/build.json" 2>/dev/null
+have_torch() { python3 -c "import torch, diffusers" >/dev/null 2>&1; }
+TB="$HERE/torch_bench.py"
+
+# ---- the machine
+step machine 30 bash -c '
+  nvidia-smi || echo "nvidia-smi: not available"
+  nvidia-smi --query-gpu=name,memory.total,driver_version,clocks.max.sm,clocks.max.mem,power.limit --format=csv || true
+  echo "-- vulkaninfo --summary"
+  LD_LIBRARY_PATH="'"$SYSLIB"'${LD_LIBRARY_PATH:+:$LD_LIBRARY_PATH}" vulkaninfo --summary 2>&1 || echo "vulkaninfo: not available"
+  echo "-- cpu"; nproc; grep -m1 "model name" /proc/cpuinfo; free -g | head -2'
+step adapter 60 "$V" bench device --device gpu $REQUIRE
+if have_torch; then
+  step torch-info 60 python3 "$TB" info
+fi
+
+# ---- weights: SD 1.5's configs with random weights, written once as a diffusers folder, so that vcedit
+# and PyTorch read the same weights (made here with PyTorch: shipping them would not fit the carry limit)
+if [ "$MODE" = device ]; then
+  step weights 150 python3 "$HERE/../make_random_sd15.py" --out "$MODEL" --vocab "$IN/clip-bpe" --fp16 --device cuda
+fi
+
+# ---- matrix products: SD 1.5's 4096x320x1280 (the first level's feed-forward at 512²)
+if [ "$MODE" = device ]; then SHAPES=4096x320x320,4096x320x1280; REPEAT=20; else SHAPES=512x64x128; REPEAT=3; fi
+step matmul 60 "$V" bench matmul --precisions f32,f16 --shapes "$SHAPES" --repeat "$REPEAT" --runs 3
+if have_torch; then step matmul-torch 60 python3 "$TB" matmul --shapes "$SHAPES" --repeat "$REPEAT"; fi
+
+# ---- the UNet, batch 1 and 6 (one InfEdit step), plain and with the InfEdit-shaped hook; PyTorch fp16 SDPA
+step unet 180 "$V" bench unet --model "$MODEL" --device gpu --size "$LAT" --batches 1,6 --hooks none,device --runs "$RUNS"
+if have_torch; then
+  step unet-torch 90 python3 "$TB" unet --model "$MODEL" --size "$LAT" --batches 1,6 --dtype f16 --runs 5
+  step unet-torch-f32 60 python3 "$TB" unet --model "$MODEL" --size "$LAT" --batches 6 --dtype f32 --runs 3
+fi
+
+# ---- splatting: forward, backward, one fit step; the GPU at 125k/512² and 1M/1080p, the CPU at 125k/512²
+if [ "$MODE" = device ]; then
+  step splat 150 "$V" bench render gpu n=125k,1m size=512,1080p device=gpu runs=5
+  step splat-cpu 60 "$V" bench render gpu n=125k size=512 device=cpu runs=3
+else
+  step splat 120 "$V" bench render gpu n=10k size=128 device=gpu runs=1 sh=2
+  step splat-cpu 60 "$V" bench render gpu n=10k size=128 device=cpu runs=1 sh=2
+fi
+
+# ---- the codec (AutoencoderKL) at 512², the text encoder
+step codec 120 "$V" bench codec --model "$MODEL" --device gpu --size "$IMG" --runs 2
+if have_torch; then step codec-torch 60 python3 "$TB" codec --model "$MODEL" --size "$IMG" --dtype f16; fi
+step text 60 "$V" bench text --model "$MODEL" --device gpu --batches 1,6
+if have_torch; then step text-torch 60 python3 "$TB" text --model "$MODEL" --batches 1,6 --dtype f16; fi
+
+# ---- an editing slice at paper settings (SD 1.5 size, 512²): 8 views x 2 steps x 1 iteration, CCM, ECM
+# and the blend on (CCM at step 0, ECM at step 1); the paper-scale estimate is computed from its stages
+# (locally ECM's fits take 8 Adam steps instead of the reference's 576)
+if [ "$MODE" = device ]; then EDIT_SIZE=(--orbit 8 --fit-steps 400); else EDIT_SIZE=(--orbit 2 --fit-steps 10 --ecm-min-steps 8); fi
+step edit 240 "$V" edit --scene "$IN/playbot-31k.ply" "${EDIT_SIZE[@]}" --model "$MODEL" \
+  --source "a toy robot" --target "a golden toy robot" --steps 2 --iterations 1 --ccm-steps 0 --ecm-steps 1 \
+  --size "$IMG" --device gpu --out "$WORK/edit"
+[ -f "$WORK/edit/run.json" ] && cp "$WORK/edit/run.json" "$WORK/edit-run.json"
+
+# ---- a whole fit from posed images (lego-200), and the demo end to end
+if [ "$MODE" = device ]; then FIT_SIZE=(--steps 5000); else FIT_SIZE=(--steps 30 --init-points 2000); fi
+step fit 150 "$V" fit --data "$IN/lego-200" --out "$WORK/lego.ply" --background white --device gpu "${FIT_SIZE[@]}"
+if [ "$MODE" = device ]; then
+  step demo 150 "$V" demo --device gpu --out "$WORK/demo"
+else
+  step demo 120 "$V" demo --device gpu --out "$WORK/demo" --views 2 --steps 2 --iterations 1 --fit-steps 5
+fi
+
+summarize
+say "done in $(elapsed)s; results: $OUT/gpu-check.json, $OUT/gpu-check.md, log $LOG"
+cat "$OUT/gpu-check.md" 2>/dev/null
+# The work folder (unpacked inputs, weights, outputs) goes unless GPU_CHECK_KEEP=1.
+[ "${GPU_CHECK_KEEP:-0}" = 1 ] || rm -rf "$WORK"
+# Here (--local, CI) every step must pass: that keeps the check working for the next borrowed machine.
+# There, a failed step is a finding, not a failure of the check: it fails only when vcedit found no GPU.
+python3 - "$OUT/gpu-check.json" "$MODE" <<'EOF'
+import json, sys
+d = json.load(open(sys.argv[1]))
+if sys.argv[2] == "local":
+    sys.exit(0 if d.get("complete") else 1)
+sys.exit(0 if d["steps"].get("adapter", {}).get("status") == "ok" else 1)
+EOF

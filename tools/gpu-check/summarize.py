@@ -1,0 +1,256 @@
+#!/usr/bin/env python3
+"""Collects tools/gpu-check/run.sh's step outputs into $OUT/gpu-check.json and $OUT/gpu-check.md.
+
+Run after every step (so a call cut short still returns what it measured). Inputs, in the work folder:
+steps.jsonl (one line per step: status, rc, seconds), STEP.out (each bench's `RESULT {json}` lines and other
+stdout), build.json (the commit the binary was built from), edit-run.json (the editing slice's run.json).
+
+The JSON: `machine`, `adapter`, `build`, `steps` (status and seconds of each), `results` (every RESULT line
+by step), `table` (the headline rows: vcedit next to PyTorch, with their ratio), `edit_slice` (its stages
+and the paper-scale estimate), `complete` (every step ran and passed).
+"""
+import argparse
+import datetime
+import json
+import os
+import re
+
+
+def read_results(path):
+    out = []
+    if os.path.exists(path):
+        for line in open(path, errors="replace"):
+            if line.startswith("RESULT "):
+                try:
+                    out.append(json.loads(line[len("RESULT "):]))
+                except json.JSONDecodeError:
+                    pass
+    return out
+
+
+def find(results, **want):
+    for r in results:
+        if all(r.get(k) == v for k, v in want.items()):
+            return r
+    return None
+
+
+def machine_info(work):
+    text = open(os.path.join(work, "machine.out"), errors="replace").read() if os.path.exists(
+        os.path.join(work, "machine.out")) else ""
+    info = {}
+    m = re.search(r"^name, memory.total.*\n(.+)$", text, re.M)
+    if m:
+        parts = [p.strip() for p in m.group(1).split(",")]
+        keys = ["gpu", "memory_total", "driver", "sm_clock_max", "mem_clock_max", "power_limit"]
+        info.update(dict(zip(keys, parts)))
+    for key in ("deviceName", "driverName", "driverInfo", "apiVersion", "deviceType"):
+        m = re.search(rf"^\s*{key}\s*=\s*(.+)$", text, re.M)
+        if m:
+            info[f"vulkan_{key}"] = m.group(1).strip()
+    m = re.search(r"model name\s*:\s*(.+)", text)
+    if m:
+        info["cpu"] = m.group(1).strip()
+    m = re.search(r"^-- cpu\n(\d+)", text, re.M)
+    if m:
+        info["cpu_threads"] = int(m.group(1))
+    return info
+
+
+def paper_estimate(run):
+    """Seconds of a paper-scale edit (96 views, 15 steps, CCM at 2 and ECM at 3 of them, 2 iterations),
+    scaled stage by stage from the slice's run.json. Stages that grow with views and steps are scaled by
+    both; ECM by its steps and views (each ECM step renders, encodes and fits every view); the fit, whose
+    step count is fixed, not at all."""
+    t = {s["stage"]: s["seconds"] for s in run.get("timings", [])}
+    settings = run.get("settings", {})
+    views = max(len(run.get("views", [])), 1)
+    steps = max(settings.get("infedit", {}).get("steps") or 2, 1)
+    consistency = settings.get("consistency", {})
+    ccm_steps = max(len(consistency.get("ccm_steps") or [0]), 1)
+    ecm_steps = max(len((consistency.get("ecm") or {}).get("steps") or [1]), 1)
+    iterations = max(len(run.get("iterations", [])), 1)
+    r = 96 / views
+
+    def total(ecm_views_factor):
+        per_iteration = (
+            t.get("render", 0) * r
+            + t.get("encode", 0) * r
+            + t.get("UNet passes", 0) * r * 15 / steps
+            + t.get("blend-map consistency", 0) * r * 15 / steps
+            + t.get("CCM", 0) * r * 2 / ccm_steps
+            + t.get("ECM", 0) * ecm_views_factor * 3 / ecm_steps
+            + t.get("decode", 0) * r
+            + t.get("fit", 0)
+        ) / iterations
+        return round(2 * per_iteration, 1)
+
+    # An ECM step fits a fixed number of Adam steps (576) but renders and encodes every view: its time
+    # lies between "independent of the views" and "proportional to them".
+    return {"views": views, "steps": steps, "iterations": iterations, "ccm_steps": ccm_steps,
+            "ecm_steps": ecm_steps, "estimate_96_views_15_steps_2_iterations_s": [total(1), total(r)]}
+
+
+def fmt_s(v):
+    if v is None:
+        return None
+    return f"{v * 1e3:.2f} ms" if v < 1 else f"{v:.2f} s"
+
+
+def ratio(a, b):
+    return round(a / b, 2) if a and b else None
+
+
+def build_table(res, steps, mode, torch_present):
+    rows = []
+    torch_missing = "n/a (no PyTorch here)" if not torch_present else None
+
+    def row(what, ours, theirs=None, first=None, note="", torch_expected=True):
+        rows.append({
+            "what": what,
+            "vcedit": ours,
+            "vcedit_first_call": first,
+            "pytorch": theirs if theirs is not None else (torch_missing if torch_expected else None),
+            "ratio_vcedit_over_pytorch": None,
+            "note": note,
+        })
+        return rows[-1]
+
+    mm = res.get("matmul", [])
+    mt = res.get("matmul-torch", [])
+    for r in [x for x in mm if x.get("what") == "linear"]:
+        shape = f"{r['m']}x{r['k']}x{r['n']}"
+        t = find(mt, precision=r["precision"], m=r["m"], k=r["k"], n=r["n"])
+        line = row(f"matmul {shape}, {r['precision']} weights (TFLOP/s)", r.get("tflops"),
+                   t.get("tflops") if t else None, fmt_s(r.get("first_s")),
+                   "vcedit f16 = f16 weights, f32 arithmetic")
+        if t:
+            line["ratio_vcedit_over_pytorch"] = ratio(r["ms"], t["ms"])
+            line["pytorch_tf32"] = (find(mt, precision="tf32", m=r["m"], k=r["k"], n=r["n"]) or {}).get("tflops")
+    un, ut, ut32 = res.get("unet", []), res.get("unet-torch", []), res.get("unet-torch-f32", [])
+    for r in un:
+        t = find(ut, batch=r["batch"])
+        line = row(f"UNet forward, batch {r['batch']}, hook {r['hook']} (s)", r.get("best_s"),
+                   t.get("best_s") if t else None, fmt_s(r.get("first_s")),
+                   "PyTorch: fp16 + SDPA, no hook" + (", same weights" if mode == "device" else ""))
+        line["ratio_vcedit_over_pytorch"] = ratio(r.get("best_s"), t.get("best_s") if t else None)
+        t32 = find(ut32, batch=r["batch"])
+        if t32:
+            line["pytorch_f32"] = t32.get("best_s")
+    cd, ct = res.get("codec", []), res.get("codec-torch", [])
+    for r in cd:
+        t = find(ct, what=r["what"])
+        line = row(f"AutoencoderKL {r['what']}, {r['size']}² (s)", r.get("best_s"), t.get("best_s") if t else None,
+                   fmt_s(r.get("first_s")))
+        line["ratio_vcedit_over_pytorch"] = ratio(r.get("best_s"), t.get("best_s") if t else None)
+    tx, tt = res.get("text", []), res.get("text-torch", [])
+    for r in [x for x in tx if x.get("what") == "encode"]:
+        t = find(tt, batch=r["batch"])
+        line = row(f"CLIP text encoder, batch {r['batch']} (s)", r.get("best_s"), t.get("best_s") if t else None,
+                   fmt_s(r.get("first_s")))
+        line["ratio_vcedit_over_pytorch"] = ratio(r.get("best_s"), t.get("best_s") if t else None)
+    for name in ("splat", "splat-cpu"):
+        for r in res.get(name, []):
+            if r.get("bench") != "render":
+                continue
+            first = r.get("first_ms")
+            row(f"splat {r['stage']}, {r['gaussians'] // 1000}k, {r['width']}x{r['height']}, {r['device']} (ms)",
+                r.get("median_ms"), None, f"{first:.1f} ms" if first is not None else None,
+                torch_expected=False)
+    fit = steps.get("fit", {})
+    if fit.get("psnr") is not None:
+        row("vcedit fit lego-200 (s; held-out PSNR dB)", fit.get("seconds"), None, None,
+            f"{fit['psnr']:.2f} dB, {fit.get('gaussians')} Gaussians", torch_expected=False)
+    if "demo" in steps and steps["demo"].get("status") == "ok":
+        row("vcedit demo (s)", steps["demo"].get("seconds"), None, None, "16 views at 128², 2 iterations"
+            if mode == "device" else "2 views, 2 steps", torch_expected=False)
+    return rows
+
+
+def main():
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--work", required=True)
+    ap.add_argument("--out", required=True)
+    ap.add_argument("--mode", default="device")
+    ap.add_argument("--pack", default="")
+    a = ap.parse_args()
+    steps = {}
+    path = os.path.join(a.work, "steps.jsonl")
+    if os.path.exists(path):
+        for line in open(path):
+            line = line.strip()
+            if line:
+                s = json.loads(line)
+                steps[s["step"]] = s
+    res = {name: read_results(os.path.join(a.work, f"{name}.out")) for name in steps}
+    fit_out = os.path.join(a.work, "fit.out")
+    if "fit" in steps and os.path.exists(fit_out):
+        m = re.search(r"held-out PSNR ([\d.]+) dB .*?(\d+) Gaussians", open(fit_out).read())
+        if m:
+            steps["fit"]["psnr"] = float(m.group(1))
+            steps["fit"]["gaussians"] = int(m.group(2))
+    build = {}
+    if os.path.exists(os.path.join(a.work, "build.json")):
+        build = json.load(open(os.path.join(a.work, "build.json")))
+    adapter = (res.get("adapter") or [{}])[0]
+    torch_info = (res.get("torch-info") or [{}])[0]
+    edit = None
+    run_path = os.path.join(a.work, "edit-run.json")
+    if os.path.exists(run_path):
+        run = json.load(open(run_path))
+        edit = {"stages_s": {s["stage"]: round(s["seconds"], 2) for s in run.get("timings", [])},
+                "total_s": steps.get("edit", {}).get("seconds"),
+                "gaussians": run.get("gaussians_before")}
+        edit.update(paper_estimate(run))
+    torch_present = "torch-info" in steps
+    table = build_table(res, steps, a.mode, torch_present)
+    complete = bool(steps) and all(s.get("status") == "ok" for s in steps.values())
+    doc = {
+        "version": 1,
+        "mode": a.mode,
+        "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+        "build": build,
+        "machine": machine_info(a.work),
+        "adapter": adapter.get("opened"),
+        "adapters_seen": adapter.get("adapters"),
+        "pytorch": torch_info or "not installed",
+        "steps": steps,
+        "table": table,
+        "edit_slice": edit,
+        "results": res,
+        "complete": complete,
+    }
+    tmp = os.path.join(a.out, ".gpu-check.json.tmp")
+    json.dump(doc, open(tmp, "w"), indent=1)
+    os.replace(tmp, os.path.join(a.out, "gpu-check.json"))
+
+    # The markdown table for docs/gpu-results.md.
+    card = doc["machine"].get("gpu") or (doc["adapter"] or {}).get("adapter") or "unknown card"
+    lines = [f"### {doc['date'][:10]} · {card} · commit {build.get('commit', 'unknown')[:10]}"
+             f"{' (+ uncommitted changes)' if build.get('uncommitted_changes') else ''} · {a.mode} mode", ""]
+    ad = doc["adapter"] or {}
+    if ad:
+        lines.append(f"Adapter: {ad.get('adapter')} via {ad.get('api')}, compiler {ad.get('compiler')}"
+                     f"{' (software)' if ad.get('software') else ''}; driver {doc['machine'].get('driver', '?')}; "
+                     f"PyTorch {torch_info.get('torch', 'n/a') if isinstance(torch_info, dict) else 'n/a'}.")
+        lines.append("")
+    lines += ["| what | vcedit (warm) | vcedit first call | PyTorch | vcedit / PyTorch | note |",
+              "| --- | --- | --- | --- | --- | --- |"]
+    for r in table:
+        cell = lambda v: "–" if v is None else str(v)
+        lines.append(f"| {r['what']} | {cell(r['vcedit'])} | {cell(r['vcedit_first_call'])} | {cell(r['pytorch'])} | "
+                     f"{cell(r['ratio_vcedit_over_pytorch'])} | {r['note']} |")
+    if edit:
+        lo, hi = edit["estimate_96_views_15_steps_2_iterations_s"]
+        stages = ", ".join(f"{k} {v:.1f}" for k, v in edit["stages_s"].items())
+        lines += ["", f"Editing slice ({edit['views']} views × {edit['steps']} steps × {edit['iterations']} iteration, "
+                      f"CCM/ECM/blend on): {edit['total_s']} s in all; stages (s): {stages}. Estimate for 96 views × "
+                      f"15 steps × 2 iterations: **{lo:.0f}–{hi:.0f} s** "
+                      f"(an estimate scaled from the slice, not a measurement)."]
+    lines += ["", "Steps: " + ", ".join(f"{k} {v.get('status')}" + (f" {v.get('seconds')}s" if v.get('seconds') else "")
+                                      for k, v in steps.items())]
+    open(os.path.join(a.out, "gpu-check.md"), "w").write("\n".join(lines) + "\n")
+
+
+if __name__ == "__main__":
+    main()
