@@ -80,7 +80,7 @@ tar -C "$staging" -cf - inputs | xz -T0 -6 > "$PACK.tmp/inputs.tar.xz"
 chmod -R u+w "$staging" && rm -rf "$staging"
 
 commit=$(git rev-parse HEAD 2>/dev/null || echo unknown)
-dirty=$(git status --porcelain 2>/dev/null | grep -v '^??' | head -1 | wc -l)
+dirty=$(git status --porcelain --untracked-files=no 2>/dev/null | wc -l)
 python3 - "$PACK.tmp/build.json" "$commit" "$dirty" "$(rustc --version 2>/dev/null || echo unknown)" <<'EOF'
 import json, sys, datetime
 path, commit, dirty, rustc = sys.argv[1:]
