@@ -133,7 +133,8 @@ step machine 30 bash -c '
   nvidia-smi || echo "nvidia-smi: not available"
   nvidia-smi --query-gpu=name,memory.total,driver_version,clocks.max.sm,clocks.max.mem,power.limit --format=csv || true
   echo "-- vulkaninfo --summary"
-  LD_LIBRARY_PATH="'"$SYSLIB"'${LD_LIBRARY_PATH:+:$LD_LIBRARY_PATH}" vulkaninfo --summary 2>&1 || echo "vulkaninfo: not available"
+  vi=$(command -v vulkaninfo || echo "'"$WORK"'/sys/usr/bin/vulkaninfo")
+  LD_LIBRARY_PATH="'"$SYSLIB"'${LD_LIBRARY_PATH:+:$LD_LIBRARY_PATH}" "$vi" --summary 2>&1 || echo "vulkaninfo: not available"
   echo "-- cpu"; nproc; grep -m1 "model name" /proc/cpuinfo; free -g | head -2'
 step adapter 60 "$V" bench device --device gpu $REQUIRE
 if have_torch; then
