@@ -8,8 +8,10 @@
 #
 # What it packs:
 #   bin/vcedit.xz      the stripped release `vcedit` (its `vcedit bench` subcommands are the benches)
-#   debs/              the Vulkan loader (libvulkan1, unpacked onto / there) and vulkaninfo (vulkan-tools
-#                      and its X/Wayland client libraries, unpacked into a private folder there)
+#   debs/              the Vulkan loader and the GL dispatch libraries NVIDIA's Vulkan driver (libGLX_nvidia)
+#                      loads (libvulkan1, libglvnd0, libglx0, libgl1, libegl1, libopengl0, libgles2: unpacked
+#                      onto / there, as the device tool's notes say), and vulkaninfo (vulkan-tools and its
+#                      X/Wayland client libraries, unpacked into a private folder there)
 #   wheels/            diffusers and importlib_metadata (the device image has PyTorch, transformers,
 #                      safetensors, huggingface_hub, numpy and pillow, but no diffusers)
 #   inputs.tar.xz      playbot-31k.ply (a real scene), lego-200 (posed views), clip-bpe (the CLIP vocabulary
@@ -58,7 +60,8 @@ apt_opts=(-oAPT::Sandbox::User=root -oAPT::Architecture=amd64 -oAPT::Architectur
 fetch_debs() {
   apt-get "${apt_opts[@]}" update >/dev/null &&
     (cd "$PACK.tmp/debs" && apt-get "${apt_opts[@]}" download \
-      libvulkan1 vulkan-tools libwayland-client0 libx11-6 libxcb1 libxau6 libxdmcp6 libbsd0 libmd0 >/dev/null)
+      libvulkan1 libegl1 libglvnd0 libopengl0 libgl1 libglx0 libgles2 \
+      vulkan-tools libwayland-client0 libx11-6 libxcb1 libxau6 libxdmcp6 libbsd0 libmd0 >/dev/null)
 }
 fetch_debs || { sleep 5; fetch_debs; } || { echo "prepare.sh: apt-get download failed" >&2; exit 1; }
 rm -rf "$lists"

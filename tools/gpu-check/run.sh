@@ -101,10 +101,16 @@ SYSLIB="$WORK/sys/usr/lib/x86_64-linux-gnu"
 if [ "$MODE" = device ]; then
   # The loader goes onto / (the device tool's instructions); vulkaninfo and its X/Wayland libraries into a
   # private folder, so the image's own libraries are never replaced.
-  for f in "$PACK"/debs/libvulkan1_*.deb; do dpkg -x "$f" / 2>>"$LOG"; done
-  ldconfig 2>>"$LOG"
+  ON_ROOT="libvulkan1_ libegl1_ libglvnd0_ libopengl0_ libgl1_ libglx0_ libgles2_"
   mkdir -p "$WORK/sys"
-  for f in "$PACK"/debs/*.deb; do case "$f" in *libvulkan1_*) ;; *) dpkg -x "$f" "$WORK/sys" 2>>"$LOG" ;; esac; done
+  for f in "$PACK"/debs/*.deb; do
+    base=$(basename "$f"); dest="$WORK/sys"
+    for p in $ON_ROOT; do [[ "$base" == "$p"* ]] && dest=/; done
+    dpkg -x "$f" "$dest" 2>>"$LOG"
+  done
+  ldconfig 2>>"$LOG"
+  # NVIDIA's GLX/Vulkan library links the X client libraries; where the image lacks them, the private copies.
+  ldconfig -p | grep -q 'libX11.so.6 ' || export LD_LIBRARY_PATH="$SYSLIB${LD_LIBRARY_PATH:+:$LD_LIBRARY_PATH}"
   # The NVIDIA ICD and EGL vendor files live under /usr/local/nvidia there; name them when the loader's
   # default search does not find them.
   if [ -z "${VK_DRIVER_FILES:-}" ] && [ -f /usr/local/nvidia/share/vulkan/icd.d/nvidia_icd.json ] &&

@@ -515,6 +515,10 @@ fn main_gpu(args: &[String], quick: bool) -> Result<()> {
     let ctx = if sel.gpu {
         match gpu::open(gpu::DeviceChoice::Gpu) {
             Ok(Some(ctx)) => Some(ctx),
+            // Asked for the GPU alone: its absence is the answer, an error.
+            Ok(None) | Err(_) if !sel.cpu => {
+                return Err(BenchError::new("no GPU adapter (render gpu device=gpu)"))
+            }
             Ok(None) | Err(_) => {
                 println!("SKIP gpu: no GPU adapter");
                 None
