@@ -131,7 +131,9 @@ else
   REQUIRE=""
 fi
 cp "$PACK/build.json" "$WORK/build.json" 2>/dev/null
-have_torch() { python3 -c "import torch, diffusers" >/dev/null 2>&1; }
+# Asked once: importing torch and diffusers takes seconds.
+if python3 -c "import torch, diffusers" >/dev/null 2>&1; then TORCH=1; else TORCH=0; fi
+have_torch() { [ "$TORCH" = 1 ]; }
 TB="$HERE/torch_bench.py"
 
 # ---- the machine

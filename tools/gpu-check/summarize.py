@@ -168,7 +168,9 @@ def build_table(res, steps, mode, torch_present):
             if r.get("bench") != "render":
                 continue
             first = r.get("first_ms")
-            row(f"splat {r['stage']}, {r['gaussians'] // 1000}k, {r['width']}x{r['height']}, {r['device']} (ms)",
+            n = r["gaussians"]
+            count = f"{n // 1_000_000}M" if n >= 1_000_000 and n % 1_000_000 == 0 else f"{n // 1000}k"
+            row(f"splat {r['stage']}, {count}, {r['width']}x{r['height']}, {r['device']} (ms)",
                 r.get("median_ms"), None, f"{first:.1f} ms" if first is not None else None,
                 torch_expected=False)
     fit = steps.get("fit", {})

@@ -21,7 +21,7 @@
 //! - the counts are a little above the true live set (the two terms peak at different layers), so
 //!   [`ActivationEstimate::total`] bounds the bytes in use; CubeCL's pools carve allocations out of pages
 //!   sized to the largest allocation and keep freed pages, so they reserve more. Measured on lavapipe
-//!   (the SD 1.5 blocks with channels [64, 128, 256, 256], `benches/unet.rs --small --device gpu`): the
+//!   (the SD 1.5 blocks with channels [64, 128, 256, 256], `vcedit bench unet --small --device gpu`): the
 //!   pools reserved, beyond the weights and ~16 MB of fixed pages, 3, 11, 31 and 70 MB where the estimate
 //!   says 3, 11 (16², 32²), 22 (32², batch 2) and 44 MB (32² batch 4, and 64²). Check
 //!   [`ActivationEstimate::budget`] (1.75 × the estimate) against the adapter's free memory.
