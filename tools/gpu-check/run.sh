@@ -43,6 +43,7 @@ LOG="$OUT/gpu-check.log"
 : > "$LOG"
 : > "$WORK/steps.jsonl"
 START=$(date +%s)
+NO_GPU=0
 export PYTHONUNBUFFERED=1 RUST_BACKTRACE=0 XDG_RUNTIME_DIR="${XDG_RUNTIME_DIR:-/tmp}"
 
 say() { echo "$*" | tee -a "$LOG"; }
@@ -58,6 +59,12 @@ step() {
   shift 2
   if [ -n "$ONLY" ] && [[ ",$ONLY," != *",$name,"* ]]; then return 0; fi
   if [[ ",$SKIP," == *",$name,"* ]]; then return 0; fi
+  if [ "$NO_GPU" = 1 ] && [ "$1" = "$V" ] && [ "$name" != splat-cpu ]; then
+    say "== $name: not run (vcedit opened no hardware GPU; see the adapter step)"
+    echo "{\"step\":\"$name\",\"status\":\"no-gpu\",\"timeout\":$limit}" >> "$WORK/steps.jsonl"
+    summarize
+    return 0
+  fi
   local left=$(( BUDGET - $(elapsed) ))
   if [ "$left" -lt 15 ]; then
     say "== $name: not started (budget of ${BUDGET}s used up)"
@@ -144,7 +151,15 @@ step machine 30 bash -c '
   vi=$(command -v vulkaninfo || echo "'"$WORK"'/sys/usr/bin/vulkaninfo")
   LD_LIBRARY_PATH="'"$SYSLIB"'${LD_LIBRARY_PATH:+:$LD_LIBRARY_PATH}" "$vi" --summary 2>&1 || echo "vulkaninfo: not available"
   echo "-- cpu"; nproc; grep -m1 "model name" /proc/cpuinfo; free -g | head -2'
+NO_GPU=0
 step adapter 60 "$V" bench device --device gpu $REQUIRE
+# A measurement of anything but the card is worse than none: without a hardware adapter the vcedit GPU
+# steps are not run, and the log says why.
+if [ "$MODE" = device ] && grep -q '"step":"adapter","status":"failed\|"step":"adapter","status":"timeout' "$WORK/steps.jsonl"; then
+  NO_GPU=1
+  say "!! vcedit opened no hardware GPU: the vcedit GPU steps are skipped. Adapter step output:"
+  tail -n 5 "$WORK/adapter.err" | tee -a "$LOG"
+fi
 if have_torch; then
   step torch-info 60 python3 "$TB" info
 fi

@@ -220,7 +220,6 @@ fn radix_count(keys: &[u32], n: u32, chunk: u32, shift: u32, chunks: u32, counts
 }
 
 #[cube(launch)]
-#[allow(clippy::too_many_arguments)]
 fn radix_scatter(
     keys: &[u32],
     vals: &[u32],

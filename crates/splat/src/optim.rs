@@ -444,7 +444,6 @@ struct StepHyper {
 
 /// torch's Adam update for one array of `width` values per Gaussian. `lrs` splits a Gaussian's block into
 /// equal runs with one rate each (so SH can give each coefficient k, three values, its own rate).
-#[allow(clippy::too_many_arguments)]
 fn adam_update(
     params: &mut [f32],
     grads: &[f32],

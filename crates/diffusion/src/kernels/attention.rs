@@ -146,7 +146,6 @@ thread_local! {
 }
 
 /// One query block: scores = scale · q kᵀ, row softmax in place, out = scores v.
-#[allow(clippy::too_many_arguments)]
 fn attention_block(
     q: &[f32],
     k: &[f32],

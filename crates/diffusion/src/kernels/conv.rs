@@ -220,7 +220,6 @@ impl ConvGeometry {
 }
 
 /// `dst[m, n] (+)= lhs[m, k] · rhs[k, n]` on one thread, with explicit (column, row) strides.
-#[allow(clippy::too_many_arguments)]
 fn gemm_serial(
     (m, n, k): (usize, usize, usize),
     dst: &mut [f32],

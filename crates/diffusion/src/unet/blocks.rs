@@ -74,7 +74,6 @@ pub struct DownBlock {
 }
 
 impl DownBlock {
-    #[allow(clippy::too_many_arguments)]
     pub fn load(
         cin: usize,
         cout: usize,
@@ -180,7 +179,6 @@ pub struct UpBlock {
 
 impl UpBlock {
     /// `skip_channels[i]` is the width of the skip connection consumed by layer i.
-    #[allow(clippy::too_many_arguments)]
     pub fn load(
         prev_out: usize,
         cout: usize,

@@ -25,7 +25,6 @@ use super::outputs;
 /// Runs an edit. `scene` and `cameras` (already at the working resolution) are the inputs; outputs go to
 /// `out` (guidance images per iteration; the caller writes the final outputs). With `resume`, a
 /// checkpoint in `out` is continued.
-#[allow(clippy::too_many_arguments)]
 pub fn run_edit(
     job: &EditJob,
     model: &EditModel,

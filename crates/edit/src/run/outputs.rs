@@ -134,7 +134,6 @@ fn side_by_side(a: &Image, b: &Image) -> Image {
 }
 
 /// Writes the outputs of a finished run into `out` and returns the main paths.
-#[allow(clippy::too_many_arguments)]
 pub fn write_outputs(
     out: &Path,
     job: &EditJob,

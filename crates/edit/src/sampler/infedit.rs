@@ -406,7 +406,6 @@ impl EditPlan {
     /// The DDCM (virtual inversion) step for one branch B against the source: returns (z_S', z_B', x̂0_B,
     /// offset) where z_B' = √ᾱ_prev x̂0_B + offset (the offset is `dir + σ n`, or `None` for a one-step
     /// schedule where z_B' = x̂0_B).
-    #[allow(clippy::too_many_arguments)]
     pub fn ddcm(
         &self,
         i: usize,

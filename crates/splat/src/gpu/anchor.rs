@@ -15,7 +15,6 @@ use ::gpu::prims::{grid, upload_f32};
 /// `first` values of each block use `coef_first`, the rest `coef_rest` (SH: DC and higher coefficients,
 /// two terms of the loss with their own denominators). `weights` is 0 for Gaussians outside the loss.
 #[cube(launch)]
-#[allow(clippy::too_many_arguments)]
 fn anchor_grad(
     params: &[f32],
     anchor: &[f32],

@@ -10,7 +10,6 @@ use ::gpu::gpu_call;
 use ::gpu::prims::{grid, read_f32, upload_f32, zeros32};
 
 #[cube(launch)]
-#[allow(clippy::too_many_arguments)]
 fn densify_stats_add(
     info: &[u32],
     splat_grads: &[f32],

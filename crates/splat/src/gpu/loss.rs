@@ -108,7 +108,6 @@ fn blur_rows(src: &[f32], taps: &[f32], width: u32, height: u32, planes: u32, ou
 /// statistics μx, μy, E[x²], E[y²], E[xy]; from them the SSIM map and the scaled partial derivatives
 /// with respect to μx, E[x²], E[xy] (3 planes per channel).
 #[cube(launch)]
-#[allow(clippy::too_many_arguments)]
 fn ssim_terms(
     rows: &[f32],
     taps: &[f32],
@@ -150,7 +149,6 @@ fn ssim_terms(
 }
 
 #[cube(launch)]
-#[allow(clippy::too_many_arguments)]
 fn l1_dssim_grad(
     pred: &[f32],
     target: &[f32],

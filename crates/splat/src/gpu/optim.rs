@@ -15,7 +15,6 @@ use ::gpu::prims::{empty32, grid, read_f32, upload_f32, zeros32};
 /// use `lr_first`, the rest `lr_rest` (SH: DC and higher coefficients). With `use_mask` set, Gaussians
 /// whose `mask` flag is 0 are skipped.
 #[cube(launch)]
-#[allow(clippy::too_many_arguments)]
 fn adam_update(
     params: &mut [f32],
     grads: &[f32],

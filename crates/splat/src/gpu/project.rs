@@ -208,7 +208,6 @@ fn view_dir(means: &[f32], cam: &[f32], i: usize) -> (f32, f32, f32, f32) {
 
 /// Stage (a) forward. `degree` is the SH degree (0..=3).
 #[cube(launch)]
-#[allow(clippy::too_many_arguments)]
 pub fn project_forward(
     means: &[f32],
     log_scales: &[f32],
@@ -306,7 +305,6 @@ fn clamp_tile(v: f32, hi: u32) -> u32 {
 
 /// Stage (a) backward: parameter gradients from the splat gradients (overwrites every output).
 #[cube(launch)]
-#[allow(clippy::too_many_arguments)]
 pub fn project_backward(
     means: &[f32],
     log_scales: &[f32],
@@ -364,7 +362,6 @@ pub fn project_backward(
 }
 
 #[cube]
-#[allow(clippy::too_many_arguments)]
 fn project_backward_one(
     means: &[f32],
     sh: &[f32],

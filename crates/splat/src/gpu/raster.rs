@@ -28,7 +28,6 @@ fn falloff(mx: f32, my: f32, ca: f32, cb: f32, cc: f32, fx: f32, fy: f32) -> (f3
 /// `fields` floats of each splat record into `batch` (`fields` per entry). Each unit loads every
 /// `units`-th entry.
 #[cube]
-#[allow(clippy::too_many_arguments)]
 fn load_batch(
     splats: &[f32],
     ids: &[u32],
@@ -90,7 +89,6 @@ const MIN_BATCH: u32 = 64;
 /// of one Gaussian per unit loaded into shared memory, and stops once every pixel of the tile is done.
 /// Per pixel the arithmetic is that of the CPU renderer, in the same order.
 #[cube(launch)]
-#[allow(clippy::too_many_arguments)]
 pub fn raster_forward(
     splats: &[f32],
     ids: &[u32],
@@ -241,7 +239,6 @@ pub fn raster_forward(
 /// every adapter, lavapipe's included). Per pixel the arithmetic is that of the CPU backward, in the
 /// same order.
 #[cube(launch)]
-#[allow(clippy::too_many_arguments)]
 pub fn raster_backward(
     splats: &[f32],
     ids: &[u32],
@@ -536,7 +533,6 @@ pub fn depth_keys(info: &[u32], n: u32, keys: &mut [u32], vals: &mut [u32]) {
 /// goes up by one. Laid out as [`raster_forward`] (`ppu` pixels per unit, shared-memory batches, the
 /// cube stops when every pixel is done); a unit adds its pixels' hits and sums with one atomic each.
 #[cube(launch)]
-#[allow(clippy::too_many_arguments)]
 pub fn lift_accumulate(
     splats: &[f32],
     ids: &[u32],

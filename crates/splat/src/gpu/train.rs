@@ -57,7 +57,6 @@ impl DeviceTrainer {
     /// One step on `target` (H*W*3 on the device) seen from `camera` with the loss
     /// `(1 − ssim_weight)·L1 + ssim_weight·D-SSIM`; `adam` gives the rates and counts the step. Returns
     /// the loss value.
-    #[allow(clippy::too_many_arguments)]
     pub fn step(
         &mut self,
         ctx: &GpuContext,
@@ -84,7 +83,6 @@ impl DeviceTrainer {
     /// 10 : 2.5). The anchor gradient, when there are anchors, is added before Adam, as the editing fit
     /// does on the host. Returns the image loss (anchor term excluded) still on the device: reading its
     /// value copies two image-sized maps back, which a caller that does not need it skips.
-    #[allow(clippy::too_many_arguments)]
     pub fn step_weighted(
         &mut self,
         ctx: &GpuContext,

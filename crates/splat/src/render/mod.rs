@@ -396,7 +396,6 @@ pub(crate) struct Grads<R> {
     pub means2d: Vec<[R; 2]>,
 }
 
-#[allow(clippy::too_many_arguments)]
 pub(crate) fn backward<R: Real>(
     params: &Params<'_, R>,
     camera: &Camera,

@@ -56,7 +56,6 @@ struct Scratch<R> {
     order: Vec<(u32, u16)>,
 }
 
-#[allow(clippy::too_many_arguments)]
 pub fn rasterize_backward<R: Real>(
     splats: &[Splat<R>],
     bins: &TileBins,
@@ -360,7 +359,6 @@ impl<R: Real> Kernel for BackwardTile<'_, R> {
     }
 }
 
-#[allow(clippy::too_many_arguments)]
 #[inline(always)]
 fn backward_tile<R: Real, const SIMD: bool>(
     splats: &[Splat<R>],
