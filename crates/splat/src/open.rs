@@ -2,10 +2,10 @@
 //! INRIA trainer output folder (the only source that also has cameras).
 
 use crate::cameras::{inria::load_inria_cameras, CameraError, CameraSet};
-use crate::formats::{read_scene, FormatError};
+use crate::formats::{inria_iteration_ply, read_scene, FormatError};
 use crate::ply::{read_ply, PlyError};
 use crate::GaussianScene;
-use std::path::{Path, PathBuf};
+use std::path::Path;
 
 #[derive(Debug, thiserror::Error)]
 pub enum OpenError {
@@ -15,55 +15,26 @@ pub enum OpenError {
     Format(#[from] FormatError),
     #[error(transparent)]
     Cameras(#[from] CameraError),
-    #[error("{}: no such file or folder", path.display())]
-    NotFound { path: PathBuf },
-    #[error(
-        "{}: not a scene: expected a scene file, a SOG folder with meta.json, or an INRIA output folder with point_cloud/iteration_*/point_cloud.ply",
-        path.display()
-    )]
-    NotAScene { path: PathBuf },
 }
 
 /// Opens a scene and, when the source has them, its cameras.
 ///
-/// - A file is read by [`read_scene`], whatever its format (no cameras); so is a SOG folder.
-/// - Another folder is read as the INRIA trainer's output: the highest
-///   `point_cloud/iteration_N/point_cloud.ply` plus `cameras.json` at the folder root when present.
+/// - An INRIA trainer output folder (no `meta.json`, a `point_cloud/iteration_N/point_cloud.ply`): the
+///   highest iteration's PLY plus `cameras.json` at the folder root when present.
+/// - Anything else is [`read_scene`]'s, which recognises files and SOG folders by content and says what a
+///   path that is none of them is (no cameras).
 pub fn open_scene(path: &Path) -> Result<(GaussianScene, Option<CameraSet>), OpenError> {
-    if path.is_file() || path.join("meta.json").is_file() {
-        return Ok((read_scene(path)?, None));
+    if let Some(ply) = inria_iteration_ply(path) {
+        let scene = read_ply(&ply)?;
+        let cameras_json = path.join("cameras.json");
+        let cameras = if cameras_json.is_file() {
+            Some(load_inria_cameras(&cameras_json)?)
+        } else {
+            None
+        };
+        return Ok((scene, cameras));
     }
-    if !path.is_dir() {
-        return Err(OpenError::NotFound {
-            path: path.to_path_buf(),
-        });
-    }
-    let ply = latest_iteration_ply(path).ok_or_else(|| OpenError::NotAScene {
-        path: path.to_path_buf(),
-    })?;
-    let scene = read_ply(&ply)?;
-    let cameras_json = path.join("cameras.json");
-    let cameras = if cameras_json.is_file() {
-        Some(load_inria_cameras(&cameras_json)?)
-    } else {
-        None
-    };
-    Ok((scene, cameras))
-}
-
-/// `point_cloud/iteration_N/point_cloud.ply` with the largest N that exists.
-pub(crate) fn latest_iteration_ply(dir: &Path) -> Option<PathBuf> {
-    let entries = std::fs::read_dir(dir.join("point_cloud")).ok()?;
-    entries
-        .filter_map(|e| e.ok())
-        .filter_map(|e| {
-            let name = e.file_name();
-            let n: u64 = name.to_str()?.strip_prefix("iteration_")?.parse().ok()?;
-            let ply = e.path().join("point_cloud.ply");
-            ply.is_file().then_some((n, ply))
-        })
-        .max_by_key(|(n, _)| *n)
-        .map(|(_, p)| p)
+    Ok((read_scene(path)?, None))
 }
 
 #[cfg(test)]

@@ -183,13 +183,32 @@ fn read_folder(dir: &Path) -> Result<GaussianScene, FormatError> {
             msg,
         });
     }
-    match crate::open::latest_iteration_ply(dir) {
+    match inria_iteration_ply(dir) {
         Some(ply_path) => Ok(ply::read_ply(&ply_path)?),
         None => Err(FormatError::NotAScene {
             path: dir.to_path_buf(),
             msg: "expected a scene file, an INRIA output folder with point_cloud/iteration_*/point_cloud.ply, or a SOG folder with meta.json".into(),
         }),
     }
+}
+
+/// The scene of an INRIA trainer output folder: `point_cloud/iteration_N/point_cloud.ply` with the largest
+/// N that exists; `None` for a SOG folder (it has `meta.json`), a file, or a folder without one.
+pub(crate) fn inria_iteration_ply(dir: &Path) -> Option<PathBuf> {
+    if !dir.is_dir() || dir.join("meta.json").is_file() {
+        return None;
+    }
+    let entries = std::fs::read_dir(dir.join("point_cloud")).ok()?;
+    entries
+        .filter_map(|e| e.ok())
+        .filter_map(|e| {
+            let name = e.file_name();
+            let n: u64 = name.to_str()?.strip_prefix("iteration_")?.parse().ok()?;
+            let ply = e.path().join("point_cloud.ply");
+            ply.is_file().then_some((n, ply))
+        })
+        .max_by_key(|(n, _)| *n)
+        .map(|(_, p)| p)
 }
 
 /// Writes a scene in the format its name asks for ([`OutputFormat::for_path`]), atomically where the
