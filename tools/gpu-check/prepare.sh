@@ -4,7 +4,7 @@
 # machine; see tools/gpu-check/README.md for the call that carries the folder over.
 #
 #   tools/gpu-check/prepare.sh            build + download + pack
-#   tools/gpu-check/prepare.sh --no-build pack the release binary already in target/release
+#   tools/gpu-check/prepare.sh --no-build pack the release binary already built
 #
 # What it packs:
 #   bin/vcedit.xz      the stripped release `vcedit` (its `vcedit bench` subcommands are the benches)
@@ -43,13 +43,15 @@ done
 if [ "$build" = 1 ]; then
   cargo build --release --bin vcedit
 fi
-[ -x target/release/vcedit ] || { echo "prepare.sh: target/release/vcedit is missing (run without --no-build)" >&2; exit 1; }
+# Where cargo puts it (CARGO_TARGET_DIR or the workspace's target/).
+BIN="$(cargo metadata --format-version 1 --no-deps | python3 -c 'import json,sys; print(json.load(sys.stdin)["target_directory"])')/release/vcedit"
+[ -x "$BIN" ] || { echo "prepare.sh: $BIN is missing (run without --no-build)" >&2; exit 1; }
 
 rm -rf "$PACK.tmp"
 mkdir -p "$PACK.tmp"/{bin,debs,wheels}
 
 echo "packing vcedit..."
-strip -o "$PACK.tmp/bin/vcedit" target/release/vcedit
+strip -o "$PACK.tmp/bin/vcedit" "$BIN"
 xz -T0 -6 "$PACK.tmp/bin/vcedit"
 
 # Debian packages for amd64, fetched with a private package list so the machine's own apt state is untouched.
