@@ -14,7 +14,7 @@ use edit::eval::metrics::{
     multiview_consistency, multiview_consistency_in, ViewGeometry, WarpSettings as MetricSettings,
 };
 use edit::fit::{ImageLoss, TrainSettings};
-use edit::run::{run_edit, write_outputs, EditJob, GuidanceMode, MaskSource, Progress, RunInputs};
+use edit::run::{edit_scene, EditJob, GuidanceMode, MaskSource, Progress, RunInputs};
 use edit::sampler::{image_to_tensor, EditModel, EditPrompts, InfEditSettings, SeededNoise};
 use serde::Serialize;
 use splat::render::{render, RenderOutput, RenderSettings};
@@ -240,16 +240,6 @@ pub fn run_variant(
     let t = Instant::now();
     let job = demo_job(opts, scene, variant);
     let loss = ImageLoss::dssim();
-    let result = run_edit(
-        &job,
-        model,
-        &loss,
-        &scene.built.scene,
-        &scene.cameras,
-        out,
-        false,
-        progress,
-    )?;
     let inputs = RunInputs {
         scene: &format!("procedural: {}", scene.source.caption()),
         cameras: &format!("{} ring views", scene.cameras.len()),
@@ -257,13 +247,15 @@ pub fn run_variant(
         loss: loss.describe(),
         notes: vec![format!("vcedit demo, {}", variant.name())],
     };
-    let written = write_outputs(
-        out,
+    let (result, written) = edit_scene(
         &job,
-        &inputs,
+        model,
+        &loss,
         &scene.built.scene,
         &scene.cameras,
-        &result,
+        out,
+        false,
+        &inputs,
         progress,
     )?;
     let oracle = Oracle::new(&scene.source, &scene.target, OracleSettings::default())?;

@@ -7,7 +7,7 @@ use anyhow::{bail, Context};
 use edit::compute::Compute;
 use edit::consistency::{ConsistencySettings, EcmParams, EcmScope};
 use edit::fit::{ImageLoss, TrainSettings};
-use edit::run::{run_edit, write_outputs, Box3, EditJob, GuidanceMode, MaskSource, RunInputs};
+use edit::run::{edit_scene, Box3, EditJob, GuidanceMode, MaskSource, RunInputs};
 use edit::sampler::EditModel;
 
 use crate::args::editing::{ModelArgs, PromptArgs, SamplerArgs};
@@ -19,30 +19,6 @@ use crate::progress::Reporter;
 
 /// Orbit views edited when neither --cameras nor --orbit is given and the scene has no cameras.
 const DEFAULT_ORBIT_VIEWS: usize = 32;
-
-#[derive(Clone, Copy, Debug, clap::ValueEnum)]
-pub enum GuidanceArg {
-    /// All views edited jointly with the consistency modules (VcEdit).
-    Joint,
-    /// Every view edited on its own (the inconsistent guidance of per-view editors; a baseline).
-    PerView,
-}
-
-#[derive(Clone, Copy, Debug, clap::ValueEnum)]
-pub enum EcmParamsArg {
-    /// ECM fits change colours and opacities only (geometry stays; no floaters from few views).
-    Appearance,
-    /// ECM fits change every attribute, as the reference does.
-    All,
-}
-
-#[derive(Clone, Copy, Debug, clap::ValueEnum)]
-pub enum EcmScopeArg {
-    /// ECM fits move only the editable Gaussians.
-    Masked,
-    /// ECM fits move every Gaussian (what the reference code most likely does).
-    All,
-}
 
 /// Edit a 3D Gaussian Splatting scene from a source prompt to a target prompt, consistently across views.
 #[derive(clap::Args, Debug)]
@@ -92,7 +68,7 @@ pub struct Args {
     pub fit_steps: usize,
     /// How guidance images are made.
     #[arg(long, value_enum, default_value = "joint")]
-    pub guidance: GuidanceArg,
+    pub guidance: GuidanceMode,
     /// Disable the cross-attention consistency module.
     #[arg(long)]
     pub no_ccm: bool,
@@ -122,10 +98,10 @@ pub struct Args {
     pub ecm_steps: Option<Vec<usize>>,
     /// Which Gaussians ECM's fits may move.
     #[arg(long, value_enum, default_value = "masked")]
-    pub ecm_scope: EcmScopeArg,
+    pub ecm_scope: EcmScope,
     /// Which attributes ECM's fits may change.
     #[arg(long, value_enum, default_value = "appearance")]
-    pub ecm_params: EcmParamsArg,
+    pub ecm_params: EcmParams,
     /// Fewest Adam steps of each ECM fit: its epochs grow to reach them with few views (the reference's
     /// 6 epochs × 96 views).
     #[arg(long, default_value_t = 576, value_parser = whole::<usize>, allow_negative_numbers = true)]
@@ -233,14 +209,8 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     if args.no_ecm {
         consistency.ecm.steps.clear();
     }
-    consistency.ecm.scope = match args.ecm_scope {
-        EcmScopeArg::Masked => EcmScope::Masked,
-        EcmScopeArg::All => EcmScope::All,
-    };
-    consistency.ecm.params = match args.ecm_params {
-        EcmParamsArg::Appearance => EcmParams::Appearance,
-        EcmParamsArg::All => EcmParams::All,
-    };
+    consistency.ecm.scope = args.ecm_scope;
+    consistency.ecm.params = args.ecm_params;
     consistency.ecm.min_steps = args.ecm_min_steps;
     if args.no_blend_consistency {
         consistency.blend_consistency = false;
@@ -261,10 +231,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         prompts: args.prompts.prompts(),
         infedit,
         consistency,
-        guidance: match args.guidance {
-            GuidanceArg::Joint => GuidanceMode::Joint,
-            GuidanceArg::PerView => GuidanceMode::PerView,
-        },
+        guidance: args.guidance,
         iterations: args.iterations,
         fit_steps: args.fit_steps,
         max_views: args.views.view_limit(cameras.len()),
@@ -327,16 +294,6 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         &input_refs,
     )?;
     let mut progress = Reporter::new();
-    let result = run_edit(
-        &job,
-        &model,
-        &loss,
-        &scene,
-        &cameras,
-        &args.out,
-        args.resume,
-        &mut progress,
-    )?;
     let inputs = RunInputs {
         scene: &args.scene.display().to_string(),
         cameras: &args
@@ -350,13 +307,15 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         loss: loss.describe(),
         notes,
     };
-    let written = write_outputs(
-        &args.out,
+    let (_, written) = edit_scene(
         &job,
-        &inputs,
+        &model,
+        &loss,
         &scene,
         &cameras,
-        &result,
+        &args.out,
+        args.resume,
+        &inputs,
         &mut progress,
     )?;
     progress.finish();

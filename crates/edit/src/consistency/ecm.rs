@@ -66,17 +66,19 @@ impl EcmSettings {
 }
 
 /// Which Gaussians ECM's fits may move.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
 #[serde(rename_all = "kebab-case")]
 pub enum EcmScope {
     /// Only the editable (masked) Gaussians: the paper's intent, and the safer reading (default).
+    #[value(help = "ECM fits move only the editable Gaussians")]
     Masked,
     /// Every Gaussian: what the reference most likely does (its gradient hooks are lost in the deep copy).
+    #[value(help = "ECM fits move every Gaussian (what the reference code most likely does)")]
     All,
 }
 
 /// Which attributes ECM's fits may change.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
 #[serde(rename_all = "kebab-case")]
 pub enum EcmParams {
     /// Colours (all SH coefficients) and opacities; positions, scales and rotations stay (default). ECM is
@@ -85,8 +87,12 @@ pub enum EcmParams {
     /// fit the views' disagreements with geometry: the demo's striped vase grew floaters above it, which
     /// the guidance then taught the main fit (preservation 24 dB; 43 dB with geometry fixed, guidance
     /// cross-view error 0.038 → 0.048 on the object, oracle colour fidelity lost → 1.0).
+    #[value(
+        help = "ECM fits change colours and opacities only (geometry stays; no floaters from few views)"
+    )]
     Appearance,
     /// All six attribute groups, as the reference does.
+    #[value(help = "ECM fits change every attribute, as the reference does")]
     All,
 }
 

@@ -22,6 +22,24 @@ use super::job::{
 use super::masks::{self, Box3};
 use super::outputs;
 
+/// A whole edit into `out`: [`run_edit`], then [`outputs::write_outputs`] — the one sequence `vcedit edit`
+/// and the demo run. Returns the result (the demo scores it) and the written paths.
+pub fn edit_scene(
+    job: &EditJob,
+    model: &EditModel,
+    loss: &ImageLoss,
+    scene: &GaussianScene,
+    cameras: &[Camera],
+    out: &Path,
+    resume: bool,
+    inputs: &outputs::RunInputs<'_>,
+    progress: &mut dyn Progress,
+) -> Result<(EditResult, outputs::Written), RunError> {
+    let result = run_edit(job, model, loss, scene, cameras, out, resume, progress)?;
+    let written = outputs::write_outputs(out, job, inputs, scene, cameras, &result, progress)?;
+    Ok((result, written))
+}
+
 /// Runs an edit. `scene` and `cameras` (already at the working resolution) are the inputs; outputs go to
 /// `out` (guidance images per iteration; the caller writes the final outputs). With `resume`, a
 /// checkpoint in `out` is continued.

@@ -13,13 +13,17 @@ use crate::sampler::{EditError, EditPrompts, InfEditSettings};
 use super::masks::MaskError;
 
 /// How the views' guidance images are produced.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
 #[serde(rename_all = "kebab-case")]
 pub enum GuidanceMode {
     /// VcEdit: all views edited jointly, with the consistency modules that are enabled.
+    #[value(help = "All views edited jointly with the consistency modules (VcEdit)")]
     Joint,
     /// Every view edited on its own by InfEdit, with the same seed per view (as the reference re-seeds
     /// before every call): the inconsistent guidance of per-view editors.
+    #[value(
+        help = "Every view edited on its own (the inconsistent guidance of per-view editors; a baseline)"
+    )]
     PerView,
 }
 

@@ -8,7 +8,8 @@
 //! an interruption would cut.
 //!
 //! - `job`: what a run is given ([`EditJob`]) and gives back ([`EditResult`]);
-//! - `edit_loop`: [`run_edit`], the loop itself;
+//! - `edit_loop`: [`run_edit`], the loop itself, and [`edit_scene`], the loop and the outputs (what the
+//!   commands run);
 //! - `masks`: the editable region;
 //! - `checkpoint`: the state saved after every iteration;
 //! - `outputs`: the files written per iteration and at the end ([`write_outputs`]);
@@ -21,7 +22,7 @@ mod masks;
 mod outputs;
 mod work;
 
-pub use edit_loop::run_edit;
+pub use edit_loop::{edit_scene, run_edit};
 pub use job::{
     EditJob, EditResult, GuidanceMode, IterationTimes, MaskSource, Progress, Quiet, RunError,
 };
