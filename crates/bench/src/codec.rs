@@ -8,31 +8,13 @@
 //! Threads: RAYON_NUM_THREADS. One `RESULT` line per network and direction, the first call (kernel
 //! compilation, weight upload) apart.
 
-use std::collections::HashMap;
 use std::path::{Path, PathBuf};
 
-use candle_core::{DType, Device, Tensor};
-use candle_nn::{VarBuilder, VarMap};
+use candle_core::{Device, Tensor};
 use diffusion::taesd::{AutoencoderTiny, TaesdConfig};
 use diffusion::vae::{Autoencoder, AutoencoderKL, AutoencoderKLConfig};
 
-use crate::{arg_parsed, arg_value, network_device, report, Result, Timed};
-
-/// Random plain tensors for every parameter (no `Var`s, so the fused inference kernels run).
-fn random_weights<T>(
-    build: impl Fn(VarBuilder) -> candle_core::Result<T>,
-) -> Result<VarBuilder<'static>> {
-    let varmap = VarMap::new();
-    build(VarBuilder::from_varmap(&varmap, DType::F32, &Device::Cpu))?;
-    let tensors = varmap
-        .data()
-        .lock()
-        .expect("varmap lock")
-        .iter()
-        .map(|(k, v)| Ok((k.clone(), (v.as_tensor().detach() * 0.05)?)))
-        .collect::<candle_core::Result<HashMap<String, Tensor>>>()?;
-    Ok(VarBuilder::from_tensors(tensors, DType::F32, &Device::Cpu))
-}
+use crate::{arg_parsed, arg_value, network_device, random_weights, report, Result, Timed};
 
 /// The codec folder of `dir`: its `vae/` when it is a pipeline, else `dir` itself.
 fn codec_dir(dir: &Path) -> PathBuf {

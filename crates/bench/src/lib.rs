@@ -229,6 +229,29 @@ pub fn load_average() -> Option<f64> {
         .ok()
 }
 
+/// Random plain tensors for every parameter `build` asks for (no `Var`s, so the fused inference kernels
+/// run as with loaded weights), as a `VarBuilder` to build the network from.
+pub fn random_weights<T, E: std::fmt::Display>(
+    build: impl Fn(candle_nn::VarBuilder) -> std::result::Result<T, E>,
+) -> Result<candle_nn::VarBuilder<'static>> {
+    use candle_core::{DType, Device, Tensor};
+    let varmap = candle_nn::VarMap::new();
+    let vb = candle_nn::VarBuilder::from_varmap(&varmap, DType::F32, &Device::Cpu);
+    build(vb).map_err(BenchError::new)?;
+    let tensors = varmap
+        .data()
+        .lock()
+        .expect("varmap lock")
+        .iter()
+        .map(|(k, v)| Ok((k.clone(), (v.as_tensor().detach() * 0.05)?)))
+        .collect::<candle_core::Result<std::collections::HashMap<String, Tensor>>>()?;
+    Ok(candle_nn::VarBuilder::from_tensors(
+        tensors,
+        DType::F32,
+        &Device::Cpu,
+    ))
+}
+
 /// Opens the GPU for the networks from `--device` (default `default`) and `--precision` (default f16):
 /// `None` for `cpu`, or for `auto` without a usable GPU.
 pub fn network_device(

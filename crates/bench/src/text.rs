@@ -7,16 +7,16 @@
 //! fixture vocabulary). `python tools/bench_text.py` times transformers on the same shapes.
 //! Threads: RAYON_NUM_THREADS (candle) / torch.set_num_threads.
 
-use std::collections::HashMap;
 use std::path::{Path, PathBuf};
 
-use candle_core::{DType, Device, Tensor};
-use candle_nn::{VarBuilder, VarMap};
+use candle_core::{DType, Device};
 use diffusion::clip::{ClipActivation, ClipTextConfig, ClipTextModel};
 use diffusion::loader::{Component, ModelDir};
 use diffusion::tokenizer::ClipTokenizer;
 
-use crate::{arg_list, arg_parsed, arg_value, network_device, report, Result, Timed};
+use crate::{
+    arg_list, arg_parsed, arg_value, network_device, random_weights, report, Result, Timed,
+};
 
 const PROMPT: &str = "a highly detailed photograph of a red fox sitting in a snowy forest at dawn, soft golden light";
 
@@ -34,21 +34,8 @@ fn random_encoder() -> Result<ClipTextModel> {
         eos_token_id: 2,
         projection_dim: Some(768),
     };
-    let varmap = VarMap::new();
-    ClipTextModel::new(
-        VarBuilder::from_varmap(&varmap, DType::F32, &Device::Cpu),
-        cfg.clone(),
-    )?;
-    // Plain tensors (no Vars) so inference kernels run as with loaded weights.
-    let tensors = varmap
-        .data()
-        .lock()
-        .expect("varmap lock")
-        .iter()
-        .map(|(k, v)| Ok((k.clone(), (v.as_tensor().detach() * 0.05)?)))
-        .collect::<candle_core::Result<HashMap<String, Tensor>>>()?;
     Ok(ClipTextModel::new(
-        VarBuilder::from_tensors(tensors, DType::F32, &Device::Cpu),
+        random_weights(|vb| ClipTextModel::new(vb, cfg.clone()))?,
         cfg,
     )?)
 }
