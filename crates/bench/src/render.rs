@@ -515,10 +515,9 @@ fn main_gpu(args: &[String], quick: bool) -> Result<()> {
     let ctx = if sel.gpu {
         match gpu::open(gpu::DeviceChoice::Gpu) {
             Ok(Some(ctx)) => Some(ctx),
-            // Asked for the GPU alone: its absence is the answer, an error.
-            Ok(None) | Err(_) if !sel.cpu => {
-                return Err(BenchError::new("no GPU adapter (render gpu device=gpu)"))
-            }
+            // Asked for the GPU alone: its absence is the answer, an error (with the reason).
+            Err(e) if !sel.cpu => return Err(e.into()),
+            Ok(None) if !sel.cpu => return Err(BenchError::new("no GPU adapter")),
             Ok(None) | Err(_) => {
                 println!("SKIP gpu: no GPU adapter");
                 None

@@ -291,13 +291,16 @@ pub fn main(args: &[String], reexec: &[String]) -> Result<()> {
         let files = [std::path::PathBuf::from(&path)];
         let vb = diffusion::loader::var_builder_from_files(&files, DType::F32, &Device::Cpu)?;
         let model = UNet2DConditionModel::load(&config(), vb)?;
-        let secs = start.elapsed().as_secs_f64();
+        let elapsed = start.elapsed();
         report(serde_json::json!({
-            "bench": "unet", "impl": "candle", "what": "load_f16", "seconds": crate::secs(start.elapsed()),
+            "bench": "unet", "impl": "candle", "what": "load_f16", "seconds": crate::secs(elapsed),
             "peak_rss_mb": peak_rss_mb().round(), "anon_mb": status_mb("RssAnon").round(),
             "file_mb": status_mb("RssFile").round(), "rss_before_mb": before.round(),
         }));
-        eprintln!("  loaded SD 1.5 (f16 file) in {secs:.2} s");
+        eprintln!(
+            "  loaded SD 1.5 (f16 file) in {:.2} s",
+            elapsed.as_secs_f64()
+        );
         drop(model);
         return Ok(());
     }

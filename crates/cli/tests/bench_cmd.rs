@@ -1,0 +1,93 @@
+//! `vcedit bench` end to end on the CPU with the tiny fixture pipeline: each model-folder bench prints its
+//! `RESULT` lines (what tools/gpu-check parses), and bad input is one line with a non-zero exit.
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+
+fn tiny_lcm() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("../../fixtures/models/tiny-lcm")
+}
+
+fn vcedit(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_vcedit"))
+        .args(args)
+        .env("XDG_RUNTIME_DIR", std::env::temp_dir())
+        .output()
+        .unwrap()
+}
+
+/// The JSON of every `RESULT` line.
+fn results(out: &Output) -> Vec<serde_json::Value> {
+    String::from_utf8_lossy(&out.stdout)
+        .lines()
+        .filter_map(|l| l.strip_prefix("RESULT "))
+        .map(|j| serde_json::from_str(j).unwrap())
+        .collect()
+}
+
+#[test]
+fn model_folder_benches_report_first_and_warm_calls() {
+    let model = tiny_lcm();
+    let model = model.to_str().unwrap();
+    let cases: [(&[&str], &str, usize); 3] = [
+        (
+            &[
+                "unet",
+                "--model",
+                model,
+                "--size",
+                "8",
+                "--batches",
+                "1,6",
+                "--hooks",
+                "none,device",
+            ],
+            "unet",
+            4,
+        ),
+        (&["codec", "--model", model, "--size", "32"], "codec", 2),
+        (&["text", "--model", model, "--batches", "2"], "text", 2),
+    ];
+    for (args, bench, count) in cases {
+        let mut full = vec!["bench"];
+        full.extend_from_slice(args);
+        full.extend_from_slice(&["--device", "cpu", "--runs", "1"]);
+        let out = vcedit(&full);
+        assert!(
+            out.status.success(),
+            "{args:?}: {}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+        let r = results(&out);
+        assert_eq!(r.len(), count, "{args:?}: {r:?}");
+        for line in &r {
+            assert_eq!(line["bench"], bench);
+            for field in ["first_s", "best_s", "median_s"] {
+                let v = line[field].as_f64().unwrap_or(-1.0);
+                assert!(v >= 0.0, "{args:?}: {field} in {line}");
+            }
+        }
+    }
+}
+
+#[test]
+fn bad_input_is_one_line() {
+    let out = vcedit(&["bench", "unet", "--batches", "x", "--device", "cpu"]);
+    assert_eq!(out.status.code(), Some(1));
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("--batches: cannot read 'x'"), "{err}");
+    let missing = std::env::temp_dir().join("vcedit-no-such-model");
+    let out = vcedit(&["bench", "codec", "--model", missing.to_str().unwrap()]);
+    assert_eq!(out.status.code(), Some(1));
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        err.contains("vcedit-no-such-model") && !err.contains("panicked"),
+        "{err}"
+    );
+    let out = vcedit(&["bench", "nonesuch"]);
+    assert_eq!(
+        out.status.code(),
+        Some(2),
+        "an unknown bench is a usage error"
+    );
+}
