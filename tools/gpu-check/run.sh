@@ -59,7 +59,7 @@ step() {
   shift 2
   if [ -n "$ONLY" ] && [[ ",$ONLY," != *",$name,"* ]]; then return 0; fi
   if [[ ",$SKIP," == *",$name,"* ]]; then return 0; fi
-  if [ "$NO_GPU" = 1 ] && [ "$1" = "$V" ] && [ "$name" != splat-cpu ]; then
+  if [ "$NO_GPU" = 1 ] && { [ "$1" = "$V" ] || [ "$1" = env ]; } && [ "$name" != splat-cpu ]; then
     say "== $name: not run (vcedit opened no hardware GPU; see the adapter step)"
     echo "{\"step\":\"$name\",\"status\":\"no-gpu\",\"timeout\":$limit}" >> "$WORK/steps.jsonl"
     summarize
@@ -155,7 +155,16 @@ NO_GPU=0
 step adapter 60 "$V" bench device --device gpu $REQUIRE
 # A measurement of anything but the card is worse than none: without a hardware adapter the vcedit GPU
 # steps are not run, and the log says why.
+# Where the default (SPIR-V) path cannot open the card, the WGSL path may: the rest of the check then runs on it.
 if [ "$MODE" = device ] && grep -q '"step":"adapter","status":"failed\|"step":"adapter","status":"timeout' "$WORK/steps.jsonl"; then
+  step adapter-wgsl 60 env VCEDIT_GPU_COMPILER=wgsl "$V" bench device --device gpu $REQUIRE
+  if grep -q '"step":"adapter-wgsl","status":"ok' "$WORK/steps.jsonl"; then
+    say "!! the default compiler path failed to open the card; the check goes on with VCEDIT_GPU_COMPILER=wgsl"
+    export VCEDIT_GPU_COMPILER=wgsl
+  fi
+fi
+if [ "$MODE" = device ] && grep -q '"step":"adapter","status":"failed\|"step":"adapter","status":"timeout' "$WORK/steps.jsonl" &&
+   ! grep -q '"step":"adapter-wgsl","status":"ok' "$WORK/steps.jsonl"; then
   NO_GPU=1
   say "!! vcedit opened no hardware GPU: the vcedit GPU steps are skipped. Adapter step output:"
   tail -n 5 "$WORK/adapter.err" | tee -a "$LOG"
@@ -173,10 +182,14 @@ fi
 # ---- matrix products: SD 1.5's 4096x320x1280 (the first level's feed-forward at 512²)
 if [ "$MODE" = device ]; then SHAPES=4096x320x320,4096x320x1280; REPEAT=20; else SHAPES=512x64x128; REPEAT=3; fi
 step matmul 60 "$V" bench matmul --precisions f32,f16 --shapes "$SHAPES" --repeat "$REPEAT" --runs 3
+# The same products on the WGSL compiler (no cooperative matrices): the A/B for the SPIR-V path.
+step matmul-wgsl 60 env VCEDIT_GPU_COMPILER=wgsl "$V" bench matmul --precisions f16 --shapes "$SHAPES" --repeat "$REPEAT" --runs 3
 if have_torch; then step matmul-torch 60 python3 "$TB" matmul --shapes "$SHAPES" --repeat "$REPEAT"; fi
 
 # ---- the UNet, batch 1 and 6 (one InfEdit step), plain and with the InfEdit-shaped hook; PyTorch fp16 SDPA
-step unet 180 "$V" bench unet --model "$MODEL" --device gpu --size "$LAT" --batches 1,6 --hooks none,device --runs "$RUNS"
+# `--check`: batch 1 once more on the CPU, so the table says what the GPU path's rounding costs end to end.
+step unet 180 "$V" bench unet --model "$MODEL" --device gpu --size "$LAT" --batches 1,6 --hooks none,device --runs "$RUNS" --check
+step unet-wgsl 120 env VCEDIT_GPU_COMPILER=wgsl "$V" bench unet --model "$MODEL" --device gpu --size "$LAT" --batches 6 --hooks none --runs "$RUNS"
 if have_torch; then
   step unet-torch 90 python3 "$TB" unet --model "$MODEL" --size "$LAT" --batches 1,6 --dtype f16 --runs 5
   step unet-torch-f32 60 python3 "$TB" unet --model "$MODEL" --size "$LAT" --batches 6 --dtype f32 --runs 3

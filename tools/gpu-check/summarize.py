@@ -130,27 +130,33 @@ def build_table(res, steps, mode, torch_present):
         })
         return rows[-1]
 
-    mm = res.get("matmul", [])
     mt = res.get("matmul-torch", [])
-    for r in [x for x in mm if x.get("what") == "linear"]:
-        shape = f"{r['m']}x{r['k']}x{r['n']}"
-        t = find(mt, precision=r["precision"], m=r["m"], k=r["k"], n=r["n"])
-        line = row(f"matmul {shape}, {r['precision']} weights (TFLOP/s)", r.get("tflops"),
-                   t.get("tflops") if t else None, fmt_s(r.get("first_s")),
-                   "vcedit f16 = f16 weights, f32 arithmetic")
-        if t:
-            line["ratio_vcedit_over_pytorch"] = ratio(r["ms"], t["ms"])
-            line["pytorch_tf32"] = (find(mt, precision="tf32", m=r["m"], k=r["k"], n=r["n"]) or {}).get("tflops")
-    un, ut, ut32 = res.get("unet", []), res.get("unet-torch", []), res.get("unet-torch-f32", [])
-    for r in un:
-        t = find(ut, batch=r["batch"])
-        line = row(f"UNet forward, batch {r['batch']}, hook {r['hook']} (s)", r.get("best_s"),
-                   t.get("best_s") if t else None, fmt_s(r.get("first_s")),
-                   "PyTorch: fp16 + SDPA, no hook" + (", same weights" if mode == "device" else ""))
-        line["ratio_vcedit_over_pytorch"] = ratio(r.get("best_s"), t.get("best_s") if t else None)
-        t32 = find(ut32, batch=r["batch"])
-        if t32:
-            line["pytorch_f32"] = t32.get("best_s")
+    # vcedit's default path (SPIR-V, tensor cores where the card has them), then the WGSL path (A/B).
+    for step_name in ("matmul", "matmul-wgsl"):
+        for r in [x for x in res.get(step_name, []) if x.get("what") == "linear"]:
+            shape = f"{r['m']}x{r['k']}x{r['n']}"
+            t = find(mt, precision=r["precision"], m=r["m"], k=r["k"], n=r["n"])
+            path = r.get("path", "unit")
+            arithmetic = "f16 operands, f32 sums" if path in ("tensor-cores", "unit-f16") else "f32 arithmetic"
+            err = f"; rel. error vs CPU f32 {r['rel_err']:.1e}" if r.get("rel_err") is not None else ""
+            line = row(f"matmul {shape}, {r['precision']} weights, {path}, {r.get('compiler', '?')} (TFLOP/s)",
+                       r.get("tflops"), t.get("tflops") if t else None, fmt_s(r.get("first_s")),
+                       f"{arithmetic}{err}")
+            if t:
+                line["ratio_vcedit_over_pytorch"] = ratio(r["ms"], t["ms"])
+                line["pytorch_tf32"] = (find(mt, precision="tf32", m=r["m"], k=r["k"], n=r["n"]) or {}).get("tflops")
+    ut, ut32 = res.get("unet-torch", []), res.get("unet-torch-f32", [])
+    for step_name, label in (("unet", ""), ("unet-wgsl", ", WGSL")):
+        for r in res.get(step_name, []):
+            t = find(ut, batch=r["batch"])
+            err = f"; rel. error vs CPU {r['rel_err']:.1e}" if r.get("rel_err") is not None else ""
+            line = row(f"UNet forward, batch {r['batch']}, hook {r['hook']}{label} (s)", r.get("best_s"),
+                       t.get("best_s") if t else None, fmt_s(r.get("first_s")),
+                       "PyTorch: fp16 + SDPA, no hook" + (", same weights" if mode == "device" else "") + err)
+            line["ratio_vcedit_over_pytorch"] = ratio(r.get("best_s"), t.get("best_s") if t else None)
+            t32 = find(ut32, batch=r["batch"])
+            if t32:
+                line["pytorch_f32"] = t32.get("best_s")
     cd, ct = res.get("codec", []), res.get("codec-torch", [])
     for r in cd:
         t = find(ct, what=r["what"])
@@ -246,7 +252,10 @@ def main():
              f"{' (+ uncommitted changes)' if build.get('uncommitted_changes') else ''} · {a.mode} mode", ""]
     ad = doc["adapter"] or {}
     if ad:
-        lines.append(f"Adapter: {ad.get('adapter')} via {ad.get('api')}, compiler {ad.get('compiler')}"
+        cmma = ad.get("cmma") or []
+        cores = (f"tensor cores for f16 products ({len(cmma)} cooperative-matrix shapes)" if ad.get("tensor_cores")
+                 else f"no tensor cores ({len(cmma)} cooperative-matrix shapes)")
+        lines.append(f"Adapter: {ad.get('adapter')} via {ad.get('api')}, compiler {ad.get('compiler')}, {cores}"
                      f"{' (software)' if ad.get('software') else ''}; driver {doc['machine'].get('driver', '?')}; "
                      f"PyTorch {torch_info.get('torch', 'n/a') if isinstance(torch_info, dict) else 'n/a'}.")
         lines.append("")

@@ -17,6 +17,7 @@ pub fn main(args: &[String]) -> Result<()> {
             serde_json::json!({
                 "name": a.name,
                 "backend": format!("{:?}", a.backend),
+                "driver": a.driver_info,
                 "software": a.software,
             })
         })
@@ -33,7 +34,17 @@ pub fn main(args: &[String]) -> Result<()> {
     let opened = serde_json::json!({
         "adapter": ctx.adapter,
         "api": ctx.backend,
-        "compiler": ctx.client.name(),
+        "compiler": ctx.compiler,
+        "tensor_cores": ctx.tensor_cores,
+        "cmma": ctx
+            .client
+            .properties()
+            .features
+            .matmul
+            .cmma
+            .iter()
+            .map(|c| format!("{:?}x{:?}->{:?} {}x{}x{}", c.a_type, c.b_type, c.cd_type, c.m, c.n, c.k))
+            .collect::<Vec<_>>(),
         "software": ctx.software,
         "max_shared_bytes": limits.max_shared_bytes,
         "max_units_per_cube": limits.max_units_per_cube,
@@ -42,11 +53,7 @@ pub fn main(args: &[String]) -> Result<()> {
         "memory_bytes": limits.memory_bytes,
         "free_bytes_at_open": limits.free_bytes_at_open,
     });
-    eprintln!(
-        "opened: {} (compiler {})",
-        ctx.describe(),
-        ctx.client.name()
-    );
+    eprintln!("opened: {} (compiler {})", ctx.describe(), ctx.compiler);
     report(serde_json::json!({"bench": "device", "adapters": adapters, "opened": opened}));
     if ctx.software && has_flag(args, "--require-hardware") {
         return Err(BenchError::new(format!(

@@ -52,7 +52,7 @@ pub fn main(args: &[String]) -> Result<()> {
         eprintln!(
             "matmul bench on {} ({}), {precision} weights",
             device.name(),
-            context.client.name()
+            context.compiler
         );
         for &(m, k, n) in &shapes {
             let a = Tensor::randn(0f32, 1.0, (m, k), &Device::Cpu)?;
@@ -60,17 +60,25 @@ pub fn main(args: &[String]) -> Result<()> {
             let w = Tensor::randn(0f32, 1.0, (n, k), &Device::Cpu)?;
             let ga = GpuTensor::upload(&device, &a)?;
             let gb = GpuTensor::upload(&device, &b)?;
-            let gw = device.cached(&w)?;
+            let gw = device.cached_matrix(&w)?;
             let mut products: Vec<(&str, Box<Product>)> =
                 vec![("linear", Box::new(|| ops::linear(&ga, &gw, None)))];
             if precision == Precision::F32 {
                 // Activation × activation products do not depend on the weight precision.
                 products.push(("matmul", Box::new(|| ops::matmul(&ga, &gb))));
             }
+            let path = ops::matmul_path(&device);
             for (what, product) in products {
                 let start = Instant::now();
-                product()?.to_cpu()?;
+                let got = product()?.to_cpu()?;
                 let first = start.elapsed();
+                // The product checked against the CPU's f32 one: the error the path's rounding costs.
+                let want = if what == "linear" {
+                    a.matmul(&w.t()?)?
+                } else {
+                    a.matmul(&b)?
+                };
+                let rel_err = relative_error(&got, &want)?;
                 let mut best = f64::INFINITY;
                 for _ in 0..runs.max(1) {
                     let start = Instant::now();
@@ -82,7 +90,8 @@ pub fn main(args: &[String]) -> Result<()> {
                 }
                 let tflops = 2.0 * (m * k * n) as f64 / best / 1e12;
                 eprintln!(
-                    "  {what} {m}x{k}x{n}: {:.3} ms, {tflops:.2} TFLOP/s (first call {:.1} ms)",
+                    "  {what} {m}x{k}x{n} ({path}): {:.3} ms, {tflops:.2} TFLOP/s (first call {:.1} ms), \
+                     relative error {rel_err:.1e}",
                     best * 1e3,
                     first.as_secs_f64() * 1e3
                 );
@@ -97,12 +106,25 @@ pub fn main(args: &[String]) -> Result<()> {
                     "first_s": secs(first),
                     "repeat": repeat,
                     "device": device.name(),
-                    "compiler": context.client.name(),
+                    "compiler": context.compiler,
+                    "path": path.to_string(),
+                    "rel_err": rel_err,
                 }));
             }
         }
     }
     Ok(())
+}
+
+/// Largest absolute difference over the largest magnitude of `want`.
+fn relative_error(got: &Tensor, want: &Tensor) -> Result<f32> {
+    let diff = (got - want)?
+        .abs()?
+        .flatten_all()?
+        .max(0)?
+        .to_scalar::<f32>()?;
+    let scale = want.abs()?.flatten_all()?.max(0)?.to_scalar::<f32>()?;
+    Ok(diff / scale.max(f32::MIN_POSITIVE))
 }
 
 #[cfg(test)]

@@ -513,7 +513,7 @@ fn measure_gpu(
 fn main_gpu(args: &[String], quick: bool) -> Result<()> {
     let sel = Selection::parse(args, quick).map_err(BenchError::new)?;
     let ctx = if sel.gpu {
-        match gpu::open(gpu::DeviceChoice::Gpu) {
+        match gpu::open_for(gpu::DeviceChoice::Gpu, gpu::Workload::Splatting) {
             Ok(Some(ctx)) => Some(ctx),
             // Asked for the GPU alone: its absence is the answer, an error (with the reason).
             Err(e) if !sel.cpu => return Err(e.into()),

@@ -3,7 +3,7 @@
 //! them), plus the peak memory of loading SD 1.5 weights stored in f16.
 //!
 //! `vcedit bench unet [--batches 1,6] [--runs 2] [--size 64] [--model DIR] [--device cpu|gpu|auto]
-//! [--precision f16|f32] [--hooks none,device,host] [--small] [--skip-load]`
+//! [--precision f16|f32] [--hooks none,device,host] [--small] [--skip-load] [--check]`
 //!
 //! `--device gpu` runs the forward on the GPU (`gpu` takes a software adapter such as lavapipe too);
 //! `--small` shrinks the random model's channels to [64, 128, 256, 256] (same blocks, heads and context),
@@ -15,6 +15,10 @@
 //! One `RESULT` line per batch and hook (the first call, which compiles the GPU kernels and uploads the
 //! weights, apart from the warm runs; tools/bench_unet_torch.py --compare parses them).
 //! Thread count: RAYON_NUM_THREADS (candle's matmul and our kernels use the rayon pool).
+//!
+//! `--check` (GPU only) also runs the first batch once on the CPU and reports the GPU output's relative
+//! error against it (`rel_err`): the end-to-end cost of the GPU path's rounding (f16 operands on tensor
+//! cores, f16 weights), measured on the card itself.
 //!
 //! `--load-rss FILE` (internal): loads an SD 1.5 UNet from FILE and prints the process's peak RSS.
 
@@ -382,6 +386,24 @@ pub fn main(args: &[String], reexec: &[String]) -> Result<()> {
                 timed.median().as_secs_f64(),
                 timed.first.as_secs_f64()
             );
+            let rel_err = match &device {
+                Some(gpu)
+                    if has_flag(args, "--check") && batch == batches[0] && choice == hooks[0] =>
+                {
+                    let run = |on| model.forward_on(&sample, &t, &context, None, None, on);
+                    let (got, want) = (run(Some(gpu))?, run(None)?);
+                    let diff = (&got - &want)?
+                        .abs()?
+                        .flatten_all()?
+                        .max(0)?
+                        .to_scalar::<f32>()?;
+                    let scale = want.abs()?.flatten_all()?.max(0)?.to_scalar::<f32>()?;
+                    let rel = diff / scale.max(f32::MIN_POSITIVE);
+                    eprintln!("  batch {batch}: GPU against CPU, relative error {rel:.2e}");
+                    Some(rel)
+                }
+                _ => None,
+            };
             let mut fields = serde_json::json!({
                 "bench": "unet",
                 "impl": if device.is_some() { "vcedit-gpu" } else { "candle" },
@@ -397,12 +419,22 @@ pub fn main(args: &[String], reexec: &[String]) -> Result<()> {
                 // The warm time under the name tools/bench_unet_torch.py --compare reads.
                 "seconds": crate::secs(timed.best()),
             });
+            if let Some(rel) = rel_err {
+                fields["rel_err"] = rel.into();
+            }
             if let Some(device) = &device {
                 let estimate = config
                     .activation_estimate(batch, size, size, 77, false)
                     .map_err(BenchError::new)?;
                 let (reserved, _) = device.memory_reserved_and_in_use();
                 let map = fields.as_object_mut().expect("object");
+                map.insert("compiler".into(), device.context().compiler.clone().into());
+                map.insert(
+                    "matmul_path".into(),
+                    diffusion::device::ops::matmul_path(device)
+                        .to_string()
+                        .into(),
+                );
                 map.insert(
                     "weights_mb".into(),
                     (device.weight_bytes() as f64 / 1e6).round().into(),

@@ -5,6 +5,11 @@
 //!   adapter (Vulkan, Metal or DX12) when there is one; a software rasteriser such as Mesa's llvmpipe is
 //!   ~100x slower than the CPU path, so it is used only when asked for explicitly (`gpu`) or allowed
 //!   with `VCEDIT_ALLOW_SOFTWARE_GPU=1`. The backend is pinned so wgpu never silently falls back to GL.
+//! - The shader compiler: SPIR-V on Vulkan adapters with the features cubecl's SPIR-V path needs (Vulkan
+//!   memory model, 16-bit storage; it also brings cooperative matrices, i.e. tensor cores, and native
+//!   f16), WGSL everywhere else, lavapipe included (it crashes on SPIR-V workgroup memory).
+//!   `VCEDIT_GPU_COMPILER=wgsl|spirv` forces one (an A/B switch for benchmarks and the tests);
+//!   [`GpuContext::compiler`] says which one a device got.
 //! - [`gpu_call`]: runs a unit of GPU work ("launch…; read") and maps every failure, panics included, to
 //!   one [`GpuError`].
 //!
@@ -18,7 +23,9 @@ use std::str::FromStr;
 pub use cubecl;
 use cubecl::client::Client;
 use cubecl::device::{WgpuBackend, WgpuDeviceKind};
-use cubecl::wgpu::{wgpu, AutoGraphicsApi, RuntimeOptions, WgpuDevice};
+use cubecl::ir::{ElemType, FloatKind};
+use cubecl::wgpu::{wgpu, AutoGraphicsApi, RuntimeOptions, WgpuDevice, WgpuRuntime, WgslCompiler};
+use cubecl_runtime::runtime::Runtime;
 
 mod memory;
 pub mod prims;
@@ -29,6 +36,50 @@ pub mod testing;
 pub const DEVICE_ENV: &str = "VCEDIT_DEVICE";
 /// Set to `1` to let `auto` pick a software adapter (lavapipe/llvmpipe, WARP, SwiftShader).
 pub const ALLOW_SOFTWARE_ENV: &str = "VCEDIT_ALLOW_SOFTWARE_GPU";
+/// `wgsl` forces the WGSL compiler, `spirv` SPIR-V where the adapter supports it (lavapipe included);
+/// `auto` (the default) takes SPIR-V where the adapter supports it and runs it well.
+pub const COMPILER_ENV: &str = "VCEDIT_GPU_COMPILER";
+
+/// What a process will mostly run, which decides the shader compiler under `auto`: measured on an
+/// NVIDIA H200 (docs/gpu-results.md, 2026-11-26), SPIR-V with tensor cores runs the SD 1.5 UNet 3.2×
+/// faster than WGSL, but `vcedit fit` 2.6× slower (86 s against 34 s on lego-200: the splatting
+/// backward and training steps are slower there, not yet understood). A process has one client (the
+/// engines share buffers), so the choice is per process.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum Workload {
+    /// The diffusion networks (edit, edit-image, demo): SPIR-V where the adapter supports it.
+    #[default]
+    Networks,
+    /// Splatting only (fit, render, metrics): WGSL.
+    Splatting,
+}
+
+/// Which shader compiler serves the device.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum CompilerChoice {
+    /// SPIR-V on capable Vulkan adapters, WGSL elsewhere.
+    #[default]
+    Auto,
+    /// WGSL on every adapter (no cooperative matrices, f32 arithmetic).
+    Wgsl,
+    /// SPIR-V wherever the adapter supports it, lavapipe included (see `AdapterEntry::spirv_crashes`).
+    Spirv,
+}
+
+impl CompilerChoice {
+    /// The choice in `VCEDIT_GPU_COMPILER` (`auto` when unset).
+    pub fn from_env() -> Result<CompilerChoice, GpuError> {
+        match std::env::var(COMPILER_ENV) {
+            Ok(v) => match v.trim().to_ascii_lowercase().as_str() {
+                "" | "auto" => Ok(Self::Auto),
+                "wgsl" => Ok(Self::Wgsl),
+                "spirv" => Ok(Self::Spirv),
+                other => Err(GpuError::BadCompiler(other.to_string())),
+            },
+            Err(_) => Ok(Self::Auto),
+        }
+    }
+}
 
 /// Where the compute runs.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
@@ -85,6 +136,8 @@ pub enum GpuError {
     Kernel(String),
     #[error("unknown device '{0}' (expected cpu, gpu or auto)")]
     BadChoice(String),
+    #[error("unknown shader compiler '{0}' in VCEDIT_GPU_COMPILER (expected auto, wgsl or spirv)")]
+    BadCompiler(String),
 }
 
 /// Hardware limits the kernels size themselves by.
@@ -114,6 +167,12 @@ pub struct GpuContext {
     pub adapter: String,
     /// Graphics API the kernels run through ("Vulkan", "Metal", "Dx12").
     pub backend: String,
+    /// The shader compiler serving the device, as CubeCL names its runtime: "wgpu<spirv>" or
+    /// "wgpu<wgsl>".
+    pub compiler: String,
+    /// Whether the device multiplies f16 tiles into f32 sums with cooperative matrices (tensor cores),
+    /// which only the SPIR-V path registers.
+    pub tensor_cores: bool,
     /// Whether the adapter is a software rasteriser on the CPU.
     pub software: bool,
     pub limits: GpuLimits,
@@ -130,12 +189,23 @@ impl fmt::Debug for GpuContext {
 }
 
 impl GpuContext {
-    /// One line for run logs: "llvmpipe (LLVM 15.0.6, 256 bits) via Vulkan (software)".
+    /// One line for run logs: "llvmpipe (LLVM 15.0.6, 256 bits) via Vulkan, SPIR-V (software)".
     pub fn describe(&self) -> String {
+        let compiler = match self.compiler.as_str() {
+            "wgpu<spirv>" => "SPIR-V",
+            "wgpu<wgsl>" => "WGSL",
+            "wgpu<msl>" => "MSL",
+            other => other,
+        };
         format!(
-            "{} via {}{}",
+            "{} via {}, {compiler}{}{}",
             self.adapter,
             self.backend,
+            if self.tensor_cores {
+                " with tensor cores"
+            } else {
+                ""
+            },
             if self.software { " (software)" } else { "" }
         )
     }
@@ -147,7 +217,19 @@ pub struct AdapterEntry {
     pub name: String,
     pub backend: WgpuBackend,
     pub software: bool,
+    /// The driver's own description, e.g. "Mesa 25.0.7-2~bpo12+1 (LLVM 15.0.6)".
+    pub driver_info: String,
     kind: WgpuDeviceKind,
+}
+
+impl AdapterEntry {
+    /// Mesa's lavapipe crashes (SIGSEGV) on every cubecl SPIR-V kernel with workgroup memory: 22.3 and
+    /// 25.0.7 (LLVM 15, Debian's bookworm-backports) alike, while the kernels without it run. Under
+    /// `auto` it gets the WGSL compiler; `VCEDIT_GPU_COMPILER=spirv` still forces SPIR-V (the tests of
+    /// the kernels that run there).
+    fn spirv_crashes(&self) -> bool {
+        self.name.contains("llvmpipe")
+    }
 }
 
 /// Adapters on the compute backends we use (Vulkan, Metal, DX12), in wgpu's order. Never panics.
@@ -197,6 +279,7 @@ pub fn list_adapters() -> Vec<AdapterEntry> {
             name: info.name,
             backend,
             software,
+            driver_info: info.driver_info,
             kind,
         });
     }
@@ -212,12 +295,22 @@ fn software_allowed() -> bool {
     std::env::var(ALLOW_SOFTWARE_ENV).is_ok_and(|v| v.trim() == "1")
 }
 
-/// Opens the device `choice` names: `Ok(None)` means "use the CPU" (`cpu`, or `auto` without a usable
-/// GPU); `gpu` without any adapter is [`GpuError::NoAdapter`].
+/// Opens the device `choice` names for the networks (see [`open_for`]).
 pub fn open(choice: DeviceChoice) -> Result<Option<GpuContext>, GpuError> {
+    open_for(choice, Workload::Networks)
+}
+
+/// Opens the device `choice` names: `Ok(None)` means "use the CPU" (`cpu`, or `auto` without a usable
+/// GPU); `gpu` without any adapter is [`GpuError::NoAdapter`]. `workload` picks the shader compiler
+/// unless `VCEDIT_GPU_COMPILER` names one.
+pub fn open_for(choice: DeviceChoice, workload: Workload) -> Result<Option<GpuContext>, GpuError> {
     if choice == DeviceChoice::Cpu {
         return Ok(None);
     }
+    let compiler = match (CompilerChoice::from_env()?, workload) {
+        (CompilerChoice::Auto, Workload::Splatting) => CompilerChoice::Wgsl,
+        (chosen, _) => chosen,
+    };
     let adapters = list_adapters();
     let hardware = adapters.iter().find(|a| !a.software);
     let software = adapters.iter().find(|a| a.software);
@@ -227,21 +320,39 @@ pub fn open(choice: DeviceChoice) -> Result<Option<GpuContext>, GpuError> {
         _ => hardware,
     };
     match (pick, choice) {
-        (Some(a), _) => open_adapter(a).map(Some),
+        (Some(a), _) => open_adapter(a, compiler).map(Some),
         (None, DeviceChoice::Gpu) => Err(GpuError::NoAdapter),
         (None, _) => Ok(None),
     }
 }
 
-fn open_adapter(a: &AdapterEntry) -> Result<GpuContext, GpuError> {
+fn open_adapter(a: &AdapterEntry, compiler: CompilerChoice) -> Result<GpuContext, GpuError> {
     let device = WgpuDevice::new(a.kind.clone()).on(a.backend);
-    // The fallible initialisation registers the client; `.client()` on an unknown device would panic.
-    let setup = gpu_call(|| {
-        cubecl::wgpu::try_init_setup::<AutoGraphicsApi>(&device, RuntimeOptions::default())
-            .map_err(|e| GpuError::Kernel(format!("cannot initialise {}: {e}", a.name)))
-    })?;
-    let backend = format!("{:?}", setup.backend);
-    let client = gpu_call(|| Ok(cubecl::Device::Wgpu(device).client()))?;
+    let compiler = match compiler {
+        CompilerChoice::Auto if a.spirv_crashes() => CompilerChoice::Wgsl,
+        CompilerChoice::Spirv => CompilerChoice::Auto,
+        other => other,
+    };
+    let cannot =
+        |e: &dyn fmt::Display| GpuError::Kernel(format!("cannot initialise {}: {e}", a.name));
+    let (backend, client) = match compiler {
+        CompilerChoice::Auto | CompilerChoice::Spirv => {
+            // The fallible initialisation registers the client; `.client()` on an unknown device
+            // would panic.
+            let setup = gpu_call(|| {
+                cubecl::wgpu::try_init_setup::<AutoGraphicsApi>(&device, RuntimeOptions::default())
+                    .map_err(|e| cannot(&e))
+            })?;
+            let client = gpu_call(|| Ok(cubecl::Device::Wgpu(device).client()))?;
+            (format!("{:?}", setup.backend), client)
+        }
+        CompilerChoice::Wgsl => {
+            // A runtime typed on the WGSL compiler is a separate service: its client is created on
+            // first use (a failure there panics, which `gpu_call` turns into an error).
+            let client = gpu_call(|| Ok(WgpuRuntime::<WgslCompiler>::client(&device)))?;
+            (format!("{:?}", a.backend), client)
+        }
+    };
     let props = client.properties();
     let hw = &props.hardware;
     let limits = GpuLimits {
@@ -258,13 +369,37 @@ fn open_adapter(a: &AdapterEntry) -> Result<GpuContext, GpuError> {
             .and_then(|card| card.pci_address.as_ref())
             .and_then(|pci| memory::free_bytes(&pci.to_string())),
     };
+    // A WGSL-typed runtime names itself after the adapter's capabilities ("wgpu<spirv>" on a Vulkan
+    // adapter that could take SPIR-V), not after its compiler.
+    let compiler = match compiler {
+        CompilerChoice::Wgsl => "wgpu<wgsl>".to_string(),
+        _ => client.name().to_string(),
+    };
+    let tensor_cores = compiler == "wgpu<spirv>" && has_f16_tensor_cores(&client);
     Ok(GpuContext {
         adapter: props.identity.name.clone(),
         client,
         backend,
+        compiler,
+        tensor_cores,
         software: a.software,
         limits,
     })
+}
+
+/// Whether the device registers a cooperative-matrix shape multiplying f16 tiles into f32 sums.
+fn has_f16_tensor_cores(client: &Client) -> bool {
+    let (f16, f32) = (
+        ElemType::Float(FloatKind::F16),
+        ElemType::Float(FloatKind::F32),
+    );
+    client
+        .properties()
+        .features
+        .matmul
+        .cmma
+        .iter()
+        .any(|c| c.a_type == f16 && c.b_type == f16 && c.cd_type == f32)
 }
 
 /// Runs one unit of GPU work. Panics inside it (CubeCL reports kernel-expansion bugs and some device
@@ -335,6 +470,19 @@ mod tests {
         for c in [DeviceChoice::Cpu, DeviceChoice::Gpu, DeviceChoice::Auto] {
             assert_eq!(c.to_string().parse::<DeviceChoice>().unwrap(), c);
         }
+    }
+
+    #[test]
+    fn lavapipe_gets_wgsl_unless_spirv_is_forced() {
+        let entry = |name: &str| AdapterEntry {
+            name: name.into(),
+            backend: WgpuBackend::Vulkan,
+            software: true,
+            driver_info: String::new(),
+            kind: WgpuDeviceKind::Cpu,
+        };
+        assert!(entry("llvmpipe (LLVM 15.0.6, 256 bits)").spirv_crashes());
+        assert!(!entry("NVIDIA H200").spirv_crashes());
     }
 
     #[test]

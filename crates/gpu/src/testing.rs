@@ -9,7 +9,11 @@ use std::sync::OnceLock;
 pub fn context_or_skip() -> Option<GpuContext> {
     static CONTEXT: OnceLock<Result<GpuContext, String>> = OnceLock::new();
     let ctx = CONTEXT.get_or_init(|| match open(DeviceChoice::Gpu) {
-        Ok(Some(ctx)) => Ok(ctx),
+        Ok(Some(ctx)) => {
+            // Which compiler path the tests ran on (SPIR-V, or WGSL under VCEDIT_GPU_COMPILER=wgsl).
+            println!("GPU tests on {}", ctx.describe());
+            Ok(ctx)
+        }
         Ok(None) | Err(GpuError::NoAdapter) => Err(String::new()),
         Err(e) => Err(format!(" ({e})")),
     });

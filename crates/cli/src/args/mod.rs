@@ -47,14 +47,20 @@ pub struct DeviceArg {
 }
 
 impl DeviceArg {
-    /// Opens the chosen device and says in the log which one runs: `None` means the CPU.
+    /// Opens the chosen device for the networks and says in the log which one runs: `None` means the
+    /// CPU.
     pub fn open(&self) -> Result<Option<GpuContext>> {
+        self.open_for(splat::gpu::Workload::Networks)
+    }
+
+    /// [`DeviceArg::open`] for a command that runs `workload` (it picks the shader compiler).
+    pub fn open_for(&self, workload: splat::gpu::Workload) -> Result<Option<GpuContext>> {
         let choice = match self.device {
             Some(c) => c,
             None => DeviceChoice::from_env_or(DeviceChoice::Auto)
                 .context(format!("${}", splat::gpu::DEVICE_ENV))?,
         };
-        let ctx = splat::gpu::open(choice)?;
+        let ctx = splat::gpu::open_for(choice, workload)?;
         match (&ctx, choice) {
             (Some(ctx), _) => eprintln!("device: {}", ctx.describe()),
             (None, DeviceChoice::Auto) => {

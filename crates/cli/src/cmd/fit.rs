@@ -172,7 +172,7 @@ pub fn run(args: Args) -> Result<()> {
     progress.stage("fitting", args.steps);
     let mut smoothed = None::<f32>;
     let mut last_psnr = None::<f64>;
-    let device = args.device.open()?;
+    let device = args.device.open_for(splat::gpu::Workload::Splatting)?;
     let result = fit_on(&dataset, &config, device.as_ref(), &mut |p| {
         // Exponential moving average, as the INRIA trainer shows.
         let ema = smoothed.map_or(p.loss, |s| 0.6 * p.loss + 0.4 * s);

@@ -217,7 +217,10 @@ pub fn run(args: Args) -> Result<()> {
         h
     );
     let settings = RenderSettings { background };
-    let compute = Compute::on(args.device.open()?, Precision::F32);
+    let compute = Compute::on(
+        args.device.open_for(splat::gpu::Workload::Splatting)?,
+        Precision::F32,
+    );
     let renders_a = render_all(
         &compute,
         &source,

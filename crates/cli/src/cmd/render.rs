@@ -147,7 +147,10 @@ pub fn run(args: Args) -> Result<()> {
         background: args.background.background,
     };
     // The networks are not used here: their weight precision does not matter.
-    let compute = Compute::on(args.device.open()?, Precision::F32);
+    let compute = Compute::on(
+        args.device.open_for(splat::gpu::Workload::Splatting)?,
+        Precision::F32,
+    );
     let mut progress = Reporter::new();
     progress.stage("rendering views", cameras.len() as u64);
     let t_render = Instant::now();

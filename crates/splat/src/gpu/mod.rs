@@ -35,7 +35,8 @@ use ::gpu::prims::{
     arg, empty32, exclusive_scan, grid, read_f32, read_u32, sort_pairs, upload_f32, zeros32,
 };
 pub use ::gpu::{
-    list_adapters, open, DeviceChoice, GpuContext, GpuError, ALLOW_SOFTWARE_ENV, DEVICE_ENV,
+    list_adapters, open, open_for, DeviceChoice, GpuContext, GpuError, Workload,
+    ALLOW_SOFTWARE_ENV, DEVICE_ENV,
 };
 pub use anchor::GpuAnchor;
 pub use densify::GpuDensifyStats;

@@ -217,6 +217,16 @@ pub fn widen_f16(words: &[u32], out: &mut [f32]) {
     }
 }
 
+/// `out[i]` = `x[i]` rounded to f16: an activation narrowed into an operand of the tensor-core products.
+/// Only launched where the device has native f16 (the SPIR-V path).
+#[cube(launch_unchecked)]
+pub fn narrow_f16(x: &[f32], out: &mut [half::f16]) {
+    let i = linear_pos();
+    if (i as usize) < x.len() {
+        out[i as usize] = half::f16::cast_from(x[i as usize]);
+    }
+}
+
 /// Element `index` of a matrix operand held as f32 words, or as f16 halves packed two per word (see
 /// `precision::pack_f16`), as f32.
 #[cube]

@@ -223,6 +223,17 @@ impl GpuTensor {
         }
     }
 
+    /// An uninitialised f16 tensor of `shape` (packed two per word) on the same device as `self`.
+    pub(crate) fn empty_half_like(&self, shape: Vec<usize>) -> GpuTensor {
+        let words = shape.iter().product::<usize>().div_ceil(2).max(1);
+        GpuTensor {
+            device: self.device.clone(),
+            handle: self.client().empty(words * std::mem::size_of::<u32>()),
+            shape,
+            half: true,
+        }
+    }
+
     /// Reads the tensor back (waits for the kernels that write it; their errors surface here).
     pub fn to_cpu(&self) -> Result<Tensor> {
         let bytes = self
@@ -300,16 +311,22 @@ impl GpuTensor {
         self.word_arg()
     }
 
-    /// The buffer as a strided f32 tensor argument of a library kernel (cubek); `shape`/`strides` in
-    /// elements describe a view inside the buffer.
+    /// The buffer as a strided tensor argument of a library kernel (cubek), f32 or f16 as stored;
+    /// `shape`/`strides` in elements describe a view inside the buffer.
     pub(crate) fn binding(&self, shape: &[usize], strides: &[usize]) -> TensorBinding {
-        debug_assert!(!self.half, "an f16 weight passed to an f32 kernel");
         TensorBinding {
             handle: self.handle.clone().binding(),
             strides: strides.into(),
             shape: shape.into(),
             tiling: cubecl::zspace::Tiling::UNTILED,
         }
+    }
+
+    /// A packed f16 buffer as a kernel argument of f16 elements (its length in halves).
+    pub(crate) fn half_arg(&self) -> BufferArg {
+        debug_assert!(self.half, "an f32 tensor passed as f16");
+        // SAFETY: the handle holds storage_words() words, i.e. at least elem_count() halves.
+        unsafe { BufferArg::from_raw_parts(self.handle.clone(), self.elem_count().max(1)) }
     }
 
     /// The buffer as 32-bit words (f32 bits or two packed halves), for the matrix-product kernel.

@@ -515,30 +515,87 @@ fn gemm(
     Ok(out)
 }
 
+/// How a product runs: our own kernel, or the matrix-product library (cubek) on f32 or f16 operands.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum MatmulPath {
+    /// Our register-blocked kernel (f32 sums; f16 weights unpacked as they are read).
+    Own,
+    /// The library's unit routine on f32 operands (f16 weights widened into a transient copy).
+    Unit,
+    /// The library's unit routine on f16 operands: the tensor-core path's operands without tensor
+    /// cores, so it can be tested where there are none (lavapipe).
+    UnitF16,
+    /// Cooperative matrices (tensor cores): f16 operands, f32 sums.
+    TensorCores,
+}
+
+impl std::fmt::Display for MatmulPath {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            Self::Own => "own",
+            Self::Unit => "unit",
+            Self::UnitF16 => "unit-f16",
+            Self::TensorCores => "tensor-cores",
+        })
+    }
+}
+
 thread_local! {
-    /// Set by tests to run our own kernel on their thread (the environment is shared by test threads).
-    static OWN_MATMUL: std::cell::Cell<bool> = const { std::cell::Cell::new(false) };
+    /// Set by tests to pick a path on their thread (the environment is shared by test threads).
+    static PATH_OVERRIDE: std::cell::Cell<Option<MatmulPath>> = const { std::cell::Cell::new(None) };
+}
+
+/// Runs `f` with the products of this thread on `path` (tests).
+#[cfg(test)]
+pub(crate) fn with_matmul_path<T>(path: MatmulPath, f: impl FnOnce() -> T) -> T {
+    PATH_OVERRIDE.set(Some(path));
+    let result = f();
+    PATH_OVERRIDE.set(None);
+    result
 }
 
 /// Runs `f` with our own matrix-product kernel instead of the library's, on this thread (tests).
 #[cfg(test)]
 pub(crate) fn with_own_matmul<T>(f: impl FnOnce() -> T) -> T {
-    OWN_MATMUL.set(true);
-    let result = f();
-    OWN_MATMUL.set(false);
-    result
+    with_matmul_path(MatmulPath::Own, f)
 }
 
-/// The matrix-product library's routine for every product, or `None` for our own register-blocked
-/// kernel: `VCEDIT_GPU_MATMUL=own` selects ours (an A/B switch for benchmarks). The library's `Auto`
-/// takes tensor-core routines where the device has them and its unit routine elsewhere (lavapipe:
-/// 13.6 GFLOP/s against our kernel's 2.1 on SD 1.5's 4096×320×1280 product).
-fn library_strategy() -> Option<cubek_matmul::strategy::Strategy> {
-    static OWN: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
-    let own = *OWN.get_or_init(|| {
-        std::env::var("VCEDIT_GPU_MATMUL").is_ok_and(|v| v.trim().eq_ignore_ascii_case("own"))
-    });
-    (!own && !OWN_MATMUL.get()).then_some(cubek_matmul::strategy::Strategy::Auto)
+/// The path of a product on `device`. By default: tensor cores where the device has them and the
+/// weights are f16 (the precision says how much rounding the user accepts; f32 keeps f32 operands), the
+/// library's unit routine elsewhere (lavapipe: 13.6 GFLOP/s against our kernel's 2.1 on SD 1.5's
+/// 4096×320×1280 product). `VCEDIT_GPU_MATMUL=own|unit|unit-f16` forces one (A/B switch for
+/// benchmarks); a path the device cannot take falls back to the default.
+pub fn matmul_path(device: &super::GpuDevice) -> MatmulPath {
+    static FORCED: std::sync::OnceLock<Option<MatmulPath>> = std::sync::OnceLock::new();
+    let forced = PATH_OVERRIDE.get().or(*FORCED.get_or_init(|| {
+        match std::env::var("VCEDIT_GPU_MATMUL")
+            .unwrap_or_default()
+            .trim()
+            .to_ascii_lowercase()
+            .as_str()
+        {
+            "own" => Some(MatmulPath::Own),
+            "unit" => Some(MatmulPath::Unit),
+            "unit-f16" => Some(MatmulPath::UnitF16),
+            _ => None,
+        }
+    }));
+    let half_weights = device.precision() == super::Precision::F16;
+    let native_f16 = device
+        .client()
+        .properties()
+        .supports_type(cubecl::ir::ElemType::Float(cubecl::ir::FloatKind::F16));
+    match forced {
+        Some(MatmulPath::Own) => MatmulPath::Own,
+        Some(MatmulPath::Unit) => MatmulPath::Unit,
+        Some(MatmulPath::UnitF16) if native_f16 => MatmulPath::UnitF16,
+        Some(MatmulPath::TensorCores) | None | Some(MatmulPath::UnitF16)
+            if half_weights && device.context().tensor_cores =>
+        {
+            MatmulPath::TensorCores
+        }
+        _ => MatmulPath::Unit,
+    }
 }
 
 /// An f32 copy of a packed f16 tensor; an f32 tensor as it is (shared buffer).
@@ -560,20 +617,62 @@ fn widen_f16(x: &GpuTensor) -> GpuTensor {
     out
 }
 
+/// An f16 copy of an f32 tensor (rounded to nearest); a packed f16 tensor as it is.
+fn narrow_f16(x: &GpuTensor) -> GpuTensor {
+    if x.is_f16() {
+        return x.clone();
+    }
+    let out = x.empty_half_like(x.dims().to_vec());
+    // SAFETY: the kernel bound-checks against x, and out holds x's element count of halves.
+    unsafe {
+        cube::narrow_f16::launch_unchecked(
+            x.client(),
+            grid_for(x.elem_count(), ELEMENTWISE_UNITS),
+            CubeDim::new_1d(ELEMENTWISE_UNITS),
+            x.arg(),
+            out.half_arg(),
+        )
+    };
+    out
+}
+
 /// The product `A[b] B[b]` (no scale, no bias) by CubeCL's matrix-product library, or `None` where it
-/// does not apply (a shared B under a strided A, an empty product) or declines the problem; the caller
-/// then runs our own kernel.
+/// does not apply (our own kernel chosen, a shared B under a strided A, an empty product) or declines
+/// the problem; the caller then runs our own kernel. A tensor-core product the library declines is
+/// retried on the unit routine.
 fn library_gemm(a: &GpuTensor, b: &GpuTensor, g: &Gemm, out_shape: &[usize]) -> Option<GpuTensor> {
-    use cubecl::ir::{ElemType, FloatKind};
-    use cubek_matmul::definition::{MatmulElems, MatmulGlobalElems};
-    use cubek_std::InputBinding;
     if g.m == 0 || g.n == 0 || g.k == 0 {
         return None;
     }
-    let strategy = library_strategy()?;
-    // Packed f16 weights are widened into a transient f32 copy: one pass over the weight, small
-    // beside the product, and it keeps the library on plain f32 operands on every adapter.
-    let (a, b) = (&widen_f16(a), &widen_f16(b));
+    match matmul_path(a.device()) {
+        MatmulPath::Own => None,
+        MatmulPath::Unit => library_gemm_on(a, b, g, out_shape, MatmulPath::Unit),
+        path => library_gemm_on(a, b, g, out_shape, path)
+            .or_else(|| library_gemm_on(a, b, g, out_shape, MatmulPath::Unit)),
+    }
+}
+
+fn library_gemm_on(
+    a: &GpuTensor,
+    b: &GpuTensor,
+    g: &Gemm,
+    out_shape: &[usize],
+    path: MatmulPath,
+) -> Option<GpuTensor> {
+    use cubecl::ir::{ElemType, FloatKind};
+    use cubek_matmul::definition::{MatmulElems, MatmulGlobalElems};
+    use cubek_matmul::multi_level::Strategy as Routine;
+    use cubek_matmul::strategy::Strategy;
+    use cubek_std::InputBinding;
+    let half = path != MatmulPath::Unit;
+    // f32 operands: packed f16 weights are widened into a transient f32 copy (one pass over the
+    // weight, small beside the product). f16 operands: weights are read as stored and activations
+    // narrowed (one pass over them); the sums stay f32 either way.
+    let (a, b) = if half {
+        (&narrow_f16(a), &narrow_f16(b))
+    } else {
+        (&widen_f16(a), &widen_f16(b))
+    };
     let (mut batch, mut m, mut a_strides) = (g.batch, g.m, g.a_strides);
     let mut b_strides = g.b_strides;
     if b_strides[0] == 0 && batch > 1 {
@@ -590,16 +689,25 @@ fn library_gemm(a: &GpuTensor, b: &GpuTensor, g: &Gemm, out_shape: &[usize]) -> 
     }
     let out = a.empty_like_device(out_shape.to_vec());
     let f32_type = ElemType::Float(FloatKind::F32);
+    let operand = if half {
+        ElemType::Float(FloatKind::F16)
+    } else {
+        f32_type
+    };
     let mut dtypes = MatmulElems::from_globals(&MatmulGlobalElems {
-        lhs: f32_type,
-        rhs: f32_type,
+        lhs: operand,
+        rhs: operand,
         out: f32_type,
     });
+    let routine = match path {
+        MatmulPath::TensorCores => Routine::SimpleCyclicCmma(Default::default()),
+        _ => Routine::SimpleUnit(Default::default()),
+    };
     let launched = cubek_matmul::launch::launch_ref(
-        &strategy,
+        &Strategy::MultiLevel(routine),
         a.client(),
-        InputBinding::new(a.binding(&[batch, m, g.k], &a_strides), f32_type),
-        InputBinding::new(b.binding(&[batch, g.k, g.n], &b_strides), f32_type),
+        InputBinding::new(a.binding(&[batch, m, g.k], &a_strides), operand),
+        InputBinding::new(b.binding(&[batch, g.k, g.n], &b_strides), operand),
         out.binding(&[batch, m, g.n], &[m * g.n, g.n, 1]),
         &mut dtypes,
     );

@@ -330,6 +330,69 @@ fn f16_weights_match_cpu_on(dev: &GpuDevice) {
     assert!(!dev.cached_matrix(&weight).unwrap().is_f16());
 }
 
+/// The tensor-core path's operands (activations narrowed to f16, weights read as stored, f32 sums), on
+/// the library's unit routine so it runs without tensor cores: exactly the CPU product of the rounded
+/// operands, up to the order of the sums. Skipped where the device has no native f16 (the WGSL path).
+#[test]
+fn f16_operands_match_cpu() {
+    let Some(dev) = device_or_skip() else {
+        return;
+    };
+    let half_dev = GpuDevice::with_precision(dev.context().clone(), Precision::F16);
+    if with_matmul_path(MatmulPath::UnitF16, || matmul_path(&half_dev)) != MatmulPath::UnitF16 {
+        eprintln!("skipped: {} has no native f16", dev.context().describe());
+        return;
+    }
+    let rounded = |t: &Tensor| {
+        t.to_dtype(candle_core::DType::F16)
+            .unwrap()
+            .to_dtype(candle_core::DType::F32)
+            .unwrap()
+    };
+    with_matmul_path(MatmulPath::UnitF16, || {
+        let (x, w, bias) = (randn(&[2, 5, 19]), randn(&[7, 19]), randn(&[7]));
+        let gw = half_dev.cached_matrix(&w).unwrap();
+        let got = linear(&up(&half_dev, &x), &gw, Some(&up(&half_dev, &bias))).unwrap();
+        let want = candle_core::Module::forward(
+            &candle_nn::Linear::new(rounded(&w), Some(bias.clone())),
+            &rounded(&x),
+        )
+        .unwrap();
+        check_within("f16-operand linear", &got, &want, 1e-5);
+        // Activation × activation, transposed and scaled (attention-shaped).
+        let (a, bt) = (randn(&[2, 3, 17, 19]), randn(&[2, 3, 21, 19]));
+        let got = matmul_scaled(&up(&half_dev, &a), &up(&half_dev, &bt), true, 0.5).unwrap();
+        let want = (rounded(&a).matmul(&rounded(&bt).t().unwrap()).unwrap() * 0.5).unwrap();
+        check_within("f16-operand transposed product", &got, &want, 1e-5);
+        let conv_w = randn(&[6, 5, 3, 3]);
+        let xi = randn(&[2, 5, 9, 7]);
+        let got = conv2d(
+            &up(&half_dev, &xi),
+            &half_dev.cached_matrix(&conv_w).unwrap(),
+            None,
+            1,
+            1,
+        )
+        .unwrap();
+        let want = crate::kernels::conv2d(&rounded(&xi), &rounded(&conv_w), None, 1, 1).unwrap();
+        check_within("f16-operand conv2d", &got, &want, 1e-5);
+    });
+    // The library takes these products itself (no silent fallback to the f32 routine).
+    let (m, k, n) = (17, 19, 21);
+    let a = up(&half_dev, &randn(&[1, m, k]));
+    let b = half_dev.cached_matrix(&randn(&[k, n])).unwrap();
+    let g = Gemm {
+        batch: 1,
+        m,
+        n,
+        k,
+        a_strides: [m * k, k, 1],
+        b_strides: [0, n, 1],
+        alpha: 1.0,
+    };
+    assert!(library_gemm_on(&a, &b, &g, &[1, m, n], MatmulPath::UnitF16).is_some());
+}
+
 #[test]
 fn conv2d_matches_cpu() {
     let Some(dev) = device_or_skip() else {
