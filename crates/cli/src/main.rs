@@ -55,7 +55,21 @@ enum Command {
     Bench(cmd::bench::Args),
 }
 
+/// A closed stdout (`vcedit inspect x.ply | head -1`) ends the program quietly with the conventional
+/// SIGPIPE status, as other Unix tools do. Rust starts programs with SIGPIPE ignored, so a write to a
+/// closed pipe fails instead and `println!` panics. Output files are written atomically (temporary file,
+/// then rename), so an interrupted run leaves no partial output.
+#[cfg(unix)]
+fn quiet_on_closed_pipe() {
+    // SAFETY: restores one signal's default disposition before any other thread exists.
+    unsafe {
+        libc::signal(libc::SIGPIPE, libc::SIG_DFL);
+    }
+}
+
 fn main() {
+    #[cfg(unix)]
+    quiet_on_closed_pipe();
     let cli = Cli::parse();
     let result: anyhow::Result<()> = match cli.command {
         Command::Inspect(a) => cmd::inspect::run(a),

@@ -156,3 +156,41 @@ fn help_shows_an_example() {
     let help = String::from_utf8_lossy(&out.stdout);
     assert!(help.contains("vcedit inspect scene.ply"), "{help}");
 }
+
+/// A reader that stops early (`vcedit inspect x.ply | head -1`) ends vcedit quietly: no panic message,
+/// and the exit status is success or the SIGPIPE one.
+#[cfg(unix)]
+#[test]
+fn a_closed_pipe_ends_quietly() {
+    use std::os::unix::process::ExitStatusExt;
+    use std::process::Stdio;
+    let dir = tempfile::tempdir().unwrap();
+    let p = dir.path().join("line.ply");
+    write_ply(&p, &line_scene(20)).unwrap();
+    for flags in [&[][..], &["--json"][..]] {
+        let mut child = Command::new(env!("CARGO_BIN_EXE_vcedit"))
+            .arg("inspect")
+            .arg(&p)
+            .args(flags)
+            .stdout(Stdio::piped())
+            .stderr(Stdio::piped())
+            .spawn()
+            .expect("run vcedit");
+        // Close the reading end before vcedit writes anything.
+        drop(child.stdout.take());
+        let out = child.wait_with_output().unwrap();
+        let stderr = String::from_utf8_lossy(&out.stderr);
+        assert!(!stderr.contains("panicked"), "{stderr}");
+        assert!(
+            out.status.success() || out.status.signal() == Some(libc_sigpipe()),
+            "{:?}: {stderr}",
+            out.status
+        );
+    }
+}
+
+/// SIGPIPE's number on every Unix vcedit builds for.
+#[cfg(unix)]
+fn libc_sigpipe() -> i32 {
+    13
+}
