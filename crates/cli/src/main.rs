@@ -95,7 +95,9 @@ fn main() {
             );
         }
         eprintln!("error: {line}");
-        std::process::exit(1);
+        // A refused value is a usage error, as clap's own (exit code 2); anything else exits with 1.
+        let usage = err.chain().any(|e| e.is::<args::UsageError>());
+        std::process::exit(if usage { 2 } else { 1 });
     }
 }
 

@@ -114,3 +114,48 @@ fn refuses_the_input_as_output_and_unknown_names() {
         "{err}"
     );
 }
+
+/// Outputs that are the input under another name, or that would mix with it or with someone else's files,
+/// are refused and change nothing.
+#[test]
+fn refuses_outputs_that_replace_or_mix_with_inputs() {
+    let dir = tempfile::tempdir().unwrap();
+    let source = dir.path().join("s.ply");
+    splat::ply::write_ply(&source, &spiral()).unwrap();
+    let before = std::fs::read(&source).unwrap();
+    // A hard link to the input.
+    let link = dir.path().join("h.ply");
+    std::fs::hard_link(&source, &link).unwrap();
+    let out = convert(&source, &link);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        !out.status.success() && err.contains("the output is the input"),
+        "{err}"
+    );
+    // A SOG folder written into the input SOG folder.
+    let sog = dir.path().join("sog");
+    std::fs::create_dir(&sog).unwrap();
+    assert!(convert(&source, &sog.join("meta.json")).status.success());
+    let sog_meta = std::fs::read(sog.join("meta.json")).unwrap();
+    for input in [sog.clone(), sog.join("meta.json")] {
+        let out = convert(&input, &sog.join("meta.json"));
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(!out.status.success() && err.lines().count() == 1, "{err}");
+    }
+    assert_eq!(std::fs::read(sog.join("meta.json")).unwrap(), sog_meta);
+    // Someone else's folder: files, no meta.json.
+    let other = dir.path().join("other");
+    std::fs::create_dir(&other).unwrap();
+    std::fs::write(other.join("means_l.webp"), b"mine").unwrap();
+    let out = convert(&source, &other.join("meta.json"));
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        !out.status.success() && err.contains("no SOG scene"),
+        "{err}"
+    );
+    assert_eq!(std::fs::read(other.join("means_l.webp")).unwrap(), b"mine");
+    assert!(!other.join("meta.json").exists());
+    // A previous SOG folder may be replaced, as any output file may.
+    assert!(convert(&source, &sog.join("meta.json")).status.success());
+    assert_eq!(std::fs::read(&source).unwrap(), before);
+}

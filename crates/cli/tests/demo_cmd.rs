@@ -160,6 +160,6 @@ fn demo_rejects_bad_options_with_one_line() {
     assert_eq!(stderr.trim_end().lines().count(), 1, "{stderr}");
 
     let (code, _, stderr) = vcedit(&["demo", "--pair", "99", "--out", "x"], dir.path());
-    assert_eq!(code, 1);
+    assert_eq!(code, 2, "a usage error");
     assert!(stderr.contains("--pair 99"), "{stderr}");
 }

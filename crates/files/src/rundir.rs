@@ -260,10 +260,29 @@ fn read_manifest(path: &Path) -> Result<Option<(Header, BTreeSet<PathBuf>)>, Run
     Ok(Some((header, files)))
 }
 
+/// Whether `rel` (plain components only, see `read_manifest`) reaches its file without passing through a
+/// symbolic link: a subfolder replaced by a link to elsewhere must not lead `--force` out of the run
+/// folder. The file itself may be a link (removing a link removes only the link).
+fn stays_inside(dir: &Path, rel: &Path) -> bool {
+    let mut p = dir.to_path_buf();
+    let folders = rel.parent().into_iter().flat_map(Path::components);
+    for c in folders {
+        p.push(c);
+        match std::fs::symlink_metadata(&p) {
+            Ok(m) if m.is_dir() => {}
+            _ => return false,
+        }
+    }
+    true
+}
+
 /// Removes the listed files (missing ones are fine), then the folders that became empty.
 fn remove_listed(dir: &Path, files: &BTreeSet<PathBuf>) -> Result<(), RunDirError> {
     let mut parents = BTreeSet::new();
     for rel in files {
+        if !stays_inside(dir, rel) {
+            continue;
+        }
         let p = dir.join(rel);
         match std::fs::remove_file(&p) {
             Ok(()) => {}
@@ -416,5 +435,29 @@ mod tests {
         .unwrap();
         let _run = RunDir::open(&out, "render", "b", RunDirMode::Force, &[]).unwrap();
         assert!(victim.exists());
+    }
+
+    #[cfg(unix)]
+    #[test]
+    fn force_never_follows_a_linked_subfolder() {
+        let tmp = tempfile::tempdir().unwrap();
+        let out = tmp.path().join("out");
+        {
+            let _run = RunDir::open(&out, "render", "a", RunDirMode::Keep, &[]).unwrap();
+            crate::atomic_write(&out.join("depth").join("view_0.png"), b"d").unwrap();
+            crate::atomic_write(&out.join("view_0.png"), b"png").unwrap();
+        }
+        // The recorded subfolder swapped for a link to a folder outside, holding a file of that name.
+        let outside = tmp.path().join("outside");
+        std::fs::create_dir(&outside).unwrap();
+        std::fs::write(outside.join("view_0.png"), b"keep").unwrap();
+        std::fs::remove_dir_all(out.join("depth")).unwrap();
+        std::os::unix::fs::symlink(&outside, out.join("depth")).unwrap();
+        let _run = RunDir::open(&out, "render", "b", RunDirMode::Force, &[]).unwrap();
+        assert_eq!(std::fs::read(outside.join("view_0.png")).unwrap(), b"keep");
+        assert!(
+            !out.join("view_0.png").exists(),
+            "the run's own file is removed"
+        );
     }
 }

@@ -183,13 +183,13 @@ impl SamplerArgs {
     /// The sampler's settings; the checks here are the ones a single option's parser cannot make.
     pub fn settings(&self) -> anyhow::Result<InfEditSettings> {
         if self.guidance_scale_source < 0.0 {
-            bail!(
+            crate::usage!(
                 "--guidance-scale-source {} must be a non-negative number",
                 self.guidance_scale_source
             );
         }
         if self.guidance_scale <= 1.0 {
-            bail!(
+            crate::usage!(
                 "--guidance-scale {} must be above 1 (the sampler needs classifier-free guidance on the target)",
                 self.guidance_scale
             );

@@ -37,6 +37,28 @@ use splat::{Camera, GaussianScene};
 
 use parse::{parse_colour, parse_size, positive, whole};
 
+/// A value the command refuses after parsing: a range one option's parser cannot check alone (it depends
+/// on another option, or on the input). Reported like clap's usage errors, with exit code 2 (see
+/// `main`); raised with [`usage!`].
+#[derive(Debug)]
+pub struct UsageError(pub String);
+
+impl fmt::Display for UsageError {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(&self.0)
+    }
+}
+
+impl std::error::Error for UsageError {}
+
+/// `bail!` with a [`UsageError`] (exit code 2).
+#[macro_export]
+macro_rules! usage {
+    ($($arg:tt)*) => {
+        return Err(anyhow::Error::new($crate::args::UsageError(format!($($arg)*))))
+    };
+}
+
 /// `--device`: where rendering, fitting and the networks run.
 #[derive(clap::Args, Debug, Clone)]
 pub struct DeviceArg {
@@ -184,7 +206,7 @@ impl CameraArgs {
     pub fn validate(&self) -> Result<()> {
         if let Some(n) = self.orbit {
             if n > MAX_ORBIT_VIEWS && !self.allow_many_views {
-                bail!(
+                crate::usage!(
                     "--orbit {n}: more than {MAX_ORBIT_VIEWS} views; pass --allow-many-views if you mean it"
                 );
             }

@@ -2,7 +2,6 @@
 
 use std::path::PathBuf;
 
-use anyhow::bail;
 use edit::compute::Compute;
 
 use demo::run::{
@@ -78,7 +77,14 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         return Ok(());
     }
     if args.views < 2 {
-        bail!("--views {}: the demo needs at least 2 views", args.views);
+        crate::usage!("--views {}: the demo needs at least 2 views", args.views);
+    }
+    if args.pair >= PAIRS.len() {
+        crate::usage!(
+            "--pair {} does not exist (0..{}; see --list)",
+            args.pair,
+            PAIRS.len() - 1
+        );
     }
     let model_dir = args.model.clone().unwrap_or_else(default_model);
     let mut opts = DemoOptions::new(model_dir.clone(), args.out.clone());

@@ -157,7 +157,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     let infedit = args.sampler.settings()?;
     let (w, h) = args.sampler.size();
     if !(0.0..1.0).contains(&args.mask_threshold) {
-        bail!("--mask-threshold {} must be in [0, 1)", args.mask_threshold);
+        crate::usage!("--mask-threshold {} must be in [0, 1)", args.mask_threshold);
     }
     args.views.validate()?;
     for (option, dir) in [
@@ -200,7 +200,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         ("--ecm-steps", &consistency.ecm.steps),
     ] {
         if let Some(bad) = list.iter().find(|&&i| i >= steps) {
-            bail!("{name}: step {bad} is past the last step ({})", steps - 1);
+            crate::usage!("{name}: step {bad} is past the last step ({})", steps - 1);
         }
     }
     if args.no_ccm {

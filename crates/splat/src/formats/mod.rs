@@ -1,6 +1,7 @@
 //! The file formats people share Gaussian splats in.
 //!
-//! [`read_scene`] recognises a scene by its content, never by its name:
+//! [`read_scene`] recognises a scene by its content, never by its name, except `.splat`, which has no
+//! magic bytes (any file of 32·n bytes would parse): it is read only from a file named `*.splat`.
 //!
 //! | content | format |
 //! | --- | --- |
@@ -9,7 +10,7 @@
 //! | gzip stream holding an `NGSP` header, or a plain `NGSP` header | Niantic `.spz` v2/v3, v4 ([`spz`]) |
 //! | zip archive with `meta.json`, a `meta.json` file, or a folder holding one | PlayCanvas SOG ([`sog`]) |
 //! | a folder with `point_cloud/iteration_N/point_cloud.ply` | INRIA trainer output |
-//! | none of the above, 32 bytes per Gaussian | antimatter15 `.splat` ([`dot_splat`]) |
+//! | none of the above, named `*.splat`, 32 bytes per Gaussian | antimatter15 `.splat` ([`dot_splat`]) |
 //!
 //! [`write_scene`] chooses the format by the output name (see [`OutputFormat::for_path`]) and returns a
 //! [`WriteReport`]: for a lossy format, the largest error of every quantity, measured by decoding the
@@ -164,13 +165,19 @@ pub fn read_scene(path: &Path) -> Result<GaussianScene, FormatError> {
     if head.trim_ascii_start().starts_with(b"{") {
         return sog::read_folder(path).map_err(bad("SOG"));
     }
+    let named_splat = path
+        .extension()
+        .is_some_and(|e| e.eq_ignore_ascii_case("splat"));
+    if !named_splat {
+        return Err(FormatError::NotAScene {
+            path: path.to_path_buf(),
+            msg: "not PLY, compressed PLY, .spz or SOG (an antimatter15 .splat file must be named \
+                  *.splat: the format has no signature)"
+                .into(),
+        });
+    }
     let bytes = std::fs::read(path).map_err(read_err)?;
-    dot_splat::decode(&bytes).map_err(|msg| FormatError::NotAScene {
-        path: path.to_path_buf(),
-        msg: format!(
-            "not PLY, compressed PLY, .spz or SOG, and not a valid .splat file either: {msg}"
-        ),
-    })
+    dot_splat::decode(&bytes).map_err(bad(".splat"))
 }
 
 /// A folder is a SOG folder (with `meta.json`) or the INRIA trainer's output (its highest iteration).

@@ -159,13 +159,28 @@ fn spz_keeps_far_positions_by_using_fewer_fraction_bits() {
 fn reading_goes_by_content_not_name() {
     let dir = tempfile::tempdir().unwrap();
     let s = scene(1, 20, 9);
-    for name in ["s.compressed.ply", "s.splat", "s.spz", "s.sog"] {
+    for name in ["s.compressed.ply", "s.spz", "s.sog"] {
         let path = dir.path().join(name);
         write_scene(&path, &s).unwrap();
         let renamed = dir.path().join(format!("renamed-{name}.bin"));
         std::fs::rename(&path, &renamed).unwrap();
         assert_eq!(read_scene(&renamed).unwrap().len(), 20, "{name}");
     }
+    // `.splat` has no signature: only its name says what it is (any upper/lower case).
+    let splat = dir.path().join("s.splat");
+    write_scene(&splat, &s).unwrap();
+    let upper = dir.path().join("S.SPLAT");
+    std::fs::copy(&splat, &upper).unwrap();
+    assert_eq!(read_scene(&upper).unwrap().len(), 20);
+    let renamed = dir.path().join("renamed-s.splat.bin");
+    std::fs::rename(&splat, &renamed).unwrap();
+    let err = read_scene(&renamed).unwrap_err().to_string();
+    assert!(err.contains("must be named *.splat"), "{err}");
+    // A text file whose size is a multiple of 32 bytes is not a scene.
+    let text = dir.path().join("notes.txt");
+    std::fs::write(&text, "x".repeat(96)).unwrap();
+    let err = read_scene(&text).unwrap_err().to_string();
+    assert!(err.contains("not PLY"), "{err}");
     // A SOG folder is read from the folder or from its meta.json.
     let sog = dir.path().join("sog");
     std::fs::create_dir(&sog).unwrap();
