@@ -67,9 +67,27 @@ fn quiet_on_closed_pipe() {
     }
 }
 
+/// Mesa's Vulkan drivers (Wayland window-system code, Mesa 22) print "error: XDG_RUNTIME_DIR is invalid or
+/// not set in the environment." on every adapter probe when the variable is missing, as in containers and
+/// CI, even on runs that end up on the CPU. vcedit never opens a window: pointing the variable at the
+/// temporary folder keeps the probe quiet.
+#[cfg(unix)]
+fn quiet_window_system_probe() {
+    const VAR: &str = "XDG_RUNTIME_DIR";
+    let valid = std::env::var_os(VAR).is_some_and(|d| {
+        std::path::Path::new(&d).is_absolute() && std::path::Path::new(&d).is_dir()
+    });
+    if !valid {
+        // Before any other thread exists (edition 2021: set_var is not yet `unsafe`).
+        std::env::set_var(VAR, std::env::temp_dir());
+    }
+}
+
 fn main() {
     #[cfg(unix)]
     quiet_on_closed_pipe();
+    #[cfg(unix)]
+    quiet_window_system_probe();
     let cli = Cli::parse();
     let result: anyhow::Result<()> = match cli.command {
         Command::Inspect(a) => cmd::inspect::run(a),

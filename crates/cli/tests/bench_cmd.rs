@@ -91,3 +91,16 @@ fn bad_input_is_one_line() {
         "an unknown bench is a usage error"
     );
 }
+
+/// A machine without XDG_RUNTIME_DIR (containers, CI) gets no window-system complaints from the Vulkan
+/// driver's probe (Mesa 22's lavapipe printed one line per probe).
+#[test]
+fn probing_the_gpu_is_quiet_without_a_runtime_dir() {
+    let out = Command::new(env!("CARGO_BIN_EXE_vcedit"))
+        .args(["bench", "device", "--device", "auto"])
+        .env_remove("XDG_RUNTIME_DIR")
+        .output()
+        .expect("run vcedit");
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(!stderr.contains("XDG_RUNTIME_DIR"), "{stderr}");
+}
