@@ -273,6 +273,17 @@ pub fn sync(ctx: &gpu::GpuContext) -> Result<()> {
         .map_err(BenchError::from)
 }
 
+/// Largest absolute difference over the largest magnitude of `want` (the GPU path against the CPU).
+pub fn relative_error(got: &candle_core::Tensor, want: &candle_core::Tensor) -> Result<f32> {
+    let diff = (got - want)?
+        .abs()?
+        .flatten_all()?
+        .max(0)?
+        .to_scalar::<f32>()?;
+    let scale = want.abs()?.flatten_all()?.max(0)?.to_scalar::<f32>()?;
+    Ok(diff / scale.max(f32::MIN_POSITIVE))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

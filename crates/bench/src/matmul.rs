@@ -14,7 +14,9 @@ use std::time::Instant;
 use candle_core::{Device, Tensor};
 use diffusion::device::{ops, GpuDevice, GpuTensor, Precision};
 
-use crate::{arg_list, arg_parsed, arg_value, report, secs, sync, BenchError, Result};
+use crate::{
+    arg_list, arg_parsed, arg_value, relative_error, report, secs, sync, BenchError, Result,
+};
 
 /// One product launch (its result stays on the device).
 type Product<'a> = dyn Fn() -> candle_core::Result<GpuTensor> + 'a;
@@ -114,17 +116,6 @@ pub fn main(args: &[String]) -> Result<()> {
         }
     }
     Ok(())
-}
-
-/// Largest absolute difference over the largest magnitude of `want`.
-fn relative_error(got: &Tensor, want: &Tensor) -> Result<f32> {
-    let diff = (got - want)?
-        .abs()?
-        .flatten_all()?
-        .max(0)?
-        .to_scalar::<f32>()?;
-    let scale = want.abs()?.flatten_all()?.max(0)?.to_scalar::<f32>()?;
-    Ok(diff / scale.max(f32::MIN_POSITIVE))
 }
 
 #[cfg(test)]

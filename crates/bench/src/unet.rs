@@ -391,14 +391,7 @@ pub fn main(args: &[String], reexec: &[String]) -> Result<()> {
                     if has_flag(args, "--check") && batch == batches[0] && choice == hooks[0] =>
                 {
                     let run = |on| model.forward_on(&sample, &t, &context, None, None, on);
-                    let (got, want) = (run(Some(gpu))?, run(None)?);
-                    let diff = (&got - &want)?
-                        .abs()?
-                        .flatten_all()?
-                        .max(0)?
-                        .to_scalar::<f32>()?;
-                    let scale = want.abs()?.flatten_all()?.max(0)?.to_scalar::<f32>()?;
-                    let rel = diff / scale.max(f32::MIN_POSITIVE);
+                    let rel = crate::relative_error(&run(Some(gpu))?, &run(None)?)?;
                     eprintln!("  batch {batch}: GPU against CPU, relative error {rel:.2e}");
                     Some(rel)
                 }

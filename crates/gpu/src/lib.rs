@@ -307,10 +307,7 @@ pub fn open_for(choice: DeviceChoice, workload: Workload) -> Result<Option<GpuCo
     if choice == DeviceChoice::Cpu {
         return Ok(None);
     }
-    let compiler = match (CompilerChoice::from_env()?, workload) {
-        (CompilerChoice::Auto, Workload::Splatting) => CompilerChoice::Wgsl,
-        (chosen, _) => chosen,
-    };
+    let compiler = CompilerChoice::from_env()?;
     let adapters = list_adapters();
     let hardware = adapters.iter().find(|a| !a.software);
     let software = adapters.iter().find(|a| a.software);
@@ -320,38 +317,40 @@ pub fn open_for(choice: DeviceChoice, workload: Workload) -> Result<Option<GpuCo
         _ => hardware,
     };
     match (pick, choice) {
-        (Some(a), _) => open_adapter(a, compiler).map(Some),
+        (Some(a), _) => open_adapter(a, forces_wgsl(compiler, workload, a)).map(Some),
         (None, DeviceChoice::Gpu) => Err(GpuError::NoAdapter),
         (None, _) => Ok(None),
     }
 }
 
-fn open_adapter(a: &AdapterEntry, compiler: CompilerChoice) -> Result<GpuContext, GpuError> {
+/// The one decision of the shader compiler: whether the device gets WGSL where cubecl would take SPIR-V.
+fn forces_wgsl(compiler: CompilerChoice, workload: Workload, a: &AdapterEntry) -> bool {
+    match compiler {
+        CompilerChoice::Wgsl => true,
+        CompilerChoice::Spirv => false,
+        CompilerChoice::Auto => workload == Workload::Splatting || a.spirv_crashes(),
+    }
+}
+
+/// Opens `a` on cubecl's automatic compiler (SPIR-V where the adapter supports it), or on WGSL.
+fn open_adapter(a: &AdapterEntry, wgsl: bool) -> Result<GpuContext, GpuError> {
     let device = WgpuDevice::new(a.kind.clone()).on(a.backend);
-    let compiler = match compiler {
-        CompilerChoice::Auto if a.spirv_crashes() => CompilerChoice::Wgsl,
-        CompilerChoice::Spirv => CompilerChoice::Auto,
-        other => other,
-    };
     let cannot =
         |e: &dyn fmt::Display| GpuError::Kernel(format!("cannot initialise {}: {e}", a.name));
-    let (backend, client) = match compiler {
-        CompilerChoice::Auto | CompilerChoice::Spirv => {
-            // The fallible initialisation registers the client; `.client()` on an unknown device
-            // would panic.
-            let setup = gpu_call(|| {
-                cubecl::wgpu::try_init_setup::<AutoGraphicsApi>(&device, RuntimeOptions::default())
-                    .map_err(|e| cannot(&e))
-            })?;
-            let client = gpu_call(|| Ok(cubecl::Device::Wgpu(device).client()))?;
-            (format!("{:?}", setup.backend), client)
-        }
-        CompilerChoice::Wgsl => {
-            // A runtime typed on the WGSL compiler is a separate service: its client is created on
-            // first use (a failure there panics, which `gpu_call` turns into an error).
-            let client = gpu_call(|| Ok(WgpuRuntime::<WgslCompiler>::client(&device)))?;
-            (format!("{:?}", a.backend), client)
-        }
+    let (backend, client) = if wgsl {
+        // A runtime typed on the WGSL compiler is a separate service: its client is created on first
+        // use (a failure there panics, which `gpu_call` turns into an error).
+        let client = gpu_call(|| Ok(WgpuRuntime::<WgslCompiler>::client(&device)))?;
+        (format!("{:?}", a.backend), client)
+    } else {
+        // The fallible initialisation registers the client; `.client()` on an unknown device would
+        // panic.
+        let setup = gpu_call(|| {
+            cubecl::wgpu::try_init_setup::<AutoGraphicsApi>(&device, RuntimeOptions::default())
+                .map_err(|e| cannot(&e))
+        })?;
+        let client = gpu_call(|| Ok(cubecl::Device::Wgpu(device).client()))?;
+        (format!("{:?}", setup.backend), client)
     };
     let props = client.properties();
     let hw = &props.hardware;
@@ -371,9 +370,10 @@ fn open_adapter(a: &AdapterEntry, compiler: CompilerChoice) -> Result<GpuContext
     };
     // A WGSL-typed runtime names itself after the adapter's capabilities ("wgpu<spirv>" on a Vulkan
     // adapter that could take SPIR-V), not after its compiler.
-    let compiler = match compiler {
-        CompilerChoice::Wgsl => "wgpu<wgsl>".to_string(),
-        _ => client.name().to_string(),
+    let compiler = if wgsl {
+        "wgpu<wgsl>".to_string()
+    } else {
+        client.name().to_string()
     };
     let tensor_cores = compiler == "wgpu<spirv>" && has_f16_tensor_cores(&client);
     Ok(GpuContext {
@@ -473,7 +473,7 @@ mod tests {
     }
 
     #[test]
-    fn lavapipe_gets_wgsl_unless_spirv_is_forced() {
+    fn the_compiler_follows_workload_adapter_and_override() {
         let entry = |name: &str| AdapterEntry {
             name: name.into(),
             backend: WgpuBackend::Vulkan,
@@ -481,8 +481,17 @@ mod tests {
             driver_info: String::new(),
             kind: WgpuDeviceKind::Cpu,
         };
-        assert!(entry("llvmpipe (LLVM 15.0.6, 256 bits)").spirv_crashes());
-        assert!(!entry("NVIDIA H200").spirv_crashes());
+        let (lavapipe, card) = (
+            entry("llvmpipe (LLVM 15.0.6, 256 bits)"),
+            entry("NVIDIA H200"),
+        );
+        use {CompilerChoice as C, Workload as W};
+        assert!(forces_wgsl(C::Auto, W::Networks, &lavapipe));
+        assert!(!forces_wgsl(C::Spirv, W::Networks, &lavapipe));
+        assert!(!forces_wgsl(C::Auto, W::Networks, &card));
+        assert!(forces_wgsl(C::Auto, W::Splatting, &card));
+        assert!(!forces_wgsl(C::Spirv, W::Splatting, &card));
+        assert!(forces_wgsl(C::Wgsl, W::Networks, &card));
     }
 
     #[test]

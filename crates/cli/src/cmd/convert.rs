@@ -46,7 +46,6 @@ fn check_output(input: &Path, output: &Path) -> Result<()> {
             output.display()
         );
     }
-    files::check_not_inputs(&[output], &[input])?;
     if splat::OutputFormat::for_path(output) != Some(splat::OutputFormat::SogFolder) {
         return Ok(());
     }
