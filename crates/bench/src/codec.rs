@@ -38,6 +38,7 @@ pub fn main(args: &[String]) -> Result<()> {
     let runs: usize = arg_parsed(args, "--runs", 2)?;
     let gpu = network_device(args, "cpu")?;
     let gpu = gpu.as_ref();
+    let device = diffusion::device::Device::from(gpu.cloned());
     let on = gpu.map_or_else(
         || format!("CPU, {} threads", rayon::current_num_threads()),
         |g| format!("{} ({} weights)", g.name(), g.precision()),
@@ -74,8 +75,8 @@ pub fn main(args: &[String]) -> Result<()> {
             &dev,
         )?;
         eprintln!("codec bench: {name}, image {size}², batch {batch}, {on}");
-        let encode = Timed::measure(runs, || Ok(codec.encode_scaled_on(&image, None, gpu)?))?;
-        let decode = Timed::measure(runs, || Ok(codec.decode_scaled_on(&latents, gpu)?))?;
+        let encode = Timed::measure(runs, || Ok(codec.encode_scaled_on(&image, None, &device)?))?;
+        let decode = Timed::measure(runs, || Ok(codec.decode_scaled_on(&latents, &device)?))?;
         for (what, timed) in [("encode", encode), ("decode", decode)] {
             eprintln!(
                 "  {what}: best {:.3} s (first call {:.3} s)",

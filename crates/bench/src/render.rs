@@ -320,8 +320,8 @@ fn report_line(
 
 /// CPU: forward, backward and one fit step (render, L1 + D-SSIM, backward, Adam, densification stats).
 fn measure_cpu(scene: &GaussianScene, case: &Case, runs: usize, stages: [bool; 3]) -> Timings {
-    use splat::loss::l1_dssim;
-    use splat::optim::LearningRates;
+    use splat::train::loss::l1_dssim;
+    use splat::train::optim::LearningRates;
     use splat::train::{RenderedView, TrainState};
     let cam = camera_wh(case.width, case.height);
     let settings = RenderSettings::default();
@@ -418,7 +418,7 @@ fn measure_gpu(
     use splat::gpu::{
         render_backward_device, render_device, DeviceTrainer, GpuOutputGrads, GpuScene,
     };
-    use splat::optim::LearningRates;
+    use splat::train::optim::LearningRates;
     use splat::train::TrainState;
     let cam = camera_wh(case.width, case.height);
     let settings = RenderSettings::default();

@@ -59,6 +59,7 @@ pub fn main(args: &[String]) -> Result<()> {
     let runs: usize = arg_parsed(args, "--runs", 5)?;
     let gpu = network_device(args, "cpu")?;
     let gpu = gpu.as_ref();
+    let device = diffusion::device::Device::from(gpu.cloned());
     let on = gpu.map_or_else(
         || format!("CPU, {} threads", rayon::current_num_threads()),
         |g| format!("{} ({} weights)", g.name(), g.precision()),
@@ -95,7 +96,7 @@ pub fn main(args: &[String]) -> Result<()> {
         let timed = Timed::measure(runs, || {
             let encodings: Vec<_> = prompts.iter().map(|p| tokenizer.encode(p)).collect();
             let ids = diffusion::clip::ids_tensor(&encodings, &Device::Cpu)?;
-            Ok(model.forward_skip_on(&ids, 0, gpu)?)
+            Ok(model.forward_skip_on(&ids, 0, &device)?)
         })?;
         eprintln!(
             "  encoder, batch {batch}: best {:.2} ms (first call {:.1} ms)",

@@ -318,6 +318,7 @@ pub fn main(args: &[String], reexec: &[String]) -> Result<()> {
     };
     let model_dir = arg_value(args, "--model");
     let device = network_device(args, "cpu")?;
+    let on_device = diffusion::device::Device::from(device.clone());
     // Recommended for any inference binary (see its doc comment).
     diffusion::runtime::tune_allocator_for_inference();
     let threads = candle_core::utils::get_num_threads();
@@ -371,7 +372,7 @@ pub fn main(args: &[String], reexec: &[String]) -> Result<()> {
                     &context,
                     None,
                     hook.as_mut().map(|h| h as &mut dyn AttentionHook),
-                    device.as_ref(),
+                    &on_device,
                 )?;
                 if out.dims() != [batch, config.out_channels, size, size] {
                     return Err(BenchError::new(format!("unet output {:?}", out.dims())));
@@ -387,11 +388,14 @@ pub fn main(args: &[String], reexec: &[String]) -> Result<()> {
                 timed.first.as_secs_f64()
             );
             let rel_err = match &device {
-                Some(gpu)
+                Some(_)
                     if has_flag(args, "--check") && batch == batches[0] && choice == hooks[0] =>
                 {
                     let run = |on| model.forward_on(&sample, &t, &context, None, None, on);
-                    let rel = crate::relative_error(&run(Some(gpu))?, &run(None)?)?;
+                    let rel = crate::relative_error(
+                        &run(&on_device)?,
+                        &run(&diffusion::device::Device::Cpu)?,
+                    )?;
                     eprintln!("  batch {batch}: GPU against CPU, relative error {rel:.2e}");
                     Some(rel)
                 }

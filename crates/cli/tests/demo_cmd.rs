@@ -96,6 +96,16 @@ fn reduced_demo_writes_every_output() {
     );
     assert_eq!(code, 0, "{stderr}");
     assert!(inspect.contains("gaussians"), "{inspect}");
+
+    // `--resume` continues from the last checkpoint: here the run is complete, so nothing is recomputed
+    // and the scene is the same.
+    let before = std::fs::read(out.join("edited.ply")).unwrap();
+    let (code, _, stderr) = reduced_demo(dir.path(), &model, &out, &["--steps", "2", "--resume"]);
+    assert_eq!(code, 0, "{stderr}");
+    assert_eq!(std::fs::read(out.join("edited.ply")).unwrap(), before);
+    assert!(stderr.contains("resuming after iteration 1"), "{stderr}");
+    let report = std::fs::read_to_string(out.join("report.html")).unwrap();
+    assert!(report.contains("resumed after iteration 1"));
 }
 
 /// A reduced `--compare`: five steps, so ECM (every fifth step) runs once in the variants that use it.

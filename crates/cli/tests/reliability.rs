@@ -837,3 +837,83 @@ fn an_empty_merges_file_is_refused() {
     let o = edit_image_with(dir.path(), &model);
     assert_one_clear_error(&o, 1, &["merges.txt", "no BPE merges"]);
 }
+
+/// Issue 26, items 6, 8 and 13: a scene whose values overflow, a PLY whose trailing element is cut
+/// short, and a named pipe given as a scene are each refused with one line naming the file (not shown
+/// as `inf`, accepted, or waited on forever).
+#[test]
+fn scenes_that_decode_to_garbage_or_are_not_files_are_refused() {
+    let dir = tempfile::tempdir().unwrap();
+    let cwd = dir.path();
+
+    let mut huge = ball();
+    huge.log_scales[3 * 5] = 1e30;
+    write_ply(&cwd.join("huge.ply"), &huge).unwrap();
+    let o = vcedit_in(cwd, &["inspect", "huge.ply"]);
+    assert_one_clear_error(&o, 1, &["huge.ply", "Gaussian 5", "log-scale"]);
+    let o = vcedit_in(
+        cwd,
+        &[
+            "render", "huge.ply", "--out", "r", "--orbit", "2", "--size", "32",
+        ],
+    );
+    assert_one_clear_error(&o, 1, &["huge.ply", "Gaussian 5"]);
+    assert!(!cwd.join("r").exists());
+
+    // A PLY with a trailing face element whose list says 0xffffffff indices that are not there.
+    write_ply(&cwd.join("ok.ply"), &ball()).unwrap();
+    let bytes = std::fs::read(cwd.join("ok.ply")).unwrap();
+    let end = bytes
+        .windows(11)
+        .position(|w| w == b"end_header\n")
+        .unwrap();
+    let mut faced = bytes[..end].to_vec();
+    faced.extend_from_slice(b"element face 1\nproperty list uint int vertex_indices\nend_header\n");
+    faced.extend_from_slice(&bytes[end + 11..]);
+    faced.extend_from_slice(&u32::MAX.to_le_bytes());
+    std::fs::write(cwd.join("faced.ply"), &faced).unwrap();
+    let o = vcedit_in(cwd, &["inspect", "faced.ply"]);
+    assert_one_clear_error(&o, 1, &["faced.ply", "face"]);
+
+    #[cfg(unix)]
+    {
+        let made = Command::new("mkfifo").arg(cwd.join("pipe.ply")).status();
+        if made.is_ok_and(|s| s.success()) {
+            let o = vcedit_in(cwd, &["inspect", "pipe.ply"]);
+            assert_one_clear_error(&o, 1, &["pipe.ply", "named pipe"]);
+        }
+    }
+}
+
+/// Issue 26, item 11: every command whose memory grows with its settings estimates it before any work
+/// and refuses what does not fit, naming the option that lowers it (the sizes here need terabytes).
+#[test]
+fn commands_refuse_runs_that_cannot_fit_in_memory() {
+    let dir = tempfile::tempdir().unwrap();
+    let cwd = dir.path();
+    write_ply(&cwd.join("a.ply"), &ball()).unwrap();
+    let o = vcedit_in(
+        cwd,
+        &[
+            "metrics", "--source", "a.ply", "--edited", "a.ply", "--size", "16384", "--orbit",
+            "64", "--device", "cpu",
+        ],
+    );
+    assert_one_clear_error(&o, 1, &["needs about", "reduce --size or --orbit"]);
+
+    let o = vcedit_in(
+        cwd,
+        &["demo", "--views", "100000", "--out", "d", "--device", "cpu"],
+    );
+    assert_one_clear_error(&o, 1, &["needs about", "reduce --views"]);
+    assert!(!cwd.join("d").exists());
+
+    write_png(&cwd.join("a.png"), 8, 8);
+    let model = tiny_model();
+    let mut args = edit_image_args(s(&model), "a dog", "out.png", &["--device", "cpu"]);
+    let size = args.iter().position(|a| *a == "--size").unwrap();
+    args[size + 1] = "16384";
+    let o = vcedit_in(cwd, &args);
+    assert_one_clear_error(&o, 1, &["needs about", "reduce --size"]);
+    assert!(!cwd.join("out.png").exists());
+}

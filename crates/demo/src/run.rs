@@ -17,7 +17,7 @@ use edit::fit::{ImageLoss, TrainSettings};
 use edit::run::{edit_scene, EditJob, GuidanceMode, MaskSource, Progress, RunInputs};
 use edit::sampler::{image_to_tensor, EditModel, EditPrompts, InfEditSettings, SeededNoise};
 use serde::Serialize;
-use splat::render::{render, RenderOutput, RenderSettings};
+use splat::render::{render, Frame, RenderSettings};
 
 use crate::world::{
     self, build_scene, BuildSettings, GeneratorSettings, Oracle, OracleSettings, SceneSpec,
@@ -59,6 +59,8 @@ pub struct DemoOptions {
     pub iterations: usize,
     pub fit_steps: usize,
     pub seed: u64,
+    /// Continue each variant's interrupted run from its checkpoint.
+    pub resume: bool,
 }
 
 impl DemoOptions {
@@ -73,6 +75,7 @@ impl DemoOptions {
             iterations: 2,
             fit_steps: 300,
             seed: 0,
+            resume: false,
         }
     }
 }
@@ -254,7 +257,7 @@ pub fn run_variant(
         &scene.built.scene,
         &scene.cameras,
         out,
-        false,
+        opts.resume,
         &inputs,
         progress,
     )?;
@@ -264,12 +267,12 @@ pub fn run_variant(
         .iter()
         .map(|&i| scene.cameras[i].clone())
         .collect();
-    let render_all = |scene: &splat::GaussianScene| -> Vec<RenderOutput> {
+    let render_all = |scene: &splat::GaussianScene| -> Vec<Frame> {
         let settings = RenderSettings {
             background: job.background,
         };
         cams.iter()
-            .map(|c| render(scene, c, &settings, None))
+            .map(|c| render(scene, c, &settings, None).into_frame())
             .collect()
     };
     let final_renders = render_all(&result.scene);
@@ -283,7 +286,7 @@ pub fn run_variant(
     // source geometry (it was made from renders of it), the final renders with their own.
     let regions = object_regions(scene, &cams);
     let region_refs: Vec<&[f32]> = regions.iter().map(|r| r.as_slice()).collect();
-    let object_error = |images: &[splat::Image], geometry: &[RenderOutput]| {
+    let object_error = |images: &[splat::Image], geometry: &[Frame]| {
         let geo: Vec<ViewGeometry> = cams
             .iter()
             .zip(geometry)
@@ -346,10 +349,10 @@ pub fn reference_rows(
     };
     let mut target = scene.built.clone();
     target.recolor(&scene.target)?;
-    let source_renders: Vec<RenderOutput> = scene
+    let source_renders: Vec<Frame> = scene
         .cameras
         .iter()
-        .map(|c| render(&scene.built.scene, c, &settings, None))
+        .map(|c| render(&scene.built.scene, c, &settings, None).into_frame())
         .collect();
     let geometry: Vec<ViewGeometry> = scene
         .cameras

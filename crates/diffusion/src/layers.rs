@@ -9,8 +9,7 @@ use candle_core::{Module, Result, Tensor};
 use candle_nn::{Linear, VarBuilder};
 
 use crate::kernels;
-use crate::kernels::gpu::ops;
-use crate::kernels::DeviceTensor;
+use crate::kernels::{DeviceTensor, Unary};
 
 /// Loads a `nn.Linear` (`weight` [out, in], optional `bias` [out]) under `vb`.
 pub fn linear(in_dim: usize, out_dim: usize, bias: bool, vb: VarBuilder) -> Result<Linear> {
@@ -313,7 +312,7 @@ impl ResnetBlock2D {
             .forward_device(&self.norm1.forward_device(x, true)?)?;
         let emb = match (&self.time_emb_proj, temb) {
             (Some(proj), Some(t)) => {
-                let e = t.unary_op(|t| t.silu(), ops::silu)?.linear(proj)?;
+                let e = t.unary(Unary::Silu)?.linear(proj)?;
                 let &[b, c] = e.dims() else {
                     candle_core::bail!("time embedding {:?} is not [batch, channels]", e.dims());
                 };
@@ -329,7 +328,7 @@ impl ResnetBlock2D {
                 normed
                     .broadcast_mul(&scale.add_scalar(1.0)?)?
                     .broadcast_add(&shift)?
-                    .unary_op(|t| t.silu(), ops::silu)?
+                    .unary(Unary::Silu)?
             }
             (_, Some(emb)) => self.norm2.forward_device(&h.broadcast_add(&emb)?, true)?,
             (_, None) => self.norm2.forward_device(&h, true)?,

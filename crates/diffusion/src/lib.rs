@@ -5,10 +5,10 @@
 
 pub mod clip;
 mod kernels;
-/// Where a network runs: [`DeviceTensor`](device::DeviceTensor) on the CPU or a [`GpuDevice`](device::GpuDevice).
+/// Where a network runs: the [`Device`](device::Device) seam (CPU or GPU) and its tensors.
 pub mod device {
     pub use crate::kernels::gpu::{ops, GpuDevice, GpuTensor, Precision, UnknownPrecision};
-    pub use crate::kernels::DeviceTensor;
+    pub use crate::kernels::{Device, DeviceTensor, Storage, Unary};
 }
 mod layers;
 pub mod loader;

@@ -28,7 +28,7 @@ use std::path::{Path, PathBuf};
 use candle_core::{DType, Device, Tensor};
 use candle_nn::{Activation, VarBuilder};
 
-use crate::kernels::gpu::GpuDevice;
+use crate::device;
 use crate::kernels::DeviceTensor;
 use crate::layers::Conv2d;
 use serde::Deserialize;
@@ -492,7 +492,7 @@ impl AutoencoderTiny {
 
     /// Image in [-1, 1] → latents (diffusers `AutoencoderTiny.encode(x).latents`).
     pub fn encode(&self, image: &Tensor) -> Result<Tensor> {
-        self.encode_on(image, None)
+        self.encode_on(image, &device::Device::Cpu)
     }
 
     /// Image in [0, 1] → latents (taesd.py convention).
@@ -502,7 +502,7 @@ impl AutoencoderTiny {
 
     /// Latents → image in [-1, 1], unclamped (diffusers `AutoencoderTiny.decode(z).sample`).
     pub fn decode(&self, latents: &Tensor) -> Result<Tensor> {
-        self.decode_on(latents, None)
+        self.decode_on(latents, &device::Device::Cpu)
     }
 
     /// Latents → image in [0, 1], unclamped (taesd.py convention).
@@ -510,15 +510,15 @@ impl AutoencoderTiny {
         self.decoder.forward(latents)
     }
 
-    /// [`Self::encode`] on `device` (the GPU, or the CPU for `None`); the result is read back.
-    pub fn encode_on(&self, image: &Tensor, device: Option<&GpuDevice>) -> Result<Tensor> {
-        let image = DeviceTensor::on(image, device)?;
+    /// [`Self::encode`] on `device`; the result is read back.
+    pub fn encode_on(&self, image: &Tensor, device: &device::Device) -> Result<Tensor> {
+        let image = device.tensor(image)?;
         Ok(self.encode_device(&image)?.to_cpu()?)
     }
 
-    /// [`Self::decode`] on `device` (the GPU, or the CPU for `None`); the result is read back.
-    pub fn decode_on(&self, latents: &Tensor, device: Option<&GpuDevice>) -> Result<Tensor> {
-        let latents = DeviceTensor::on(latents, device)?;
+    /// [`Self::decode`] on `device`; the result is read back.
+    pub fn decode_on(&self, latents: &Tensor, device: &device::Device) -> Result<Tensor> {
+        let latents = device.tensor(latents)?;
         Ok(self.decode_device(&latents)?.to_cpu()?)
     }
 
@@ -536,22 +536,22 @@ impl AutoencoderTiny {
 
     /// Image in [-1, 1] → UNet-scale latents: `(encode(x) − shift_factor) · scaling_factor` (identity for SD TAESD).
     pub fn encode_scaled(&self, image: &Tensor) -> Result<Tensor> {
-        self.encode_scaled_on(image, None)
+        self.encode_scaled_on(image, &device::Device::Cpu)
     }
 
-    /// [`Self::encode_scaled`] on `device` (the GPU, or the CPU for `None`).
-    pub fn encode_scaled_on(&self, image: &Tensor, device: Option<&GpuDevice>) -> Result<Tensor> {
+    /// [`Self::encode_scaled`] on `device`.
+    pub fn encode_scaled_on(&self, image: &Tensor, device: &device::Device) -> Result<Tensor> {
         let z = self.encode_on(image, device)?;
         Ok(scale_latents(&z, self.config.scaling_factor, self.shift())?)
     }
 
     /// UNet-scale latents → image in [-1, 1]: `decode(z / scaling_factor + shift_factor)`.
     pub fn decode_scaled(&self, latents: &Tensor) -> Result<Tensor> {
-        self.decode_scaled_on(latents, None)
+        self.decode_scaled_on(latents, &device::Device::Cpu)
     }
 
-    /// [`Self::decode_scaled`] on `device` (the GPU, or the CPU for `None`).
-    pub fn decode_scaled_on(&self, latents: &Tensor, device: Option<&GpuDevice>) -> Result<Tensor> {
+    /// [`Self::decode_scaled`] on `device`.
+    pub fn decode_scaled_on(&self, latents: &Tensor, device: &device::Device) -> Result<Tensor> {
         let z = unscale_latents(latents, self.config.scaling_factor, self.shift())?;
         self.decode_on(&z, device)
     }

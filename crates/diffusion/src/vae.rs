@@ -19,7 +19,7 @@ use rand::Rng;
 use rand_distr::{Distribution, StandardNormal};
 use serde::Deserialize;
 
-use crate::kernels::gpu::GpuDevice;
+use crate::device;
 use crate::kernels::DeviceTensor;
 use crate::layers::{
     conv2d, Conv2d, Downsample2D, GroupNorm, ResnetBlock2D, ResnetConfig, SpatialSelfAttention,
@@ -550,20 +550,14 @@ impl AutoencoderKL {
 
     /// Image in [-1, 1] → posterior over raw latents.
     pub fn encode(&self, image: &Tensor) -> Result<DiagonalGaussian> {
-        self.encode_on(image, None)
+        self.encode_on(image, &device::Device::Cpu)
     }
 
-    /// [`Self::encode`] with the network on `device` (the GPU, or the CPU for `None`); the moments are
+    /// [`Self::encode`] with the network on `device`; the moments are
     /// read back for the posterior.
-    pub fn encode_on(
-        &self,
-        image: &Tensor,
-        device: Option<&GpuDevice>,
-    ) -> Result<DiagonalGaussian> {
+    pub fn encode_on(&self, image: &Tensor, device: &device::Device) -> Result<DiagonalGaussian> {
         check_nchw(image.dims(), self.config.in_channels, "image")?;
-        let h = self
-            .encoder
-            .forward_device(&DeviceTensor::on(image, device)?)?;
+        let h = self.encoder.forward_device(&device.tensor(image)?)?;
         let moments = match &self.quant_conv {
             Some(conv) => conv.forward_device(&h)?,
             None => h,
@@ -604,14 +598,12 @@ impl AutoencoderKL {
 
     /// Raw latents → image in [-1, 1] (unclamped).
     pub fn decode(&self, latents: &Tensor) -> Result<Tensor> {
-        self.decode_on(latents, None)
+        self.decode_on(latents, &device::Device::Cpu)
     }
 
-    /// [`Self::decode`] on `device` (the GPU, or the CPU for `None`); the image is read back.
-    pub fn decode_on(&self, latents: &Tensor, device: Option<&GpuDevice>) -> Result<Tensor> {
-        Ok(self
-            .decode_device(&DeviceTensor::on(latents, device)?)?
-            .to_cpu()?)
+    /// [`Self::decode`] on `device`; the image is read back.
+    pub fn decode_on(&self, latents: &Tensor, device: &device::Device) -> Result<Tensor> {
+        Ok(self.decode_device(&device.tensor(latents)?)?.to_cpu()?)
     }
 
     /// [`Self::decode`] on the latents' device; the image stays there.
@@ -626,11 +618,11 @@ impl AutoencoderKL {
 
     /// UNet latents → image in [-1, 1]: `decode(latents / scaling_factor + shift)`.
     pub fn decode_scaled(&self, latents: &Tensor) -> Result<Tensor> {
-        self.decode_scaled_on(latents, None)
+        self.decode_scaled_on(latents, &device::Device::Cpu)
     }
 
-    /// [`Self::decode_scaled`] on `device` (the GPU, or the CPU for `None`).
-    pub fn decode_scaled_on(&self, latents: &Tensor, device: Option<&GpuDevice>) -> Result<Tensor> {
+    /// [`Self::decode_scaled`] on `device`.
+    pub fn decode_scaled_on(&self, latents: &Tensor, device: &device::Device) -> Result<Tensor> {
         let z = taesd::unscale_latents(latents, self.config.scaling_factor, self.shift())?;
         self.decode_on(&z, device)
     }
@@ -696,17 +688,17 @@ impl Autoencoder {
 
     /// Image in [-1, 1] → UNet latents (posterior mean for the KL autoencoder).
     pub fn encode_scaled(&self, image: &Tensor) -> Result<Tensor> {
-        self.encode_scaled_on(image, None, None)
+        self.encode_scaled_on(image, None, &device::Device::Cpu)
     }
 
-    /// Image in [-1, 1] → UNet latents with the network on `device` (the GPU, or the CPU for `None`): the
+    /// Image in [-1, 1] → UNet latents with the network on `device`: the
     /// KL autoencoder's posterior sample `mean + std · noise` when `noise` is given, else its mean; TAESD is
     /// deterministic and ignores `noise`.
     pub fn encode_scaled_on(
         &self,
         image: &Tensor,
         noise: Option<&Tensor>,
-        device: Option<&GpuDevice>,
+        device: &device::Device,
     ) -> Result<Tensor> {
         match self {
             Self::Kl(vae) => {
@@ -723,11 +715,11 @@ impl Autoencoder {
 
     /// UNet latents → image in [-1, 1] (unclamped).
     pub fn decode_scaled(&self, latents: &Tensor) -> Result<Tensor> {
-        self.decode_scaled_on(latents, None)
+        self.decode_scaled_on(latents, &device::Device::Cpu)
     }
 
-    /// [`Self::decode_scaled`] with the network on `device` (the GPU, or the CPU for `None`).
-    pub fn decode_scaled_on(&self, latents: &Tensor, device: Option<&GpuDevice>) -> Result<Tensor> {
+    /// [`Self::decode_scaled`] with the network on `device`.
+    pub fn decode_scaled_on(&self, latents: &Tensor, device: &device::Device) -> Result<Tensor> {
         match self {
             Self::Kl(vae) => vae.decode_scaled_on(latents, device),
             Self::Tiny(tiny) => Ok(tiny.decode_scaled_on(latents, device)?),

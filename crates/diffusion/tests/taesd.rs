@@ -120,10 +120,14 @@ fn tiny_taesd_on_gpu_matches_cpu() {
         ] {
             let refs = fixture(fixture_name);
             let latents_cpu = model.encode(&refs["image"]).unwrap();
-            let latents_gpu = model.encode_on(&refs["image"], Some(&gpu)).unwrap();
+            let latents_gpu = model
+                .encode_on(&refs["image"], &diffusion::device::Device::Gpu(gpu.clone()))
+                .unwrap();
             let decode_in = refs.get("decode_in").unwrap_or(&refs["latents"]);
             let image_cpu = model.decode(decode_in).unwrap();
-            let image_gpu = model.decode_on(decode_in, Some(&gpu)).unwrap();
+            let image_gpu = model
+                .decode_on(decode_in, &diffusion::device::Device::Gpu(gpu.clone()))
+                .unwrap();
             let (e, d) = (
                 common::relative_error(&latents_gpu, &latents_cpu),
                 common::relative_error(&image_gpu, &image_cpu),

@@ -93,7 +93,9 @@ fn tiny_text_encoder_on_gpu_matches_cpu() {
             let ids = reference["input_ids"].to_dtype(DType::U32).unwrap();
             for skip in [0, 1] {
                 let cpu = model.forward_skip(&ids, skip).unwrap();
-                let on_gpu = model.forward_skip_on(&ids, skip, Some(&gpu)).unwrap();
+                let on_gpu = model
+                    .forward_skip_on(&ids, skip, &diffusion::device::Device::Gpu(gpu.clone()))
+                    .unwrap();
                 let rel = common::relative_error(&on_gpu, &cpu);
                 let precision = gpu.precision();
                 println!(

@@ -245,7 +245,8 @@ fn tiny_unet_on_gpu_matches_cpu() {
         for name in ["tiny-lcm", "tiny-ip2p"] {
             let model = load_model(name);
             let fx = load_fixture(name);
-            let on = |hook: Option<&mut dyn AttentionHook>, device| {
+            let on_gpu_device = diffusion::device::Device::Gpu(gpu.clone());
+            let on = |hook: Option<&mut dyn AttentionHook>, device: &diffusion::device::Device| {
                 model
                     .forward_on(
                         &fx["sample"],
@@ -257,15 +258,18 @@ fn tiny_unet_on_gpu_matches_cpu() {
                     )
                     .unwrap()
             };
-            let plain = common::relative_error(&on(None, Some(&gpu)), &on(None, None));
+            let plain = common::relative_error(
+                &on(None, &on_gpu_device),
+                &on(None, &diffusion::device::Device::Cpu),
+            );
             let capture = || Capture {
                 wanted: layers_with_prefix(&fx, "probs.").into_iter().collect(),
                 seen: HashMap::new(),
                 calls: Vec::new(),
             };
             let (mut on_cpu, mut on_gpu) = (capture(), capture());
-            let want = on(Some(&mut on_cpu), None);
-            let maps = common::relative_error(&on(Some(&mut on_gpu), Some(&gpu)), &want);
+            let want = on(Some(&mut on_cpu), &diffusion::device::Device::Cpu);
+            let maps = common::relative_error(&on(Some(&mut on_gpu), &on_gpu_device), &want);
             assert_eq!(
                 on_cpu.calls, on_gpu.calls,
                 "{name}: the hook sees the same calls"
@@ -275,8 +279,8 @@ fn tiny_unet_on_gpu_matches_cpu() {
                 map_err = map_err.max(common::relative_error(&on_gpu.seen[layer].1, probs));
             }
             let swapped = common::relative_error(
-                &on(Some(&mut SwapLastKv), Some(&gpu)),
-                &on(Some(&mut SwapLastKv), None),
+                &on(Some(&mut SwapLastKv), &on_gpu_device),
+                &on(Some(&mut SwapLastKv), &diffusion::device::Device::Cpu),
             );
             let precision = gpu.precision();
             println!(

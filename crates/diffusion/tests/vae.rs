@@ -114,9 +114,16 @@ fn tiny_vae_on_gpu_matches_cpu() {
                 .unwrap();
             let refs = fixture(&format!("kl-{model}.safetensors"));
             let cpu = vae.encode(&refs["image"]).unwrap();
-            let on_gpu = vae.encode_on(&refs["image"], Some(&gpu)).unwrap();
+            let on_gpu = vae
+                .encode_on(&refs["image"], &diffusion::device::Device::Gpu(gpu.clone()))
+                .unwrap();
             let decoded_cpu = vae.decode(&refs["latents"]).unwrap();
-            let decoded_gpu = vae.decode_on(&refs["latents"], Some(&gpu)).unwrap();
+            let decoded_gpu = vae
+                .decode_on(
+                    &refs["latents"],
+                    &diffusion::device::Device::Gpu(gpu.clone()),
+                )
+                .unwrap();
             let errs = [
                 ("mean", common::relative_error(&on_gpu.mean, &cpu.mean)),
                 (

@@ -9,19 +9,18 @@
 
 use std::path::Path;
 
-use gpu::cubecl::server::Handle;
 use rand::seq::SliceRandom;
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use serde::Serialize;
-use splat::anchor::{Anchor, AnchorConfig};
-use splat::densify::EditStrategy;
-use splat::gpu::{DeviceTrainer, GpuContext, GpuError, L1DssimWeights};
-use splat::loss;
-use splat::optim::LearningRates;
-use splat::render::{render, render_backward, OutputGrads, RenderSettings};
+use splat::gpu::{GpuError, L1DssimWeights};
+use splat::train::anchor::{Anchor, AnchorConfig};
+use splat::train::densify::EditStrategy;
+use splat::train::loss;
+use splat::train::optim::LearningRates;
+use splat::train::{FitLoss, StepKind, StepOutcome, Trainer};
 use splat::train::{RenderedView, TrainState};
-use splat::{Camera, GaussianScene, Image};
+use splat::{Camera, GaussianScene, Image, SplatDevice};
 
 use crate::eval::lpips::{Lpips, LpipsError, TargetCache};
 
@@ -72,6 +71,14 @@ impl ImageLoss {
             ImageLoss::Dssim { l1, dssim } => {
                 format!("{l1}·L1 + {dssim}·D-SSIM (no LPIPS weights given)")
             }
+        }
+    }
+
+    /// The loss as L1 and D-SSIM weights, when it is that (the device evaluates it itself).
+    fn device_weights(&self) -> Option<L1DssimWeights> {
+        match self {
+            ImageLoss::Dssim { l1, dssim } => Some(L1DssimWeights::new(*l1, *dssim)),
+            ImageLoss::Lpips { .. } => None,
         }
     }
 
@@ -146,61 +153,44 @@ impl TrainSettings {
 /// ~130 MB, so at most about a dozen views' are kept.
 pub const LPIPS_CACHE_BYTES: usize = 1_500_000_000;
 
-/// The target images of a fit with their cached loss precomputations.
+/// A fit's loss with its target images and cached loss precomputations.
 pub(crate) struct Targets<'a> {
+    loss: &'a ImageLoss,
     images: &'a [Image],
     cache: TargetCache,
 }
 
 impl<'a> Targets<'a> {
-    pub(crate) fn new(images: &'a [Image]) -> Self {
+    pub(crate) fn new(loss: &'a ImageLoss, images: &'a [Image]) -> Self {
         Self {
+            loss,
             images,
             cache: TargetCache::new(LPIPS_CACHE_BYTES),
         }
     }
+
+    /// A trainer for a fit to these targets on `device`.
+    pub(crate) fn trainer(&self, device: &SplatDevice, background: [f32; 3]) -> Trainer {
+        Trainer::new(
+            device,
+            self,
+            self.images.iter().map(|t| t.data.as_slice()),
+            background,
+        )
+    }
 }
 
-/// Renders view `v`, evaluates the loss against its target and back-propagates into scene gradients; the
-/// render and its backward run on `device` when one is given (the loss itself is evaluated on the host:
-/// LPIPS-VGG is a CPU network).
-pub(crate) fn loss_and_grads(
-    scene: &GaussianScene,
-    cam: &Camera,
-    v: usize,
-    targets: &mut Targets<'_>,
-    loss: &ImageLoss,
-    background: [f32; 3],
-    device: Option<&GpuContext>,
-) -> Result<(f32, splat::render::SceneGrads, Vec<u32>), TrainError> {
-    let settings = RenderSettings { background };
-    if let Some(ctx) = device {
-        let (radii, value, grads) =
-            splat::gpu::render_with_loss(ctx, scene, cam, &settings, |rgb| {
-                match loss.eval(rgb, v, targets) {
-                    Ok((value, grad)) => (Ok(value), grad),
-                    // The backward still runs on a zero gradient; its result is dropped with the error.
-                    Err(e) => (Err(e), vec![0.0; rgb.len()]),
-                }
-            })?;
-        return Ok((value?, grads, radii));
+impl FitLoss for Targets<'_> {
+    type Error = TrainError;
+
+    fn eval(&mut self, rgb: &[f32], v: usize) -> Result<(f32, Vec<f32>), TrainError> {
+        let loss = self.loss;
+        loss.eval(rgb, v, self)
     }
-    let out = render(scene, cam, &settings, None);
-    let (value, grad) = loss.eval(&out.rgb, v, targets)?;
-    let grads = render_backward(
-        scene,
-        cam,
-        &settings,
-        None,
-        &out,
-        &OutputGrads {
-            rgb: &grad,
-            alpha: None,
-            depth: None,
-            extra: None,
-        },
-    );
-    Ok((value, grads, out.radii.clone()))
+
+    fn device_weights(&self) -> Option<L1DssimWeights> {
+        self.loss.device_weights()
+    }
 }
 
 pub(crate) fn check_targets(cameras: &[Camera], targets: &[Image]) -> Result<(), TrainError> {
@@ -220,78 +210,6 @@ pub(crate) fn check_targets(cameras: &[Camera], targets: &[Image]) -> Result<(),
         }
     }
     Ok(())
-}
-
-/// A fit whose state lives on a device between [`DeviceFit::sync`]s: scene, Adam moments, statistics,
-/// trainable mask and anchors ([`DeviceTrainer`]), with the targets uploaded once. Only for the D-SSIM
-/// loss: LPIPS-VGG is a CPU network, so those fits render on the device and do the rest on the host.
-pub(crate) struct DeviceFit {
-    ctx: GpuContext,
-    weights: L1DssimWeights,
-    settings: RenderSettings,
-    targets: Vec<Handle>,
-    /// Built from the host state at the first step after a sync.
-    trainer: Option<DeviceTrainer>,
-}
-
-impl DeviceFit {
-    /// `None` without a device or with a loss the device does not evaluate (LPIPS).
-    pub(crate) fn new(
-        device: Option<&GpuContext>,
-        loss: &ImageLoss,
-        targets: &[Image],
-        background: [f32; 3],
-    ) -> Option<Self> {
-        let (ctx, &ImageLoss::Dssim { l1, dssim }) = (device?, loss) else {
-            return None;
-        };
-        Some(Self {
-            ctx: ctx.clone(),
-            weights: L1DssimWeights::new(l1, dssim),
-            settings: RenderSettings { background },
-            targets: targets
-                .iter()
-                .map(|t| ::gpu::prims::upload_f32(&ctx.client, &t.data))
-                .collect(),
-            trainer: None,
-        })
-    }
-
-    /// One step on view `v` (render, loss, backward, anchor gradient, masked Adam, statistics when
-    /// `track_stats`). `state` supplies the rates and counts the step; its parameters, moments and
-    /// statistics are stale until [`DeviceFit::sync`].
-    pub(crate) fn step(
-        &mut self,
-        state: &mut TrainState,
-        camera: &Camera,
-        v: usize,
-        track_stats: bool,
-    ) -> Result<(), GpuError> {
-        let ctx = &self.ctx;
-        let trainer = match &mut self.trainer {
-            Some(t) => t,
-            None => self.trainer.insert(DeviceTrainer::upload(ctx, state)),
-        };
-        // The loss value stays on the device: the fits never read it.
-        trainer.step_weighted(
-            ctx,
-            &mut state.adam,
-            camera,
-            &self.targets[v],
-            &self.settings,
-            self.weights,
-            track_stats,
-        )?;
-        Ok(())
-    }
-
-    /// Brings `state` up to date; the next step re-uploads it (after the host changed it).
-    pub(crate) fn sync(&mut self, state: &mut TrainState) -> Result<(), GpuError> {
-        if let Some(trainer) = self.trainer.take() {
-            trainer.download_into(&self.ctx, state)?;
-        }
-        Ok(())
-    }
 }
 
 /// The next view of a fit: views are drawn without replacement and reshuffled when exhausted.
@@ -314,7 +232,7 @@ pub struct EditTrainer {
     /// Where the fit runs (`None`: the CPU). With the D-SSIM loss the scene, Adam moments, statistics,
     /// mask and anchors stay on the device between densifications ([`splat::gpu::DeviceTrainer`]); with
     /// LPIPS (a CPU network) only renders and their backward run there.
-    pub device: Option<GpuContext>,
+    pub device: SplatDevice,
 }
 
 impl EditTrainer {
@@ -342,7 +260,7 @@ impl EditTrainer {
             settings,
             global_step: 0,
             background,
-            device: None,
+            device: SplatDevice::Cpu,
         }
     }
 
@@ -362,93 +280,59 @@ impl EditTrainer {
         on_step: &mut dyn FnMut(u64),
     ) -> Result<(), TrainError> {
         check_targets(cameras, targets)?;
-        if let Some(device) = DeviceFit::new(self.device.as_ref(), loss, targets, self.background) {
-            return self.fit_on_device(device, cameras, targets, steps, loss, seed, on_step);
-        }
-        let mut prepared = Targets::new(targets);
+        let mut prepared = Targets::new(loss, targets);
+        let mut trainer = prepared.trainer(&self.device, self.background);
         let mut rng = ChaCha8Rng::seed_from_u64(seed);
         let mut order: Vec<usize> = Vec::new();
-        for _ in 0..steps {
-            let v = next_view(&mut order, cameras.len(), &mut rng);
-            self.host_step(cameras, v, &mut prepared, loss, &mut rng)?;
-            on_step(1);
-        }
-        Ok(())
+        let mut run = || {
+            for _ in 0..steps {
+                let v = next_view(&mut order, cameras.len(), &mut rng);
+                self.step(&mut trainer, &cameras[v], v, &mut prepared, &mut rng)?;
+                on_step(1);
+            }
+            Ok::<_, TrainError>(())
+        };
+        let result = run();
+        // The state is up to date on return (after a device error it holds the last synced state; the
+        // run is over then anyway).
+        let synced = trainer.sync(&mut self.state);
+        result?;
+        Ok(synced?)
     }
 
-    /// One step with the optimiser, anchors and densification on the host (the render and its backward
-    /// on `self.device` when there is one).
-    fn host_step(
+    /// One step of the editing fit on view `v`: resident on a device between densifications (the anchor
+    /// gradient, the trainable mask and the statistics there too); a densification step runs on the host
+    /// state, followed by GaussianEditor's densification.
+    fn step(
         &mut self,
-        cameras: &[Camera],
+        trainer: &mut Trainer,
+        camera: &Camera,
         v: usize,
         targets: &mut Targets<'_>,
-        loss: &ImageLoss,
         rng: &mut ChaCha8Rng,
     ) -> Result<(), TrainError> {
+        let strategy = &self.settings.strategy;
+        let kind = if strategy.densifies_at(self.global_step) {
+            StepKind::Host
+        } else {
+            StepKind::Ordinary {
+                track_stats: strategy.tracks_stats_at(self.global_step),
+                read_loss: false,
+            }
+        };
         self.state.adam.set_iteration(self.global_step);
-        let (_, mut grads, radii) = loss_and_grads(
-            &self.state.scene,
-            &cameras[v],
-            v,
-            targets,
-            loss,
-            self.background,
-            self.device.as_ref(),
-        )?;
-        if let Some(anchor) = &self.state.anchor {
-            anchor.loss(
-                &self.state.scene,
-                self.state.trainable.as_deref(),
-                Some(&mut grads),
+        if let StepOutcome::Host { grads, radii, .. } =
+            trainer.step(&mut self.state, camera, v, targets, kind)?
+        {
+            self.settings.strategy.after_backward(
+                &mut self.state,
+                self.global_step,
+                &RenderedView::new(&grads, &radii, camera),
+                rng,
             );
         }
-        self.state.step(&grads);
-        let cam = &cameras[v];
-        let strategy = self.settings.strategy.clone();
-        strategy.after_backward(
-            &mut self.state,
-            self.global_step,
-            &RenderedView::new(&grads, &radii, cam),
-            rng,
-        );
         self.global_step += 1;
         Ok(())
-    }
-
-    /// [`EditTrainer::fit`] on a device ([`DeviceFit`]): ordinary steps run entirely there; a
-    /// densification step brings the state back and runs as [`EditTrainer::host_step`], and the device
-    /// trainer is rebuilt from the result. Views are drawn and densification samples from the same
-    /// generator as on the host, and `state` is up to date on return (after a device error it holds the
-    /// last synced state; the run is over then anyway).
-    fn fit_on_device(
-        &mut self,
-        mut device: DeviceFit,
-        cameras: &[Camera],
-        targets: &[Image],
-        steps: usize,
-        loss: &ImageLoss,
-        seed: u64,
-        on_step: &mut dyn FnMut(u64),
-    ) -> Result<(), TrainError> {
-        let mut prepared = Targets::new(targets);
-        let mut rng = ChaCha8Rng::seed_from_u64(seed);
-        let mut order: Vec<usize> = Vec::new();
-        for _ in 0..steps {
-            let v = next_view(&mut order, cameras.len(), &mut rng);
-            let strategy = &self.settings.strategy;
-            if strategy.densifies_at(self.global_step) {
-                device.sync(&mut self.state)?;
-                self.host_step(cameras, v, &mut prepared, loss, &mut rng)?;
-            } else {
-                let track_stats = strategy.tracks_stats_at(self.global_step);
-                self.state.adam.set_iteration(self.global_step);
-                device.step(&mut self.state, &cameras[v], v, track_stats)?;
-                self.global_step += 1;
-            }
-            on_step(1);
-        }
-        Ok(device.sync(&mut self.state)?)
     }
 
     /// Saves the state that is not the scene itself (optimiser moments, statistics, mask, anchors, step).
@@ -489,7 +373,7 @@ impl EditTrainer {
             settings,
             global_step,
             background,
-            device: None,
+            device: SplatDevice::Cpu,
         })
     }
 }
@@ -497,7 +381,8 @@ impl EditTrainer {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use splat::densify::EditStrategy;
+    use splat::render::{render, RenderSettings};
+    use splat::train::densify::EditStrategy;
 
     /// A 7³ box of Gaussians with position-dependent colours, two sizes (so densification both clones
     /// and splits) and SH degree 1.
@@ -591,14 +476,14 @@ mod tests {
     /// The mean editing loss of `scene` over the views (on the CPU).
     fn mean_loss(scene: &GaussianScene, cams: &[Camera], targets: &[Image]) -> f32 {
         let loss = ImageLoss::dssim();
-        let mut prepared = Targets::new(targets);
+        let mut prepared = Targets::new(&loss, targets);
         let settings = RenderSettings::default();
         let sum: f32 = cams
             .iter()
             .enumerate()
             .map(|(v, c)| {
                 let out = render(scene, c, &settings, None);
-                loss.eval(&out.rgb, v, &mut prepared).unwrap().0
+                prepared.eval(&out.rgb, v).unwrap().0
             })
             .sum();
         sum / cams.len() as f32
@@ -639,7 +524,7 @@ mod tests {
         let loss = ImageLoss::dssim();
         let mut host = trainer(&scene, &mask);
         let mut dev = trainer(&scene, &mask);
-        dev.device = Some(ctx);
+        dev.device = SplatDevice::Gpu(ctx);
         let start_loss = mean_loss(&scene, &cams, &targets);
 
         // Five steps (global 0..4): no densification yet.
@@ -703,7 +588,7 @@ mod tests {
         };
         let host = trainer(&scene, &mask);
         let mut dev = trainer(&scene, &mask);
-        dev.device = Some(ctx);
+        dev.device = SplatDevice::Gpu(ctx);
         let fit = |t: &EditTrainer| EcmFitter::new(t, &loss, &ecm).fit(&scene, &cams, &targets, 4);
         let (on_host, on_device) = (fit(&host).unwrap(), fit(&dev).unwrap());
         assert_eq!(frozen(&on_device, &mask), frozen(&scene, &mask));
@@ -756,7 +641,7 @@ mod tests {
         let loss = ImageLoss::dssim();
         let mut settings = TrainSettings::new(1000);
         settings.strategy.densify_from = u64::MAX;
-        let make = |device: Option<GpuContext>| {
+        let make = |device: SplatDevice| {
             let mut t =
                 EditTrainer::new(&scene, Some(mask.clone()), settings.clone(), 2.0, [0.0; 3]);
             t.device = device;
@@ -769,12 +654,13 @@ mod tests {
             let ms = t.elapsed().as_secs_f64() * 1e3 / steps as f64;
             eprintln!("{n} Gaussians, {size}²: {label}: {ms:.1} ms/step");
         };
-        let mut cpu = make(None);
+        let mut cpu = make(SplatDevice::Cpu);
         time("CPU", &mut |k| {
             cpu.fit(&cams, &targets, k, &loss, 1, &mut |_| {}).unwrap()
         });
-        let mut split = make(Some(ctx.clone()));
-        let mut prepared = Targets::new(&targets);
+        let mut split = make(SplatDevice::Gpu(ctx.clone()));
+        let mut prepared = Targets::new(&loss, &targets);
+        let mut trainer = prepared.trainer(&split.device, split.background);
         let mut order = Vec::new();
         let mut rng = ChaCha8Rng::seed_from_u64(1);
         time(
@@ -782,8 +668,8 @@ mod tests {
             &mut |k| {
                 for _ in 0..k {
                     let v = next_view(&mut order, cams.len(), &mut rng);
-                    split
-                        .host_step(&cams, v, &mut prepared, &loss, &mut rng)
+                    trainer
+                        .step(&mut split.state, &cams[v], v, &mut prepared, StepKind::Host)
                         .unwrap();
                 }
             },
@@ -792,7 +678,7 @@ mod tests {
         let (a, b) = (&targets[0].data, &targets[1].data);
         time("loss alone on the host", &mut |k| {
             for _ in 0..k {
-                std::hint::black_box(loss.eval(a, 1, &mut prepared).map(|(v, _)| v).unwrap());
+                std::hint::black_box(prepared.eval(a, 1).map(|(v, _)| v).unwrap());
             }
         });
         let up = |v: &[f32]| ::gpu::prims::upload_f32(&ctx.client, v);
@@ -805,7 +691,7 @@ mod tests {
                 std::hint::black_box(l.value(&ctx).unwrap());
             }
         });
-        let mut dev = make(Some(ctx.clone()));
+        let mut dev = make(SplatDevice::Gpu(ctx.clone()));
         time(
             "state on the device (per fit call: one upload, one download)",
             &mut |k| dev.fit(&cams, &targets, k, &loss, 1, &mut |_| {}).unwrap(),

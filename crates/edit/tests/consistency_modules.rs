@@ -111,7 +111,7 @@ fn ecm_makes_inconsistent_images_consistent() {
         let moved: f32 = renders
             .iter()
             .zip(&source_renders)
-            .map(|(a, b)| splat::loss::l1(&a.data, &b.data).value)
+            .map(|(a, b)| splat::train::loss::l1(&a.data, &b.data).value)
             .sum();
         assert!(
             moved > 0.01 * cams.len() as f32,

@@ -6,7 +6,7 @@ use edit::eval::metrics::{multiview_consistency, render_consistency, ViewGeometr
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use splat::cameras::orbit_cameras;
-use splat::render::{render, RenderOutput, RenderSettings};
+use splat::render::{render, Frame, RenderSettings};
 use splat::{Camera, GaussianScene, Image};
 
 const SH_C0: f32 = 0.282_094_8;
@@ -53,21 +53,21 @@ fn spots(p: [f32; 3]) -> [f32; 3] {
     ]
 }
 
-fn setup() -> (Vec<Camera>, Vec<RenderOutput>) {
+fn setup() -> (Vec<Camera>, Vec<Frame>) {
     let scene = textured_sphere(stripes);
     let (lo, hi) = scene.bounds().unwrap();
     let cams = orbit_cameras(lo, hi, 10, 80, 80);
     let settings = RenderSettings::default();
     let renders = cams
         .iter()
-        .map(|c| render(&scene, c, &settings, None))
+        .map(|c| render(&scene, c, &settings, None).into_frame())
         .collect();
     (cams, renders)
 }
 
 fn report(
     cams: &[Camera],
-    geometry: &[RenderOutput],
+    geometry: &[Frame],
     images: &[Image],
 ) -> edit::eval::metrics::ConsistencySummary {
     let g: Vec<ViewGeometry> = cams

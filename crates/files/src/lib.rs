@@ -6,13 +6,21 @@
 //!   (`./a.png` vs `a.png`, symbolic links, hard links).
 //! - [`RunDir`]: an output folder holds the files of one run: a folder with another run's files is
 //!   refused unless it is the same run being resumed, or `--force` clears what vcedit wrote there.
+//! - [`open_regular`] / [`read_regular`]: inputs are read only from regular files (a named pipe would
+//!   block the reader forever).
+//! - [`available_memory`] / [`check_allocation`]: what a run or a reader may allocate (the host's
+//!   `MemAvailable`, or a container's cgroup headroom when smaller).
 
 mod atomic;
 #[cfg(feature = "fuzz")]
 pub mod fuzz;
+mod memory;
 mod paths;
+mod regular;
 mod rundir;
 
 pub use atomic::{atomic_write, atomic_write_with, clean_stale_temps, temp_path_for};
+pub use memory::{available_memory, check_allocation};
 pub use paths::{check_not_inputs, same_file, PathError};
+pub use regular::{check_regular, open_regular, read_regular};
 pub use rundir::{Previous, RunDir, RunDirError, RunDirMode, MANIFEST_NAME};

@@ -1,5 +1,14 @@
-//! Gaussian splatting engine: scenes, cameras, a differentiable CPU renderer, lifting of 2D maps onto
-//! Gaussians, and the optimiser that fits scenes to images.
+//! Gaussian splatting engine: scenes, cameras, a differentiable renderer (CPU reference and GPU), lifting
+//! of 2D maps onto Gaussians, and the trainer that fits scenes to images.
+//!
+//! Layout, by concern:
+//! - types: [`scene`] ([`GaussianScene`]), [`cameras`] ([`Camera`] and the camera readers), [`image`];
+//! - input/output: [`formats`] (every scene reader and writer; [`read_scene`] and [`open_scene`] the
+//!   entries);
+//! - rendering: [`render`] (CPU: projection → tile binning → rasterisation, each with its backward) and
+//!   [`gpu`] (the CubeCL twins), joined behind [`SplatDevice`], the device seam; [`lift`];
+//! - training: [`train`] (the trainer, optimiser, densification, anchors, losses, checkpoints, the scene
+//!   fit).
 //!
 //! Conventions used everywhere in this crate (and by every crate above it):
 //! - Cameras are OpenCV cameras: x right, y down, z forward; `world_to_camera` maps world points into that
@@ -8,28 +17,23 @@
 //! - Scene parameters are stored as the INRIA trainer stores them: log-scales, logit-opacities,
 //!   unnormalised quaternions (w, x, y, z), and SH coefficients.
 
-pub mod anchor;
-pub mod camera;
 pub mod cameras;
-pub mod checkpoint;
-pub mod densify;
-pub mod fit;
+mod device;
 pub mod formats;
 pub mod gpu;
 pub mod image;
 mod layout;
 pub mod lift;
-pub mod loss;
-pub mod open;
-pub mod optim;
 pub mod render;
 pub mod scene;
 pub mod train;
 
-pub use camera::Camera;
+pub use cameras::camera::Camera;
+pub use device::{Lifter, SplatDevice};
 /// The INRIA PLY reader and writer, at their historical path.
 pub use formats::ply;
-pub use formats::{read_scene, write_scene, FormatError, OutputFormat, WriteReport};
+pub use formats::{
+    open_scene, read_scene, write_scene, FormatError, OpenError, OutputFormat, WriteReport,
+};
 pub use image::Image;
-pub use open::{open_scene, OpenError};
 pub use scene::GaussianScene;

@@ -45,6 +45,11 @@ impl GaussianScene {
         sh_coeffs(self.sh_degree)
     }
 
+    /// Bytes the parameters of `n` Gaussians of SH degree `sh_degree` take in memory.
+    pub fn memory_bytes(n: u64, sh_degree: u32) -> u64 {
+        n.saturating_mul((11 + 3 * sh_coeffs(sh_degree) as u64) * 4)
+    }
+
     /// Checks that every array has the length `len()` implies. Returns a description of the first problem.
     pub fn check_shapes(&self) -> Result<(), String> {
         let n = self.len();
@@ -60,6 +65,44 @@ impl GaussianScene {
                 return Err(format!(
                     "{name} has {got} values, expected {want} for {n} Gaussians"
                 ));
+            }
+        }
+        Ok(())
+    }
+
+    /// Checks that every Gaussian decodes to finite values: finite positions, SH coefficients and opacity
+    /// logits, log-scales whose scale `exp(s)` is a finite f32 (a log-scale of 1e30 is finite but its
+    /// scale is not), and quaternions that can be normalised. Returns the first problem, naming the
+    /// Gaussian. Readers call it on every scene they decode: a value that overflows would otherwise pass
+    /// `inspect` and `render` and fail much later, or render garbage.
+    pub fn check_values(&self) -> Result<(), String> {
+        self.check_shapes()?;
+        let k = 3 * self.sh_coeffs();
+        for i in 0..self.len() {
+            let bad = |what: &str, values: &[f32]| Err(format!("Gaussian {i}: {what} {values:?}"));
+            let mean = &self.means[3 * i..3 * i + 3];
+            if !mean.iter().all(|v| v.is_finite()) {
+                return bad("position is not finite:", mean);
+            }
+            let log_scale = &self.log_scales[3 * i..3 * i + 3];
+            if !log_scale
+                .iter()
+                .all(|v| v.is_finite() && v.exp().is_finite())
+            {
+                return bad("log-scales give no finite scale:", log_scale);
+            }
+            let q = &self.quats[4 * i..4 * i + 4];
+            let norm2: f32 = q.iter().map(|v| v * v).sum();
+            if !(norm2.is_finite() && norm2 > 0.0) {
+                return bad("rotation quaternion cannot be normalised:", q);
+            }
+            let logit = self.opacity_logits[i];
+            if !logit.is_finite() {
+                return bad("opacity logit is not finite:", &[logit]);
+            }
+            let sh = &self.sh[k * i..k * i + k];
+            if !sh.iter().all(|v| v.is_finite()) {
+                return bad("colour (SH) coefficients are not finite:", sh);
             }
         }
         Ok(())

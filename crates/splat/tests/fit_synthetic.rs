@@ -5,9 +5,11 @@
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use splat::cameras::orbit::look_at;
-use splat::densify::DefaultStrategy;
-use splat::fit::{evaluate, fit, initial_scene, load_dataset, DatasetOptions, FitConfig};
 use splat::render::{render, RenderSettings};
+use splat::train::densify::DefaultStrategy;
+use splat::train::scene_fit::{
+    evaluate, fit, initial_scene, load_dataset, DatasetOptions, FitConfig,
+};
 use splat::{Camera, GaussianScene, Image};
 use std::path::Path;
 
@@ -61,7 +63,7 @@ fn write_dataset(dir: &Path, scene: &GaussianScene, cams: &[Camera]) {
     let mut frames = Vec::new();
     for cam in cams {
         let out = render(scene, cam, &settings, None);
-        Image::from_data(SIZE, SIZE, 3, out.rgb)
+        Image::from_data(SIZE, SIZE, 3, out.frame.rgb)
             .save_png(&dir.join(format!("{}.png", cam.name)))
             .unwrap();
         let r = cam.rotation;

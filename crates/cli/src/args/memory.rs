@@ -18,7 +18,7 @@ impl MemoryCheckArg {
     pub fn check(&self, needed: u64, reduce: &str) -> Result<()> {
         check_against(
             needed,
-            edit::run::available_memory(),
+            files::available_memory(),
             self.ignore_memory_check,
             Memory::Host,
             reduce,

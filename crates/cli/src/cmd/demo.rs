@@ -9,6 +9,7 @@ use demo::run::{
     variant_dir, DemoOptions, Variant, PAIRS,
 };
 
+use crate::args::memory::MemoryCheckArg;
 use crate::args::output::{files_under, fingerprint, ForceArg, OutputDir};
 use crate::args::parse::{positive, whole};
 use crate::args::{DeviceArg, PrecisionArg};
@@ -19,7 +20,8 @@ use crate::progress::Reporter;
 #[command(after_help = "Examples:
   vcedit demo                      # a red sphere becomes a blue sphere; writes ./vcedit-demo/report.html
   vcedit demo --pair 1             # another built-in edit (see --list)
-  vcedit demo --compare            # per-view guidance vs VcEdit without CCM / ECM vs full VcEdit")]
+  vcedit demo --compare            # per-view guidance vs VcEdit without CCM / ECM vs full VcEdit
+  vcedit demo --resume             # go on after an interruption (same settings)")]
 pub struct Args {
     /// Output folder. A folder holding another run's outputs is refused (see --force).
     #[arg(long, default_value = "vcedit-demo")]
@@ -57,6 +59,12 @@ pub struct Args {
     /// Random seed.
     #[arg(long, default_value_t = 0, value_parser = whole::<u64>, allow_negative_numbers = true)]
     pub seed: u64,
+    /// Continue an interrupted demo in --out (same settings): each variant goes on from its last
+    /// checkpoint.
+    #[arg(long, conflicts_with = "force")]
+    pub resume: bool,
+    #[command(flatten)]
+    pub memory: MemoryCheckArg,
 }
 
 /// The demo model bundled with the checkout this binary was built from.
@@ -94,6 +102,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     opts.fit_steps = args.fit_steps;
     opts.steps = args.steps;
     opts.seed = args.seed;
+    opts.resume = args.resume;
     let scene = demo_scene(&opts)?;
     let model =
         load_model(&model_dir)?.on(Compute::on(args.device.open()?, args.precision.precision));
@@ -110,6 +119,9 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     let job = demo_job(&opts, &scene, Variant::Full);
     let plan = edit::run::work_plan(&job, &model, &scene.built.scene, scene.cameras.len());
     eprintln!("{}", plan.describe());
+    args.memory.check(plan.memory_bytes, "--views")?;
+    args.memory
+        .check_gpu(plan.gpu_memory_bytes, plan.gpu_free_bytes, "--views")?;
     let settings_key = fingerprint(&(
         &model_dir,
         args.pair,

@@ -12,6 +12,7 @@ use edit::sampler::{
 use splat::Image;
 
 use crate::args::editing::{ModelArgs, PromptArgs, SamplerArgs};
+use crate::args::memory::MemoryCheckArg;
 use crate::args::output::{output_file, probe_folder, require_extension};
 use crate::args::{DeviceArg, PrecisionArg};
 use crate::progress::Reporter;
@@ -42,6 +43,8 @@ pub struct Args {
     pub precision: PrecisionArg,
     #[command(flatten)]
     pub sampler: SamplerArgs,
+    #[command(flatten)]
+    pub memory: MemoryCheckArg,
 }
 
 pub fn run(args: Args) -> anyhow::Result<()> {
@@ -55,10 +58,6 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         probe_folder(dir).context("--save-attention")?;
     }
     let input = Image::load(&args.image)?;
-    let input = input
-        .over_background([1.0, 1.0, 1.0])
-        .center_crop_to_aspect(w, h)
-        .resize(w, h);
 
     let t0 = Instant::now();
     let model = EditModel::load(&args.model.model, args.model.taesd.as_deref())
@@ -67,6 +66,18 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     let load_time = t0.elapsed();
     args.sampler.check_size(&model)?;
     args.prompts.check_words(&model.tokenizer, None)?;
+    let (host, gpu) = edit::run::image_edit_memory(&model, (w, h));
+    args.memory.check(host, "--size")?;
+    let free = model
+        .compute
+        .networks()
+        .gpu()
+        .and_then(|g| g.context().limits.free_bytes_at_open);
+    args.memory.check_gpu(gpu, free, "--size")?;
+    let input = input
+        .over_background([1.0, 1.0, 1.0])
+        .center_crop_to_aspect(w, h)
+        .resize(w, h);
     let prompts = args.prompts.prompts();
     let plan = EditPlan::new(&model, &prompts, &settings, (w as usize, h as usize))?;
 

@@ -2,7 +2,7 @@
 
 use anyhow::{bail, Context, Result};
 use splat::cameras::{load_cameras, CameraSet};
-use splat::fit::{fit_on, load_dataset, DatasetOptions, FitConfig};
+use splat::train::scene_fit::{fit_on, load_dataset, DatasetOptions, FitConfig};
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
@@ -172,8 +172,8 @@ pub fn run(args: Args) -> Result<()> {
     progress.stage("fitting", args.steps);
     let mut smoothed = None::<f32>;
     let mut last_psnr = None::<f64>;
-    let device = args.device.open_for(splat::gpu::Workload::Splatting)?;
-    let result = fit_on(&dataset, &config, device.as_ref(), &mut |p| {
+    let device = splat::SplatDevice::from(args.device.open_for(splat::gpu::Workload::Splatting)?);
+    let result = fit_on(&dataset, &config, &device, &mut |p| {
         // Exponential moving average, as the INRIA trainer shows.
         let ema = smoothed.map_or(p.loss, |s| 0.6 * p.loss + 0.4 * s);
         smoothed = Some(ema);

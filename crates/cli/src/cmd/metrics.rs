@@ -6,22 +6,19 @@
 //! - with `--clip DIR`: the CLIP directional similarity of the renders for the prompt change.
 
 use anyhow::{bail, Context, Result};
-use diffusion::device::Precision;
-use edit::compute::{host_frame, Compute};
 use edit::eval::clip_score::ClipModel;
 use edit::eval::metrics::{
     preservation, render_consistency, ConsistencySummary, PreservationReport, WarpSettings,
 };
 use edit::present::report::MetricsSummary;
 use edit::run::{mask_from_box, Box3};
-use rayon::prelude::*;
 use serde::Serialize;
-use splat::gpu::HostFrame;
-use splat::render::{render, ExtraChannels, RenderSettings};
-use splat::{Camera, GaussianScene, Image};
+use splat::render::{ExtraChannels, Frame, RenderSettings};
+use splat::{Camera, GaussianScene, Image, SplatDevice};
 use std::path::PathBuf;
 use std::time::Instant;
 
+use crate::args::memory::MemoryCheckArg;
 use crate::args::output::output_file;
 use crate::args::parse::{finite, positive};
 use crate::args::{BackgroundArg, CameraArgs, CameraSource, DeviceArg, SizeArg};
@@ -70,6 +67,8 @@ pub struct Args {
     pub background: BackgroundArg,
     #[command(flatten)]
     pub device: DeviceArg,
+    #[command(flatten)]
+    pub memory: MemoryCheckArg,
     /// A transformers CLIPModel folder (e.g. openai/clip-vit-large-patch14) for the CLIP directional similarity.
     #[arg(long, value_name = "DIR", requires_all = ["source_prompt", "target_prompt"])]
     pub clip: Option<PathBuf>,
@@ -121,12 +120,12 @@ fn choose_cameras(
 
 /// Renders of `scene` from every camera, with the box mask (1 inside, 0 outside) as an extra channel.
 fn render_all(
-    compute: &Compute,
+    device: &SplatDevice,
     scene: &GaussianScene,
     cameras: &[Camera],
     settings: &RenderSettings,
     mask_box: Option<&Box3>,
-) -> Result<Vec<HostFrame>> {
+) -> Result<Vec<Frame>> {
     let inside: Option<Vec<f32>> = mask_box.map(|b| {
         mask_from_box(scene, b)
             .into_iter()
@@ -137,14 +136,7 @@ fn render_all(
         values: v,
         channels: 1,
     });
-    if compute.splat().is_some() {
-        return Ok(compute.render_views(scene, cameras, settings, extra)?);
-    }
-    // Views in parallel; the renderer parallelises inside a view too, which rayon balances.
-    Ok(cameras
-        .par_iter()
-        .map(|c| host_frame(render(scene, c, settings, extra)))
-        .collect())
+    Ok(device.render_views(scene, cameras, settings, extra)?)
 }
 
 fn fmt_consistency(c: &ConsistencySummary) -> String {
@@ -216,20 +208,25 @@ pub fn run(args: Args) -> Result<()> {
         w,
         h
     );
+    // Both scenes' frames and colour images are held together, while each worker thread renders a view.
+    let pixels = w as u64 * h as u64;
+    let (views, extra) = (cameras.len() as u64, u64::from(args.mask_box.is_some()));
+    let gaussians = source.len().max(edited.len()) as u64;
+    let held = 2 * views * (Frame::memory_bytes(pixels, gaussians, extra) + pixels * 12);
+    let rendering = rayon::current_num_threads() as u64
+        * splat::render::render_memory_bytes(pixels, gaussians, extra);
+    args.memory.check(held + rendering, "--size or --orbit")?;
     let settings = RenderSettings { background };
-    let compute = Compute::on(
-        args.device.open_for(splat::gpu::Workload::Splatting)?,
-        Precision::F32,
-    );
+    let device = SplatDevice::from(args.device.open_for(splat::gpu::Workload::Splatting)?);
     let renders_a = render_all(
-        &compute,
+        &device,
         &source,
         &cameras,
         &settings,
         args.mask_box.as_ref(),
     )?;
     let renders_b = render_all(
-        &compute,
+        &device,
         &edited,
         &cameras,
         &settings,

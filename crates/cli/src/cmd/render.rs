@@ -1,13 +1,12 @@
 //! `vcedit render SCENE`: render a scene to PNG files from given or generated cameras.
 
 use anyhow::{Context, Result};
-use diffusion::device::Precision;
-use edit::compute::Compute;
 use splat::render::RenderSettings;
-use splat::Image;
+use splat::{Image, SplatDevice};
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
+use crate::args::memory::MemoryCheckArg;
 use crate::args::output::{fingerprint, ForceArg, OutputDir};
 use crate::args::{BackgroundArg, CameraArgs, CameraSource, DeviceArg, SizeArg};
 use crate::progress::Reporter;
@@ -51,6 +50,8 @@ pub struct Args {
     pub background: BackgroundArg,
     #[command(flatten)]
     pub device: DeviceArg,
+    #[command(flatten)]
+    pub memory: MemoryCheckArg,
 }
 
 /// A file-name-safe version of a camera name.
@@ -117,6 +118,16 @@ pub fn run(args: Args) -> Result<()> {
         } => format!("{source} (the scene has no cameras; see --cameras, --orbit)"),
         _ => source.to_string(),
     };
+    // One view at a time: its render, and the images written from it (f32 colour, 8-bit copies, depth).
+    let pixels = cameras
+        .iter()
+        .map(|c| c.width as u64 * c.height as u64)
+        .max()
+        .unwrap_or(0);
+    args.memory.check(
+        splat::render::render_memory_bytes(pixels, scene.len() as u64, 0) + pixels * 16,
+        "--size",
+    )?;
     // Everything that decides the files written; a folder of another render is not mixed with this one.
     let settings_key = fingerprint(&(
         &args.scene,
@@ -147,14 +158,11 @@ pub fn run(args: Args) -> Result<()> {
         background: args.background.background,
     };
     // The networks are not used here: their weight precision does not matter.
-    let compute = Compute::on(
-        args.device.open_for(splat::gpu::Workload::Splatting)?,
-        Precision::F32,
-    );
+    let device = SplatDevice::from(args.device.open_for(splat::gpu::Workload::Splatting)?);
     let mut progress = Reporter::new();
     progress.stage("rendering views", cameras.len() as u64);
     let t_render = Instant::now();
-    compute.for_each_render(&scene, &cameras, &settings, None, &mut |i, out| {
+    device.for_each_render(&scene, &cameras, &settings, None, &mut |i, out| {
         let cam = &cameras[i];
         let rgb = out.rgb_image();
         let stem = file_stem(i, &cam.name);

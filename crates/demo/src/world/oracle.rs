@@ -92,7 +92,7 @@ pub fn render_labels(built: &BuiltScene, camera: &Camera) -> LabelImage {
         slot,
         object_weights,
         slot_weights,
-        alpha: out.alpha,
+        alpha: out.into_frame().alpha,
     }
 }
 
@@ -286,7 +286,7 @@ impl Oracle {
         RenderedView {
             width: out.width,
             height: out.height,
-            source: out.rgb,
+            source: out.into_frame().rgb,
             targets,
             main,
             patterned,

@@ -7,8 +7,7 @@ use candle_core::{Result, Tensor};
 use candle_nn::{linear, Linear, VarBuilder};
 use serde::Deserialize;
 
-use crate::kernels::gpu::ops;
-use crate::kernels::DeviceTensor;
+use crate::kernels::{DeviceTensor, Unary};
 use crate::layers::LayerNorm;
 
 /// `hidden_act` of a CLIP config.
@@ -28,14 +27,9 @@ pub enum ClipActivation {
 impl ClipActivation {
     fn apply(self, x: &DeviceTensor) -> Result<DeviceTensor> {
         match self {
-            ClipActivation::QuickGelu => x.unary_op(
-                |x| x * candle_nn::ops::sigmoid(&(x * 1.702)?)?,
-                ops::quick_gelu,
-            ),
-            ClipActivation::Gelu => x.unary_op(|x| x.gelu_erf(), ops::gelu),
-            ClipActivation::GeluNew | ClipActivation::GeluPytorchTanh => {
-                x.unary_op(|x| x.gelu(), ops::gelu_tanh)
-            }
+            ClipActivation::QuickGelu => x.unary(Unary::QuickGelu),
+            ClipActivation::Gelu => x.unary(Unary::GeluErf),
+            ClipActivation::GeluNew | ClipActivation::GeluPytorchTanh => x.unary(Unary::GeluTanh),
             ClipActivation::Relu => x.relu(),
         }
     }

@@ -10,8 +10,7 @@ use candle_nn::{embedding, Embedding, VarBuilder};
 use serde::Deserialize;
 
 use super::encoder::{ClipActivation, EncoderLayer, EncoderLayerConfig};
-use crate::kernels::gpu::GpuDevice;
-use crate::kernels::DeviceTensor;
+use crate::device;
 use crate::layers::LayerNorm;
 use crate::loader::{Component, LoadError, ModelDir};
 use crate::tokenizer::{ClipTokenizer, Encoding};
@@ -192,16 +191,16 @@ impl ClipTextModel {
         input_ids: &Tensor,
         clip_skip: usize,
     ) -> candle_core::Result<Tensor> {
-        self.forward_skip_on(input_ids, clip_skip, None)
+        self.forward_skip_on(input_ids, clip_skip, &device::Device::Cpu)
     }
 
-    /// [`Self::forward_skip`] with the encoder layers on `device` (the GPU, or the CPU for `None`): the
+    /// [`Self::forward_skip`] with the encoder layers on `device`: the
     /// embedding lookup runs on the CPU, the hidden states are read back at the end.
     pub fn forward_skip_on(
         &self,
         input_ids: &Tensor,
         clip_skip: usize,
-        device: Option<&GpuDevice>,
+        device: &device::Device,
     ) -> candle_core::Result<Tensor> {
         let (_, s) = input_ids.dims2()?;
         if s > self.config.max_position_embeddings {
@@ -216,7 +215,7 @@ impl ClipTextModel {
             .forward(input_ids)?
             .broadcast_add(&positions)?;
         let mask = causal_mask(s, x.dtype(), x.device())?;
-        let mut x = DeviceTensor::on(&x, device)?;
+        let mut x = device.tensor(&x)?;
         let used = self.layers.len().saturating_sub(clip_skip);
         for layer in &self.layers[..used] {
             x = layer.forward_device(&x, Some(&mask))?;

@@ -1,16 +1,149 @@
-//! [`DeviceTensor`]: the activation type a network forward passes from layer to layer, on the CPU (a candle
-//! tensor: every CPU branch below is the very candle call or `kernels` function the networks made before,
-//! so CPU results and speed are unchanged) or on the GPU ([`GpuTensor`], one CubeCL kernel per op).
+//! The diffusion engine's device seam: where a network runs is decided here and nowhere else.
 //!
-//! Weights stay CPU candle tensors in the network structs; a GPU op fetches the device copy from the
-//! device's weight cache ([`GpuDevice::cached`]). One network definition thus runs on either device.
+//! - [`Device`]: the CPU or an opened GPU; the networks' entry points take `&Device`.
+//! - [`Storage`]: every op a network needs, declared once; one implementation per backend — candle tensors
+//!   on the CPU (`kernels/cpu.rs`: each op is the very candle call or `kernels` function the networks
+//!   made before, so CPU results and speed are unchanged) and CubeCL tensors on the GPU
+//!   (`kernels/gpu/storage.rs`, one kernel per op, tested against the CPU on lavapipe).
+//! - [`DeviceTensor`]: the activation a forward passes from layer to layer, one variant per backend; each of
+//!   its ops only dispatches to the variant's [`Storage`].
+//!
+//! Adding a backend: implement [`Storage`] for its tensor type, add a variant to [`Device`] and
+//! [`DeviceTensor`], and one arm to the `dispatch!`/`dispatch2!` macros below. Network code is unchanged.
+//!
+//! Weights stay CPU candle tensors in the network structs; a backend fetches its device copy when an op
+//! uses one (the GPU keeps them in [`GpuDevice::cached`]). One network definition thus runs anywhere.
 
 use candle_core::{Result, Tensor};
 use candle_nn::Activation;
 
-use super::gpu::{ops, GpuDevice, GpuTensor};
+use super::gpu::{GpuDevice, GpuTensor};
 
-/// A tensor on the CPU or on the GPU.
+/// Where a network runs.
+#[derive(Debug, Clone, Default)]
+pub enum Device {
+    #[default]
+    Cpu,
+    /// An opened GPU, with its weight cache (shared by clones).
+    Gpu(GpuDevice),
+}
+
+impl Device {
+    /// `t` on this device: uploaded to the GPU, or kept as is on the CPU.
+    pub fn tensor(&self, t: &Tensor) -> Result<DeviceTensor> {
+        Ok(match self {
+            Device::Cpu => DeviceTensor::Cpu(t.clone()),
+            Device::Gpu(device) => DeviceTensor::Gpu(GpuTensor::upload(device, t)?),
+        })
+    }
+
+    /// The GPU, for callers that manage its memory or weight cache (`None` on the CPU).
+    pub fn gpu(&self) -> Option<&GpuDevice> {
+        match self {
+            Device::Cpu => None,
+            Device::Gpu(device) => Some(device),
+        }
+    }
+
+    pub fn is_cpu(&self) -> bool {
+        matches!(self, Device::Cpu)
+    }
+
+    /// "CPU" or the adapter and the weights' precision, for logs and run.json.
+    pub fn describe(&self) -> String {
+        match self {
+            Device::Cpu => "CPU".into(),
+            Device::Gpu(gpu) => {
+                format!("{}, {} weights", gpu.context().describe(), gpu.precision())
+            }
+        }
+    }
+}
+
+impl From<Option<GpuDevice>> for Device {
+    fn from(gpu: Option<GpuDevice>) -> Self {
+        gpu.map_or(Device::Cpu, Device::Gpu)
+    }
+}
+
+/// The activation functions with a kernel of their own (beside candle-nn's [`Activation`]s).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Unary {
+    Relu,
+    Silu,
+    Tanh,
+    /// Exact (erf) GELU.
+    GeluErf,
+    /// tanh-approximated GELU.
+    GeluTanh,
+    /// `x·σ(1.702·x)` (CLIP ViT-L).
+    QuickGelu,
+}
+
+/// The ops of a network, declared once, implemented once per backend. Shapes are validated by each
+/// implementation; operands of the binary ops are on the same device (the dispatch checks that).
+pub trait Storage: Sized {
+    fn dims(&self) -> &[usize];
+    /// The values as a CPU tensor (a read-back from a device).
+    fn to_cpu(&self) -> Result<Tensor>;
+
+    /// Same-shape sum.
+    fn add(&self, other: &Self) -> Result<Self>;
+    fn broadcast_add(&self, other: &Self) -> Result<Self>;
+    fn broadcast_mul(&self, other: &Self) -> Result<Self>;
+    /// `self + t` with broadcasting, `t` a host tensor used once (masks and other per-call constants; not
+    /// cached on a device).
+    fn broadcast_add_host(&self, t: &Tensor) -> Result<Self>;
+    /// `self · mul + add`.
+    fn affine(&self, mul: f64, add: f64) -> Result<Self>;
+    fn unary(&self, op: Unary) -> Result<Self>;
+    /// A candle-nn activation (the ones diffusers configs name).
+    fn activation(&self, act: Activation) -> Result<Self>;
+
+    fn reshape(&self, shape: &[usize]) -> Result<Self>;
+    /// Permuted and made contiguous.
+    fn permute_contiguous(&self, dims: &[usize]) -> Result<Self>;
+    fn narrow(&self, dim: usize, start: usize, len: usize) -> Result<Self>;
+    /// The slices of `dim` at `indices`, in that order.
+    fn index_select(&self, indices: &[u32], dim: usize) -> Result<Self>;
+    /// One zero row at the bottom and one zero column at the right.
+    fn pad_bottom_right_with_zeros(&self) -> Result<Self>;
+    fn upsample_nearest2d(&self, out_h: usize, out_w: usize) -> Result<Self>;
+    fn cat(parts: &[&Self], dim: usize) -> Result<Self>;
+
+    /// [`super::conv2d`] (NCHW, OIHW weights).
+    fn conv2d(
+        &self,
+        weight: &Tensor,
+        bias: Option<&Tensor>,
+        stride: usize,
+        padding: usize,
+    ) -> Result<Self>;
+    /// `x·weightᵀ + bias` (candle-nn `Linear`).
+    fn linear(&self, layer: &candle_nn::Linear) -> Result<Self>;
+    /// [`super::group_norm`], SiLU fused when `silu`.
+    fn group_norm(
+        &self,
+        weight: &Tensor,
+        bias: &Tensor,
+        groups: usize,
+        eps: f64,
+        silu: bool,
+    ) -> Result<Self>;
+    /// [`super::layer_norm`] over the last dimension.
+    fn layer_norm(&self, weight: &Tensor, bias: &Tensor, eps: f64) -> Result<Self>;
+    fn softmax_last_dim(&self) -> Result<Self>;
+    /// [`super::geglu`] (the last dimension split in value and gate halves).
+    fn geglu(&self) -> Result<Self>;
+    /// `self × otherᵀ` over the last two dimensions.
+    fn matmul_t(&self, other: &Self) -> Result<Self>;
+    /// Batched matrix product.
+    fn matmul(&self, other: &Self) -> Result<Self>;
+    /// `softmax(q·kᵀ·scale)·v` ([`super::attention`]).
+    fn attention(q: &Self, k: &Self, v: &Self, scale: f64) -> Result<Self>;
+}
+
+/// A tensor on one of the backends.
 #[derive(Debug, Clone)]
 pub enum DeviceTensor {
     Cpu(Tensor),
@@ -23,27 +156,68 @@ impl From<Tensor> for DeviceTensor {
     }
 }
 
+/// `$op` on the backend of `$x` (the one place a unary op meets the variants).
+macro_rules! dispatch {
+    ($x:expr, $t:ident => $op:expr) => {
+        match $x {
+            DeviceTensor::Cpu($t) => DeviceTensor::Cpu($op?),
+            DeviceTensor::Gpu($t) => DeviceTensor::Gpu($op?),
+        }
+    };
+}
+
+/// `$op` on the common backend of `$a` and `$b`; an error when they differ.
+macro_rules! dispatch2 {
+    ($a:expr, $b:expr, ($x:ident, $y:ident) => $op:expr) => {
+        match ($a, $b) {
+            (DeviceTensor::Cpu($x), DeviceTensor::Cpu($y)) => DeviceTensor::Cpu($op?),
+            (DeviceTensor::Gpu($x), DeviceTensor::Gpu($y)) => DeviceTensor::Gpu($op?),
+            _ => candle_core::bail!("operands on different devices (CPU and GPU)"),
+        }
+    };
+}
+
+/// The operands of `parts` if all are on the backend `$variant`.
+macro_rules! all_on {
+    ($parts:expr, $variant:path) => {
+        $parts
+            .iter()
+            .map(|p| match p {
+                $variant(t) => Some(t),
+                _ => None,
+            })
+            .collect::<Option<Vec<_>>>()
+    };
+}
+
 impl DeviceTensor {
-    /// `t` on `device`: uploaded to the GPU, or kept as is on the CPU (`None`).
-    pub fn on(t: &Tensor, device: Option<&GpuDevice>) -> Result<DeviceTensor> {
-        Ok(match device {
-            Some(device) => DeviceTensor::Gpu(GpuTensor::upload(device, t)?),
-            None => DeviceTensor::Cpu(t.clone()),
-        })
+    /// The device holding the tensor.
+    pub fn device(&self) -> Device {
+        match self {
+            DeviceTensor::Cpu(_) => Device::Cpu,
+            DeviceTensor::Gpu(g) => Device::Gpu(g.device().clone()),
+        }
     }
 
-    /// The values as a CPU tensor (a read-back from the GPU).
+    /// A host tensor (a constant, a map from elsewhere) on this tensor's device.
+    pub fn same_device(&self, t: &Tensor) -> Result<DeviceTensor> {
+        match self {
+            DeviceTensor::Cpu(_) => Ok(DeviceTensor::Cpu(t.clone())),
+            DeviceTensor::Gpu(g) => Ok(DeviceTensor::Gpu(GpuTensor::upload(g.device(), t)?)),
+        }
+    }
+
     pub fn to_cpu(&self) -> Result<Tensor> {
         match self {
-            DeviceTensor::Cpu(t) => Ok(t.clone()),
-            DeviceTensor::Gpu(g) => g.to_cpu(),
+            DeviceTensor::Cpu(t) => Storage::to_cpu(t),
+            DeviceTensor::Gpu(g) => Storage::to_cpu(g),
         }
     }
 
     pub fn dims(&self) -> &[usize] {
         match self {
-            DeviceTensor::Cpu(t) => t.dims(),
-            DeviceTensor::Gpu(g) => g.dims(),
+            DeviceTensor::Cpu(t) => Storage::dims(t),
+            DeviceTensor::Gpu(g) => Storage::dims(g),
         }
     }
 
@@ -54,223 +228,113 @@ impl DeviceTensor {
         }
     }
 
-    /// The GPU holding the tensor, if any (where a GPU op fetches its weights).
-    pub fn gpu_device(&self) -> Option<&GpuDevice> {
-        match self {
-            DeviceTensor::Cpu(_) => None,
-            DeviceTensor::Gpu(g) => Some(g.device()),
-        }
-    }
-
-    /// A weight (or any CPU constant) on this tensor's device, in f32.
-    fn constant(&self, t: &Tensor) -> Result<GpuTensor> {
-        match self {
-            DeviceTensor::Gpu(g) => g.device().cached(t),
-            DeviceTensor::Cpu(_) => unreachable!("constants are only needed on the GPU"),
-        }
-    }
-
-    /// The weight of a matrix product on this tensor's device, in the device's precision.
-    fn matrix_constant(&self, t: &Tensor) -> Result<GpuTensor> {
-        match self {
-            DeviceTensor::Gpu(g) => g.device().cached_matrix(t),
-            DeviceTensor::Cpu(_) => unreachable!("constants are only needed on the GPU"),
-        }
-    }
-
-    /// Applies `cpu` or `gpu` by device.
-    fn map(
-        &self,
-        cpu: impl FnOnce(&Tensor) -> Result<Tensor>,
-        gpu: impl FnOnce(&GpuTensor) -> Result<GpuTensor>,
-    ) -> Result<DeviceTensor> {
-        Ok(match self {
-            DeviceTensor::Cpu(t) => DeviceTensor::Cpu(cpu(t)?),
-            DeviceTensor::Gpu(g) => DeviceTensor::Gpu(gpu(g)?),
-        })
-    }
-
-    /// Applies `cpu` or `gpu` to two tensors on the same device.
-    fn zip(
-        &self,
-        other: &DeviceTensor,
-        cpu: impl FnOnce(&Tensor, &Tensor) -> Result<Tensor>,
-        gpu: impl FnOnce(&GpuTensor, &GpuTensor) -> Result<GpuTensor>,
-    ) -> Result<DeviceTensor> {
-        Ok(match (self, other) {
-            (DeviceTensor::Cpu(a), DeviceTensor::Cpu(b)) => DeviceTensor::Cpu(cpu(a, b)?),
-            (DeviceTensor::Gpu(a), DeviceTensor::Gpu(b)) => DeviceTensor::Gpu(gpu(a, b)?),
-            _ => candle_core::bail!("operands on different devices (CPU and GPU)"),
-        })
-    }
-
     // ------------------------------------------------------------------------------- elementwise
 
     /// Same-shape sum (candle `a + b`).
     pub fn add(&self, other: &DeviceTensor) -> Result<DeviceTensor> {
-        self.zip(
-            other,
-            |a, b| a + b,
-            |a, b| {
-                if a.dims() != b.dims() {
-                    candle_core::bail!("add: shapes {:?} and {:?} differ", a.dims(), b.dims());
-                }
-                ops::add(a, b)
-            },
-        )
+        Ok(dispatch2!(self, other, (a, b) => Storage::add(a, b)))
     }
 
     pub fn broadcast_add(&self, other: &DeviceTensor) -> Result<DeviceTensor> {
-        self.zip(other, |a, b| a.broadcast_add(b), ops::add)
+        Ok(dispatch2!(self, other, (a, b) => Storage::broadcast_add(a, b)))
     }
 
     pub fn broadcast_mul(&self, other: &DeviceTensor) -> Result<DeviceTensor> {
-        self.zip(other, |a, b| a.broadcast_mul(b), ops::mul)
+        Ok(dispatch2!(self, other, (a, b) => Storage::broadcast_mul(a, b)))
+    }
+
+    /// `self + t` with broadcasting, `t` a CPU tensor used for this call only (not cached: masks and other
+    /// per-call constants).
+    pub fn broadcast_add_tensor(&self, t: &Tensor) -> Result<DeviceTensor> {
+        Ok(dispatch!(self, x => Storage::broadcast_add_host(x, t)))
+    }
+
+    /// `self · mul + add` (candle `affine`; candle's scalar `*`, `/`, `+`, `-` are this affine too).
+    pub fn affine(&self, mul: f64, add: f64) -> Result<DeviceTensor> {
+        Ok(dispatch!(self, x => Storage::affine(x, mul, add)))
     }
 
     /// `self · s` (candle `t * s`).
     pub fn mul_scalar(&self, s: f64) -> Result<DeviceTensor> {
-        self.map(|t| t * s, |g| Ok(ops::affine(g, s as f32, 0.0)))
+        self.affine(s, 0.0)
     }
 
     /// `self / s` (candle `t / s`).
     pub fn div_scalar(&self, s: f64) -> Result<DeviceTensor> {
-        self.map(|t| t / s, |g| Ok(ops::affine(g, (1.0 / s) as f32, 0.0)))
+        self.affine(1.0 / s, 0.0)
     }
 
     /// `self + s` (candle `t + s`).
     pub fn add_scalar(&self, s: f64) -> Result<DeviceTensor> {
-        self.map(|t| t + s, |g| Ok(ops::affine(g, 1.0, s as f32)))
+        self.affine(1.0, s)
     }
 
     /// `self − s` (candle `t - s`).
     pub fn sub_scalar(&self, s: f64) -> Result<DeviceTensor> {
-        self.map(|t| t - s, |g| Ok(ops::affine(g, 1.0, -s as f32)))
+        self.affine(1.0, -s)
     }
 
-    /// `self · mul + add` (candle `affine`).
-    pub fn affine(&self, mul: f64, add: f64) -> Result<DeviceTensor> {
-        self.map(
-            |t| t.affine(mul, add),
-            |g| Ok(ops::affine(g, mul as f32, add as f32)),
-        )
+    pub fn unary(&self, op: Unary) -> Result<DeviceTensor> {
+        Ok(dispatch!(self, x => Storage::unary(x, op)))
     }
 
     pub fn relu(&self) -> Result<DeviceTensor> {
-        self.map(|t| t.relu(), |g| Ok(ops::relu(g)))
+        self.unary(Unary::Relu)
     }
 
     pub fn tanh(&self) -> Result<DeviceTensor> {
-        self.map(|t| t.tanh(), |g| Ok(ops::tanh(g)))
-    }
-
-    /// Applies `cpu` on the CPU, or the GPU kernel `gpu` (for activations whose CPU form is a composite).
-    pub fn unary_op(
-        &self,
-        cpu: impl FnOnce(&Tensor) -> Result<Tensor>,
-        gpu: fn(&GpuTensor) -> GpuTensor,
-    ) -> Result<DeviceTensor> {
-        self.map(cpu, |g| Ok(gpu(g)))
-    }
-
-    /// `self + t` with broadcasting, `t` a CPU tensor that is uploaded for this call (not cached: masks
-    /// and other per-call constants).
-    pub fn broadcast_add_tensor(&self, t: &Tensor) -> Result<DeviceTensor> {
-        self.map(
-            |x| x.broadcast_add(t),
-            |g| ops::add(g, &GpuTensor::upload(g.device(), t)?),
-        )
+        self.unary(Unary::Tanh)
     }
 
     /// A candle-nn activation (the ones diffusers configs name).
     pub fn activation(&self, act: Activation) -> Result<DeviceTensor> {
-        self.map(
-            |t| candle_core::Module::forward(&act, t),
-            |g| match act {
-                Activation::Relu => Ok(ops::relu(g)),
-                Activation::Silu => Ok(ops::silu(g)),
-                Activation::Gelu => Ok(ops::gelu(g)),
-                Activation::Mish => Ok(ops::mish(g)),
-                other => candle_core::bail!("activation {other:?} has no GPU kernel"),
-            },
-        )
+        Ok(dispatch!(self, x => Storage::activation(x, act)))
     }
 
     // ---------------------------------------------------------------------------- shape and copies
 
     pub fn reshape(&self, shape: &[usize]) -> Result<DeviceTensor> {
-        self.map(|t| t.reshape(shape), |g| g.reshape(shape))
+        Ok(dispatch!(self, x => Storage::reshape(x, shape)))
     }
 
     /// Permuted and made contiguous.
     pub fn permute_contiguous(&self, dims: &[usize]) -> Result<DeviceTensor> {
-        self.map(|t| t.permute(dims)?.contiguous(), |g| ops::permute(g, dims))
+        Ok(dispatch!(self, x => Storage::permute_contiguous(x, dims)))
     }
 
     /// `narrow(dim, start, len)` (a view on the CPU, a copy on the GPU).
     pub fn narrow(&self, dim: usize, start: usize, len: usize) -> Result<DeviceTensor> {
-        self.map(
-            |t| t.narrow(dim, start, len),
-            |g| ops::narrow(g, dim, start, len),
-        )
+        Ok(dispatch!(self, x => Storage::narrow(x, dim, start, len)))
     }
 
     /// The slices of `dim` at `indices`, in that order (candle `index_select`).
     pub fn index_select(&self, indices: &[u32], dim: usize) -> Result<DeviceTensor> {
-        self.map(
-            |t| t.index_select(&Tensor::new(indices, t.device())?, dim),
-            |g| ops::index_select(g, indices, dim),
-        )
-    }
-
-    /// A CPU tensor (a constant, a map from elsewhere) on this tensor's device.
-    pub fn same_device(&self, t: &Tensor) -> Result<DeviceTensor> {
-        DeviceTensor::on(t, self.gpu_device())
+        Ok(dispatch!(self, x => Storage::index_select(x, indices, dim)))
     }
 
     /// One zero row at the bottom and one zero column at the right (diffusers' `Downsample2D` with
     /// padding 0).
     pub fn pad_bottom_right_with_zeros(&self) -> Result<DeviceTensor> {
-        self.map(
-            |t| {
-                t.pad_with_zeros(candle_core::D::Minus1, 0, 1)?
-                    .pad_with_zeros(candle_core::D::Minus2, 0, 1)
-            },
-            |g| ops::pad_bottom_right(g, 1, 1),
-        )
+        Ok(dispatch!(self, x => Storage::pad_bottom_right_with_zeros(x)))
     }
 
     pub fn upsample_nearest2d(&self, out_h: usize, out_w: usize) -> Result<DeviceTensor> {
-        self.map(
-            |t| t.upsample_nearest2d(out_h, out_w),
-            |g| ops::upsample_nearest2d(g, out_h, out_w),
-        )
+        Ok(dispatch!(self, x => Storage::upsample_nearest2d(x, out_h, out_w)))
     }
 
     pub fn cat(parts: &[&DeviceTensor], dim: usize) -> Result<DeviceTensor> {
-        if let Some(cpu) = parts
-            .iter()
-            .map(|p| match p {
-                DeviceTensor::Cpu(t) => Some(t),
-                DeviceTensor::Gpu(_) => None,
-            })
-            .collect::<Option<Vec<&Tensor>>>()
-        {
-            return Ok(DeviceTensor::Cpu(Tensor::cat(&cpu, dim)?));
+        if let Some(cpu) = all_on!(parts, DeviceTensor::Cpu) {
+            return Ok(DeviceTensor::Cpu(Storage::cat(&cpu, dim)?));
         }
-        let gpu = parts
-            .iter()
-            .map(|p| match p {
-                DeviceTensor::Gpu(g) => Ok(g),
-                DeviceTensor::Cpu(_) => candle_core::bail!("cat: operands on different devices"),
-            })
-            .collect::<Result<Vec<&GpuTensor>>>()?;
-        Ok(DeviceTensor::Gpu(ops::cat(&gpu, dim)?))
+        if let Some(gpu) = all_on!(parts, DeviceTensor::Gpu) {
+            return Ok(DeviceTensor::Gpu(Storage::cat(&gpu, dim)?));
+        }
+        candle_core::bail!("cat: operands on different devices")
     }
 
     // ------------------------------------------------------------------------ the `kernels` ops
 
-    /// [`super::conv2d`] on either device.
+    /// [`super::conv2d`] on the tensor's device.
     pub fn conv2d(
         &self,
         weight: &Tensor,
@@ -278,33 +342,15 @@ impl DeviceTensor {
         stride: usize,
         padding: usize,
     ) -> Result<DeviceTensor> {
-        self.map(
-            |t| super::conv2d(t, weight, bias, stride, padding),
-            |g| {
-                let bias = bias.map(|b| self.constant(b)).transpose()?;
-                ops::conv2d(
-                    g,
-                    &self.matrix_constant(weight)?,
-                    bias.as_ref(),
-                    stride,
-                    padding,
-                )
-            },
-        )
+        Ok(dispatch!(self, x => Storage::conv2d(x, weight, bias, stride, padding)))
     }
 
     /// A linear layer `x·weightᵀ + bias` (candle-nn `Linear`).
     pub fn linear(&self, layer: &candle_nn::Linear) -> Result<DeviceTensor> {
-        self.map(
-            |t| candle_core::Module::forward(layer, t),
-            |g| {
-                let bias = layer.bias().map(|b| self.constant(b)).transpose()?;
-                ops::linear(g, &self.matrix_constant(layer.weight())?, bias.as_ref())
-            },
-        )
+        Ok(dispatch!(self, x => Storage::linear(x, layer)))
     }
 
-    /// [`super::group_norm`] on either device.
+    /// [`super::group_norm`] on the tensor's device.
     pub fn group_norm(
         &self,
         weight: &Tensor,
@@ -313,83 +359,64 @@ impl DeviceTensor {
         eps: f64,
         silu: bool,
     ) -> Result<DeviceTensor> {
-        self.map(
-            |t| super::group_norm(t, weight, bias, groups, eps, silu),
-            |g| {
-                ops::group_norm(
-                    g,
-                    &self.constant(weight)?,
-                    &self.constant(bias)?,
-                    groups,
-                    eps,
-                    silu,
-                )
-            },
-        )
+        Ok(dispatch!(self, x => Storage::group_norm(x, weight, bias, groups, eps, silu)))
     }
 
-    /// [`super::layer_norm`] on either device.
+    /// [`super::layer_norm`] on the tensor's device.
     pub fn layer_norm(&self, weight: &Tensor, bias: &Tensor, eps: f64) -> Result<DeviceTensor> {
-        self.map(
-            |t| super::layer_norm(t, weight, bias, eps),
-            |g| ops::layer_norm(g, &self.constant(weight)?, &self.constant(bias)?, eps),
-        )
+        Ok(dispatch!(self, x => Storage::layer_norm(x, weight, bias, eps)))
     }
 
-    /// [`super::softmax_last_dim`] on either device.
+    /// [`super::softmax_last_dim`] on the tensor's device.
     pub fn softmax_last_dim(&self) -> Result<DeviceTensor> {
-        self.map(super::softmax_last_dim, ops::softmax_last_dim)
+        Ok(dispatch!(self, x => Storage::softmax_last_dim(x)))
     }
 
-    /// [`super::geglu`] on either device.
+    /// [`super::geglu`] on the tensor's device.
     pub fn geglu(&self) -> Result<DeviceTensor> {
-        self.map(super::geglu, ops::geglu)
+        Ok(dispatch!(self, x => Storage::geglu(x)))
     }
 
     /// `self × otherᵀ` over the last two dimensions (candle `a.matmul(&b.t()?)`).
     pub fn matmul_t(&self, other: &DeviceTensor) -> Result<DeviceTensor> {
-        self.zip(
-            other,
-            |a, b| a.matmul(&b.t()?),
-            |a, b| ops::matmul_scaled(a, b, true, 1.0),
-        )
+        Ok(dispatch2!(self, other, (a, b) => Storage::matmul_t(a, b)))
     }
 
     /// Batched matrix product (candle `matmul`).
     pub fn matmul(&self, other: &DeviceTensor) -> Result<DeviceTensor> {
-        self.zip(other, |a, b| a.matmul(b), ops::matmul)
+        Ok(dispatch2!(self, other, (a, b) => Storage::matmul(a, b)))
     }
 
-    /// [`super::attention`] on either device (flash-style on the GPU: no probability matrix).
+    /// [`super::attention`] on the operands' device (flash-style on the GPU: no probability matrix).
     pub fn attention(
         q: &DeviceTensor,
         k: &DeviceTensor,
         v: &DeviceTensor,
         scale: f64,
     ) -> Result<DeviceTensor> {
-        match (q, k, v) {
+        Ok(match (q, k, v) {
             (DeviceTensor::Cpu(q), DeviceTensor::Cpu(k), DeviceTensor::Cpu(v)) => {
-                Ok(DeviceTensor::Cpu(super::attention(q, k, v, scale)?))
+                DeviceTensor::Cpu(Storage::attention(q, k, v, scale)?)
             }
             (DeviceTensor::Gpu(q), DeviceTensor::Gpu(k), DeviceTensor::Gpu(v)) => {
-                Ok(DeviceTensor::Gpu(ops::attention(q, k, v, scale)?))
+                DeviceTensor::Gpu(Storage::attention(q, k, v, scale)?)
             }
             _ => candle_core::bail!("attention: operands on different devices"),
-        }
+        })
     }
 }
 
 #[cfg(test)]
 mod tests {
-    use candle_core::{Device, Tensor};
+    use candle_core::Tensor;
 
     use super::super::gpu::testing::device_or_skip;
     use super::*;
 
     #[test]
     fn cpu_branch_is_the_candle_call() {
-        let x = Tensor::randn(0f32, 1.0, (2, 3, 4, 5), &Device::Cpu).unwrap();
-        let w = Tensor::randn(0f32, 1.0, (6, 3, 3, 3), &Device::Cpu).unwrap();
+        let x = Tensor::randn(0f32, 1.0, (2, 3, 4, 5), &candle_core::Device::Cpu).unwrap();
+        let w = Tensor::randn(0f32, 1.0, (6, 3, 3, 3), &candle_core::Device::Cpu).unwrap();
         let got = DeviceTensor::Cpu(x.clone())
             .conv2d(&w, None, 1, 1)
             .unwrap()
@@ -407,11 +434,11 @@ mod tests {
         let Some(dev) = device_or_skip() else {
             return;
         };
-        let w = Tensor::randn(0f32, 1.0, (4, 4), &Device::Cpu).unwrap();
+        let w = Tensor::randn(0f32, 1.0, (4, 4), &candle_core::Device::Cpu).unwrap();
         let a = dev.cached(&w).unwrap();
         let b = dev.cached(&w).unwrap();
         assert!(a.same_buffer(&b));
-        let x = DeviceTensor::on(&w, Some(&dev)).unwrap();
+        let x = Device::Gpu(dev.clone()).tensor(&w).unwrap();
         let err = x
             .add(&DeviceTensor::Cpu(w.clone()))
             .unwrap_err()

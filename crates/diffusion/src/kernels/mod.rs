@@ -14,7 +14,7 @@
 //! Inference and training share their forward kernels, so a model computes the same values whether or
 //! not it is being trained.
 //!
-//! The GPU path: networks pass a [`DeviceTensor`] from layer to layer; on the CPU each of its ops is the
+//! The device seam ([`device`]): networks pass a [`DeviceTensor`] from layer to layer; on the CPU each of its ops is the
 //! very function above (or candle call), on the GPU the CubeCL twin in [`gpu::ops`] (tested against the
 //! CPU function on lavapipe). One network definition thus runs on either device.
 
@@ -53,7 +53,8 @@ macro_rules! simd_dispatch {
 mod approx;
 mod attention;
 mod conv;
-mod device;
+mod cpu;
+pub(crate) mod device;
 mod geglu;
 pub mod gpu;
 mod norm;
@@ -61,7 +62,7 @@ mod softmax;
 
 pub use attention::attention;
 pub use conv::conv2d;
-pub use device::DeviceTensor;
+pub use device::{Device, DeviceTensor, Storage, Unary};
 pub use geglu::geglu;
 pub use norm::{group_norm, layer_norm};
 pub use softmax::softmax_last_dim;

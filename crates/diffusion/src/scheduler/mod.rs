@@ -113,6 +113,18 @@ impl NoiseSchedule {
             }
             (None, BetaSchedule::SquaredcosCapV2) => cosine_betas(n),
         };
+        // Every β_t must be a probability below 1 (ᾱ_t = Π(1 − β) then falls from 1 towards 0); anything
+        // else, e.g. `beta_start 5, beta_end -1`, gives negative or NaN ᾱ and black images, not an error.
+        if let Some((t, b)) = betas
+            .iter()
+            .enumerate()
+            .find(|(_, b)| !(0.0..1.0).contains(*b))
+        {
+            return Err(SchedulerError::Invalid(format!(
+                "the beta schedule gives beta_{t} = {b}, outside [0, 1) (check beta_start, beta_end, \
+                 beta_schedule and trained_betas)"
+            )));
+        }
         if p.rescale_betas_zero_snr {
             betas = rescale_zero_terminal_snr(&betas);
         }
@@ -397,6 +409,25 @@ mod tests {
         assert_eq!(v[0], 0.1);
         assert_eq!(v[6], 0.7);
         assert_eq!(torch_linspace_f32(2.0, 3.0, 1), vec![2.0]);
+    }
+
+    #[test]
+    fn betas_outside_zero_one_are_refused() {
+        let params = |start, end| BetaParams {
+            num_train_timesteps: 10,
+            beta_start: start,
+            beta_end: end,
+            beta_schedule: BetaSchedule::Linear,
+            trained_betas: None,
+            rescale_betas_zero_snr: false,
+            set_alpha_to_one: true,
+        };
+        let e = NoiseSchedule::new(&params(5.0, -1.0))
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("beta_0 = 5") && e.contains("beta_start"), "{e}");
+        assert!(NoiseSchedule::new(&params(0.1, f64::NAN)).is_err());
+        assert!(NoiseSchedule::new(&params(0.0001, 0.02)).is_ok());
     }
 
     #[test]

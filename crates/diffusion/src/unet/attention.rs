@@ -441,7 +441,14 @@ mod tests {
         let Some(device) = device_or_skip() else {
             return;
         };
-        let got = fused(&|t| DeviceTensor::on(t, Some(&device)).unwrap(), &edits());
+        let got = fused(
+            &|t| {
+                crate::kernels::Device::Gpu(device.clone())
+                    .tensor(t)
+                    .unwrap()
+            },
+            &edits(),
+        );
         let err = relative_error(&got, &want);
         assert!(err < 1e-5, "GPU relative error {err}");
     }

@@ -22,8 +22,7 @@ pub use config::{PerBlock, UNetConfig};
 use embeddings::{timestep_embedding, TimestepEmbedding};
 pub use memory::ActivationEstimate;
 
-use crate::kernels::gpu::GpuDevice;
-use crate::kernels::DeviceTensor;
+use crate::device;
 use crate::layers::{conv2d, Conv2d, GroupNorm, TimeEmbeddingNorm};
 
 /// Errors from building a UNet.
@@ -225,11 +224,11 @@ impl UNet2DConditionModel {
             encoder_hidden_states,
             timestep_cond,
             hook,
-            None,
+            &device::Device::Cpu,
         )
     }
 
-    /// [`Self::forward`] with the network on `device` (the GPU, or the CPU for `None`): the timestep
+    /// [`Self::forward`] with the network on `device`: the timestep
     /// embedding is computed on the CPU, the blocks run on the device, the prediction is read back.
     pub fn forward_on(
         &self,
@@ -238,7 +237,7 @@ impl UNet2DConditionModel {
         encoder_hidden_states: &Tensor,
         timestep_cond: Option<&Tensor>,
         mut hook: Option<&mut (dyn AttentionHook + '_)>,
-        device: Option<&GpuDevice>,
+        device: &device::Device,
     ) -> candle_core::Result<Tensor> {
         let (batch, _, _, _) = sample.dims4()?;
         let timesteps = match timesteps.dims() {
@@ -270,9 +269,9 @@ impl UNet2DConditionModel {
         } else {
             sample.clone()
         };
-        let sample = DeviceTensor::on(&sample, device)?;
-        let emb = DeviceTensor::on(&emb, device)?;
-        let encoder_hidden_states = &DeviceTensor::on(encoder_hidden_states, device)?;
+        let sample = device.tensor(&sample)?;
+        let emb = device.tensor(&emb)?;
+        let encoder_hidden_states = &device.tensor(encoder_hidden_states)?;
         let mut h = self.conv_in.forward_device(&sample)?;
         let mut skips = vec![h.clone()];
         for block in &self.down_blocks {

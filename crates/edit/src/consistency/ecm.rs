@@ -11,14 +11,15 @@ use rand::seq::SliceRandom;
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use serde::{Deserialize, Serialize};
-use splat::gpu::GpuContext;
-use splat::optim::Group;
+use splat::train::optim::Group;
+use splat::train::StepKind;
 use splat::train::TrainState;
+use splat::SplatDevice;
 use splat::{Camera, GaussianScene, Image};
 
 use super::{MultiView, MultiViewError};
 use crate::compute::candle_err;
-use crate::fit::{check_targets, loss_and_grads, DeviceFit, EditTrainer, ImageLoss, Targets};
+use crate::fit::{check_targets, EditTrainer, ImageLoss, Targets};
 use crate::sampler::{image_to_tensor, NoiseSource, ViewState};
 
 /// Everything ECM is configured with: when it runs and how its fits go.
@@ -114,7 +115,7 @@ pub struct EcmFitter<'a> {
     loss: &'a ImageLoss,
     settings: &'a EcmSettings,
     background: [f32; 3],
-    device: Option<&'a GpuContext>,
+    device: &'a SplatDevice,
 }
 
 impl<'a> EcmFitter<'a> {
@@ -124,7 +125,7 @@ impl<'a> EcmFitter<'a> {
             loss,
             settings,
             background: trainer.background,
-            device: trainer.device.as_ref(),
+            device: &trainer.device,
         }
     }
 }
@@ -149,14 +150,19 @@ impl SceneFitter for EcmFitter<'_> {
         if self.settings.scope == EcmScope::All {
             state.trainable = None;
         }
-        let mut prepared = Targets::new(images);
         let mut rng = ChaCha8Rng::seed_from_u64(seed);
         if self.settings.params == EcmParams::Appearance {
             for g in [Group::Means, Group::LogScales, Group::Quats] {
                 state.adam.group_lr_scale[g.index()] = 0.0;
             }
         }
-        let mut device = DeviceFit::new(self.device, self.loss, images, self.background);
+        let mut targets = Targets::new(self.loss, images);
+        let mut trainer = targets.trainer(self.device, self.background);
+        // No densification: every step is an ordinary one (resident with the D-SSIM loss on a device).
+        let kind = StepKind::Ordinary {
+            track_stats: false,
+            read_loss: false,
+        };
         let base_scale = state.adam.lr_scale;
         let (epochs, halve_every) = self.settings.schedule(cameras.len());
         for epoch in 0..epochs {
@@ -165,29 +171,12 @@ impl SceneFitter for EcmFitter<'_> {
             let mut order: Vec<usize> = (0..cameras.len()).collect();
             order.shuffle(&mut rng);
             for v in order {
-                if let Some(device) = &mut device {
-                    // Parameters and moments stay on the device (D-SSIM loss).
-                    device
-                        .step(&mut state, &cameras[v], v, false)
-                        .map_err(|e| e.to_string())?;
-                    continue;
-                }
-                let (_, grads, _) = loss_and_grads(
-                    &state.scene,
-                    &cameras[v],
-                    v,
-                    &mut prepared,
-                    self.loss,
-                    self.background,
-                    self.device,
-                )
-                .map_err(|e| e.to_string())?;
-                state.step(&grads);
+                trainer
+                    .step(&mut state, &cameras[v], v, &mut targets, kind)
+                    .map_err(|e| e.to_string())?;
             }
         }
-        if let Some(device) = &mut device {
-            device.sync(&mut state).map_err(|e| e.to_string())?;
-        }
+        trainer.sync(&mut state).map_err(|e| e.to_string())?;
         Ok(state.scene)
     }
 }
@@ -215,7 +204,7 @@ impl MultiView<'_> {
         let fit_m = fitter
             .fit(self.scene, self.cameras, &layouts, seed + 1)
             .map_err(MultiViewError::Fit)?;
-        let compute = &model.compute;
+        let compute = model.compute.splat();
         let render_t = compute
             .render_images(&fit_t, self.cameras, self.background)
             .map_err(candle_err)?;

@@ -108,7 +108,7 @@ pub fn make_consistent(
         return Ok(());
     }
     let (rh, rw) = (cameras[0].height as usize, cameras[0].width as usize);
-    let mut lift = compute.lifter(scene, channels);
+    let mut lift = compute.splat().lifter(scene, channels);
     for (v, cam) in cameras.iter().enumerate() {
         let native_map = map_of(v)?;
         let full = resample(&native_map, native.0, native.1, rh, rw, channels, up);
@@ -119,7 +119,7 @@ pub fn make_consistent(
         values: &lifted.values,
         channels,
     };
-    compute.for_each_render(
+    compute.splat().for_each_render(
         scene,
         cameras,
         &RenderSettings::default(),

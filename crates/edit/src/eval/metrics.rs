@@ -15,9 +15,8 @@
 
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
-use splat::gpu::HostFrame;
-use splat::loss::{ssim_blur, SSIM_C1, SSIM_C2};
-use splat::render::RenderOutput;
+use splat::render::Frame;
+use splat::train::loss::{ssim_blur, SSIM_C1, SSIM_C2};
 use splat::{Camera, Image};
 
 /// PSNR reported for a zero error, so reports stay finite (and JSON-serialisable).
@@ -31,14 +30,14 @@ pub enum MetricsError {
 }
 
 /// PSNR in dB of a mean squared error on [0, 1] data, capped at [`PSNR_CAP_DB`].
-pub fn psnr_from_mse(mse: f64) -> f64 {
+pub fn capped_psnr_from_mse(mse: f64) -> f64 {
     if mse.is_nan() {
         return 0.0;
     }
     if mse <= 10f64.powf(-PSNR_CAP_DB / 10.0) {
         PSNR_CAP_DB
     } else {
-        splat::loss::psnr_from_mse(mse)
+        splat::train::loss::psnr_from_mse(mse)
     }
 }
 
@@ -58,45 +57,12 @@ pub struct ViewGeometry<'a> {
 
 impl<'a> ViewGeometry<'a> {
     /// The geometry of a render of `camera`.
-    pub fn from_render(camera: &'a Camera, render: &'a impl Rendered) -> Self {
+    pub fn from_render(camera: &'a Camera, render: &'a Frame) -> Self {
         Self {
             camera,
-            depth: render.depth(),
-            alpha: render.alpha(),
+            depth: &render.depth,
+            alpha: &render.alpha,
         }
-    }
-}
-
-/// A render as the metrics read it, from the CPU renderer or read back from the GPU.
-pub trait Rendered {
-    fn rgb_image(&self) -> Image;
-    /// H*W expected depth (not divided by alpha).
-    fn depth(&self) -> &[f32];
-    /// H*W accumulated opacity.
-    fn alpha(&self) -> &[f32];
-}
-
-impl Rendered for RenderOutput {
-    fn rgb_image(&self) -> Image {
-        RenderOutput::rgb_image(self)
-    }
-    fn depth(&self) -> &[f32] {
-        &self.depth
-    }
-    fn alpha(&self) -> &[f32] {
-        &self.alpha
-    }
-}
-
-impl Rendered for HostFrame {
-    fn rgb_image(&self) -> Image {
-        HostFrame::rgb_image(self)
-    }
-    fn depth(&self) -> &[f32] {
-        &self.depth
-    }
-    fn alpha(&self) -> &[f32] {
-        &self.alpha
     }
 }
 
@@ -444,7 +410,7 @@ fn consistency_impl(
     Ok(ConsistencyReport {
         summary: ConsistencySummary {
             mean_abs_error: (total.covisible > 0).then(|| total.abs / n),
-            psnr: (total.covisible > 0).then(|| psnr_from_mse(total.sq / n)),
+            psnr: (total.covisible > 0).then(|| capped_psnr_from_mse(total.sq / n)),
             pairs: pairs.len(),
             covisible_fraction: ratio(total.covisible, total.opaque),
             covisible_pixels: total.covisible,
@@ -465,7 +431,7 @@ fn ratio(a: u64, b: u64) -> f64 {
 /// depth and alpha): what the final renders of an edited scene are measured with.
 pub fn render_consistency(
     cameras: &[Camera],
-    renders: &[impl Rendered],
+    renders: &[Frame],
     settings: &WarpSettings,
 ) -> Result<ConsistencyReport, MetricsError> {
     if cameras.len() != renders.len() {
@@ -612,7 +578,7 @@ pub fn preservation(
     let ssim: f64 = per_view.iter().map(|v| v.1).sum();
     let samples = 3.0 * pixels as f64;
     Ok(PreservationReport {
-        psnr: (pixels > 0).then(|| psnr_from_mse(sq / samples)),
+        psnr: (pixels > 0).then(|| capped_psnr_from_mse(sq / samples)),
         ssim: (pixels > 0).then(|| ssim / samples),
         pixels,
         fraction: ratio(pixels, total_pixels),
@@ -921,7 +887,7 @@ mod tests {
     /// part of the 11x11 window, renormalised.
     fn direct_ssim(a: &Image, b: &Image, x: usize, y: usize, c: usize) -> f64 {
         let (w, h) = (a.width as usize, a.height as usize);
-        let g = splat::loss::ssim_window();
+        let g = splat::train::loss::ssim_window();
         let (mut sw, mut mx, mut my, mut xx, mut yy, mut xy) = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0);
         for dy in 0..11 {
             for dx in 0..11 {
@@ -950,7 +916,7 @@ mod tests {
     /// direct zero-padded window sums this module computed before it used splat's.
     #[test]
     fn ssim_blur_is_the_direct_window_sum_bit_for_bit() {
-        let g = splat::loss::ssim_window();
+        let g = splat::train::loss::ssim_window();
         let direct = |map: &[f64], w: usize, h: usize| -> Vec<f64> {
             let r = g.len() / 2;
             let mut tmp = vec![0.0; w * h];

@@ -6,7 +6,7 @@ use std::time::Instant;
 use rand::seq::SliceRandom;
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
-use splat::gpu::HostFrame;
+use splat::render::Frame;
 use splat::render::RenderSettings;
 use splat::{Camera, GaussianScene, Image};
 
@@ -67,9 +67,11 @@ pub fn run_edit(
     };
     let compute = &model.compute;
     let (mut trainer, mut state, resumed_from) = run.start(scene, cameras, resume, progress)?;
-    trainer.device = compute.splat().cloned();
+    trainer.device = compute.splat().clone();
     let cams: Vec<Camera> = state.views.iter().map(|&i| cameras[i].clone()).collect();
-    let before = compute.render_images(scene, &cams, job.background)?;
+    let before = compute
+        .splat()
+        .render_images(scene, &cams, job.background)?;
     let mut guidance = outputs::read_guidance(out, state.iterations_done, cams.len())?;
 
     for k in state.iterations_done..job.iterations {
@@ -81,7 +83,9 @@ pub fn run_edit(
         let settings = RenderSettings {
             background: job.background,
         };
-        let renders = compute.render_views(trainer.scene(), &cams, &settings, None)?;
+        let renders = compute
+            .splat()
+            .render_views(trainer.scene(), &cams, &settings, None)?;
         let sources: Vec<Image> = renders.iter().map(|r| r.rgb_image()).collect();
         progress.advance(cams.len() as u64);
         times.render = t.elapsed().as_secs_f64();
@@ -254,7 +258,7 @@ impl Run<'_> {
 fn guidance_consistency(
     images: &[Image],
     cams: &[Camera],
-    renders: &[HostFrame],
+    renders: &[Frame],
 ) -> Option<ConsistencySummary> {
     let geometry: Vec<ViewGeometry> = cams
         .iter()
@@ -306,7 +310,10 @@ fn editable_mask(
         }
         MaskSource::Word(word) => {
             progress.stage("mask: attention to the mask word", cams.len() as u64);
-            let images = model.compute.render_images(scene, cams, job.background)?;
+            let images = model
+                .compute
+                .splat()
+                .render_images(scene, cams, job.background)?;
             let (w, h) = job.size;
             let plan = EditPlan::new(model, &job.prompts, &job.infedit, (w as usize, h as usize))?;
             let mut noise = SeededNoise::new(job.seed_for(0, SeedPurpose::Mask));

@@ -90,7 +90,7 @@ pub fn lift_maps(
     cameras: &[Camera],
     maps: &[Vec<f32>],
 ) -> Result<Vec<f32>, GpuError> {
-    let mut acc = compute.lifter(scene, 1);
+    let mut acc = compute.splat().lifter(scene, 1);
     for (cam, m) in cameras.iter().zip(maps) {
         acc.add_view(cam, m)?;
     }
@@ -143,7 +143,7 @@ pub fn render_mask(scene: &GaussianScene, mask: &[bool], camera: &Camera) -> Vec
             channels: 1,
         }),
     );
-    out.extra
+    out.into_frame().extra
 }
 
 /// Records the conditional cross-attention maps of the layers of one spatial size.

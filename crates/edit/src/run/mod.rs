@@ -28,4 +28,4 @@ pub use job::{
 };
 pub use masks::{mask_from_box, Box3, MaskError};
 pub use outputs::{write_outputs, RunInputs, Written};
-pub use work::{available_memory, work_plan, WorkPlan};
+pub use work::{image_edit_memory, work_plan, WorkPlan};

@@ -5,7 +5,7 @@
 use std::path::{Path, PathBuf};
 
 use serde::Serialize;
-use splat::render::{render, RenderOutput, RenderSettings};
+use splat::render::{render, Frame, RenderSettings};
 use splat::{Camera, GaussianScene, Image};
 
 use crate::eval::metrics::{self, MetricsError, WarpSettings};
@@ -153,13 +153,13 @@ pub fn write_outputs(
     splat::ply::write_ply(&scene_path, &result.scene).map_err(|e| io_err(&scene_path, e))?;
 
     // Before/after renders (with depth and alpha for the metrics).
-    let before: Vec<RenderOutput> = cams
+    let before: Vec<Frame> = cams
         .iter()
-        .map(|c| render(source, c, &settings, None))
+        .map(|c| render(source, c, &settings, None).into_frame())
         .collect();
-    let after: Vec<RenderOutput> = cams
+    let after: Vec<Frame> = cams
         .iter()
-        .map(|c| render(&result.scene, c, &settings, None))
+        .map(|c| render(&result.scene, c, &settings, None).into_frame())
         .collect();
     let mut pairs = Vec::new();
     for (v, (b, a)) in before.iter().zip(&after).enumerate() {

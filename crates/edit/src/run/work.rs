@@ -74,7 +74,7 @@ pub fn view_batch(job: &EditJob, model: &EditModel, scene: &GaussianScene, views
     if let Some(n) = job.view_batch {
         return n.max(1);
     }
-    let Some(gpu) = model.compute.networks() else {
+    let Some(gpu) = model.compute.networks().gpu() else {
         return 1;
     };
     let f = model.downscale();
@@ -111,7 +111,7 @@ const HEADS: u64 = 8;
 /// and the one ECM fit alive at a time, one lifting's sums and one frame with CCM's channels, plus
 /// 100 MB of pools and small buffers. 0 on the CPU.
 pub fn gpu_state_bytes(job: &EditJob, model: &EditModel, scene: &GaussianScene) -> u64 {
-    let Some(gpu) = model.compute.networks() else {
+    let Some(gpu) = model.compute.networks().gpu() else {
         return 0;
     };
     let weight_bytes = match gpu.precision() {
@@ -131,6 +131,27 @@ fn scene_param_bytes(scene: &GaussianScene) -> u64 {
 }
 
 /// Counts the work of a run and estimates its peak memory.
+/// The memory of a single-image edit (`vcedit edit-image`) of `size` (width, height): host bytes and, on a
+/// GPU, device bytes. The weights (held on the host either way) plus one hooked batch-6 UNet call (the
+/// three branches, conditional and unconditional) where the networks run, and the image's buffers.
+pub fn image_edit_memory(model: &EditModel, size: (u32, u32)) -> (u64, Option<u64>) {
+    let (w, h) = (size.0 as u64, size.1 as u64);
+    let f = model.downscale() as u64;
+    let (lh, lw) = ((h / f) as usize, (w / f) as usize);
+    let weights = model.parameters * 4;
+    let unet = model
+        .unet
+        .config()
+        .activation_estimate(6, lh, lw, 77, true)
+        .map_or(6 * (w / f) * (h / f) * 320 * 4 * 40, |e| e.total() as u64);
+    // The input, the decoded outputs and the attention maps saved with the image, in f32.
+    let images = w * h * 4 * 16;
+    match model.compute.networks().gpu() {
+        Some(_) => (weights + images + 300_000_000, Some(weights + unet)),
+        None => (weights + unet + images + 300_000_000, None),
+    }
+}
+
 pub fn work_plan(
     job: &EditJob,
     model: &EditModel,
@@ -193,7 +214,7 @@ pub fn work_plan(
         weights + unet + v as u64 * per_view + images + train + lift + lpips + 300_000_000;
     // On a GPU: what the run keeps there (`gpu_state_bytes`) plus one hooked UNet call of `view_batch`
     // views (diffusion's documented upper bound; flash self-attention keeps no probability matrix).
-    let gpu_memory_bytes = model.compute.networks().map(|_| {
+    let gpu_memory_bytes = model.compute.networks().gpu().map(|_| {
         let (lh, lw) = ((h / f) as usize, (w / f) as usize);
         let activations = model
             .unet
@@ -205,6 +226,7 @@ pub fn work_plan(
     let gpu_free_bytes = model
         .compute
         .networks()
+        .gpu()
         .and_then(|gpu| gpu.context().limits.free_bytes_at_open);
     WorkPlan {
         views: v,
@@ -221,14 +243,6 @@ pub fn work_plan(
 }
 
 const LPIPS_BUDGET: u64 = LPIPS_CACHE_BYTES as u64;
-
-/// Memory available to a new run (Linux `MemAvailable`), if known.
-pub fn available_memory() -> Option<u64> {
-    let text = std::fs::read_to_string("/proc/meminfo").ok()?;
-    let line = text.lines().find(|l| l.starts_with("MemAvailable:"))?;
-    let kb: u64 = line.split_whitespace().nth(1)?.parse().ok()?;
-    Some(kb * 1024)
-}
 
 #[cfg(test)]
 mod tests {

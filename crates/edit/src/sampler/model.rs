@@ -231,7 +231,7 @@ impl EditModel {
     /// largest activation within the device's largest buffer.
     fn codec_batch(&self, batch: usize, h: usize, w: usize) -> usize {
         let batch = batch.max(1);
-        let Some(gpu) = self.compute.networks() else {
+        let Some(gpu) = self.compute.networks().gpu() else {
             return batch;
         };
         let per_image = self.codec.largest_activation_bytes(h, w).max(1) as u64;

@@ -18,6 +18,7 @@
 //! [`load_cameras`] detects the source from a file or folder. [`to_working_resolution`] adapts any camera
 //! to the editor's working size (square 512 by default) by centre-cropping, then scaling.
 
+pub mod camera;
 pub mod colmap;
 pub mod inria;
 pub mod orbit;
@@ -105,7 +106,7 @@ impl CameraError {
 
 /// Reads a whole file, mapping failures to a [`CameraError`] naming it.
 pub(crate) fn read_bytes(path: &Path) -> Result<Vec<u8>, CameraError> {
-    std::fs::read(path).map_err(|e| CameraError::read(path, e))
+    files::read_regular(path).map_err(|e| CameraError::read(path, e))
 }
 
 pub(crate) fn read_text(path: &Path) -> Result<String, CameraError> {

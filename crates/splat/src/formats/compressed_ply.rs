@@ -51,7 +51,7 @@ const SCALE_LIMIT: f32 = 20.0;
 /// Whether a PLY file's header describes a compressed PLY (a `chunk` element and `packed_*` vertices).
 /// A header that cannot be parsed is not compressed: the plain PLY reader then reports what is wrong.
 pub(crate) fn is_compressed_ply(path: &Path) -> std::io::Result<bool> {
-    let mut reader = BufReader::new(std::fs::File::open(path)?);
+    let mut reader = BufReader::new(files::open_regular(path)?);
     Ok(match parse_header(&mut reader) {
         Ok(h) => is_compressed(&h.elements),
         Err(_) => false,

@@ -18,6 +18,7 @@
 
 pub mod compressed_ply;
 pub mod dot_splat;
+mod open;
 pub mod ply;
 pub mod sog;
 pub mod spz;
@@ -25,6 +26,7 @@ pub mod spz;
 mod codec;
 mod report;
 
+pub use open::{open_scene, OpenError};
 pub use report::{QuantisationError, WriteReport};
 
 use crate::GaussianScene;
@@ -50,6 +52,8 @@ pub enum FormatError {
     },
     #[error("{}: not a scene: {msg}", path.display())]
     NotAScene { path: PathBuf, msg: String },
+    #[error("{}: the scene decodes to unusable values: {msg}", path.display())]
+    BadValues { path: PathBuf, msg: String },
     #[error("{}: cannot write this scene as {format}: {msg}", path.display())]
     Unwritable {
         path: PathBuf,
@@ -114,8 +118,22 @@ impl OutputFormat {
     }
 }
 
-/// Reads a scene from any supported file or folder, recognised by content (see the module docs).
+/// Reads a scene from any supported file or folder, recognised by content (see the module docs), and
+/// checks that every value decodes to a finite number ([`GaussianScene::check_values`]).
 pub fn read_scene(path: &Path) -> Result<GaussianScene, FormatError> {
+    checked(path, read_any(path)?)
+}
+
+/// `scene` read from `path` if its values are usable.
+pub(crate) fn checked(path: &Path, scene: GaussianScene) -> Result<GaussianScene, FormatError> {
+    scene.check_values().map_err(|msg| FormatError::BadValues {
+        path: path.to_path_buf(),
+        msg,
+    })?;
+    Ok(scene)
+}
+
+fn read_any(path: &Path) -> Result<GaussianScene, FormatError> {
     if path.is_dir() {
         return read_folder(path);
     }
@@ -129,7 +147,7 @@ pub fn read_scene(path: &Path) -> Result<GaussianScene, FormatError> {
         err,
     };
     let mut head = Vec::with_capacity(16);
-    std::fs::File::open(path)
+    files::open_regular(path)
         .map_err(read_err)?
         .take(16)
         .read_to_end(&mut head)
@@ -149,14 +167,14 @@ pub fn read_scene(path: &Path) -> Result<GaussianScene, FormatError> {
     }
     if head.starts_with(b"ply") {
         return if compressed_ply::is_compressed_ply(path).map_err(read_err)? {
-            let bytes = std::fs::read(path).map_err(read_err)?;
+            let bytes = files::read_regular(path).map_err(read_err)?;
             compressed_ply::decode(&bytes).map_err(bad("compressed PLY"))
         } else {
             Ok(ply::read_ply(path)?)
         };
     }
     if head.starts_with(&spz::GZIP_MAGIC) || head.starts_with(&spz::NGSP_MAGIC) {
-        let bytes = std::fs::read(path).map_err(read_err)?;
+        let bytes = files::read_regular(path).map_err(read_err)?;
         return spz::decode(&bytes).map_err(bad(".spz"));
     }
     if head.starts_with(sog::ZIP_MAGIC) {
@@ -176,7 +194,7 @@ pub fn read_scene(path: &Path) -> Result<GaussianScene, FormatError> {
                 .into(),
         });
     }
-    let bytes = std::fs::read(path).map_err(read_err)?;
+    let bytes = files::read_regular(path).map_err(read_err)?;
     dot_splat::decode(&bytes).map_err(bad(".splat"))
 }
 

@@ -18,7 +18,6 @@
 
 use crate::scene::{sh_coeffs, GaussianScene};
 use rayon::prelude::*;
-use std::fs::File;
 use std::io::{BufRead, BufReader, Read};
 use std::path::{Path, PathBuf};
 
@@ -652,7 +651,7 @@ pub fn read_ply(path: &Path) -> Result<GaussianScene, PlyError> {
 }
 
 fn read_ply_inner(path: &Path) -> Result<GaussianScene, Problem> {
-    let file = File::open(path).map_err(Problem::Io)?;
+    let file = files::open_regular(path).map_err(Problem::Io)?;
     let file_len = file.metadata().map_err(Problem::Io)?.len();
     let mut reader = BufReader::with_capacity(1 << 20, file);
     let header = parse_header(&mut reader)?;
@@ -783,18 +782,7 @@ fn read_binary(
     let mut row = Vec::new();
     // Elements before the vertex element only need skipping.
     for e in &header.elements[..vertex_index] {
-        if e.props.is_empty() {
-            continue;
-        }
-        let what = || format!("element '{}'", e.name);
-        if let Some(size) = e.fixed_row_size() {
-            skip_bytes(reader, e.count * size as u64, what)?;
-        } else {
-            let mut offsets = vec![0; e.props.len()];
-            for r in 0..e.count {
-                read_binary_list_row(reader, e, big_endian, &mut row, &mut offsets, r)?;
-            }
-        }
+        skip_element(reader, e, big_endian, &mut row)?;
     }
 
     let element = &header.elements[vertex_index];
@@ -875,7 +863,33 @@ fn read_binary(
             }
         }
     }
+    // Elements after it are not used, but a file that ends inside one is damaged (or its header lies).
+    for e in &header.elements[vertex_index + 1..] {
+        skip_element(reader, e, big_endian, &mut row)?;
+    }
     Ok(builder.scene)
+}
+
+/// Reads past the rows of binary element `e`, checking that they are all there.
+fn skip_element(
+    reader: &mut impl Read,
+    e: &Element,
+    big_endian: bool,
+    row: &mut Vec<u8>,
+) -> Result<(), Problem> {
+    if e.props.is_empty() {
+        return Ok(());
+    }
+    let what = || format!("element '{}'", e.name);
+    if let Some(size) = e.fixed_row_size() {
+        skip_bytes(reader, e.count * size as u64, what)?;
+    } else {
+        let mut offsets = vec![0; e.props.len()];
+        for r in 0..e.count {
+            read_binary_list_row(reader, e, big_endian, row, &mut offsets, r)?;
+        }
+    }
+    Ok(())
 }
 
 /// Whitespace-separated tokens of an ASCII PLY body, streamed.

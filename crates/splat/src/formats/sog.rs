@@ -95,11 +95,15 @@ struct Texture {
     rgba: Vec<u8>,
 }
 
-fn decode_webp(name: &str, bytes: &[u8]) -> Result<Texture, String> {
+/// Decodes a WebP texture of at most `max_texels` texels.
+fn decode_webp(name: &str, bytes: &[u8], max_texels: u64) -> Result<Texture, String> {
     let mut reader =
         image::ImageReader::with_format(std::io::Cursor::new(bytes), image::ImageFormat::WebP);
-    // The decoder checks the image's claimed size against these limits before allocating.
-    reader.limits(image::Limits::default());
+    // The decoder checks the image's claimed size against these limits before allocating: a 40-byte
+    // WebP may claim 11000² texels.
+    let mut limits = image::Limits::default();
+    limits.max_alloc = Some(4 * max_texels);
+    reader.limits(limits);
     let img = reader
         .decode()
         .map_err(|e| format!("{name}: not a readable WebP image: {e}"))?
@@ -123,11 +127,27 @@ fn decode_with(
         None => return Err("meta.json has no 'version': SOG version 1 is not supported".into()),
         Some(v) => return Err(format!("SOG version {v} is not supported (version 2 is)")),
     }
+    // Textures are laid out for the count (`texture_size`); other writers may pad differently, so 4×
+    // that (and never less than a 256² texture) is accepted.
+    let (w, h) = texture_size(meta.count as usize);
+    let max_texels = (w as u64)
+        .saturating_mul(h as u64)
+        .saturating_mul(4)
+        .max(256 * 256);
+    // The decoded scene and five textures are held together.
+    files::check_allocation(
+        GaussianScene::memory_bytes(
+            meta.count,
+            meta.sh_n.as_ref().map_or(0, |sh| sh.bands.min(3)),
+        )
+        .saturating_add(meta.count.saturating_mul(5 * 4)),
+        &format!("the {} Gaussians meta.json declares", meta.count),
+    )?;
     let texture = |files: &[String], i: usize, what: &str| -> Result<Texture, String> {
         let name = files
             .get(i)
             .ok_or_else(|| format!("meta.json names no file for {what}"))?;
-        let t = decode_webp(name, &load(name)?)?;
+        let t = decode_webp(name, &load(name)?, max_texels)?;
         if (t.width * t.height) < meta.count as usize {
             return Err(format!(
                 "{name} has {}x{} texels, fewer than the {} Gaussians meta.json declares",
@@ -180,6 +200,8 @@ fn decode_with(
                     .first()
                     .ok_or("meta.json names no shN centroids file")?,
                 &load(&sh.files[0])?,
+                // At most PALETTE_MAX centroids of 15 coefficients each (degree 3).
+                (PALETTE_MAX * 16) as u64,
             )?;
             let labels = texture(&sh.files, 1, "shN labels")?;
             let rest = sh_coeffs(sh.bands) - 1;
@@ -313,18 +335,18 @@ pub fn read_folder(meta_path: &Path) -> Result<GaussianScene, String> {
                 "meta.json names '{name}', which is not a plain file name"
             ));
         }
-        let file = std::fs::File::open(dir.join(name))
+        let file = files::open_regular(&dir.join(name))
             .map_err(|e| format!("cannot open {name} beside meta.json: {e}"))?;
         read_limited(file, name)
     };
     let meta_file =
-        std::fs::File::open(meta_path).map_err(|e| format!("cannot read meta.json: {e}"))?;
+        files::open_regular(meta_path).map_err(|e| format!("cannot read meta.json: {e}"))?;
     decode_with(&read_limited(meta_file, "meta.json")?, &open)
 }
 
 /// Reads SOG bundled in a zip file (`meta.json` at the root or in one folder, textures beside it).
 pub fn read_zip(path: &Path) -> Result<GaussianScene, String> {
-    let file = std::fs::File::open(path).map_err(|e| format!("cannot read: {e}"))?;
+    let file = files::open_regular(path).map_err(|e| format!("cannot read: {e}"))?;
     let archive = std::cell::RefCell::new(
         zip::ZipArchive::new(file).map_err(|e| format!("not a readable zip archive: {e}"))?,
     );

@@ -295,6 +295,13 @@ fn check_header(
     for (o, per) in out.iter_mut().zip(sizes) {
         *o = size_of(u64::from(count), per as u64, "Gaussians")?;
     }
+    // The packed arrays and the decoded scene are both held at the end.
+    let packed: u64 = out.iter().map(|&b| b as u64).sum();
+    let scene = GaussianScene::memory_bytes(u64::from(count), u32::from(sh_degree));
+    files::check_allocation(
+        packed + scene,
+        &format!("the {count} Gaussians the header declares"),
+    )?;
     Ok(out)
 }
 

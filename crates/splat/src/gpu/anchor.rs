@@ -4,7 +4,7 @@
 //! is rebuilt). The loss value itself is not computed: the fits never read it.
 
 use super::{arg, GpuContext, GpuError, GpuScene, GpuSceneGrads};
-use crate::anchor::Anchor;
+use crate::train::anchor::Anchor;
 use ::gpu::cubecl;
 use ::gpu::cubecl::prelude::*;
 use ::gpu::cubecl::server::Handle;

@@ -1,5 +1,5 @@
 //! The fits' loss on the device: `(1 − λ)·L1 + λ·(1 − SSIM)` and its gradient, as
-//! [`crate::loss::l1_dssim`] computes them (11-tap Gaussian window, σ 1.5, zero padding, per channel),
+//! [`crate::train::loss::l1_dssim`] computes them (11-tap Gaussian window, σ 1.5, zero padding, per channel),
 //! or with free weights `a·L1 + b·(1 − SSIM)` ([`l1_dssim_weighted`], the editing fit's 10 : 2.5).
 //!
 //! Maps are planar on the device (plane `q` = pixels `q·H·W ..`). The separable blur's two passes are
@@ -10,7 +10,7 @@
 //! gradient in the image's interleaved layout, plus |pred − target|).
 
 use super::{arg, GpuContext, GpuError};
-use crate::loss::{ssim_window, SSIM_C1, SSIM_C2, SSIM_WINDOW};
+use crate::train::loss::{ssim_window, SSIM_C1, SSIM_C2, SSIM_WINDOW};
 use ::gpu::cubecl;
 use ::gpu::cubecl::prelude::*;
 use ::gpu::cubecl::server::Handle;
@@ -265,7 +265,7 @@ pub fn l1_dssim(
 }
 
 /// `l1·L1 + dssim·D-SSIM` of `pred` against `target` (both H*W*C interleaved, on the device); value and
-/// gradient as the host's weighted sum of [`crate::loss::l1`] and [`crate::loss::ssim`].
+/// gradient as the host's weighted sum of [`crate::train::loss::l1`] and [`crate::train::loss::ssim`].
 pub fn l1_dssim_weighted(
     ctx: &GpuContext,
     pred: &Handle,

@@ -26,7 +26,7 @@ pub(crate) mod raster;
 pub(crate) mod sh;
 mod train;
 
-use crate::render::{ExtraChannels, OutputGrads, RenderSettings, SceneGrads, TILE};
+use crate::render::{ExtraChannels, Frame, OutputGrads, RenderSettings, SceneGrads, TILE};
 use crate::{Camera, GaussianScene};
 use ::gpu::cubecl::prelude::*;
 use ::gpu::cubecl::server::Handle;
@@ -533,32 +533,12 @@ fn render_backward_device_with(
     })
 }
 
-/// A GPU render read back to the host (fields as in [`crate::render::RenderOutput`]).
-#[derive(Clone, Debug)]
-pub struct HostFrame {
-    pub width: u32,
-    pub height: u32,
-    pub rgb: Vec<f32>,
-    pub alpha: Vec<f32>,
-    pub depth: Vec<f32>,
-    pub extra: Vec<f32>,
-    pub channels: usize,
-    pub radii: Vec<u32>,
-}
-
-impl HostFrame {
-    /// The RGB image as an [`crate::Image`].
-    pub fn rgb_image(&self) -> crate::Image {
-        crate::Image::from_data(self.width, self.height, 3, self.rgb.clone())
-    }
-}
-
 /// Reads a device frame back.
-pub fn download(ctx: &GpuContext, frame: &GpuFrame, n: usize) -> Result<HostFrame, GpuError> {
+pub fn download(ctx: &GpuContext, frame: &GpuFrame, n: usize) -> Result<Frame, GpuError> {
     let c = &ctx.client;
     let npix = (frame.width * frame.height) as usize;
     let info = read_u32(c, &frame.info, INFO_U * n)?;
-    Ok(HostFrame {
+    Ok(Frame {
         width: frame.width,
         height: frame.height,
         rgb: read_f32(c, &frame.rgb, 3 * npix)?,
@@ -577,7 +557,7 @@ pub fn render(
     camera: &Camera,
     settings: &RenderSettings,
     extra: Option<ExtraChannels<'_>>,
-) -> Result<HostFrame, GpuError> {
+) -> Result<Frame, GpuError> {
     render_with(
         ctx,
         scene,
@@ -597,7 +577,7 @@ fn render_with(
     settings: &RenderSettings,
     extra: Option<ExtraChannels<'_>>,
     ppu: u32,
-) -> Result<HostFrame, GpuError> {
+) -> Result<Frame, GpuError> {
     let dev = GpuScene::upload(ctx, scene);
     let extra_dev = extra.map(|e| {
         assert_eq!(
@@ -728,4 +708,4 @@ fn read_grads(
 }
 
 #[cfg(test)]
-mod tests;
+pub(crate) mod tests;

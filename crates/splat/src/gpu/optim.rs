@@ -1,10 +1,10 @@
-//! Adam on the device: the update of `crate::optim::Adam::step` (torch's Adam with the trainer's eps),
+//! Adam on the device: the update of `crate::train::optim::Adam::step` (torch's Adam with the trainer's eps),
 //! with the moments kept beside a [`GpuScene`]. The CPU [`Adam`] still holds the learning rates and the
 //! step count, so both paths share one schedule. A per-Gaussian trainable mask (u32 flags on the device)
 //! skips frozen Gaussians as [`Adam::step`] does: parameters and moments untouched.
 
 use super::{arg, GpuContext, GpuError, GpuScene, GpuSceneGrads};
-use crate::optim::{Adam, Group};
+use crate::train::optim::{Adam, Group};
 use ::gpu::cubecl;
 use ::gpu::cubecl::prelude::*;
 use ::gpu::cubecl::server::Handle;
@@ -78,7 +78,7 @@ impl GpuAdam {
     /// The moments of a host optimiser, uploaded.
     pub fn from_host(ctx: &GpuContext, adam: &Adam) -> Self {
         let c = &ctx.client;
-        let pair = |m: &crate::optim::Moments| (upload_f32(c, &m.m), upload_f32(c, &m.v));
+        let pair = |m: &crate::train::optim::Moments| (upload_f32(c, &m.m), upload_f32(c, &m.v));
         Self {
             moments: [
                 pair(&adam.means),

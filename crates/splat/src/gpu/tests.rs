@@ -11,7 +11,7 @@ use rand::{Rng, SeedableRng};
 
 /// Random Gaussians in front of the camera: sizes from sub-pixel to a few tiles, all opacities, some
 /// behind the camera, SH degree `degree`.
-fn random_scene(n: usize, degree: u32, seed: u64) -> GaussianScene {
+pub(crate) fn random_scene(n: usize, degree: u32, seed: u64) -> GaussianScene {
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
     let k = crate::scene::sh_coeffs(degree);
     let mut s = GaussianScene::new(degree);
@@ -41,7 +41,7 @@ fn random_scene(n: usize, degree: u32, seed: u64) -> GaussianScene {
     s
 }
 
-fn camera(width: u32, height: u32) -> Camera {
+pub(crate) fn camera(width: u32, height: u32) -> Camera {
     look_at(
         "t".into(),
         [0.2, -0.1, -3.0],
@@ -249,7 +249,7 @@ fn backward_matches_the_cpu_per_parameter_kind() {
 /// `fit_on` with the device reaches the CPU fit's PSNR on a tiny self-rendered dataset.
 #[test]
 fn fit_on_the_gpu_tracks_the_cpu_fit() {
-    use crate::fit::{fit, fit_on, Dataset, FitConfig, View};
+    use crate::train::scene_fit::{fit, fit_on, Dataset, FitConfig, View};
     let Some(ctx) = context_or_skip() else {
         return;
     };
@@ -267,7 +267,7 @@ fn fit_on_the_gpu_tracks_the_cpu_fit() {
                 32,
                 30.0,
             );
-            let image = render::render(&truth, &cam, &settings, None).rgb;
+            let image = render::render(&truth, &cam, &settings, None).frame.rgb;
             View { camera: cam, image }
         })
         .collect();
@@ -290,7 +290,13 @@ fn fit_on_the_gpu_tracks_the_cpu_fit() {
     // random splits that follow, so the comparison is the criterion (0.3 dB).
     for (config, tolerance) in [(plain, 0.01), (densifying, 0.3)] {
         let cpu = fit(&dataset, &config, &mut |_| {});
-        let gpu = fit_on(&dataset, &config, Some(&ctx), &mut |_| {}).unwrap();
+        let gpu = fit_on(
+            &dataset,
+            &config,
+            &crate::SplatDevice::Gpu(ctx.clone()),
+            &mut |_| {},
+        )
+        .unwrap();
         eprintln!(
             "fit 40 steps: train PSNR CPU {:.3} GPU {:.3}, test {:?} / {:?}, {} / {} Gaussians",
             cpu.train_psnr,
@@ -363,7 +369,7 @@ fn lifting_matches_the_cpu() {
 /// Three device Adam steps land where `Adam::step` does.
 #[test]
 fn adam_on_the_device_matches_the_cpu() {
-    use crate::optim::{Adam, LearningRates};
+    use crate::train::optim::{Adam, LearningRates};
     let Some(ctx) = context_or_skip() else {
         return;
     };
@@ -450,7 +456,7 @@ fn densify_stats_on_the_device_match_the_cpu() {
     assert!(rel_err(&got.grad2d, &on_host.grad2d) < 1e-6);
 }
 
-/// The device loss against `crate::loss::l1_dssim`: value and gradient.
+/// The device loss against `crate::train::loss::l1_dssim`: value and gradient.
 #[test]
 fn l1_dssim_on_the_device_matches_the_cpu() {
     let Some(ctx) = context_or_skip() else {
@@ -465,7 +471,7 @@ fn l1_dssim_on_the_device_matches_the_cpu() {
         .map(|i| ((i as f32 * 0.11).cos() + 1.0) * 0.45)
         .collect();
     for weight in [0.0, 0.2, 1.0] {
-        let want = crate::loss::l1_dssim(&pred, &target, w, h, ch, weight);
+        let want = crate::train::loss::l1_dssim(&pred, &target, w, h, ch, weight);
         let got = super::l1_dssim(
             &ctx,
             &upload_f32(c, &pred),
@@ -521,7 +527,7 @@ fn upload_grads(ctx: &GpuContext, g: &SceneGrads) -> GpuSceneGrads {
 /// generations (one of weight 0), a partial mask or none, with and without the colour term.
 #[test]
 fn anchor_gradient_on_the_device_matches_the_cpu() {
-    use crate::anchor::{Anchor, AnchorConfig};
+    use crate::train::anchor::{Anchor, AnchorConfig};
     let Some(ctx) = context_or_skip() else {
         return;
     };
@@ -578,7 +584,7 @@ fn anchor_gradient_on_the_device_matches_the_cpu() {
 /// parameters and moments bit for bit in the hooked groups (rotations only with `mask_rotation`).
 #[test]
 fn masked_adam_on_the_device_matches_the_cpu() {
-    use crate::optim::{Adam, LearningRates};
+    use crate::train::optim::{Adam, LearningRates};
     let Some(ctx) = context_or_skip() else {
         return;
     };

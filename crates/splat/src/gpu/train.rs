@@ -7,8 +7,8 @@ use super::{
     l1_dssim_weighted, render_backward_device, render_device, GpuAdam, GpuAnchor, GpuContext,
     GpuDensifyStats, GpuError, GpuLoss, GpuOutputGrads, GpuScene, L1DssimWeights,
 };
-use crate::optim::Adam;
 use crate::render::RenderSettings;
+use crate::train::optim::Adam;
 use crate::train::TrainState;
 use crate::Camera;
 use ::gpu::cubecl::server::Handle;

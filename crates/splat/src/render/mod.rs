@@ -69,6 +69,14 @@ pub struct ExtraChannels<'a> {
 /// Everything [`render`] produces, plus the state [`render_backward`] needs.
 #[derive(Clone, Debug)]
 pub struct RenderOutput {
+    /// The images and radii (what a device render reads back as well).
+    pub frame: Frame,
+    state: SavedState,
+}
+
+/// A rendered view: images and per-Gaussian radii, from any backend.
+#[derive(Clone, Debug)]
+pub struct Frame {
     pub width: u32,
     pub height: u32,
     /// H*W*3, background composited.
@@ -83,7 +91,26 @@ pub struct RenderOutput {
     pub channels: usize,
     /// Per Gaussian screen radius in pixels, 0 = not rendered.
     pub radii: Vec<u32>,
-    state: SavedState,
+}
+
+impl Frame {
+    /// Bytes a frame of `pixels` pixels, `gaussians` Gaussians and `extra` channels holds.
+    pub fn memory_bytes(pixels: u64, gaussians: u64, extra: u64) -> u64 {
+        pixels * (5 + extra) * 4 + gaussians * 4
+    }
+
+    /// The RGB image as an [`crate::Image`].
+    pub fn rgb_image(&self) -> crate::Image {
+        crate::Image::from_data(self.width, self.height, 3, self.rgb.clone())
+    }
+}
+
+/// A CPU render is its frame plus the state its backward pass needs: it reads as the frame.
+impl std::ops::Deref for RenderOutput {
+    type Target = Frame;
+    fn deref(&self) -> &Frame {
+        &self.frame
+    }
 }
 
 #[derive(Clone, Debug)]
@@ -95,9 +122,9 @@ struct SavedState {
 }
 
 impl RenderOutput {
-    /// The RGB image as an [`crate::Image`].
-    pub fn rgb_image(&self) -> crate::Image {
-        crate::Image::from_data(self.width, self.height, 3, self.rgb.clone())
+    /// The frame, the backward state dropped.
+    pub fn into_frame(self) -> Frame {
+        self.frame
     }
 
     /// Number of (tile, Gaussian) pairs the rasteriser visited: a measure of the work done.
@@ -127,6 +154,15 @@ pub struct SceneGrads {
     pub extra: Vec<f32>,
     /// dL/d(projected pixel centre) per Gaussian, for densification.
     pub means2d: Vec<[f32; 2]>,
+}
+
+/// Peak host memory, in bytes, of one CPU [`render`] of `pixels` pixels of `gaussians` Gaussians with
+/// `extra` channels: per pixel the images and the backward state (colour, alpha, depth, extra channels,
+/// final transmittance, last index), per Gaussian the projected splat and its tile-list entries
+/// (estimated at 16 tiles of 16 bytes each). An estimate for refusing work up front, not a bound.
+pub fn render_memory_bytes(pixels: u64, gaussians: u64, extra: u64) -> u64 {
+    let per_gaussian = std::mem::size_of::<Splat<f32>>() as u64 + 16 * 16;
+    pixels * (7 + extra) * 4 + gaussians * per_gaussian
 }
 
 /// Renders `scene` from `camera`.
@@ -160,14 +196,16 @@ pub fn render(
         last,
     } = fwd.raster;
     RenderOutput {
-        width: camera.width,
-        height: camera.height,
-        rgb,
-        alpha,
-        depth,
-        extra: extra_img,
-        channels: extra.map_or(0, |e| e.1),
-        radii,
+        frame: Frame {
+            width: camera.width,
+            height: camera.height,
+            rgb,
+            alpha,
+            depth,
+            extra: extra_img,
+            channels: extra.map_or(0, |e| e.1),
+            radii,
+        },
         state: SavedState {
             splats: fwd.splats,
             bins: fwd.bins,

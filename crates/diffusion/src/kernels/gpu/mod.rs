@@ -12,6 +12,7 @@
 mod cube;
 pub mod ops;
 mod precision;
+mod storage;
 
 pub use precision::{Precision, UnknownPrecision};
 

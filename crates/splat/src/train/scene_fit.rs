@@ -4,13 +4,15 @@
 //! with [`DefaultStrategy`].
 
 use crate::cameras::{crop_window, load_cameras, to_working_resolution, CameraError, PointCloud};
-use crate::densify::{DefaultStrategy, RefineReport};
+use crate::gpu::L1DssimWeights;
 use crate::image::ImageError;
-use crate::loss::{l1_dssim, psnr, DEFAULT_SSIM_WEIGHT};
-use crate::optim::LearningRates;
-use crate::render::{render, render_backward, OutputGrads, RenderSettings};
+use crate::render::{render, RenderSettings};
+use crate::train::densify::{DefaultStrategy, RefineReport};
+use crate::train::loss::{l1_dssim, psnr, DEFAULT_SSIM_WEIGHT};
+use crate::train::optim::LearningRates;
+use crate::train::{FitLoss, StepKind, StepOutcome, Trainer};
 use crate::train::{RenderedView, TrainState};
-use crate::{Camera, GaussianScene, Image};
+use crate::{Camera, GaussianScene, Image, SplatDevice};
 use rand::seq::SliceRandom;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -560,6 +562,27 @@ pub fn evaluate(scene: &GaussianScene, views: &[View], background: [f32; 3]) -> 
     total / views.len() as f64
 }
 
+/// The scene fit's loss: `(1 − ssim_weight)·L1 + ssim_weight·D-SSIM` against the training images.
+struct SceneFitLoss<'a> {
+    views: &'a [View],
+    ssim_weight: f32,
+}
+
+impl FitLoss for SceneFitLoss<'_> {
+    type Error = crate::gpu::GpuError;
+
+    fn eval(&mut self, rgb: &[f32], v: usize) -> Result<(f32, Vec<f32>), Self::Error> {
+        let view = &self.views[v];
+        let (w, h) = (view.camera.width as usize, view.camera.height as usize);
+        let loss = l1_dssim(rgb, &view.image, w, h, 3, self.ssim_weight);
+        Ok((loss.value, loss.grad))
+    }
+
+    fn device_weights(&self) -> Option<L1DssimWeights> {
+        Some(L1DssimWeights::blend(self.ssim_weight))
+    }
+}
+
 /// Whether step `step` must run with the state on the host: it densifies, resets opacities, evaluates
 /// or is the last one (the conditions of `DefaultStrategy::after_backward`, taken broadly).
 fn host_step(config: &FitConfig, step: u64) -> bool {
@@ -581,7 +604,7 @@ pub fn fit(
     config: &FitConfig,
     progress: &mut dyn FnMut(&FitProgress),
 ) -> FitResult {
-    match fit_on(dataset, config, None, progress) {
+    match fit_on(dataset, config, &SplatDevice::Cpu, progress) {
         Ok(r) => r,
         Err(e) => unreachable!("the CPU path has no device to fail: {e}"),
     }
@@ -593,7 +616,7 @@ pub fn fit(
 pub fn fit_on(
     dataset: &Dataset,
     config: &FitConfig,
-    device: Option<&crate::gpu::GpuContext>,
+    device: &SplatDevice,
     progress: &mut dyn FnMut(&FitProgress),
 ) -> Result<FitResult, crate::gpu::GpuError> {
     let mut rng = ChaCha8Rng::seed_from_u64(config.seed);
@@ -603,23 +626,21 @@ pub fn fit_on(
     let mut rates = config.rates.clone();
     rates.means.max_steps = config.steps;
     let mut state = TrainState::new(scene, rates, extent);
-    let settings = RenderSettings {
-        background: config.background,
-    };
     let mut times = StageTimes::default();
     let mut order: Vec<usize> = Vec::new();
     let clock = std::time::Instant::now;
-    // On a device, ordinary steps run entirely there (`DeviceTrainer`); steps that change the scene's
-    // structure or read it (densification, opacity reset, SH degree change, evaluation, the last step)
-    // bring the state back and run with the host doing all but the render.
-    let targets: Vec<_> = device.map_or_else(Vec::new, |ctx| {
-        dataset
-            .train
-            .iter()
-            .map(|v| ::gpu::prims::upload_f32(&ctx.client, &v.image))
-            .collect()
-    });
-    let mut trainer: Option<crate::gpu::DeviceTrainer> = None;
+    let mut fit_loss = SceneFitLoss {
+        views: &dataset.train,
+        ssim_weight: config.ssim_weight,
+    };
+    // Ordinary steps run resident on a device; steps that change the scene's structure or read it
+    // (densification, opacity reset, SH degree change, evaluation, the last step) run on the host state.
+    let mut trainer = Trainer::new(
+        device,
+        &fit_loss,
+        dataset.train.iter().map(|v| v.image.as_slice()),
+        config.background,
+    );
     for step in 0..config.steps {
         if order.is_empty() {
             order = (0..dataset.train.len()).collect();
@@ -628,92 +649,45 @@ pub fn fit_on(
         let view_index = order.pop().expect("refilled");
         let view = &dataset.train[view_index];
         let degree = ((step / config.sh_degree_interval.max(1)) as u32).min(config.sh_degree);
-        if let Some(ctx) = device {
-            if degree == state.scene.sh_degree && !host_step(config, step) {
-                let tr = match &mut trainer {
-                    Some(tr) => tr,
-                    None => trainer.insert(crate::gpu::DeviceTrainer::upload(ctx, &state)),
-                };
-                state.adam.set_iteration(step);
-                let t = clock();
-                let loss = tr.step(
-                    ctx,
-                    &mut state.adam,
-                    &view.camera,
-                    &targets[view_index],
-                    &settings,
-                    config.ssim_weight,
-                    step < config.strategy.refine_stop,
-                )?;
-                times.render += t.elapsed().as_secs_f64();
-                progress(&FitProgress {
-                    step: step + 1,
-                    steps: config.steps,
-                    loss,
-                    gaussians: state.len(),
-                    test_psnr: None,
-                    refine: None,
-                });
-                continue;
-            }
-            if let Some(tr) = trainer.take() {
-                tr.download_into(ctx, &mut state)?;
-            }
-        }
-        if degree != state.scene.sh_degree {
+        let kind = if degree != state.scene.sh_degree || host_step(config, step) {
+            trainer.sync(&mut state)?;
             state.set_sh_degree(degree);
-        }
-        state.adam.set_iteration(step);
-
-        let (w, h) = (view.camera.width as usize, view.camera.height as usize);
-        let (radii, loss, grads) = match device {
-            Some(ctx) => {
-                let t = clock();
-                let mut loss_secs = 0.0;
-                let (radii, loss, grads) = crate::gpu::render_with_loss(
-                    ctx,
-                    &state.scene,
-                    &view.camera,
-                    &settings,
-                    |rgb| {
-                        let t = clock();
-                        let loss = l1_dssim(rgb, &view.image, w, h, 3, config.ssim_weight);
-                        loss_secs = t.elapsed().as_secs_f64();
-                        (loss.value, loss.grad)
-                    },
-                )?;
-                times.loss += loss_secs;
-                times.render += t.elapsed().as_secs_f64() - loss_secs;
-                (radii, loss, grads)
-            }
-            None => {
-                let t = clock();
-                let out = render(&state.scene, &view.camera, &settings, None);
-                times.render += t.elapsed().as_secs_f64();
-                let t = clock();
-                let loss = l1_dssim(&out.rgb, &view.image, w, h, 3, config.ssim_weight);
-                times.loss += t.elapsed().as_secs_f64();
-                let t = clock();
-                let grads = render_backward(
-                    &state.scene,
-                    &view.camera,
-                    &settings,
-                    None,
-                    &out,
-                    &OutputGrads {
-                        rgb: &loss.grad,
-                        alpha: None,
-                        depth: None,
-                        extra: None,
-                    },
-                );
-                times.backward += t.elapsed().as_secs_f64();
-                (out.radii, loss.value, grads)
+            StepKind::Host
+        } else {
+            StepKind::Ordinary {
+                track_stats: step < config.strategy.refine_stop,
+                read_loss: true,
             }
         };
+        state.adam.set_iteration(step);
         let t = clock();
-        state.step(&grads);
-        times.optimise += t.elapsed().as_secs_f64();
+        let (loss, grads, radii) =
+            match trainer.step(&mut state, &view.camera, view_index, &mut fit_loss, kind)? {
+                StepOutcome::Resident { loss } => {
+                    times.render += t.elapsed().as_secs_f64();
+                    progress(&FitProgress {
+                        step: step + 1,
+                        steps: config.steps,
+                        loss: loss.unwrap_or(f32::NAN),
+                        gaussians: state.len(),
+                        test_psnr: None,
+                        refine: None,
+                    });
+                    continue;
+                }
+                StepOutcome::Host {
+                    loss,
+                    grads,
+                    radii,
+                    seconds,
+                } => {
+                    times.render += seconds.render;
+                    times.loss += seconds.loss;
+                    times.backward += seconds.backward;
+                    times.optimise += seconds.optimise;
+                    (loss, grads, radii)
+                }
+            };
         let t = clock();
         let refine = config.strategy.after_backward(
             &mut state,

@@ -6,8 +6,8 @@
 
 use serde::{Deserialize, Serialize};
 
-use crate::anchor::{Anchor, AnchorConfig};
-use crate::optim::{Adam, LearningRates, Moments};
+use crate::train::anchor::{Anchor, AnchorConfig};
+use crate::train::optim::{Adam, LearningRates, Moments};
 use crate::train::{DensifyStats, TrainState};
 use crate::GaussianScene;
 

@@ -2,7 +2,7 @@
 //! INRIA trainer output folder (the only source that also has cameras).
 
 use crate::cameras::{inria::load_inria_cameras, CameraError, CameraSet};
-use crate::formats::{inria_iteration_ply, read_scene, FormatError};
+use crate::formats::{checked, inria_iteration_ply, read_scene, FormatError};
 use crate::ply::{read_ply, PlyError};
 use crate::GaussianScene;
 use std::path::Path;
@@ -25,7 +25,7 @@ pub enum OpenError {
 ///   path that is none of them is (no cameras).
 pub fn open_scene(path: &Path) -> Result<(GaussianScene, Option<CameraSet>), OpenError> {
     if let Some(ply) = inria_iteration_ply(path) {
-        let scene = read_ply(&ply)?;
+        let scene = checked(&ply, read_ply(&ply)?)?;
         let cameras_json = path.join("cameras.json");
         let cameras = if cameras_json.is_file() {
             Some(load_inria_cameras(&cameras_json)?)

@@ -10,7 +10,7 @@
 //! units of the INRIA rasteriser, so `grow_grad2d = 0.0002` means what it means in the trainer.
 
 use crate::layout::Remap;
-use crate::optim::Group;
+use crate::train::optim::Group;
 use crate::train::{RenderedView, TrainState};
 use crate::GaussianScene;
 use glam::{Mat3, Quat, Vec3};
@@ -392,9 +392,9 @@ fn quantile(values: &[f32], q: f64) -> f32 {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::anchor::{Anchor, AnchorConfig};
-    use crate::optim::LearningRates;
     use crate::render::SceneGrads;
+    use crate::train::anchor::{Anchor, AnchorConfig};
+    use crate::train::optim::LearningRates;
     use rand::SeedableRng;
     use rand_chacha::ChaCha8Rng;
 

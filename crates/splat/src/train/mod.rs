@@ -1,11 +1,24 @@
-//! The state of a scene under optimisation: parameters plus everything that has one entry per Gaussian
-//! and must follow clone/split/prune (optimiser moments, densification statistics, trainable mask, HGS
-//! generations and anchors).
+//! Training: the state of a scene under optimisation ([`TrainState`]: parameters plus everything that
+//! has one entry per Gaussian and must follow clone/split/prune — optimiser moments, densification
+//! statistics, trainable mask, HGS generations and anchors), the one [`Trainer`] every fit steps with, and
+//! what it is configured by: the optimiser ([`optim`]), densification strategies ([`densify`]), anchors
+//! ([`anchor`]) and losses ([`loss`]). [`scene_fit`] is the scene fit from images (`vcedit fit`);
+//! [`checkpoint`] saves and resumes it.
 
-use crate::anchor::Anchor;
+pub mod anchor;
+pub mod checkpoint;
+pub mod densify;
+pub mod loss;
+pub mod optim;
+pub mod scene_fit;
+mod trainer;
+
+pub use trainer::{FitLoss, StageSeconds, StepKind, StepOutcome, Trainer};
+
 use crate::layout::{remap_scene, set_scene_sh_degree, Remap};
-use crate::optim::{Adam, LearningRates};
 use crate::render::SceneGrads;
+use crate::train::anchor::Anchor;
+use crate::train::optim::{Adam, LearningRates};
 use crate::{Camera, GaussianScene};
 
 /// A scene being trained. Cloning it gives an independent copy with the same optimiser state (what
@@ -225,7 +238,7 @@ mod tests {
         let mut st = TrainState::new(scene, LearningRates::inria(10), 1.0);
         st.anchor = Some(Anchor::new(
             &st.scene,
-            crate::anchor::AnchorConfig::vcedit(),
+            crate::train::anchor::AnchorConfig::vcedit(),
         ));
         st.set_sh_degree(2);
         st.check().unwrap();

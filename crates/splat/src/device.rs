@@ -1,0 +1,252 @@
+//! The splatting engine's device seam: where renders, their backward passes and liftings run is decided
+//! here and nowhere else. [`SplatDevice`] is the CPU (the reference implementation in [`crate::render`] and
+//! [`crate::lift`]) or a GPU (the CubeCL kernels in [`crate::gpu`], tested against the CPU on lavapipe);
+//! both produce the same [`Frame`]s, [`SceneGrads`] and [`Lifted`] values.
+//!
+//! Adding a backend: a variant here, and one arm in each method below (render, render with loss and
+//! backward, lifting); callers are unchanged.
+
+use crate::gpu::{GpuContext, GpuError, GpuLiftAccumulator, GpuScene};
+use crate::lift::{LiftAccumulator, Lifted};
+use crate::render::{
+    render, render_backward, ExtraChannels, Frame, OutputGrads, RenderSettings, SceneGrads,
+};
+use rayon::prelude::*;
+
+use crate::{Camera, GaussianScene, Image};
+
+/// Where the splatting engine runs.
+// One value per run, passed by reference: the GPU variant's size does not matter.
+#[allow(clippy::large_enum_variant)]
+#[derive(Clone, Debug, Default)]
+pub enum SplatDevice {
+    #[default]
+    Cpu,
+    Gpu(GpuContext),
+}
+
+impl From<Option<GpuContext>> for SplatDevice {
+    fn from(ctx: Option<GpuContext>) -> Self {
+        ctx.map_or(SplatDevice::Cpu, SplatDevice::Gpu)
+    }
+}
+
+impl SplatDevice {
+    /// The GPU, for the device-resident trainer and callers that time or synchronise it (`None`: the CPU).
+    pub fn gpu(&self) -> Option<&GpuContext> {
+        match self {
+            SplatDevice::Cpu => None,
+            SplatDevice::Gpu(ctx) => Some(ctx),
+        }
+    }
+
+    pub fn is_cpu(&self) -> bool {
+        matches!(self, SplatDevice::Cpu)
+    }
+
+    /// "CPU" or the adapter, for logs.
+    pub fn describe(&self) -> String {
+        match self {
+            SplatDevice::Cpu => "CPU".into(),
+            SplatDevice::Gpu(ctx) => ctx.describe(),
+        }
+    }
+
+    /// Renders `scene` from `camera`. `extra`: N*C values composited as extra channels.
+    pub fn render(
+        &self,
+        scene: &GaussianScene,
+        camera: &Camera,
+        settings: &RenderSettings,
+        extra: Option<ExtraChannels<'_>>,
+    ) -> Result<Frame, GpuError> {
+        match self {
+            SplatDevice::Cpu => Ok(render(scene, camera, settings, extra).into_frame()),
+            SplatDevice::Gpu(ctx) => crate::gpu::render(ctx, scene, camera, settings, extra),
+        }
+    }
+
+    /// Renders `scene` from every camera (the scene is uploaded once on a GPU; on the CPU the views render
+    /// in parallel, beside the renderer's own parallelism, which rayon balances).
+    pub fn render_views(
+        &self,
+        scene: &GaussianScene,
+        cameras: &[Camera],
+        settings: &RenderSettings,
+        extra: Option<ExtraChannels<'_>>,
+    ) -> Result<Vec<Frame>, GpuError> {
+        if self.is_cpu() {
+            return Ok(cameras
+                .par_iter()
+                .map(|c| render(scene, c, settings, extra).into_frame())
+                .collect());
+        }
+        let mut frames = Vec::with_capacity(cameras.len());
+        self.for_each_render(scene, cameras, settings, extra, &mut |_, f| {
+            frames.push(f);
+            Ok(())
+        })?;
+        Ok(frames)
+    }
+
+    /// [`Self::render_views`] one view at a time: `sink(v, frame)` gets each render as it is made, so only
+    /// one frame is held (CCM's maps have a channel per token).
+    pub fn for_each_render<E: From<GpuError>>(
+        &self,
+        scene: &GaussianScene,
+        cameras: &[Camera],
+        settings: &RenderSettings,
+        extra: Option<ExtraChannels<'_>>,
+        sink: &mut dyn FnMut(usize, Frame) -> Result<(), E>,
+    ) -> Result<(), E> {
+        match self {
+            SplatDevice::Cpu => {
+                for (v, c) in cameras.iter().enumerate() {
+                    sink(v, render(scene, c, settings, extra).into_frame())?;
+                }
+            }
+            SplatDevice::Gpu(ctx) => {
+                let dev = GpuScene::upload(ctx, scene);
+                let extra_dev =
+                    extra.map(|e| (::gpu::prims::upload_f32(&ctx.client, e.values), e.channels));
+                for (v, cam) in cameras.iter().enumerate() {
+                    let frame = crate::gpu::render_device(
+                        ctx,
+                        &dev,
+                        cam,
+                        settings,
+                        extra_dev.as_ref().map(|(h, c)| (h, *c)),
+                    )?;
+                    sink(v, crate::gpu::download(ctx, &frame, scene.len())?)?;
+                }
+            }
+        }
+        Ok(())
+    }
+
+    /// The RGB renders of `scene` from every camera over `background`.
+    pub fn render_images(
+        &self,
+        scene: &GaussianScene,
+        cameras: &[Camera],
+        background: [f32; 3],
+    ) -> Result<Vec<Image>, GpuError> {
+        let settings = RenderSettings { background };
+        Ok(self
+            .render_views(scene, cameras, &settings, None)?
+            .iter()
+            .map(Frame::rgb_image)
+            .collect())
+    }
+
+    /// Renders the colour of `scene` from `camera`, evaluates `loss` on it (`rgb` → value and ∂value/∂rgb,
+    /// on the host) and back-propagates into scene gradients. Returns the radii, the loss value and the
+    /// gradients.
+    pub fn render_with_loss<L>(
+        &self,
+        scene: &GaussianScene,
+        camera: &Camera,
+        settings: &RenderSettings,
+        loss: impl FnOnce(&[f32]) -> (L, Vec<f32>),
+    ) -> Result<(Vec<u32>, L, SceneGrads), GpuError> {
+        match self {
+            SplatDevice::Cpu => {
+                let out = render(scene, camera, settings, None);
+                let (value, grad) = loss(&out.rgb);
+                let grads = render_backward(
+                    scene,
+                    camera,
+                    settings,
+                    None,
+                    &out,
+                    &OutputGrads {
+                        rgb: &grad,
+                        alpha: None,
+                        depth: None,
+                        extra: None,
+                    },
+                );
+                Ok((out.into_frame().radii, value, grads))
+            }
+            SplatDevice::Gpu(ctx) => {
+                crate::gpu::render_with_loss(ctx, scene, camera, settings, loss)
+            }
+        }
+    }
+
+    /// A lifting of per-view maps onto the Gaussians of `scene`, one view at a time.
+    pub fn lifter<'s>(&self, scene: &'s GaussianScene, channels: usize) -> Lifter<'s> {
+        match self {
+            SplatDevice::Cpu => Lifter::Cpu(LiftAccumulator::new(scene, channels)),
+            SplatDevice::Gpu(ctx) => Lifter::Gpu(
+                ctx.clone(),
+                Box::new(GpuLiftAccumulator::new(ctx, scene, channels)),
+            ),
+        }
+    }
+}
+
+/// A lifting under way on the CPU or the GPU (see [`SplatDevice::lifter`]).
+pub enum Lifter<'s> {
+    Cpu(LiftAccumulator<'s>),
+    Gpu(GpuContext, Box<GpuLiftAccumulator>),
+}
+
+impl Lifter<'_> {
+    /// Adds one view's H*W*C map.
+    pub fn add_view(&mut self, cam: &Camera, map: &[f32]) -> Result<(), GpuError> {
+        match self {
+            Lifter::Cpu(acc) => {
+                acc.add_view(cam, map);
+                Ok(())
+            }
+            Lifter::Gpu(ctx, acc) => acc.add_view(ctx, cam, map),
+        }
+    }
+
+    /// The per-Gaussian averages and hit counts.
+    pub fn finish(self) -> Result<Lifted, GpuError> {
+        match self {
+            Lifter::Cpu(acc) => Ok(acc.finish()),
+            Lifter::Gpu(ctx, acc) => (*acc).finish(&ctx),
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::gpu::tests::{camera, random_scene};
+    use ::gpu::testing::context_or_skip;
+
+    /// The same frame, loss and gradients from either backend (the GPU one only where a device exists).
+    #[test]
+    fn both_backends_agree_on_render_and_gradients() {
+        let scene = random_scene(40, 1, 3);
+        let cam = camera(48, 32);
+        let settings = RenderSettings::default();
+        let loss = |rgb: &[f32]| (rgb.iter().sum::<f32>(), vec![1.0; rgb.len()]);
+        let cpu = SplatDevice::Cpu;
+        let frame = cpu.render(&scene, &cam, &settings, None).unwrap();
+        let (radii, value, grads) = cpu.render_with_loss(&scene, &cam, &settings, loss).unwrap();
+        assert_eq!(radii, frame.radii);
+        assert!((value - frame.rgb.iter().sum::<f32>()).abs() < 1e-3);
+        assert!(grads.means.iter().any(|g| g.abs() > 0.0));
+        let Some(ctx) = context_or_skip() else {
+            return;
+        };
+        let gpu = SplatDevice::Gpu(ctx);
+        let gpu_frame = gpu.render(&scene, &cam, &settings, None).unwrap();
+        let err = frame
+            .rgb
+            .iter()
+            .zip(&gpu_frame.rgb)
+            .map(|(a, b)| (a - b).abs())
+            .fold(0.0f32, f32::max);
+        assert!(err < 1e-4, "CPU and GPU renders differ by {err}");
+        let (gpu_radii, gpu_value, _) =
+            gpu.render_with_loss(&scene, &cam, &settings, loss).unwrap();
+        assert_eq!(gpu_radii, radii);
+        assert!((gpu_value - value).abs() < 1e-2 * value.abs().max(1.0));
+    }
+}

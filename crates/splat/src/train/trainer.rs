@@ -1,0 +1,200 @@
+//! The one training loop step of every fit — the scene fit (`fit`), the editing fit and ECM's mini fits
+//! (in `edit`): a step runs *resident* (scene, Adam moments, statistics, mask and anchors on the device,
+//! [`DeviceTrainer`]) when the device can evaluate the loss and the step does not change the structure,
+//! else on the *host* state (render, loss and backward still on the device when there is one), after
+//! which the caller may densify. [`Trainer::sync`] brings the host state up to date.
+//!
+//! Clients own the schedule (which view, which rates, when the structure changes) and the strategy; the
+//! trainer owns where and how a step runs.
+
+use ::gpu::cubecl::server::Handle;
+
+use crate::gpu::{DeviceTrainer, GpuContext, GpuError, L1DssimWeights};
+use crate::render::{RenderSettings, SceneGrads};
+use crate::train::TrainState;
+use crate::{Camera, SplatDevice};
+
+/// The image loss of a fit.
+pub trait FitLoss {
+    type Error: From<GpuError>;
+    /// The value and its gradient with respect to `rgb` (H*W*3), the render of view `v`.
+    fn eval(&mut self, rgb: &[f32], v: usize) -> Result<(f32, Vec<f32>), Self::Error>;
+    /// The same loss as `l1·L1 + dssim·D-SSIM` when it is one: the device then evaluates it itself and
+    /// the step runs resident. `None`: host only (e.g. LPIPS, a CPU network).
+    fn device_weights(&self) -> Option<L1DssimWeights>;
+}
+
+/// What a step needs of the state's location.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum StepKind {
+    /// An ordinary step: resident when possible. `track_stats`: accumulate densification statistics
+    /// (a host step hands the gradients to the caller instead); `read_loss`: read the loss value back
+    /// (a copy from the device the editing fits skip).
+    Ordinary { track_stats: bool, read_loss: bool },
+    /// The caller changes or reads the structure after this step (densification, resets, evaluation):
+    /// the state is synced first and the step runs on the host.
+    Host,
+}
+
+/// Seconds spent in a host step's stages (the loss is evaluated on the host, so the render and its
+/// read-back are before it and the backward pass after it).
+#[derive(Clone, Copy, Debug, Default)]
+pub struct StageSeconds {
+    pub render: f64,
+    pub loss: f64,
+    pub backward: f64,
+    pub optimise: f64,
+}
+
+/// What a step left for the caller.
+// Returned by value once per step and consumed at once: boxing the gradients would cost more than the
+// size difference.
+#[allow(clippy::large_enum_variant)]
+#[derive(Debug)]
+pub enum StepOutcome {
+    /// Ran on the device state; the loss when it was read.
+    Resident { loss: Option<f32> },
+    /// Ran on the host state: the loss, the gradients (the anchor term included) and radii, for
+    /// densification.
+    Host {
+        loss: f32,
+        grads: SceneGrads,
+        radii: Vec<u32>,
+        seconds: StageSeconds,
+    },
+}
+
+/// The device side of a fit whose loss the device evaluates: the targets, uploaded once, and the
+/// resident state, built from the host state at the first resident step after a sync.
+struct Resident {
+    ctx: GpuContext,
+    weights: L1DssimWeights,
+    targets: Vec<Handle>,
+    state: Option<DeviceTrainer>,
+}
+
+/// Runs the steps of one fit on a device (see the module documentation).
+pub struct Trainer {
+    device: SplatDevice,
+    settings: RenderSettings,
+    resident: Option<Resident>,
+}
+
+impl Trainer {
+    /// A fit to `targets` (one H*W*3 image per view) over `background` with `loss`.
+    pub fn new<'t>(
+        device: &SplatDevice,
+        loss: &impl FitLoss,
+        targets: impl IntoIterator<Item = &'t [f32]>,
+        background: [f32; 3],
+    ) -> Self {
+        let resident = match (device.gpu(), loss.device_weights()) {
+            (Some(ctx), Some(weights)) => Some(Resident {
+                ctx: ctx.clone(),
+                weights,
+                targets: targets
+                    .into_iter()
+                    .map(|t| ::gpu::prims::upload_f32(&ctx.client, t))
+                    .collect(),
+                state: None,
+            }),
+            _ => None,
+        };
+        Self {
+            device: device.clone(),
+            settings: RenderSettings { background },
+            resident,
+        }
+    }
+
+    /// Whether ordinary steps run resident (a device and a loss it evaluates).
+    pub fn is_resident(&self) -> bool {
+        self.resident.is_some()
+    }
+
+    /// One step on view `v` seen from `camera`. `state.adam` gives the rates (callers set its
+    /// iteration) and counts the step; after a resident step `state` is stale until [`Trainer::sync`].
+    pub fn step<L: FitLoss>(
+        &mut self,
+        state: &mut TrainState,
+        camera: &Camera,
+        v: usize,
+        loss: &mut L,
+        kind: StepKind,
+    ) -> Result<StepOutcome, L::Error> {
+        if let (
+            Some(res),
+            StepKind::Ordinary {
+                track_stats,
+                read_loss,
+            },
+        ) = (&mut self.resident, kind)
+        {
+            let ctx = &res.ctx;
+            let trainer = match &mut res.state {
+                Some(t) => t,
+                None => res.state.insert(DeviceTrainer::upload(ctx, state)),
+            };
+            let value = trainer.step_weighted(
+                ctx,
+                &mut state.adam,
+                camera,
+                &res.targets[v],
+                &self.settings,
+                res.weights,
+                track_stats,
+            )?;
+            let loss = if read_loss {
+                Some(value.value(ctx)?)
+            } else {
+                None
+            };
+            return Ok(StepOutcome::Resident { loss });
+        }
+        self.sync(state)?;
+        let clock = std::time::Instant::now;
+        let start = clock();
+        let mut span = (start, start);
+        let (radii, value, mut grads) =
+            self.device
+                .render_with_loss(&state.scene, camera, &self.settings, |rgb| {
+                    let t = clock();
+                    let out = match loss.eval(rgb, v) {
+                        Ok((value, grad)) => (Ok(value), grad),
+                        // The backward still runs on a zero gradient; its result is dropped with the error.
+                        Err(e) => (Err(e), vec![0.0; rgb.len()]),
+                    };
+                    span = (t, clock());
+                    out
+                })?;
+        let value = value?;
+        let backward_end = clock();
+        if let Some(anchor) = &state.anchor {
+            anchor.loss(&state.scene, state.trainable.as_deref(), Some(&mut grads));
+        }
+        state.step(&grads);
+        let seconds = StageSeconds {
+            render: (span.0 - start).as_secs_f64(),
+            loss: (span.1 - span.0).as_secs_f64(),
+            backward: (backward_end - span.1).as_secs_f64(),
+            optimise: backward_end.elapsed().as_secs_f64(),
+        };
+        Ok(StepOutcome::Host {
+            loss: value,
+            grads,
+            radii,
+            seconds,
+        })
+    }
+
+    /// Brings `state` up to date with the device; the next resident step re-uploads it (the host may
+    /// change it in between).
+    pub fn sync(&mut self, state: &mut TrainState) -> Result<(), GpuError> {
+        if let Some(res) = &mut self.resident {
+            if let Some(trainer) = res.state.take() {
+                trainer.download_into(&res.ctx, state)?;
+            }
+        }
+        Ok(())
+    }
+}
