@@ -63,6 +63,8 @@ pub type Result<T> = std::result::Result<T, BenchError>;
 /// Runs bench `name` with `args` (the words after the name). `reexec` is the command line prefix that
 /// runs the same bench in a fresh process (the UNet's load-memory measurement needs one).
 pub fn run(name: &str, args: &[String], reexec: &[String]) -> Result<()> {
+    // As the `vcedit` binary does for every command, so that benches measure what the commands run.
+    diffusion::runtime::tune_allocator();
     match name {
         "device" => device::main(args),
         "matmul" => matmul::main(args),

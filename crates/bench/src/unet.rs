@@ -320,7 +320,6 @@ pub fn main(args: &[String], reexec: &[String]) -> Result<()> {
     let device = network_device(args, "cpu")?;
     let on_device = diffusion::device::Device::from(device.clone());
     // Recommended for any inference binary (see its doc comment).
-    diffusion::runtime::tune_allocator_for_inference();
     let threads = candle_core::utils::get_num_threads();
     let on = device.as_ref().map_or_else(
         || format!("CPU, {threads} threads"),

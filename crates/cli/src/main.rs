@@ -88,6 +88,8 @@ fn main() {
     quiet_on_closed_pipe();
     #[cfg(unix)]
     quiet_window_system_probe();
+    // Every command allocates large per-view buffers (renders, activations) over and over.
+    diffusion::runtime::tune_allocator();
     let cli = Cli::parse();
     let result: anyhow::Result<()> = match cli.command {
         Command::Inspect(a) => cmd::inspect::run(a),

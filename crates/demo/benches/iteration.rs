@@ -31,6 +31,8 @@ fn number(args: &[String], name: &str, default: usize) -> usize {
 }
 
 fn main() {
+    // As the `vcedit` binary does (edit and demo run with it).
+    diffusion::runtime::tune_allocator();
     let args: Vec<String> = std::env::args().collect();
     let devices = arg_value(&args, "--devices").unwrap_or_else(|| "cpu,gpu".into());
     let precision: Precision = arg_value(&args, "--precision")

@@ -77,7 +77,6 @@ fn default_model() -> PathBuf {
 }
 
 pub fn run(args: Args) -> anyhow::Result<()> {
-    diffusion::runtime::tune_allocator_for_inference();
     if args.list {
         for (i, (s, t, _)) in PAIRS.iter().enumerate() {
             println!("{i}: \"{s}\" → \"{t}\"");

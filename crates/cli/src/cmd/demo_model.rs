@@ -158,7 +158,6 @@ fn run_train(args: TrainArgs) -> anyhow::Result<()> {
         }
     }
     // Training allocates and frees activations every step; keep them in the heap.
-    diffusion::runtime::tune_allocator_for_inference();
 
     let mut progress = Reporter::new();
     let started = Instant::now();

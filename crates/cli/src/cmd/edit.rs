@@ -150,7 +150,6 @@ pub struct Args {
 }
 
 pub fn run(args: Args) -> anyhow::Result<()> {
-    diffusion::runtime::tune_allocator_for_inference();
     let t0 = Instant::now();
     // Every argument is checked before any work; the output folder is opened last, so a refused run
     // leaves nothing behind.

@@ -48,7 +48,6 @@ pub struct Args {
 }
 
 pub fn run(args: Args) -> anyhow::Result<()> {
-    diffusion::runtime::tune_allocator_for_inference();
     let settings = args.sampler.settings()?;
     let (w, h) = args.sampler.size();
     // Every argument is checked before any work, and both outputs before the first is written.
