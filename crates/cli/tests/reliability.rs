@@ -917,3 +917,57 @@ fn commands_refuse_runs_that_cannot_fit_in_memory() {
     assert_one_clear_error(&o, 1, &["needs about", "reduce --size"]);
     assert!(!cwd.join("out.png").exists());
 }
+
+/// Sets every float of tensor `name` in a safetensors file to NaN (f32 and f16 alike: all bits set).
+fn nan_tensor(path: &Path) -> String {
+    let mut bytes = std::fs::read(path).unwrap();
+    let n = u64::from_le_bytes(bytes[..8].try_into().unwrap()) as usize;
+    let header: serde_json::Map<String, serde_json::Value> =
+        serde_json::from_slice(&bytes[8..8 + n]).unwrap();
+    let (name, info) = header
+        .iter()
+        .filter(|(k, _)| *k != "__metadata__")
+        .max_by_key(|(k, _)| k.to_string())
+        .unwrap();
+    let (a, b) = (
+        info["data_offsets"][0].as_u64().unwrap() as usize,
+        info["data_offsets"][1].as_u64().unwrap() as usize,
+    );
+    bytes[8 + n + a..8 + n + b].fill(0xff);
+    std::fs::write(path, bytes).unwrap();
+    name.clone()
+}
+
+/// Issue 26, item 10: NaN weights and a beta schedule outside [0, 1) are refused by `model check` and
+/// `edit-image` (which wrote an all-black image before), naming the file.
+#[test]
+fn nan_weights_and_impossible_schedules_are_refused() {
+    let dir = tempfile::tempdir().unwrap();
+    let nan = dir.path().join("nan");
+    std::fs::create_dir(&nan).unwrap();
+    let mut tensor = String::new();
+    let model = broken_model(&nan, |m| {
+        tensor = nan_tensor(&m.join("vae/diffusion_pytorch_model.safetensors"));
+    });
+    let o = vcedit_in(&nan, &["model", "check", "model"]);
+    assert_one_clear_error(&o, 1, &[&tensor, "NaN"]);
+    let o = edit_image_with(&nan, &model);
+    assert_one_clear_error(&o, 1, &["NaN", "model check"]);
+    assert!(!nan.join("o.png").exists());
+
+    let betas = dir.path().join("betas");
+    std::fs::create_dir(&betas).unwrap();
+    let model = broken_model(&betas, |m| {
+        let p = m.join("scheduler/scheduler_config.json");
+        let mut c: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(&p).unwrap()).unwrap();
+        c["beta_start"] = serde_json::json!(5.0);
+        c["beta_end"] = serde_json::json!(-1.0);
+        std::fs::write(&p, c.to_string()).unwrap();
+    });
+    let o = vcedit_in(&betas, &["model", "check", "model"]);
+    assert_one_clear_error(&o, 1, &["scheduler_config.json", "beta_start"]);
+    let o = edit_image_with(&betas, &model);
+    assert_one_clear_error(&o, 1, &["scheduler_config.json", "beta_start"]);
+    assert!(!betas.join("o.png").exists());
+}

@@ -17,7 +17,7 @@ use serde_json::Value;
 
 use crate::clip::{ClipTextConfig, ClipTextModel};
 use crate::loader::{read_json, Component, LoadError, ModelDir, Problem};
-use crate::scheduler::{LcmVariant, Scheduler};
+use crate::scheduler::{LcmVariant, Scheduler, SchedulerError};
 use crate::taesd::{AutoencoderTiny, TaesdConfig};
 use crate::tokenizer::{ClipTokenizer, TokenizerSource};
 use crate::unet::{UNet2DConditionModel, UNetConfig};
@@ -293,10 +293,15 @@ pub fn check_model(path: &Path, depth: CheckDepth) -> Result<ModelReport, LoadEr
         })?
         .with_max_length(te_config.max_position_embeddings);
     let scheduler_path = dir.config_path(Component::Scheduler);
+    // The scheduler's errors name their file already; it is said once.
     let scheduler = Scheduler::from_config_file(&scheduler_path, LcmVariant::Diffusers022)
-        .map_err(|e| LoadError::BadFile {
-            path: scheduler_path.clone(),
-            message: e.to_string(),
+        .map_err(|e| match e {
+            SchedulerError::Config { path, message } => LoadError::BadFile { path, message },
+            SchedulerError::Io { path, source } => LoadError::Io { path, source },
+            other => LoadError::BadFile {
+                path: scheduler_path.clone(),
+                message: other.to_string(),
+            },
         })?;
 
     // Stage 2: shapes against configs and across components.
@@ -461,6 +466,20 @@ pub fn check_model(path: &Path, depth: CheckDepth) -> Result<ModelReport, LoadEr
             problems.push(load_problem(&root, "vae/", reason));
         }
         vae.report.load_time = Some(start.elapsed());
+        // Every weight finite: a NaN loads and runs without error, and decodes black images.
+        for component in [Component::TextEncoder, Component::Unet, Component::Vae] {
+            for file in dir.weight_files(component)?.files {
+                if let Some((tensor, index)) = crate::weights::first_non_finite(&file)? {
+                    problems.push(Problem::Invalid {
+                        file: rel(&root, &file),
+                        reason: format!(
+                            "tensor {tensor} holds a NaN or an infinity (value {index}); the weights \
+                             are damaged or were converted wrongly"
+                        ),
+                    });
+                }
+            }
+        }
         if !problems.is_empty() {
             return Err(inconsistent(problems));
         }

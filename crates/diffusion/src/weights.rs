@@ -55,6 +55,53 @@ pub fn read_safetensors_header(path: &Path) -> Result<Vec<TensorInfo>, LoadError
     Ok(tensors)
 }
 
+/// The first tensor of a safetensors file holding a NaN or an infinity, with the index of that value
+/// (`None` when every float is finite). A damaged or badly converted checkpoint runs without any error
+/// and decodes black images, so a model check looks at every value. The test is on the bits (an
+/// all-ones exponent), so f16 and bf16 weights are scanned as stored, without converting.
+pub fn first_non_finite(path: &Path) -> Result<Option<(String, usize)>, LoadError> {
+    let io = |source| LoadError::Io {
+        path: path.to_path_buf(),
+        source,
+    };
+    let file = File::open(path).map_err(io)?;
+    // SAFETY: a read-only map that lives only for this call (see `read_safetensors_header`).
+    let map = unsafe { memmap2::Mmap::map(&file) }.map_err(io)?;
+    let tensors = SafeTensors::deserialize(&map).map_err(|e| LoadError::BadFile {
+        path: path.to_path_buf(),
+        message: describe(e, map.len()),
+    })?;
+    let mut names: Vec<String> = tensors.names().into_iter().cloned().collect();
+    names.sort();
+    for name in names {
+        let view = tensors.tensor(&name).map_err(|e| LoadError::BadFile {
+            path: path.to_path_buf(),
+            message: describe(e, map.len()),
+        })?;
+        let data = view.data();
+        let bad = match view.dtype() {
+            safetensors::Dtype::F32 => data.chunks_exact(4).position(|b| {
+                u32::from_le_bytes([b[0], b[1], b[2], b[3]]) & 0x7f80_0000 == 0x7f80_0000
+            }),
+            safetensors::Dtype::F16 => data
+                .chunks_exact(2)
+                .position(|b| u16::from_le_bytes([b[0], b[1]]) & 0x7c00 == 0x7c00),
+            safetensors::Dtype::BF16 => data
+                .chunks_exact(2)
+                .position(|b| u16::from_le_bytes([b[0], b[1]]) & 0x7f80 == 0x7f80),
+            safetensors::Dtype::F64 => data.chunks_exact(8).position(|b| {
+                let v = u64::from_le_bytes([b[0], b[1], b[2], b[3], b[4], b[5], b[6], b[7]]);
+                v & 0x7ff0_0000_0000_0000 == 0x7ff0_0000_0000_0000
+            }),
+            _ => None,
+        };
+        if let Some(index) = bad {
+            return Ok(Some((name, index)));
+        }
+    }
+    Ok(None)
+}
+
 /// One line on what is wrong with a file that is not a valid safetensors file of `file_len` bytes.
 fn describe(err: SafeTensorError, file_len: usize) -> String {
     use SafeTensorError as E;

@@ -77,3 +77,62 @@ fn fuzz_tokenizer_files() {
         load_and_encode,
     );
 }
+
+/// The model folder's JSON files (`model_index.json`, the components' `config.json`s and
+/// `scheduler_config.json`), each mutated in a copy of the tiny model whose other files stay valid, read
+/// by `model check` (headers, configs, shapes) and the schedulers.
+#[test]
+fn fuzz_model_configs() {
+    const CONFIGS: [&str; 5] = [
+        "model_index.json",
+        "scheduler/scheduler_config.json",
+        "unet/config.json",
+        "vae/config.json",
+        "text_encoder/config.json",
+    ];
+    let copy = tempfile::tempdir().unwrap();
+    for entry in walk(&tiny_model()) {
+        let rel = entry.strip_prefix(tiny_model()).unwrap();
+        std::fs::create_dir_all(copy.path().join(rel).parent().unwrap()).unwrap();
+        std::fs::copy(&entry, copy.path().join(rel)).unwrap();
+    }
+    let seeds: Vec<Vec<u8>> = CONFIGS
+        .iter()
+        .enumerate()
+        .map(|(i, name)| {
+            let mut seed = vec![i as u8];
+            seed.extend(std::fs::read(tiny_model().join(name)).unwrap());
+            seed
+        })
+        .collect();
+    files::fuzz::run_and_assert("model-configs", &seeds, &crash_dir(), |input| {
+        let Some((&which, content)) = input.split_first() else {
+            return;
+        };
+        let name = CONFIGS[which as usize % CONFIGS.len()];
+        let path = copy.path().join(name);
+        std::fs::write(&path, content).unwrap();
+        let _ = diffusion::model_check::check_model(
+            copy.path(),
+            diffusion::model_check::CheckDepth::HeadersOnly,
+        );
+        let _ = diffusion::scheduler::Scheduler::from_config_file(
+            &copy.path().join(CONFIGS[1]),
+            diffusion::scheduler::LcmVariant::default(),
+        );
+        std::fs::copy(tiny_model().join(name), &path).unwrap();
+    });
+}
+
+fn walk(dir: &Path) -> Vec<PathBuf> {
+    let mut out = Vec::new();
+    for entry in std::fs::read_dir(dir).unwrap() {
+        let path = entry.unwrap().path();
+        if path.is_dir() {
+            out.extend(walk(&path));
+        } else {
+            out.push(path);
+        }
+    }
+    out
+}

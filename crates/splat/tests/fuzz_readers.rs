@@ -1,5 +1,7 @@
-//! Fuzzing the scene and camera readers (see `files::fuzz`): PLY (binary and ASCII), COLMAP models
-//! (.bin and .txt), transforms.json and INRIA cameras.json, each seeded from valid files and mutated for
+//! Fuzzing the scene and camera readers (see `files::fuzz`): PLY (binary and ASCII), compressed PLY,
+//! .splat, .spz (versions 2 and 3 gzip, 4 zstd), SOG (zip, and a folder's meta.json and WebP textures),
+//! COLMAP models (.bin and .txt), transforms.json and INRIA cameras.json, each seeded from valid files
+//! and mutated for
 //! `VCEDIT_FUZZ_SECONDS` (default 5 s) per target. Any error is fine; a panic fails the test and the
 //! input is saved under target/fuzz-crashes/.
 
@@ -93,4 +95,66 @@ fn fuzz_transforms_json() {
 #[test]
 fn fuzz_inria_cameras_json() {
     fuzz_json("inria_cameras_json", "cameras.json", inria_json);
+}
+
+/// A scene file format read through `read_scene` (content detection, decoding, value checks), seeded
+/// from `encode`'s output for a few scenes.
+fn fuzz_format(target: &str, file_name: &str, encode: &dyn Fn(&GaussianScene) -> Vec<u8>) {
+    let seeds = vec![
+        encode(&scene(0, 20)),
+        encode(&scene(1, 7)),
+        encode(&scene(3, 3)),
+    ];
+    files::fuzz::run_file_and_assert(target, file_name, &seeds, &crash_dir(), |path| {
+        let _ = splat::read_scene(path);
+    });
+}
+
+#[test]
+fn fuzz_compressed_ply() {
+    fuzz_format("compressed-ply", "scene.compressed.ply", &|s| {
+        splat::formats::compressed_ply::encode(s).unwrap()
+    });
+}
+
+#[test]
+fn fuzz_dot_splat() {
+    fuzz_format("dot-splat", "scene.splat", &|s| {
+        splat::formats::dot_splat::encode(s).unwrap()
+    });
+}
+
+#[test]
+fn fuzz_spz() {
+    // One seed per version: 2 and 3 are gzip streams, 4 has an NGSP header and zstd streams.
+    let seeds: Vec<Vec<u8>> = [2, 3, 4]
+        .iter()
+        .flat_map(|&v| {
+            [scene(0, 12), scene(3, 3)].map(|s| splat::formats::spz::encode(&s, v).unwrap())
+        })
+        .collect();
+    files::fuzz::run_file_and_assert("spz", "scene.spz", &seeds, &crash_dir(), |path| {
+        let _ = splat::read_scene(path);
+    });
+}
+
+#[test]
+fn fuzz_sog_zip() {
+    fuzz_format("sog-zip", "scene.sog", &|s| {
+        let files = splat::formats::sog::encode(s).unwrap();
+        splat::formats::sog::zip_files(&files).unwrap()
+    });
+}
+
+#[test]
+fn fuzz_sog_folder() {
+    let valid = tempfile::tempdir().unwrap();
+    let files = splat::formats::sog::encode(&scene(1, 40)).unwrap();
+    for (name, bytes) in &files {
+        std::fs::write(valid.path().join(name), bytes).unwrap();
+    }
+    let names: Vec<&str> = files.iter().map(|(n, _)| n.as_str()).collect();
+    files::fuzz::run_file_set_and_assert("sog-folder", valid.path(), &names, &crash_dir(), |dir| {
+        let _ = splat::read_scene(&dir.join("meta.json"));
+    });
 }

@@ -86,11 +86,22 @@ pub struct BetaParams<'a> {
     pub set_alpha_to_one: bool,
 }
 
+/// The most training timesteps a schedule may have.
+pub const MAX_TRAIN_TIMESTEPS: usize = 100_000;
+
 impl NoiseSchedule {
     pub fn new(p: &BetaParams) -> Result<Self, SchedulerError> {
         let n = p.num_train_timesteps;
         if n == 0 {
             return Err(SchedulerError::Invalid("num_train_timesteps is 0".into()));
+        }
+        // Stable Diffusion trains with 1000; the schedule holds one value per step, so an absurd count
+        // (a damaged config) would ask for gigabytes.
+        if n > MAX_TRAIN_TIMESTEPS {
+            return Err(SchedulerError::Invalid(format!(
+                "num_train_timesteps is {n}; at most {MAX_TRAIN_TIMESTEPS} are supported (Stable \
+                 Diffusion uses 1000)"
+            )));
         }
         let mut betas: Vec<f32> = match (p.trained_betas, p.beta_schedule) {
             (Some(trained), _) => {

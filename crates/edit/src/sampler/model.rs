@@ -7,7 +7,7 @@ use std::path::{Path, PathBuf};
 use candle_core::{DType, Device, Tensor};
 use diffusion::clip::ClipTextModel;
 use diffusion::loader::{Component, ModelDir};
-use diffusion::scheduler::LcmConfig;
+use diffusion::scheduler::{LcmConfig, LcmScheduler, LcmVariant};
 use diffusion::tokenizer::ClipTokenizer;
 use diffusion::unet::{AttentionHook, UNet2DConditionModel};
 use diffusion::vae::Autoencoder;
@@ -90,6 +90,14 @@ impl EditModel {
             source,
         })?;
         let scheduler_config: LcmConfig = dir.read_config(Component::Scheduler)?;
+        // The schedule is built per edit; an impossible one (betas outside [0, 1)) is refused here, naming
+        // its file, rather than sampling black images.
+        LcmScheduler::new(scheduler_config.clone(), LcmVariant::default()).map_err(|e| {
+            diffusion::loader::LoadError::BadFile {
+                path: dir.config_path(Component::Scheduler),
+                message: e.to_string(),
+            }
+        })?;
         let mut parameters = 0u64;
         for component in [Component::Unet, Component::TextEncoder, Component::Vae] {
             if component == Component::Vae && taesd.is_some() {
@@ -239,11 +247,27 @@ impl EditModel {
         batch.min((limit / per_image).max(1) as usize)
     }
 
-    /// Decodes UNet latents to images in [-1, 1] (unclamped).
+    /// Decodes UNet latents to images in [-1, 1] (unclamped). A non-finite value is an error: it comes
+    /// from damaged weights (or a broken schedule) and would otherwise be saved as black pixels.
     pub fn decode(&self, latents: &Tensor) -> candle_core::Result<Tensor> {
-        self.codec
+        let images = self
+            .codec
             .decode_scaled_on(latents, self.compute.networks())
-            .map_err(|e| candle_core::Error::Msg(e.to_string()))
+            .map_err(|e| candle_core::Error::Msg(e.to_string()))?;
+        let finite = images
+            .flatten_all()?
+            .to_dtype(DType::F32)?
+            .to_vec1::<f32>()?
+            .iter()
+            .all(|v| v.is_finite());
+        if !finite {
+            candle_core::bail!(
+                "{}: the decoded images hold NaN or infinite values; the weights may be damaged \
+                 (`vcedit model check` on this folder looks at every value)",
+                self.root.display()
+            );
+        }
+        Ok(images)
     }
 
     /// Decodes UNet latents to images `[B, 3, H, W]` in [0, 1], clamped: the range images are shown, saved
