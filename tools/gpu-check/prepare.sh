@@ -41,7 +41,9 @@ for need in scenes/playbot-31k.ply lego-200/transforms_train.json clip-bpe/vocab
 done
 
 if [ "$build" = 1 ]; then
-  cargo build --release --bin vcedit
+  # Without the built-in demo model (17 MB that would not fit the carried files' limit); the device runs
+  # in a copy of the checkout, whose models/demo the demo step reads.
+  cargo build --release --bin vcedit --no-default-features
 fi
 # Where cargo puts it (CARGO_TARGET_DIR or the workspace's target/).
 BIN="$(cargo metadata --format-version 1 --no-deps | python3 -c 'import json,sys; print(json.load(sys.stdin)["target_directory"])')/release/vcedit"

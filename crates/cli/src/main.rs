@@ -10,6 +10,7 @@ use clap::{Parser, Subcommand};
 
 mod args;
 mod cmd;
+mod embedded;
 mod progress;
 
 #[derive(Parser)]

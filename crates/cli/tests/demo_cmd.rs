@@ -164,7 +164,7 @@ fn demo_rejects_bad_options_with_one_line() {
     );
     assert_eq!(code, 1);
     assert!(
-        stderr.starts_with("error:") && stderr.contains("demo model is missing"),
+        stderr.starts_with("error:") && stderr.contains("not a model folder"),
         "{stderr}"
     );
     assert_eq!(stderr.trim_end().lines().count(), 1, "{stderr}");
@@ -172,4 +172,67 @@ fn demo_rejects_bad_options_with_one_line() {
     let (code, _, stderr) = vcedit(&["demo", "--pair", "99", "--out", "x"], dir.path());
     assert_eq!(code, 2, "a usage error");
     assert!(stderr.contains("--pair 99"), "{stderr}");
+}
+
+/// The demo model is built into the binary: a copy of `vcedit` alone, run in an empty folder far from the
+/// checkout, runs the demo (its model written once into the cache folder, reused the next time).
+#[test]
+fn a_copied_binary_runs_its_own_demo() {
+    let dir = tempfile::tempdir().unwrap();
+    let bin = dir.path().join("vcedit");
+    std::fs::copy(env!("CARGO_BIN_EXE_vcedit"), &bin).unwrap();
+    let work = dir.path().join("work");
+    std::fs::create_dir(&work).unwrap();
+    let cache = dir.path().join("cache");
+    let run = |out: &str| {
+        Command::new(&bin)
+            .args([
+                "demo",
+                "--out",
+                out,
+                "--views",
+                "2",
+                "--iterations",
+                "1",
+                "--fit-steps",
+                "3",
+                "--steps",
+                "2",
+                "--device",
+                "cpu",
+            ])
+            .env("XDG_CACHE_HOME", &cache)
+            .current_dir(&work)
+            .output()
+            .unwrap()
+    };
+    let o = run("a");
+    let stderr = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(0), "{stderr}");
+    assert!(work.join("a/edited.ply").is_file());
+    let models: Vec<_> = std::fs::read_dir(cache.join("vcedit")).unwrap().collect();
+    assert_eq!(models.len(), 1);
+    let model = models[0].as_ref().unwrap().path();
+    assert!(model
+        .join("unet/diffusion_pytorch_model.safetensors")
+        .is_file());
+    let written = std::fs::metadata(model.join("unet/config.json"))
+        .unwrap()
+        .modified()
+        .unwrap();
+    let o = run("b");
+    assert_eq!(
+        o.status.code(),
+        Some(0),
+        "{}",
+        String::from_utf8_lossy(&o.stderr)
+    );
+    let again = std::fs::metadata(model.join("unet/config.json"))
+        .unwrap()
+        .modified()
+        .unwrap();
+    assert_eq!(
+        written, again,
+        "the cached model is reused, not written again"
+    );
 }

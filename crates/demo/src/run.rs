@@ -427,7 +427,7 @@ fn object_regions(scene: &DemoScene, cameras: &[splat::Camera]) -> Vec<Vec<f32>>
 pub fn load_model(path: &Path) -> Result<EditModel, DemoError> {
     if !path.join("model_index.json").is_file() {
         return Err(DemoError::Setup(format!(
-            "{}: the demo model is missing; run from a vcedit checkout (models/demo) or pass --model",
+            "{}: not a model folder (no model_index.json); --model takes a diffusers model folder",
             path.display()
         )));
     }

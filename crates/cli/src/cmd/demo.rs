@@ -41,7 +41,7 @@ pub struct Args {
     /// Run per-view guidance, VcEdit without CCM, without ECM and full VcEdit, and print a table.
     #[arg(long)]
     pub compare: bool,
-    /// Demo model folder (default: models/demo of this checkout).
+    /// Demo model folder (default: the model built into this binary, written once to ~/.cache/vcedit).
     #[arg(long)]
     pub model: Option<PathBuf>,
     /// Number of views (at least 2).
@@ -67,15 +67,6 @@ pub struct Args {
     pub memory: MemoryCheckArg,
 }
 
-/// The demo model bundled with the checkout this binary was built from.
-fn default_model() -> PathBuf {
-    let local = PathBuf::from("models/demo");
-    if local.join("model_index.json").is_file() {
-        return local;
-    }
-    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../models/demo")
-}
-
 pub fn run(args: Args) -> anyhow::Result<()> {
     if args.list {
         for (i, (s, t, _)) in PAIRS.iter().enumerate() {
@@ -93,7 +84,10 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             PAIRS.len() - 1
         );
     }
-    let model_dir = args.model.clone().unwrap_or_else(default_model);
+    let model_dir = match &args.model {
+        Some(dir) => dir.clone(),
+        None => crate::embedded::demo_model()?,
+    };
     let mut opts = DemoOptions::new(model_dir.clone(), args.out.clone());
     opts.pair = args.pair;
     opts.views = args.views;
