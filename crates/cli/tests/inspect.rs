@@ -194,3 +194,47 @@ fn a_closed_pipe_ends_quietly() {
 fn libc_sigpipe() -> i32 {
     13
 }
+
+/// Every command's `--help` examples copy-paste: a line of an example that is not a new `vcedit` command
+/// continues one that ends in a backslash, and every line fits an 80-column terminal (so clap never
+/// wraps one mid-command).
+#[test]
+fn help_examples_copy_paste() {
+    for command in [
+        &["inspect"][..],
+        &["demo"],
+        &["render"],
+        &["view"],
+        &["fit"],
+        &["edit-image"],
+        &["edit"],
+        &["metrics"],
+        &["convert"],
+        &["model", "check"],
+        &["demo-model", "train"],
+        &["demo-model", "sample"],
+        &["bench"],
+    ] {
+        let out = Command::new(env!("CARGO_BIN_EXE_vcedit"))
+            .args(command)
+            .arg("--help")
+            .output()
+            .unwrap();
+        let help = String::from_utf8_lossy(&out.stdout);
+        let Some((_, examples)) = help.split_once("Examples:\n") else {
+            panic!("{command:?} --help has no examples:\n{help}");
+        };
+        let mut previous = "";
+        for line in examples.lines().take_while(|l| !l.trim().is_empty()) {
+            assert!(
+                line.chars().count() <= 80,
+                "{command:?} --help: '{line}' is wider than an 80-column terminal"
+            );
+            assert!(
+                line.starts_with("  vcedit ") || previous.ends_with('\\'),
+                "{command:?} --help: '{line}' continues '{previous}' without a backslash"
+            );
+            previous = line;
+        }
+    }
+}

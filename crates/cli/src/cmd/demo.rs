@@ -18,10 +18,10 @@ use crate::progress::Reporter;
 /// Run the whole pipeline on a built-in procedural scene with the self-made demo model.
 #[derive(clap::Args, Debug)]
 #[command(after_help = "Examples:
-  vcedit demo                      # a red sphere becomes a blue sphere; writes ./vcedit-demo/report.html
-  vcedit demo --pair 1             # another built-in edit (see --list)
-  vcedit demo --compare            # per-view guidance vs VcEdit without CCM / ECM vs full VcEdit
-  vcedit demo --resume             # go on after an interruption (same settings)")]
+  vcedit demo              # a red sphere becomes a blue one, in ./vcedit-demo/
+  vcedit demo --pair 1     # another built-in edit (see --list)
+  vcedit demo --compare    # per-view guidance, no CCM, no ECM, full VcEdit
+  vcedit demo --resume     # go on after an interruption (same settings)")]
 pub struct Args {
     /// Output folder. A folder holding another run's outputs is refused (see --force).
     #[arg(long, default_value = "vcedit-demo")]

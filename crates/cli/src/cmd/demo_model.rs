@@ -39,6 +39,7 @@ pub enum Preset {
 #[command(after_help = "Examples:
   vcedit demo-model train --out models/demo
   vcedit demo-model train --out /tmp/tiny --preset tiny --unet-steps 50
+
 Rerunning the same command continues from OUT/checkpoints; --restart discards them.")]
 pub struct TrainArgs {
     /// Output folder (diffusers layout; checkpoints go to OUT/checkpoints).
@@ -67,8 +68,9 @@ pub struct TrainArgs {
 }
 
 #[derive(clap::Args, Debug)]
-#[command(after_help = "Example:
-  vcedit demo-model sample --model models/demo --prompt \"a red sphere\" --prompt \"a blue striped cube\" \\
+#[command(after_help = "Examples:
+  vcedit demo-model sample --model models/demo \\
+      --prompt \"a red sphere\" --prompt \"a blue striped cube\" \\
       --per-prompt 4 --out grid.png")]
 pub struct SampleArgs {
     /// Model folder (diffusers layout).

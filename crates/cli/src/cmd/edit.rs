@@ -29,12 +29,14 @@ orbit of 32 views around the scene; --max-views keeps a seeded sample of them. R
 reference renders over black).
 
 Examples:
-  vcedit edit --scene man/point_cloud.ply --cameras man/sparse/0 --model ./LCM_Dreamshaper_v7 \\
-      --source \"a man\" --target \"a clown\" --mask-word man --out clown/
-  vcedit edit --scene trained/ --model ./sd15 --taesd ./taesd --source \"a bear\" --target \"a brown bear\" \\
+  vcedit edit --scene man/point_cloud.ply --cameras man/sparse/0 \\
+      --model ./LCM_Dreamshaper_v7 --source \"a man\" --target \"a clown\" \\
+      --mask-word man --out clown/
+  vcedit edit --scene trained/ --model ./sd15 --taesd ./taesd \\
+      --source \"a bear\" --target \"a brown bear\" \\
       --max-views 24 --size 256 --iterations 1 --out bear/
-  vcedit edit ... --guidance per-view --out baseline/     # the per-view baseline, same settings
-  vcedit edit ... --out clown/ --resume                   # continue after an interruption
+  vcedit edit ... --guidance per-view --out baseline/   # the per-view baseline
+  vcedit edit ... --out clown/ --resume                 # continue after a stop
 
 Outputs in --out: edited.ply, iter_K/guidance/*.png, attention/*.png, mask/*.png, before/ and after/ renders,
 turntable.gif, run.json and report.html (open it in a browser)."

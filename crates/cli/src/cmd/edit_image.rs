@@ -20,9 +20,11 @@ use crate::progress::Reporter;
 /// Edit one image from a source prompt to a target prompt (InfEdit: inversion-free, LCM, attention control).
 #[derive(clap::Args, Debug)]
 #[command(after_help = "Examples:
-  vcedit edit-image --model ./LCM_Dreamshaper_v7 --image man.png --source \"a man\" --target \"a clown\" --out clown.png
-  vcedit edit-image --model ./sd15 --taesd ./taesd --image cat.png --source \"a photo of a cat\" \\
-      --target \"a photo of a dog\" --blend-words dog --save-attention attn/ --out dog.png")]
+  vcedit edit-image --model ./LCM_Dreamshaper_v7 --image man.png \\
+      --source \"a man\" --target \"a clown\" --out clown.png
+  vcedit edit-image --model ./sd15 --taesd ./taesd --image cat.png \\
+      --source \"a photo of a cat\" --target \"a photo of a dog\" \\
+      --blend-words dog --save-attention attn/ --out dog.png")]
 pub struct Args {
     #[command(flatten)]
     pub model: ModelArgs,

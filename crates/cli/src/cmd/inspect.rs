@@ -9,7 +9,7 @@ use std::path::PathBuf;
 #[derive(clap::Args)]
 #[command(
     about = "Print statistics of a 3DGS scene (count, SH degree, bounds, opacities, scales, cameras)",
-    after_help = "Examples:\n  vcedit inspect scene.ply\n  vcedit inspect output/garden          # INRIA trainer output folder (adds the camera count)\n  vcedit inspect scene.ply --json > stats.json"
+    after_help = "Examples:\n  vcedit inspect scene.ply\n  vcedit inspect output/garden   # an INRIA trainer output (adds the cameras)\n  vcedit inspect scene.ply --json > stats.json"
 )]
 pub struct Args {
     /// A scene file (PLY, compressed PLY, .splat, .spz, SOG), a SOG folder, or an INRIA trainer output

@@ -38,9 +38,11 @@ Cross-view error: each view is warped into its nearest cameras with the scene's 
 difference (0-1 scale) over pixels both cameras see. Lower is more consistent; a scene's own renders are the floor.
 
 Examples:
-  vcedit metrics --source scene.ply --edited out/edited.ply --orbit 24 --size 256
-  vcedit metrics --source scene.ply --edited out/edited.ply --cameras data/ --mask-box -0.5,-0.5,0,0.5,0.5,1.2 --json m.json
-  vcedit metrics --source scene.ply --edited out/edited.ply --clip models/clip-vit-large-patch14 \\
+  vcedit metrics --source scene.ply --edited out/edited.ply --orbit 24
+  vcedit metrics --source scene.ply --edited out/edited.ply --cameras data/ \\
+      --mask-box -0.5,-0.5,0,0.5,0.5,1.2 --json m.json
+  vcedit metrics --source scene.ply --edited out/edited.ply \\
+      --clip models/clip-vit-large-patch14 \\
       --source-prompt \"a photo of a man\" --target-prompt \"a photo of a clown\""
 )]
 pub struct Args {

@@ -19,7 +19,7 @@ pub enum ModelCommand {
         after_help = "DIR is a diffusers folder (model_index.json, unet/, vae/, text_encoder/, tokenizer/, scheduler/)\n\
                       or a Hugging Face hub cache entry (models--org--name, or one of its snapshots/<rev>).\n\n\
                       Examples:\n  vcedit model check ~/models/LCM_Dreamshaper_v7\n  \
-                      vcedit model check ~/.cache/huggingface/hub/models--SimianLuo--LCM_Dreamshaper_v7\n  \
+                      vcedit model check \\\n      ~/.cache/huggingface/hub/models--SimianLuo--LCM_Dreamshaper_v7\n  \
                       vcedit model check ~/models/sd15 --headers-only   # no weights read, instant"
     )]
     Check(CheckArgs),

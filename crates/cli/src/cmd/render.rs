@@ -24,7 +24,8 @@ NNNN_<camera name>.png (+ _depth.png, _alpha.png).
 Examples:
   vcedit render scene.ply --orbit 24 --out renders/
   vcedit render output/garden --out renders/ --size 512x512 --depth --alpha
-  vcedit render scene.ply --cameras data/transforms.json --out renders/ --background 1,1,1"
+  vcedit render scene.ply --cameras data/transforms.json --out renders/ \\
+      --background 1,1,1"
 )]
 pub struct Args {
     /// A scene file (PLY, compressed PLY, .splat, .spz, SOG), a SOG folder, or an INRIA trainer output
