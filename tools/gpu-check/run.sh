@@ -223,10 +223,12 @@ step edit 240 "$V" edit --scene "$IN/playbot-31k.ply" "${EDIT_SIZE[@]}" --model 
 # ---- a whole fit from posed images (lego-200), and the demo end to end
 if [ "$MODE" = device ]; then FIT_SIZE=(--steps 5000); else FIT_SIZE=(--steps 30 --init-points 2000); fi
 step fit 150 "$V" fit --data "$IN/lego-200" --out "$WORK/lego.ply" --background white --device gpu "${FIT_SIZE[@]}"
+# The packed vcedit has no built-in demo model (prepare.sh): the checkout's is named.
 if [ "$MODE" = device ]; then
-  step demo 150 "$V" demo --device gpu --out "$WORK/demo"
+  step demo 150 "$V" demo --model "$ROOT/models/demo" --device gpu --out "$WORK/demo"
 else
-  step demo 120 "$V" demo --device gpu --out "$WORK/demo" --views 2 --steps 2 --iterations 1 --fit-steps 5
+  step demo 120 "$V" demo --model "$ROOT/models/demo" --device gpu --out "$WORK/demo" --views 2 \
+    --steps 2 --iterations 1 --fit-steps 5
 fi
 
 summarize
