@@ -226,7 +226,9 @@ impl ModelDir {
                     reason: short_reason(&e),
                 }),
             },
-            FileState::BrokenLink => problems.push(Problem::BrokenLink("model_index.json".into())),
+            state @ (FileState::BrokenLink | FileState::NotAFile) => {
+                problems.extend(state.unusable("model_index.json".into()))
+            }
             FileState::Absent => problems.push(Problem::Missing("model_index.json".into())),
         }
         let dir = ModelDir {
@@ -318,7 +320,9 @@ impl ModelDir {
                         });
                     }
                 }
-                FileState::BrokenLink => problems.push(Problem::BrokenLink(rel(config))),
+                state @ (FileState::BrokenLink | FileState::NotAFile) => {
+                    problems.extend(state.unusable(rel(config)))
+                }
                 FileState::Absent => problems.push(Problem::Missing(rel(config))),
             }
         }
@@ -356,8 +360,8 @@ fn tokenizer_problems(dir: &Path, folder: &str) -> Vec<Problem> {
     let mut problems = Vec::new();
     match state("tokenizer.json") {
         FileState::Present => return problems,
-        FileState::BrokenLink => {
-            problems.push(Problem::BrokenLink(format!("{folder}/tokenizer.json")));
+        state @ (FileState::BrokenLink | FileState::NotAFile) => {
+            problems.extend(state.unusable(format!("{folder}/tokenizer.json")));
             return problems;
         }
         FileState::Absent => {}
@@ -365,7 +369,9 @@ fn tokenizer_problems(dir: &Path, folder: &str) -> Vec<Problem> {
     for name in ["vocab.json", "merges.txt"] {
         match state(name) {
             FileState::Present => {}
-            FileState::BrokenLink => problems.push(Problem::BrokenLink(format!("{folder}/{name}"))),
+            state @ (FileState::BrokenLink | FileState::NotAFile) => {
+                problems.extend(state.unusable(format!("{folder}/{name}")))
+            }
             FileState::Absent => problems.push(Problem::Missing(format!("{folder}/{name}"))),
         }
     }
@@ -425,15 +431,33 @@ fn parse_model_index(value: &serde_json::Value) -> (Option<String>, DeclaredClas
 
 enum FileState {
     Present,
+    /// A symlink whose target is gone (a hub-cache blob deleted).
     BrokenLink,
+    /// Something other than a file where a file should be (a folder, a named pipe).
+    NotAFile,
     Absent,
+}
+
+impl FileState {
+    /// The problem of an unusable file named `name` (`None` when present or absent).
+    fn unusable(&self, name: String) -> Option<Problem> {
+        match self {
+            FileState::BrokenLink => Some(Problem::BrokenLink(name)),
+            FileState::NotAFile => Some(Problem::Invalid {
+                file: name,
+                reason: "not a regular file (a folder?)".into(),
+            }),
+            FileState::Present | FileState::Absent => None,
+        }
+    }
 }
 
 fn file_state(path: &Path) -> FileState {
     if path.is_file() {
         FileState::Present
+    } else if fs::metadata(path).is_ok() {
+        FileState::NotAFile
     } else if fs::symlink_metadata(path).is_ok() {
-        // A dangling symlink, or a directory where a file should be: either way unusable.
         FileState::BrokenLink
     } else {
         FileState::Absent
@@ -586,8 +610,8 @@ fn find_weight_files_inner(dir: &Path) -> Result<WeightFiles, WeightSearchError>
         if !is_weight_like {
             continue;
         }
-        if !path.is_file() {
-            broken.push(Problem::BrokenLink(name));
+        if let Some(problem) = file_state(&path).unusable(name.clone()) {
+            broken.push(problem);
             continue;
         }
         if let Some(stem) = name.strip_suffix(".safetensors.index.json") {
@@ -652,7 +676,9 @@ fn find_weight_files_inner(dir: &Path) -> Result<WeightFiles, WeightSearchError>
             let path = dir.join(shard);
             match file_state(&path) {
                 FileState::Present => files.push(path),
-                FileState::BrokenLink => problems.push(Problem::BrokenLink(shard.clone())),
+                state @ (FileState::BrokenLink | FileState::NotAFile) => {
+                    problems.extend(state.unusable(shard.clone()))
+                }
                 FileState::Absent => problems.push(Problem::Missing(shard.clone())),
             }
         }
@@ -798,6 +824,31 @@ mod tests {
             "{err}"
         );
         assert!(err.contains("safetensors"), "{err}");
+    }
+
+    /// A folder where a weight file should be is named as such, not as a broken link; a dangling symlink
+    /// is a broken link.
+    #[test]
+    fn a_folder_or_a_dangling_link_in_place_of_weights_is_named_for_what_it_is() {
+        let dir = tempfile::tempdir().unwrap();
+        fs::create_dir(dir.path().join("diffusion_pytorch_model.safetensors")).unwrap();
+        let err = find_weight_files(dir.path()).unwrap_err().to_string();
+        assert!(
+            err.contains("diffusion_pytorch_model.safetensors: not a regular file")
+                && !err.contains("broken link"),
+            "{err}"
+        );
+        #[cfg(unix)]
+        {
+            let dir = tempfile::tempdir().unwrap();
+            std::os::unix::fs::symlink(
+                dir.path().join("gone"),
+                dir.path().join("diffusion_pytorch_model.safetensors"),
+            )
+            .unwrap();
+            let err = find_weight_files(dir.path()).unwrap_err().to_string();
+            assert!(err.contains("broken link"), "{err}");
+        }
     }
 
     #[test]
