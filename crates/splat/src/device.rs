@@ -44,14 +44,6 @@ impl SplatDevice {
         matches!(self, SplatDevice::Cpu)
     }
 
-    /// "CPU" or the adapter, for logs.
-    pub fn describe(&self) -> String {
-        match self {
-            SplatDevice::Cpu => "CPU".into(),
-            SplatDevice::Gpu(ctx) => ctx.describe(),
-        }
-    }
-
     /// Renders `scene` from `camera`. `extra`: N*C values composited as extra channels.
     pub fn render(
         &self,

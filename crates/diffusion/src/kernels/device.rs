@@ -45,10 +45,6 @@ impl Device {
         }
     }
 
-    pub fn is_cpu(&self) -> bool {
-        matches!(self, Device::Cpu)
-    }
-
     /// "CPU" or the adapter and the weights' precision, for logs and run.json.
     pub fn describe(&self) -> String {
         match self {
@@ -191,14 +187,6 @@ macro_rules! all_on {
 }
 
 impl DeviceTensor {
-    /// The device holding the tensor.
-    pub fn device(&self) -> Device {
-        match self {
-            DeviceTensor::Cpu(_) => Device::Cpu,
-            DeviceTensor::Gpu(g) => Device::Gpu(g.device().clone()),
-        }
-    }
-
     /// A host tensor (a constant, a map from elsewhere) on this tensor's device.
     pub fn same_device(&self, t: &Tensor) -> Result<DeviceTensor> {
         match self {

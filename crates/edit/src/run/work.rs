@@ -130,20 +130,39 @@ fn scene_param_bytes(scene: &GaussianScene) -> u64 {
     scene.len() as u64 * (11 + k) * 4
 }
 
-/// Counts the work of a run and estimates its peak memory.
+/// Activation bytes of one hooked UNet call on `views` views (six latent rows each: three branches,
+/// conditional and unconditional) of `latent` (height, width) pixels: the config's documented upper bound,
+/// or roughly 40 activations of the first block's width when the config cannot be resolved.
+fn unet_call_bytes(model: &EditModel, views: usize, latent: (usize, usize)) -> u64 {
+    let config = model.unet.config();
+    config
+        .activation_estimate(6 * views, latent.0, latent.1, 77, true)
+        .map_or_else(
+            |_| rough_unet_call_bytes(model, views, latent),
+            |e| e.total() as u64,
+        )
+}
+
+/// The rough form of [`unet_call_bytes`].
+fn rough_unet_call_bytes(model: &EditModel, views: usize, latent: (usize, usize)) -> u64 {
+    let width = model
+        .unet
+        .config()
+        .block_out_channels
+        .first()
+        .copied()
+        .unwrap_or(320);
+    (6 * views * latent.0 * latent.1 * width * 4 * 40) as u64
+}
+
 /// The memory of a single-image edit (`vcedit edit-image`) of `size` (width, height): host bytes and, on a
 /// GPU, device bytes. The weights (held on the host either way) plus one hooked batch-6 UNet call (the
 /// three branches, conditional and unconditional) where the networks run, and the image's buffers.
 pub fn image_edit_memory(model: &EditModel, size: (u32, u32)) -> (u64, Option<u64>) {
     let (w, h) = (size.0 as u64, size.1 as u64);
     let f = model.downscale() as u64;
-    let (lh, lw) = ((h / f) as usize, (w / f) as usize);
     let weights = model.parameters * 4;
-    let unet = model
-        .unet
-        .config()
-        .activation_estimate(6, lh, lw, 77, true)
-        .map_or(6 * (w / f) * (h / f) * 320 * 4 * 40, |e| e.total() as u64);
+    let unet = unet_call_bytes(model, 1, ((h / f) as usize, (w / f) as usize));
     // The input, the decoded outputs and the attention maps saved with the image, in f32.
     let images = w * h * 4 * 16;
     match model.compute.networks().gpu() {
@@ -152,6 +171,7 @@ pub fn image_edit_memory(model: &EditModel, size: (u32, u32)) -> (u64, Option<u6
     }
 }
 
+/// Counts the work of a run and estimates its peak memory.
 pub fn work_plan(
     job: &EditJob,
     model: &EditModel,
@@ -174,7 +194,6 @@ pub fn work_plan(
         GuidanceMode::PerView => (0, 0, 0),
     };
     let (epochs, _) = job.consistency.ecm.schedule(v);
-    let cfg = &model.unet.config().block_out_channels;
     let unet_calls = job.iterations * v * (steps + ccm);
     // Attention layers recorded by CCM, at most one per transformer block: a generous 16.
     let ccm_layers = 16;
@@ -189,8 +208,9 @@ pub fn work_plan(
     let f = model.downscale() as u64;
     let latent = (w / f) * (h / f);
     let weights = model.parameters * 4;
-    // A batch-6 UNet pass: roughly 40 activations of the first block's width at latent resolution.
-    let unet = 6 * latent * cfg.first().copied().unwrap_or(320) as u64 * 4 * 40;
+    let latent_size = ((h / f) as usize, (w / f) as usize);
+    // One view per UNet call on the host.
+    let unet = rough_unet_call_bytes(model, 1, latent_size);
     // Per view: latents and attention stores (blend layers, CCM records at most 32² queries × 77 tokens).
     let heads = HEADS;
     let per_view = 12 * latent * 4
@@ -215,13 +235,7 @@ pub fn work_plan(
     // On a GPU: what the run keeps there (`gpu_state_bytes`) plus one hooked UNet call of `view_batch`
     // views (diffusion's documented upper bound; flash self-attention keeps no probability matrix).
     let gpu_memory_bytes = model.compute.networks().gpu().map(|_| {
-        let (lh, lw) = ((h / f) as usize, (w / f) as usize);
-        let activations = model
-            .unet
-            .config()
-            .activation_estimate(6 * view_batch, lh, lw, 77, true)
-            .map_or(unet, |e| e.total() as u64);
-        gpu_state_bytes(job, model, scene) + activations
+        gpu_state_bytes(job, model, scene) + unet_call_bytes(model, view_batch, latent_size)
     });
     let gpu_free_bytes = model
         .compute

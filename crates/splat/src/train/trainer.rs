@@ -107,11 +107,6 @@ impl Trainer {
         }
     }
 
-    /// Whether ordinary steps run resident (a device and a loss it evaluates).
-    pub fn is_resident(&self) -> bool {
-        self.resident.is_some()
-    }
-
     /// One step on view `v` seen from `camera`. `state.adam` gives the rates (callers set its
     /// iteration) and counts the step; after a resident step `state` is stale until [`Trainer::sync`].
     pub fn step<L: FitLoss>(
