@@ -106,6 +106,11 @@ fn reduced_demo_writes_every_output() {
     assert!(stderr.contains("resuming after iteration 1"), "{stderr}");
     let report = std::fs::read_to_string(out.join("report.html")).unwrap();
     assert!(report.contains("resumed after iteration 1"));
+    // The report carries the oracle's scores, shape included.
+    assert!(
+        report.contains("silhouette IoU against the ideal edit"),
+        "no oracle line in the report"
+    );
 }
 
 /// A reduced `--compare`: five steps, so ECM (every fifth step) runs once in the variants that use it.
@@ -134,6 +139,17 @@ fn reduced_compare_writes_the_table_and_every_variant() {
         serde_json::from_slice(&std::fs::read(out.join("compare.json")).unwrap()).unwrap();
     assert_eq!(json["runs"].as_array().unwrap().len(), 4, "{json}");
     assert_eq!(json["references"].as_array().unwrap().len(), 4, "{json}");
+    // Every run and reference row has shape scores in 0..=1 (the ideal edit's silhouette is its own).
+    for run in json["runs"].as_array().unwrap() {
+        for key in ["silhouette_iou", "guidance_silhouette_iou"] {
+            let v = run[key].as_f64().unwrap_or(-1.0);
+            assert!((0.0..=1.0).contains(&v), "{key} {v}: {run}");
+        }
+        assert!(run["outside_change"].as_f64().unwrap() >= 0.0, "{run}");
+    }
+    let ideal = &json["references"][2];
+    assert_eq!(ideal["silhouette_iou"].as_f64(), Some(1.0), "{ideal}");
+    assert!(stdout.contains("silhouette IoU"), "{stdout}");
     assert_eq!(
         std::fs::read_to_string(out.join("compare.md"))
             .unwrap()

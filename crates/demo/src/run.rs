@@ -14,13 +14,14 @@ use edit::eval::metrics::{
     multiview_consistency, multiview_consistency_in, ViewGeometry, WarpSettings as MetricSettings,
 };
 use edit::fit::{ImageLoss, TrainSettings};
-use edit::run::{edit_scene, EditJob, GuidanceMode, MaskSource, Progress, RunInputs};
+use edit::run::{run_edit, write_outputs, EditJob, GuidanceMode, MaskSource, Progress, RunInputs};
 use edit::sampler::{image_to_tensor, EditModel, EditPrompts, InfEditSettings, SeededNoise};
 use serde::Serialize;
 use splat::render::{render, Frame, RenderSettings};
 
 use crate::world::{
-    self, build_scene, BuildSettings, GeneratorSettings, Oracle, OracleSettings, SceneSpec,
+    self, build_scene, BuildSettings, EditScore, GeneratorSettings, Oracle, OracleSettings,
+    SceneSpec,
 };
 
 /// The built-in edits: (source caption, target caption, scene seed). All change colour or pattern only, so
@@ -143,6 +144,14 @@ pub struct DemoScores {
     pub guidance_layout_fidelity: Option<f64>,
     /// PSNR of the final renders against the source outside the object.
     pub preservation_psnr: f64,
+    /// Oracle shape: the final renders' object silhouette against the ideal edit's (IoU).
+    pub silhouette_iou: Option<f64>,
+    /// The same for the last guidance images.
+    pub guidance_silhouette_iou: Option<f64>,
+    /// Oracle shape: pixels beyond the object's margin that changed, per object pixel (final renders).
+    pub outside_change: Option<f64>,
+    /// The same for the last guidance images.
+    pub guidance_outside_change: Option<f64>,
     pub seconds: f64,
     pub report: PathBuf,
 }
@@ -243,14 +252,9 @@ pub fn run_variant(
     let t = Instant::now();
     let job = demo_job(opts, scene, variant);
     let loss = ImageLoss::dssim();
-    let inputs = RunInputs {
-        scene: &format!("procedural: {}", scene.source.caption()),
-        cameras: &format!("{} ring views", scene.cameras.len()),
-        model: &opts.model.display().to_string(),
-        loss: loss.describe(),
-        notes: vec![format!("vcedit demo, {}", variant.name())],
-    };
-    let (result, written) = edit_scene(
+    // `edit_scene` in two halves: the oracle scores the result before the outputs are written, so the
+    // report shows them.
+    let result = run_edit(
         &job,
         model,
         &loss,
@@ -258,7 +262,6 @@ pub fn run_variant(
         &scene.cameras,
         out,
         opts.resume,
-        &inputs,
         progress,
     )?;
     let oracle = Oracle::new(&scene.source, &scene.target, OracleSettings::default())?;
@@ -282,6 +285,25 @@ pub fn run_variant(
         Some(g) => Some(oracle.score(&cams, g)?),
         None => None,
     };
+    let inputs = RunInputs {
+        scene: &format!("procedural: {}", scene.source.caption()),
+        cameras: &format!("{} ring views", scene.cameras.len()),
+        model: &opts.model.display().to_string(),
+        loss: loss.describe(),
+        notes: vec![
+            format!("vcedit demo, {}", variant.name()),
+            oracle_note(&final_score, guidance_score.as_ref()),
+        ],
+    };
+    let written = write_outputs(
+        out,
+        &job,
+        &inputs,
+        &scene.built.scene,
+        &scene.cameras,
+        &result,
+        progress,
+    )?;
     // Object-only consistency: regions from the source object's labels; the guidance is warped with the
     // source geometry (it was made from renders of it), the final renders with their own.
     let regions = object_regions(scene, &cams);
@@ -321,9 +343,37 @@ pub fn run_variant(
         layout_fidelity: final_score.fidelity,
         guidance_layout_fidelity: guidance_score.as_ref().and_then(|g| g.fidelity),
         preservation_psnr: final_score.preservation_psnr,
+        silhouette_iou: final_score.silhouette_iou,
+        guidance_silhouette_iou: guidance_score.as_ref().and_then(|g| g.silhouette_iou),
+        outside_change: final_score.outside_change,
+        guidance_outside_change: guidance_score.as_ref().and_then(|g| g.outside_change),
         seconds: t.elapsed().as_secs_f64(),
         report: written.report,
     })
+}
+
+/// The report's line of oracle scores (the procedural world's ground truth; a real scene has none).
+fn oracle_note(final_score: &EditScore, guidance: Option<&EditScore>) -> String {
+    let f = score_cell;
+    let mut s = format!(
+        "Oracle (the procedural world's ground truth) on the final renders: colour fidelity {}, layout \
+         fidelity {}, silhouette IoU against the ideal edit {}, changed pixels beyond 2 px outside the \
+         object {} per object pixel, preservation {:.1} dB",
+        f(final_score.color_fidelity),
+        f(final_score.fidelity),
+        f(final_score.silhouette_iou),
+        f(final_score.outside_change),
+        final_score.preservation_psnr
+    );
+    if let Some(g) = guidance {
+        s.push_str(&format!(
+            "; on the last guidance: silhouette IoU {}, outside change {}",
+            f(g.silhouette_iou),
+            f(g.outside_change)
+        ));
+    }
+    s.push('.');
+    s
 }
 
 /// Cross-view errors of images that are consistent by construction: what the comparison's numbers should be
@@ -334,6 +384,9 @@ pub struct ReferenceRow {
     pub name: &'static str,
     pub object: Option<f64>,
     pub whole: Option<f64>,
+    /// Oracle shape scores of the same images: what the autoencoder alone does to the outline.
+    pub silhouette_iou: Option<f64>,
+    pub outside_change: Option<f64>,
 }
 
 /// The reference rows of a comparison: source and ideal-edit (the target spec rendered) renders, each as
@@ -393,19 +446,23 @@ pub fn reference_rows(
         .collect();
     let source_codec = round_trip(&source, &mut noise)?;
     let ideal_codec = round_trip(&ideal, &mut noise)?;
-    let row = |name, images: &[splat::Image]| {
+    let oracle = Oracle::new(&scene.source, &scene.target, OracleSettings::default())?;
+    let row = |name, images: &[splat::Image]| -> Result<ReferenceRow, DemoError> {
         let (object, whole) = errors(images);
-        ReferenceRow {
+        let shape = oracle.score(&scene.cameras, images)?;
+        Ok(ReferenceRow {
             name,
             object,
             whole,
-        }
+            silhouette_iou: shape.silhouette_iou,
+            outside_change: shape.outside_change,
+        })
     };
     Ok(vec![
-        row("source renders", &source),
-        row("source through the autoencoder", &source_codec),
-        row("ideal edit (target renders)", &ideal),
-        row("ideal edit through the autoencoder", &ideal_codec),
+        row("source renders", &source)?,
+        row("source through the autoencoder", &source_codec)?,
+        row("ideal edit (target renders)", &ideal)?,
+        row("ideal edit through the autoencoder", &ideal_codec)?,
     ])
 }
 
@@ -443,11 +500,11 @@ fn score_cell(v: Option<f64>) -> String {
 pub fn table(scores: &[DemoScores]) -> String {
     let f = score_cell;
     let mut s = String::from(
-        "| run | guidance cross-view error ↓ object / whole image | final cross-view error ↓ object / whole image | final fidelity ↑ colour / layout | guidance fidelity ↑ colour / layout | preservation PSNR ↑ | time |\n|---|---|---|---|---|---|---|\n",
+        "| run | guidance cross-view error ↓ object / whole image | final cross-view error ↓ object / whole image | final fidelity ↑ colour / layout | guidance fidelity ↑ colour / layout | final shape: silhouette IoU ↑ / outside change ↓ | guidance shape: silhouette IoU ↑ / outside change ↓ | preservation PSNR ↑ | time |\n|---|---|---|---|---|---|---|---|---|\n",
     );
     for r in scores {
         s.push_str(&format!(
-            "| {} | {} / {} | {} / {} | {} / {} | {} / {} | {:.1} dB | {:.0} s |\n",
+            "| {} | {} / {} | {} / {} | {} / {} | {} / {} | {} / {} | {} / {} | {:.1} dB | {:.0} s |\n",
             r.variant.name(),
             f(r.guidance_consistency_object),
             f(r.guidance_consistency),
@@ -457,6 +514,10 @@ pub fn table(scores: &[DemoScores]) -> String {
             f(r.layout_fidelity),
             f(r.guidance_fidelity),
             f(r.guidance_layout_fidelity),
+            f(r.silhouette_iou),
+            f(r.outside_change),
+            f(r.guidance_silhouette_iou),
+            f(r.guidance_outside_change),
             r.preservation_psnr,
             r.seconds
         ));
@@ -468,14 +529,16 @@ pub fn table(scores: &[DemoScores]) -> String {
 pub fn reference_table(rows: &[ReferenceRow]) -> String {
     let f = score_cell;
     let mut s = String::from(
-        "| consistent by construction | cross-view error ↓ object / whole image |\n|---|---|\n",
+        "| consistent by construction | cross-view error ↓ object / whole image | shape: silhouette IoU ↑ / outside change ↓ |\n|---|---|---|\n",
     );
     for r in rows {
         s.push_str(&format!(
-            "| {} | {} / {} |\n",
+            "| {} | {} / {} | {} / {} |\n",
             r.name,
             f(r.object),
-            f(r.whole)
+            f(r.whole),
+            f(r.silhouette_iou),
+            f(r.outside_change)
         ));
     }
     s

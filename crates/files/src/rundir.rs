@@ -12,6 +12,9 @@
 //!
 //! While a [`RunDir`] is open, every [`crate::atomic_write`] into it is added to its manifest
 //! automatically, and a write over one of the run's inputs is refused, whichever crate does the writing.
+//! It also holds an exclusive lock on the folder (`flock` on the folder itself, so no lock file is left
+//! behind and a killed run frees it): a second run into the same folder at the same time is refused
+//! instead of interleaving its files and manifest lines with the first's.
 
 use std::collections::BTreeSet;
 use std::io::Write;
@@ -56,6 +59,8 @@ pub enum RunDirError {
     OtherRun { path: PathBuf, previous: String },
     #[error("{}: is not empty and was not written by vcedit; choose a new or empty folder", path.display())]
     Foreign { path: PathBuf },
+    #[error("{}: another vcedit run is writing into this folder now; wait for it to end or choose another folder", path.display())]
+    Busy { path: PathBuf },
     #[error(transparent)]
     Input(#[from] PathError),
 }
@@ -79,6 +84,8 @@ struct Header {
 pub struct RunDir {
     dir: PathBuf,
     previous: Previous,
+    /// The folder opened for its lock; closing it releases the lock.
+    _lock: FolderLock,
 }
 
 /// Open run folders: (canonical folder, inputs of the run), consulted by every atomic write.
@@ -101,6 +108,8 @@ impl RunDir {
             });
         }
         std::fs::create_dir_all(dir).map_err(io_err(dir))?;
+        // Before anything is read or removed: another run may be writing here right now.
+        let lock = FolderLock::acquire(dir)?;
         crate::clean_stale_temps(dir).map_err(io_err(dir))?;
         let header = Header {
             command: command.to_string(),
@@ -152,6 +161,7 @@ impl RunDir {
         Ok(Self {
             dir: dir.to_path_buf(),
             previous,
+            _lock: lock,
         })
     }
 
@@ -181,6 +191,40 @@ impl Drop for RunDir {
                 open.remove(i);
             }
         }
+    }
+}
+
+/// An exclusive advisory lock on a folder, held while the value lives.
+#[derive(Debug)]
+struct FolderLock {
+    /// Kept open only: the lock lives as long as the descriptor.
+    _handle: std::fs::File,
+}
+
+impl FolderLock {
+    fn acquire(dir: &Path) -> Result<Self, RunDirError> {
+        let handle = std::fs::File::open(dir).map_err(io_err(dir))?;
+        #[cfg(unix)]
+        {
+            use std::os::fd::AsRawFd;
+            // SAFETY: flock on a descriptor this function owns; no memory is shared with the call.
+            let rc = unsafe { libc::flock(handle.as_raw_fd(), libc::LOCK_EX | libc::LOCK_NB) };
+            if rc != 0 {
+                let err = std::io::Error::last_os_error();
+                return Err(if err.kind() == std::io::ErrorKind::WouldBlock {
+                    RunDirError::Busy {
+                        path: dir.to_path_buf(),
+                    }
+                } else {
+                    RunDirError::Io {
+                        path: dir.to_path_buf(),
+                        source: err,
+                    }
+                });
+            }
+        }
+        // Elsewhere the folder is not locked: two simultaneous runs there are the user's to avoid.
+        Ok(Self { _handle: handle })
     }
 }
 
@@ -418,6 +462,26 @@ mod tests {
             .to_string();
         assert!(err.contains("refusing to write over the input"), "{err}");
         assert_eq!(std::fs::read(&input).unwrap(), b"scene");
+    }
+
+    #[cfg(unix)]
+    #[test]
+    fn a_folder_in_use_by_another_run_is_refused_until_it_ends() {
+        let tmp = tempfile::tempdir().unwrap();
+        let out = tmp.path().join("out");
+        let first = RunDir::open(&out, "edit", "a", RunDirMode::Keep, &[]).unwrap();
+        crate::atomic_write(&out.join("view_0.png"), b"x").unwrap();
+        for mode in [RunDirMode::Keep, RunDirMode::Force] {
+            let err = RunDir::open(&out, "edit", "a", mode, &[]).unwrap_err();
+            assert!(matches!(err, RunDirError::Busy { .. }), "{err}");
+            assert!(err.to_string().contains("another vcedit run"), "{err}");
+        }
+        // The refused opens changed nothing; once the first run ends the folder opens again.
+        assert_eq!(names(&out), vec![MANIFEST_NAME, "view_0.png"]);
+        drop(first);
+        let again = RunDir::open(&out, "edit", "a", RunDirMode::Keep, &[]).unwrap();
+        assert_eq!(again.previous(), Previous::SameRun);
+        assert_eq!(again.recorded().unwrap(), vec![PathBuf::from("view_0.png")]);
     }
 
     #[test]

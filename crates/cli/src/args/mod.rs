@@ -154,10 +154,19 @@ pub struct BackgroundArg {
         long,
         value_name = "COLOUR",
         default_value = "black",
+        default_value_if("white_background", clap::builder::ArgPredicate::IsPresent, "white"),
         value_parser = parse_colour,
         allow_hyphen_values = true
     )]
     pub background: [f32; 3],
+    /// The same as --background white (the INRIA trainer's -w / --white_background).
+    #[arg(
+        short = 'w',
+        long,
+        visible_alias = "white_background",
+        conflicts_with = "background"
+    )]
+    pub white_background: bool,
 }
 
 /// Which views a command renders: cameras from a file, an orbit, or the scene's own cameras, and at most how
@@ -289,6 +298,29 @@ impl CameraArgs {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use clap::Parser;
+
+    #[derive(clap::Parser, Debug)]
+    struct WithBackground {
+        #[command(flatten)]
+        background: BackgroundArg,
+    }
+
+    #[test]
+    fn white_background_is_the_inria_spelling_of_background_white() {
+        let parse = |args: &[&str]| {
+            WithBackground::try_parse_from(std::iter::once("vcedit").chain(args.iter().copied()))
+                .map(|a| a.background.background)
+        };
+        assert_eq!(parse(&[]).unwrap(), [0.0; 3]);
+        for flag in ["-w", "--white-background", "--white_background"] {
+            assert_eq!(parse(&[flag]).unwrap(), [1.0; 3], "{flag}");
+        }
+        assert_eq!(parse(&["--background", "red"]).unwrap(), [1.0, 0.0, 0.0]);
+        // Two colours at once is a usage error, not a silent pick.
+        let err = parse(&["-w", "--background", "red"]).unwrap_err();
+        assert_eq!(err.kind(), clap::error::ErrorKind::ArgumentConflict);
+    }
 
     fn camera(name: &str, size: u32) -> Camera {
         let mut c = orbit_cameras([-1.0; 3], [1.0; 3], 1, size, size).remove(0);

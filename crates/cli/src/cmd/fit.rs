@@ -32,9 +32,15 @@ pub struct Args {
     /// *.compressed.ply, *.splat, *.spz, *.sog, DIR/meta.json).
     #[arg(long, value_name = "FILE")]
     pub out: PathBuf,
-    /// Optimisation steps (one view per step). The default fits NeRF-synthetic scenes at 200x200 to
-    /// ~31-32 dB in under 10 minutes on 2 cores.
-    #[arg(long, default_value_t = 5000, value_parser = positive::<u64>, allow_negative_numbers = true)]
+    /// Optimisation steps (one view per step; --iterations as in the INRIA trainer). The default fits
+    /// NeRF-synthetic scenes at 200x200 to ~31-32 dB in under 10 minutes on 2 cores.
+    #[arg(
+        long,
+        visible_alias = "iterations",
+        default_value_t = 5000,
+        value_parser = positive::<u64>,
+        allow_negative_numbers = true
+    )]
     pub steps: u64,
     #[command(flatten)]
     pub size: SizeArg,

@@ -18,6 +18,13 @@
 //!   matched to a colour that changed.
 //! - **preservation**: PSNR between the edited images and the source renders outside the main object
 //!   (its coverage dilated by `margin_px`), i.e. the table, floor and background.
+//! - **shape**: the object's silhouette against the ideal edit's (IoU), and the change outside it. A
+//!   pixel belongs to the silhouette when its colour differs from the *backdrop* (the scene rendered
+//!   without the main object) by `silhouette_contrast` CIELAB units; the ideal edit (the target rendered)
+//!   is classified by the same rule, so where the object's colour happens to match what is behind it both
+//!   silhouettes leave the pixel out alike. The outside change counts pixels beyond the `margin_px`
+//!   dilation whose colour moved more than `outside_change` (any channel, 0–1) from the source render,
+//!   per pixel of the object (coverage ≥ 0.5): a colour edit should leave both at 1 and 0.
 //!
 //! 3DGS renders carry no lighting, so colours are compared directly (CIELAB, so distances follow what the
 //! eye sees); expected images come from the same renderer as the edited ones.
@@ -109,6 +116,10 @@ pub struct OracleSettings {
     pub margin_px: u32,
     /// Phase candidates per axis for the target pattern (1 = the target spec's exact layout only).
     pub phase_steps: u32,
+    /// Smallest CIELAB distance from the backdrop for a pixel to be part of the object's silhouette.
+    pub silhouette_contrast: f32,
+    /// Smallest change (largest channel difference, 0–1) that counts a pixel outside the object as changed.
+    pub outside_change: f32,
     /// Density of the scenes the oracle renders.
     pub build: BuildSettings,
 }
@@ -121,6 +132,8 @@ impl Default for OracleSettings {
             min_coverage: 0.9,
             margin_px: 2,
             phase_steps: 1,
+            silhouette_contrast: 20.0,
+            outside_change: 0.1,
             build: BuildSettings::default(),
         }
     }
@@ -138,6 +151,10 @@ pub struct ViewScore {
     /// PSNR outside the object, dB (capped at 100).
     pub preservation_psnr: f64,
     pub outside_pixels: usize,
+    /// Silhouette IoU against the ideal edit's; `None` when neither silhouette has a pixel.
+    pub silhouette_iou: Option<f64>,
+    /// Changed pixels beyond the margin per object pixel; `None` when the object covers no pixel.
+    pub outside_change: Option<f64>,
 }
 
 /// Scores of a set of views (pooled over pixels of all views).
@@ -146,6 +163,10 @@ pub struct EditScore {
     pub fidelity: Option<f64>,
     pub color_fidelity: Option<f64>,
     pub preservation_psnr: f64,
+    /// Silhouette IoU against the ideal edit's (pooled over views).
+    pub silhouette_iou: Option<f64>,
+    /// Changed pixels beyond the margin per object pixel (pooled over views).
+    pub outside_change: Option<f64>,
     /// Offset added to the target pattern's phase that matched best (zero without phase search).
     pub phase_offset: [f32; 2],
     pub per_view: Vec<ViewScore>,
@@ -169,6 +190,8 @@ pub struct Oracle {
     source: SceneSpec,
     target: SceneSpec,
     built: BuiltScene,
+    /// The source scene without its main object: what each silhouette is told apart from.
+    backdrop: splat::GaussianScene,
     settings: OracleSettings,
 }
 
@@ -189,10 +212,14 @@ impl Oracle {
             )));
         }
         let built = build_scene(source, &settings.build);
+        let mut backdrop = built.scene.clone();
+        let keep: Vec<bool> = built.labels.object.iter().map(|&o| o != MAIN).collect();
+        backdrop.retain(&keep);
         Ok(Self {
             source: source.clone(),
             target: target.clone(),
             built,
+            backdrop,
             settings,
         })
     }
@@ -268,6 +295,14 @@ impl Oracle {
                 channels: c,
             }),
         );
+        let backdrop = render(
+            &self.backdrop,
+            camera,
+            &RenderSettings { background: bg },
+            None,
+        )
+        .into_frame()
+        .rgb;
         let npix = out.alpha.len();
         let ncand = (c - 2) / 3;
         let mut main = Vec::with_capacity(npix);
@@ -287,6 +322,7 @@ impl Oracle {
             width: out.width,
             height: out.height,
             source: out.into_frame().rgb,
+            backdrop,
             targets,
             main,
             patterned,
@@ -349,6 +385,8 @@ impl Oracle {
             fidelity: pooled.fidelity,
             color_fidelity: pooled.color_fidelity,
             preservation_psnr: pooled.preservation_psnr,
+            silhouette_iou: pooled.silhouette_iou,
+            outside_change: pooled.outside_change,
             phase_offset: candidates[best].0,
             per_view,
         })
@@ -389,14 +427,27 @@ impl Oracle {
                 if !near_object {
                     let p = y as usize * w + x as usize;
                     base.outside += 1;
+                    let mut largest = 0.0f32;
                     for k in 0..3 {
-                        let d = (img.data[ch * p + k].clamp(0.0, 1.0)
-                            - r.source[3 * p + k].clamp(0.0, 1.0))
-                            as f64;
-                        base.squared_error += d * d;
+                        let d = img.data[ch * p + k].clamp(0.0, 1.0)
+                            - r.source[3 * p + k].clamp(0.0, 1.0);
+                        base.squared_error += (d as f64) * (d as f64);
+                        largest = largest.max(d.abs());
                     }
+                    base.outside_changed += (largest > self.settings.outside_change) as usize;
                 }
             }
+        }
+        // Silhouettes: the edited image's and the ideal edit's (the exact target layout; every
+        // candidate shares its geometry), each told apart from the backdrop by the same rule.
+        let contrast = self.settings.silhouette_contrast;
+        for p in 0..npix {
+            let behind = lab(&r.backdrop, p);
+            let ideal = dist(lab(&r.targets[0], p), behind) > contrast;
+            let edited_object = dist(edited[p], behind) > contrast;
+            base.silhouette_both += (ideal && edited_object) as usize;
+            base.silhouette_either += (ideal || edited_object) as usize;
+            base.object_pixels += (r.main[p] >= 0.5) as usize;
         }
         for p in (0..npix).filter(|&p| counted[p]) {
             match sets.nearest(edited[p]) {
@@ -466,6 +517,8 @@ struct RenderedView {
     width: u32,
     height: u32,
     source: Vec<f32>,
+    /// RGB of the scene without its main object.
+    backdrop: Vec<f32>,
     targets: Vec<Vec<f32>>,
     main: Vec<f32>,
     patterned: Vec<f32>,
@@ -479,6 +532,10 @@ struct ViewTally {
     color_source: usize,
     squared_error: f64,
     outside: usize,
+    outside_changed: usize,
+    silhouette_both: usize,
+    silhouette_either: usize,
+    object_pixels: usize,
 }
 
 impl ViewTally {
@@ -489,6 +546,10 @@ impl ViewTally {
         self.color_source += o.color_source;
         self.squared_error += o.squared_error;
         self.outside += o.outside;
+        self.outside_changed += o.outside_changed;
+        self.silhouette_both += o.silhouette_both;
+        self.silhouette_either += o.silhouette_either;
+        self.object_pixels += o.object_pixels;
     }
 
     fn score(&self) -> ViewScore {
@@ -506,6 +567,10 @@ impl ViewTally {
                 PSNR_CAP
             },
             outside_pixels: self.outside,
+            silhouette_iou: (self.silhouette_either > 0)
+                .then(|| self.silhouette_both as f64 / self.silhouette_either as f64),
+            outside_change: (self.object_pixels > 0)
+                .then(|| self.outside_changed as f64 / self.object_pixels as f64),
         }
     }
 }
@@ -629,7 +694,56 @@ mod tests {
             assert_eq!(s.preservation_psnr, PSNR_CAP);
             assert!(t.preservation_psnr > 40.0, "{}", t.preservation_psnr);
             assert!(s.per_view.iter().all(|v| v.informative_pixels > 50));
+            // The ideal edit has the ideal silhouette; the source's is the same outline in other
+            // colours, told apart from the same backdrop.
+            assert_eq!(t.silhouette_iou, Some(1.0));
+            assert_eq!(t.outside_change, Some(0.0));
+            assert!(s.silhouette_iou.unwrap() > 0.97, "{src}: {s:?}");
+            assert_eq!(s.outside_change, Some(0.0));
         }
+    }
+
+    #[test]
+    fn a_halo_around_the_object_lowers_the_shape_scores() {
+        let gen = GeneratorSettings::default();
+        let source = SceneSpec::from_caption("a red sphere", 3, &gen).unwrap();
+        let target = source.with_caption("a blue sphere").unwrap();
+        let cams = ring_views(&source, 2, 64, 64, 25.0, 15.0);
+        let oracle = Oracle::new(&source, &target, OracleSettings::default()).unwrap();
+        let haloed: Vec<Image> = cams
+            .iter()
+            .map(|cam| {
+                let e = oracle.expected(cam).unwrap();
+                let mut img = e.target.clone();
+                let (w, h) = (img.width as i64, img.height as i64);
+                let object = |x: i64, y: i64| {
+                    x >= 0 && y >= 0 && x < w && y < h && e.main[(y * w + x) as usize] >= 0.5
+                };
+                // A soft blue rim up to 4 px wide around the outline.
+                for y in 0..h {
+                    for x in 0..w {
+                        let near = (-4..=4).any(|dy| (-4..=4).any(|dx| object(x + dx, y + dy)));
+                        if near && !object(x, y) {
+                            let px = &mut img.data[3 * (y * w + x) as usize..][..3];
+                            for (v, blue) in px.iter_mut().zip([0.1, 0.2, 0.9]) {
+                                *v = 0.4 * *v + 0.6 * blue;
+                            }
+                        }
+                    }
+                }
+                img
+            })
+            .collect();
+        let halo = oracle.score(&cams, &haloed).unwrap();
+        assert!(halo.silhouette_iou.unwrap() < 0.9, "{halo:?}");
+        assert!(halo.outside_change.unwrap() > 0.05, "{halo:?}");
+        // A one-pixel shift keeps the outline's shape: IoU stays high, nothing far outside changes.
+        let moved: Vec<Image> = renders(&target, &cams)
+            .iter()
+            .map(|i| shifted(i, 1))
+            .collect();
+        let m = oracle.score(&cams, &moved).unwrap();
+        assert!(m.silhouette_iou.unwrap() > 0.9, "{m:?}");
     }
 
     #[test]

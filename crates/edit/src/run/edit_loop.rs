@@ -358,7 +358,7 @@ fn select_views(n: usize, max: usize, seed: u64) -> Vec<usize> {
 }
 
 /// The INRIA trainer's scene extent: 1.1 × the largest distance of a camera centre from their mean.
-fn scene_extent(cameras: &[Camera]) -> f32 {
+pub fn scene_extent(cameras: &[Camera]) -> f32 {
     let n = cameras.len().max(1) as f64;
     let mut mean = [0.0f64; 3];
     for c in cameras {

@@ -22,7 +22,7 @@ mod masks;
 mod outputs;
 mod work;
 
-pub use edit_loop::{edit_scene, run_edit};
+pub use edit_loop::{edit_scene, run_edit, scene_extent};
 pub use job::{
     EditJob, EditResult, GuidanceMode, IterationTimes, MaskSource, Progress, Quiet, RunError,
 };
