@@ -14,7 +14,9 @@ use edit::eval::metrics::{
     multiview_consistency, multiview_consistency_in, ViewGeometry, WarpSettings as MetricSettings,
 };
 use edit::fit::{ImageLoss, TrainSettings};
-use edit::run::{run_edit, write_outputs, EditJob, GuidanceMode, MaskSource, Progress, RunInputs};
+use edit::run::{
+    run_edit, write_outputs, DeltaDecode, EditJob, GuidanceMode, MaskSource, Progress, RunInputs,
+};
 use edit::sampler::{image_to_tensor, EditModel, EditPrompts, InfEditSettings, SeededNoise};
 use serde::Serialize;
 use splat::render::{render, Frame, RenderSettings};
@@ -62,6 +64,7 @@ pub struct DemoOptions {
     pub seed: u64,
     /// Continue each variant's interrupted run from its checkpoint.
     pub resume: bool,
+    pub delta_decode: DeltaDecode,
 }
 
 impl DemoOptions {
@@ -77,6 +80,7 @@ impl DemoOptions {
             fit_steps: 300,
             seed: 0,
             resume: false,
+            delta_decode: DeltaDecode::Always,
         }
     }
 }
@@ -226,6 +230,7 @@ pub fn demo_job(opts: &DemoOptions, scene: &DemoScene, variant: Variant) -> Edit
         } else {
             GuidanceMode::Joint
         },
+        delta_decode: opts.delta_decode,
         iterations: opts.iterations,
         fit_steps: opts.fit_steps,
         max_views: opts.views,
@@ -523,6 +528,32 @@ pub fn table(scores: &[DemoScores]) -> String {
         ));
     }
     s
+}
+
+/// One run's scores as plain lines for a terminal (at most 80 columns; the table is for files).
+pub fn summary(r: &DemoScores) -> String {
+    let f = score_cell;
+    format!(
+        "{} ({:.0} s)\n\
+         \x20 oracle fidelity: colour {}, layout {}\n\
+         \x20 shape: silhouette IoU {}, outside change {} (guidance {}, {})\n\
+         \x20 preservation outside the object: {:.1} dB\n\
+         \x20 cross-view error, object / whole image: guidance {} / {},\n\
+         \x20   final renders {} / {}\n",
+        r.variant.name(),
+        r.seconds,
+        f(r.fidelity),
+        f(r.layout_fidelity),
+        f(r.silhouette_iou),
+        f(r.outside_change),
+        f(r.guidance_silhouette_iou),
+        f(r.guidance_outside_change),
+        r.preservation_psnr,
+        f(r.guidance_consistency_object),
+        f(r.guidance_consistency),
+        f(r.final_consistency_object),
+        f(r.final_consistency),
+    )
 }
 
 /// The reference rows as Markdown.

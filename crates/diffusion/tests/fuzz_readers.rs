@@ -8,6 +8,10 @@ use std::path::{Path, PathBuf};
 use diffusion::loader::read_safetensors_header;
 use diffusion::tokenizer::ClipTokenizer;
 
+// Every input's allocations are measured (an input that makes its reader claim too much fails).
+#[global_allocator]
+static ALLOC: files::fuzz::CountingAlloc = files::fuzz::CountingAlloc;
+
 fn root() -> PathBuf {
     PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../..")
 }

@@ -6,10 +6,93 @@
 //!
 //! Time per target: `VCEDIT_FUZZ_SECONDS` (default [`DEFAULT_SECONDS`]); the random sequence starts
 //! from `VCEDIT_FUZZ_SEED` (default 1), so a run can be repeated.
+//!
+//! Memory is measured too: a fuzz binary that installs [`CountingAlloc`] as its global allocator has
+//! every input's peak allocation (on the reading thread) measured, and an input whose reader allocates
+//! more than [`memory_limit`] for it fails the target like a panic (saved as `NAME-memory-N.bin`): a
+//! small file must not make a reader claim gigabytes.
 
+use std::alloc::{GlobalAlloc, Layout, System};
+use std::cell::Cell;
 use std::panic::{catch_unwind, AssertUnwindSafe};
 use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::{Duration, Instant};
+
+/// The system allocator, counting each thread's live bytes and their peak. Install it in a fuzz test
+/// binary with `#[global_allocator] static ALLOC: files::fuzz::CountingAlloc = files::fuzz::CountingAlloc;`.
+pub struct CountingAlloc;
+
+thread_local! {
+    // Const-initialised cells: reading them never allocates, so the allocator may use them.
+    static LIVE: Cell<isize> = const { Cell::new(0) };
+    static PEAK: Cell<isize> = const { Cell::new(0) };
+}
+static COUNTING: AtomicBool = AtomicBool::new(false);
+
+fn note(delta: isize) {
+    // `try_with`: a thread's last frees run while its locals are being destroyed.
+    let _ = LIVE.try_with(|live| {
+        let now = live.get() + delta;
+        live.set(now);
+        let _ = PEAK.try_with(|peak| peak.set(peak.get().max(now)));
+    });
+}
+
+// SAFETY: every call is passed on to `System` unchanged; the bookkeeping only reads and writes
+// thread-local cells and one atomic flag, none of which allocates.
+unsafe impl GlobalAlloc for CountingAlloc {
+    unsafe fn alloc(&self, layout: Layout) -> *mut u8 {
+        let p = unsafe { System.alloc(layout) };
+        if !p.is_null() {
+            COUNTING.store(true, Ordering::Relaxed);
+            note(layout.size() as isize);
+        }
+        p
+    }
+    unsafe fn alloc_zeroed(&self, layout: Layout) -> *mut u8 {
+        let p = unsafe { System.alloc_zeroed(layout) };
+        if !p.is_null() {
+            COUNTING.store(true, Ordering::Relaxed);
+            note(layout.size() as isize);
+        }
+        p
+    }
+    unsafe fn dealloc(&self, ptr: *mut u8, layout: Layout) {
+        unsafe { System.dealloc(ptr, layout) };
+        note(-(layout.size() as isize));
+    }
+    unsafe fn realloc(&self, ptr: *mut u8, layout: Layout, new_size: usize) -> *mut u8 {
+        let p = unsafe { System.realloc(ptr, layout, new_size) };
+        if !p.is_null() {
+            note(new_size as isize - layout.size() as isize);
+        }
+        p
+    }
+}
+
+/// Peak bytes this thread allocated while `f` ran (beyond what it held before); `None` when
+/// [`CountingAlloc`] is not the global allocator.
+fn peak_during(f: impl FnOnce()) -> Option<u64> {
+    let base = LIVE.with(Cell::get);
+    PEAK.with(|p| p.set(base));
+    f();
+    let peak = PEAK.with(Cell::get);
+    COUNTING
+        .load(Ordering::Relaxed)
+        .then(|| (peak - base).max(0) as u64)
+}
+
+/// Most bytes a reader may allocate for one input of `len` bytes: 256 MiB plus 1000 bytes per input
+/// byte (the compressed formats legitimately expand; a small file claiming gigabytes does not pass).
+/// `VCEDIT_FUZZ_MAX_MB` replaces the 256 MiB.
+pub fn memory_limit(len: usize) -> u64 {
+    let base_mb = std::env::var("VCEDIT_FUZZ_MAX_MB")
+        .ok()
+        .and_then(|v| v.trim().parse::<u64>().ok())
+        .unwrap_or(256);
+    base_mb * 1024 * 1024 + 1000 * len as u64
+}
 
 /// Seconds per target when `VCEDIT_FUZZ_SECONDS` is not set: short enough for every `cargo test`.
 pub const DEFAULT_SECONDS: f64 = 5.0;
@@ -42,8 +125,10 @@ const NASTY_TEXT: [&str; 10] = [
 #[derive(Debug, Default)]
 pub struct Summary {
     pub inputs: u64,
-    /// Files the panicking inputs were saved to.
+    /// Files the panicking inputs (and those over the memory limit) were saved to.
     pub crashes: Vec<PathBuf>,
+    /// The most any one input made its reader allocate; `None` when allocations are not counted.
+    pub peak_bytes: Option<u64>,
 }
 
 /// The seconds a target runs for: `VCEDIT_FUZZ_SECONDS`, else [`DEFAULT_SECONDS`].
@@ -180,9 +265,18 @@ pub fn run_for(
     let mut summary = Summary::default();
     let mut try_one = |input: &[u8], summary: &mut Summary| {
         summary.inputs += 1;
-        if catch_unwind(AssertUnwindSafe(|| check(input))).is_err() {
+        let mut panicked = false;
+        let peak = peak_during(|| {
+            panicked = catch_unwind(AssertUnwindSafe(|| check(input))).is_err();
+        });
+        if let Some(bytes) = peak {
+            summary.peak_bytes = Some(summary.peak_bytes.unwrap_or(0).max(bytes));
+        }
+        let too_much = peak.is_some_and(|b| b > memory_limit(input.len()));
+        if panicked || too_much {
             let _ = std::fs::create_dir_all(crash_dir);
-            let path = crash_dir.join(format!("{name}-{}.bin", summary.crashes.len()));
+            let kind = if panicked { "" } else { "memory-" };
+            let path = crash_dir.join(format!("{name}-{kind}{}.bin", summary.crashes.len()));
             let _ = std::fs::write(&path, input);
             summary.crashes.push(path);
         }
@@ -204,10 +298,16 @@ pub fn run_for(
 /// any panicked.
 pub fn run_and_assert(name: &str, seeds: &[Vec<u8>], crash_dir: &Path, check: impl FnMut(&[u8])) {
     let summary = run_for(name, seeds, crash_dir, budget(), check);
-    println!("fuzz {name}: {} inputs", summary.inputs);
+    let memory = summary
+        .peak_bytes
+        .map_or("allocations not counted".to_string(), |b| {
+            format!("at most {:.1} MB allocated per input", b as f64 / 1e6)
+        });
+    println!("fuzz {name}: {} inputs, {memory}", summary.inputs);
     assert!(
         summary.crashes.is_empty(),
-        "fuzz {name}: {} of {} inputs panicked; saved as {:?} (replay them through the reader)",
+        "fuzz {name}: {} of {} inputs panicked or allocated more than their limit; saved as {:?} \
+         (replay them through the reader)",
         summary.crashes.len(),
         summary.inputs,
         summary.crashes
@@ -287,6 +387,33 @@ pub fn run_file_set_and_assert(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[global_allocator]
+    static ALLOC: CountingAlloc = CountingAlloc;
+
+    #[test]
+    fn readers_that_claim_too_much_memory_fail_like_panics() {
+        let dir = tempfile::tempdir().unwrap();
+        let time = Duration::from_millis(200);
+        // A "reader" that believes a length byte: 'z' asks for 400 MB, anything else for 1 MB.
+        let summary = run_for("greedy", &[b"abc".to_vec()], dir.path(), time, |input| {
+            let mb = if input.contains(&b'z') { 400 } else { 1 };
+            let buffer = vec![1u8; mb << 20];
+            std::hint::black_box(&buffer);
+        });
+        assert!(summary.peak_bytes.unwrap() >= 1 << 20, "{summary:?}");
+        for crash in &summary.crashes {
+            let name = crash.file_name().unwrap().to_string_lossy().into_owned();
+            assert!(name.starts_with("greedy-memory-"), "{name}");
+            assert!(std::fs::read(crash).unwrap().contains(&b'z'));
+        }
+        // A well-behaved reader passes and its peak is measured.
+        let summary = run_for("frugal", &[b"abc".to_vec()], dir.path(), time, |input| {
+            std::hint::black_box(input.to_vec());
+        });
+        assert!(summary.crashes.is_empty());
+        assert!(summary.peak_bytes.unwrap() < 1 << 20, "{summary:?}");
+    }
 
     #[test]
     fn mutations_stay_in_bounds_and_vary() {

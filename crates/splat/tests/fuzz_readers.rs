@@ -15,6 +15,10 @@ use splat::cameras::load_cameras;
 use splat::ply::{encode_ply, read_ply};
 use splat::GaussianScene;
 
+// Every input's allocations are measured (an input that makes its reader claim too much fails).
+#[global_allocator]
+static ALLOC: files::fuzz::CountingAlloc = files::fuzz::CountingAlloc;
+
 fn crash_dir() -> PathBuf {
     PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../target/fuzz-crashes")
 }

@@ -3,9 +3,10 @@
 use std::path::PathBuf;
 
 use edit::compute::Compute;
+use edit::run::DeltaDecode;
 
 use demo::run::{
-    demo_job, demo_scene, load_model, reference_rows, reference_table, run_variant, table,
+    demo_job, demo_scene, load_model, reference_rows, reference_table, run_variant, summary, table,
     variant_dir, DemoOptions, Variant, PAIRS,
 };
 
@@ -38,7 +39,8 @@ pub struct Args {
     /// List the built-in edits and exit.
     #[arg(long)]
     pub list: bool,
-    /// Run per-view guidance, VcEdit without CCM, without ECM and full VcEdit, and print a table.
+    /// Run per-view guidance, VcEdit without CCM, without ECM and full VcEdit; the table goes to
+    /// compare.md and compare.json in --out.
     #[arg(long)]
     pub compare: bool,
     /// Demo model folder (default: the model built into this binary, written once to ~/.cache/vcedit).
@@ -63,6 +65,9 @@ pub struct Args {
     /// checkpoint.
     #[arg(long, conflicts_with = "force")]
     pub resume: bool,
+    /// Which iterations hand on the source plus the decoded change (as `vcedit edit`).
+    #[arg(long, value_enum, default_value = "always")]
+    pub delta_decode: DeltaDecode,
     #[command(flatten)]
     pub memory: MemoryCheckArg,
 }
@@ -96,6 +101,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     opts.steps = args.steps;
     opts.seed = args.seed;
     opts.resume = args.resume;
+    opts.delta_decode = args.delta_decode;
     let scene = demo_scene(&opts)?;
     let model =
         load_model(&model_dir)?.on(Compute::on(args.device.open()?, args.precision.precision));
@@ -124,6 +130,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         args.fit_steps,
         args.steps,
         args.seed,
+        args.delta_decode,
     ));
     let model_files = files_under(&model_dir, 3);
     let inputs: Vec<&std::path::Path> = model_files.iter().map(PathBuf::as_path).collect();
@@ -145,8 +152,11 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         progress.finish();
         let references = reference_rows(&opts, &model, &scene)?;
         let md = format!("{}\n{}", table(&scores), reference_table(&references));
-        println!("{md}");
+        for s in &scores {
+            println!("{}", summary(s));
+        }
         files::atomic_write(&args.out.join("compare.md"), md.as_bytes())?;
+        println!("table: {}", args.out.join("compare.md").display());
         files::atomic_write(
             &args.out.join("compare.json"),
             &serde_json::to_vec_pretty(&serde_json::json!({
@@ -166,7 +176,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             &mut progress,
         )?;
         progress.finish();
-        println!("{}", table(std::slice::from_ref(&s)));
+        print!("{}", summary(&s));
         println!("edited scene: {}", args.out.join("edited.ply").display());
         println!("report: {}", s.report.display());
         out_dir.finish();

@@ -7,7 +7,7 @@ use anyhow::{bail, Context};
 use edit::compute::Compute;
 use edit::consistency::{ConsistencySettings, EcmParams, EcmScope};
 use edit::fit::{ImageLoss, TrainSettings};
-use edit::run::{edit_scene, Box3, EditJob, GuidanceMode, MaskSource, RunInputs};
+use edit::run::{edit_scene, Box3, DeltaDecode, EditJob, GuidanceMode, MaskSource, RunInputs};
 use edit::sampler::EditModel;
 
 use crate::args::editing::{ModelArgs, PromptArgs, SamplerArgs};
@@ -71,6 +71,10 @@ pub struct Args {
     /// How guidance images are made.
     #[arg(long, value_enum, default_value = "joint")]
     pub guidance: GuidanceMode,
+    /// Which iterations hand on the source plus the decoded change instead of the decoded image, so the
+    /// autoencoder's blur does not pile up from one iteration to the next.
+    #[arg(long, value_enum, default_value = "always")]
+    pub delta_decode: DeltaDecode,
     /// Disable the cross-attention consistency module.
     #[arg(long)]
     pub no_ccm: bool,
@@ -233,6 +237,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         infedit,
         consistency,
         guidance: args.guidance,
+        delta_decode: args.delta_decode,
         iterations: args.iterations,
         fit_steps: args.fit_steps,
         max_views: args.views.view_limit(cameras.len()),

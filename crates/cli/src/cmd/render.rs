@@ -185,8 +185,8 @@ pub fn run(args: Args) -> Result<()> {
     out_dir.finish();
     let per_view = t_render.elapsed().as_secs_f64() / cameras.len().max(1) as f64;
     eprintln!(
-        "wrote {} views to {} ({:.0} ms per view, {:.1} s total)",
-        cameras.len(),
+        "wrote {} to {} ({:.0} ms per view, {:.1} s total)",
+        edit::present::count(cameras.len(), "view", "views"),
         args.out.display(),
         per_view * 1e3,
         t0.elapsed().as_secs_f64()

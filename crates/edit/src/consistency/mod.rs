@@ -137,6 +137,9 @@ pub struct MultiView<'a> {
     pub background: [f32; 3],
     /// Views per UNet call (see [`crate::sampler::EditPlan::predict_views`]); 1 = one view at a time.
     pub view_batch: usize,
+    /// Return each source image plus what the edit changed in decoded space (decode(x̂0_T) −
+    /// decode(x0)) instead of decode(x̂0_T) alone; see [`crate::run::DeltaDecode`].
+    pub delta_decode: bool,
 }
 
 impl MultiView<'_> {
@@ -167,6 +170,7 @@ impl MultiView<'_> {
         let t = Instant::now();
         let mut views = Vec::with_capacity(images.len());
         let shape = plan.latent_shape();
+        let sources = images;
         let images = images
             .iter()
             .map(image_to_tensor)
@@ -218,7 +222,16 @@ impl MultiView<'_> {
             .map(|view| view.pred_t.as_ref())
             .collect::<Option<Vec<_>>>()
             .ok_or_else(|| MultiViewError::Input("no step ran".into()))?;
-        let out = model.decode_each(&preds, self.view_batch)?;
+        let mut out = model.decode_each(&preds, self.view_batch)?;
+        if self.delta_decode {
+            let x0s: Vec<&Tensor> = views.iter().map(|v| &v.x0).collect();
+            let decoded_sources = model.decode_each(&x0s, self.view_batch)?;
+            for ((edited, decoded_source), source) in
+                out.iter_mut().zip(&decoded_sources).zip(sources)
+            {
+                add_decoded_change(edited, decoded_source, source);
+            }
+        }
         timed(Stage::Decode, t, &mut times);
         Ok(MultiViewOutcome {
             images: out,
@@ -229,9 +242,38 @@ impl MultiView<'_> {
     }
 }
 
+/// `edited` ← `source` + (`edited` − `decoded_source`), clamped to [0, 1]: the edit's change applied to
+/// the source image itself, so what the autoencoder's round trip loses (its blur) is not handed on where
+/// the edit changed nothing.
+fn add_decoded_change(edited: &mut Image, decoded_source: &Image, source: &Image) {
+    for ((e, d), s) in edited
+        .data
+        .iter_mut()
+        .zip(&decoded_source.data)
+        .zip(&source.data)
+    {
+        *e = (s + *e - d).clamp(0.0, 1.0);
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_decoded_change_is_added_to_the_source() {
+        let image = |v: &[f32]| Image::from_data(2, 1, 3, v.to_vec());
+        let source = image(&[0.2, 0.4, 0.6, 0.9, 0.9, 0.9]);
+        // Pixel 0: decoding blurred it (0.25 for 0.2) and the edit changed nothing; pixel 1: the edit
+        // darkened the decoded source by 0.5.
+        let decoded_source = image(&[0.25, 0.4, 0.55, 0.8, 0.8, 0.8]);
+        let mut edited = image(&[0.25, 0.4, 0.55, 0.3, 0.3, 1.0]);
+        add_decoded_change(&mut edited, &decoded_source, &source);
+        let want = [0.2, 0.4, 0.6, 0.4, 0.4, 1.0];
+        for (got, want) in edited.data.iter().zip(want) {
+            assert!((got - want).abs() < 1e-6, "{:?}", edited.data);
+        }
+    }
 
     #[test]
     fn reference_schedule() {

@@ -239,17 +239,24 @@ impl Run<'_> {
             seed: job.seed_for(k, SeedPurpose::Ecm),
             background: job.background,
             view_batch: super::work::view_batch(job, self.model, trainer.scene(), cams.len()),
+            delta_decode: job.delta_decode.applies(k),
         };
+        // One unit per UNet step, per CCM and ECM call (ECM's fits take as long as several steps) and for
+        // the decode, so the bar reaches its end only when the guidance is ready.
+        let steps = plan.timesteps.len();
+        let calls = |at: &[usize]| at.iter().filter(|&&i| i < steps).count();
+        let units = steps + calls(&consistency.ccm_steps) + calls(&consistency.ecm.steps) + 1;
         progress.stage(
             &self.stage(k, &format!("editing {} views", cams.len())),
-            plan.timesteps.len() as u64,
+            units as u64,
         );
         let mut noise = SeededNoise::new(job.seed_for(k, SeedPurpose::Noise));
         let edited = sampler.run(sources, &mut noise, &mut |_, stage| {
-            if stage == Stage::Unet {
+            if matches!(stage, Stage::Unet | Stage::Ccm | Stage::Ecm) {
                 progress.advance(1);
             }
         })?;
+        progress.advance(1);
         Ok((plan, edited))
     }
 }

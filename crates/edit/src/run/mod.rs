@@ -24,7 +24,8 @@ mod work;
 
 pub use edit_loop::{edit_scene, run_edit, scene_extent};
 pub use job::{
-    EditJob, EditResult, GuidanceMode, IterationTimes, MaskSource, Progress, Quiet, RunError,
+    DeltaDecode, EditJob, EditResult, GuidanceMode, IterationTimes, MaskSource, Progress, Quiet,
+    RunError,
 };
 pub use masks::{mask_from_box, Box3, MaskError};
 pub use outputs::{write_outputs, RunInputs, Written};

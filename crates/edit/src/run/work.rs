@@ -41,15 +41,16 @@ impl WorkPlan {
             1 => "batch 6".to_string(),
             n => format!("batch 6 per view, {n} views per call"),
         };
+        use crate::present::count;
+        // Two lines, each within 80 columns for the sizes runs have.
         format!(
-            "work: {} views × {} iterations: {} UNet passes ({batch}), {} renders, {} lifting passes, {} fitting steps; \
-             memory needed ≈ {:.1} GB{gpu}",
-            self.views,
-            self.iterations,
-            self.unet_calls,
-            self.renders,
-            self.lifts,
-            self.fit_steps,
+            "work: {} × {}: {} ({batch}),\n      {}, {}, {}; memory needed ≈ {:.1} GB{gpu}",
+            count(self.views, "view", "views"),
+            count(self.iterations, "iteration", "iterations"),
+            count(self.unet_calls, "UNet pass", "UNet passes"),
+            count(self.renders, "render", "renders"),
+            count(self.lifts, "lifting pass", "lifting passes"),
+            count(self.fit_steps, "fitting step", "fitting steps"),
             self.memory_bytes as f64 / 1e9
         )
     }
