@@ -260,4 +260,52 @@ fn a_copied_binary_runs_its_own_demo() {
         written, again,
         "the cached model is reused, not written again"
     );
+
+    // `--model demo` names the same built-in model in the model commands (where no folder `demo` exists).
+    let check = Command::new(&bin)
+        .args(["model", "check", "demo", "--headers-only"])
+        .env("XDG_CACHE_HOME", &cache)
+        .current_dir(&work)
+        .output()
+        .unwrap();
+    let stdout = String::from_utf8_lossy(&check.stdout);
+    assert_eq!(
+        check.status.code(),
+        Some(0),
+        "{}",
+        String::from_utf8_lossy(&check.stderr)
+    );
+    assert!(stdout.contains(&model.display().to_string()), "{stdout}");
+    let edited = work.join("blue.png");
+    let o = Command::new(&bin)
+        .args([
+            "edit-image",
+            "--model",
+            "demo",
+            "--image",
+            work.join("a/before/view_000.png").to_str().unwrap(),
+            "--source",
+            "a red sphere",
+            "--target",
+            "a blue sphere",
+            "--size",
+            "128",
+            "--steps",
+            "2",
+            "--device",
+            "cpu",
+            "--out",
+            edited.to_str().unwrap(),
+        ])
+        .env("XDG_CACHE_HOME", &cache)
+        .current_dir(&work)
+        .output()
+        .unwrap();
+    assert_eq!(
+        o.status.code(),
+        Some(0),
+        "{}",
+        String::from_utf8_lossy(&o.stderr)
+    );
+    assert!(edited.is_file());
 }

@@ -1,6 +1,6 @@
 //! Options shared by `vcedit edit-image` and `vcedit edit`: the model, prompts and InfEdit's knobs.
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 
 use anyhow::{bail, Context};
 use diffusion::tokenizer::ClipTokenizer;
@@ -21,13 +21,33 @@ pub enum LcmSchedule {
 
 #[derive(clap::Args, Debug, Clone)]
 pub struct ModelArgs {
-    /// Diffusion model folder (diffusers layout, or a hub-cache `models--org--name` folder / snapshot).
+    /// Diffusion model folder (diffusers layout, or a hub-cache `models--org--name` folder / snapshot);
+    /// `demo` (when no such folder exists here) is the small demo model built into vcedit.
     #[arg(long, value_name = "DIR")]
     pub model: PathBuf,
     /// Use TAESD from this folder as the latent codec instead of the model's VAE (faster, approximate).
     #[arg(long, value_name = "DIR")]
     pub taesd: Option<PathBuf>,
 }
+
+impl ModelArgs {
+    /// The model folder: `--model` itself, or the built-in demo model for `--model demo`.
+    pub fn folder(&self) -> anyhow::Result<PathBuf> {
+        model_folder(&self.model)
+    }
+}
+
+/// `dir`, or the built-in demo model when `dir` is the word `demo` and no such folder exists here.
+pub fn model_folder(dir: &Path) -> anyhow::Result<PathBuf> {
+    if dir == Path::new(DEMO_MODEL_NAME) && !dir.exists() {
+        crate::embedded::demo_model()
+    } else {
+        Ok(dir.to_path_buf())
+    }
+}
+
+/// The `--model` value that names the built-in demo model.
+pub const DEMO_MODEL_NAME: &str = "demo";
 
 #[derive(clap::Args, Debug, Clone)]
 pub struct PromptArgs {

@@ -251,8 +251,9 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         view_batch: args.view_batch.map(usize::from),
     };
 
-    let model = EditModel::load(&args.model.model, args.model.taesd.as_deref())
-        .with_context(|| format!("loading model {}", args.model.model.display()))?
+    let model_dir = args.model.folder()?;
+    let model = EditModel::load(&model_dir, args.model.taesd.as_deref())
+        .with_context(|| format!("loading model {}", model_dir.display()))?
         .on(Compute::on(args.device.open()?, args.precision.precision));
     args.sampler.check_size(&model)?;
     args.prompts
@@ -309,7 +310,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             .map_or("(scene cameras / orbit)".to_string(), |p| {
                 p.display().to_string()
             }),
-        model: &args.model.model.display().to_string(),
+        model: &model_dir.display().to_string(),
         loss: loss.describe(),
         notes,
     };

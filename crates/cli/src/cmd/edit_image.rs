@@ -24,7 +24,13 @@ use crate::progress::Reporter;
       --source \"a man\" --target \"a clown\" --out clown.png
   vcedit edit-image --model ./sd15 --taesd ./taesd --image cat.png \\
       --source \"a photo of a cat\" --target \"a photo of a dog\" \\
-      --blend-words dog --save-attention attn/ --out dog.png")]
+      --blend-words dog --save-attention attn/ --out dog.png
+  vcedit edit-image --model demo --image vcedit-demo/before/view_000.png \\
+      --source \"a red sphere\" --target \"a blue sphere\" --size 128 \\
+      --cross 0.3 --thresh-e 0.3 --out blue.png
+
+--model demo is the small model built into vcedit (128x128 images of the demo's procedural objects;
+the settings its demo uses: --size 128 --cross 0.3 --thresh-e 0.3).")]
 pub struct Args {
     #[command(flatten)]
     pub model: ModelArgs,
@@ -61,8 +67,9 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     let input = Image::load(&args.image)?;
 
     let t0 = Instant::now();
-    let model = EditModel::load(&args.model.model, args.model.taesd.as_deref())
-        .with_context(|| format!("loading model {}", args.model.model.display()))?
+    let model_dir = args.model.folder()?;
+    let model = EditModel::load(&model_dir, args.model.taesd.as_deref())
+        .with_context(|| format!("loading model {}", model_dir.display()))?
         .on(Compute::on(args.device.open()?, args.precision.precision));
     let load_time = t0.elapsed();
     args.sampler.check_size(&model)?;

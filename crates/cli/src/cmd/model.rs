@@ -27,7 +27,7 @@ pub enum ModelCommand {
 
 #[derive(clap::Args)]
 pub struct CheckArgs {
-    /// The model folder.
+    /// The model folder (`demo`: the small demo model built into vcedit).
     pub dir: PathBuf,
     /// Only check files, configs and safetensors headers; do not build the models.
     #[arg(long)]
@@ -47,7 +47,8 @@ fn check(args: CheckArgs) -> Result<()> {
         CheckDepth::Load
     };
     // The library error already names the folder and lists every problem on one line.
-    let report = check_model(&args.dir, depth)?;
+    let dir = crate::args::editing::model_folder(&args.dir)?;
+    let report = check_model(&dir, depth)?;
     println!("{report}");
     Ok(())
 }
