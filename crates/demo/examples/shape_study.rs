@@ -7,10 +7,10 @@
 
 use std::path::PathBuf;
 
-use demo::run::{demo_scene, load_model, DemoOptions};
+use demo::run::{codec_round_trip, demo_scene, load_model, DemoOptions};
 use demo::world::{Oracle, OracleSettings};
 use edit::fit::{EditTrainer, ImageLoss, TrainSettings};
-use edit::sampler::{image_to_tensor, SeededNoise};
+use edit::sampler::SeededNoise;
 use splat::render::{render, RenderSettings};
 use splat::{Camera, GaussianScene, Image};
 
@@ -51,16 +51,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     // Codec-error cancellation: the source render plus what decoding changed between the source and the
     // edit (both round trips drawn with the same noise, as the sampler's two branches share z0).
     let source = render_all(&scene.built.scene, &scene.cameras);
-    let round_trip = |images: &[Image]| -> candle_core::Result<Vec<Image>> {
-        let mut noise = SeededNoise::new(0);
-        images
-            .iter()
-            .map(|img| -> candle_core::Result<Image> {
-                let z = model.encode(&image_to_tensor(img)?, &mut noise)?;
-                Ok(model.decode_images(&z)?.remove(0))
-            })
-            .collect()
-    };
+    let round_trip = |images: &[Image]| codec_round_trip(&model, images, &mut SeededNoise::new(0));
     let (src_codec, codec) = (round_trip(&source)?, round_trip(&ideal)?);
     score("ideal edit", &ideal)?;
     score("ideal edit through the autoencoder", &codec)?;

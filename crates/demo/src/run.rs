@@ -64,6 +64,7 @@ pub struct DemoOptions {
     pub seed: u64,
     /// Continue each variant's interrupted run from its checkpoint.
     pub resume: bool,
+    /// Which iterations' guidance is the source plus the decoded change (as `vcedit edit`).
     pub delta_decode: DeltaDecode,
 }
 
@@ -433,14 +434,7 @@ pub fn reference_rows(
     };
     let mut noise = SeededNoise::new(opts.seed);
     let round_trip = |images: &[splat::Image], noise: &mut SeededNoise| {
-        images
-            .iter()
-            .map(|img| -> candle_core::Result<splat::Image> {
-                let x = image_to_tensor(img)?;
-                let z = model.encode(&x, noise)?;
-                Ok(model.decode_images(&z)?.remove(0))
-            })
-            .collect::<candle_core::Result<Vec<_>>>()
+        codec_round_trip(model, images, noise)
             .map_err(|e| DemoError::Setup(format!("autoencoder round trip: {e}")))
     };
     let source: Vec<splat::Image> = source_renders.iter().map(|r| r.rgb_image()).collect();
@@ -469,6 +463,22 @@ pub fn reference_rows(
         row("ideal edit (target renders)", &ideal)?,
         row("ideal edit through the autoencoder", &ideal_codec)?,
     ])
+}
+
+/// Each image after one encode → decode of the model's autoencoder (posterior sampled from `noise`, as
+/// the editor encodes).
+pub fn codec_round_trip(
+    model: &EditModel,
+    images: &[splat::Image],
+    noise: &mut SeededNoise,
+) -> candle_core::Result<Vec<splat::Image>> {
+    images
+        .iter()
+        .map(|img| {
+            let z = model.encode(&image_to_tensor(img)?, noise)?;
+            Ok(model.decode_images(&z)?.remove(0))
+        })
+        .collect()
 }
 
 /// Per view, 1 on pixels of the source's main object and 0 elsewhere (from the oracle's label render).
