@@ -20,7 +20,7 @@ Outputs:
 Cases: three with the narrow network (64x64 and 37x45 with `normalize=False`, i.e. images fed as they are;
 48x80 with `normalize=True`, i.e. [0, 1] mapped to [-1, 1]); one (`real_lin`, 32x48) with the package's real
 calibrated lin weights on a full-width VGG16 whose weights come from a deterministic generator that
-`edit::lpips::synthetic_tensors` reproduces (splitmix64; see there), so a Rust test can rebuild the network
+`diffusion::lpips::synthetic_tensors` reproduces (splitmix64; see there), so a Rust test can rebuild the network
 without committed backbone weights and read the lin weights from the installed package.
 
 Usage: python tools/make_lpips_fixtures.py [--out fixtures/lpips]
@@ -113,14 +113,14 @@ def splitmix64(x):
 
 
 def synthetic_uniform(seed, stream, n):
-    """Mirror of edit::lpips::synthetic_uniform: 24-bit uniforms in [0, 1) as float64."""
+    """Mirror of diffusion::lpips::synthetic_uniform: 24-bit uniforms in [0, 1) as float64."""
     i = np.arange(n, dtype=np.uint64)
     x = (np.uint64(seed) << np.uint64(40)) | (np.uint64(stream) << np.uint64(32)) | i
     return (splitmix64(x) >> np.uint64(40)).astype(np.float64) / float(1 << 24)
 
 
 def set_synthetic_backbone(model, widths, seed):
-    """Overwrites the backbone with edit::lpips::synthetic_tensors(widths, seed) (VGG keys only)."""
+    """Overwrites the backbone with diffusion::lpips::synthetic_tensors(widths, seed) (VGG keys only)."""
     with torch.no_grad():
         c_in = 3
         for j, (_, conv) in enumerate(backbone_convs(model)):

@@ -169,6 +169,13 @@ def build_table(res, steps, mode, torch_present):
         line = row(f"CLIP text encoder, batch {r['batch']} (s)", r.get("best_s"), t.get("best_s") if t else None,
                    fmt_s(r.get("first_s")))
         line["ratio_vcedit_over_pytorch"] = ratio(r.get("best_s"), t.get("best_s") if t else None)
+    for name in ("lpips", "lpips-cpu"):
+        for r in res.get(name, []):
+            if r.get("bench") != "lpips":
+                continue
+            where = "gpu" if name == "lpips" else "cpu"
+            row(f"LPIPS-VGG16 {r['what']}, {r['size']}², {where} (s)", r.get("best_s"), None,
+                fmt_s(r.get("first_s")), "full width, generated weights; f32", torch_expected=False)
     for name in ("splat", "splat-cpu"):
         for r in res.get(name, []):
             if r.get("bench") != "render":

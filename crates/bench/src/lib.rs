@@ -8,6 +8,7 @@
 //! | `codec` | the latent codec's encode and decode (AutoencoderKL and TAESD, or a model folder's) |
 //! | `text` | tokenizer and CLIP text encoder |
 //! | `render` | the splatting renderer: CPU stages, and with `gpu` forward/backward/fit step on the GPU beside the CPU |
+//! | `lpips` | LPIPS-VGG16 (full width, generated weights): target features, value, value + gradient |
 //!
 //! Each runs as `vcedit bench NAME ARGS` (one binary carries them all, which is what a borrowed GPU
 //! machine without a Rust toolchain can run: tools/gpu-check) or `cargo bench -p vcedit-bench --bench NAME
@@ -18,6 +19,7 @@ use std::time::{Duration, Instant};
 
 pub mod codec;
 pub mod device;
+pub mod lpips;
 pub mod matmul;
 pub mod render;
 pub mod scenes;
@@ -25,7 +27,9 @@ pub mod text;
 pub mod unet;
 
 /// The benches, in the order `vcedit bench --help` lists them.
-pub const NAMES: [&str; 6] = ["device", "matmul", "unet", "codec", "text", "render"];
+pub const NAMES: [&str; 7] = [
+    "device", "matmul", "unet", "codec", "text", "render", "lpips",
+];
 
 /// A bench that could not run: a bad argument, a missing file, a GPU error. One line.
 #[derive(Debug, thiserror::Error)]
@@ -54,6 +58,7 @@ from_error!(
     diffusion::unet::UNetError,
     diffusion::vae::VaeError,
     diffusion::clip::ClipError,
+    diffusion::lpips::LpipsError,
     diffusion::tokenizer::TokenizerError,
     std::io::Error
 );
@@ -72,6 +77,7 @@ pub fn run(name: &str, args: &[String], reexec: &[String]) -> Result<()> {
         "codec" => codec::main(args),
         "text" => text::main(args),
         "render" => render::main(args),
+        "lpips" => lpips::main(args),
         other => Err(BenchError(format!(
             "unknown bench '{other}' (expected one of {})",
             NAMES.join(", ")

@@ -12,6 +12,7 @@ pub mod device {
 }
 mod layers;
 pub mod loader;
+pub mod lpips;
 pub mod model_check;
 pub mod runtime;
 pub mod scheduler;

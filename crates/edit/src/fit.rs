@@ -22,7 +22,7 @@ use splat::train::{FitLoss, StepKind, StepOutcome, Trainer};
 use splat::train::{RenderedView, TrainState};
 use splat::{Camera, GaussianScene, Image, SplatDevice};
 
-use crate::eval::lpips::{Lpips, LpipsError, TargetCache};
+use diffusion::lpips::{Lpips, LpipsError, TargetCache};
 
 #[derive(Debug, thiserror::Error)]
 pub enum TrainError {
@@ -510,6 +510,31 @@ mod tests {
             (l_dev - l_host).abs() < loss_tol * l_host,
             "{when}: loss {l_dev} vs {l_host}"
         );
+    }
+
+    /// A fit with LPIPS on the GPU (network and renderer there) follows the same fit on the CPU: the
+    /// network runs where the fit renders, and both steer the scene alike.
+    #[test]
+    fn an_lpips_fit_on_the_gpu_tracks_the_cpu_fit() {
+        let Some(ctx) = ::gpu::testing::context_or_skip() else {
+            return;
+        };
+        let (scene, cams, targets, mask) = fixture();
+        let net = || Lpips::synthetic([4, 6, 8, 8, 10], 7);
+        let cpu_loss = ImageLoss::lpips(net());
+        let gpu_loss = ImageLoss::lpips(net().on(diffusion::device::Device::Gpu(
+            diffusion::device::GpuDevice::new(ctx.clone()),
+        )));
+        let mut host = trainer(&scene, &mask);
+        let mut dev = trainer(&scene, &mask);
+        dev.device = SplatDevice::Gpu(ctx);
+        host.fit(&cams, &targets, 4, &cpu_loss, 1, &mut |_| {})
+            .unwrap();
+        dev.fit(&cams, &targets, 4, &gpu_loss, 1, &mut |_| {})
+            .unwrap();
+        assert!(rel_diff(host.scene(), &scene) > 1e-4, "the fit must move");
+        let e = rel_diff(dev.scene(), host.scene());
+        assert!(e < 1e-3, "GPU and CPU LPIPS fits differ by {e}");
     }
 
     /// The device editing fit (state on the device between densifications) follows the host fit from the

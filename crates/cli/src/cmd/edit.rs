@@ -252,15 +252,20 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     };
 
     let model_dir = args.model.folder()?;
+    let compute = Compute::on(args.device.open()?, args.precision.precision);
     let model = EditModel::load(&model_dir, args.model.taesd.as_deref())
         .with_context(|| format!("loading model {}", model_dir.display()))?
-        .on(Compute::on(args.device.open()?, args.precision.precision));
+        .on(compute.clone());
     args.sampler.check_size(&model)?;
     args.prompts
         .check_words(&model.tokenizer, args.mask_word.as_deref())?;
     let mut notes = Vec::new();
     let loss = match &args.lpips {
-        Some(dir) => ImageLoss::lpips(edit::eval::lpips::Lpips::load(dir)?),
+        // On the device the fit renders on: a fit step then reads the render back once and returns its
+        // gradient, where a CPU network would cost seconds per step.
+        Some(dir) => {
+            ImageLoss::lpips(diffusion::lpips::Lpips::load(dir)?.on(compute.networks().clone()))
+        }
         None => {
             let note =
                 "no --lpips weights: fitting with 10·L1 + 2.5·D-SSIM instead of 10·L1 + 10·LPIPS"

@@ -128,4 +128,30 @@ impl Storage for Tensor {
     fn attention(q: &Self, k: &Self, v: &Self, scale: f64) -> Result<Self> {
         super::attention(q, k, v, scale)
     }
+
+    fn max_pool2x2(&self) -> Result<Self> {
+        super::vgg::max_pool2x2(self)
+    }
+
+    fn max_pool2x2_backward(&self, grad: &Self) -> Result<Self> {
+        super::vgg::max_pool2x2_backward(self, grad)
+    }
+
+    fn relu_backward(&self, grad: &Self) -> Result<Self> {
+        super::vgg::relu_backward(self, grad)
+    }
+
+    fn normalize_channels(&self, eps: f32) -> Result<Self> {
+        super::vgg::normalize_channels(self, eps)
+    }
+
+    fn lpips_distance(
+        &self,
+        target: &Self,
+        lin: &Tensor,
+        eps: f32,
+        with_grad: bool,
+    ) -> Result<(Self, Option<Self>)> {
+        super::vgg::lpips_distance(self, target, lin, eps, with_grad)
+    }
 }

@@ -137,6 +137,23 @@ pub trait Storage: Sized {
     fn matmul(&self, other: &Self) -> Result<Self>;
     /// `softmax(q·kᵀ·scale)·v` ([`super::attention`]).
     fn attention(q: &Self, k: &Self, v: &Self, scale: f64) -> Result<Self>;
+
+    /// [`super::vgg::max_pool2x2`] (NCHW, 2×2, stride 2, floor mode).
+    fn max_pool2x2(&self) -> Result<Self>;
+    /// [`super::vgg::max_pool2x2_backward`]; `self` is the pool's input.
+    fn max_pool2x2_backward(&self, grad: &Self) -> Result<Self>;
+    /// [`super::vgg::relu_backward`]; `self` is the ReLU's output.
+    fn relu_backward(&self, grad: &Self) -> Result<Self>;
+    /// [`super::vgg::normalize_channels`].
+    fn normalize_channels(&self, eps: f32) -> Result<Self>;
+    /// [`super::vgg::lpips_distance`]; `self` holds the features, `lin` the tap's channel weights.
+    fn lpips_distance(
+        &self,
+        target: &Self,
+        lin: &Tensor,
+        eps: f32,
+        with_grad: bool,
+    ) -> Result<(Self, Option<Self>)>;
 }
 
 /// A tensor on one of the backends.
@@ -390,6 +407,50 @@ impl DeviceTensor {
                 DeviceTensor::Gpu(Storage::attention(q, k, v, scale)?)
             }
             _ => candle_core::bail!("attention: operands on different devices"),
+        })
+    }
+
+    // --------------------------------------------------------------- VGG feature-loss ops (LPIPS)
+
+    /// 2×2 max-pool, stride 2, floor mode ([`super::vgg::max_pool2x2`]).
+    pub fn max_pool2x2(&self) -> Result<DeviceTensor> {
+        Ok(dispatch!(self, x => Storage::max_pool2x2(x)))
+    }
+
+    /// The input gradient of [`DeviceTensor::max_pool2x2`]; `self` is the pool's input.
+    pub fn max_pool2x2_backward(&self, grad: &DeviceTensor) -> Result<DeviceTensor> {
+        Ok(dispatch2!(self, grad, (x, g) => Storage::max_pool2x2_backward(x, g)))
+    }
+
+    /// A ReLU's input gradient; `self` is the ReLU's output.
+    pub fn relu_backward(&self, grad: &DeviceTensor) -> Result<DeviceTensor> {
+        Ok(dispatch2!(self, grad, (out, g) => Storage::relu_backward(out, g)))
+    }
+
+    /// `f / (‖f‖ + eps)` over the channels of each pixel ([`super::vgg::normalize_channels`]).
+    pub fn normalize_channels(&self, eps: f32) -> Result<DeviceTensor> {
+        Ok(dispatch!(self, x => Storage::normalize_channels(x, eps)))
+    }
+
+    /// The LPIPS distance of one tap per pixel, [N, 1, H, W], and with `with_grad` the gradient of its
+    /// spatial mean with respect to `self` ([`super::vgg::lpips_distance`]).
+    pub fn lpips_distance(
+        &self,
+        target: &DeviceTensor,
+        lin: &Tensor,
+        eps: f32,
+        with_grad: bool,
+    ) -> Result<(DeviceTensor, Option<DeviceTensor>)> {
+        Ok(match (self, target) {
+            (DeviceTensor::Cpu(f), DeviceTensor::Cpu(t)) => {
+                let (map, grad) = Storage::lpips_distance(f, t, lin, eps, with_grad)?;
+                (DeviceTensor::Cpu(map), grad.map(DeviceTensor::Cpu))
+            }
+            (DeviceTensor::Gpu(f), DeviceTensor::Gpu(t)) => {
+                let (map, grad) = Storage::lpips_distance(f, t, lin, eps, with_grad)?;
+                (DeviceTensor::Gpu(map), grad.map(DeviceTensor::Gpu))
+            }
+            _ => candle_core::bail!("lpips_distance: operands on different devices"),
         })
     }
 }

@@ -59,6 +59,7 @@ mod geglu;
 pub mod gpu;
 mod norm;
 mod softmax;
+mod vgg;
 
 pub use attention::attention;
 pub use conv::conv2d;

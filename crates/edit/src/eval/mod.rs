@@ -1,6 +1,6 @@
-//! Measuring an edit: multi-view consistency and preservation (`metrics`, no weights needed), LPIPS (also the
-//! fits' perceptual loss) and CLIP directional similarity (`clip_score`).
+//! Measuring an edit: multi-view consistency and preservation (`metrics`, no weights needed) and CLIP
+//! directional similarity (`clip_score`). LPIPS, the fits' perceptual loss, is a network of
+//! `diffusion` (`diffusion::lpips`).
 
 pub mod clip_score;
-pub mod lpips;
 pub mod metrics;

@@ -62,6 +62,8 @@ pub mod binary_op {
     pub const SUB: u32 = 1;
     pub const MUL: u32 = 2;
     pub const DIV: u32 = 3;
+    /// `a` where `b > 0`, else 0 (a ReLU's backward: `a` the gradient, `b` the ReLU's output).
+    pub const MASK_POSITIVE: u32 = 4;
 }
 
 #[cube]
@@ -143,8 +145,10 @@ pub fn binary(
             x - y
         } else if comptime!(op == binary_op::MUL) {
             x * y
-        } else {
+        } else if comptime!(op == binary_op::DIV) {
             x / y
+        } else {
+            select(y > 0.0f32, x, 0.0f32)
         };
         out[i as usize] = v;
     }
@@ -675,6 +679,144 @@ pub fn flash_attention(
         #[unroll]
         for c in 0..dv {
             out[((batch * q_len + row) * dv + c) as usize] = acc[c as usize] * inv;
+        }
+    }
+}
+
+// ------------------------------------------------------------------------- VGG feature-loss ops
+
+/// 2×2 max-pool, stride 2, floor mode, over NCHW planes: `meta = [h, w, out h, out w]`; one unit per
+/// output value.
+#[cube(launch_unchecked)]
+pub fn max_pool2x2(x: &[f32], out: &mut [f32], meta: &[u32]) {
+    let i = linear_pos();
+    if (i as usize) < out.len() {
+        let w = meta[1];
+        let oh = meta[2];
+        let ow = meta[3];
+        let plane = i / (oh * ow);
+        let rest = i % (oh * ow);
+        let base = plane * meta[0] * w + 2 * (rest / ow) * w + 2 * (rest % ow);
+        let top = f32::max(x[base as usize], x[(base + 1) as usize]);
+        let bottom = f32::max(x[(base + w) as usize], x[(base + w + 1) as usize]);
+        out[i as usize] = f32::max(top, bottom);
+    }
+}
+
+/// The input gradient of [`max_pool2x2`] (same `meta`): one unit per input value, which receives its
+/// window's pooled gradient when it is the window's first maximum (row-major order, as torch), else 0.
+#[cube(launch_unchecked)]
+pub fn max_pool2x2_backward(x: &[f32], grad: &[f32], out: &mut [f32], meta: &[u32]) {
+    let i = linear_pos();
+    if (i as usize) < out.len() {
+        let h = meta[0];
+        let w = meta[1];
+        let oh = meta[2];
+        let ow = meta[3];
+        let plane = i / (h * w);
+        let rest = i % (h * w);
+        let y = rest / w;
+        let col = rest % w;
+        let py = y / 2;
+        let px = col / 2;
+        let mut v = 0.0f32;
+        if py < oh && px < ow {
+            let base = plane * h * w + 2 * py * w + 2 * px;
+            let mut best = 0u32;
+            let mut most = x[base as usize];
+            let b = x[(base + 1) as usize];
+            if b > most {
+                best = 1u32;
+                most = b;
+            }
+            let c = x[(base + w) as usize];
+            if c > most {
+                best = 2u32;
+                most = c;
+            }
+            if x[(base + w + 1) as usize] > most {
+                best = 3u32;
+            }
+            if (y - 2 * py) * 2 + (col - 2 * px) == best {
+                v = grad[(plane * oh * ow + py * ow + px) as usize];
+            }
+        }
+        out[i as usize] = v;
+    }
+}
+
+/// `f / (‖f‖ + eps)` over the channels of each pixel of NCHW maps: `meta = [channels, h·w, n·h·w]`; one
+/// unit per pixel (neighbouring units read neighbouring values of each channel plane).
+#[cube(launch_unchecked)]
+pub fn normalize_channels(x: &[f32], out: &mut [f32], meta: &[u32], eps: f32) {
+    let i = linear_pos();
+    let channels = meta[0];
+    let hw = meta[1];
+    if i < meta[2] {
+        let base = (i / hw) * channels * hw + i % hw;
+        let mut sum = 0.0f32;
+        for ch in 0..channels {
+            let v = x[(base + ch * hw) as usize];
+            sum += v * v;
+        }
+        let denom = f32::sqrt(sum) + eps;
+        for ch in 0..channels {
+            let at = (base + ch * hw) as usize;
+            out[at] = x[at] / denom;
+        }
+    }
+}
+
+/// The LPIPS distance of one tap per pixel, `Σ_c lin_c (f_c/(‖f‖+eps) − t_c)²`, into `map`, and with
+/// `with_grad` the gradient of its spatial mean (`inv_area` = 1/(h·w)) with respect to `f` into `grad`
+/// (see `kernels::vgg::lpips_distance`). `meta = [channels, h·w, n·h·w]`; one unit per pixel.
+#[cube(launch_unchecked)]
+pub fn lpips_distance(
+    f: &[f32],
+    t: &[f32],
+    lin: &[f32],
+    map: &mut [f32],
+    grad: &mut [f32],
+    meta: &[u32],
+    eps: f32,
+    inv_area: f32,
+    #[comptime] with_grad: bool,
+) {
+    let i = linear_pos();
+    let channels = meta[0];
+    let hw = meta[1];
+    if i < meta[2] {
+        let base = (i / hw) * channels * hw + i % hw;
+        let mut sum = 0.0f32;
+        for ch in 0..channels {
+            let v = f[(base + ch * hw) as usize];
+            sum += v * v;
+        }
+        let norm = f32::sqrt(sum);
+        let denom = norm + eps;
+        let mut value = 0.0f32;
+        let mut g_dot_f = 0.0f32;
+        for ch in 0..channels {
+            let at = (base + ch * hw) as usize;
+            let v = f[at];
+            let d = v / denom - t[at];
+            let l = lin[ch as usize];
+            value += l * d * d;
+            g_dot_f += 2.0f32 * l * d * inv_area * v;
+        }
+        map[i as usize] = value;
+        if comptime!(with_grad) {
+            // An all-zero feature vector has a zero ReLU mask anyway; skipping it avoids 0/0.
+            let mut radial = 0.0f32;
+            if norm > 0.0f32 {
+                radial = g_dot_f / (norm * denom * denom);
+            }
+            for ch in 0..channels {
+                let at = (base + ch * hw) as usize;
+                let v = f[at];
+                let g_n = 2.0f32 * lin[ch as usize] * (v / denom - t[at]) * inv_area;
+                grad[at] = g_n / denom - v * radial;
+            }
         }
     }
 }

@@ -231,6 +231,17 @@ pub fn mul(a: &GpuTensor, b: &GpuTensor) -> Result<GpuTensor> {
 pub fn div(a: &GpuTensor, b: &GpuTensor) -> Result<GpuTensor> {
     binary(a, b, binary_op::DIV)
 }
+/// A ReLU's input gradient: `grad` where the ReLU's output `out` is positive, else 0.
+pub fn relu_backward(out: &GpuTensor, grad: &GpuTensor) -> Result<GpuTensor> {
+    if out.dims() != grad.dims() {
+        candle_core::bail!(
+            "gpu relu_backward: shapes {:?} and {:?} differ",
+            out.dims(),
+            grad.dims()
+        );
+    }
+    binary(grad, out, binary_op::MASK_POSITIVE)
+}
 
 // ---------------------------------------------------------------------------------------------- copies
 
@@ -1108,6 +1119,129 @@ pub fn attention_with_probs(
     let probs = softmax_last_dim(&scores)?;
     let out = matmul(&probs, v)?;
     Ok((out, probs))
+}
+
+// -------------------------------------------------------------------------- VGG feature-loss ops
+
+fn nchw(x: &GpuTensor, op: &str) -> Result<(usize, usize, usize, usize)> {
+    match x.dims() {
+        &[n, c, h, w] => Ok((n, c, h, w)),
+        other => candle_core::bail!("gpu {op}: expected an NCHW tensor, got {other:?}"),
+    }
+}
+
+/// 2×2 max-pool, stride 2, floor mode (`kernels::vgg::max_pool2x2`).
+pub fn max_pool2x2(x: &GpuTensor) -> Result<GpuTensor> {
+    let (n, c, h, w) = nchw(x, "max_pool2x2")?;
+    let meta = Meta::new(x, &[h, w, h / 2, w / 2])?;
+    let out = x.empty_like_device(vec![n, c, h / 2, w / 2]);
+    // SAFETY: every output window lies inside its input plane (floor mode); bound-checked against out.
+    unsafe {
+        cube::max_pool2x2::launch_unchecked(
+            x.client(),
+            grid_for(out.elem_count(), ELEMENTWISE_UNITS),
+            CubeDim::new_1d(ELEMENTWISE_UNITS),
+            x.arg(),
+            out.arg(),
+            meta.arg(),
+        )
+    };
+    Ok(out)
+}
+
+/// The input gradient of [`max_pool2x2`] (`kernels::vgg::max_pool2x2_backward`): `x` is the pool's input.
+pub fn max_pool2x2_backward(x: &GpuTensor, grad: &GpuTensor) -> Result<GpuTensor> {
+    let (n, c, h, w) = nchw(x, "max_pool2x2_backward")?;
+    if grad.dims() != [n, c, h / 2, w / 2] {
+        candle_core::bail!(
+            "gpu max_pool2x2_backward: gradient {:?} for input {:?}",
+            grad.dims(),
+            x.dims()
+        );
+    }
+    let meta = Meta::new(x, &[h, w, h / 2, w / 2])?;
+    let out = x.empty_like_device(x.dims().to_vec());
+    // SAFETY: one unit per input value; windows and pooled indices are inside x and grad.
+    unsafe {
+        cube::max_pool2x2_backward::launch_unchecked(
+            x.client(),
+            grid_for(out.elem_count(), ELEMENTWISE_UNITS),
+            CubeDim::new_1d(ELEMENTWISE_UNITS),
+            x.arg(),
+            grad.arg(),
+            out.arg(),
+            meta.arg(),
+        )
+    };
+    Ok(out)
+}
+
+/// `f / (‖f‖ + eps)` over the channels of each pixel (`kernels::vgg::normalize_channels`).
+pub fn normalize_channels(x: &GpuTensor, eps: f32) -> Result<GpuTensor> {
+    let (n, c, h, w) = nchw(x, "normalize_channels")?;
+    let pixels = n * h * w;
+    let meta = Meta::new(x, &[c, h * w, pixels])?;
+    let out = x.empty_like_device(x.dims().to_vec());
+    // SAFETY: one unit per pixel, reading and writing that pixel's channels.
+    unsafe {
+        cube::normalize_channels::launch_unchecked(
+            x.client(),
+            grid_for(pixels, ELEMENTWISE_UNITS),
+            CubeDim::new_1d(ELEMENTWISE_UNITS),
+            x.arg(),
+            out.arg(),
+            meta.arg(),
+            eps,
+        )
+    };
+    Ok(out)
+}
+
+/// The LPIPS distance of one tap per pixel and, with `with_grad`, the gradient of its spatial mean
+/// (`kernels::vgg::lpips_distance`).
+pub fn lpips_distance(
+    f: &GpuTensor,
+    target: &GpuTensor,
+    lin: &GpuTensor,
+    eps: f32,
+    with_grad: bool,
+) -> Result<(GpuTensor, Option<GpuTensor>)> {
+    let (n, c, h, w) = nchw(f, "lpips_distance")?;
+    if target.dims() != f.dims() || lin.elem_count() != c {
+        candle_core::bail!(
+            "gpu lpips_distance: features {:?}, target {:?}, {} lin weights",
+            f.dims(),
+            target.dims(),
+            lin.elem_count()
+        );
+    }
+    let pixels = n * h * w;
+    let meta = Meta::new(f, &[c, h * w, pixels])?;
+    let map = f.empty_like_device(vec![n, 1, h, w]);
+    // Without the gradient the kernel writes no `grad`; a one-value buffer stands in.
+    let grad = f.empty_like_device(if with_grad {
+        f.dims().to_vec()
+    } else {
+        vec![1]
+    });
+    // SAFETY: one unit per pixel, reading and writing that pixel's channels and map value.
+    unsafe {
+        cube::lpips_distance::launch_unchecked(
+            f.client(),
+            grid_for(pixels, ELEMENTWISE_UNITS),
+            CubeDim::new_1d(ELEMENTWISE_UNITS),
+            f.arg(),
+            target.arg(),
+            lin.arg(),
+            map.arg(),
+            grad.arg(),
+            meta.arg(),
+            eps,
+            1.0 / (h * w).max(1) as f32,
+            with_grad,
+        )
+    };
+    Ok((map, with_grad.then_some(grad)))
 }
 
 #[cfg(test)]

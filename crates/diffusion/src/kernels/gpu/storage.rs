@@ -167,4 +167,30 @@ impl Storage for GpuTensor {
     fn attention(q: &Self, k: &Self, v: &Self, scale: f64) -> Result<Self> {
         ops::attention(q, k, v, scale)
     }
+
+    fn max_pool2x2(&self) -> Result<Self> {
+        ops::max_pool2x2(self)
+    }
+
+    fn max_pool2x2_backward(&self, grad: &Self) -> Result<Self> {
+        ops::max_pool2x2_backward(self, grad)
+    }
+
+    fn relu_backward(&self, grad: &Self) -> Result<Self> {
+        ops::relu_backward(self, grad)
+    }
+
+    fn normalize_channels(&self, eps: f32) -> Result<Self> {
+        ops::normalize_channels(self, eps)
+    }
+
+    fn lpips_distance(
+        &self,
+        target: &Self,
+        lin: &Tensor,
+        eps: f32,
+        with_grad: bool,
+    ) -> Result<(Self, Option<Self>)> {
+        ops::lpips_distance(self, target, &self.constant(lin)?, eps, with_grad)
+    }
 }

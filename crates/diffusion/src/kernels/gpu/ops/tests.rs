@@ -562,3 +562,47 @@ fn the_library_takes_the_networks_products() {
     }
     assert!(with_own_matmul(|| library_gemm(&a, &shared, &gemm([0, n, 1]), &[2, m, n])).is_none());
 }
+
+#[test]
+fn vgg_feature_loss_ops_match_cpu() {
+    let Some(dev) = device_or_skip() else {
+        return;
+    };
+    use crate::kernels::vgg;
+    // Odd sides: the pool drops the last row and column.
+    let x = randn(&[2, 3, 7, 9]);
+    let gx = up(&dev, &x);
+    let pooled = vgg::max_pool2x2(&x).unwrap();
+    check("max_pool2x2", &max_pool2x2(&gx).unwrap(), &pooled);
+    let g = randn(pooled.dims());
+    check(
+        "max_pool2x2_backward",
+        &max_pool2x2_backward(&gx, &up(&dev, &g)).unwrap(),
+        &vgg::max_pool2x2_backward(&x, &g).unwrap(),
+    );
+    let out = x.relu().unwrap();
+    let gr = randn(x.dims());
+    check(
+        "relu_backward",
+        &relu_backward(&up(&dev, &out), &up(&dev, &gr)).unwrap(),
+        &vgg::relu_backward(&out, &gr).unwrap(),
+    );
+    check(
+        "normalize_channels",
+        &normalize_channels(&gx, 1e-10).unwrap(),
+        &vgg::normalize_channels(&x, 1e-10).unwrap(),
+    );
+    let t = vgg::normalize_channels(&randn(x.dims()), 1e-10).unwrap();
+    let lin = randn(&[3]).abs().unwrap();
+    let lin_gpu = up(&dev, &lin);
+    for with_grad in [false, true] {
+        let (map, grad) =
+            lpips_distance(&up(&dev, &out), &up(&dev, &t), &lin_gpu, 1e-10, with_grad).unwrap();
+        let (want_map, want_grad) = vgg::lpips_distance(&out, &t, &lin, 1e-10, with_grad).unwrap();
+        check("lpips_distance map", &map, &want_map);
+        assert_eq!(grad.is_some(), with_grad);
+        if let (Some(grad), Some(want)) = (grad, want_grad) {
+            check("lpips_distance grad", &grad, &want);
+        }
+    }
+}

@@ -4,7 +4,7 @@
 use std::path::{Path, PathBuf};
 
 use candle_core::Device;
-use edit::eval::lpips::{synthetic_tensors, InputRange, Lpips, VGG16_WIDTHS};
+use diffusion::lpips::{synthetic_tensors, InputRange, Lpips, VGG16_WIDTHS};
 use serde_json::Value;
 
 fn fixtures() -> PathBuf {
@@ -138,6 +138,28 @@ fn narrow_network_value_without_gradient_matches() {
     let (h, w) = (case.height, case.width);
     let distance = net.distance(&case.render, &case.target, h, w).unwrap();
     assert!((f64::from(distance) - case.value).abs() <= 1e-4 * case.value);
+}
+
+/// The same cases with the network on the GPU (lavapipe in CI), to the CPU's tolerance: the network keeps
+/// f32 weights on a device whose products default to f16 ([`Lpips::on`]).
+#[test]
+fn narrow_network_on_the_gpu_matches_the_lpips_package() {
+    use diffusion::device::{Device, GpuDevice};
+    let Some(ctx) = gpu::testing::context_or_skip() else {
+        return;
+    };
+    let device = Device::Gpu(GpuDevice::new(ctx));
+    let mut ran = 0;
+    for case in cases().iter().filter(|c| c.meta["network"] == "narrow") {
+        let net = Lpips::load(&fixtures().join("narrow"))
+            .unwrap()
+            .with_input_range(case.range)
+            .on(device.clone());
+        assert!(matches!(net.device(), Device::Gpu(_)));
+        assert_close(case, compare(&net, case));
+        ran += 1;
+    }
+    assert_eq!(ran, 3);
 }
 
 /// The package's calibrated lin weights on a full-width VGG16 with generated weights, through the user's path:
