@@ -486,23 +486,41 @@ impl Lpips {
         }
     }
 
-    /// Interleaved image -> ScalingLayer output, [1, 3, h, w] on the network's device.
+    /// A host image (H*W*3 interleaved) on the network's device.
+    fn upload(&self, image: &[f32]) -> candle_core::Result<DeviceTensor> {
+        self.device.tensor(&Tensor::from_slice(
+            image,
+            image.len(),
+            &candle_core::Device::Cpu,
+        )?)
+    }
+
+    /// The ScalingLayer's per-channel multiplier and offset for image values (the input range's affine
+    /// map folded in), as [1, 3, 1, 1] tensors on `like`'s device.
+    fn scaling(&self, like: &DeviceTensor) -> candle_core::Result<(DeviceTensor, DeviceTensor)> {
+        let (mul, add) = self.range.affine();
+        let cpu = &candle_core::Device::Cpu;
+        let factor: Vec<f32> = (0..3).map(|ch| mul / SCALE[ch]).collect();
+        let offset: Vec<f32> = (0..3).map(|ch| (add - SHIFT[ch]) / SCALE[ch]).collect();
+        Ok((
+            like.same_device(&Tensor::from_vec(factor, (1, 3, 1, 1), cpu)?)?,
+            like.same_device(&Tensor::from_vec(offset, (1, 3, 1, 1), cpu)?)?,
+        ))
+    }
+
+    /// Interleaved image (H*W*3 on the network's device) -> ScalingLayer output, [1, 3, h, w].
     fn scaled_input(
         &self,
-        image: &[f32],
+        image: &DeviceTensor,
         height: usize,
         width: usize,
     ) -> candle_core::Result<DeviceTensor> {
-        let (mul, add) = self.range.affine();
-        let area = height * width;
-        let mut planes = vec![0.0f32; 3 * area];
-        for (p, rgb) in image.chunks_exact(3).enumerate() {
-            for ch in 0..3 {
-                planes[ch * area + p] = (rgb[ch] * mul + add - SHIFT[ch]) / SCALE[ch];
-            }
-        }
-        let planes = Tensor::from_vec(planes, (1, 3, height, width), &candle_core::Device::Cpu)?;
-        self.device.tensor(&planes)
+        let (factor, offset) = self.scaling(image)?;
+        image
+            .reshape(&[1, height, width, 3])?
+            .permute_contiguous(&[0, 3, 1, 2])?
+            .broadcast_mul(&factor)?
+            .broadcast_add(&offset)
     }
 
     /// ReLU outputs of all 13 convs; with `keep_all` false only the five taps are kept (`None` elsewhere).
@@ -535,13 +553,6 @@ impl Lpips {
         Ok(acts)
     }
 
-    /// Spatial mean of one tap's distance map.
-    fn tap_mean(map: &DeviceTensor) -> candle_core::Result<f32> {
-        let values = map.to_cpu()?.flatten_all()?.to_vec1::<f32>()?;
-        let sum: f64 = values.iter().map(|&v| f64::from(v)).sum();
-        Ok((sum / values.len().max(1) as f64) as f32)
-    }
-
     /// Normalised features of `image` (H*W*3 interleaved), to compare renders against.
     pub fn target(
         &self,
@@ -551,7 +562,8 @@ impl Lpips {
     ) -> Result<LpipsTarget, LpipsError> {
         self.check_image(image, height, width)?;
         let features = (|| {
-            let acts = self.forward(self.scaled_input(image, height, width)?, false)?;
+            let input = self.scaled_input(&self.upload(image)?, height, width)?;
+            let acts = self.forward(input, false)?;
             tap_convs()
                 .iter()
                 .map(|&i| kept(&acts, i).normalize_channels(NORM_EPS))
@@ -598,7 +610,8 @@ impl Lpips {
         self.check_image(render, height, width)?;
         self.check_target(target, height, width)?;
         let per_layer = (|| {
-            let acts = self.forward(self.scaled_input(render, height, width)?, false)?;
+            let input = self.scaled_input(&self.upload(render)?, height, width)?;
+            let acts = self.forward(input, false)?;
             let mut per_layer = [0.0f32; 5];
             for (s, &tap) in tap_convs().iter().enumerate() {
                 let (map, _) = kept(&acts, tap).lpips_distance(
@@ -607,7 +620,7 @@ impl Lpips {
                     NORM_EPS,
                     false,
                 )?;
-                per_layer[s] = Self::tap_mean(&map)?;
+                per_layer[s] = tap_mean(&map)?;
             }
             Ok(per_layer)
         })()
@@ -636,19 +649,11 @@ impl Lpips {
         target: &LpipsTarget,
     ) -> Result<LpipsLoss, LpipsError> {
         self.check_image(render, height, width)?;
-        self.check_target(target, height, width)?;
-        let (per_layer, input_grad) = self
-            .backward(render, height, width, target)
+        let on_device = self.upload(render).map_err(|e| self.compute_error(e))?;
+        let out = self.loss_and_grad_on(&on_device, height, width, target)?;
+        let per_layer = out.per_layer()?;
+        let grad = (|| out.grad.to_cpu()?.flatten_all()?.to_vec1::<f32>())()
             .map_err(|e| self.compute_error(e))?;
-        let (mul, _) = self.range.affine();
-        let factor = SCALE.map(|s| mul / s);
-        let area = height * width;
-        let mut grad = vec![0.0f32; area * 3];
-        for (p, g) in grad.chunks_exact_mut(3).enumerate() {
-            for ch in 0..3 {
-                g[ch] = input_grad[ch * area + p] * factor[ch];
-            }
-        }
         Ok(LpipsLoss {
             value: per_layer.iter().sum(),
             per_layer,
@@ -656,17 +661,44 @@ impl Lpips {
         })
     }
 
-    /// The five tap values and the gradient w.r.t. the ScalingLayer's output (3 planes of h*w).
-    fn backward(
+    /// [`Lpips::loss_and_grad`] of a render already on the network's device (H*W*3 interleaved, e.g.
+    /// the splatting engine's render on the same GPU): nothing is read back until
+    /// [`DeviceLpips::per_layer`] is asked for. The render's values are not checked for NaN here (that
+    /// would read them back).
+    pub fn loss_and_grad_on(
         &self,
-        render: &[f32],
+        render: &DeviceTensor,
         height: usize,
         width: usize,
         target: &LpipsTarget,
-    ) -> candle_core::Result<([f32; 5], Vec<f32>)> {
+    ) -> Result<DeviceLpips, LpipsError> {
+        if render.dims().iter().product::<usize>() != height * width * 3 {
+            return Err(LpipsError::BadInput(format!(
+                "render has shape {:?}, expected {width}x{height}x3 values",
+                render.dims()
+            )));
+        }
+        self.check_target(target, height, width)?;
+        self.backward(render, height, width, target)
+            .map(|(maps, grad)| DeviceLpips {
+                maps,
+                grad,
+                device: self.device.describe(),
+            })
+            .map_err(|e| self.compute_error(e))
+    }
+
+    /// The five taps' distance maps and the gradient w.r.t. the interleaved render.
+    fn backward(
+        &self,
+        render: &DeviceTensor,
+        height: usize,
+        width: usize,
+        target: &LpipsTarget,
+    ) -> candle_core::Result<(Vec<DeviceTensor>, DeviceTensor)> {
         let mut acts = self.forward(self.scaled_input(render, height, width)?, true)?;
         let taps = tap_convs();
-        let mut per_layer = [0.0f32; 5];
+        let mut maps = Vec::with_capacity(5);
         // Gradient w.r.t. the input of stage s + 1 (a pooled map), carried down the stages.
         let mut upstream: Option<DeviceTensor> = None;
         for s in (0..5).rev() {
@@ -678,7 +710,7 @@ impl Lpips {
                 NORM_EPS,
                 true,
             )?;
-            per_layer[s] = Self::tap_mean(&map)?;
+            maps.push(map);
             // The gradient w.r.t. the tap's ReLU output: its own term plus what came through the pool.
             let mut grad = grad.expect("asked for the gradient");
             if let Some(up) = upstream.take() {
@@ -694,10 +726,46 @@ impl Lpips {
             acts.truncate(first);
             upstream = Some(grad);
         }
-        let input_grad = upstream.expect("five stages ran");
-        let values = input_grad.to_cpu()?.flatten_all()?.to_vec1::<f32>()?;
-        Ok((per_layer, values))
+        maps.reverse();
+        // Through the ScalingLayer (a per-channel affine map) back to the interleaved image.
+        let (factor, _) = self.scaling(render)?;
+        let grad = upstream
+            .expect("five stages ran")
+            .broadcast_mul(&factor)?
+            .permute_contiguous(&[0, 2, 3, 1])?
+            .reshape(&[height * width * 3])?;
+        Ok((maps, grad))
     }
+}
+
+/// LPIPS of a render on the network's device ([`Lpips::loss_and_grad_on`]).
+pub struct DeviceLpips {
+    /// The five taps' per-pixel distances, [1, 1, h, w] each.
+    maps: Vec<DeviceTensor>,
+    /// d LPIPS / d render, H*W*3 interleaved like the render, on the device.
+    pub grad: DeviceTensor,
+    device: String,
+}
+
+impl DeviceLpips {
+    /// The terms of relu1_2 ... relu5_3 (their sum is the LPIPS value); reads the maps back.
+    pub fn per_layer(&self) -> Result<[f32; 5], LpipsError> {
+        let mut per_layer = [0.0f32; 5];
+        for (v, map) in per_layer.iter_mut().zip(&self.maps) {
+            *v = tap_mean(map).map_err(|cause| LpipsError::Compute {
+                device: self.device.clone(),
+                cause,
+            })?;
+        }
+        Ok(per_layer)
+    }
+}
+
+/// Spatial mean of one tap's distance map.
+fn tap_mean(map: &DeviceTensor) -> candle_core::Result<f32> {
+    let values = map.to_cpu()?.flatten_all()?.to_vec1::<f32>()?;
+    let sum: f64 = values.iter().map(|&v| f64::from(v)).sum();
+    Ok((sum / values.len().max(1) as f64) as f32)
 }
 
 /// The activation `i`, which the forward pass kept.

@@ -22,7 +22,9 @@ use splat::train::{FitLoss, StepKind, StepOutcome, Trainer};
 use splat::train::{RenderedView, TrainState};
 use splat::{Camera, GaussianScene, Image, SplatDevice};
 
+use diffusion::device::{DeviceTensor, GpuTensor};
 use diffusion::lpips::{Lpips, LpipsError, TargetCache};
+use gpu::cubecl::server::Handle;
 
 #[derive(Debug, thiserror::Error)]
 pub enum TrainError {
@@ -74,11 +76,14 @@ impl ImageLoss {
         }
     }
 
-    /// The loss as L1 and D-SSIM weights, when it is that (the device evaluates it itself).
+    /// The loss as L1 and D-SSIM weights when the device evaluates it: L1 + D-SSIM always, L1 + LPIPS when
+    /// the network runs on the GPU (its term comes from `Targets::device_term`).
     fn device_weights(&self) -> Option<L1DssimWeights> {
         match self {
             ImageLoss::Dssim { l1, dssim } => Some(L1DssimWeights::new(*l1, *dssim)),
-            ImageLoss::Lpips { .. } => None,
+            ImageLoss::Lpips { net, l1, .. } => {
+                net.device().gpu().map(|_| L1DssimWeights::new(*l1, 0.0))
+            }
         }
     }
 
@@ -158,6 +163,8 @@ pub(crate) struct Targets<'a> {
     loss: &'a ImageLoss,
     images: &'a [Image],
     cache: TargetCache,
+    /// The weighted LPIPS of the last device step that read its value.
+    device_value: f32,
 }
 
 impl<'a> Targets<'a> {
@@ -166,6 +173,7 @@ impl<'a> Targets<'a> {
             loss,
             images,
             cache: TargetCache::new(LPIPS_CACHE_BYTES),
+            device_value: 0.0,
         }
     }
 
@@ -190,6 +198,49 @@ impl FitLoss for Targets<'_> {
 
     fn device_weights(&self) -> Option<L1DssimWeights> {
         self.loss.device_weights()
+    }
+
+    /// λ·LPIPS of the render on the GPU the network shares with the renderer: the render and the
+    /// gradients never leave the device (the value only when asked).
+    fn device_term(
+        &mut self,
+        rgb: &Handle,
+        grad: Handle,
+        v: usize,
+        read_value: bool,
+    ) -> Result<Handle, TrainError> {
+        let ImageLoss::Lpips { net, lpips: wl, .. } = self.loss else {
+            return Ok(grad);
+        };
+        let Some(gpu) = net.device().gpu() else {
+            return Ok(grad);
+        };
+        let target = &self.images[v];
+        let (w, h) = (target.width as usize, target.height as usize);
+        let features = self.cache.get_or_compute(net, v, &target.data, h, w)?;
+        let compute_error = |cause| LpipsError::Compute {
+            device: net.device().describe(),
+            cause,
+        };
+        let on_device = |handle: Handle| {
+            GpuTensor::from_handle(gpu, handle, vec![h * w * 3])
+                .map(DeviceTensor::Gpu)
+                .map_err(compute_error)
+        };
+        let out = net.loss_and_grad_on(&on_device(rgb.clone())?, h, w, &features)?;
+        let weighted = out.grad.mul_scalar(f64::from(*wl)).map_err(compute_error)?;
+        let total = on_device(grad)?.add(&weighted).map_err(compute_error)?;
+        if read_value {
+            self.device_value = wl * out.per_layer()?.iter().sum::<f32>();
+        }
+        match total {
+            DeviceTensor::Gpu(t) => Ok(t.handle().clone()),
+            DeviceTensor::Cpu(_) => unreachable!("GPU operands give a GPU result"),
+        }
+    }
+
+    fn take_device_value(&mut self) -> f32 {
+        std::mem::take(&mut self.device_value)
     }
 }
 
@@ -525,9 +576,37 @@ mod tests {
         let gpu_loss = ImageLoss::lpips(net().on(diffusion::device::Device::Gpu(
             diffusion::device::GpuDevice::new(ctx.clone()),
         )));
+        // On the GPU the step runs resident, LPIPS added by `Targets::device_term`.
+        assert!(cpu_loss.device_weights().is_none() && gpu_loss.device_weights().is_some());
         let mut host = trainer(&scene, &mask);
         let mut dev = trainer(&scene, &mask);
         dev.device = SplatDevice::Gpu(ctx);
+
+        // A resident step that reads its loss reports the host's value for the same render.
+        let mut on_gpu = Targets::new(&gpu_loss, &targets);
+        let mut fit = on_gpu.trainer(&dev.device, [0.0; 3]);
+        let mut state = dev.state.clone();
+        let kind = StepKind::Ordinary {
+            track_stats: false,
+            read_loss: true,
+        };
+        let StepOutcome::Resident {
+            loss: Some(resident),
+        } = fit
+            .step(&mut state, &cams[0], 0, &mut on_gpu, kind)
+            .unwrap()
+        else {
+            panic!("an LPIPS step on the GPU runs resident and reads its loss");
+        };
+        let rgb = render(&scene, &cams[0], &RenderSettings::default(), None)
+            .into_frame()
+            .rgb;
+        let (host_value, _) = Targets::new(&cpu_loss, &targets).eval(&rgb, 0).unwrap();
+        assert!(
+            (resident - host_value).abs() < 1e-4 * host_value,
+            "resident loss {resident} vs host {host_value}"
+        );
+
         host.fit(&cams, &targets, 4, &cpu_loss, 1, &mut |_| {})
             .unwrap();
         dev.fit(&cams, &targets, 4, &gpu_loss, 1, &mut |_| {})

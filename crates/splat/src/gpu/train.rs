@@ -75,6 +75,7 @@ impl DeviceTrainer {
             settings,
             L1DssimWeights::blend(ssim_weight),
             track_stats,
+            |_, grad| Ok::<_, GpuError>(grad),
         )?
         .value(ctx)
     }
@@ -83,7 +84,11 @@ impl DeviceTrainer {
     /// 10 : 2.5). The anchor gradient, when there are anchors, is added before Adam, as the editing fit
     /// does on the host. Returns the image loss (anchor term excluded) still on the device: reading its
     /// value copies two image-sized maps back, which a caller that does not need it skips.
-    pub fn step_weighted(
+    ///
+    /// `term` adds a loss term the device evaluates elsewhere (a perceptual network on the same GPU): it
+    /// gets the render (H*W*3) and the L1 + D-SSIM gradient w.r.t. it and returns the total gradient
+    /// (the identity `|_, grad| Ok(grad)` adds nothing).
+    pub fn step_weighted<E: From<GpuError>>(
         &mut self,
         ctx: &GpuContext,
         adam: &mut Adam,
@@ -92,10 +97,12 @@ impl DeviceTrainer {
         settings: &RenderSettings,
         weights: L1DssimWeights,
         track_stats: bool,
-    ) -> Result<GpuLoss, GpuError> {
+        term: impl FnOnce(&Handle, Handle) -> Result<Handle, E>,
+    ) -> Result<GpuLoss, E> {
         let frame = render_device(ctx, &self.scene, camera, settings, None)?;
         let (w, h) = (camera.width as usize, camera.height as usize);
         let loss = l1_dssim_weighted(ctx, &frame.rgb, target, w, h, 3, weights)?;
+        let rgb_grad = term(&frame.rgb, loss.grad.clone())?;
         let grads = render_backward_device(
             ctx,
             &self.scene,
@@ -103,7 +110,7 @@ impl DeviceTrainer {
             None,
             &frame,
             &GpuOutputGrads {
-                rgb: &loss.grad,
+                rgb: &rgb_grad,
                 alpha: None,
                 depth: None,
                 extra: None,

@@ -19,9 +19,26 @@ pub trait FitLoss {
     type Error: From<GpuError>;
     /// The value and its gradient with respect to `rgb` (H*W*3), the render of view `v`.
     fn eval(&mut self, rgb: &[f32], v: usize) -> Result<(f32, Vec<f32>), Self::Error>;
-    /// The same loss as `l1·L1 + dssim·D-SSIM` when it is one: the device then evaluates it itself and
-    /// the step runs resident. `None`: host only (e.g. LPIPS, a CPU network).
+    /// The loss as `l1·L1 + dssim·D-SSIM` (plus [`FitLoss::device_term`]) when the device can evaluate
+    /// it: the step then runs resident. `None`: host only (e.g. LPIPS on a CPU network).
     fn device_weights(&self) -> Option<L1DssimWeights>;
+    /// A term the device adds to the `device_weights` loss (LPIPS on a network sharing the GPU): given the
+    /// render of view `v` (H*W*3 f32 on the device) and the L1 + D-SSIM gradient w.r.t. it, the total
+    /// gradient, also on the device. With `read_value`, the term's value is kept for
+    /// [`FitLoss::take_device_value`]. The default adds nothing.
+    fn device_term(
+        &mut self,
+        _rgb: &Handle,
+        grad: Handle,
+        _v: usize,
+        _read_value: bool,
+    ) -> Result<Handle, Self::Error> {
+        Ok(grad)
+    }
+    /// The value of the last [`FitLoss::device_term`] asked to read it (0 when there is no term).
+    fn take_device_value(&mut self) -> f32 {
+        0.0
+    }
 }
 
 /// What a step needs of the state's location.
@@ -138,9 +155,10 @@ impl Trainer {
                 &self.settings,
                 res.weights,
                 track_stats,
+                |rgb, grad| loss.device_term(rgb, grad, v, read_loss),
             )?;
             let loss = if read_loss {
-                Some(value.value(ctx)?)
+                Some(value.value(ctx)? + loss.take_device_value())
             } else {
                 None
             };

@@ -213,6 +213,29 @@ impl GpuTensor {
         }
     }
 
+    /// An f32 tensor of `shape` over a buffer of the device's client that another engine made (the
+    /// splatting engine's render, sharing the [`GpuContext`]); an error when the buffer is too small.
+    pub fn from_handle(device: &GpuDevice, handle: Handle, shape: Vec<usize>) -> Result<GpuTensor> {
+        let needed = shape.iter().product::<usize>() * std::mem::size_of::<f32>();
+        if (handle.size_in_used() as usize) < needed {
+            candle_core::bail!(
+                "a {} byte GPU buffer cannot hold a {shape:?} f32 tensor",
+                handle.size_in_used()
+            );
+        }
+        Ok(GpuTensor {
+            device: device.clone(),
+            handle,
+            shape,
+            half: false,
+        })
+    }
+
+    /// The buffer (f32, or packed f16 for [`GpuTensor::is_f16`]), for another engine on the same context.
+    pub fn handle(&self) -> &Handle {
+        &self.handle
+    }
+
     /// An uninitialised tensor of `shape` on the same device as `self`.
     pub(crate) fn empty_like_device(&self, shape: Vec<usize>) -> GpuTensor {
         let n = shape.iter().product::<usize>().max(1);
