@@ -415,7 +415,7 @@ fn measure_gpu(
     runs: usize,
     stages: [bool; 3],
 ) -> std::result::Result<Timings, gpu::GpuError> {
-    use splat::gpu::{
+    use splat::stages::{
         render_backward_device, render_device, DeviceTrainer, GpuOutputGrads, GpuScene,
     };
     use splat::train::optim::LearningRates;

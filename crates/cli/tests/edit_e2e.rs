@@ -227,7 +227,7 @@ fn resume_after_an_interruption_equals_an_uninterrupted_run() {
 /// views, a short ECM) because lavapipe is slow; every stage still runs: CCM, ECM, blend, fit.
 #[test]
 fn edit_on_the_gpu_matches_the_cpu() {
-    if splat::gpu::list_adapters().is_empty() {
+    if gpu::list_adapters().is_empty() {
         println!("skipping: no Vulkan device");
         return;
     }

@@ -62,7 +62,7 @@ fn main() {
     for device in devices.split(',') {
         let ctx = match device {
             "cpu" => None,
-            "gpu" => match splat::gpu::open(gpu::DeviceChoice::Gpu) {
+            "gpu" => match gpu::open(gpu::DeviceChoice::Gpu) {
                 Ok(Some(ctx)) => Some(ctx),
                 Ok(None) | Err(_) => {
                     eprintln!("SKIP gpu: no GPU adapter found");

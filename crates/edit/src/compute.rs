@@ -4,7 +4,7 @@
 //! of each stays the reference its GPU path is tested against.
 
 use diffusion::device::{Device, GpuDevice, Precision};
-use splat::gpu::{GpuContext, GpuError};
+use gpu::{GpuContext, GpuError};
 use splat::SplatDevice;
 
 /// The devices of a run: both engines on the CPU, or both on one GPU.

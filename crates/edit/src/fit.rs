@@ -9,16 +9,16 @@
 
 use std::path::Path;
 
+use gpu::GpuError;
 use rand::seq::SliceRandom;
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use serde::Serialize;
-use splat::gpu::{GpuError, L1DssimWeights};
 use splat::train::anchor::{Anchor, AnchorConfig};
 use splat::train::densify::EditStrategy;
 use splat::train::loss;
 use splat::train::optim::LearningRates;
-use splat::train::{FitLoss, StepKind, StepOutcome, Trainer};
+use splat::train::{FitLoss, L1DssimWeights, StepKind, StepOutcome, Trainer};
 use splat::train::{RenderedView, TrainState};
 use splat::{Camera, GaussianScene, Image, SplatDevice};
 
@@ -281,7 +281,7 @@ pub struct EditTrainer {
     /// Background of the renders fitted (the targets' background).
     pub background: [f32; 3],
     /// Where the fit runs (`None`: the CPU). With the D-SSIM loss the scene, Adam moments, statistics,
-    /// mask and anchors stay on the device between densifications ([`splat::gpu::DeviceTrainer`]); with
+    /// mask and anchors stay on the device between densifications (`DeviceTrainer` in splat); with
     /// LPIPS (a CPU network) only renders and their backward run there.
     pub device: SplatDevice,
 }
@@ -791,7 +791,7 @@ mod tests {
         time("loss alone on the device", &mut |k| {
             for _ in 0..k {
                 let l =
-                    splat::gpu::l1_dssim_weighted(&ctx, &a, &b, size, size, 3, weights).unwrap();
+                    splat::stages::l1_dssim_weighted(&ctx, &a, &b, size, size, 3, weights).unwrap();
                 std::hint::black_box(l.value(&ctx).unwrap());
             }
         });

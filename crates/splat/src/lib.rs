@@ -20,7 +20,7 @@
 pub mod cameras;
 mod device;
 pub mod formats;
-pub mod gpu;
+mod gpu;
 pub mod image;
 mod layout;
 pub mod lift;
@@ -28,6 +28,8 @@ pub mod render;
 pub mod scene;
 pub mod train;
 
+/// The GPU the device seam runs on (opened with the `gpu` crate) and its error.
+pub use ::gpu::{GpuContext, GpuError};
 pub use cameras::camera::Camera;
 pub use device::{Lifter, SplatDevice};
 /// The INRIA PLY reader and writer, at their historical path.
@@ -37,3 +39,15 @@ pub use formats::{
 };
 pub use image::Image;
 pub use scene::GaussianScene;
+
+/// The GPU stages behind [`SplatDevice`] (projection + binning + rasterisation, its backward, the resident
+/// trainer, the device loss), for the benches that time them one by one: not a stable interface, and
+/// only built with the `stages` feature.
+#[cfg(feature = "stages")]
+#[doc(hidden)]
+pub mod stages {
+    pub use crate::gpu::{
+        l1_dssim_weighted, render_backward_device, render_device, DeviceTrainer, GpuOutputGrads,
+        GpuScene,
+    };
+}

@@ -29,10 +29,10 @@ use std::path::PathBuf;
 
 use anyhow::{bail, Context, Result};
 use diffusion::device::Precision;
+use gpu::{DeviceChoice, GpuContext};
 use splat::cameras::{
     load_cameras, orbit_cameras, robust_bounds, to_working_resolution, CameraSet,
 };
-use splat::gpu::{DeviceChoice, GpuContext};
 use splat::{Camera, GaussianScene};
 
 use parse::{parse_colour, parse_size, positive, whole};
@@ -72,26 +72,26 @@ impl DeviceArg {
     /// Opens the chosen device for the networks and says in the log which one runs: `None` means the
     /// CPU.
     pub fn open(&self) -> Result<Option<GpuContext>> {
-        self.open_for(splat::gpu::Workload::Networks)
+        self.open_for(gpu::Workload::Networks)
     }
 
     /// [`DeviceArg::open`] for a command that runs `workload` (it picks the shader compiler).
-    pub fn open_for(&self, workload: splat::gpu::Workload) -> Result<Option<GpuContext>> {
+    pub fn open_for(&self, workload: gpu::Workload) -> Result<Option<GpuContext>> {
         let choice = match self.device {
             Some(c) => c,
             None => DeviceChoice::from_env_or(DeviceChoice::Auto)
-                .context(format!("${}", splat::gpu::DEVICE_ENV))?,
+                .context(format!("${}", gpu::DEVICE_ENV))?,
         };
-        let ctx = splat::gpu::open_for(choice, workload)?;
+        let ctx = gpu::open_for(choice, workload)?;
         match (&ctx, choice) {
             (Some(ctx), _) => eprintln!("device: {}", ctx.describe()),
             (None, DeviceChoice::Auto) => {
-                let software = splat::gpu::list_adapters().into_iter().find(|a| a.software);
+                let software = gpu::list_adapters().into_iter().find(|a| a.software);
                 match software {
                     Some(a) => eprintln!(
                         "device: CPU (auto: no hardware GPU; {} is a software rasteriser, set {}=1 to use it)",
                         a.name,
-                        splat::gpu::ALLOW_SOFTWARE_ENV
+                        gpu::ALLOW_SOFTWARE_ENV
                     ),
                     None => eprintln!("device: CPU (auto: no GPU found)"),
                 }

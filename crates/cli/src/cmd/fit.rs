@@ -178,7 +178,7 @@ pub fn run(args: Args) -> Result<()> {
     progress.stage("fitting", args.steps);
     let mut smoothed = None::<f32>;
     let mut last_psnr = None::<f64>;
-    let device = splat::SplatDevice::from(args.device.open_for(splat::gpu::Workload::Splatting)?);
+    let device = splat::SplatDevice::from(args.device.open_for(gpu::Workload::Splatting)?);
     let result = fit_on(&dataset, &config, &device, &mut |p| {
         // Exponential moving average, as the INRIA trainer shows.
         let ema = smoothed.map_or(p.loss, |s| 0.6 * p.loss + 0.4 * s);

@@ -219,7 +219,7 @@ pub fn run(args: Args) -> Result<()> {
         * splat::render::render_memory_bytes(pixels, gaussians, extra);
     args.memory.check(held + rendering, "--size or --orbit")?;
     let settings = RenderSettings { background };
-    let device = SplatDevice::from(args.device.open_for(splat::gpu::Workload::Splatting)?);
+    let device = SplatDevice::from(args.device.open_for(gpu::Workload::Splatting)?);
     let renders_a = render_all(
         &device,
         &source,

@@ -159,7 +159,7 @@ pub fn run(args: Args) -> Result<()> {
         background: args.background.background,
     };
     // The networks are not used here: their weight precision does not matter.
-    let device = SplatDevice::from(args.device.open_for(splat::gpu::Workload::Splatting)?);
+    let device = SplatDevice::from(args.device.open_for(gpu::Workload::Splatting)?);
     let mut progress = Reporter::new();
     progress.stage("rendering views", cameras.len() as u64);
     let t_render = Instant::now();

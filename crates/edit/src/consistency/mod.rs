@@ -114,7 +114,7 @@ pub enum MultiViewError {
     #[error("{0}")]
     Candle(#[from] candle_core::Error),
     #[error(transparent)]
-    Gpu(#[from] splat::gpu::GpuError),
+    Gpu(#[from] gpu::GpuError),
     #[error("ECM fit failed: {0}")]
     Fit(String),
     #[error("{0}")]

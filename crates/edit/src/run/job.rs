@@ -172,7 +172,7 @@ pub enum RunError {
     #[error("{0}")]
     Candle(#[from] candle_core::Error),
     #[error(transparent)]
-    Gpu(#[from] splat::gpu::GpuError),
+    Gpu(#[from] gpu::GpuError),
 }
 
 pub(super) fn io_err(path: &Path, e: impl std::fmt::Display) -> RunError {

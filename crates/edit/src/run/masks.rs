@@ -9,7 +9,7 @@ use std::path::Path;
 use candle_core::{DType, Device, Tensor};
 use diffusion::device::DeviceTensor;
 use diffusion::unet::{AttentionHook, AttnCall, AttnKind};
-use splat::gpu::GpuError;
+use gpu::GpuError;
 use splat::render::{render, ExtraChannels, RenderSettings};
 use splat::{Camera, GaussianScene, Image};
 

@@ -7,7 +7,9 @@ use ::gpu::cubecl;
 use ::gpu::cubecl::prelude::*;
 use ::gpu::cubecl::server::Handle;
 use ::gpu::gpu_call;
-use ::gpu::prims::{grid, read_f32, upload_f32, zeros32};
+#[cfg(test)]
+use ::gpu::prims::zeros32;
+use ::gpu::prims::{grid, read_f32, upload_f32};
 
 #[cube(launch)]
 fn densify_stats_add(
@@ -43,6 +45,7 @@ pub struct GpuDensifyStats {
 }
 
 impl GpuDensifyStats {
+    #[cfg(test)]
     pub fn new(ctx: &GpuContext, n: usize) -> Self {
         let c = &ctx.client;
         Self {

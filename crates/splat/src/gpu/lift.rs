@@ -14,6 +14,8 @@ use ::gpu::prims::{read_f32, read_u32, upload_f32, zeros32};
 ///
 /// # Panics
 /// When `maps` and `cameras` differ in length or a map has the wrong size (programming errors).
+/// The tests' entry (all views at once); callers lift view by view with [`GpuLiftAccumulator`].
+#[cfg(test)]
 pub fn lift(
     ctx: &GpuContext,
     scene: &GaussianScene,
@@ -26,6 +28,7 @@ pub fn lift(
 }
 
 /// [`lift`] with `ppu` pixels per unit (same counts; sums up to the order of float additions).
+#[cfg(test)]
 pub(super) fn lift_with(
     ctx: &GpuContext,
     scene: &GaussianScene,

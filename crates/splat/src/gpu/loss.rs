@@ -244,6 +244,7 @@ impl GpuLoss {
 }
 
 /// `(1 − λ)·L1 + λ·D-SSIM` of `pred` against `target` (both H*W*C interleaved, on the device).
+#[cfg(test)]
 pub fn l1_dssim(
     ctx: &GpuContext,
     pred: &Handle,

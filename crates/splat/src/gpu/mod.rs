@@ -26,7 +26,9 @@ pub(crate) mod raster;
 pub(crate) mod sh;
 mod train;
 
-use crate::render::{ExtraChannels, Frame, OutputGrads, RenderSettings, SceneGrads, TILE};
+#[cfg(test)]
+use crate::render::OutputGrads;
+use crate::render::{ExtraChannels, Frame, RenderSettings, SceneGrads, TILE};
 use crate::{Camera, GaussianScene};
 use ::gpu::cubecl::prelude::*;
 use ::gpu::cubecl::server::Handle;
@@ -34,14 +36,15 @@ use ::gpu::gpu_call;
 use ::gpu::prims::{
     arg, empty32, exclusive_scan, grid, read_f32, read_u32, sort_pairs, upload_f32, zeros32,
 };
-pub use ::gpu::{
-    list_adapters, open, open_for, DeviceChoice, GpuContext, GpuError, Workload,
-    ALLOW_SOFTWARE_ENV, DEVICE_ENV,
-};
+pub use ::gpu::{GpuContext, GpuError};
 pub use anchor::GpuAnchor;
 pub use densify::GpuDensifyStats;
-pub use lift::{lift, GpuLiftAccumulator};
-pub use loss::{l1_dssim, l1_dssim_weighted, GpuLoss, L1DssimWeights};
+#[cfg(test)]
+pub use lift::lift;
+pub use lift::GpuLiftAccumulator;
+#[cfg(test)]
+pub use loss::l1_dssim;
+pub use loss::{l1_dssim_weighted, GpuLoss, L1DssimWeights};
 pub use optim::GpuAdam;
 use project::{CAM_F, GRAD_F, INFO_U, SPLAT_F};
 pub use train::DeviceTrainer;
@@ -594,6 +597,8 @@ fn render_with(
 
 /// Host convenience: forward and backward on the device, gradients read back, like
 /// [`crate::render::render_backward`] (which needs the forward's output; here the forward is rerun).
+/// The tests' entry; the fits go through [`render_with_loss`] or the resident trainer.
+#[cfg(test)]
 pub fn render_backward(
     ctx: &GpuContext,
     scene: &GaussianScene,
@@ -607,6 +612,7 @@ pub fn render_backward(
 }
 
 /// [`render_backward`] with `ppu` pixels per raster backward unit.
+#[cfg(test)]
 fn render_backward_with(
     ctx: &GpuContext,
     scene: &GaussianScene,

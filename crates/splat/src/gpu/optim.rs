@@ -9,7 +9,9 @@ use ::gpu::cubecl;
 use ::gpu::cubecl::prelude::*;
 use ::gpu::cubecl::server::Handle;
 use ::gpu::gpu_call;
-use ::gpu::prims::{empty32, grid, read_f32, upload_f32, zeros32};
+#[cfg(test)]
+use ::gpu::prims::zeros32;
+use ::gpu::prims::{empty32, grid, read_f32, upload_f32};
 
 /// One Adam update of an array of `width` values per Gaussian: the first `first` values of each block
 /// use `lr_first`, the rest `lr_rest` (SH: DC and higher coefficients). With `use_mask` set, Gaussians
@@ -59,6 +61,7 @@ pub struct GpuAdam {
 
 impl GpuAdam {
     /// Zero moments for `scene`.
+    #[cfg(test)]
     pub fn new(ctx: &GpuContext, scene: &GpuScene) -> Self {
         let c = &ctx.client;
         let n = scene.len;
@@ -109,6 +112,7 @@ impl GpuAdam {
 
     /// One step of every parameter (no trainable mask) with `adam`'s rates and hyper-parameters;
     /// advances `adam`'s step count as [`Adam::step`] does.
+    #[cfg(test)]
     pub fn step(
         &mut self,
         ctx: &GpuContext,

@@ -13,6 +13,7 @@ pub mod optim;
 pub mod scene_fit;
 mod trainer;
 
+pub use crate::gpu::L1DssimWeights;
 pub use trainer::{FitLoss, StageSeconds, StepKind, StepOutcome, Trainer};
 
 use crate::layout::{remap_scene, set_scene_sh_degree, Remap};
