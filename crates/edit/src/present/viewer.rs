@@ -14,7 +14,7 @@ use std::path::Path;
 use maud::{html, Markup, PreEscaped, DOCTYPE};
 use serde::Serialize;
 use splat::cameras::orbit::{focus_point, look_at};
-use splat::cameras::{orbit_cameras, robust_bounds};
+use splat::cameras::{orbit_cameras, robust_bounds, OrbitSettings};
 use splat::{Camera, GaussianScene};
 
 /// The viewer's script (WebGL2 renderer, controls); readable on its own in `present/viewer.js`.
@@ -205,7 +205,10 @@ impl InitialView {
             )
         });
         let pivot = std::array::from_fn(|a| 0.5 * (f64::from(lo[a]) + f64::from(hi[a])));
-        let up = camera.rotation[1].map(|v| -v);
+        // The orbit's world axis, not the camera's up: the camera looks down 20°, so turning about its
+        // own up vector would tilt the horizon at every horizontal drag.
+        let up = normalized(OrbitSettings::default().up.resolve(lo, hi))
+            .unwrap_or_else(|| camera.rotation[1].map(|v| -v));
         InitialView { camera, pivot, up }
     }
 }
@@ -638,5 +641,17 @@ mod tests {
             p[2] > 0.0 && p[0].abs() < 1e-6 && p[1].abs() < 1e-6,
             "{p:?}"
         );
+        // Turning about the orbit's world axis keeps the horizon level: the up vector is that axis (the
+        // camera looks down at it, so its own up vector is tilted), and the camera's right axis is
+        // horizontal.
+        let (lo, hi) = robust_bounds(&scene, 0.01).unwrap();
+        let world_up = OrbitSettings::default().up.resolve(lo, hi);
+        assert_eq!(around.up, world_up);
+        let right = around.camera.rotation[0];
+        assert!((0..3).map(|a| right[a] * world_up[a]).sum::<f64>().abs() < 1e-9);
+        let tilt: f64 = (0..3)
+            .map(|a| -around.camera.rotation[1][a] * world_up[a])
+            .sum();
+        assert!(tilt < 0.999, "the orbit camera looks down at the scene");
     }
 }
