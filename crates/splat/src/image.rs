@@ -15,6 +15,15 @@ pub enum ImageError {
     Write { path: PathBuf, msg: String },
 }
 
+impl ImageError {
+    /// What went wrong, without the path (for callers whose own message names the file).
+    pub fn reason(&self) -> &str {
+        match self {
+            ImageError::Read { msg, .. } | ImageError::Write { msg, .. } => msg,
+        }
+    }
+}
+
 /// A row-major, channel-interleaved float image; values nominally in [0, 1].
 #[derive(Clone, Debug, PartialEq)]
 pub struct Image {
@@ -177,6 +186,24 @@ impl Image {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_failed_write_names_the_file_once() {
+        let dir = tempfile::tempdir().unwrap();
+        // A file where the folder should be: the write fails.
+        let blocker = dir.path().join("blocker");
+        std::fs::write(&blocker, b"x").unwrap();
+        let path = blocker.join("view.png");
+        let err = Image::from_data(2, 2, 3, vec![0.5; 12])
+            .save_png(&path)
+            .unwrap_err();
+        let text = err.to_string();
+        assert_eq!(text.matches(&*path.to_string_lossy()).count(), 1, "{text}");
+        assert!(
+            text.contains("cannot write") && !err.reason().contains("view.png"),
+            "{text}"
+        );
+    }
 
     #[test]
     fn png_roundtrip_rgb_and_grey() {

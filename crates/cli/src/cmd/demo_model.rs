@@ -240,8 +240,7 @@ fn run_sample(args: SampleArgs) -> anyhow::Result<()> {
         }
     }
     let grid = demo::world::dataset::tile_grid(&tiles, args.per_prompt);
-    grid.save_png(&args.out)
-        .with_context(|| format!("writing {}", args.out.display()))?;
+    grid.save_png(&args.out)?;
     let mut text = args.prompts.join("\n");
     text.push('\n');
     files::atomic_write(&txt, text.as_bytes())

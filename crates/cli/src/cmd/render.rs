@@ -1,6 +1,6 @@
 //! `vcedit render SCENE`: render a scene to PNG files from given or generated cameras.
 
-use anyhow::{Context, Result};
+use anyhow::Result;
 use splat::render::RenderSettings;
 use splat::{Image, SplatDevice};
 use std::path::{Path, PathBuf};
@@ -101,8 +101,8 @@ fn depth_image(width: u32, height: u32, depth: &[f32], alpha: &[f32]) -> Image {
 }
 
 fn save(img: &Image, path: &Path) -> Result<()> {
-    img.save_png(path)
-        .with_context(|| format!("writing {}", path.display()))
+    // The error names the file ("PATH: cannot write: ...").
+    Ok(img.save_png(path)?)
 }
 
 pub fn run(args: Args) -> Result<()> {

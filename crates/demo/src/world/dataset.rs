@@ -314,7 +314,7 @@ pub fn write_sample_grid(
     };
     tile_grid(&images, cols)
         .save_png(path)
-        .map_err(|e| write_err(path, e.to_string()))?;
+        .map_err(|e| write_err(path, e.reason().to_string()))?;
     let txt = path.with_extension("txt");
     let mut text = captions.join("\n");
     text.push('\n');

@@ -157,6 +157,9 @@ pub enum RunError {
     Input(String),
     #[error("{}: {msg}", .path.display())]
     Io { path: PathBuf, msg: String },
+    /// An image that could not be written (the error names the file).
+    #[error(transparent)]
+    Image(#[from] splat::image::ImageError),
     #[error(
         "stopped after iteration {iteration} as asked (--stop-after-iteration); --resume continues"
     )]

@@ -64,9 +64,9 @@ pub(super) fn write_iteration(
 ) -> Result<(), RunError> {
     for (v, (source, img)) in sources.iter().zip(guidance).enumerate() {
         let p = guidance_path(out, iteration, v);
-        img.save_png(&p).map_err(|e| io_err(&p, e))?;
+        img.save_png(&p)?;
         let p = source_path(out, iteration, v);
-        source.save_png(&p).map_err(|e| io_err(&p, e))?;
+        source.save_png(&p)?;
     }
     Ok(())
 }
@@ -108,9 +108,7 @@ pub(super) fn write_word_maps(
     for (i, m) in maps.iter().enumerate() {
         let file = format!("attn_{i:02}_{}.png", viz::file_safe(&m.word));
         let p = out.join("attention").join(&file);
-        viz::heat_image(&m.map, w, h)
-            .save_png(&p)
-            .map_err(|e| io_err(&p, e))?;
+        viz::heat_image(&m.map, w, h).save_png(&p)?;
         listing.push((m.word.clone(), file));
     }
     Ok(listing)
@@ -165,8 +163,8 @@ pub fn write_outputs(
     for (v, (b, a)) in before.iter().zip(&after).enumerate() {
         let pb = out.join("before").join(format!("view_{v:03}.png"));
         let pa = out.join("after").join(format!("view_{v:03}.png"));
-        b.rgb_image().save_png(&pb).map_err(|e| io_err(&pb, e))?;
-        a.rgb_image().save_png(&pa).map_err(|e| io_err(&pa, e))?;
+        b.rgb_image().save_png(&pb)?;
+        a.rgb_image().save_png(&pa)?;
         pairs.push(ViewPair {
             name: cams[v].name.clone(),
             before: rel(out, &pb),
@@ -182,9 +180,7 @@ pub fn write_outputs(
         for (v, c) in cams.iter().enumerate() {
             let m = render_mask(source, mask, c);
             let p = out.join("mask").join(format!("view_{v:03}.png"));
-            viz::mask_image(&m, c.width, c.height)
-                .save_png(&p)
-                .map_err(|e| io_err(&p, e))?;
+            viz::mask_image(&m, c.width, c.height).save_png(&p)?;
             mask_paths.push(rel(out, &p));
             mask_maps.push(m);
         }
