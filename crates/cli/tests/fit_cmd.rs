@@ -135,3 +135,40 @@ fn missing_data_is_one_clear_error() {
     assert!(stderr.contains("nothing-here"), "{stderr}");
     assert_eq!(stderr.lines().count(), 1, "{stderr}");
 }
+
+#[test]
+fn resolution_downscales_like_the_inria_trainer() {
+    let dir = tempfile::tempdir().unwrap();
+    write_rgba_dataset(dir.path(), 5);
+    // Outside the data folder, which is the input.
+    let outs = tempfile::tempdir().unwrap();
+    let out = outs.path().join("r.ply");
+    let data = dir.path().to_str().unwrap();
+    let fit = |extra: &[&str]| {
+        let mut args = vec![
+            "--data",
+            data,
+            "--out",
+            out.to_str().unwrap(),
+            "--steps",
+            "2",
+        ];
+        args.extend_from_slice(extra);
+        let o = vcedit(&args);
+        (
+            o.status.code(),
+            String::from_utf8_lossy(&o.stderr).into_owned(),
+        )
+    };
+    // 32x32 views: -r 2 halves them, -r 20 makes them 20 wide.
+    let (code, stderr) = fit(&["-r", "2"]);
+    assert_eq!(code, Some(0), "{stderr}");
+    assert!(stderr.contains("held-out views at 16x16"), "{stderr}");
+    let (code, stderr) = fit(&["--resolution", "20"]);
+    assert_eq!(code, Some(0), "{stderr}");
+    assert!(stderr.contains("held-out views at 20x20"), "{stderr}");
+    // With --size it is one or the other.
+    let (code, stderr) = fit(&["-r", "2", "--size", "16"]);
+    assert_eq!(code, Some(2), "{stderr}");
+    assert!(stderr.contains("cannot be used with"), "{stderr}");
+}

@@ -22,7 +22,8 @@ the PSNR on those views is reported.
 
 Examples:
   vcedit fit --data lego/ --out lego.ply --background white
-  vcedit fit --data garden/ --out garden.ply --size 512x336 --steps 15000"
+  vcedit fit --data garden/ --out garden.ply --size 512x336 --steps 15000
+  vcedit fit --data garden/ --out garden.ply -r 4"
 )]
 pub struct Args {
     /// Folder (or file) with the posed images: COLMAP model or transforms*.json.
@@ -44,6 +45,17 @@ pub struct Args {
     pub steps: u64,
     #[command(flatten)]
     pub size: SizeArg,
+    /// Downscale as the INRIA trainer's -r does: 1, 2, 4 or 8 divide the views' size; any other N
+    /// makes them N pixels wide (same aspect ratio). Instead of --size.
+    #[arg(
+        short = 'r',
+        long,
+        value_name = "N",
+        conflicts_with = "size",
+        value_parser = positive::<u32>,
+        allow_negative_numbers = true
+    )]
+    pub resolution: Option<u32>,
     /// Hold out views 0, k, 2k, ... for evaluation; 0 trains on every view.
     #[arg(
         long,
@@ -117,6 +129,37 @@ fn fit_memory(set: &CameraSet, size: Option<(u32, u32)>, init_points: usize) -> 
     images + decode + render + gaussians + 300_000_000
 }
 
+/// The working size `-r N` gives, as the INRIA trainer computes it: the views' size divided by N for N in
+/// 1, 2, 4, 8 (rounded), else N pixels wide at the views' aspect ratio (truncated). The views must share
+/// one size, since vcedit fits at one working size.
+fn inria_resolution(set: &CameraSet, r: u32) -> Result<(u32, u32)> {
+    let Some(first) = set.cameras.first() else {
+        bail!("-r/--resolution: the data has no views");
+    };
+    let (w, h) = (first.width, first.height);
+    if let Some(other) = set.cameras.iter().find(|c| (c.width, c.height) != (w, h)) {
+        bail!(
+            "-r/--resolution needs views of one size, the data has {w}x{h} and {}x{}: give --size WxH instead",
+            other.width,
+            other.height
+        );
+    }
+    let (w, h) = if matches!(r, 1 | 2 | 4 | 8) {
+        let div = |v: u32| (f64::from(v) / f64::from(r)).round() as u32;
+        (div(w), div(h))
+    } else {
+        (r, (f64::from(h) * f64::from(r) / f64::from(w)) as u32)
+    };
+    if w == 0 || h == 0 || w > 16384 || h > 16384 {
+        bail!(
+            "-r/--resolution {r} gives {w}x{h} views from {}x{}: each side must be 1 to 16384",
+            first.width,
+            first.height
+        );
+    }
+    Ok((w, h))
+}
+
 pub fn run(args: Args) -> Result<()> {
     let started = Instant::now();
     // Everything is checked before the (long) fit: where it writes, what it reads, whether it fits.
@@ -131,14 +174,18 @@ pub fn run(args: Args) -> Result<()> {
     inputs.extend(set.image_paths.iter().flatten().cloned());
     let input_refs: Vec<&Path> = inputs.iter().map(PathBuf::as_path).collect();
     output_file(&args.out, &input_refs)?;
+    let size = match args.resolution {
+        Some(r) => Some(inria_resolution(&set, r)?),
+        None => args.size.size,
+    };
     args.memory.check(
-        fit_memory(&set, args.size.size, args.init_points),
-        "--size (or the number of views)",
+        fit_memory(&set, size, args.init_points),
+        "--size or -r (or the number of views)",
     )?;
     let dataset = load_dataset(
         &args.data,
         &DatasetOptions {
-            size: args.size.size,
+            size,
             holdout_every: args.holdout_every,
             background: args.background.background,
         },
