@@ -441,6 +441,24 @@ impl Lpips {
         tap_convs().map(|i| self.convs[i].c_out)
     }
 
+    /// Bytes [`Lpips::loss_and_grad`] holds at its peak for an h x w render: the 13 ReLU outputs it keeps
+    /// for the backward pass, plus two maps of the widest layer in flight (a convolution's output and the
+    /// gradient passed down). About 1.6 KB per pixel with the full-width VGG16 (1.1 KB of it kept).
+    pub fn activation_bytes(&self, height: usize, width: usize) -> usize {
+        let (mut kept, mut widest) = (0, 0);
+        let mut conv = 0;
+        for (s, &n) in CONVS_PER_STAGE.iter().enumerate() {
+            let (h, w) = (height >> s, width >> s);
+            for _ in 0..n {
+                let map = self.convs[conv].c_out * h * w * 4;
+                kept += map;
+                widest = widest.max(map);
+                conv += 1;
+            }
+        }
+        kept + 2 * widest
+    }
+
     /// Bytes a [`LpipsTarget`] of an h x w image takes.
     pub fn target_bytes(&self, height: usize, width: usize) -> usize {
         let (mut h, mut w) = (height, width);
@@ -1085,6 +1103,16 @@ mod tests {
             loaded.distance(&a, &b, 17, 19).unwrap(),
             direct.distance(&a, &b, 17, 19).unwrap()
         );
+    }
+
+    #[test]
+    fn activation_memory_is_what_the_documentation_says() {
+        // 1080 bytes per pixel kept (64·2·4 + 128·2·4/4 + 256·3·4/16 + 512·3·4/64 + 512·3·4/256) and two
+        // maps of 64 channels in flight.
+        let full = Lpips::synthetic(VGG16_WIDTHS, 0);
+        let per_pixel = full.activation_bytes(512, 512) as f64 / (512.0 * 512.0);
+        assert_eq!(per_pixel, 1080.0 + 512.0);
+        assert!(small().activation_bytes(64, 64) < full.activation_bytes(64, 64));
     }
 
     #[test]

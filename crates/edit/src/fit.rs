@@ -87,6 +87,20 @@ impl ImageLoss {
         }
     }
 
+    /// GPU memory the loss itself holds during a fit of `views` views of `size` (width, height): LPIPS's
+    /// activations and its cached target features when the network runs on a GPU; 0 otherwise (the
+    /// renderer's buffers, L1 + D-SSIM's included, are in the run's own estimate).
+    pub fn gpu_bytes(&self, size: (u32, u32), views: usize) -> u64 {
+        match self {
+            ImageLoss::Lpips { net, .. } if net.device().gpu().is_some() => {
+                let (w, h) = (size.0 as usize, size.1 as usize);
+                let targets = net.target_bytes(h, w).saturating_mul(views);
+                (net.activation_bytes(h, w) + targets.min(LPIPS_CACHE_BYTES)) as u64
+            }
+            _ => 0,
+        }
+    }
+
     /// Loss value and gradient w.r.t. the render (H*W*3) of view `v` against its target.
     fn eval(
         &self,
@@ -576,8 +590,10 @@ mod tests {
         let gpu_loss = ImageLoss::lpips(net().on(diffusion::device::Device::Gpu(
             diffusion::device::GpuDevice::new(ctx.clone()),
         )));
-        // On the GPU the step runs resident, LPIPS added by `Targets::device_term`.
+        // On the GPU the step runs resident, LPIPS added by `Targets::device_term`; its memory is there.
         assert!(cpu_loss.device_weights().is_none() && gpu_loss.device_weights().is_some());
+        assert_eq!(cpu_loss.gpu_bytes((40, 40), 3), 0);
+        assert!(gpu_loss.gpu_bytes((40, 40), 3) > gpu_loss.gpu_bytes((40, 40), 1));
         let mut host = trainer(&scene, &mask);
         let mut dev = trainer(&scene, &mask);
         dev.device = SplatDevice::Gpu(ctx);

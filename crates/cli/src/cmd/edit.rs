@@ -276,7 +276,10 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         }
     };
 
-    let plan = edit::run::work_plan(&job, &model, &scene, cameras.len());
+    let mut plan = edit::run::work_plan(&job, &model, &scene, cameras.len());
+    if let Some(bytes) = plan.gpu_memory_bytes.as_mut() {
+        *bytes += loss.gpu_bytes(job.size, plan.views);
+    }
     eprintln!("{}", plan.describe());
     args.memory
         .check(plan.memory_bytes, "--max-views or --size")?;
