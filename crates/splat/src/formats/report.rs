@@ -119,13 +119,35 @@ impl QuantisationError {
     }
 }
 
+/// A non-negative error for reading: plain decimals from 0.01 up, one significant digit below.
+fn short(v: f32) -> String {
+    if v == 0.0 {
+        "0".into()
+    } else if v >= 0.01 {
+        format!("{v:.3}")
+    } else {
+        format!("{v:.1e}")
+    }
+}
+
+/// A colour error beyond this (in 0–1 units) is not rounding (8-bit steps are 0.002) but clamping.
+const CLAMPED_COLOUR: f32 = 0.01;
+
 impl fmt::Display for QuantisationError {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         write!(
             f,
-            "position {:.3e}, log-scale {:.3e}, rotation {:.3}°, opacity {:.3e}, colour {:.3e}, SH {:.3e}",
-            self.position, self.log_scale, self.rotation_deg, self.opacity, self.colour, self.sh_rest
-        )
+            "position {} (scene units), log-scale {}, rotation {}°, opacity {}, colour {} (0–1 scale",
+            short(self.position),
+            short(self.log_scale),
+            short(self.rotation_deg),
+            short(self.opacity),
+            short(self.colour),
+        )?;
+        if self.colour > CLAMPED_COLOUR {
+            write!(f, "; colours outside 0–1 were clamped")?;
+        }
+        write!(f, "), SH {}", short(self.sh_rest))
     }
 }
 
@@ -149,5 +171,38 @@ impl fmt::Display for WriteReport {
             None => write!(f, ", lossless"),
             Some(e) => write!(f, ", lossy: largest error {e}"),
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn errors_read_with_units_and_say_when_colours_were_clamped() {
+        let rounding = QuantisationError {
+            position: 1.234e-4,
+            log_scale: 0.0,
+            rotation_deg: 0.25,
+            opacity: 2e-3,
+            colour: 1.9e-3,
+            sh_rest: 0.0,
+        };
+        let text = rounding.to_string();
+        assert_eq!(
+            text,
+            "position 1.2e-4 (scene units), log-scale 0, rotation 0.250°, opacity 2.0e-3, \
+             colour 1.9e-3 (0–1 scale), SH 0"
+        );
+        let clamped = QuantisationError {
+            colour: 2.961,
+            ..rounding
+        };
+        assert!(
+            clamped
+                .to_string()
+                .contains("colour 2.961 (0–1 scale; colours outside 0–1 were clamped)"),
+            "{clamped}"
+        );
     }
 }
