@@ -211,9 +211,9 @@ step text 60 "$V" bench text --model "$MODEL" --device gpu --batches 1,6
 if have_torch; then step text-torch 60 python3 "$TB" text --model "$MODEL" --batches 1,6 --dtype f16; fi
 
 # ---- LPIPS-VGG16 (the fits' perceptual loss; generated full-width weights): value + input gradient
-if [ "$MODE" = device ]; then LPIPS_SIZE=(--sizes 512 --runs 5); else LPIPS_SIZE=(--sizes 64 --runs 1); fi
-step lpips 60 "$V" bench lpips --device gpu "${LPIPS_SIZE[@]}"
-step lpips-cpu 90 "$V" bench lpips --device cpu "${LPIPS_SIZE[@]}" --runs 1
+if [ "$MODE" = device ]; then LPIPS_SIZE=512 LPIPS_RUNS=5; else LPIPS_SIZE=64 LPIPS_RUNS=1; fi
+step lpips 60 "$V" bench lpips --device gpu --sizes "$LPIPS_SIZE" --runs "$LPIPS_RUNS"
+step lpips-cpu 90 "$V" bench lpips --device cpu --sizes "$LPIPS_SIZE" --runs 1
 
 # ---- an editing slice at paper settings (SD 1.5 size, 512²): 8 views x 2 steps x 2 iterations, CCM, ECM
 # and the blend on (CCM at step 0, ECM at step 1); the paper-scale estimate is computed from the second
