@@ -289,7 +289,8 @@ figcaption{font-size:12px;color:var(--muted);margin-top:4px;max-width:100%;overf
 .pair{display:flex;gap:4px}
 .missing{display:flex;align-items:center;justify-content:center;background:#eee;color:#a33;font-size:12px;padding:6px;overflow-wrap:anywhere}
 .bar{background:var(--accent);height:10px;border-radius:2px}
-code{font-size:13px}
+code{font-size:13px;overflow-wrap:anywhere}
+pre.json{margin:0;font-size:12px;white-space:pre-wrap;overflow-wrap:anywhere;max-width:100%}
 ";
 
 /// The page's only script, optional for reading it: once everything has loaded, images that failed are
@@ -362,19 +363,23 @@ impl Page<'_> {
                         @for (k, v) in map {
                             tr {
                                 th { (k) }
-                                td { code {
+                                td {
                                     @match v {
-                                        serde_json::Value::String(s) => (s),
-                                        other => (other.to_string()),
+                                        serde_json::Value::String(s) => code { (s) },
+                                        // Nested settings, indented and wrapped within the page.
+                                        serde_json::Value::Object(_) | serde_json::Value::Array(_) => {
+                                            pre.json { (serde_json::to_string_pretty(v).unwrap_or_default()) }
+                                        }
+                                        other => code { (other.to_string()) },
                                     }
-                                } }
+                                }
                             }
                         }
                     }
                 }
             } @else if !settings.is_null() {
                 h2 { "Settings" }
-                pre { (settings.to_string()) }
+                pre.json { (serde_json::to_string_pretty(settings).unwrap_or_default()) }
             }
         }
     }

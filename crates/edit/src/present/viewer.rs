@@ -294,7 +294,7 @@ fn grouped(n: usize) -> String {
 }
 
 const CSS: &str = "
-.vcv{max-width:820px;margin:8px 0 16px}
+.vcv{max-width:1280px;margin:8px 0 16px}
 .vcv-stage{position:relative;width:100%;background:#000;border-radius:6px;overflow:hidden;line-height:0}
 .vcv-stage canvas{display:block;width:100%;height:auto;cursor:grab;touch-action:none}
 .vcv-stage canvas:active{cursor:grabbing}
@@ -353,7 +353,7 @@ fn build(
     let two = scenes.len() > 1;
     let (w, h) = (cam.width.max(1), cam.height.max(1));
     let aspect = format!("aspect-ratio:{w}/{h}");
-    // As wide as the page allows (at most 820 px), but no taller than 78 % of the window.
+    // As wide as the page allows (at most 1280 px), but no taller than 78 % of the window.
     let fit = format!("max-width:calc(78vh * {w} / {h})");
     let mb_125k_pair = 2.0 * 125_000.0 * (RECORD_BYTES as f64 * 4.0 / 3.0) / 1e6;
     let markup = html! {
