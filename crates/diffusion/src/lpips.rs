@@ -29,8 +29,8 @@
 //! ```
 //!
 //! Memory: [`Lpips::loss_and_grad`] keeps all 13 ReLU outputs, about 1.1 KB per pixel with full-width VGG16
-//! (~290 MB at 512x512); a target holds its five normalised taps, ~0.5 KB per pixel ([`Lpips::target_bytes`]),
-//! on the network's device.
+//! (~290 MB at 512x512; ~1.6 KB per pixel at its peak, [`Lpips::activation_bytes`]); a target holds its five
+//! normalised taps, ~0.5 KB per pixel ([`Lpips::target_bytes`]), on the network's device.
 //!
 //! # Input range
 //! The package's networks were calibrated on images in [-1, 1] (`forward(..., normalize=False)` expects that;
