@@ -227,6 +227,19 @@ fn resume_after_an_interruption_equals_an_uninterrupted_run() {
 /// views, a short ECM) because lavapipe is slow; every stage still runs: CCM, ECM, blend, fit.
 #[test]
 fn edit_on_the_gpu_matches_the_cpu() {
+    gpu_and_cpu_edits_agree(&[]);
+}
+
+/// The same with the reference's 10·L1 + 10·LPIPS fit loss (the narrow fixture network): on the GPU the
+/// network runs beside the renderer and the fits stay resident (`FitLoss::device_term`).
+#[test]
+fn edit_with_lpips_on_the_gpu_matches_the_cpu() {
+    let lpips = fixtures().join("lpips/narrow");
+    gpu_and_cpu_edits_agree(&["--lpips", lpips.to_str().unwrap()]);
+}
+
+/// Runs the small edit on the CPU and the GPU with `extra` options and compares the preservation PSNRs.
+fn gpu_and_cpu_edits_agree(extra: &[&str]) {
     if gpu::list_adapters().is_empty() {
         println!("skipping: no Vulkan device");
         return;
@@ -247,12 +260,19 @@ fn edit_on_the_gpu_matches_the_cpu() {
             .args(["--fit-steps", "30", "--ccm-steps", "1", "--ecm-steps", "1"])
             .args(["--ecm-min-steps", "40", "--precision", "f32"])
             .args(["--mask-box=-0.8,-0.8,-0.8,0.8,0.8,0.8", "--device", device])
+            .args(extra)
             .output()
             .expect("run vcedit");
         let stderr = String::from_utf8_lossy(&o.stderr);
         assert!(
             o.status.success(),
             "vcedit edit --device {device}: {stderr}"
+        );
+        let with_lpips = extra.contains(&"--lpips");
+        assert_eq!(
+            !stderr.contains("no --lpips weights"),
+            with_lpips,
+            "{stderr}"
         );
         if device == "gpu" {
             assert!(stderr.contains("device: "), "{stderr}");
