@@ -632,12 +632,7 @@ impl Lpips {
             let acts = self.forward(input, false)?;
             let mut per_layer = [0.0f32; 5];
             for (s, &tap) in tap_convs().iter().enumerate() {
-                let (map, _) = kept(&acts, tap).lpips_distance(
-                    &target.features[s],
-                    &self.lins[s],
-                    NORM_EPS,
-                    false,
-                )?;
+                let (map, _) = self.tap_distance(kept(&acts, tap), target, s, false)?;
                 per_layer[s] = tap_mean(&map)?;
             }
             Ok(per_layer)
@@ -706,6 +701,18 @@ impl Lpips {
             .map_err(|e| self.compute_error(e))
     }
 
+    /// Tap `s`'s per-pixel distance between the ReLU output `act` and the target's features, and with
+    /// `with_grad` the gradient of its mean w.r.t. `act`.
+    fn tap_distance(
+        &self,
+        act: &DeviceTensor,
+        target: &LpipsTarget,
+        s: usize,
+        with_grad: bool,
+    ) -> candle_core::Result<(DeviceTensor, Option<DeviceTensor>)> {
+        act.lpips_distance(&target.features[s], &self.lins[s], NORM_EPS, with_grad)
+    }
+
     /// The five taps' distance maps and the gradient w.r.t. the interleaved render.
     fn backward(
         &self,
@@ -722,12 +729,7 @@ impl Lpips {
         for s in (0..5).rev() {
             let tap = taps[s];
             let first = tap + 1 - CONVS_PER_STAGE[s];
-            let (map, grad) = kept(&acts, tap).lpips_distance(
-                &target.features[s],
-                &self.lins[s],
-                NORM_EPS,
-                true,
-            )?;
+            let (map, grad) = self.tap_distance(kept(&acts, tap), target, s, true)?;
             maps.push(map);
             // The gradient w.r.t. the tap's ReLU output: its own term plus what came through the pool.
             let mut grad = grad.expect("asked for the gradient");
@@ -926,6 +928,11 @@ impl TargetCache {
 
     pub fn len(&self) -> usize {
         self.entries.len()
+    }
+
+    /// Whether the features of `view` are kept (a computed entry over the budget is not).
+    pub fn holds(&self, view: usize) -> bool {
+        self.entries.contains_key(&view)
     }
 
     pub fn is_empty(&self) -> bool {
@@ -1134,6 +1141,7 @@ mod tests {
         // Over budget: computed but not kept.
         cache.get_or_compute(&net, 2, &img, h, w).unwrap();
         assert_eq!((cache.len(), cache.bytes()), (2, 2 * per_view));
+        assert!(cache.holds(1) && !cache.holds(2));
         cache.clear();
         assert!(cache.is_empty());
     }

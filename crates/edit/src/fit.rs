@@ -8,7 +8,11 @@
 //! densification.
 
 use std::path::Path;
+use std::sync::Arc;
 
+use diffusion::device::{DeviceTensor, GpuTensor};
+use diffusion::lpips::{Lpips, LpipsError, LpipsTarget, TargetCache};
+use gpu::cubecl::server::Handle;
 use gpu::GpuError;
 use rand::seq::SliceRandom;
 use rand::SeedableRng;
@@ -21,10 +25,6 @@ use splat::train::optim::LearningRates;
 use splat::train::{FitLoss, L1DssimWeights, StepKind, StepOutcome, Trainer};
 use splat::train::{RenderedView, TrainState};
 use splat::{Camera, GaussianScene, Image, SplatDevice};
-
-use diffusion::device::{DeviceTensor, GpuTensor};
-use diffusion::lpips::{Lpips, LpipsError, TargetCache};
-use gpu::cubecl::server::Handle;
 
 #[derive(Debug, thiserror::Error)]
 pub enum TrainError {
@@ -117,7 +117,7 @@ impl ImageLoss {
                 l1: wl1,
                 lpips: wl,
             } => {
-                let features = targets.cache.get_or_compute(net, v, &target.data, h, w)?;
+                let features = targets.lpips_features(net, v)?;
                 let p = net.loss_and_grad(render, h, w, &features)?;
                 let grad = l1
                     .grad
@@ -177,6 +177,10 @@ pub(crate) struct Targets<'a> {
     loss: &'a ImageLoss,
     images: &'a [Image],
     cache: TargetCache,
+    /// The cache's entries by view. A fit's target images never change, so a view the cache holds is
+    /// taken from here without fingerprinting its pixels again: that reads the whole image, which a
+    /// resident step on a GPU would otherwise do on the CPU every step.
+    kept: Vec<Option<Arc<LpipsTarget>>>,
     /// The weighted LPIPS of the last device step that read its value.
     device_value: f32,
 }
@@ -187,8 +191,23 @@ impl<'a> Targets<'a> {
             loss,
             images,
             cache: TargetCache::new(LPIPS_CACHE_BYTES),
+            kept: vec![None; images.len()],
             device_value: 0.0,
         }
+    }
+
+    /// The LPIPS features of view `v`'s target image.
+    fn lpips_features(&mut self, net: &Lpips, v: usize) -> Result<Arc<LpipsTarget>, LpipsError> {
+        if let Some(features) = &self.kept[v] {
+            return Ok(features.clone());
+        }
+        let target = &self.images[v];
+        let (w, h) = (target.width as usize, target.height as usize);
+        let features = self.cache.get_or_compute(net, v, &target.data, h, w)?;
+        if self.cache.holds(v) {
+            self.kept[v] = Some(features.clone());
+        }
+        Ok(features)
     }
 
     /// A trainer for a fit to these targets on `device`.
@@ -231,7 +250,7 @@ impl FitLoss for Targets<'_> {
         };
         let target = &self.images[v];
         let (w, h) = (target.width as usize, target.height as usize);
-        let features = self.cache.get_or_compute(net, v, &target.data, h, w)?;
+        let features = self.lpips_features(net, v)?;
         let compute_error = |cause| LpipsError::Compute {
             device: net.device().describe(),
             cause,

@@ -745,6 +745,17 @@ pub fn max_pool2x2_backward(x: &[f32], grad: &[f32], out: &mut [f32], meta: &[u3
     }
 }
 
+/// `‖f‖` over the `channels` planes (`hw` apart) of the pixel at `base`.
+#[cube]
+fn channel_norm(f: &[f32], base: u32, channels: u32, hw: u32) -> f32 {
+    let mut sum = 0.0f32;
+    for ch in 0..channels {
+        let v = f[(base + ch * hw) as usize];
+        sum += v * v;
+    }
+    f32::sqrt(sum)
+}
+
 /// `f / (‖f‖ + eps)` over the channels of each pixel of NCHW maps: `meta = [channels, h·w, n·h·w]`; one
 /// unit per pixel (neighbouring units read neighbouring values of each channel plane).
 #[cube(launch_unchecked)]
@@ -754,12 +765,7 @@ pub fn normalize_channels(x: &[f32], out: &mut [f32], meta: &[u32], eps: f32) {
     let hw = meta[1];
     if i < meta[2] {
         let base = (i / hw) * channels * hw + i % hw;
-        let mut sum = 0.0f32;
-        for ch in 0..channels {
-            let v = x[(base + ch * hw) as usize];
-            sum += v * v;
-        }
-        let denom = f32::sqrt(sum) + eps;
+        let denom = channel_norm(x, base, channels, hw) + eps;
         for ch in 0..channels {
             let at = (base + ch * hw) as usize;
             out[at] = x[at] / denom;
@@ -787,12 +793,7 @@ pub fn lpips_distance(
     let hw = meta[1];
     if i < meta[2] {
         let base = (i / hw) * channels * hw + i % hw;
-        let mut sum = 0.0f32;
-        for ch in 0..channels {
-            let v = f[(base + ch * hw) as usize];
-            sum += v * v;
-        }
-        let norm = f32::sqrt(sum);
+        let norm = channel_norm(f, base, channels, hw);
         let denom = norm + eps;
         let mut value = 0.0f32;
         let mut g_dot_f = 0.0f32;
