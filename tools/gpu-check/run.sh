@@ -215,6 +215,12 @@ if [ "$MODE" = device ]; then LPIPS_SIZE=512 LPIPS_RUNS=5; else LPIPS_SIZE=64 LP
 step lpips 60 "$V" bench lpips --device gpu --sizes "$LPIPS_SIZE" --runs "$LPIPS_RUNS"
 step lpips-cpu 90 "$V" bench lpips --device cpu --sizes "$LPIPS_SIZE" --runs 1
 
+# ---- CCM's lifting round (one attention layer: 16² maps, 144 channels, 8 views at 512², 31k Gaussians),
+# through the device seam and as it ran before (host resampling, full-resolution maps over the bus)
+if [ "$MODE" = device ]; then LIFT=(--views 8 --size 512 --channels 144 --runs 3); else LIFT=(--views 2 --size 64 --channels 8 --gaussians 3000 --runs 1); fi
+step lift 90 "$V" bench lift --device gpu "${LIFT[@]}"
+step lift-cpu 60 "$V" bench lift --device cpu "${LIFT[@]}"
+
 # ---- an editing slice at paper settings (SD 1.5 size, 512²): 8 views x 2 steps x 2 iterations, CCM, ECM
 # and the blend on (CCM at step 0, ECM at step 1); the paper-scale estimate is computed from the second
 # iteration's stages (the first pays for compiling the kernels)

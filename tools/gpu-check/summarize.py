@@ -176,6 +176,14 @@ def build_table(res, steps, mode, torch_present):
             where = "gpu" if name == "lpips" else "cpu"
             row(f"LPIPS-VGG16 {r['what']}, {r['size']}², {where} (s)", r.get("best_s"), None,
                 fmt_s(r.get("first_s")), "full width, generated weights; f32", torch_expected=False)
+    for name in ("lift", "lift-cpu"):
+        for r in res.get(name, []):
+            if r.get("bench") != "lift":
+                continue
+            where = "gpu" if name == "lift" else "cpu"
+            row(f"CCM lifting round, {r['what']}, {r['views']} views at {r['size']}², {r['channels']} channels, "
+                f"{where} (s)", r.get("best_s"), None, fmt_s(r.get("first_s")),
+                f"{r['gaussians'] // 1000}k Gaussians, {r['grid']}² maps", torch_expected=False)
     for name in ("splat", "splat-cpu"):
         for r in res.get(name, []):
             if r.get("bench") != "render":

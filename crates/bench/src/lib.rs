@@ -9,6 +9,7 @@
 //! | `text` | tokenizer and CLIP text encoder |
 //! | `render` | the splatting renderer: CPU stages, and with `gpu` forward/backward/fit step on the GPU beside the CPU |
 //! | `lpips` | LPIPS-VGG16 (full width, generated weights): target features, value, value + gradient |
+//! | `lift` | CCM's lifting round: many-channel maps on a coarse grid lifted onto a scene and rendered back |
 //!
 //! Each runs as `vcedit bench NAME ARGS` (one binary carries them all, which is what a borrowed GPU
 //! machine without a Rust toolchain can run: tools/gpu-check) or `cargo bench -p vcedit-bench --bench NAME
@@ -19,6 +20,7 @@ use std::time::{Duration, Instant};
 
 pub mod codec;
 pub mod device;
+pub mod lift;
 pub mod lpips;
 pub mod matmul;
 pub mod render;
@@ -27,8 +29,8 @@ pub mod text;
 pub mod unet;
 
 /// The benches, in the order `vcedit bench --help` lists them.
-pub const NAMES: [&str; 7] = [
-    "device", "matmul", "unet", "codec", "text", "render", "lpips",
+pub const NAMES: [&str; 8] = [
+    "device", "matmul", "unet", "codec", "text", "render", "lpips", "lift",
 ];
 
 /// A bench that could not run: a bad argument, a missing file, a GPU error. One line.
@@ -78,6 +80,7 @@ pub fn run(name: &str, args: &[String], reexec: &[String]) -> Result<()> {
         "text" => text::main(args),
         "render" => render::main(args),
         "lpips" => lpips::main(args),
+        "lift" => lift::main(args),
         other => Err(BenchError(format!(
             "unknown bench '{other}' (expected one of {})",
             NAMES.join(", ")

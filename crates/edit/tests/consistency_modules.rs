@@ -127,7 +127,7 @@ fn ecm_makes_inconsistent_images_consistent() {
 
 #[test]
 fn blend_map_consistency_makes_masks_agree() {
-    use edit::consistency::{make_consistent, Resample};
+    use edit::consistency::{make_consistent, MapGrid, Resample};
     let scene = textured_blob();
     let cams = cameras(32);
     let n = 32 * 32;
@@ -156,10 +156,13 @@ fn blend_map_consistency_makes_masks_agree() {
         &Compute::cpu(),
         &scene,
         &cams,
-        (32, 32),
-        1,
-        Resample::Nearest,
-        Resample::Nearest,
+        &MapGrid {
+            height: 32,
+            width: 32,
+            channels: 1,
+            up: Resample::Nearest,
+            down: Resample::Nearest,
+        },
         &mut |v| Ok(maps[v].clone()),
         &mut |v, m| {
             // Threshold as the local blend does.

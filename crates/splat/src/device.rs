@@ -7,7 +7,7 @@
 //! backward, lifting); callers are unchanged.
 
 use crate::gpu::{GpuContext, GpuError, GpuLiftAccumulator, GpuScene};
-use crate::lift::{LiftAccumulator, Lifted};
+use crate::lift::{resample, LiftAccumulator, Lifted, MapGrid};
 use crate::render::{
     render, render_backward, ExtraChannels, Frame, OutputGrads, RenderSettings, SceneGrads,
 };
@@ -164,6 +164,53 @@ impl SplatDevice {
                 crate::gpu::render_with_loss(ctx, scene, camera, settings, loss)
             }
         }
+    }
+
+    /// 2D → 3D → 2D, the operation CCM and blend-map consistency rest on: `map_of(v)` gives view v's map
+    /// on `grid` (row-major, channels interleaved); every map is resampled to its camera's resolution
+    /// (`grid.up`) and lifted onto the Gaussians over all views ([`crate::lift`]); the lifted values are
+    /// rendered back from every camera as extra channels (alpha-composited over 0), resampled to the grid
+    /// (`grid.down`) and handed to `sink(v, map)`. On a GPU only the grid-sized maps cross the bus.
+    ///
+    /// # Panics
+    /// When a map is not `grid.len()` long (a programming error).
+    pub fn lift_and_render_back<E: From<GpuError>>(
+        &self,
+        scene: &GaussianScene,
+        cameras: &[Camera],
+        grid: &MapGrid,
+        map_of: &mut dyn FnMut(usize) -> Result<Vec<f32>, E>,
+        sink: &mut dyn FnMut(usize, Vec<f32>) -> Result<(), E>,
+    ) -> Result<(), E> {
+        if cameras.is_empty() || grid.is_empty() {
+            return Ok(());
+        }
+        if let SplatDevice::Gpu(ctx) = self {
+            return crate::gpu::lift_and_render_back(ctx, scene, cameras, grid, map_of, sink);
+        }
+        let native = (grid.height, grid.width);
+        let size = |cam: &Camera| (cam.height as usize, cam.width as usize);
+        let mut acc = LiftAccumulator::new(scene, grid.channels);
+        for (v, cam) in cameras.iter().enumerate() {
+            let map = map_of(v)?;
+            acc.add_view(
+                cam,
+                &resample(&map, native, size(cam), grid.channels, grid.up),
+            );
+        }
+        let lifted = acc.finish();
+        let extra = ExtraChannels {
+            values: &lifted.values,
+            channels: grid.channels,
+        };
+        for (v, cam) in cameras.iter().enumerate() {
+            let out = render(scene, cam, &RenderSettings::default(), Some(extra));
+            sink(
+                v,
+                resample(&out.extra, size(cam), native, grid.channels, grid.down),
+            )?;
+        }
+        Ok(())
     }
 
     /// A lifting of per-view maps onto the Gaussians of `scene`, one view at a time.

@@ -4,7 +4,9 @@
 
 use candle_core::Tensor;
 
-use super::lift::{make_consistent, Resample};
+use splat::lift::{MapGrid, Resample};
+
+use super::lift::make_consistent;
 use super::{MultiView, MultiViewError};
 use crate::sampler::{blend_maps, ViewState};
 
@@ -36,10 +38,13 @@ impl MultiView<'_> {
                 &self.model.compute,
                 self.scene,
                 self.cameras,
-                (lh, lw),
-                3,
-                Resample::Nearest,
-                Resample::Nearest,
+                &MapGrid {
+                    height: lh,
+                    width: lw,
+                    channels: 3,
+                    up: Resample::Nearest,
+                    down: Resample::Nearest,
+                },
                 &mut |v| hwc(&src[v]),
                 &mut |v, back| {
                     maps[v] = Tensor::from_vec(back, (lh, lw, 3), &candle_core::Device::Cpu)?

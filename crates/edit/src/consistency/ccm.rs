@@ -10,7 +10,9 @@ use std::collections::HashMap;
 
 use candle_core::{DType, Tensor};
 
-use super::lift::{make_consistent, Resample};
+use splat::lift::{MapGrid, Resample};
+
+use super::lift::make_consistent;
 use super::{MultiView, MultiViewError};
 use crate::sampler::ViewState;
 
@@ -62,10 +64,13 @@ impl MultiView<'_> {
                 &self.model.compute,
                 self.scene,
                 self.cameras,
-                (sh, sw),
-                channels,
-                Resample::Bilinear,
-                Resample::Bilinear,
+                &MapGrid {
+                    height: sh,
+                    width: sw,
+                    channels,
+                    up: Resample::Bilinear,
+                    down: Resample::Bilinear,
+                },
                 &mut |v| as_map(&rec[v][k].maps),
                 &mut |v, back| {
                     backs[v] = Some(back);

@@ -19,9 +19,8 @@ mod ecm;
 mod lift;
 
 pub use ecm::{EcmFitter, EcmParams, EcmScope, EcmSettings, SceneFitter};
-pub use lift::{make_consistent, Resample};
-
-pub(crate) use lift::bilinear;
+pub use lift::make_consistent;
+pub use splat::lift::{MapGrid, Resample};
 
 use std::time::{Duration, Instant};
 

@@ -3,7 +3,7 @@
 use candle_core::{DType, Device, Result, Tensor};
 use splat::Image;
 
-use crate::consistency::bilinear;
+use splat::lift::{resample, Resample};
 
 /// A heat-map colour for v in [0, 1]: black → purple → orange → light yellow (inferno-like, readable in
 /// print and for most colour-blind viewers).
@@ -60,7 +60,13 @@ pub fn mask_image(mask: &[f32], width: u32, height: u32) -> Image {
 pub fn resize_map(map: &Tensor, out_h: usize, out_w: usize) -> Result<Vec<f32>> {
     let (h, w) = map.dims2()?;
     let src: Vec<f32> = map.to_dtype(DType::F32)?.flatten_all()?.to_vec1()?;
-    Ok(bilinear(&src, h, w, out_h, out_w, 1))
+    Ok(resample(
+        &src,
+        (h, w),
+        (out_h, out_w),
+        1,
+        Resample::Bilinear,
+    ))
 }
 
 /// One attention map per target word.

@@ -1,14 +1,22 @@
 //! Lifting 2D maps onto Gaussians on the GPU, as [`crate::lift`] does on the CPU: per view the scene is
 //! projected and binned as for rendering, then one kernel walks every pixel (laid out as the raster
 //! forward) and adds its map values to the Gaussians it hits.
+//!
+//! [`lift_and_render_back`] is the whole 2D → 3D → 2D round of CCM and blend-map consistency on the
+//! device: only each view's map on its native grid goes up and comes back. Resampling to and from the
+//! render resolution, the averages and the renders of the lifted values stay on the device (at 512² a
+//! CCM layer's full-resolution map is 150 MB per view, which used to cross the bus twice and be
+//! resampled on one host thread).
 
-use super::{arg, project_and_bin, GpuContext, GpuError, GpuScene, TILE};
-use crate::lift::Lifted;
+use super::{arg, project_and_bin, render_device, GpuContext, GpuError, GpuScene, TILE};
+use crate::lift::{Lifted, MapGrid, Resample};
+use crate::render::RenderSettings;
 use crate::{Camera, GaussianScene};
+use ::gpu::cubecl;
 use ::gpu::cubecl::prelude::*;
 use ::gpu::cubecl::server::Handle;
 use ::gpu::gpu_call;
-use ::gpu::prims::{read_f32, read_u32, upload_f32, zeros32};
+use ::gpu::prims::{empty32, grid, read_f32, read_u32, upload_f32, zeros32};
 
 /// Lifts per-view maps (`maps[v]` is H*W*C for `cameras[v]`) onto the Gaussians of `scene`.
 ///
@@ -23,8 +31,14 @@ pub fn lift(
     maps: &[&[f32]],
     channels: usize,
 ) -> Result<Lifted, GpuError> {
-    let ppu = super::forward_pixels_per_unit(ctx);
-    lift_with(ctx, scene, cameras, maps, channels, ppu)
+    lift_with(
+        ctx,
+        scene,
+        cameras,
+        maps,
+        channels,
+        lift_pixels_per_unit(ctx),
+    )
 }
 
 /// [`lift`] with `ppu` pixels per unit (same counts; sums up to the order of float additions).
@@ -60,7 +74,7 @@ pub struct GpuLiftAccumulator {
 impl GpuLiftAccumulator {
     /// Uploads `scene` with zeroed sums for `channels` channels.
     pub fn new(ctx: &GpuContext, scene: &GaussianScene, channels: usize) -> Self {
-        Self::with_layout(ctx, scene, channels, super::forward_pixels_per_unit(ctx))
+        Self::with_layout(ctx, scene, channels, lift_pixels_per_unit(ctx))
     }
 
     fn with_layout(ctx: &GpuContext, scene: &GaussianScene, channels: usize, ppu: u32) -> Self {
@@ -85,10 +99,25 @@ impl GpuLiftAccumulator {
         cam: &Camera,
         map: &[f32],
     ) -> Result<(), GpuError> {
+        let npix = (cam.width * cam.height) as usize;
+        assert_eq!(map.len(), npix * self.channels, "map must be H*W*C");
+        if npix == 0 || self.n == 0 {
+            return Ok(());
+        }
+        let map = gpu_call(|| Ok(upload_f32(&ctx.client, map)))?;
+        self.add_device_view(ctx, cam, &map)
+    }
+
+    /// [`Self::add_view`] with the map already on the device (H*W*C values).
+    fn add_device_view(
+        &mut self,
+        ctx: &GpuContext,
+        cam: &Camera,
+        map: &Handle,
+    ) -> Result<(), GpuError> {
         let c = &ctx.client;
         let (n, channels, ppu) = (self.n, self.channels, self.ppu);
         let npix = (cam.width * cam.height) as usize;
-        assert_eq!(map.len(), npix * channels, "map must be H*W*C");
         if npix == 0 || n == 0 {
             return Ok(());
         }
@@ -97,7 +126,6 @@ impl GpuLiftAccumulator {
             if b.intersections == 0 {
                 return Ok(());
             }
-            let map = upload_f32(c, map);
             let num_tiles = (b.tiles_x * b.tiles_y) as usize;
             super::raster::lift_accumulate::launch(
                 c,
@@ -107,7 +135,7 @@ impl GpuLiftAccumulator {
                 arg(&b.ids, b.intersections),
                 arg(&b.tile_start, num_tiles),
                 arg(&b.tile_end, num_tiles),
-                arg(&map, npix * channels),
+                arg(map, npix * channels),
                 cam.width,
                 cam.height,
                 b.tiles_x,
@@ -117,6 +145,26 @@ impl GpuLiftAccumulator {
                 ppu,
             );
             Ok(())
+        })
+    }
+
+    /// The per-Gaussian averages W / (C + 1e-7), left on the device (N*C), with the uploaded scene.
+    fn finish_on_device(self, ctx: &GpuContext) -> Result<(GpuScene, Handle), GpuError> {
+        let (n, channels) = (self.n, self.channels);
+        gpu_call(|| {
+            if n * channels > 0 {
+                let (count, dim) = grid(n * channels);
+                lift_average::launch(
+                    &ctx.client,
+                    count,
+                    dim,
+                    arg(&self.sums, n * channels),
+                    arg(&self.counts, n),
+                    (n * channels) as u32,
+                    channels as u32,
+                );
+            }
+            Ok((self.scene, self.sums))
         })
     }
 
@@ -140,5 +188,149 @@ impl GpuLiftAccumulator {
             }
             Ok(Lifted { values, counts })
         })
+    }
+}
+
+/// Lifting's pixels per unit: each unit sums its pixels' map values before its one atomic add per hit
+/// Gaussian and channel, so the backward's layout (4 on hardware, brush's choice: 4× fewer atomics on
+/// the Gaussians a whole tile shares; 16 on lavapipe) rather than the forward's one pixel per unit.
+fn lift_pixels_per_unit(ctx: &GpuContext) -> u32 {
+    super::backward_pixels_per_unit(ctx)
+}
+
+/// Lifts per-view maps given on `grid` onto the Gaussians of `scene` and renders them back to that grid,
+/// as [`crate::SplatDevice::lift_and_render_back`] describes. Only the grid-sized maps cross the bus.
+///
+/// # Panics
+/// When a map from `map_of` is not `grid.len()` long (a programming error).
+pub fn lift_and_render_back<E: From<GpuError>>(
+    ctx: &GpuContext,
+    scene: &GaussianScene,
+    cameras: &[Camera],
+    grid: &MapGrid,
+    map_of: &mut dyn FnMut(usize) -> Result<Vec<f32>, E>,
+    sink: &mut dyn FnMut(usize, Vec<f32>) -> Result<(), E>,
+) -> Result<(), E> {
+    let channels = grid.channels;
+    let native = (grid.height, grid.width);
+    let mut acc = GpuLiftAccumulator::new(ctx, scene, channels);
+    for (v, cam) in cameras.iter().enumerate() {
+        let map = map_of(v)?;
+        assert_eq!(map.len(), grid.len(), "map {v} must be on the grid");
+        let full = (cam.height as usize, cam.width as usize);
+        let full_map = gpu_call(|| {
+            let small = upload_f32(&ctx.client, &map);
+            Ok(resample_on_device(
+                ctx, &small, native, full, channels, grid.up,
+            ))
+        })?;
+        acc.add_device_view(ctx, cam, &full_map)?;
+    }
+    let (dev, values) = acc.finish_on_device(ctx)?;
+    let settings = RenderSettings::default();
+    for (v, cam) in cameras.iter().enumerate() {
+        let full = (cam.height as usize, cam.width as usize);
+        let back = gpu_call(|| {
+            let frame = render_device(ctx, &dev, cam, &settings, Some((&values, channels)))?;
+            let small = resample_on_device(ctx, &frame.extra, full, native, channels, grid.down);
+            read_f32(&ctx.client, &small, grid.len())
+        })?;
+        sink(v, back)?;
+    }
+    Ok(())
+}
+
+/// [`crate::lift::resample`] on the device: `src` (h*w*C) to a new (out_h*out_w*C) buffer; `src`
+/// itself when the sizes agree.
+pub(super) fn resample_on_device(
+    ctx: &GpuContext,
+    src: &Handle,
+    (h, w): (usize, usize),
+    (out_h, out_w): (usize, usize),
+    channels: usize,
+    mode: Resample,
+) -> Handle {
+    if (h, w) == (out_h, out_w) {
+        return src.clone();
+    }
+    let len = out_h * out_w * channels;
+    let out = empty32(&ctx.client, len);
+    if len == 0 {
+        return out;
+    }
+    let (count, dim) = grid(len);
+    resample_map::launch(
+        &ctx.client,
+        count,
+        dim,
+        arg(src, h * w * channels),
+        arg(&out, len),
+        h as u32,
+        w as u32,
+        out_h as u32,
+        out_w as u32,
+        channels as u32,
+        // The axis scales in f32 from the host, as the CPU computes them (a device division may round
+        // differently).
+        h as f32 / out_h as f32,
+        w as f32 / out_w as f32,
+        u32::from(mode == Resample::Bilinear),
+    );
+    out
+}
+
+/// One output value of [`resample_on_device`] per unit (the CPU's `resample`, same arithmetic).
+#[cube(launch)]
+#[allow(clippy::too_many_arguments)]
+fn resample_map(
+    src: &[f32],
+    out: &mut [f32],
+    h: u32,
+    w: u32,
+    out_h: u32,
+    out_w: u32,
+    channels: u32,
+    scale_y: f32,
+    scale_x: f32,
+    bilinear: u32,
+) {
+    let i = ABSOLUTE_POS as u32;
+    if i < out_h * out_w * channels {
+        let ch = i % channels;
+        let p = i / channels;
+        let ox = p % out_w;
+        let oy = p / out_w;
+        if bilinear == 1 {
+            let fy = f32::max((oy as f32 + 0.5) * scale_y - 0.5, 0.0);
+            let y0 = u32::min(fy as u32, h - 1);
+            let y1 = u32::min(y0 + 1, h - 1);
+            let ty = fy - y0 as f32;
+            let fx = f32::max((ox as f32 + 0.5) * scale_x - 0.5, 0.0);
+            let x0 = u32::min(fx as u32, w - 1);
+            let x1 = u32::min(x0 + 1, w - 1);
+            let tx = fx - x0 as f32;
+            let a = src[((y0 * w + x0) * channels + ch) as usize];
+            let b = src[((y0 * w + x1) * channels + ch) as usize];
+            let c = src[((y1 * w + x0) * channels + ch) as usize];
+            let d = src[((y1 * w + x1) * channels + ch) as usize];
+            let top = a * (1.0 - tx) + b * tx;
+            let bot = c * (1.0 - tx) + d * tx;
+            out[i as usize] = top * (1.0 - ty) + bot * ty;
+        } else {
+            // torch's nearest, floor(dst * in / out), in exact integer arithmetic as on the CPU.
+            let y = u32::min(oy * h / out_h, h - 1);
+            let x = u32::min(ox * w / out_w, w - 1);
+            out[i as usize] = src[((y * w + x) * channels + ch) as usize];
+        }
+    }
+}
+
+/// In place: `sums[i] *= 1 / (counts[i / C] + 1e-7)`, the CPU's `LiftAccumulator::finish`.
+#[cube(launch)]
+fn lift_average(sums: &mut [f32], counts: &[u32], len: u32, channels: u32) {
+    let i = ABSOLUTE_POS as u32;
+    if i < len {
+        let inv = 1.0f32 / (counts[(i / channels) as usize] as f32 + 1e-7f32);
+        sums[i as usize] *= inv;
     }
 }

@@ -41,7 +41,7 @@ pub use anchor::GpuAnchor;
 pub use densify::GpuDensifyStats;
 #[cfg(test)]
 pub use lift::lift;
-pub use lift::GpuLiftAccumulator;
+pub use lift::{lift_and_render_back, GpuLiftAccumulator};
 #[cfg(test)]
 pub use loss::l1_dssim;
 pub use loss::{l1_dssim_weighted, GpuLoss, L1DssimWeights};

@@ -366,6 +366,105 @@ fn lifting_matches_the_cpu() {
     }
 }
 
+/// The resampling kernel against `crate::lift::resample`: up and down, integer and odd ratios, both modes.
+#[test]
+fn resampling_on_the_device_matches_the_cpu() {
+    use crate::lift::{resample, Resample};
+    let Some(ctx) = context_or_skip() else {
+        return;
+    };
+    let channels = 3;
+    for (from, to) in [
+        ((4, 6), (32, 48)),
+        ((32, 48), (4, 6)),
+        ((7, 5), (34, 40)),
+        ((34, 40), (7, 5)),
+        ((5, 5), (5, 5)),
+    ] {
+        let src: Vec<f32> = (0..from.0 * from.1 * channels)
+            .map(|i| ((i * 37) % 17) as f32 / 16.0)
+            .collect();
+        for mode in [Resample::Nearest, Resample::Bilinear] {
+            let want = resample(&src, from, to, channels, mode);
+            let handle = ::gpu::prims::upload_f32(&ctx.client, &src);
+            let out = super::lift::resample_on_device(&ctx, &handle, from, to, channels, mode);
+            let got = read_f32(&ctx.client, &out, want.len()).unwrap();
+            let worst = got
+                .iter()
+                .zip(&want)
+                .map(|(a, b)| (a - b).abs())
+                .fold(0.0f32, f32::max);
+            assert!(worst < 1e-6, "{from:?} -> {to:?} {mode:?}: off by {worst}");
+        }
+    }
+}
+
+/// The whole 2D → 3D → 2D round on the device against the CPU's: maps on a coarse grid (odd ratios to
+/// the cameras' resolution), bilinear and nearest.
+#[test]
+fn lifting_and_rendering_back_matches_the_cpu() {
+    use crate::lift::{MapGrid, Resample};
+    use crate::SplatDevice;
+    let Some(ctx) = context_or_skip() else {
+        return;
+    };
+    let scene = random_scene(300, 0, 5);
+    let cams: Vec<Camera> = (0..3)
+        .map(|k| {
+            let a = k as f64 * 0.3;
+            look_at(
+                format!("v{k}"),
+                [3.0 * a.sin(), -0.1, 1.0 - 3.0 * a.cos()],
+                [0.0, 0.0, 1.0],
+                [0.0, -1.0, 0.0],
+                40,
+                34,
+                36.0,
+            )
+        })
+        .collect();
+    for mode in [Resample::Bilinear, Resample::Nearest] {
+        let grid = MapGrid {
+            height: 9,
+            width: 10,
+            channels: 5,
+            up: mode,
+            down: mode,
+        };
+        let maps: Vec<Vec<f32>> = (0..3)
+            .map(|k| {
+                (0..grid.len())
+                    .map(|i| ((i * 7 + k * 3) % 11) as f32 / 10.0)
+                    .collect()
+            })
+            .collect();
+        let round = |device: &SplatDevice| -> Vec<Vec<f32>> {
+            let mut back = vec![Vec::new(); cams.len()];
+            device
+                .lift_and_render_back::<GpuError>(
+                    &scene,
+                    &cams,
+                    &grid,
+                    &mut |v| Ok(maps[v].clone()),
+                    &mut |v, m| {
+                        back[v] = m;
+                        Ok(())
+                    },
+                )
+                .unwrap();
+            back
+        };
+        let want = round(&SplatDevice::Cpu);
+        let got = round(&SplatDevice::Gpu(ctx.clone()));
+        for (v, (g, w)) in got.iter().zip(&want).enumerate() {
+            assert_eq!(g.len(), grid.len());
+            assert!(w.iter().any(|&x| x > 0.05), "view {v} sees the lifted maps");
+            let e = rel_err(g, w);
+            assert!(e < 1e-3, "{mode:?}, view {v}: relative error {e}");
+        }
+    }
+}
+
 /// Three device Adam steps land where `Adam::step` does.
 #[test]
 fn adam_on_the_device_matches_the_cpu() {

@@ -10,6 +10,10 @@
 //! buffer owned by a fixed, interleaved set of tiles; the buffers are summed in a fixed order at the end,
 //! so results do not depend on thread scheduling.
 
+mod grid;
+
+pub use grid::{resample, MapGrid, Resample};
+
 use crate::render::project::{CameraR, Splat};
 use crate::render::raster::{traverse_tile, Sink, Traversal};
 use crate::render::segment::{TileRect, SEG, TILE_PIXELS};
