@@ -39,6 +39,9 @@ done
 OUT="${OUT:-$ROOT/gpu-check-out}"
 mkdir -p "$OUT"
 WORK=$(mktemp -d /tmp/gpu-check.XXXXXX)
+# vcedit's caches (cubecl's compiled SPIR-V kernels and autotune results) start empty in every check: the
+# first step to compile a kernel pays for it, later steps (the editing slice's first iteration) find it.
+export XDG_CACHE_HOME="$WORK/cache"
 LOG="$OUT/gpu-check.log"
 : > "$LOG"
 : > "$WORK/steps.jsonl"

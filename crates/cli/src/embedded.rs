@@ -54,22 +54,10 @@ fn fingerprint() -> u64 {
     h
 }
 
-/// Where cached files go: `$XDG_CACHE_HOME/vcedit`, `~/.cache/vcedit`, else the temporary folder.
-#[cfg(feature = "embedded-demo-model")]
-fn cache_root() -> PathBuf {
-    if let Some(dir) = std::env::var_os("XDG_CACHE_HOME").filter(|d| !d.is_empty()) {
-        return PathBuf::from(dir).join("vcedit");
-    }
-    if let Some(home) = std::env::var_os("HOME").filter(|d| !d.is_empty()) {
-        return PathBuf::from(home).join(".cache").join("vcedit");
-    }
-    std::env::temp_dir().join("vcedit")
-}
-
 /// The embedded demo model as a folder, written on first use.
 #[cfg(feature = "embedded-demo-model")]
 pub fn demo_model() -> Result<PathBuf> {
-    let dir = cache_root().join(format!("demo-model-{:016x}", fingerprint()));
+    let dir = files::cache_dir().join(format!("demo-model-{:016x}", fingerprint()));
     if dir.join(COMPLETE).is_file() {
         return Ok(dir);
     }

@@ -104,3 +104,50 @@ fn probing_the_gpu_is_quiet_without_a_runtime_dir() {
     let stderr = String::from_utf8_lossy(&out.stderr);
     assert!(!stderr.contains("XDG_RUNTIME_DIR"), "{stderr}");
 }
+
+/// A GPU run started inside a Rust project leaves the project alone: cubecl's kernel and tuning caches go
+/// to vcedit's user cache folder, not to `target/environment` under the outermost `Cargo.toml` (cubecl's
+/// default), and a `cubecl.toml` in the working directory is not read.
+#[test]
+fn gpu_caches_go_to_the_user_cache_folder() {
+    let root = tempfile::tempdir().unwrap();
+    let (project, cache) = (root.path().join("project"), root.path().join("cache"));
+    std::fs::create_dir_all(&project).unwrap();
+    std::fs::write(project.join("Cargo.toml"), "[workspace]\n").unwrap();
+    // Would turn every launch into a bounds-checking one, and log to a file in the project.
+    std::fs::write(
+        project.join("cubecl.toml"),
+        "[compilation.logger]\nlevel = \"full\"\nfile = \"cubecl.log\"\n",
+    )
+    .unwrap();
+    let out = Command::new(env!("CARGO_BIN_EXE_vcedit"))
+        .args(["bench", "matmul", "--device", "gpu", "--precisions", "f32"])
+        .args(["--shapes", "64x32x32", "--repeat", "1", "--runs", "1"])
+        .current_dir(&project)
+        .env("XDG_RUNTIME_DIR", std::env::temp_dir())
+        .env("XDG_CACHE_HOME", &cache)
+        .output()
+        .unwrap();
+    if !out.status.success() {
+        let stderr = String::from_utf8_lossy(&out.stderr);
+        assert!(stderr.contains("no GPU"), "{stderr}");
+        println!("SKIP: no GPU adapter");
+        return;
+    }
+    let mut left: Vec<_> = std::fs::read_dir(&project)
+        .unwrap()
+        .map(|e| e.unwrap().file_name().into_string().unwrap())
+        .collect();
+    left.sort();
+    assert_eq!(
+        left,
+        ["Cargo.toml", "cubecl.toml"],
+        "the project gained files"
+    );
+    let kept = cache.join("vcedit").join("cubecl");
+    assert!(
+        std::fs::read_dir(&kept).is_ok_and(|mut d| d.next().is_some()),
+        "nothing cached in {}",
+        kept.display()
+    );
+}

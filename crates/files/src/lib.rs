@@ -10,8 +10,10 @@
 //!   block the reader forever).
 //! - [`available_memory`] / [`check_allocation`]: what a run or a reader may allocate (the host's
 //!   `MemAvailable`, or a container's cgroup headroom when smaller).
+//! - [`cache_dir`]: the one user cache folder for what vcedit can always make again.
 
 mod atomic;
+mod cache;
 #[cfg(feature = "fuzz")]
 pub mod fuzz;
 mod memory;
@@ -20,6 +22,7 @@ mod regular;
 mod rundir;
 
 pub use atomic::{atomic_write, atomic_write_with, clean_stale_temps, temp_path_for};
+pub use cache::cache_dir;
 pub use memory::{available_memory, check_allocation};
 pub use paths::{check_not_inputs, same_file, PathError};
 pub use regular::{check_regular, open_regular, read_regular};

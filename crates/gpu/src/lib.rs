@@ -43,14 +43,15 @@ pub const COMPILER_ENV: &str = "VCEDIT_GPU_COMPILER";
 /// What a process will mostly run, which decides the shader compiler under `auto`: measured on an
 /// NVIDIA H200 (docs/gpu-results.md, 2026-11-26), SPIR-V with tensor cores runs the SD 1.5 UNet 3.2×
 /// faster than WGSL, but `vcedit fit` 2.6× slower (86 s against 34 s on lego-200: the splatting
-/// backward and training steps are slower there, not yet understood). A process has one client (the
-/// engines share buffers), so the choice is per process.
+/// backward and training steps are slower there, not yet understood). On an H100 the demo, whose
+/// networks are tiny and whose time is splatting, was slower on SPIR-V too, so it runs as `Splatting`.
+/// A process has one client (the engines share buffers), so the choice is per process.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub enum Workload {
-    /// The diffusion networks (edit, edit-image, demo): SPIR-V where the adapter supports it.
+    /// The diffusion networks (edit, edit-image): SPIR-V where the adapter supports it.
     #[default]
     Networks,
-    /// Splatting only (fit, render, metrics): WGSL.
+    /// Mostly splatting (fit, render, metrics, the demo): WGSL.
     Splatting,
 }
 
@@ -332,8 +333,33 @@ fn forces_wgsl(compiler: CompilerChoice, workload: Workload, a: &AdapterEntry) -
     }
 }
 
+/// cubecl's runtime configuration, set once before the first device opens: compiled SPIR-V kernels and
+/// autotune results persist in vcedit's user cache folder (`files::cache_dir()/cubecl`). Left alone,
+/// cubecl reads a `cubecl.toml` from the working directory and keeps its cache under the outermost
+/// `Cargo.toml` above it (`target/environment`), so a run inside any Rust project wrote there, and it
+/// compiled every kernel again in each process (~35 s of the first UNet call on an H100; WGSL kernels
+/// are never persisted, SPIR-V ones are with `compilation.cache`). Its `CUBECL_*` variables still apply.
+fn configure_runtime() {
+    use cubecl::config::cache::CacheConfig;
+    use cubecl::config::{CubeClRuntimeConfig, RuntimeConfig};
+    static ONCE: std::sync::Once = std::sync::Once::new();
+    ONCE.call_once(|| {
+        let mut config = CubeClRuntimeConfig::default().override_from_env();
+        config.environment.path = CacheConfig::Directory(runtime_cache_dir());
+        config.compilation.cache = true;
+        // `false`: something read the configuration first; it keeps cubecl's defaults.
+        let _ = CubeClRuntimeConfig::try_set(config);
+    });
+}
+
+/// Where cubecl's caches go: `cubecl` in vcedit's cache folder.
+pub fn runtime_cache_dir() -> std::path::PathBuf {
+    files::cache_dir().join("cubecl")
+}
+
 /// Opens `a` on cubecl's automatic compiler (SPIR-V where the adapter supports it), or on WGSL.
 fn open_adapter(a: &AdapterEntry, wgsl: bool) -> Result<GpuContext, GpuError> {
+    configure_runtime();
     let device = WgpuDevice::new(a.kind.clone()).on(a.backend);
     let cannot =
         |e: &dyn fmt::Display| GpuError::Kernel(format!("cannot initialise {}: {e}", a.name));
