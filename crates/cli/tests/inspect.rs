@@ -238,3 +238,66 @@ fn help_examples_copy_paste() {
         }
     }
 }
+
+/// A prompt option has one name in every command that takes prompts (`edit`'s `--source`/`--target` are
+/// also `--source-prompt`/`--target-prompt`, as in `metrics`), and no command uses `--source` for a scene.
+#[test]
+fn prompt_options_share_their_names() {
+    for command in ["edit", "edit-image", "metrics"] {
+        let out = Command::new(env!("CARGO_BIN_EXE_vcedit"))
+            .args([command, "--help"])
+            .output()
+            .unwrap();
+        let help = String::from_utf8_lossy(&out.stdout);
+        for name in ["--source-prompt", "--target-prompt"] {
+            assert!(help.contains(name), "{command} --help lacks {name}");
+        }
+    }
+    let out = Command::new(env!("CARGO_BIN_EXE_vcedit"))
+        .args(["metrics", "--help"])
+        .output()
+        .unwrap();
+    let help = String::from_utf8_lossy(&out.stdout);
+    assert!(help.contains("--source-scene <SCENE>"), "{help}");
+    assert!(!help.contains("--source <"), "{help}");
+}
+
+/// `--json=FILE` writes the JSON to a file and prints the text; the `=` is required, so a scene named
+/// after `--json` is never taken for the output (`inspect --json a.ply b.ply` would overwrite a.ply).
+#[test]
+fn json_to_a_file_needs_the_equals_sign() {
+    let dir = tempfile::tempdir().unwrap();
+    let p = dir.path().join("line.ply");
+    write_ply(&p, &line_scene(20)).unwrap();
+    let stats = dir.path().join("stats.json");
+    let mut flag = std::ffi::OsString::from("--json=");
+    flag.push(&stats);
+    let out = vcedit(&[p.as_os_str(), flag.as_os_str()]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert!(String::from_utf8_lossy(&out.stdout).contains("gaussians"));
+    let v: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&stats).unwrap()).unwrap();
+    assert_eq!(v["count"], 20);
+
+    let other = dir.path().join("other.ply");
+    std::fs::copy(&p, &other).unwrap();
+    let before = std::fs::read(&other).unwrap();
+    let out = vcedit(&["--json".as_ref(), other.as_os_str(), p.as_os_str()]);
+    assert!(!out.status.success());
+    assert_eq!(
+        std::fs::read(&other).unwrap(),
+        before,
+        "a scene was overwritten"
+    );
+    // Nor may the JSON go over the scene it describes.
+    let mut over = std::ffi::OsString::from("--json=");
+    over.push(&p);
+    let before = std::fs::read(&p).unwrap();
+    let out = vcedit(&[p.as_os_str(), over.as_os_str()]);
+    assert!(!out.status.success());
+    assert_eq!(std::fs::read(&p).unwrap(), before);
+}

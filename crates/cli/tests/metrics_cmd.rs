@@ -225,3 +225,30 @@ fn bad_inputs_fail_with_one_clear_line() {
     ]);
     assert_eq!(out.status.code(), Some(2));
 }
+
+/// The names that say what they take (`--source-scene`, `--edited-scene`: `--source` is a prompt in
+/// `edit`), and `--json` without a file: the JSON alone on stdout, the text on stderr.
+#[test]
+fn scene_options_by_their_full_names_and_json_on_stdout() {
+    let dir = tempfile::tempdir().unwrap();
+    let (a, b) = scenes(dir.path());
+    let out = vcedit(&[
+        "--source-scene".as_ref(),
+        a.as_os_str(),
+        "--edited-scene".as_ref(),
+        b.as_os_str(),
+        "--orbit".as_ref(),
+        "4".as_ref(),
+        "--size".as_ref(),
+        "32".as_ref(),
+        "--json".as_ref(),
+    ]);
+    let stdout = ok(&out);
+    let v: serde_json::Value = serde_json::from_str(&stdout).expect("stdout is the JSON alone");
+    assert_eq!(v["views"], 4);
+    assert!(v["metrics"]["preservation_whole"]["psnr"].is_number());
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(stderr.contains("preservation, whole images"), "{stderr}");
+    // No file named "-" or anything else appeared.
+    assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 2);
+}

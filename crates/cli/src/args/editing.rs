@@ -52,10 +52,10 @@ pub const DEMO_MODEL_NAME: &str = "demo";
 #[derive(clap::Args, Debug, Clone)]
 pub struct PromptArgs {
     /// What the input shows, e.g. "a man".
-    #[arg(long)]
+    #[arg(long, visible_alias = "source-prompt")]
     pub source: String,
     /// What it should show, e.g. "a clown".
-    #[arg(long)]
+    #[arg(long, visible_alias = "target-prompt")]
     pub target: String,
     /// Words of the target prompt marking the region the edit may change (local blend).
     /// Default: the whole target prompt. An empty string disables the local blend.

@@ -1,6 +1,6 @@
 //! `vcedit inspect SCENE`: what is in a 3DGS scene.
 
-use anyhow::Result;
+use anyhow::{Context, Result};
 use serde::Serialize;
 use splat::cameras::robust_bounds;
 use splat::GaussianScene;
@@ -9,15 +9,16 @@ use std::path::PathBuf;
 #[derive(clap::Args)]
 #[command(
     about = "Print statistics of a 3DGS scene (count, SH degree, bounds, opacities, scales, cameras)",
-    after_help = "Examples:\n  vcedit inspect scene.ply\n  vcedit inspect output/garden   # an INRIA trainer output (adds the cameras)\n  vcedit inspect scene.ply --json > stats.json"
+    after_help = "Examples:\n  vcedit inspect scene.ply\n  vcedit inspect output/garden   # an INRIA trainer output (adds the cameras)\n  vcedit inspect scene.ply --json > stats.json\n  vcedit inspect scene.ply --json=stats.json   # text here, JSON in the file"
 )]
 pub struct Args {
     /// A scene file (PLY, compressed PLY, .splat, .spz, SOG), a SOG folder, or an INRIA trainer output
     /// folder (point_cloud/iteration_*/point_cloud.ply + cameras.json).
     pub scene: PathBuf,
-    /// Print the statistics as JSON instead of text.
-    #[arg(long)]
-    pub json: bool,
+    /// The statistics as JSON: `--json` prints them on stdout instead of the text, `--json=FILE` writes
+    /// them to FILE and prints the text (the `=` is required: the scene is a positional argument).
+    #[arg(long, value_name = "FILE", num_args = 0..=1, require_equals = true, default_missing_value = "-")]
+    pub json: Option<PathBuf>,
 }
 
 #[derive(Serialize)]
@@ -123,12 +124,21 @@ fn print_text(s: &Stats) {
 }
 
 pub fn run(args: Args) -> Result<()> {
+    let json_file = args.json.as_ref().filter(|p| p.as_os_str() != "-");
+    if let Some(path) = json_file {
+        crate::args::output::output_file(path, &[args.scene.as_path()])?;
+    }
     let (scene, cameras) = splat::open_scene(&args.scene)?;
-    let s = stats(args.scene, &scene, cameras.map(|c| c.cameras.len()));
-    if args.json {
-        println!("{}", serde_json::to_string_pretty(&s)?);
-    } else {
-        print_text(&s);
+    let s = stats(args.scene.clone(), &scene, cameras.map(|c| c.cameras.len()));
+    match (&args.json, json_file) {
+        (Some(_), None) => println!("{}", serde_json::to_string_pretty(&s)?),
+        (_, Some(path)) => {
+            print_text(&s);
+            files::atomic_write(path, serde_json::to_string_pretty(&s)?.as_bytes())
+                .with_context(|| format!("writing {}", path.display()))?;
+            eprintln!("wrote {}", path.display());
+        }
+        (None, _) => print_text(&s),
     }
     Ok(())
 }

@@ -1,4 +1,4 @@
-//! `vcedit metrics --source A --edited B`: compare two scenes rendered from the same cameras.
+//! `vcedit metrics --source-scene A --edited-scene B`: compare two scenes rendered from the same cameras.
 //!
 //! - multi-view consistency of each scene's renders (each scene's own depth), the cross-view error;
 //! - preservation of B against A: PSNR/SSIM over whole images, and outside a 3D box when `--mask-box`
@@ -23,6 +23,9 @@ use crate::args::output::output_file;
 use crate::args::parse::{finite, positive};
 use crate::args::{BackgroundArg, CameraArgs, CameraSource, DeviceArg, SizeArg};
 
+/// `--json` without a file: JSON on stdout.
+const JSON_TO_STDOUT: &str = "-";
+
 /// Views compared when neither --cameras nor --orbit is given and the source scene has no cameras.
 const DEFAULT_ORBIT_VIEWS: usize = 16;
 
@@ -38,19 +41,21 @@ Cross-view error: each view is warped into its nearest cameras with the scene's 
 difference (0-1 scale) over pixels both cameras see. Lower is more consistent; a scene's own renders are the floor.
 
 Examples:
-  vcedit metrics --source scene.ply --edited out/edited.ply --orbit 24
-  vcedit metrics --source scene.ply --edited out/edited.ply --cameras data/ \\
-      --mask-box -0.5,-0.5,0,0.5,0.5,1.2 --json m.json
-  vcedit metrics --source scene.ply --edited out/edited.ply \\
+  vcedit metrics --source-scene scene.ply --edited-scene out/edited.ply \\
+      --orbit 24 --json
+  vcedit metrics --source-scene scene.ply --edited-scene out/edited.ply \\
+      --cameras data/ --mask-box -0.5,-0.5,0,0.5,0.5,1.2 --json=m.json
+  vcedit metrics --source-scene scene.ply --edited-scene out/edited.ply \\
       --clip models/clip-vit-large-patch14 \\
       --source-prompt \"a photo of a man\" --target-prompt \"a photo of a clown\""
 )]
 pub struct Args {
     /// The scene before editing (a scene file of any supported format, or an INRIA output folder).
-    #[arg(long, value_name = "SCENE")]
+    // `--source` alone is a prompt in `edit`; the old names stay as hidden aliases.
+    #[arg(long = "source-scene", alias = "source", value_name = "SCENE")]
     pub source: PathBuf,
     /// The scene after editing.
-    #[arg(long, value_name = "SCENE")]
+    #[arg(long = "edited-scene", alias = "edited", value_name = "SCENE")]
     pub edited: PathBuf,
     #[command(flatten)]
     pub views: CameraArgs,
@@ -80,8 +85,9 @@ pub struct Args {
     /// What the edited scene should show (CLIP).
     #[arg(long, value_name = "TEXT")]
     pub target_prompt: Option<String>,
-    /// Also write the results as JSON to this file.
-    #[arg(long, value_name = "FILE")]
+    /// The results as JSON: `--json` prints them on stdout (the text goes to stderr), `--json=FILE` or
+    /// `--json FILE` writes them to FILE as well as printing the text.
+    #[arg(long, value_name = "FILE", num_args = 0..=1, default_missing_value = JSON_TO_STDOUT)]
     pub json: Option<PathBuf>,
 }
 
@@ -172,7 +178,11 @@ pub fn run(args: Args) -> Result<()> {
         );
     }
     args.views.validate()?;
-    if let Some(path) = &args.json {
+    let json_file = args
+        .json
+        .as_ref()
+        .filter(|p| p.as_os_str() != JSON_TO_STDOUT);
+    if let Some(path) = json_file {
         let inputs: Vec<&std::path::Path> = [&args.source, &args.edited]
             .into_iter()
             .chain(args.views.cameras.as_ref())
@@ -289,32 +299,39 @@ pub fn run(args: Args) -> Result<()> {
         ..Default::default()
     };
 
-    println!("source   {}", args.source.display());
-    println!("edited   {}", args.edited.display());
-    println!("views    {} ({w}x{h}), {from}", cameras.len());
-    println!(
+    // The text goes to stdout, or to stderr when stdout carries the JSON.
+    let json_on_stdout = args.json.is_some() && json_file.is_none();
+    macro_rules! say {
+        ($($t:tt)*) => {
+            if json_on_stdout { eprintln!($($t)*) } else { println!($($t)*) }
+        };
+    }
+    say!("source   {}", args.source.display());
+    say!("edited   {}", args.edited.display());
+    say!("views    {} ({w}x{h}), {from}", cameras.len());
+    say!(
         "cross-view error, source renders   {}",
         fmt_consistency(&cons_a.summary)
     );
-    println!(
+    say!(
         "cross-view error, edited renders   {}",
         fmt_consistency(&cons_b.summary)
     );
-    println!(
+    say!(
         "preservation, whole images         {}",
         fmt_preservation(&whole)
     );
     if let Some(o) = &outside {
-        println!("preservation, outside the mask     {}", fmt_preservation(o));
+        say!("preservation, outside the mask     {}", fmt_preservation(o));
     }
     if let Some(c) = &clip_report {
-        println!(
+        say!(
             "CLIP directional similarity        {:.4}  (image similarity {:.4}, edited vs target text {:.4})",
             c.directional, c.image_similarity, c.target_text_similarity
         );
     }
 
-    if let Some(path) = &args.json {
+    if args.json.is_some() {
         let out = Output {
             source: args.source.clone(),
             edited: args.edited.clone(),
@@ -328,9 +345,14 @@ pub fn run(args: Args) -> Result<()> {
             seconds: t0.elapsed().as_secs_f64(),
         };
         let text = serde_json::to_string_pretty(&out)?;
-        files::atomic_write(path, text.as_bytes())
-            .with_context(|| format!("writing {}", path.display()))?;
-        eprintln!("wrote {}", path.display());
+        match json_file {
+            Some(path) => {
+                files::atomic_write(path, text.as_bytes())
+                    .with_context(|| format!("writing {}", path.display()))?;
+                eprintln!("wrote {}", path.display());
+            }
+            None => println!("{text}"),
+        }
     }
     Ok(())
 }
