@@ -8,10 +8,14 @@
 //!
 //! The ETA is the stage's average pace so far applied to what is left, counting only the work done since
 //! the stage started (a resumed stage's earlier work is not "instant progress"), and is "?" until the first
-//! unit is done, rather than indicatif's "0s".
+//! unit is done, rather than indicatif's "0s". On a GPU ([`Reporter::on_gpu`]) the first unit of a stage
+//! compiles that stage's kernels (half a minute for a UNet on an H100), so the pace is taken from the units
+//! after it: "?" until two are done, instead of an ETA of an hour that turns out to be a minute.
 
 use std::fmt::Write as _;
 use std::io::IsTerminal;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use indicatif::{ProgressBar, ProgressState, ProgressStyle};
@@ -28,6 +32,8 @@ pub struct Reporter {
     started: Instant,
     stage: Stage,
     out: Output,
+    /// The first unit of each stage warms up (GPU kernel compilation) and is left out of the pace.
+    warm_up: bool,
 }
 
 /// The stage in progress.
@@ -39,6 +45,9 @@ struct Stage {
     done: u64,
     started: Instant,
     message: String,
+    /// Microseconds from the stage's start to the end of its first unit (0: not yet), shared with the
+    /// bar's ETA; set only when the first unit warms up.
+    warmed: Arc<AtomicU64>,
 }
 
 enum Output {
@@ -72,9 +81,17 @@ impl Reporter {
                 done: 0,
                 started: now,
                 message: String::new(),
+                warmed: Arc::default(),
             },
             out,
+            warm_up: false,
         }
+    }
+
+    /// The work runs on a GPU: each stage's first unit compiles kernels and does not count in its pace.
+    pub fn on_gpu(mut self, gpu: bool) -> Self {
+        self.warm_up = gpu;
+        self
     }
 
     /// Starts a stage of `total` units.
@@ -92,13 +109,15 @@ impl Reporter {
             done,
             started: Instant::now(),
             message: String::new(),
+            warmed: Arc::default(),
         };
+        let warm = self.warm_up.then(|| self.stage.warmed.clone());
         match &mut self.out {
             Output::Bars(bar) => {
                 if let Some(old) = bar.take() {
                     old.finish_and_clear();
                 }
-                *bar = Some(stage_bar(name, total, done));
+                *bar = Some(stage_bar(name, total, done, warm));
             }
             Output::Lines { .. } => self.line(),
         }
@@ -111,6 +130,10 @@ impl Reporter {
 
     /// `done` units of the current stage are done.
     pub fn set_position(&mut self, done: u64) {
+        if self.warm_up && self.stage.done == self.stage.first && done > self.stage.first {
+            let micros = self.stage.started.elapsed().as_micros().max(1);
+            self.stage.warmed.store(micros as u64, Ordering::Relaxed);
+        }
         self.stage.done = done;
         let due = match &self.out {
             Output::Bars(bar) => {
@@ -165,12 +188,14 @@ impl Reporter {
             s.total
         );
         // Pace and ETA once this stage has done something and until it is complete.
-        let worked = s.done.saturating_sub(s.first);
-        if worked > 0 && s.done < s.total {
-            let elapsed = s.started.elapsed();
-            let each = elapsed.as_secs_f64() / worked as f64;
-            let eta = eta_text(s.first, s.done, s.total, elapsed);
-            let _ = write!(text, ", {} each, ETA {eta}", seconds(each));
+        let warm = self.warm_up.then(|| &*s.warmed);
+        if let Some(pace) = Pace::of(s.first, s.done, s.started.elapsed(), warm) {
+            if s.done < s.total {
+                let eta = short_duration(pace.each * (s.total - s.done) as f64);
+                let _ = write!(text, ", {} each, ETA {eta}", seconds(pace.each));
+            }
+        } else if self.warm_up && s.done > s.first && s.done < s.total {
+            text.push_str(", first step compiled GPU kernels, ETA ?");
         }
         if !s.message.is_empty() {
             let _ = write!(text, ", {}", s.message);
@@ -199,14 +224,16 @@ impl edit::run::Progress for Reporter {
 
 /// A terminal bar for one stage of `total` units, `done` of them done before it started; its ETA is the
 /// stage's own average pace (see the module notes).
-pub fn stage_bar(name: &str, total: u64, done: u64) -> ProgressBar {
+/// `warm`: the first unit is left out of the pace (see [`Reporter::on_gpu`]).
+pub fn stage_bar(name: &str, total: u64, done: u64, warm: Option<Arc<AtomicU64>>) -> ProgressBar {
     let style = ProgressStyle::with_template(BAR_TEMPLATE)
         .expect("valid template")
         .with_key(
             "honest_eta",
             move |state: &ProgressState, w: &mut dyn std::fmt::Write| {
                 let total = state.len().unwrap_or(0);
-                let _ = w.write_str(&eta_text(done, state.pos(), total, state.elapsed()));
+                let eta = eta_text(done, state.pos(), total, state.elapsed(), warm.as_deref());
+                let _ = w.write_str(&eta);
             },
         )
         .progress_chars("=> ");
@@ -216,18 +243,46 @@ pub fn stage_bar(name: &str, total: u64, done: u64) -> ProgressBar {
     bar
 }
 
-/// The time left at the stage's average pace: `first` units were done when it started `elapsed` ago, `done`
-/// are done now, of `total`; "?" until one unit is done.
-fn eta_text(first: u64, done: u64, total: u64, elapsed: Duration) -> String {
-    let worked = done.saturating_sub(first);
+/// A stage's pace: seconds per unit over the units that count.
+struct Pace {
+    each: f64,
+}
+
+impl Pace {
+    /// `first` units were done when the stage started `elapsed` ago and `done` are done now. With
+    /// `warm` (microseconds to the end of the first unit, 0 while unknown) the first unit is left out.
+    /// `None` until a unit that counts is done.
+    fn of(first: u64, done: u64, elapsed: Duration, warm: Option<&AtomicU64>) -> Option<Self> {
+        let worked = done.saturating_sub(first);
+        let (counted, secs) = match warm.map(|w| w.load(Ordering::Relaxed)) {
+            None => (worked, elapsed.as_secs_f64()),
+            Some(0) => return None,
+            Some(micros) => (
+                worked.saturating_sub(1),
+                (elapsed.as_secs_f64() - micros as f64 * 1e-6).max(0.0),
+            ),
+        };
+        (counted > 0).then(|| Pace {
+            each: secs / counted as f64,
+        })
+    }
+}
+
+/// The time left at the stage's average pace (see [`Pace::of`]) for `total` units; "?" while unknown.
+fn eta_text(
+    first: u64,
+    done: u64,
+    total: u64,
+    elapsed: Duration,
+    warm: Option<&AtomicU64>,
+) -> String {
     if done >= total {
         return "0s".into();
     }
-    if worked == 0 {
-        return "?".into();
+    match Pace::of(first, done, elapsed, warm) {
+        Some(pace) => short_duration(pace.each * (total - done) as f64),
+        None => "?".into(),
     }
-    let left = elapsed.as_secs_f64() * (total - done) as f64 / worked as f64;
-    short_duration(left)
 }
 
 /// "45s", "12m 05s", "2h 03m".
@@ -262,13 +317,60 @@ mod tests {
     #[test]
     fn eta_counts_only_this_stages_work() {
         // Nothing done yet: unknown, not zero.
-        assert_eq!(eta_text(0, 0, 10, Duration::from_secs(5)), "?");
+        assert_eq!(eta_text(0, 0, 10, Duration::from_secs(5), None), "?");
         // Resumed at 50 of 100, nothing new yet: still unknown.
-        assert_eq!(eta_text(50, 50, 100, Duration::from_secs(5)), "?");
+        assert_eq!(eta_text(50, 50, 100, Duration::from_secs(5), None), "?");
         // 10 units in 20 s, 40 left: 80 s.
-        assert_eq!(eta_text(50, 60, 100, Duration::from_secs(20)), "1m 20s");
-        assert_eq!(eta_text(0, 10, 10, Duration::from_secs(20)), "0s");
-        assert_eq!(eta_text(0, 1, 1000, Duration::from_secs(10)), "2h 46m");
+        assert_eq!(
+            eta_text(50, 60, 100, Duration::from_secs(20), None),
+            "1m 20s"
+        );
+        assert_eq!(eta_text(0, 10, 10, Duration::from_secs(20), None), "0s");
+        assert_eq!(
+            eta_text(0, 1, 1000, Duration::from_secs(10), None),
+            "2h 46m"
+        );
+    }
+
+    #[test]
+    fn on_a_gpu_the_first_unit_is_left_out_of_the_pace() {
+        let warm = AtomicU64::new(0);
+        // The first unit (kernel compilation) is still running, or just done: unknown.
+        assert_eq!(eta_text(0, 0, 5, Duration::from_secs(30), Some(&warm)), "?");
+        assert_eq!(eta_text(0, 1, 5, Duration::from_secs(55), Some(&warm)), "?");
+        warm.store(55_000_000, Ordering::Relaxed);
+        assert_eq!(eta_text(0, 1, 5, Duration::from_secs(55), Some(&warm)), "?");
+        // The second took 10 s: 3 left at 10 s, not at (55 + 10) / 2.
+        assert_eq!(
+            eta_text(0, 2, 5, Duration::from_secs(65), Some(&warm)),
+            "30s"
+        );
+    }
+
+    #[test]
+    fn a_gpu_reporter_records_when_the_first_unit_ends() {
+        let mut r = Reporter::new().on_gpu(true);
+        r.stage("editing", 4);
+        assert_eq!(r.stage.warmed.load(Ordering::Relaxed), 0);
+        r.advance(1);
+        let first = r.stage.warmed.load(Ordering::Relaxed);
+        assert!(first > 0);
+        r.advance(1);
+        assert_eq!(
+            r.stage.warmed.load(Ordering::Relaxed),
+            first,
+            "only the first unit"
+        );
+        r.stage("fitting", 4);
+        assert_eq!(
+            r.stage.warmed.load(Ordering::Relaxed),
+            0,
+            "each stage warms up"
+        );
+        let mut cpu = Reporter::new();
+        cpu.stage("editing", 4);
+        cpu.advance(1);
+        assert_eq!(cpu.stage.warmed.load(Ordering::Relaxed), 0);
     }
 
     #[test]

@@ -308,7 +308,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         args.force.force,
         &input_refs,
     )?;
-    let mut progress = Reporter::new();
+    let mut progress = Reporter::new().on_gpu(!compute.splat().is_cpu());
     let inputs = RunInputs {
         scene: &args.scene.display().to_string(),
         cameras: &args

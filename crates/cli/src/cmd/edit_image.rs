@@ -91,7 +91,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
 
     let image = image_to_tensor(&input)?;
     let mut noise = SeededNoise::new(args.sampler.seed);
-    let mut progress = Reporter::new();
+    let mut progress = Reporter::new().on_gpu(!model.compute.splat().is_cpu());
     progress.stage("editing steps", plan.timesteps.len() as u64);
     let t1 = Instant::now();
     let outcome = edit_image(&model, &plan, &image, &mut noise, &mut |_| {

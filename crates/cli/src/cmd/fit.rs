@@ -221,11 +221,11 @@ pub fn run(args: Args) -> Result<()> {
     if let Some(until) = args.densify_until {
         config.strategy.refine_stop = until;
     }
-    let mut progress = Reporter::new();
+    let device = splat::SplatDevice::from(args.device.open_for(gpu::Workload::Splatting)?);
+    let mut progress = Reporter::new().on_gpu(!device.is_cpu());
     progress.stage("fitting", args.steps);
     let mut smoothed = None::<f32>;
     let mut last_psnr = None::<f64>;
-    let device = splat::SplatDevice::from(args.device.open_for(gpu::Workload::Splatting)?);
     let result = fit_on(&dataset, &config, &device, &mut |p| {
         // Exponential moving average, as the INRIA trainer shows.
         let ema = smoothed.map_or(p.loss, |s| 0.6 * p.loss + 0.4 * s);
