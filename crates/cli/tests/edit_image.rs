@@ -165,3 +165,65 @@ fn bad_inputs_give_one_clear_line() {
         assert!(!dir.path().join("o.png").exists(), "no output on failure");
     }
 }
+
+/// An edit that cannot change anything (an empty blend region) ends with a warning naming the knobs; the
+/// same edit with the demo's settings turns the red disk blue and warns of nothing.
+#[test]
+fn an_edit_that_changes_nothing_says_so() {
+    let dir = tempfile::tempdir().unwrap();
+    // A red disk on grey, the demo model's kind of picture.
+    let mut img = splat::Image::new(128, 128, 3);
+    for y in 0..128 {
+        for x in 0..128 {
+            let (dx, dy) = (x as f32 - 63.5, y as f32 - 63.5);
+            let c = if dx * dx + dy * dy < 30.0 * 30.0 {
+                [0.86, 0.12, 0.08]
+            } else {
+                [0.59, 0.59, 0.59]
+            };
+            img.data[(y * 128 + x) * 3..][..3].copy_from_slice(&c);
+        }
+    }
+    let input = dir.path().join("disk.png");
+    img.save_png(&input).unwrap();
+    let model = root().join("models/demo");
+    let out = dir.path().join("out.png");
+    let run = |thresh: &str| {
+        let o = vcedit(&[
+            "edit-image",
+            "--model",
+            model.to_str().unwrap(),
+            "--image",
+            input.to_str().unwrap(),
+            "--source",
+            "a red sphere",
+            "--target",
+            "a blue sphere",
+            "--size",
+            "128",
+            "--cross",
+            "0.3",
+            "--thresh-e",
+            thresh,
+            "--thresh-m",
+            thresh,
+            "--device",
+            "cpu",
+            "--out",
+            out.to_str().unwrap(),
+        ]);
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+        String::from_utf8_lossy(&o.stderr).into_owned()
+    };
+    let stderr = run("1");
+    assert!(
+        stderr.contains("warning: the edit changed little"),
+        "{stderr}"
+    );
+    assert!(stderr.contains("--thresh-e"), "{stderr}");
+    let stderr = run("0.3");
+    assert!(!stderr.contains("warning"), "{stderr}");
+    let edited = splat::Image::load(&out).unwrap();
+    let centre = &edited.data[(64 * 128 + 64) * edited.channels as usize..][..3];
+    assert!(centre[2] > centre[0], "the disk turned blue: {centre:?}");
+}

@@ -157,6 +157,9 @@ pub struct DemoScores {
     pub outside_change: Option<f64>,
     /// The same for the last guidance images.
     pub guidance_outside_change: Option<f64>,
+    /// Fraction of the pixels inside the editable mask whose colour changed (the report's
+    /// `changed_fraction`): what tells a user's edit that did nothing.
+    pub changed_fraction: Option<f64>,
     pub seconds: f64,
     pub report: PathBuf,
 }
@@ -353,6 +356,7 @@ pub fn run_variant(
         guidance_silhouette_iou: guidance_score.as_ref().and_then(|g| g.silhouette_iou),
         outside_change: final_score.outside_change,
         guidance_outside_change: guidance_score.as_ref().and_then(|g| g.outside_change),
+        changed_fraction: written.metrics.changed_fraction,
         seconds: t.elapsed().as_secs_f64(),
         report: written.report,
     })

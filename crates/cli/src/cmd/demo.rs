@@ -179,6 +179,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             &mut progress,
         )?;
         progress.finish();
+        super::edit::warn_if_unchanged(s.changed_fraction, "the renders inside the editable mask");
         print!("{}", summary(&s));
         println!("edited scene: {}", args.out.join("edited.ply").display());
         println!("report: {}", s.report.display());

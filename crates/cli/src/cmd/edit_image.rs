@@ -102,6 +102,11 @@ pub fn run(args: Args) -> anyhow::Result<()> {
 
     let out = tensor_to_images(&outcome.image)?.remove(0);
     out.save_png(&args.out)?;
+    // Against the source's own round trip through the codec (its latents decoded), so that the codec's
+    // error is not taken for an edit.
+    let source = tensor_to_images(&model.decode_unit(&outcome.state.x0)?)?.remove(0);
+    let changed = edit::eval::metrics::changed_fraction(&[&source], &[&out], None)?;
+    super::edit::warn_if_unchanged(changed, "the image");
 
     if let Some(dir) = &args.save_attention {
         let maps = viz::word_maps(

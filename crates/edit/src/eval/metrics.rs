@@ -515,17 +515,13 @@ fn preservation_view(a: &Image, b: &Image, outside: &[bool]) -> (f64, f64, u64) 
     (sq, ssim, count)
 }
 
-/// PSNR and SSIM (11-tap Gaussian window, σ = 1.5, C1 = 0.01², C2 = 0.03²) of `edited` against `source`,
-/// per view. With `edit_mask` (per view H*W, e.g. the editable mask rendered as an extra channel), only
-/// pixels whose mask value is below [`MASK_THRESHOLD`] count, and the SSIM window statistics use only those
-/// pixels (weights renormalised), so changes inside the editable region do not leak into the score. The
-/// same renormalisation applies at the image border (instead of zero padding); away from borders and
-/// masks this is the standard SSIM.
-pub fn preservation(
+/// Checks that `source` and `edited` pair up view by view (equal sizes, RGB) with one mask per view when
+/// given; returns the pixels of all views.
+fn check_pairs(
     source: &[&Image],
     edited: &[&Image],
     edit_mask: Option<&[&[f32]]>,
-) -> Result<PreservationReport, MetricsError> {
+) -> Result<u64, MetricsError> {
     if source.len() != edited.len() {
         return Err(MetricsError::Mismatch(format!(
             "{} source images vs {} edited images",
@@ -561,6 +557,57 @@ pub fn preservation(
         }
         total_pixels += n as u64;
     }
+    Ok(total_pixels)
+}
+
+/// A pixel whose colour moved by more than this (on a 0–1 scale, in any channel) counts as changed.
+pub const CHANGE_TOLERANCE: f32 = 0.1;
+
+/// How much an edit changed where it may act: the fraction of pixels (inside the mask, or of whole images
+/// without one) whose colour moved by more than [`CHANGE_TOLERANCE`] in some channel, over all views.
+/// A fit's noise moves pixels by a few hundredths; an edit moves its region by tenths. `None` when no
+/// pixel is inside the mask.
+pub fn changed_fraction(
+    source: &[&Image],
+    edited: &[&Image],
+    edit_mask: Option<&[&[f32]]>,
+) -> Result<Option<f64>, MetricsError> {
+    check_pairs(source, edited, edit_mask)?;
+    let (changed, counted) = (0..source.len())
+        .into_par_iter()
+        .map(|k| {
+            let (a, b) = (source[k], edited[k]);
+            let (ca, cb) = (a.channels as usize, b.channels as usize);
+            let n = (a.width * a.height) as usize;
+            let mut out = (0u64, 0u64);
+            for p in 0..n {
+                // NaN counts as editable, as in `preservation`.
+                if edit_mask.is_some_and(|m| m[k][p] < MASK_THRESHOLD) {
+                    continue;
+                }
+                out.1 += 1;
+                let moved = (0..3)
+                    .any(|c| (a.data[p * ca + c] - b.data[p * cb + c]).abs() > CHANGE_TOLERANCE);
+                out.0 += u64::from(moved);
+            }
+            out
+        })
+        .reduce(|| (0, 0), |x, y| (x.0 + y.0, x.1 + y.1));
+    Ok((counted > 0).then(|| changed as f64 / counted as f64))
+}
+
+/// PSNR and SSIM (11-tap Gaussian window, σ = 1.5, C1 = 0.01², C2 = 0.03²) of `edited` against `source`,
+/// per view. With `edit_mask` (per view H*W, e.g. the editable mask rendered as an extra channel), only
+/// pixels whose mask value is below [`MASK_THRESHOLD`] count, and the SSIM window statistics use only those
+/// pixels (weights renormalised), so changes inside the editable region do not leak into the score. The
+/// same renormalisation applies at the image border (instead of zero padding); away from borders and
+/// masks this is the standard SSIM.
+pub fn preservation(
+    source: &[&Image],
+    edited: &[&Image],
+    edit_mask: Option<&[&[f32]]>,
+) -> Result<PreservationReport, MetricsError> {
+    let total_pixels = check_pairs(source, edited, edit_mask)?;
     let per_view: Vec<(f64, f64, u64)> = (0..source.len())
         .into_par_iter()
         .map(|k| {
@@ -589,6 +636,27 @@ pub fn preservation(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn changed_fraction_counts_pixels_that_moved_where_the_edit_may_act() {
+        let grey = Image::from_data(4, 2, 3, vec![0.5; 24]);
+        let mut edited = grey.clone();
+        // Pixel 0 recoloured, pixel 1 nudged by less than the tolerance.
+        edited.data[0] = 0.9;
+        edited.data[3] = 0.55;
+        let f = changed_fraction(&[&grey], &[&edited], None).unwrap();
+        assert_eq!(f, Some(1.0 / 8.0));
+        // Inside a mask of pixels 0 and 1 only: one of two changed.
+        let mask = [1.0, 1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0];
+        let f = changed_fraction(&[&grey], &[&edited], Some(&[&mask[..]])).unwrap();
+        assert_eq!(f, Some(0.5));
+        // An empty mask evaluates nothing; mismatched views are an error.
+        assert_eq!(
+            changed_fraction(&[&grey], &[&edited], Some(&[&[0.0; 8][..]])).unwrap(),
+            None
+        );
+        assert!(changed_fraction(&[&grey], &[], None).is_err());
+    }
     use splat::cameras::orbit::look_at;
 
     /// A smooth texture on the plane z = 0, values in [0.2, 0.8].

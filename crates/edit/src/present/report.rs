@@ -88,6 +88,10 @@ pub struct MetricsSummary {
     pub preservation_whole: Option<PreservationReport>,
     #[serde(default)]
     pub clip: Option<ClipDirectionalReport>,
+    /// Fraction of the pixels where the edit may act (inside the mask, else whole images) whose colour
+    /// changed by more than `metrics::CHANGE_TOLERANCE`: near 0 means the edit did nothing.
+    #[serde(default)]
+    pub changed_fraction: Option<f64>,
     /// Anything else worth a row (name → value).
     #[serde(default)]
     pub extra: BTreeMap<String, f64>,
@@ -589,6 +593,16 @@ fn metric_rows(m: &MetricsSummary) -> Vec<(String, String, String)> {
                 format!("{:.0} % of pixels, {} views", 100.0 * p.fraction, p.views),
             ));
         }
+    }
+    if let Some(f) = m.changed_fraction {
+        rows.push((
+            "changed where the edit may act".to_string(),
+            format!("{:.1} % of pixels", 100.0 * f),
+            format!(
+                "colour moved by more than {} (0–1 scale); inside the mask when there is one",
+                crate::eval::metrics::CHANGE_TOLERANCE
+            ),
+        ));
     }
     if let Some(c) = &m.clip {
         rows.push((

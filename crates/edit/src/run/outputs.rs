@@ -231,18 +231,23 @@ pub fn write_outputs(
     let b_refs: Vec<&Image> = b_imgs.iter().collect();
     let a_refs: Vec<&Image> = a_imgs.iter().collect();
     let whole = metrics::preservation(&b_refs, &a_refs, None).map_err(metrics_err)?;
-    let outside = if mask_maps.is_empty() {
-        None
-    } else {
-        let refs: Vec<&[f32]> = mask_maps.iter().map(|m| m.as_slice()).collect();
-        Some(metrics::preservation(&b_refs, &a_refs, Some(&refs)).map_err(metrics_err)?)
+    let mask_refs: Vec<&[f32]> = mask_maps.iter().map(|m| m.as_slice()).collect();
+    let mask_refs = (!mask_refs.is_empty()).then_some(&mask_refs[..]);
+    let outside = match mask_refs {
+        Some(refs) => {
+            Some(metrics::preservation(&b_refs, &a_refs, Some(refs)).map_err(metrics_err)?)
+        }
+        None => None,
     };
+    let changed_fraction =
+        metrics::changed_fraction(&b_refs, &a_refs, mask_refs).map_err(metrics_err)?;
     let metrics = MetricsSummary {
         source_consistency: Some(source_consistency),
         guidance_consistency: result.guidance_consistency.last().cloned().flatten(),
         final_consistency: Some(final_consistency),
         preservation_outside_mask: outside,
         preservation_whole: Some(whole),
+        changed_fraction,
         clip: None,
         extra: Default::default(),
     };
