@@ -106,8 +106,9 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     // The demo's networks are tiny (a 128² latent UNet of a few MB); its time goes to lifting, renders
     // and ECM's fits, which ran faster on WGSL (docs/gpu-results.md: on an H100 its SPIR-V run took 71 s
     // for the first of two iterations, the H200's WGSL run 57.9 s for both).
+    let model = load_model(&model_dir)?;
     let gpu = args.device.open_for(gpu::Workload::Splatting)?;
-    let model = load_model(&model_dir)?.on(Compute::on(gpu, args.precision.precision));
+    let model = model.on(Compute::on(gpu, args.precision.precision));
     eprintln!(
         "demo: \"{}\" → \"{}\", {} Gaussians, {} views at {}², model {}",
         scene.prompts.source,

@@ -118,12 +118,25 @@ pub fn run_edit(
         guidance.push(edited.images);
 
         state.iterations_done = k + 1;
+        let took = times.total();
         state.times.push(times);
         state.save(out, &trainer)?;
+        // The overall ETA: iterations cost alike (the first also compiles GPU kernels, so it overshoots).
+        let left = job.iterations - (k + 1);
+        let eta = if left > 0 {
+            format!(
+                "; about {} left for {left} more iteration{}",
+                about(took * left as f64),
+                if left == 1 { "" } else { "s" }
+            )
+        } else {
+            String::new()
+        };
         progress.log(&format!(
-            "iteration {} done: {} Gaussians",
+            "iteration {} done: {} Gaussians in {}{eta}",
             k + 1,
-            trainer.scene().len()
+            trainer.scene().len(),
+            about(took),
         ));
         if job.stop_after_iteration == Some(k + 1) {
             return Err(RunError::Stopped { iteration: k + 1 });
@@ -382,6 +395,17 @@ pub fn scene_extent(cameras: &[Camera]) -> f32 {
         })
         .fold(0.0f64, f64::max);
     (1.1 * r).max(1e-3) as f32
+}
+
+/// A duration for a progress line: "45 s", "12 min", "2.1 h".
+fn about(secs: f64) -> String {
+    if secs < 90.0 {
+        format!("{secs:.0} s")
+    } else if secs < 5400.0 {
+        format!("{:.0} min", secs / 60.0)
+    } else {
+        format!("{:.1} h", secs / 3600.0)
+    }
 }
 
 #[cfg(test)]

@@ -112,14 +112,17 @@ pub fn encode(scene: &GaussianScene, version: u32) -> Result<Vec<u8>, String> {
         std::io::Write::write_all(&mut gz, &raw).map_err(|e| e.to_string())?;
         return gz.finish().map_err(|e| e.to_string());
     }
+    // Each stream carries zstd's content checksum: version 4 has no checksum of its own (2 and 3 have
+    // gzip's CRC), so without it a damaged file decodes to wild positions without a word. Every zstd
+    // reader verifies the checksum where a frame has one and accepts frames without.
+    let zstd_err = |e: std::io::Error| format!("zstd: {e}");
+    let mut zstd = zstd::bulk::Compressor::new(12).map_err(zstd_err)?;
+    zstd.set_parameter(zstd::zstd_safe::CParameter::ChecksumFlag(true))
+        .map_err(zstd_err)?;
     let streams: Vec<(Vec<u8>, usize)> = arrays
         .iter()
         .filter(|a| !a.is_empty())
-        .map(|a| {
-            zstd::bulk::compress(a, 12)
-                .map(|c| (c, a.len()))
-                .map_err(|e| format!("zstd: {e}"))
-        })
+        .map(|a| zstd.compress(a).map(|c| (c, a.len())).map_err(zstd_err))
         .collect::<Result<_, _>>()?;
     header.push(streams.len() as u8);
     header.extend_from_slice(&(HEADER_BYTES as u32).to_le_bytes());
