@@ -192,6 +192,10 @@ if have_torch; then step matmul-torch 60 python3 "$TB" matmul --shapes "$SHAPES"
 # ---- the UNet, batch 1 and 6 (one InfEdit step), plain and with the InfEdit-shaped hook; PyTorch fp16 SDPA
 # `--check`: batch 1 once more on the CPU, so the table says what the GPU path's rounding costs end to end.
 step unet 180 "$V" bench unet --model "$MODEL" --device gpu --size "$LAT" --batches 1,6 --hooks none,device --runs "$RUNS" --check
+# The same UNet in a second process with 256 kernels per command submission instead of cubecl's 32 (is a
+# forward bound by submissions? batch 1 costs a third of batch 6), and its first call says what the SPIR-V
+# kernels the `unet` step persisted save in a new process.
+[ "$MODE" = device ] && step unet-tasks 120 env CUBECL_WGPU_MAX_TASKS=256 "$V" bench unet --model "$MODEL" --device gpu --size "$LAT" --batches 1,6 --hooks none --runs "$RUNS"
 step unet-wgsl 120 env VCEDIT_GPU_COMPILER=wgsl "$V" bench unet --model "$MODEL" --device gpu --size "$LAT" --batches 6 --hooks none --runs "$RUNS"
 if have_torch; then
   step unet-torch 90 python3 "$TB" unet --model "$MODEL" --size "$LAT" --batches 1,6 --dtype f16 --runs 5

@@ -146,7 +146,8 @@ def build_table(res, steps, mode, torch_present):
                 line["ratio_vcedit_over_pytorch"] = ratio(r["ms"], t["ms"])
                 line["pytorch_tf32"] = (find(mt, precision="tf32", m=r["m"], k=r["k"], n=r["n"]) or {}).get("tflops")
     ut, ut32 = res.get("unet-torch", []), res.get("unet-torch-f32", [])
-    for step_name, label in (("unet", ""), ("unet-wgsl", ", WGSL")):
+    for step_name, label in (("unet", ""), ("unet-tasks", ", 256 tasks per submission, 2nd process"),
+                             ("unet-wgsl", ", WGSL")):
         for r in res.get(step_name, []):
             t = find(ut, batch=r["batch"])
             err = f"; rel. error vs CPU {r['rel_err']:.1e}" if r.get("rel_err") is not None else ""
