@@ -69,21 +69,24 @@ fn before_scene() -> GaussianScene {
 
 /// Writes the viewer page for the two scenes, starting from [`front_camera`].
 fn write_page(path: &Path) {
-    let before = before_scene();
-    let after = two_blobs([0.1, 0.9, 0.15]);
+    write_page_of(path, &before_scene(), &two_blobs([0.1, 0.9, 0.15]));
+}
+
+/// [`write_page`] for any two scenes.
+fn write_page_of(path: &Path, before: &GaussianScene, after: &GaussianScene) {
     let cameras = [front_camera(160, 120)];
-    let view = InitialView::from_cameras(&cameras, &before, None);
+    let view = InitialView::from_cameras(&cameras, before, None);
     write_viewer_page(
         path,
         "two blobs <test>",
         &[
             ViewerScene {
                 label: "before",
-                scene: &before,
+                scene: before,
             },
             ViewerScene {
                 label: "after",
-                scene: &after,
+                scene: after,
             },
         ],
         &view,
@@ -222,9 +225,57 @@ fn viewer_matches_the_cpu_renderer() {
     let page = tmp.path().join("viewer.html");
     write_page(&page);
     let canvas = screenshot_canvas(&page, tmp.path(), "#before");
+    let (mean, p99) = errors_against_cpu(&canvas, &before_scene());
+    println!("WebGL vs CPU renderer: mean abs error {mean:.4}, 99th percentile {p99:.4}");
+    assert!(mean < 0.01, "mean abs error {mean}");
+    assert!(p99 < 0.1, "99th percentile error {p99}");
+}
+
+/// [`before_scene`] at SH degree 1 with strong degree-1 coefficients (seen from the front camera, the z
+/// term moves red down and green up by ~0.35): the viewer shows what the renderer shows, and not the
+/// DC colours alone.
+#[test]
+fn viewer_shows_degree_1_shading_as_the_cpu_renderer() {
+    if !chromium_available() {
+        return;
+    }
+    let dc = before_scene();
+    let mut shaded = GaussianScene::new(1);
+    shaded.means = dc.means.clone();
+    shaded.log_scales = dc.log_scales.clone();
+    shaded.quats = dc.quats.clone();
+    shaded.opacity_logits = dc.opacity_logits.clone();
+    for i in 0..dc.len() {
+        shaded.sh.extend_from_slice(&dc.sh[3 * i..3 * i + 3]);
+        // c1 (−y), c2 (z), c3 (−x), each RGB.
+        shaded
+            .sh
+            .extend([0.1, 0.0, -0.1, -0.75, 0.75, 0.0, 0.2, 0.0, -0.2]);
+    }
+    let tmp = tempfile::tempdir().unwrap();
+    let page = tmp.path().join("viewer.html");
+    write_page_of(&page, &shaded, &dc);
+    let canvas = screenshot_canvas(&page, tmp.path(), "#before");
+    let (mean, p99) = errors_against_cpu(&canvas, &shaded);
+    let (dc_mean, _) = errors_against_cpu(&canvas, &dc);
+    println!(
+        "WebGL vs CPU renderer at SH degree 1: mean abs error {mean:.4}, 99th percentile {p99:.4}; \
+         against the DC colours alone {dc_mean:.4}"
+    );
+    assert!(mean < 0.012, "mean abs error {mean}");
+    assert!(p99 < 0.12, "99th percentile error {p99}");
+    assert!(
+        dc_mean > 2.0 * mean,
+        "the shading shows: {dc_mean} vs {mean}"
+    );
+}
+
+/// Mean and 99th-percentile absolute colour error of a viewer screenshot against the CPU renderer's
+/// image of `scene` from the front camera at the screenshot's size.
+fn errors_against_cpu(canvas: &image::RgbImage, scene: &GaussianScene) -> (f32, f32) {
     let (w, h) = canvas.dimensions();
     let cpu = splat::render::render(
-        &before_scene(),
+        scene,
         &front_camera(w, h),
         &splat::render::RenderSettings {
             background: BACKGROUND,
@@ -245,12 +296,10 @@ fn viewer_matches_the_cpu_renderer() {
     let mean = errors.iter().sum::<f32>() / errors.len() as f32;
     errors.sort_by(f32::total_cmp);
     let p99 = errors[errors.len() * 99 / 100];
-    println!("WebGL vs CPU renderer: mean abs error {mean:.4}, 99th percentile {p99:.4}");
     if let Ok(keep) = std::env::var("VCEDIT_KEEP_SCREENSHOT") {
         cpu.save_png(Path::new(&format!("{keep}.cpu.png"))).unwrap();
     }
-    assert!(mean < 0.01, "mean abs error {mean}");
-    assert!(p99 < 0.1, "99th percentile error {p99}");
+    (mean, p99)
 }
 
 /// Runs after the viewer's own script: clicks the buttons and drags on the canvas, reads the canvas back

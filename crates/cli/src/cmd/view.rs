@@ -13,7 +13,7 @@ use crate::args::output::{files_under, output_file};
     about = "Write a self-contained HTML page with an interactive 3D view of a scene, or of two side by side",
     after_help = "The page opens from disk in any browser with WebGL2 (no server, no network): drag to turn, wheel to \
 zoom; with two scenes a divider, buttons and a slider compare them (the first left, the second right). The scenes \
-are embedded (32 bytes per Gaussian, 4/3 of that as base64) with SH degree-0 colours; larger scenes keep their \
+are embedded (32 bytes per Gaussian, 41 with SH, 4/3 of that as base64) with SH colours up to degree 1; larger scenes keep their \
 --cap most visible Gaussians. The view starts at the first scene's first camera (INRIA output folder), else on an \
 orbit around it.
 

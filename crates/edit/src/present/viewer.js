@@ -3,8 +3,10 @@
 // Data. Every element with `data-vcedit-viewer` holds a JSON config (`script.vcv-config`) and one or two
 // scenes (`script.vcv-scene`, base64). A scene is a list of 32-byte records, the `.splat` layout:
 //   position f32×3 | scale f32×3 (standard deviations, linear) | colour RGBA u8×4 | rotation u8×4
-// little-endian; colour is the SH degree-0 (DC) colour, so it does not change with the view; A is the
-// opacity; the rotation is the quaternion (w, x, y, z), each component mapped [-1, 1] → [0, 255].
+// little-endian; colour is the SH degree-0 (DC) colour; A is the opacity; the rotation is the quaternion
+// (w, x, y, z), each component mapped [-1, 1] → [0, 255]. With `data-sh1` the records are followed by 9
+// bytes per Gaussian, its degree-1 SH coefficients (3 coefficients × RGB, each v mapped to 128 v + 128),
+// which the vertex shader evaluates for the direction from the eye as the renderer does.
 //
 // Cameras are OpenCV pinhole cameras, as everywhere in vcedit: x right, y down, z forward; a world point p
 // is at R p + t in the camera; fx, fy, cx, cy in pixels.
@@ -23,8 +25,9 @@
   'use strict';
 
   const RECORD_BYTES = 32;
-  const TEXELS_PER_GAUSSIAN = 4;
-  const GAUSSIANS_PER_ROW = 1024;
+  const SH1_BYTES = 9;
+  const TEXELS_PER_GAUSSIAN = 6;
+  const GAUSSIANS_PER_ROW = 512;  // 3072 texels wide: within every WebGL2 device's texture size
   const NEAR_PLANE = 0.01;
   const DEPTH_BUCKETS = 65536;
   const CULLED = 0xffffffff;
@@ -34,8 +37,10 @@ precision highp float;
 precision highp int;
 precision highp sampler2D;
 
-// Per Gaussian 4 RGBA32F texels: (x, y, z, opacity), (Σxx, Σxy, Σxz, Σyy), (Σyz, Σzz, -, -), (r, g, b, -).
+// Per Gaussian 6 RGBA32F texels: (x, y, z, opacity), (Σxx, Σxy, Σxz, Σyy), (Σyz, Σzz, -, -), (r, g, b, c3b),
+// (c1r, c1g, c1b, c2r), (c2g, c2b, c3r, c3g): the DC colour and the degree-1 SH coefficients c1..c3.
 uniform sampler2D u_gaussians;
+uniform vec3 u_eye;          // the camera centre in the world
 uniform mat3 u_rotation;     // world to camera
 uniform vec3 u_translation;
 uniform vec4 u_intrinsics;   // fx, fy, cx, cy in canvas pixels
@@ -57,6 +62,8 @@ void main() {
   vec4 t1 = texelFetch(u_gaussians, texel + ivec2(1, 0), 0);
   vec4 t2 = texelFetch(u_gaussians, texel + ivec2(2, 0), 0);
   vec4 t3 = texelFetch(u_gaussians, texel + ivec2(3, 0), 0);
+  vec4 t4 = texelFetch(u_gaussians, texel + ivec2(4, 0), 0);
+  vec4 t5 = texelFetch(u_gaussians, texel + ivec2(5, 0), 0);
 
   vec3 p = u_rotation * t0.xyz + u_translation;
   if (p.z <= ${NEAR_PLANE}) {
@@ -88,7 +95,11 @@ void main() {
 
   // Pixels (y down) to clip space (y up).
   gl_Position = vec4(2.0 * pixel.x / u_viewport.x - 1.0, 1.0 - 2.0 * pixel.y / u_viewport.y, 0.0, 1.0);
-  v_color = vec4(t3.rgb, t0.w);
+  // SH degree 1 along the direction from the eye (the renderer's basis: -C1 y, C1 z, -C1 x), added to
+  // the DC colour and clamped at 0 as the renderer clamps.
+  vec3 d = normalize(t0.xyz - u_eye);
+  vec3 sh1 = 0.48860251 * (-d.y * t4.xyz + d.z * vec3(t4.w, t5.xy) - d.x * vec3(t5.zw, t3.w));
+  v_color = vec4(max(t3.rgb + sh1, 0.0), t0.w);
   v_sigmas = EXTENT * a_corner;
 }`;
 
@@ -124,12 +135,13 @@ void main() {
   // ---- scene data ----
 
   // Decodes a base64 scene into the GPU layout (see the vertex shader) plus the positions for sorting.
-  function decodeScene(base64) {
+  function decodeScene(base64, hasSh1) {
     const binary = atob(base64.trim());
     const bytes = new Uint8Array(binary.length);
     for (let i = 0; i < binary.length; i++) bytes[i] = binary.charCodeAt(i);
     const data = new DataView(bytes.buffer);
-    const count = Math.floor(bytes.length / RECORD_BYTES);
+    const count = Math.floor(bytes.length / (RECORD_BYTES + (hasSh1 ? SH1_BYTES : 0)));
+    const sh = (i, k) => hasSh1 ? (bytes[count * RECORD_BYTES + SH1_BYTES * i + k] - 128) / 128 : 0;
     const rows = Math.max(1, Math.ceil(count / GAUSSIANS_PER_ROW));
     const texels = new Float32Array(rows * GAUSSIANS_PER_ROW * TEXELS_PER_GAUSSIAN * 4);
     const positions = new Float32Array(3 * count);
@@ -151,8 +163,10 @@ void main() {
         x, y, z, bytes[o + 27] / 255,
         cov(0, 0), cov(0, 1), cov(0, 2), cov(1, 1),
         cov(1, 2), cov(2, 2), 0, 0,
-        bytes[o + 24] / 255, bytes[o + 25] / 255, bytes[o + 26] / 255, 0,
-      ], 16 * i);
+        bytes[o + 24] / 255, bytes[o + 25] / 255, bytes[o + 26] / 255, sh(i, 8),
+        sh(i, 0), sh(i, 1), sh(i, 2), sh(i, 3),
+        sh(i, 4), sh(i, 5), sh(i, 6), sh(i, 7),
+      ], 4 * TEXELS_PER_GAUSSIAN * i);
       positions.set([x, y, z], 3 * i);
     }
     return { count, rows, texels, positions };
@@ -266,14 +280,14 @@ void main() {
       this.gl = gl;
       this.program = linkProgram(gl);
       this.uniforms = {};
-      for (const name of ['u_gaussians', 'u_rotation', 'u_translation', 'u_intrinsics', 'u_limits', 'u_viewport']) {
+      for (const name of ['u_gaussians', 'u_eye', 'u_rotation', 'u_translation', 'u_intrinsics', 'u_limits', 'u_viewport']) {
         this.uniforms[name] = gl.getUniformLocation(this.program, name);
       }
       const corners = gl.createBuffer();
       gl.bindBuffer(gl.ARRAY_BUFFER, corners);
       gl.bufferData(gl.ARRAY_BUFFER, new Float32Array([-1, -1, 1, -1, -1, 1, 1, 1]), gl.STATIC_DRAW);
       this.scenes = [...root.querySelectorAll('script.vcv-scene')].map((element) => {
-        const scene = decodeScene(element.textContent);
+        const scene = decodeScene(element.textContent, element.hasAttribute('data-sh1'));
         uploadScene(gl, scene, corners);
         return scene;
       });
@@ -420,6 +434,7 @@ void main() {
       gl.useProgram(this.program);
       gl.uniformMatrix3fv(this.uniforms.u_rotation, false, [0, 1, 2].flatMap((c) => rotation.map((r) => r[c])));
       gl.uniform3fv(this.uniforms.u_translation, translation);
+      gl.uniform3fv(this.uniforms.u_eye, v.center);
       gl.uniform4f(this.uniforms.u_intrinsics, k.fx, k.fy, k.cx, k.cy);
       gl.uniform4f(this.uniforms.u_limits, k.cx / k.fx + 0.3 * tanX, (width - k.cx) / k.fx + 0.3 * tanX,
         k.cy / k.fy + 0.3 * tanY, (height - k.cy) / k.fy + 0.3 * tanY);

@@ -7,7 +7,9 @@
 //! largest cross-section), chosen deterministically. With the default cap of [`DEFAULT_CAP`] a page holds
 //! at most 2 × 250 000 × 42⅔ B ≈ 21.3 MB of scene data; two scenes of 125 000 Gaussians take 10.7 MB.
 //!
-//! Colours are the view-independent SH degree-0 (DC) colours: higher SH bands are dropped.
+//! Colours: the DC colour in the record, and for scenes of SH degree 1 or more the 9 degree-1 coefficients
+//! as 9 more bytes per Gaussian (after all the records; `data-sh1` on the script says they are there), so
+//! shading changes with the viewing direction as in the renderer; bands 2 and 3 are dropped.
 
 use std::path::Path;
 
@@ -22,6 +24,8 @@ const VIEWER_JS: &str = include_str!("viewer.js");
 
 /// Bytes per Gaussian in the embedded records.
 pub const RECORD_BYTES: usize = splat::formats::dot_splat::RECORD_BYTES;
+/// Bytes per Gaussian of the degree-1 SH coefficients (3 coefficients × RGB), after the records.
+pub const SH1_BYTES: usize = 9;
 /// Default number of Gaussians embedded per scene.
 pub const DEFAULT_CAP: usize = 250_000;
 /// The zeroth-order SH basis constant: colour = 0.5 + C0 · DC coefficient.
@@ -61,6 +65,17 @@ pub struct Record {
 /// This is exactly a record of antimatter15's `.splat` files, as `splat::formats::dot_splat` writes them.
 pub fn pack_record(scene: &GaussianScene, i: usize) -> [u8; RECORD_BYTES] {
     splat::formats::dot_splat::encode_record(scene, i)
+}
+
+/// The degree-1 SH coefficients of Gaussian `i` (coefficient-major, channel inner, as `GaussianScene::sh`),
+/// each stored as round(128 v + 128) clamped to 0..=255 (as `.spz` stores SH): steps of 1/128 over
+/// [-1, 1). Zeros for a scene of degree 0.
+pub fn pack_sh1(scene: &GaussianScene, i: usize) -> [u8; SH1_BYTES] {
+    if scene.sh_degree == 0 {
+        return [128; SH1_BYTES];
+    }
+    let row = &scene.sh[i * 3 * scene.sh_coeffs() + 3..][..SH1_BYTES];
+    std::array::from_fn(|k| (row[k] * 128.0 + 128.0).round().clamp(0.0, 255.0) as u8)
 }
 
 /// Decodes a record written by [`pack_record`].
@@ -346,7 +361,10 @@ fn build(
         .iter()
         .map(|s| {
             let kept = visible_subset(s.scene, options.cap);
-            let bytes: Vec<u8> = kept.iter().flat_map(|&i| pack_record(s.scene, i)).collect();
+            let mut bytes: Vec<u8> = kept.iter().flat_map(|&i| pack_record(s.scene, i)).collect();
+            if s.scene.sh_degree > 0 {
+                bytes.extend(kept.iter().flat_map(|&i| pack_sh1(s.scene, i)));
+            }
             (kept.len(), base64(&bytes))
         })
         .collect();
@@ -361,7 +379,8 @@ fn build(
         div.vcv data-vcedit-viewer data-mode="split" {
             script.vcv-config type="application/json" { (PreEscaped(script_json(&config))) }
             @for (s, (_, data)) in scenes.iter().zip(&packed) {
-                script.vcv-scene type="application/octet-stream" data-label=(s.label) {
+                script.vcv-scene type="application/octet-stream" data-label=(s.label)
+                    data-sh1=[(s.scene.sh_degree > 0).then_some("1")] {
                     (PreEscaped(data))
                 }
             }
@@ -386,8 +405,8 @@ fn build(
             }
             p.vcv-note {
                 "Drag to turn around the scene, shift- or right-drag to pan, wheel to zoom, double-click to \
-                 reset. WebGL2 splatting of the embedded Gaussians with their SH degree-0 (view-independent) \
-                 colours, so shading that changes with the viewing direction is not shown."
+                 reset. WebGL2 splatting of the embedded Gaussians with their SH colours up to degree 1 \
+                 (view-dependent shading of degree 2 and 3 is not shown)."
             }
             p.vcv-note {
                 "Embedded: "
@@ -397,8 +416,8 @@ fn build(
                 }
                 " (at most " (grouped(options.cap)) " per scene, the most visible by opacity × area). "
                 (RECORD_BYTES) " bytes per Gaussian, " (format!("{:.1}", RECORD_BYTES as f64 * 4.0 / 3.0))
-                " in the page as base64: two scenes of 125" "\u{202f}" "000 Gaussians take "
-                (format!("{mb_125k_pair:.1}")) " MB."
+                " in the page as base64 (" (SH1_BYTES) " more with SH): two scenes of 125" "\u{202f}"
+                "000 Gaussians take " (format!("{mb_125k_pair:.1}")) " MB."
             }
         }
         script { (PreEscaped(VIEWER_JS)) }
@@ -475,6 +494,36 @@ mod tests {
             }
         }
         s
+    }
+
+    #[test]
+    fn degree_1_coefficients_follow_the_records_of_shaded_scenes() {
+        let shaded = varied(5, 2);
+        let k = shaded.sh_coeffs();
+        for i in 0..5 {
+            let packed = pack_sh1(&shaded, i);
+            for (j, &b) in packed.iter().enumerate() {
+                let want = shaded.sh[i * 3 * k + 3 + j].clamp(-1.0, 127.0 / 128.0);
+                let got = (f32::from(b) - 128.0) / 128.0;
+                assert!(
+                    (got - want).abs() <= 0.5 / 128.0 + 1e-6,
+                    "{i}/{j}: {got} vs {want}"
+                );
+            }
+        }
+        assert_eq!(pack_sh1(&varied(2, 0), 1), [128; SH1_BYTES]);
+        // The page: records, then the coefficients, marked `data-sh1`; a degree-0 scene has neither.
+        let view = InitialView::around(&shaded);
+        let options = ViewerOptions::default();
+        for (scene, sh1) in [(&shaded, true), (&varied(5, 0), false)] {
+            let (html, kept) = build(&[ViewerScene { label: "s", scene }], &view, &options);
+            let html = html.into_string();
+            let bytes = RECORD_BYTES + if sh1 { SH1_BYTES } else { 0 };
+            assert_eq!(html.contains("data-label=\"s\" data-sh1"), sh1);
+            let data = html.split("data-label=\"s\"").nth(1).unwrap();
+            let data = &data[data.find('>').unwrap() + 1..data.find("</script>").unwrap()];
+            assert_eq!(data.trim().len(), (kept[0] * bytes).div_ceil(3) * 4);
+        }
     }
 
     #[test]
@@ -610,10 +659,15 @@ mod tests {
     #[test]
     fn page_embeds_every_visible_gaussian_and_states_the_budget() {
         let html = page_for(["before", "after"]);
-        let start = html.find("data-label=\"after\">").unwrap() + "data-label=\"after\">".len();
+        // The scene has SH degree 1: its records, then its degree-1 coefficients.
+        let tag = "data-label=\"after\" data-sh1=\"1\">";
+        let start = html.find(tag).unwrap() + tag.len();
         let data = &html[start..start + html[start..].find('<').unwrap()];
         let visible = visible_subset(&varied(6, 1), usize::MAX).len();
-        assert_eq!(data.len(), (visible * RECORD_BYTES).div_ceil(3) * 4);
+        assert_eq!(
+            data.len(),
+            (visible * (RECORD_BYTES + SH1_BYTES)).div_ceil(3) * 4
+        );
         assert!(html.contains("32 bytes per Gaussian, 42.7 in the page as base64"));
         assert!(html.contains("take 10.7 MB"));
         assert!(html.contains("at most 250\u{202f}000 per scene"));
