@@ -313,15 +313,9 @@ fn fit_on_the_gpu_tracks_the_cpu_fit() {
     }
 }
 
-/// GPU lifting against `crate::lift::lift` on a constructed scene with three views.
-#[test]
-fn lifting_matches_the_cpu() {
-    let Some(ctx) = context_or_skip() else {
-        return;
-    };
-    let scene = random_scene(300, 0, 5);
-    let channels = 3;
-    let cams: Vec<Camera> = (0..3)
+/// Three 40×34 cameras turning around the random scenes' centre, for the lifting tests.
+fn three_views() -> Vec<Camera> {
+    (0..3)
         .map(|k| {
             let a = k as f64 * 0.3;
             look_at(
@@ -334,7 +328,18 @@ fn lifting_matches_the_cpu() {
                 36.0,
             )
         })
-        .collect();
+        .collect()
+}
+
+/// GPU lifting against `crate::lift::lift` on a constructed scene with three views.
+#[test]
+fn lifting_matches_the_cpu() {
+    let Some(ctx) = context_or_skip() else {
+        return;
+    };
+    let scene = random_scene(300, 0, 5);
+    let channels = 3;
+    let cams = three_views();
     let maps: Vec<Vec<f32>> = (0..3)
         .map(|k| {
             (0..40 * 34 * channels)
@@ -409,20 +414,7 @@ fn lifting_and_rendering_back_matches_the_cpu() {
         return;
     };
     let scene = random_scene(300, 0, 5);
-    let cams: Vec<Camera> = (0..3)
-        .map(|k| {
-            let a = k as f64 * 0.3;
-            look_at(
-                format!("v{k}"),
-                [3.0 * a.sin(), -0.1, 1.0 - 3.0 * a.cos()],
-                [0.0, 0.0, 1.0],
-                [0.0, -1.0, 0.0],
-                40,
-                34,
-                36.0,
-            )
-        })
-        .collect();
+    let cams = three_views();
     for mode in [Resample::Bilinear, Resample::Nearest] {
         let grid = MapGrid {
             height: 9,
