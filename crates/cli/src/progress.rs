@@ -189,10 +189,10 @@ impl Reporter {
         );
         // Pace and ETA once this stage has done something and until it is complete.
         let warm = self.warm_up.then(|| &*s.warmed);
-        if let Some(pace) = Pace::of(s.first, s.done, s.started.elapsed(), warm) {
+        if let Some(each) = pace(s.first, s.done, s.started.elapsed(), warm) {
             if s.done < s.total {
-                let eta = short_duration(pace.each * (s.total - s.done) as f64);
-                let _ = write!(text, ", {} each, ETA {eta}", seconds(pace.each));
+                let eta = short_duration(each * (s.total - s.done) as f64);
+                let _ = write!(text, ", {} each, ETA {eta}", seconds(each));
             }
         } else if self.warm_up && s.done > s.first && s.done < s.total {
             text.push_str(", first step compiled GPU kernels, ETA ?");
@@ -243,32 +243,23 @@ pub fn stage_bar(name: &str, total: u64, done: u64, warm: Option<Arc<AtomicU64>>
     bar
 }
 
-/// A stage's pace: seconds per unit over the units that count.
-struct Pace {
-    each: f64,
+/// A stage's pace, seconds per unit: `first` units were done when the stage started `elapsed` ago and
+/// `done` are done now. With `warm` (microseconds to the end of the first unit, 0 while unknown) the first
+/// unit is left out. `None` until a unit that counts is done.
+fn pace(first: u64, done: u64, elapsed: Duration, warm: Option<&AtomicU64>) -> Option<f64> {
+    let worked = done.saturating_sub(first);
+    let (counted, secs) = match warm.map(|w| w.load(Ordering::Relaxed)) {
+        None => (worked, elapsed.as_secs_f64()),
+        Some(0) => return None,
+        Some(micros) => (
+            worked.saturating_sub(1),
+            (elapsed.as_secs_f64() - micros as f64 * 1e-6).max(0.0),
+        ),
+    };
+    (counted > 0).then(|| secs / counted as f64)
 }
 
-impl Pace {
-    /// `first` units were done when the stage started `elapsed` ago and `done` are done now. With
-    /// `warm` (microseconds to the end of the first unit, 0 while unknown) the first unit is left out.
-    /// `None` until a unit that counts is done.
-    fn of(first: u64, done: u64, elapsed: Duration, warm: Option<&AtomicU64>) -> Option<Self> {
-        let worked = done.saturating_sub(first);
-        let (counted, secs) = match warm.map(|w| w.load(Ordering::Relaxed)) {
-            None => (worked, elapsed.as_secs_f64()),
-            Some(0) => return None,
-            Some(micros) => (
-                worked.saturating_sub(1),
-                (elapsed.as_secs_f64() - micros as f64 * 1e-6).max(0.0),
-            ),
-        };
-        (counted > 0).then(|| Pace {
-            each: secs / counted as f64,
-        })
-    }
-}
-
-/// The time left at the stage's average pace (see [`Pace::of`]) for `total` units; "?" while unknown.
+/// The time left at the stage's average pace (see [`pace`]) for `total` units; "?" while unknown.
 fn eta_text(
     first: u64,
     done: u64,
@@ -279,8 +270,8 @@ fn eta_text(
     if done >= total {
         return "0s".into();
     }
-    match Pace::of(first, done, elapsed, warm) {
-        Some(pace) => short_duration(pace.each * (total - done) as f64),
+    match pace(first, done, elapsed, warm) {
+        Some(each) => short_duration(each * (total - done) as f64),
         None => "?".into(),
     }
 }

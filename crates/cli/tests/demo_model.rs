@@ -154,28 +154,40 @@ fn demo_model_edits_a_red_sphere_into_a_blue_sphere() {
     assert!(object.iter().filter(|&&o| o).count() > 128 * 128 / 10);
 
     let output = dir.path().join("blue.png");
-    let (code, _, stderr) = vcedit(&[
-        "edit-image",
-        "--model",
-        model.to_str().unwrap(),
-        "--image",
-        input.to_str().unwrap(),
-        "--source",
-        "a red sphere",
-        "--target",
-        "a blue sphere",
-        "--size",
-        "128",
-        // The small model's settings (see `demo::run::demo_infedit_settings`): the target's own
-        // cross-attention for most steps and a looser blend threshold than SD's defaults.
-        "--cross",
-        "0.3",
-        "--thresh-e",
-        "0.3",
-        "--out",
-        output.to_str().unwrap(),
-    ]);
+    // The small model's settings (see `demo::run::demo_infedit_settings`): the target's own
+    // cross-attention for most steps and a looser blend threshold than SD's defaults.
+    let edit = |thresh: &str| {
+        vcedit(&[
+            "edit-image",
+            "--model",
+            model.to_str().unwrap(),
+            "--image",
+            input.to_str().unwrap(),
+            "--source",
+            "a red sphere",
+            "--target",
+            "a blue sphere",
+            "--size",
+            "128",
+            "--cross",
+            "0.3",
+            "--thresh-e",
+            thresh,
+            "--out",
+            output.to_str().unwrap(),
+        ])
+    };
+    // An edit that cannot change anything (an empty blend region) ends with a warning naming the knobs.
+    let (code, _, stderr) = edit("1");
     assert_eq!(code, 0, "{stderr}");
+    assert!(
+        stderr.contains("warning: the edit changed little"),
+        "{stderr}"
+    );
+    assert!(stderr.contains("--thresh-e"), "{stderr}");
+    let (code, _, stderr) = edit("0.3");
+    assert_eq!(code, 0, "{stderr}");
+    assert!(!stderr.contains("warning"), "{stderr}");
     let edited = Image::load(&output).unwrap();
     let before = mean_colour(&source, &object);
     let after = mean_colour(&edited, &object);

@@ -353,7 +353,7 @@ fn configure_runtime() {
 }
 
 /// Where cubecl's caches go: `cubecl` in vcedit's cache folder.
-pub fn runtime_cache_dir() -> std::path::PathBuf {
+fn runtime_cache_dir() -> std::path::PathBuf {
     files::cache_dir().join("cubecl")
 }
 

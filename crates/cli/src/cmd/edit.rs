@@ -348,10 +348,10 @@ pub fn run(args: Args) -> anyhow::Result<()> {
 }
 
 /// Below this fraction of changed pixels (`changed_fraction`) an edit is reported as having changed little.
-/// With the demo model at 128²: an edit with an empty blend region (`--thresh-e 1`) changes 1.4-1.8 % of the
-/// pixels against the source's own codec round trip, a real one 21 % of the image, 100 % of a 3D edit's
-/// mask.
-const UNCHANGED_FRACTION: f64 = 0.03;
+/// With the demo model at 128²: an edit with an empty blend region (`--thresh-e 1`) changes 1.4-3.4 % of the
+/// pixels against the source's own codec round trip (the source branch drifts a little), a real one 21 % of
+/// the image, 100 % of a 3D edit's mask.
+const UNCHANGED_FRACTION: f64 = 0.05;
 
 /// A warning line when an edit left `what` (the renders where it may act, an image) nearly as they were:
 /// an edit that silently does nothing looks like success. `changed`: the changed fraction of the pixels.
