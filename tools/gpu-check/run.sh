@@ -189,6 +189,12 @@ step matmul 60 "$V" bench matmul --precisions f32,f16 --shapes "$SHAPES" --repea
 step matmul-wgsl 60 env VCEDIT_GPU_COMPILER=wgsl "$V" bench matmul --precisions f16 --shapes "$SHAPES" --repeat "$REPEAT" --runs 3
 if have_torch; then step matmul-torch 60 python3 "$TB" matmul --shapes "$SHAPES" --repeat "$REPEAT"; fi
 
+# ---- attention at SD 1.5's shapes (one view's six branches × 8 heads): our flash kernel against products
+# around a softmax (the default for heads wider than 8; tensor cores where the card has them); PyTorch SDPA
+if [ "$MODE" = device ]; then ASHAPES=48x4096x4096x40,48x1024x1024x80,48x4096x77x40; AREPEAT=5; else ASHAPES=8x256x256x40,8x256x77x40; AREPEAT=1; fi
+step attention 90 "$V" bench attention --shapes "$ASHAPES" --repeat "$AREPEAT" --runs 3
+if have_torch; then step attention-torch 60 python3 "$TB" attention --shapes "$ASHAPES" --repeat "$AREPEAT"; fi
+
 # ---- the UNet, batch 1 and 6 (one InfEdit step), plain and with the InfEdit-shaped hook; PyTorch fp16 SDPA
 # `--check`: batch 1 once more on the CPU, so the table says what the GPU path's rounding costs end to end.
 step unet 180 "$V" bench unet --model "$MODEL" --device gpu --size "$LAT" --batches 1,6 --hooks none,device --runs "$RUNS" --check
@@ -196,6 +202,9 @@ step unet 180 "$V" bench unet --model "$MODEL" --device gpu --size "$LAT" --batc
 # forward bound by submissions? batch 1 costs a third of batch 6), and its first call says what the SPIR-V
 # kernels the `unet` step persisted save in a new process.
 [ "$MODE" = device ] && step unet-tasks 120 env CUBECL_WGPU_MAX_TASKS=256 "$V" bench unet --model "$MODEL" --device gpu --size "$LAT" --batches 1,6 --hooks none --runs "$RUNS"
+# The whole forward with the flash kernel for every head (the default before products): the A/B for the
+# attention path.
+[ "$MODE" = device ] && step unet-flash 120 env VCEDIT_GPU_ATTENTION=flash "$V" bench unet --model "$MODEL" --device gpu --size "$LAT" --batches 6 --hooks none --runs "$RUNS"
 step unet-wgsl 120 env VCEDIT_GPU_COMPILER=wgsl "$V" bench unet --model "$MODEL" --device gpu --size "$LAT" --batches 6 --hooks none --runs "$RUNS"
 if have_torch; then
   step unet-torch 90 python3 "$TB" unet --model "$MODEL" --size "$LAT" --batches 1,6 --dtype f16 --runs 5

@@ -145,9 +145,18 @@ def build_table(res, steps, mode, torch_present):
             if t:
                 line["ratio_vcedit_over_pytorch"] = ratio(r["ms"], t["ms"])
                 line["pytorch_tf32"] = (find(mt, precision="tf32", m=r["m"], k=r["k"], n=r["n"]) or {}).get("tflops")
+    at = res.get("attention-torch", [])
+    for r in [x for x in res.get("attention", []) if x.get("bench") == "attention"]:
+        shape = f"{r['entries']}x{r['queries']}x{r['keys']}x{r['dim']}"
+        t = find(at, entries=r["entries"], queries=r["queries"], keys=r["keys"], dim=r["dim"])
+        err = f"; rel. error vs CPU f32 {r['rel_err']:.1e}" if r.get("rel_err") is not None else ""
+        line = row(f"attention {shape}, {r['path']} ({r.get('matmul_path', '?')} products), "
+                   f"{r.get('compiler', '?')} (ms)", r.get("ms"), t.get("ms") if t else None,
+                   fmt_s(r.get("first_s")), f"PyTorch: fp16 SDPA{err}")
+        line["ratio_vcedit_over_pytorch"] = ratio(r.get("ms"), t.get("ms") if t else None)
     ut, ut32 = res.get("unet-torch", []), res.get("unet-torch-f32", [])
     for step_name, label in (("unet", ""), ("unet-tasks", ", 256 tasks per submission, 2nd process"),
-                             ("unet-wgsl", ", WGSL")):
+                             ("unet-flash", ", flash attention for every head"), ("unet-wgsl", ", WGSL")):
         for r in res.get(step_name, []):
             t = find(ut, batch=r["batch"])
             err = f"; rel. error vs CPU {r['rel_err']:.1e}" if r.get("rel_err") is not None else ""

@@ -4,6 +4,7 @@ weights (a diffusers model folder), so the ratio of the two is the figure.
 
   python torch_bench.py info
   python torch_bench.py matmul [--shapes 4096x320x1280] [--dtypes f32,tf32,f16]
+  python torch_bench.py attention [--shapes 48x4096x4096x40] [--dtype f16]
   python torch_bench.py unet  --model DIR [--batches 1,6] [--size 64] [--dtype f16]
   python torch_bench.py codec --model DIR [--size 512] [--dtype f16]
   python torch_bench.py text  --model DIR [--batches 1,6] [--dtype f16]
@@ -102,6 +103,28 @@ def cmd_matmul(a):
     torch.backends.cuda.matmul.allow_tf32 = False
 
 
+def cmd_attention(a):
+    """SDPA at `vcedit bench attention`'s shapes (ENTRIESxQUERIESxKEYSxHEAD_DIM, entries = batch × heads)."""
+    dt = dtype_of(a.dtype)
+    for shape in a.shapes.split(","):
+        b, q_len, k_len, d = map(int, shape.split("x"))
+        q = torch.randn(1, b, q_len, d, device=device(), dtype=dt)
+        k = torch.randn(1, b, k_len, d, device=device(), dtype=dt)
+        v = torch.randn(1, b, k_len, d, device=device(), dtype=dt)
+
+        def run():
+            for _ in range(a.repeat):
+                torch.nn.functional.scaled_dot_product_attention(q, k, v)
+
+        first, warm = measure(run, a.runs)
+        warm = [t / a.repeat for t in warm]
+        best = min(warm)
+        fields = dict(bench="attention", dtype=a.dtype, entries=b, queries=q_len, keys=k_len, dim=d,
+                      repeat=a.repeat, ms=round(best * 1e3, 4),
+                      tflops=round(4 * b * q_len * k_len * d / best / 1e12, 3))
+        report(fields, first, warm)
+
+
 def cmd_unet(a):
     from diffusers import UNet2DConditionModel
     dt = dtype_of(a.dtype)
@@ -151,6 +174,11 @@ def main():
     p.add_argument("--dtypes", default="f32,tf32,f16")
     p.add_argument("--repeat", type=int, default=20)
     p.add_argument("--runs", type=int, default=3)
+    p = sub.add_parser("attention")
+    p.add_argument("--shapes", default="48x4096x4096x40,48x1024x1024x80,48x4096x77x40")
+    p.add_argument("--dtype", default="f16")
+    p.add_argument("--repeat", type=int, default=5)
+    p.add_argument("--runs", type=int, default=3)
     for name, batches in (("unet", "1,6"), ("text", "1,6")):
         p = sub.add_parser(name)
         p.add_argument("--model", required=True)
@@ -166,7 +194,7 @@ def main():
     p.add_argument("--runs", type=int, default=3)
     a = ap.parse_args()
     torch.manual_seed(0)
-    {"info": cmd_info, "matmul": cmd_matmul, "unet": cmd_unet, "codec": cmd_codec, "text": cmd_text}[a.cmd](a)
+    {"info": cmd_info, "matmul": cmd_matmul, "attention": cmd_attention, "unet": cmd_unet, "codec": cmd_codec, "text": cmd_text}[a.cmd](a)
 
 
 if __name__ == "__main__":

@@ -4,6 +4,7 @@
 //! | --- | --- |
 //! | `device` | the adapter the GPU path opens: name, API, shader compiler, limits, free memory |
 //! | `matmul` | GPU matrix products at SD 1.5's shapes (f32 and f16 weights), first call apart |
+//! | `attention` | GPU attention at SD 1.5's shapes: the flash kernel against products around a softmax |
 //! | `unet` | one UNet forward (SD 1.5 config with random weights, or a model folder), with or without an InfEdit-shaped attention hook |
 //! | `codec` | the latent codec's encode and decode (AutoencoderKL and TAESD, or a model folder's) |
 //! | `text` | tokenizer and CLIP text encoder |
@@ -18,6 +19,7 @@
 
 use std::time::{Duration, Instant};
 
+pub mod attention;
 pub mod codec;
 pub mod device;
 pub mod lift;
@@ -29,8 +31,16 @@ pub mod text;
 pub mod unet;
 
 /// The benches, in the order `vcedit bench --help` lists them.
-pub const NAMES: [&str; 8] = [
-    "device", "matmul", "unet", "codec", "text", "render", "lpips", "lift",
+pub const NAMES: [&str; 9] = [
+    "device",
+    "matmul",
+    "attention",
+    "unet",
+    "codec",
+    "text",
+    "render",
+    "lpips",
+    "lift",
 ];
 
 /// A bench that could not run: a bad argument, a missing file, a GPU error. One line.
@@ -75,6 +85,7 @@ pub fn run(name: &str, args: &[String], reexec: &[String]) -> Result<()> {
     match name {
         "device" => device::main(args),
         "matmul" => matmul::main(args),
+        "attention" => attention::main(args),
         "unet" => unet::main(args, reexec),
         "codec" => codec::main(args),
         "text" => text::main(args),

@@ -392,7 +392,7 @@ impl DeviceTensor {
         Ok(dispatch2!(self, other, (a, b) => Storage::matmul(a, b)))
     }
 
-    /// [`super::attention`] on the operands' device (flash-style on the GPU: no probability matrix).
+    /// [`super::attention`] on the operands' device (on the GPU, `ops::attention`'s path).
     pub fn attention(
         q: &DeviceTensor,
         k: &DeviceTensor,

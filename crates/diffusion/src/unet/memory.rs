@@ -13,7 +13,9 @@
 //!     (about 12 × input channels + output channels, per pixel);
 //!   - a transformer block: the residual stream, its norm, Q/K/V and their head-split copies, and the
 //!     feed-forward's GEGLU projection (8 × channels) and its output (4 × channels): 17 × channels per
-//!     pixel; flash attention stores no probability matrix;
+//!     pixel; plus self-attention's scores and probabilities (2 × heads × pixels², 4 bytes each), held
+//!     in chunks of whole heads of at most `ops::TRANSIENT_CAP_BYTES` (at least one head: 64 MiB at 64²;
+//!     see `ops::attention`);
 //!   - with a hook, Q/K/V also make a round trip through the CPU (3 more copies) and the cross-attention
 //!     layers hold their scores and probabilities (2 × heads × pixels × context tokens). Self-attention
 //!     probabilities are assumed not requested (InfEdit's controller and the blend masks read
@@ -28,6 +30,7 @@
 
 use super::config::UNetConfig;
 use super::UNetError;
+use crate::kernels::gpu::ops::TRANSIENT_CAP_BYTES;
 
 /// Bytes a UNet call's activations occupy on the device (see the module documentation).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -78,9 +81,11 @@ impl UNetConfig {
             h = h.div_ceil(2);
             w = w.div_ceil(2);
         }
-        // Elements per image.
+        // Elements per image (`working` in bytes for the whole batch: the score chunks do not scale
+        // with it).
         let mut skips = ch[0] * pixels[0];
         let mut working = 0usize;
+        let bytes = |elements: usize| elements * batch * F32_BYTES;
         let mut probabilities = 0usize;
         for l in 0..n {
             let (c, s) = (ch[l], pixels[l]);
@@ -89,25 +94,62 @@ impl UNetConfig {
                 skips += c * pixels[l + 1];
             }
             let input = ch[(l + 1).min(n - 1)] + c;
-            working = working.max((12 * input + c) * s);
+            working = working.max(bytes((12 * input + c) * s));
             // The mid block has attention at the last level whatever the block types say.
             let has_attention = r.down[l] == super::config::BlockKind::CrossAttn
                 || r.up[n - 1 - l] == super::config::BlockKind::CrossAttn
                 || l + 1 == n;
             if has_attention {
                 let copies = if hooked { 20 } else { 17 };
-                working = working.max(copies * c * s);
+                let one_head = s * s * F32_BYTES;
+                let scores = bytes(r.heads[l] * s * s).min(one_head.max(TRANSIENT_CAP_BYTES));
+                working = working.max(bytes(copies * c * s) + 2 * scores);
                 if hooked {
                     probabilities = probabilities.max(2 * r.heads[l] * s * context_tokens);
                 }
             }
         }
-        let bytes = |elements: usize| elements * batch * F32_BYTES;
         Ok(ActivationEstimate {
             skips: bytes(skips),
-            working: bytes(working),
+            working,
             probabilities: bytes(probabilities),
         })
+    }
+}
+
+impl UNetConfig {
+    /// Cross-attention layers of a call on `height`×`width` latents whose maps have at most `max_queries`
+    /// pixels (those an attention store records, e.g. CCM's): per level, `layers` per cross-attention down
+    /// block and `layers + 1` per up block, each times its transformer depth, plus the mid block's at the
+    /// last level. SD 1.5 at 64² latents with 32² queries at most: 11.
+    pub fn cross_attention_layers(
+        &self,
+        height: usize,
+        width: usize,
+        max_queries: usize,
+    ) -> Result<usize, UNetError> {
+        use super::config::BlockKind::CrossAttn;
+        let r = self.resolve().map_err(UNetError::Unsupported)?;
+        let n = self.block_out_channels.len();
+        let (mut h, mut w) = (height, width);
+        let mut layers = 0;
+        for l in 0..n {
+            if h * w <= max_queries {
+                let depth = r.transformer_layers[l];
+                if r.down[l] == CrossAttn {
+                    layers += r.layers[l] * depth;
+                }
+                if r.up[n - 1 - l] == CrossAttn {
+                    layers += (r.layers[l] + 1) * depth;
+                }
+                if l + 1 == n {
+                    layers += depth;
+                }
+            }
+            h = h.div_ceil(2);
+            w = w.div_ceil(2);
+        }
+        Ok(layers)
     }
 }
 
@@ -119,8 +161,20 @@ mod tests {
     fn sd15_estimate_is_dominated_by_the_first_level_and_scales_with_the_batch() {
         let cfg = UNetConfig::sd15();
         let one = cfg.activation_estimate(1, 64, 64, 77, false).unwrap();
-        // The first up block's ResNet at 64²: (12 × (640 + 320) + 320) × 4096 × 4 bytes.
-        assert_eq!(one.working, (12 * 960 + 320) * 4096 * 4);
+        // The first level's transformer at 64²: 17 copies of 320 channels plus the scores and
+        // probabilities of its self-attention, in chunks of the cap (8 heads of 4096² are 512 MiB).
+        assert_eq!(one.working, 17 * 320 * 4096 * 4 + 2 * TRANSIENT_CAP_BYTES);
+        // Six images' activations scale, their scores' chunks do not: the first up block's ResNet
+        // ((12 × (640 + 320) + 320) × 4096 per image) is now the larger.
+        let six_plain = cfg.activation_estimate(6, 64, 64, 77, false).unwrap();
+        let transformer = 6 * 17 * 320 * 4096 * 4 + 2 * TRANSIENT_CAP_BYTES;
+        let resnet = 6 * (12 * 960 + 320) * 4096 * 4;
+        assert!(resnet > transformer);
+        assert_eq!(six_plain.working, resnet);
+        // At 32² one image's 8 heads of 1024² (32 MiB) fit in one chunk.
+        let small = cfg.activation_estimate(1, 32, 32, 77, false).unwrap();
+        assert!(small.working >= 2 * 8 * 1024 * 1024 * 4);
+        assert!(small.working < 2 * TRANSIENT_CAP_BYTES);
         assert_eq!(one.probabilities, 0);
         // Skips: conv_in + 2 per level + 3 downsamplers, in f32.
         let skips = 320 * 4096 * 3
@@ -135,9 +189,20 @@ mod tests {
         assert_eq!(six.skips, 6 * one.skips);
         // Cross-attention maps at 64²: scores and probabilities, 8 heads × 4096 × 77, per image.
         assert_eq!(six.probabilities, 6 * 2 * 8 * 4096 * 77 * 4);
-        assert!(six.total() > 6 * one.total());
-        // About 0.25 GB per 512² image: six branches of 16 views fit in a 40 GB card.
-        assert!((200 << 20..300 << 20).contains(&one.total()), "{one:?}");
+        // About 1.35 GiB for one 512² view's six hooked branches: a view batch of 8 fits in 24 GB.
+        assert!((1 << 30..3 << 29).contains(&six.total()), "{six:?}");
+    }
+
+    #[test]
+    fn recorded_cross_attention_layers_follow_the_query_limit() {
+        let cfg = UNetConfig::sd15();
+        // 64² latents: 32² (5 layers), 16² (5) and the mid block at 8² (1).
+        assert_eq!(cfg.cross_attention_layers(64, 64, 32 * 32).unwrap(), 11);
+        // 32² latents: the first level is 32² too.
+        assert_eq!(cfg.cross_attention_layers(32, 32, 32 * 32).unwrap(), 16);
+        assert_eq!(cfg.cross_attention_layers(64, 64, 1).unwrap(), 0);
+        // Every layer: 2 + 2 + 2 down, 3 + 3 + 3 up, 1 mid.
+        assert_eq!(cfg.cross_attention_layers(64, 64, usize::MAX).unwrap(), 16);
     }
 
     #[test]

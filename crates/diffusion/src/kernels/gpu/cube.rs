@@ -523,9 +523,10 @@ pub fn layer_norm(
     }
 }
 
-/// Softmax over the last dimension, one cube per row; `meta = [width, rows]`.
+/// Softmax of `scale · x` over the last dimension, one cube per row; `meta = [width, rows]`. The scale is
+/// applied here so attention's scores need no pass of their own to be scaled.
 #[cube(launch_unchecked)]
-pub fn softmax_rows(x: &[f32], out: &mut [f32], meta: &[u32]) {
+pub fn softmax_rows(x: &[f32], out: &mut [f32], meta: &[u32], scale: f32) {
     let units = comptime!(REDUCE_UNITS);
     let width = meta[0];
     let valid = cube_index() < meta[1];
@@ -536,21 +537,21 @@ pub fn softmax_rows(x: &[f32], out: &mut [f32], meta: &[u32]) {
     let mut m = floor;
     let mut i = UNIT_POS;
     while i < width {
-        m = f32::max(m, x[(base + i) as usize]);
+        m = f32::max(m, x[(base + i) as usize] * scale);
         i += units;
     }
     let m = cube_max::<f32>(m, units);
     let mut sum = 0.0f32;
     i = UNIT_POS;
     while i < width {
-        sum += f32::exp(x[(base + i) as usize] - m);
+        sum += f32::exp(x[(base + i) as usize] * scale - m);
         i += units;
     }
     let inv = 1.0f32 / cube_sum::<f32>(sum, units);
     i = UNIT_POS;
     while i < width {
         if valid {
-            out[(base + i) as usize] = f32::exp(x[(base + i) as usize] - m) * inv;
+            out[(base + i) as usize] = f32::exp(x[(base + i) as usize] * scale - m) * inv;
         }
         i += units;
     }

@@ -837,7 +837,7 @@ pub fn conv2d(
     // The im2col buffer is cin·kh·kw times the output's pixels: in a full-resolution VAE layer it alone
     // outgrows a device's largest buffer (lavapipe: 128 MiB; 512² × 128 channels × 9 = 1.2 GB per image).
     // Past the cap the convolution runs in blocks of whole images, then of output rows.
-    conv2d_blocked(x, weight, bias, stride, padding, im2col_cap(x))
+    conv2d_blocked(x, weight, bias, stride, padding, transient_cap(x))
 }
 
 /// [`conv2d`] with im2col blocks of at most `cap` bytes (where one output row does not fit, one row).
@@ -906,14 +906,18 @@ fn conv2d_blocked(
     cat(&parts.iter().collect::<Vec<_>>(), 0)?.reshape(&[n, cout, oh, ow])
 }
 
-/// Largest im2col buffer one convolution block may take: the device's largest buffer, at most 256 MiB
-/// (beyond that a larger block saves nothing: the product is already long).
-fn im2col_cap(x: &GpuTensor) -> usize {
-    const MOST: u64 = 256 << 20;
+/// Largest transient buffer one block of a blocked op may take (a convolution's im2col buffer, a chunk of
+/// attention scores): the device's largest buffer, at most [`TRANSIENT_CAP_BYTES`] (beyond that a larger
+/// block saves nothing: each product is already long).
+fn transient_cap(x: &GpuTensor) -> usize {
+    let most = TRANSIENT_CAP_BYTES as u64;
     let limit = x.device().context().limits.max_buffer_bytes;
-    let limit = if limit == 0 { MOST } else { limit.min(MOST) };
+    let limit = if limit == 0 { most } else { limit.min(most) };
     usize::try_from(limit).unwrap_or(usize::MAX)
 }
+
+/// The most bytes [`transient_cap`] allows on any device (the memory estimate counts it).
+pub const TRANSIENT_CAP_BYTES: usize = 256 << 20;
 
 // ------------------------------------------------------------------------------------------ reductions
 
@@ -997,6 +1001,11 @@ pub fn layer_norm(
 
 /// Softmax over the last dimension.
 pub fn softmax_last_dim(x: &GpuTensor) -> Result<GpuTensor> {
+    softmax_scaled(x, 1.0)
+}
+
+/// Softmax of `scale · x` over the last dimension (attention's scaled scores, without a pass to scale them).
+fn softmax_scaled(x: &GpuTensor, scale: f32) -> Result<GpuTensor> {
     let width = *x.dims().last().unwrap_or(&0);
     if width == 0 {
         candle_core::bail!("gpu softmax: empty last dimension in {:?}", x.dims());
@@ -1013,6 +1022,7 @@ pub fn softmax_last_dim(x: &GpuTensor) -> Result<GpuTensor> {
             x.arg(),
             out.arg(),
             meta.arg(),
+            scale,
         )
     };
     Ok(out)
@@ -1075,12 +1085,79 @@ fn attention_dims(
     ))
 }
 
-/// `softmax(q kᵀ · scale) v` without storing the probabilities (flash-style, online softmax). Heads wider
-/// than the flash kernel's limit take [`attention_with_probs`].
+/// How attention runs on the GPU.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum AttentionPath {
+    /// Our flash kernel: one unit per query row, online softmax, no score matrix (scalar f32 arithmetic).
+    Flash,
+    /// Two products through the matrix-product path (tensor cores where the device has them) around a
+    /// row softmax, the scores held in chunks of whole heads of at most [`transient_cap`] bytes.
+    Products,
+}
+
+impl std::fmt::Display for AttentionPath {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            Self::Flash => "flash",
+            Self::Products => "products",
+        })
+    }
+}
+
+thread_local! {
+    /// Set by tests to pick an attention path on their thread.
+    static ATTENTION_OVERRIDE: std::cell::Cell<Option<AttentionPath>> = const { std::cell::Cell::new(None) };
+}
+
+/// Runs `f` with the attention of this thread on `path` (tests, benches).
+pub fn with_attention_path<T>(path: AttentionPath, f: impl FnOnce() -> T) -> T {
+    let before = ATTENTION_OVERRIDE.replace(Some(path));
+    let result = f();
+    ATTENTION_OVERRIDE.set(before);
+    result
+}
+
+/// Heads at most this wide take the flash kernel by default: a score costs the kernel `d` multiply-adds,
+/// against a fixed write, softmax and read of it as products. `vcedit bench attention` on lavapipe,
+/// 2026-11-26, 8 heads of 1024 queries and keys: d = 8 flash 171 ms / products 359 ms; d = 16 698 / 394;
+/// d = 32 1365 / 440. At SD 1.5's d = 40: 16 heads of 1024², 3.4 s / 0.96 s; 8 heads of 4096², 18.8 s /
+/// 3.6 s.
+const FLASH_DEFAULT_MAX_HEAD_DIM: usize = 8;
+
+/// The attention path of heads `d` wide (values `dv`): the flash kernel for narrow heads (the demo
+/// model's first level), products above [`FLASH_DEFAULT_MAX_HEAD_DIM`], which is every real model's
+/// heads (SD 1.5: 40–160; SD 2 and SDXL: 64); on a card with tensor cores the products run on them, the
+/// flash kernel's arithmetic is scalar. `VCEDIT_GPU_ATTENTION=flash|products` forces one (A/B switch for
+/// benches; `vcedit bench attention` times both at SD 1.5's shapes); heads wider than the flash kernel
+/// can take always run as products.
+pub fn attention_path(d: usize, dv: usize) -> AttentionPath {
+    static FORCED: std::sync::OnceLock<Option<AttentionPath>> = std::sync::OnceLock::new();
+    let forced = ATTENTION_OVERRIDE.get().or(*FORCED.get_or_init(|| {
+        match std::env::var("VCEDIT_GPU_ATTENTION")
+            .unwrap_or_default()
+            .trim()
+            .to_ascii_lowercase()
+            .as_str()
+        {
+            "flash" => Some(AttentionPath::Flash),
+            "products" => Some(AttentionPath::Products),
+            _ => None,
+        }
+    }));
+    let widest = d.max(dv);
+    match forced {
+        _ if widest > FLASH_MAX_HEAD_DIM => AttentionPath::Products,
+        Some(path) => path,
+        None if widest <= FLASH_DEFAULT_MAX_HEAD_DIM => AttentionPath::Flash,
+        None => AttentionPath::Products,
+    }
+}
+
+/// `softmax(q kᵀ · scale) v` without returning the probabilities, on the [`attention_path`].
 pub fn attention(q: &GpuTensor, k: &GpuTensor, v: &GpuTensor, scale: f64) -> Result<GpuTensor> {
     let (batch, q_len, k_len, d, dv) = attention_dims(q, k, v)?;
-    if d > FLASH_MAX_HEAD_DIM || dv > FLASH_MAX_HEAD_DIM || k_len == 0 {
-        return Ok(attention_with_probs(q, k, v, scale)?.0);
+    if attention_path(d, dv) == AttentionPath::Products || k_len == 0 {
+        return attention_in_chunks(q, k, v, scale, transient_cap(q));
     }
     let mut shape = q.dims().to_vec();
     *shape.last_mut().expect("rank >= 2") = dv;
@@ -1106,8 +1183,49 @@ pub fn attention(q: &GpuTensor, k: &GpuTensor, v: &GpuTensor, scale: f64) -> Res
     Ok(out)
 }
 
+/// Attention as products, the score matrix in chunks of whole (batch, head) entries of at most `cap`
+/// bytes (at least one entry): at SD 1.5's 64² latents one head's scores are 64 MiB, a batch of six
+/// branches' 48 heads 3 GiB. The chunks' inputs are copied out and their outputs concatenated: passes
+/// over Q/K/V-sized tensors, small beside the score-sized ones.
+fn attention_in_chunks(
+    q: &GpuTensor,
+    k: &GpuTensor,
+    v: &GpuTensor,
+    scale: f64,
+    cap: usize,
+) -> Result<GpuTensor> {
+    let (batch, q_len, k_len, d, dv) = attention_dims(q, k, v)?;
+    let per_entry = (q_len * k_len * std::mem::size_of::<f32>()).max(1);
+    let entries = (cap / per_entry).max(1);
+    if entries >= batch {
+        return Ok(attention_with_probs(q, k, v, scale)?.0);
+    }
+    let (q3, k3, v3) = (
+        q.reshape(&[batch, q_len, d])?,
+        k.reshape(&[batch, k_len, d])?,
+        v.reshape(&[batch, k_len, dv])?,
+    );
+    let parts = (0..batch)
+        .step_by(entries)
+        .map(|b0| {
+            let n = entries.min(batch - b0);
+            let (out, _) = attention_with_probs(
+                &narrow(&q3, 0, b0, n)?,
+                &narrow(&k3, 0, b0, n)?,
+                &narrow(&v3, 0, b0, n)?,
+                scale,
+            )?;
+            Ok(out)
+        })
+        .collect::<Result<Vec<_>>>()?;
+    let mut shape = q.dims().to_vec();
+    *shape.last_mut().expect("rank >= 2") = dv;
+    cat(&parts.iter().collect::<Vec<_>>(), 0)?.reshape(&shape)
+}
+
 /// Attention that also returns its probabilities [.., q_len, k_len] (for the attention hook of
-/// cross-attention layers, whose maps the edit controller reads): two products and a row softmax.
+/// cross-attention layers, whose maps the edit controller reads): two products and a row softmax that
+/// applies the scale.
 pub fn attention_with_probs(
     q: &GpuTensor,
     k: &GpuTensor,
@@ -1115,8 +1233,8 @@ pub fn attention_with_probs(
     scale: f64,
 ) -> Result<(GpuTensor, GpuTensor)> {
     attention_dims(q, k, v)?;
-    let scores = matmul_scaled(q, k, true, scale as f32)?;
-    let probs = softmax_last_dim(&scores)?;
+    let scores = matmul_scaled(q, k, true, 1.0)?;
+    let probs = softmax_scaled(&scores, scale as f32)?;
     let out = matmul(&probs, v)?;
     Ok((out, probs))
 }

@@ -506,25 +506,51 @@ fn attention_matches_cpu() {
     let scale = 1.0 / 8f64.sqrt();
     let want = crate::kernels::attention(&q, &k, &v, scale).unwrap();
     let (gq, gk, gv) = (up(&dev, &q), up(&dev, &k), up(&dev, &v));
-    check(
-        "flash attention",
-        &attention(&gq, &gk, &gv, scale).unwrap(),
-        &want,
-    );
+    for path in [AttentionPath::Flash, AttentionPath::Products] {
+        check(
+            &format!("attention ({path})"),
+            &with_attention_path(path, || attention(&gq, &gk, &gv, scale)).unwrap(),
+            &want,
+        );
+    }
+    // Scores in chunks: one (batch, head) entry per chunk, then three entries of four in one, one in another.
+    let entry = 37 * 45 * 4;
+    for cap in [1, entry, 3 * entry] {
+        check(
+            &format!("attention in chunks of {cap} bytes"),
+            &attention_in_chunks(&gq, &gk, &gv, scale, cap).unwrap(),
+            &want,
+        );
+    }
     let (out, probs) = attention_with_probs(&gq, &gk, &gv, scale).unwrap();
     check("attention with probabilities", &out, &want);
     let want_probs =
         crate::kernels::softmax_last_dim(&(q.matmul(&k.t().unwrap()).unwrap() * scale).unwrap())
             .unwrap();
     check("attention probabilities", &probs, &want_probs);
+    // The default path by head width, and a forced path that the flash kernel cannot take.
+    assert_eq!(attention_path(8, 8), AttentionPath::Flash);
+    assert_eq!(attention_path(40, 40), AttentionPath::Products);
+    assert_eq!(
+        with_attention_path(AttentionPath::Flash, || attention_path(
+            FLASH_MAX_HEAD_DIM + 1,
+            8
+        )),
+        AttentionPath::Products
+    );
     // Few keys (one partial tile) and a single query.
     let (q1, k1, v1) = (randn(&[1, 1, 8]), randn(&[1, 3, 8]), randn(&[1, 3, 8]));
     let want = crate::kernels::attention(&q1, &k1, &v1, scale).unwrap();
-    check(
-        "flash attention, 3 keys",
-        &attention(&up(&dev, &q1), &up(&dev, &k1), &up(&dev, &v1), scale).unwrap(),
-        &want,
-    );
+    for path in [AttentionPath::Flash, AttentionPath::Products] {
+        check(
+            &format!("attention ({path}), 3 keys"),
+            &with_attention_path(path, || {
+                attention(&up(&dev, &q1), &up(&dev, &k1), &up(&dev, &v1), scale)
+            })
+            .unwrap(),
+            &want,
+        );
+    }
 }
 
 /// The library takes the products the networks make (were it to decline them all, every product would

@@ -1,0 +1,154 @@
+//! GPU attention at SD 1.5's shapes, on both paths: our flash kernel (scalar f32, no score matrix) and
+//! products through the matrix-product path around a row softmax (tensor cores where the device has
+//! them; the default, see `ops::attention_path`).
+//!
+//! `vcedit bench attention [--runs 3] [--repeat 5] [--device gpu] [--paths flash,products]
+//! [--shapes 48x4096x4096x40,48x1024x1024x80,48x4096x77x40]`
+//!
+//! A shape is `ENTRIESxQUERIESxKEYSxHEAD_DIM`, entries being batch × heads: the defaults are one 512²
+//! view's six InfEdit branches with SD 1.5's 8 heads, self-attention at the first two levels (64², 32²
+//! latents) and cross-attention over 77 tokens at the first. The first call (kernel compilation) is timed
+//! on its own; each warm run launches the attention `--repeat` times and waits for the device once. The
+//! output's first entry is checked against the CPU's f32 attention (`rel_err`). One `RESULT` line per
+//! shape and path.
+
+use std::time::Instant;
+
+use candle_core::{Device, Tensor};
+use diffusion::device::ops::{self, AttentionPath};
+use diffusion::device::{DeviceTensor, GpuDevice, GpuTensor, Precision};
+
+use crate::{arg_parsed, arg_value, relative_error, report, secs, sync, BenchError, Result};
+
+/// `ENTRIESxQUERIESxKEYSxHEAD_DIM`.
+fn parse_shape(s: &str) -> Result<[usize; 4]> {
+    let dims: Vec<usize> = s.split('x').filter_map(|v| v.parse().ok()).collect();
+    match dims[..] {
+        [b, q, k, d] if b > 0 && q > 0 && k > 0 && d > 0 => Ok([b, q, k, d]),
+        _ => Err(BenchError::new(format!(
+            "--shapes: '{s}' is not ENTRIESxQUERIESxKEYSxHEAD_DIM (e.g. 48x4096x4096x40)"
+        ))),
+    }
+}
+
+fn parse_path(s: &str) -> Result<AttentionPath> {
+    match s.trim() {
+        "flash" => Ok(AttentionPath::Flash),
+        "products" => Ok(AttentionPath::Products),
+        other => Err(BenchError::new(format!(
+            "--paths: unknown path '{other}' (expected flash or products)"
+        ))),
+    }
+}
+
+pub fn main(args: &[String]) -> Result<()> {
+    let runs: usize = arg_parsed(args, "--runs", 3)?;
+    let repeat: usize = arg_parsed(args, "--repeat", 5usize)?.max(1);
+    let choice: gpu::DeviceChoice = arg_value(args, "--device")
+        .unwrap_or_else(|| "gpu".into())
+        .parse()?;
+    let Some(context) = gpu::open(choice)? else {
+        return Err(BenchError::new(format!(
+            "attention bench: no GPU (device {choice})"
+        )));
+    };
+    let paths = arg_value(args, "--paths")
+        .unwrap_or_else(|| "flash,products".into())
+        .split(',')
+        .map(parse_path)
+        .collect::<Result<Vec<_>>>()?;
+    let shapes = arg_value(args, "--shapes")
+        .unwrap_or_else(|| "48x4096x4096x40,48x1024x1024x80,48x4096x77x40".into())
+        .split(',')
+        .map(parse_shape)
+        .collect::<Result<Vec<_>>>()?;
+    // The precision only decides the products' operands (f16 on tensor cores): activations are f32.
+    let device = GpuDevice::with_precision(context.clone(), Precision::F16);
+    let matmul_path = ops::matmul_path(&device);
+    eprintln!(
+        "attention bench on {} ({}), products on the {matmul_path} path",
+        device.name(),
+        context.compiler
+    );
+    for [entries, queries, keys, dim] in shapes {
+        let q = Tensor::randn(0f32, 1.0, (entries, queries, dim), &Device::Cpu)?;
+        let k = Tensor::randn(0f32, 1.0, (entries, keys, dim), &Device::Cpu)?;
+        let v = Tensor::randn(0f32, 1.0, (entries, keys, dim), &Device::Cpu)?;
+        let scale = 1.0 / (dim as f64).sqrt();
+        // The reference for the first entry only: the whole CPU attention at 48 × 4096² would take
+        // minutes on a small machine.
+        let first_entry = |t: &Tensor| t.narrow(0, 0, 1);
+        let want = DeviceTensor::attention(
+            &first_entry(&q)?.into(),
+            &first_entry(&k)?.into(),
+            &first_entry(&v)?.into(),
+            scale,
+        )?
+        .to_cpu()?;
+        let (gq, gk, gv) = (
+            GpuTensor::upload(&device, &q)?,
+            GpuTensor::upload(&device, &k)?,
+            GpuTensor::upload(&device, &v)?,
+        );
+        for &path in &paths {
+            let attend = || ops::with_attention_path(path, || ops::attention(&gq, &gk, &gv, scale));
+            let start = Instant::now();
+            let got = attend()?.to_cpu()?;
+            let first = start.elapsed();
+            let rel_err = relative_error(&first_entry(&got)?, &want)?;
+            let mut best = f64::INFINITY;
+            for _ in 0..runs.max(1) {
+                let start = Instant::now();
+                for _ in 0..repeat {
+                    std::hint::black_box(attend()?);
+                }
+                sync(&context)?;
+                best = best.min(start.elapsed().as_secs_f64() / repeat as f64);
+            }
+            // Two products of entries × queries × keys × dim multiply-adds each.
+            let tflops = 4.0 * (entries * queries * keys * dim) as f64 / best / 1e12;
+            eprintln!(
+                "  {entries}x{queries}x{keys}x{dim} {path}: {:.3} ms, {tflops:.2} TFLOP/s (first call \
+                 {:.1} ms), relative error {rel_err:.1e}",
+                best * 1e3,
+                first.as_secs_f64() * 1e3
+            );
+            report(serde_json::json!({
+                "bench": "attention",
+                "path": path.to_string(),
+                "matmul_path": matmul_path.to_string(),
+                "entries": entries, "queries": queries, "keys": keys, "dim": dim,
+                "best_s": (best * 1e9).round() / 1e9,
+                "ms": (best * 1e6).round() / 1e3,
+                "tflops": (tflops * 1e3).round() / 1e3,
+                "first_s": secs(first),
+                "repeat": repeat,
+                "device": device.name(),
+                "compiler": context.compiler,
+                "rel_err": rel_err,
+            }));
+        }
+    }
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn shapes_and_paths_parse_or_say_what_is_wrong() {
+        assert_eq!(parse_shape("48x4096x77x40").unwrap(), [48, 4096, 77, 40]);
+        for bad in ["48x4096x77", "0x1x1x1", "ax1x1x1"] {
+            assert!(parse_shape(bad)
+                .unwrap_err()
+                .to_string()
+                .contains("is not ENTRIESxQUERIESxKEYSxHEAD_DIM"));
+        }
+        assert_eq!(parse_path("flash").unwrap(), AttentionPath::Flash);
+        assert!(parse_path("cmma")
+            .unwrap_err()
+            .to_string()
+            .contains("'cmma'"));
+    }
+}
