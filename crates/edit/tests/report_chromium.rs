@@ -11,9 +11,10 @@ use common::{chromium_available, file_url, run_chromium};
 use edit::eval::metrics::{ConsistencySummary, PreservationReport};
 use edit::present::gif::{write_gif, GifOptions};
 use edit::present::report::{
-    write_report, IterationInfo, MetricsSummary, ReportData, ReportOptions, RunSummary,
-    StageTiming, ViewPair, WordImage,
+    write_report, write_report_with_viewer, IterationInfo, MetricsSummary, ReportData,
+    ReportOptions, RunSummary, StageTiming, ViewPair, WordImage,
 };
+use edit::present::viewer::{viewer_html, InitialView, ViewerOptions, ViewerScene};
 use splat::Image;
 
 fn solid(w: u32, h: u32, rgb: [f32; 3], k: usize) -> Image {
@@ -44,6 +45,11 @@ fn consistency(e: f64) -> ConsistencySummary {
 
 /// A complete run folder with dummy images, and its report.
 fn write_dummy_run(dir: &Path) -> PathBuf {
+    write_report(dir, &dummy_run(dir), &ReportOptions::default()).unwrap()
+}
+
+/// Writes the dummy images of a run into `dir` and returns the report's data for them.
+fn dummy_run(dir: &Path) -> ReportData {
     let (w, h) = (128, 96);
     let mut views = Vec::new();
     let mut guidance = Vec::new();
@@ -101,7 +107,12 @@ fn write_dummy_run(dir: &Path) -> PathBuf {
         scene: Some("scenes/man.ply".into()),
         cameras: Some("scenes/cameras.json".into()),
         edited_scene: Some("edited.ply".into()),
-        settings: serde_json::json!({"steps": 15, "guidance": 2.0, "ccm": [6, 13], "taesd": null}),
+        // Long unbreakable values, as paths are: they must wrap inside their boxes on a narrow screen.
+        settings: serde_json::json!({
+            "steps": 15, "guidance": 2.0, "ccm": [6, 13], "taesd": null,
+            "lpips": "/home/someone/models/lpips_vgg_weights_converted_from_the_reference_checkpoint.safetensors",
+            "fit": {"schedule": "cosine_with_warmup_and_a_very_long_name_that_does_not_break", "steps": [100, 200, 300]}
+        }),
         notes: vec!["No LPIPS weights given: fitted with 10·L1 + D-SSIM.".into()],
         views,
         iterations: vec![IterationInfo {
@@ -150,7 +161,7 @@ fn write_dummy_run(dir: &Path) -> PathBuf {
         turntable: Some("turntable.gif".into()),
     };
     std::fs::write(dir.join("edited.ply"), b"ply\n").unwrap();
-    write_report(dir, &data, &ReportOptions::default()).unwrap()
+    data
 }
 
 /// Every `src="..."` / `href="..."` of the page resolves to an existing file.
@@ -285,4 +296,141 @@ fn chromium_check_sees_a_file_that_fails_to_load() {
             .any(|l| l.contains("edited_000.png") || l.contains("Failed to load")),
         "no console message for the missing file: {console:?}"
     );
+}
+
+/// A page that shows the report in a frame `{WIDTH}` CSS pixels wide (headless Chromium's windows are at
+/// least 500 px wide; a frame can be narrower, and is its own window to the report) and, once it has
+/// loaded, measures what sticks out sideways. Writes JSON into `<pre id="layout">`: the report's width
+/// against its window's, every element whose right edge is past the window (unless a box that scrolls or
+/// clips holds it), each image's width against its box's, and whether the Settings JSON fits its own
+/// box. Reading the frame needs `--allow-file-access-from-files`.
+const LAYOUT_PROBE: &str = r#"<!DOCTYPE html><html><body style="margin:0">
+<iframe id="report" src="report.html" style="border:0;width:{WIDTH}px;height:1000px"></iframe>
+<pre id="layout">not run</pre><script>
+const frame = document.getElementById('report');
+frame.addEventListener('load', () => setTimeout(() => {
+  const doc = frame.contentDocument, win = frame.contentWindow, root = doc.documentElement;
+  const width = root.clientWidth;
+  const clipped = (e) => {
+    for (let p = e.parentElement; p && p !== doc.body; p = p.parentElement) {
+      if (['auto', 'scroll', 'hidden'].includes(win.getComputedStyle(p).overflowX)) return true;
+    }
+    return false;
+  };
+  const name = (e) => e.tagName.toLowerCase() + (e.className ? '.' + String(e.className).split(' ').join('.') : '');
+  const sticking_out = [...doc.body.querySelectorAll('*')]
+    .filter((e) => e.getClientRects().length > 0)
+    .filter((e) => e.getBoundingClientRect().right > width + 0.5 && !clipped(e))
+    .map((e) => name(e) + ' right ' + Math.round(e.getBoundingClientRect().right));
+  const images = [...doc.images].map((img) => ({
+    src: img.getAttribute('src'),
+    shown: img.getBoundingClientRect().width,
+    attribute: Number(img.getAttribute('width')),
+    box: img.parentElement.getBoundingClientRect().width,
+  }));
+  const json = [...doc.querySelectorAll('pre.json')].map((pre) => ({
+    right: pre.getBoundingClientRect().right,
+    overflow: pre.scrollWidth - pre.clientWidth,
+  }));
+  document.getElementById('layout').textContent = JSON.stringify({
+    window: win.innerWidth, client: width, scroll: root.scrollWidth, sticking_out, images, json,
+  });
+}, 0));
+</script></body></html>"#;
+
+/// The report with the 3D viewer at a desktop width and at a phone's: nothing wider than the window
+/// (the page does not scroll sideways), images scaled down to their boxes, the Settings JSON wrapped
+/// inside its box.
+#[test]
+fn report_fits_wide_and_narrow_windows() {
+    if !chromium_available() {
+        return;
+    }
+    let tmp = tempfile::tempdir().unwrap();
+    let run = tmp.path().join("run");
+    std::fs::create_dir_all(&run).unwrap();
+    let data = dummy_run(&run);
+    let mut scene = splat::GaussianScene::new(0);
+    for i in 0..50 {
+        let t = i as f32 * 0.1;
+        scene.means.extend([t.sin(), t.cos(), 0.2 * t]);
+        scene.log_scales.extend([-3.0; 3]);
+        scene.quats.extend([1.0, 0.0, 0.0, 0.0]);
+        scene.opacity_logits.push(2.0);
+        scene.sh.extend([1.0, -0.5, 0.2]);
+    }
+    let scenes = [ViewerScene {
+        label: "source",
+        scene: &scene,
+    }];
+    let viewer = viewer_html(
+        &scenes,
+        &InitialView::around(&scene),
+        &ViewerOptions::default(),
+    );
+    write_report_with_viewer(&run, &data, &ReportOptions::default(), &viewer).unwrap();
+
+    for width in [1280u32, 420] {
+        let probe = run.join("layout.html");
+        std::fs::write(&probe, LAYOUT_PROBE.replace("{WIDTH}", &width.to_string())).unwrap();
+        let out = run_chromium(
+            &file_url(&probe),
+            tmp.path(),
+            &[
+                "--use-gl=angle".to_string(),
+                "--use-angle=swiftshader".to_string(),
+                "--enable-unsafe-swiftshader".to_string(),
+                "--allow-file-access-from-files".to_string(),
+                format!("--window-size={},1100", width.max(500) + 20),
+                "--virtual-time-budget=5000".to_string(),
+                "--dump-dom".to_string(),
+            ],
+        );
+        assert!(
+            out.console.is_empty(),
+            "console messages:\n{}",
+            out.console.join("\n")
+        );
+        let start = out
+            .stdout
+            .find("<pre id=\"layout\">")
+            .expect("layout element")
+            + 17;
+        let text = &out.stdout[start..start + out.stdout[start..].find("</pre>").unwrap()];
+        println!("{width} px: {text}");
+        let r: serde_json::Value = serde_json::from_str(text).expect("layout result");
+        let client = r["client"].as_f64().unwrap();
+        assert_eq!(r["window"].as_f64(), Some(f64::from(width)), "{r}");
+        assert!(client > f64::from(width) - 20.0, "{width}: {r}");
+        assert!(
+            r["scroll"].as_f64().unwrap() <= client,
+            "{width}: the page scrolls sideways: {r}"
+        );
+        assert_eq!(r["sticking_out"], serde_json::json!([]), "{width}: {r}");
+        let images = r["images"].as_array().unwrap();
+        assert!(images.len() > 20, "{r}");
+        for img in images {
+            let (shown, box_width) = (img["shown"].as_f64().unwrap(), img["box"].as_f64().unwrap());
+            assert!(
+                shown <= box_width + 0.5 && shown <= client,
+                "{width}: {img}"
+            );
+        }
+        // At 420 px the 400-px turntable and the 200-px before/after pairs are scaled down.
+        let scaled = images
+            .iter()
+            .filter(|img| img["shown"].as_f64().unwrap() < img["attribute"].as_f64().unwrap() - 1.0)
+            .count();
+        if width == 420 {
+            assert!(scaled >= 17, "{scaled} images scaled down: {r}");
+        } else {
+            assert_eq!(scaled, 0, "nothing scaled down at {width} px: {r}");
+        }
+        let json = r["json"].as_array().unwrap();
+        assert!(!json.is_empty(), "{r}");
+        for pre in json {
+            assert!(pre["right"].as_f64().unwrap() <= client, "{width}: {pre}");
+            assert!(pre["overflow"].as_f64().unwrap() <= 0.0, "{width}: {pre}");
+        }
+    }
 }

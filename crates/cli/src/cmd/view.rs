@@ -2,7 +2,7 @@
 
 use anyhow::{bail, Result};
 use edit::present::viewer::{
-    write_viewer_page, InitialView, ViewerOptions, ViewerScene, DEFAULT_CAP, RECORD_BYTES,
+    write_viewer_page, InitialView, ViewerOptions, ViewerScene, DEFAULT_CAP,
 };
 use std::path::{Path, PathBuf};
 
@@ -12,9 +12,10 @@ use crate::args::output::{files_under, output_file};
 #[command(
     about = "Write a self-contained HTML page with an interactive 3D view of a scene, or of two side by side",
     after_help = "The page opens from disk in any browser with WebGL2 (no server, no network): drag to turn, wheel to \
-zoom; with two scenes a divider, buttons and a slider compare them (the first left, the second right). The scenes \
-are embedded (32 bytes per Gaussian, 41 with SH, 4/3 of that as base64) with SH colours up to degree 1; larger scenes keep their \
---cap most visible Gaussians. The view starts at the first scene's first camera (INRIA output folder), else on an \
+zoom, W A S D Q E and the arrow keys to fly (SuperSplat's keys), a full-screen button; with two scenes a divider, buttons and a slider compare them (the first left, the second right). The scenes \
+are embedded (32 bytes per Gaussian, plus 9, 24 or 45 with SH of degree 1, 2 or 3; 4/3 of that as base64) with \
+view-dependent SH colours; the top SH bands are dropped where the page's scene data would pass 28 MB. Larger scenes \
+keep their --cap most visible Gaussians. The view starts at the first scene's first camera (INRIA output folder), else on an \
 orbit around it.
 
 Examples:
@@ -102,11 +103,16 @@ pub fn run(args: Args) -> Result<()> {
         ..Default::default()
     };
     let embedded = write_viewer_page(&out, &title, &shown, &view, &options)?;
-    for ((name, scene), kept) in names.iter().zip(&scenes).zip(embedded) {
+    for ((name, scene), e) in names.iter().zip(&scenes).zip(embedded) {
+        let shading = match e.sh_degree {
+            0 => String::new(),
+            d => format!(" with SH degree {d}"),
+        };
         println!(
-            "{name}: {} Gaussians, {kept} embedded (~{:.1} MB)",
+            "{name}: {} Gaussians, {} embedded{shading} (~{:.1} MB)",
             scene.len(),
-            (kept * RECORD_BYTES) as f64 * 4.0 / 3.0 / 1e6
+            e.count,
+            e.page_bytes() as f64 / 1e6
         );
     }
     println!("{}", out.display());

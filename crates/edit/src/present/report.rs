@@ -274,7 +274,8 @@ fn fmt_seconds(s: f64) -> String {
 const CSS: &str = "
 :root{--fg:#1d2327;--muted:#5f6b73;--line:#d5dadd;--bg:#fbfbfa;--accent:#2a6f97}
 *{box-sizing:border-box}
-body{margin:0;padding:24px 32px 48px;font:15px/1.45 system-ui,-apple-system,'Segoe UI',Roboto,sans-serif;color:var(--fg);background:var(--bg)}
+body{margin:0;padding:24px 32px 48px;font:15px/1.45 system-ui,-apple-system,'Segoe UI',Roboto,sans-serif;color:var(--fg);background:var(--bg);overflow-wrap:break-word}
+@media (max-width:600px){body{padding:16px 12px 32px}}
 h1{font-size:26px;margin:0 0 6px}
 h2{font-size:19px;margin:34px 0 10px;padding-bottom:4px;border-bottom:1px solid var(--line)}
 h3{font-size:15px;margin:18px 0 6px;color:var(--muted)}
@@ -282,16 +283,18 @@ h3{font-size:15px;margin:18px 0 6px;color:var(--muted)}
 .prompts .arrow{color:var(--muted);padding:0 8px}
 .muted{color:var(--muted)}
 .notes{background:#fff6e0;border:1px solid #f0d9a0;padding:8px 12px;border-radius:6px;margin:10px 0}
-table{border-collapse:collapse;margin:6px 0 12px;background:#fff}
+table{border-collapse:collapse;margin:6px 0 12px;background:#fff;display:block;width:max-content;max-width:100%;overflow-x:auto}
 th,td{border:1px solid var(--line);padding:4px 10px;text-align:left;vertical-align:top}
 th{background:#f0f2f3;font-weight:600}
 td.num{text-align:right;font-variant-numeric:tabular-nums}
 .grid{display:flex;flex-wrap:wrap;gap:10px}
-figure{margin:0;background:#fff;border:1px solid var(--line);border-radius:6px;padding:6px}
-figure img{display:block;height:auto;image-rendering:auto}
+figure{margin:0;background:#fff;border:1px solid var(--line);border-radius:6px;padding:6px;min-width:0;max-width:100%}
+img{max-width:100%;height:auto}
+figure img{display:block;image-rendering:auto}
 figcaption{font-size:12px;color:var(--muted);margin-top:4px;max-width:100%;overflow-wrap:anywhere}
 .pair{display:flex;gap:4px}
-.missing{display:flex;align-items:center;justify-content:center;background:#eee;color:#a33;font-size:12px;padding:6px;overflow-wrap:anywhere}
+.pair>*{min-width:0;flex:0 1 auto}
+.missing{max-width:100%;display:flex;align-items:center;justify-content:center;background:#eee;color:#a33;font-size:12px;padding:6px;overflow-wrap:anywhere}
 .bar{background:var(--accent);height:10px;border-radius:2px}
 code{font-size:13px;overflow-wrap:anywhere}
 pre.json{margin:0;font-size:12px;white-space:pre-wrap;overflow-wrap:anywhere;max-width:100%}

@@ -4,9 +4,10 @@
 // scenes (`script.vcv-scene`, base64). A scene is a list of 32-byte records, the `.splat` layout:
 //   position f32×3 | scale f32×3 (standard deviations, linear) | colour RGBA u8×4 | rotation u8×4
 // little-endian; colour is the SH degree-0 (DC) colour; A is the opacity; the rotation is the quaternion
-// (w, x, y, z), each component mapped [-1, 1] → [0, 255]. With `data-sh1` the records are followed by 9
-// bytes per Gaussian, its degree-1 SH coefficients (3 coefficients × RGB, each v mapped to 128 v + 128),
-// which the vertex shader evaluates for the direction from the eye as the renderer does.
+// (w, x, y, z), each component mapped [-1, 1] → [0, 255]. With `data-sh-degree="d"` (1 to 3) the records
+// are followed by 3 · ((d + 1)² − 1) bytes per Gaussian, its SH coefficients above the DC term
+// (coefficient-major, RGB inner, each v mapped to 128 v + 128), which the vertex shader evaluates for the
+// direction from the eye with the basis of the renderer (crates/splat/src/render/sh.rs).
 //
 // Cameras are OpenCV pinhole cameras, as everywhere in vcedit: x right, y down, z forward; a world point p
 // is at R p + t in the camera; fx, fy, cx, cy in pixels.
@@ -21,13 +22,26 @@
 // Before/after: the canvas shows the first scene left of a divider and the second right of it; the buttons
 // put the divider at either edge (one scene) or in the middle, the slider anywhere. `#before`, `#after` or
 // `#split` in the page's URL choose the starting mode.
+//
+// Controls: the mouse orbits around a pivot, pans and zooms; with the canvas focused, keys fly the camera
+// as SuperSplat's viewer does (W/S forward/back, A/D sideways, E/Q up/down along the world's up axis,
+// Shift faster) and the arrow keys turn it in place, at speeds proportional to the distance from the first
+// camera to the pivot, so small and large scenes feel alike. Frames are drawn only while a key is held or
+// after something changed. The canvas takes the page's width (its height is capped by the window); the
+// first camera is fitted into it without stretching, and "full screen" shows the viewer alone.
 (function () {
   'use strict';
 
   const RECORD_BYTES = 32;
-  const SH1_BYTES = 9;
-  const TEXELS_PER_GAUSSIAN = 6;
-  const GAUSSIANS_PER_ROW = 512;  // 3072 texels wide: within every WebGL2 device's texture size
+  const TEXELS_PER_GAUSSIAN = 4;
+  const GAUSSIANS_PER_ROW = 512;  // 2048 texels wide: within every WebGL2 device's texture size (≥ 2048)
+  // Fly controls: the view's share of the first camera's distance to the pivot covered per second, Shift's
+  // factor, and the turning rate of the arrow keys.
+  const FLY_SPEED = 0.5;
+  const FLY_FAST = 4;
+  const TURN_RADIANS_PER_SECOND = Math.PI / 3;
+  const LONGEST_FLY_STEP_SECONDS = 0.1;  // a stalled frame must not jump the camera
+  const FLY_KEYS = new Set(['KeyW', 'KeyS', 'KeyA', 'KeyD', 'KeyQ', 'KeyE', 'ArrowUp', 'ArrowDown', 'ArrowLeft', 'ArrowRight']);
   const NEAR_PLANE = 0.01;
   const DEPTH_BUCKETS = 65536;
   const CULLED = 0xffffffff;
@@ -37,9 +51,12 @@ precision highp float;
 precision highp int;
 precision highp sampler2D;
 
-// Per Gaussian 6 RGBA32F texels: (x, y, z, opacity), (Σxx, Σxy, Σxz, Σyy), (Σyz, Σzz, -, -), (r, g, b, c3b),
-// (c1r, c1g, c1b, c2r), (c2g, c2b, c3r, c3g): the DC colour and the degree-1 SH coefficients c1..c3.
+// Per Gaussian 4 RGBA32F texels: (x, y, z, opacity), (Σxx, Σxy, Σxz, Σyy), (Σyz, Σzz, -, -), (r, g, b, -)
+// with the DC colour; and u_sh_texels RGBA32UI texels in u_sh holding the SH bytes (little-endian words).
 uniform sampler2D u_gaussians;
+uniform highp usampler2D u_sh;
+uniform int u_sh_degree;     // 0 to 3
+uniform int u_sh_texels;     // per Gaussian in u_sh
 uniform vec3 u_eye;          // the camera centre in the world
 uniform mat3 u_rotation;     // world to camera
 uniform vec3 u_translation;
@@ -56,14 +73,44 @@ out vec2 v_sigmas;           // position in the splat, in standard deviations al
 const float LOW_PASS = 0.3;
 const float EXTENT = 3.0;
 
+// The view-dependent colour: the SH bands above DC at the unit direction d from the eye, with the basis
+// constants and signs of the renderer's sh.rs (those of the 3DGS reference code).
+vec3 sh_color(vec3 d) {
+  if (u_sh_degree == 0) return vec3(0.0);
+  ivec2 texel = ivec2(int(a_index % ${GAUSSIANS_PER_ROW}u) * u_sh_texels, int(a_index / ${GAUSSIANS_PER_ROW}u));
+  uvec4 w0 = texelFetch(u_sh, texel, 0);
+  uvec4 w1 = u_sh_texels > 1 ? texelFetch(u_sh, texel + ivec2(1, 0), 0) : uvec4(0u);
+  uvec4 w2 = u_sh_texels > 2 ? texelFetch(u_sh, texel + ivec2(2, 0), 0) : uvec4(0u);
+  uint words[12] = uint[12](w0.x, w0.y, w0.z, w0.w, w1.x, w1.y, w1.z, w1.w, w2.x, w2.y, w2.z, w2.w);
+  float x = d.x, y = d.y, z = d.z, xx = x * x, yy = y * y, zz = z * z;
+  float basis[15] = float[15](
+    -0.48860251 * y, 0.48860251 * z, -0.48860251 * x,
+    1.09254843 * x * y, -1.09254843 * y * z, 0.31539157 * (2.0 * zz - xx - yy), -1.09254843 * x * z,
+    0.54627422 * (xx - yy),
+    -0.59004359 * y * (3.0 * xx - yy), 2.89061144 * x * y * z, -0.45704580 * y * (4.0 * zz - xx - yy),
+    0.37317633 * z * (2.0 * zz - 3.0 * xx - 3.0 * yy), -0.45704580 * x * (4.0 * zz - xx - yy),
+    1.44530572 * z * (xx - yy), -0.59004359 * x * (xx - 3.0 * yy));
+  int coefficients = (u_sh_degree + 1) * (u_sh_degree + 1) - 1;
+  vec3 color = vec3(0.0);
+  for (int j = 0; j < 15; j++) {
+    if (j >= coefficients) break;
+    vec3 c;
+    for (int channel = 0; channel < 3; channel++) {
+      int k = 3 * j + channel;  // the byte, 4 to a word
+      uint byte = (words[k >> 2] >> (8u * uint(k & 3))) & 255u;
+      c[channel] = (float(byte) - 128.0) / 128.0;
+    }
+    color += basis[j] * c;
+  }
+  return color;
+}
+
 void main() {
   ivec2 texel = ivec2(int(a_index % ${GAUSSIANS_PER_ROW}u) * ${TEXELS_PER_GAUSSIAN}, int(a_index / ${GAUSSIANS_PER_ROW}u));
   vec4 t0 = texelFetch(u_gaussians, texel, 0);
   vec4 t1 = texelFetch(u_gaussians, texel + ivec2(1, 0), 0);
   vec4 t2 = texelFetch(u_gaussians, texel + ivec2(2, 0), 0);
   vec4 t3 = texelFetch(u_gaussians, texel + ivec2(3, 0), 0);
-  vec4 t4 = texelFetch(u_gaussians, texel + ivec2(4, 0), 0);
-  vec4 t5 = texelFetch(u_gaussians, texel + ivec2(5, 0), 0);
 
   vec3 p = u_rotation * t0.xyz + u_translation;
   if (p.z <= ${NEAR_PLANE}) {
@@ -95,11 +142,9 @@ void main() {
 
   // Pixels (y down) to clip space (y up).
   gl_Position = vec4(2.0 * pixel.x / u_viewport.x - 1.0, 1.0 - 2.0 * pixel.y / u_viewport.y, 0.0, 1.0);
-  // SH degree 1 along the direction from the eye (the renderer's basis: -C1 y, C1 z, -C1 x), added to
-  // the DC colour and clamped at 0 as the renderer clamps.
-  vec3 d = normalize(t0.xyz - u_eye);
-  vec3 sh1 = 0.48860251 * (-d.y * t4.xyz + d.z * vec3(t4.w, t5.xy) - d.x * vec3(t5.zw, t3.w));
-  v_color = vec4(max(t3.rgb + sh1, 0.0), t0.w);
+  // The SH bands along the direction from the eye, added to the DC colour and clamped at 0 as the
+  // renderer clamps.
+  v_color = vec4(max(t3.rgb + sh_color(normalize(t0.xyz - u_eye)), 0.0), t0.w);
   v_sigmas = EXTENT * a_corner;
 }`;
 
@@ -134,14 +179,17 @@ void main() {
 
   // ---- scene data ----
 
+  // Bytes per Gaussian of the SH coefficients above DC up to `degree`.
+  const shBytes = (degree) => 3 * ((degree + 1) * (degree + 1) - 1);
+
   // Decodes a base64 scene into the GPU layout (see the vertex shader) plus the positions for sorting.
-  function decodeScene(base64, hasSh1) {
+  function decodeScene(base64, shDegree) {
     const binary = atob(base64.trim());
     const bytes = new Uint8Array(binary.length);
     for (let i = 0; i < binary.length; i++) bytes[i] = binary.charCodeAt(i);
     const data = new DataView(bytes.buffer);
-    const count = Math.floor(bytes.length / (RECORD_BYTES + (hasSh1 ? SH1_BYTES : 0)));
-    const sh = (i, k) => hasSh1 ? (bytes[count * RECORD_BYTES + SH1_BYTES * i + k] - 128) / 128 : 0;
+    const perGaussianSh = shBytes(shDegree);
+    const count = Math.floor(bytes.length / (RECORD_BYTES + perGaussianSh));
     const rows = Math.max(1, Math.ceil(count / GAUSSIANS_PER_ROW));
     const texels = new Float32Array(rows * GAUSSIANS_PER_ROW * TEXELS_PER_GAUSSIAN * 4);
     const positions = new Float32Array(3 * count);
@@ -163,13 +211,21 @@ void main() {
         x, y, z, bytes[o + 27] / 255,
         cov(0, 0), cov(0, 1), cov(0, 2), cov(1, 1),
         cov(1, 2), cov(2, 2), 0, 0,
-        bytes[o + 24] / 255, bytes[o + 25] / 255, bytes[o + 26] / 255, sh(i, 8),
-        sh(i, 0), sh(i, 1), sh(i, 2), sh(i, 3),
-        sh(i, 4), sh(i, 5), sh(i, 6), sh(i, 7),
+        bytes[o + 24] / 255, bytes[o + 25] / 255, bytes[o + 26] / 255, 0,
       ], 4 * TEXELS_PER_GAUSSIAN * i);
       positions.set([x, y, z], 3 * i);
     }
-    return { count, rows, texels, positions };
+    // The SH bytes as they are, each Gaussian's padded to whole 16-byte texels; one empty texel when
+    // there are none (the shader's sampler still needs a texture of its type).
+    const shTexels = shDegree > 0 ? Math.ceil(perGaussianSh / 16) : 1;
+    const shWidth = shDegree > 0 ? GAUSSIANS_PER_ROW * shTexels : 1;
+    const shRows = shDegree > 0 ? rows : 1;
+    const sh = new Uint8Array(shWidth * shRows * 16);
+    const shStart = count * RECORD_BYTES;
+    for (let i = 0; shDegree > 0 && i < count; i++) {
+      sh.set(bytes.subarray(shStart + perGaussianSh * i, shStart + perGaussianSh * (i + 1)), 16 * shTexels * i);
+    }
+    return { count, rows, texels, positions, shDegree, shTexels, shWidth, shRows, sh: new Uint32Array(sh.buffer) };
   }
 
   // Writes into `order` the Gaussians in front of the camera, farthest first, and returns how many: a
@@ -245,7 +301,13 @@ void main() {
     gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_MAG_FILTER, gl.NEAREST);
     gl.texImage2D(gl.TEXTURE_2D, 0, gl.RGBA32F, GAUSSIANS_PER_ROW * TEXELS_PER_GAUSSIAN, scene.rows, 0,
       gl.RGBA, gl.FLOAT, scene.texels);
+    scene.shTexture = gl.createTexture();
+    gl.bindTexture(gl.TEXTURE_2D, scene.shTexture);
+    gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_MIN_FILTER, gl.NEAREST);
+    gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_MAG_FILTER, gl.NEAREST);
+    gl.texImage2D(gl.TEXTURE_2D, 0, gl.RGBA32UI, scene.shWidth, scene.shRows, 0, gl.RGBA_INTEGER, gl.UNSIGNED_INT, scene.sh);
     scene.texels = null;  // on the GPU now
+    scene.sh = null;
     scene.order = new Uint32Array(scene.count);
     scene.orderBuffer = gl.createBuffer();
     scene.vertexArray = gl.createVertexArray();
@@ -280,14 +342,15 @@ void main() {
       this.gl = gl;
       this.program = linkProgram(gl);
       this.uniforms = {};
-      for (const name of ['u_gaussians', 'u_eye', 'u_rotation', 'u_translation', 'u_intrinsics', 'u_limits', 'u_viewport']) {
+      for (const name of ['u_gaussians', 'u_sh', 'u_sh_degree', 'u_sh_texels', 'u_eye', 'u_rotation', 'u_translation', 'u_intrinsics', 'u_limits', 'u_viewport']) {
         this.uniforms[name] = gl.getUniformLocation(this.program, name);
       }
       const corners = gl.createBuffer();
       gl.bindBuffer(gl.ARRAY_BUFFER, corners);
       gl.bufferData(gl.ARRAY_BUFFER, new Float32Array([-1, -1, 1, -1, -1, 1, 1, 1]), gl.STATIC_DRAW);
       this.scenes = [...root.querySelectorAll('script.vcv-scene')].map((element) => {
-        const scene = decodeScene(element.textContent, element.hasAttribute('data-sh1'));
+        const degree = Math.min(Math.max(parseInt(element.dataset.shDegree || '0', 10) || 0, 0), 3);
+        const scene = decodeScene(element.textContent, degree);
         uploadScene(gl, scene, corners);
         return scene;
       });
@@ -355,6 +418,76 @@ void main() {
       this.viewChanged();
     }
 
+    // Turns the camera where it stands: `yaw` radians to the right about the world's up axis (the horizon
+    // stays level), `pitch` radians up about its right axis, stopping short of the poles. The pivot stays
+    // straight ahead at the same distance, so orbiting afterwards turns around what is in view.
+    turnInPlace(yaw, pitch) {
+      const v = this.view;
+      const reach = Math.hypot(...sub(v.pivot, v.center));
+      v.rows = v.rows.map((r) => rotate(r, this.up, -yaw));
+      if (pitch !== 0 && Math.abs(dot(rotate(v.rows[2], v.rows[0], pitch), this.up)) < 0.98) {
+        v.rows = v.rows.map((r) => rotate(r, v.rows[0], pitch));
+      }
+      v.pivot = add(v.center, scale(v.rows[2], reach));
+    }
+
+    // One step of flying for `seconds` with the keys held now: W/S along the view, A/D along the camera's
+    // right axis, E/Q along the world's up axis (camera and pivot together), arrows to turn.
+    fly(seconds) {
+      const held = (code) => (this.heldKeys.has(code) ? 1 : 0);
+      const v = this.view;
+      const move = add(add(
+        scale(v.rows[2], held('KeyW') - held('KeyS')),
+        scale(v.rows[0], held('KeyD') - held('KeyA'))),
+        scale(this.up, held('KeyE') - held('KeyQ')));
+      const length = Math.hypot(...move);
+      if (length > 0) {
+        const step = FLY_SPEED * this.homeDistance * seconds * (this.flyFast ? FLY_FAST : 1) / length;
+        v.center = add(v.center, scale(move, step));
+        v.pivot = add(v.pivot, scale(move, step));
+      }
+      const [yaw, pitch] = [held('ArrowRight') - held('ArrowLeft'), held('ArrowUp') - held('ArrowDown')];
+      if (yaw !== 0 || pitch !== 0) {
+        const turn = TURN_RADIANS_PER_SECOND * seconds;
+        this.turnInPlace(turn * yaw, turn * pitch);
+      }
+      this.version = (this.version || 0) + 1;
+    }
+
+    // Flies one step per animation frame, by the time since the last one, while a key is held; the loop
+    // ends with the last key released, so an idle viewer draws nothing.
+    startFlying() {
+      if (this.flying) return;
+      this.flying = true;
+      let last = performance.now();
+      const frame = (now) => {
+        if (this.heldKeys.size === 0) {
+          this.flying = false;
+          return;
+        }
+        const seconds = Math.min(Math.max(now - last, 0) / 1000, LONGEST_FLY_STEP_SECONDS);
+        last = now;
+        this.fly(seconds);
+        this.render();
+        requestAnimationFrame(frame);
+      };
+      requestAnimationFrame(frame);
+    }
+
+    isFullscreen() {
+      return document.fullscreenElement === this.root;
+    }
+
+    toggleFullscreen() {
+      if (this.isFullscreen()) {
+        document.exitFullscreen();
+        return;
+      }
+      // Keys fly the camera at once in full screen; a refusal (no user gesture, or a frame that may not
+      // go full screen) leaves the page as it is, as the browser reports it.
+      this.root.requestFullscreen().then(() => this.canvas.focus(), () => {});
+    }
+
     // 'before' (first scene everywhere), 'after' (second scene), or 'split' (divider in the middle).
     show(mode) {
       this.setSplit({ before: 1, after: 0, split: 0.5 }[mode]);
@@ -396,13 +529,50 @@ void main() {
       this.root.querySelectorAll('button[data-action=reset]').forEach((b) => b.addEventListener('click', () => this.resetView()));
       if (this.slider) this.slider.addEventListener('input', () => this.setSplit(this.slider.value / 100));
       window.addEventListener('resize', () => this.requestRender());
+      // The canvas follows the page's width and the full-screen switch without a window resize.
+      if (window.ResizeObserver) new ResizeObserver(() => this.requestRender()).observe(canvas);
+
+      // Keys act only while the canvas has the focus, so typing elsewhere on the page moves nothing; with
+      // Ctrl, Alt or Meta they stay the browser's shortcuts.
+      this.heldKeys = new Set();
+      this.flyFast = false;
+      canvas.addEventListener('keydown', (e) => {
+        if (e.ctrlKey || e.altKey || e.metaKey) return;
+        this.flyFast = e.shiftKey;
+        if (!FLY_KEYS.has(e.code)) return;
+        e.preventDefault();  // arrows would scroll the page
+        this.heldKeys.add(e.code);
+        this.startFlying();
+      });
+      canvas.addEventListener('keyup', (e) => {
+        this.flyFast = e.shiftKey;
+        this.heldKeys.delete(e.code);
+      });
+      // A key released while the focus was elsewhere sends its keyup there.
+      canvas.addEventListener('blur', () => this.heldKeys.clear());
+
+      const fullscreen = this.root.querySelector('button[data-action=fullscreen]');
+      if (fullscreen && document.fullscreenEnabled && this.root.requestFullscreen) {
+        fullscreen.hidden = false;
+        fullscreen.addEventListener('click', () => this.toggleFullscreen());
+        // Also when Escape (the browser's own way out) leaves full screen.
+        document.addEventListener('fullscreenchange', () => {
+          fullscreen.textContent = this.isFullscreen() ? 'exit full screen' : 'full screen';
+          this.requestRender();
+        });
+      }
     }
 
-    // The reference camera's intrinsics scaled to the canvas.
+    // The reference camera's intrinsics fitted into the canvas: scaled by one factor so its whole image
+    // shows (the canvas's other axis sees more of the scene, nothing is stretched), centred.
     intrinsics() {
       const c = this.config.camera;
-      const [sx, sy] = [this.canvas.width / c.width, this.canvas.height / c.height];
-      return { fx: c.fx * sx, fy: c.fy * sy, cx: c.cx * sx, cy: c.cy * sy };
+      const [width, height] = [this.canvas.width, this.canvas.height];
+      const s = Math.min(width / c.width, height / c.height);
+      return {
+        fx: c.fx * s, fy: c.fy * s,
+        cx: c.cx * s + 0.5 * (width - c.width * s), cy: c.cy * s + 0.5 * (height - c.height * s),
+      };
     }
 
     requestRender() {
@@ -440,7 +610,7 @@ void main() {
         k.cy / k.fy + 0.3 * tanY, (height - k.cy) / k.fy + 0.3 * tanY);
       gl.uniform2f(this.uniforms.u_viewport, width, height);
       gl.uniform1i(this.uniforms.u_gaussians, 0);
-      gl.activeTexture(gl.TEXTURE0);
+      gl.uniform1i(this.uniforms.u_sh, 1);
       gl.enable(gl.BLEND);
       gl.blendFunc(gl.ONE, gl.ONE_MINUS_SRC_ALPHA);
       gl.enable(gl.SCISSOR_TEST);
@@ -457,6 +627,11 @@ void main() {
           scene.sortedFor = this.version;
         }
         gl.scissor(x0, 0, x1 - x0, height);
+        gl.uniform1i(this.uniforms.u_sh_degree, scene.shDegree);
+        gl.uniform1i(this.uniforms.u_sh_texels, scene.shTexels);
+        gl.activeTexture(gl.TEXTURE1);
+        gl.bindTexture(gl.TEXTURE_2D, scene.shTexture);
+        gl.activeTexture(gl.TEXTURE0);
         gl.bindTexture(gl.TEXTURE_2D, scene.texture);
         gl.bindVertexArray(scene.vertexArray);
         gl.drawArraysInstanced(gl.TRIANGLE_STRIP, 0, 4, scene.visible);

@@ -7,9 +7,12 @@
 //! largest cross-section), chosen deterministically. With the default cap of [`DEFAULT_CAP`] a page holds
 //! at most 2 × 250 000 × 42⅔ B ≈ 21.3 MB of scene data; two scenes of 125 000 Gaussians take 10.7 MB.
 //!
-//! Colours: the DC colour in the record, and for scenes of SH degree 1 or more the 9 degree-1 coefficients
-//! as 9 more bytes per Gaussian (after all the records; `data-sh1` on the script says they are there), so
-//! shading changes with the viewing direction as in the renderer; bands 2 and 3 are dropped.
+//! Colours: the DC colour in the record, and for scenes of SH degree 1 to 3 the higher coefficients, one
+//! byte each ([`pack_sh`]: 9, 24 or 45 more bytes per Gaussian, after all the records; `data-sh-degree` on
+//! the script says how many bands), so shading changes with the viewing direction as in the renderer.
+//! Bands whose coefficients all quantise to zero are left out (see [`embedded_sh_degree`]), and the top
+//! bands are dropped where the page's scene data would pass [`SH_PAGE_BUDGET_BYTES`] (two scenes of
+//! 250 000 Gaussians keep degree 1, 27.3 MB; two of 125 000 keep degree 3, 25.7 MB).
 
 use std::path::Path;
 
@@ -24,10 +27,16 @@ const VIEWER_JS: &str = include_str!("viewer.js");
 
 /// Bytes per Gaussian in the embedded records.
 pub const RECORD_BYTES: usize = splat::formats::dot_splat::RECORD_BYTES;
-/// Bytes per Gaussian of the degree-1 SH coefficients (3 coefficients × RGB), after the records.
-pub const SH1_BYTES: usize = 9;
+/// The highest SH degree the viewer evaluates (that of the renderer and of every scene format).
+pub const MAX_SH_DEGREE: u32 = 3;
 /// Default number of Gaussians embedded per scene.
 pub const DEFAULT_CAP: usize = 250_000;
+/// Most bytes (base64, all scenes together) a page's SH bands may bring its scene data to: degree 3
+/// nearly doubles a Gaussian's bytes, and a page must still open quickly in a browser tab. Records
+/// alone are never dropped (`--cap` limits them).
+pub const SH_PAGE_BUDGET_BYTES: usize = 28_000_000;
+/// Base64 characters per embedded byte.
+const BASE64_PER_BYTE: f64 = 4.0 / 3.0;
 /// The zeroth-order SH basis constant: colour = 0.5 + C0 · DC coefficient.
 #[cfg(test)]
 const SH_C0: f32 = 0.282_094_8;
@@ -67,15 +76,47 @@ pub fn pack_record(scene: &GaussianScene, i: usize) -> [u8; RECORD_BYTES] {
     splat::formats::dot_splat::encode_record(scene, i)
 }
 
-/// The degree-1 SH coefficients of Gaussian `i` (coefficient-major, channel inner, as `GaussianScene::sh`),
-/// each stored as round(128 v + 128) clamped to 0..=255 (as `.spz` stores SH): steps of 1/128 over
-/// [-1, 1). Zeros for a scene of degree 0.
-pub fn pack_sh1(scene: &GaussianScene, i: usize) -> [u8; SH1_BYTES] {
-    if scene.sh_degree == 0 {
-        return [128; SH1_BYTES];
-    }
-    let row = &scene.sh[i * 3 * scene.sh_coeffs() + 3..][..SH1_BYTES];
-    std::array::from_fn(|k| (row[k] * 128.0 + 128.0).round().clamp(0.0, 255.0) as u8)
+/// Bytes per Gaussian of the SH coefficients above the DC term up to `degree` (RGB each, one byte per
+/// value): 0, 9, 24 or 45 for degrees 0 to 3.
+pub fn sh_bytes(degree: u32) -> usize {
+    3 * (splat::scene::sh_coeffs(degree.min(MAX_SH_DEGREE)) - 1)
+}
+
+/// One SH coefficient as a byte: round(128 v + 128) clamped to 0..=255 (as `.spz` stores SH), so steps of
+/// 1/128 over [-1, 1).
+fn quantise_sh(v: f32) -> u8 {
+    (v * 128.0 + 128.0).round().clamp(0.0, 255.0) as u8
+}
+
+/// The SH coefficients of Gaussian `i` above the DC term, up to `degree` (coefficient-major, channel inner,
+/// as `GaussianScene::sh`), each quantised to a byte by round(128 v + 128) clamped to 0..=255: steps of
+/// 1/128 over [-1, 1). Bands the scene does not have are zero (128). [`sh_bytes`]`(degree)` long.
+pub fn pack_sh(scene: &GaussianScene, i: usize, degree: u32) -> Vec<u8> {
+    let wanted = sh_bytes(degree);
+    let have = sh_bytes(scene.sh_degree).min(wanted);
+    let row = &scene.sh[i * 3 * scene.sh_coeffs() + 3..][..have];
+    let mut out: Vec<u8> = row.iter().map(|&v| quantise_sh(v)).collect();
+    out.resize(wanted, 128);
+    out
+}
+
+/// The SH degree to embed for the Gaussians `kept` of `scene`: the scene's degree (at most 3), lowered
+/// past every top band whose coefficients all quantise to zero, so a scene stored with SH it never used
+/// costs no more than a scene of degree 0.
+pub fn embedded_sh_degree(scene: &GaussianScene, kept: &[usize]) -> u32 {
+    let coeffs = scene.sh_coeffs();
+    (1..=scene.sh_degree.min(MAX_SH_DEGREE))
+        .rev()
+        .find(|&degree| {
+            // Values of the band `degree` within a Gaussian's row: after the lower bands.
+            let band = 3 * splat::scene::sh_coeffs(degree - 1)..3 * splat::scene::sh_coeffs(degree);
+            kept.iter().any(|&i| {
+                scene.sh[i * 3 * coeffs..][band.clone()]
+                    .iter()
+                    .any(|&v| quantise_sh(v) != 128)
+            })
+        })
+        .unwrap_or(0)
 }
 
 /// Decodes a record written by [`pack_record`].
@@ -309,10 +350,16 @@ fn grouped(n: usize) -> String {
 }
 
 const CSS: &str = "
-.vcv{max-width:1280px;margin:8px 0 16px}
+.vcv{margin:8px 0 16px}
 .vcv-stage{position:relative;width:100%;background:#000;border-radius:6px;overflow:hidden;line-height:0}
-.vcv-stage canvas{display:block;width:100%;height:auto;cursor:grab;touch-action:none}
+.vcv-stage canvas{display:block;width:100%;cursor:grab;touch-action:none;outline:none}
 .vcv-stage canvas:active{cursor:grabbing}
+.vcv-stage canvas:focus-visible{box-shadow:inset 0 0 0 2px #2a6f97}
+.vcv:fullscreen{margin:0;background:#000}
+.vcv:fullscreen .vcv-stage{height:100%;border-radius:0}
+.vcv:fullscreen .vcv-stage canvas{height:100%;max-height:none!important;aspect-ratio:auto!important}
+.vcv:fullscreen .vcv-controls{position:absolute;left:8px;bottom:8px;margin:0;padding:4px 6px;border-radius:6px;background:rgba(255,255,255,.85)}
+.vcv:fullscreen .vcv-note{display:none}
 .vcv-divider{position:absolute;top:0;bottom:0;width:2px;margin-left:-1px;background:rgba(255,255,255,.85);pointer-events:none}
 .vcv-tag{position:absolute;top:8px;padding:2px 8px;border-radius:4px;background:rgba(0,0,0,.55);color:#fff;font:13px/1.4 system-ui,sans-serif;pointer-events:none}
 .vcv-tag-0{left:8px}.vcv-tag-1{right:8px}
@@ -335,12 +382,12 @@ pub fn viewer_html(
     build(scenes, view, options).0
 }
 
-/// The fragment and how many Gaussians of each scene it embeds.
+/// The fragment and what it embeds of each scene.
 fn build(
     scenes: &[ViewerScene<'_>],
     view: &InitialView,
     options: &ViewerOptions,
-) -> (Markup, Vec<usize>) {
+) -> (Markup, Vec<Embedded>) {
     let cam = &view.camera;
     let config = Config {
         camera: CameraConfig {
@@ -357,35 +404,50 @@ fn build(
         up: view.up,
         background: options.background,
     };
-    let packed: Vec<(usize, String)> = scenes
+    let kept: Vec<Vec<usize>> = scenes
         .iter()
-        .map(|s| {
-            let kept = visible_subset(s.scene, options.cap);
+        .map(|s| visible_subset(s.scene, options.cap))
+        .collect();
+    let mut embedded: Vec<Embedded> = scenes
+        .iter()
+        .zip(&kept)
+        .map(|(s, kept)| Embedded {
+            count: kept.len(),
+            sh_degree: embedded_sh_degree(s.scene, kept),
+        })
+        .collect();
+    fit_sh_to_budget(&mut embedded, SH_PAGE_BUDGET_BYTES);
+    let packed: Vec<String> = scenes
+        .iter()
+        .zip(&kept)
+        .zip(&embedded)
+        .map(|((s, kept), e)| {
             let mut bytes: Vec<u8> = kept.iter().flat_map(|&i| pack_record(s.scene, i)).collect();
-            if s.scene.sh_degree > 0 {
-                bytes.extend(kept.iter().flat_map(|&i| pack_sh1(s.scene, i)));
-            }
-            (kept.len(), base64(&bytes))
+            bytes.extend(kept.iter().flat_map(|&i| pack_sh(s.scene, i, e.sh_degree)));
+            base64(&bytes)
         })
         .collect();
     let two = scenes.len() > 1;
     let (w, h) = (cam.width.max(1), cam.height.max(1));
-    let aspect = format!("aspect-ratio:{w}/{h}");
-    // As wide as the page allows (at most 1280 px), but no taller than 78 % of the window.
-    let fit = format!("max-width:calc(78vh * {w} / {h})");
-    let mb_125k_pair = 2.0 * 125_000.0 * (RECORD_BYTES as f64 * 4.0 / 3.0) / 1e6;
+    // As wide as the page, in the first camera's aspect ratio but no taller than 78 % of the window (the
+    // script fits the camera into whatever shape the canvas gets).
+    let canvas_shape = format!("aspect-ratio:{w}/{h};max-height:78vh");
+    let mb_125k_pair = 2.0 * 125_000.0 * (RECORD_BYTES as f64 * BASE64_PER_BYTE) / 1e6;
+    let mb_125k_pair_sh3 =
+        2.0 * 125_000.0 * ((RECORD_BYTES + sh_bytes(3)) as f64 * BASE64_PER_BYTE) / 1e6;
     let markup = html! {
         style { (PreEscaped(CSS)) }
         div.vcv data-vcedit-viewer data-mode="split" {
             script.vcv-config type="application/json" { (PreEscaped(script_json(&config))) }
-            @for (s, (_, data)) in scenes.iter().zip(&packed) {
+            @for ((s, e), data) in scenes.iter().zip(&embedded).zip(&packed) {
                 script.vcv-scene type="application/octet-stream" data-label=(s.label)
-                    data-sh1=[(s.scene.sh_degree > 0).then_some("1")] {
+                    data-sh-degree=[(e.sh_degree > 0).then_some(e.sh_degree)] {
                     (PreEscaped(data))
                 }
             }
-            div.vcv-stage style=(fit) {
-                canvas style=(aspect) tabindex="0" aria-label="3D view: drag to turn, wheel to zoom" {}
+            div.vcv-stage {
+                canvas style=(canvas_shape) tabindex="0"
+                    aria-label="3D view: drag to turn, wheel to zoom, W A S D Q E and arrow keys to fly" {}
                 @if two {
                     div.vcv-divider style="left:50%" {}
                 }
@@ -402,27 +464,67 @@ fn build(
                     input.vcv-split type="range" min="0" max="100" value="50" aria-label="divider position";
                 }
                 button type="button" data-action="reset" { "reset view" }
+                // Shown by the script where the page may go full screen.
+                button type="button" data-action="fullscreen" hidden { "full screen" }
             }
             p.vcv-note {
-                "Drag to turn around the scene, shift- or right-drag to pan, wheel to zoom, double-click to \
-                 reset. WebGL2 splatting of the embedded Gaussians with their SH colours up to degree 1 \
-                 (view-dependent shading of degree 2 and 3 is not shown)."
+                "Mouse: drag to turn around the scene, shift- or right-drag to pan, wheel to zoom, double-click \
+                 to reset. Keys (click the view first): W/S forward/back, A/D left/right, E/Q up/down (as in \
+                 SuperSplat), arrow keys to turn, Shift to move faster. WebGL2 splatting of the embedded \
+                 Gaussians with their view-dependent SH colours (up to degree 3)."
             }
             p.vcv-note {
                 "Embedded: "
-                @for (k, (s, (kept, _))) in scenes.iter().zip(&packed).enumerate() {
+                @for (k, (s, e)) in scenes.iter().zip(&embedded).enumerate() {
                     @if k > 0 { "; " }
-                    (s.label) " " (grouped(*kept)) " of " (grouped(s.scene.len())) " Gaussians"
+                    (s.label) " " (grouped(e.count)) " of " (grouped(s.scene.len())) " Gaussians"
+                    @if e.sh_degree > 0 { " with SH degree " (e.sh_degree) }
                 }
                 " (at most " (grouped(options.cap)) " per scene, the most visible by opacity × area). "
-                (RECORD_BYTES) " bytes per Gaussian, " (format!("{:.1}", RECORD_BYTES as f64 * 4.0 / 3.0))
-                " in the page as base64 (" (SH1_BYTES) " more with SH): two scenes of 125" "\u{202f}"
-                "000 Gaussians take " (format!("{mb_125k_pair:.1}")) " MB."
+                (RECORD_BYTES) " bytes per Gaussian, " (format!("{:.1}", RECORD_BYTES as f64 * BASE64_PER_BYTE))
+                " in the page as base64, and " (sh_bytes(1)) ", " (sh_bytes(2)) " or " (sh_bytes(3))
+                " more with SH of degree 1, 2 or 3: two scenes of 125" "\u{202f}" "000 Gaussians take "
+                (format!("{mb_125k_pair:.1}")) " MB, " (format!("{mb_125k_pair_sh3:.1}")) " MB at degree 3."
             }
         }
         script { (PreEscaped(VIEWER_JS)) }
     };
-    (markup, packed.iter().map(|(kept, _)| *kept).collect())
+    (markup, embedded)
+}
+
+/// Drops the top SH band of every scene until the scenes' page bytes fit `budget` or only records are
+/// left (records are never dropped: the cap limits them).
+fn fit_sh_to_budget(embedded: &mut [Embedded], budget: usize) {
+    while embedded.iter().map(Embedded::page_bytes).sum::<usize>() > budget {
+        let Some(top) = embedded
+            .iter()
+            .map(|e| e.sh_degree)
+            .max()
+            .filter(|&d| d > 0)
+        else {
+            break;
+        };
+        for e in embedded.iter_mut() {
+            e.sh_degree = e.sh_degree.min(top - 1);
+        }
+    }
+}
+
+/// What a page embeds of one scene.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Embedded {
+    /// Gaussians embedded.
+    pub count: usize,
+    /// SH bands embedded after the records (0 to 3).
+    pub sh_degree: u32,
+}
+
+impl Embedded {
+    /// The scene's data in the page: records and SH bytes, as base64.
+    pub fn page_bytes(&self) -> usize {
+        ((self.count * (RECORD_BYTES + sh_bytes(self.sh_degree))) as f64 * BASE64_PER_BYTE).ceil()
+            as usize
+    }
 }
 
 /// A standalone page holding only the viewer.
@@ -454,14 +556,14 @@ fn page(title: &str, viewer: Markup) -> String {
     .into_string()
 }
 
-/// Writes [`viewer_page`] to `path` atomically; returns how many Gaussians of each scene it embeds.
+/// Writes [`viewer_page`] to `path` atomically; returns what it embeds of each scene.
 pub fn write_viewer_page(
     path: &Path,
     title: &str,
     scenes: &[ViewerScene<'_>],
     view: &InitialView,
     options: &ViewerOptions,
-) -> Result<Vec<usize>, ViewerError> {
+) -> Result<Vec<Embedded>, ViewerError> {
     let (viewer, embedded) = build(scenes, view, options);
     files::atomic_write(path, page(title, viewer).as_bytes()).map_err(|e| ViewerError::Write {
         path: path.to_path_buf(),
@@ -496,34 +598,109 @@ mod tests {
         s
     }
 
+    /// The embedded SH data of a one-scene page: its `data-sh-degree` (0 when absent) and the base64.
+    fn embedded(scene: &GaussianScene) -> (u32, String, usize) {
+        let view = InitialView::around(scene);
+        let (html, kept) = build(
+            &[ViewerScene { label: "s", scene }],
+            &view,
+            &ViewerOptions::default(),
+        );
+        let html = html.into_string();
+        let tag = html.split("data-label=\"s\"").nth(1).unwrap();
+        let degree = tag
+            .strip_prefix(" data-sh-degree=\"")
+            .map_or(0, |rest| rest[..rest.find('"').unwrap()].parse().unwrap());
+        let data = &tag[tag.find('>').unwrap() + 1..tag.find("</script>").unwrap()];
+        (degree, data.trim().to_string(), kept[0].count)
+    }
+
     #[test]
-    fn degree_1_coefficients_follow_the_records_of_shaded_scenes() {
-        let shaded = varied(5, 2);
-        let k = shaded.sh_coeffs();
-        for i in 0..5 {
-            let packed = pack_sh1(&shaded, i);
-            for (j, &b) in packed.iter().enumerate() {
-                let want = shaded.sh[i * 3 * k + 3 + j].clamp(-1.0, 127.0 / 128.0);
-                let got = (f32::from(b) - 128.0) / 128.0;
-                assert!(
-                    (got - want).abs() <= 0.5 / 128.0 + 1e-6,
-                    "{i}/{j}: {got} vs {want}"
-                );
+    fn sh_coefficients_of_every_degree_follow_the_records() {
+        for degree in 0..=3 {
+            let shaded = varied(5, degree);
+            let k = shaded.sh_coeffs();
+            assert_eq!(sh_bytes(degree), 3 * (k - 1));
+            for i in 0..5 {
+                let packed = pack_sh(&shaded, i, degree);
+                assert_eq!(packed.len(), sh_bytes(degree));
+                for (j, &b) in packed.iter().enumerate() {
+                    let want = shaded.sh[i * 3 * k + 3 + j].clamp(-1.0, 127.0 / 128.0);
+                    let got = (f32::from(b) - 128.0) / 128.0;
+                    assert!(
+                        (got - want).abs() <= 0.5 / 128.0 + 1e-6,
+                        "degree {degree}, {i}/{j}: {got} vs {want}"
+                    );
+                }
+                // Asking for more bands than the scene has pads with zeros.
+                let padded = pack_sh(&shaded, i, 3);
+                assert_eq!(&padded[..packed.len()], &packed[..]);
+                assert!(padded[packed.len()..].iter().all(|&b| b == 128));
             }
+            // The page: records, then the coefficients, and `data-sh-degree` says how many bands.
+            let (embedded_degree, data, kept) = embedded(&shaded);
+            assert_eq!(embedded_degree, degree);
+            let bytes = RECORD_BYTES + sh_bytes(degree);
+            assert_eq!(
+                data.len(),
+                (kept * bytes).div_ceil(3) * 4,
+                "degree {degree}"
+            );
         }
-        assert_eq!(pack_sh1(&varied(2, 0), 1), [128; SH1_BYTES]);
-        // The page: records, then the coefficients, marked `data-sh1`; a degree-0 scene has neither.
-        let view = InitialView::around(&shaded);
-        let options = ViewerOptions::default();
-        for (scene, sh1) in [(&shaded, true), (&varied(5, 0), false)] {
-            let (html, kept) = build(&[ViewerScene { label: "s", scene }], &view, &options);
-            let html = html.into_string();
-            let bytes = RECORD_BYTES + if sh1 { SH1_BYTES } else { 0 };
-            assert_eq!(html.contains("data-label=\"s\" data-sh1"), sh1);
-            let data = html.split("data-label=\"s\"").nth(1).unwrap();
-            let data = &data[data.find('>').unwrap() + 1..data.find("</script>").unwrap()];
-            assert_eq!(data.trim().len(), (kept[0] * bytes).div_ceil(3) * 4);
-        }
+    }
+
+    #[test]
+    fn sh_bands_give_way_to_the_page_budget_but_records_do_not() {
+        let pair = |count, sh_degree| [Embedded { count, sh_degree }; 2];
+        // The documented figures: two scenes of 250 000 keep degree 1, two of 125 000 degree 3.
+        let mut large = pair(250_000, 3);
+        fit_sh_to_budget(&mut large, SH_PAGE_BUDGET_BYTES);
+        assert_eq!(large, pair(250_000, 1));
+        let mut half = pair(125_000, 3);
+        fit_sh_to_budget(&mut half, SH_PAGE_BUDGET_BYTES);
+        assert_eq!(half, pair(125_000, 3));
+        // Bands drop from the top across scenes; a scene of lower degree keeps its bands meanwhile.
+        let mut mixed = [
+            Embedded {
+                count: 1000,
+                sh_degree: 3,
+            },
+            Embedded {
+                count: 1000,
+                sh_degree: 1,
+            },
+        ];
+        let degree_2 = mixed[0].page_bytes() - 1000 * (sh_bytes(3) - sh_bytes(2)) * 4 / 3;
+        let budget = degree_2 + mixed[1].page_bytes();
+        fit_sh_to_budget(&mut mixed, budget);
+        assert_eq!((mixed[0].sh_degree, mixed[1].sh_degree), (2, 1));
+        // Records alone over the budget: no SH, records kept.
+        let mut over = pair(1_000_000, 2);
+        fit_sh_to_budget(&mut over, SH_PAGE_BUDGET_BYTES);
+        assert_eq!(over, pair(1_000_000, 0));
+    }
+
+    #[test]
+    fn bands_that_quantise_to_zero_are_left_out() {
+        let mut scene = varied(6, 3);
+        let k = scene.sh_coeffs();
+        let zero_from = |scene: &mut GaussianScene, coefficient: usize| {
+            for i in 0..scene.len() {
+                scene.sh[i * 3 * k + 3 * coefficient..(i + 1) * 3 * k].fill(0.001);
+            }
+        };
+        zero_from(&mut scene, 9);
+        assert_eq!(embedded_sh_degree(&scene, &[0, 1, 2, 3, 4, 5]), 2);
+        zero_from(&mut scene, 4);
+        assert_eq!(embedded_sh_degree(&scene, &[0, 1, 2, 3, 4, 5]), 1);
+        zero_from(&mut scene, 1);
+        assert_eq!(embedded_sh_degree(&scene, &[0, 1, 2, 3, 4, 5]), 0);
+        assert_eq!(embedded(&scene).0, 0, "no SH bytes in the page");
+        // One Gaussian with a band-3 coefficient of 1/128 keeps all three bands.
+        scene.sh[2 * 3 * k + 3 * 15 + 1] = 1.0 / 128.0;
+        assert_eq!(embedded_sh_degree(&scene, &[0, 1, 2, 3, 4, 5]), 3);
+        // ... unless it is not embedded.
+        assert_eq!(embedded_sh_degree(&scene, &[0, 1, 3]), 0);
     }
 
     #[test]
@@ -660,16 +837,18 @@ mod tests {
     fn page_embeds_every_visible_gaussian_and_states_the_budget() {
         let html = page_for(["before", "after"]);
         // The scene has SH degree 1: its records, then its degree-1 coefficients.
-        let tag = "data-label=\"after\" data-sh1=\"1\">";
+        let tag = "data-label=\"after\" data-sh-degree=\"1\">";
         let start = html.find(tag).unwrap() + tag.len();
         let data = &html[start..start + html[start..].find('<').unwrap()];
         let visible = visible_subset(&varied(6, 1), usize::MAX).len();
         assert_eq!(
             data.len(),
-            (visible * (RECORD_BYTES + SH1_BYTES)).div_ceil(3) * 4
+            (visible * (RECORD_BYTES + sh_bytes(1))).div_ceil(3) * 4
         );
         assert!(html.contains("32 bytes per Gaussian, 42.7 in the page as base64"));
-        assert!(html.contains("take 10.7 MB"));
+        assert!(html.contains("9, 24 or 45 more with SH of degree 1, 2 or 3"));
+        // (32 + 45) bytes × 4/3 × 250 000.
+        assert!(html.contains("take 10.7 MB, 25.7 MB at degree 3"));
         assert!(html.contains("at most 250\u{202f}000 per scene"));
     }
 
