@@ -11,6 +11,7 @@ use clap::{Parser, Subcommand};
 mod args;
 mod cmd;
 mod embedded;
+mod interrupt;
 mod progress;
 
 #[derive(Parser)]

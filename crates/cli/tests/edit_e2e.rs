@@ -52,34 +52,150 @@ fn gaussian_key(s: &GaussianScene, i: usize) -> Vec<u32> {
         .collect()
 }
 
+/// The test runs' settings: 4 views, 4 steps, 2 iterations (40 UNet passes).
+const RUN_SETTINGS: [&str; 17] = [
+    "--size",
+    "64",
+    "--steps",
+    "4",
+    "--max-views",
+    "4",
+    "--iterations",
+    "2",
+    "--fit-steps",
+    "30",
+    "--ccm-steps",
+    "1",
+    "--ecm-steps",
+    "2",
+    "--mask-box=-0.8,-0.8,-0.8,0.8,0.8,0.8",
+    "--orbit",
+    "6",
+];
+
 fn run_edit(scene: &Path, out: &Path, extra: &[&str]) -> std::process::Output {
-    Command::new(env!("CARGO_BIN_EXE_vcedit"))
+    run_edit_with(scene, out, &RUN_SETTINGS, extra)
+}
+
+fn run_edit_with(
+    scene: &Path,
+    out: &Path,
+    settings: &[&str],
+    extra: &[&str],
+) -> std::process::Output {
+    edit_command(scene, out, settings, extra)
+        .output()
+        .expect("run vcedit")
+}
+
+fn edit_command(scene: &Path, out: &Path, settings: &[&str], extra: &[&str]) -> Command {
+    let mut command = Command::new(env!("CARGO_BIN_EXE_vcedit"));
+    command
         .args(["edit", "--scene"])
         .arg(scene)
-        .args(["--orbit", "6", "--model"])
+        .arg("--model")
         .arg(fixtures().join("models/tiny-lcm"))
         .args(["--source", "a ball", "--target", "a red ball", "--out"])
         .arg(out)
-        .args([
-            "--size",
-            "64",
-            "--steps",
-            "4",
-            "--max-views",
-            "4",
-            "--iterations",
-            "2",
-            "--fit-steps",
-            "30",
-            "--ccm-steps",
-            "1",
-            "--ecm-steps",
-            "2",
-            "--mask-box=-0.8,-0.8,-0.8,0.8,0.8,0.8",
-        ])
-        .args(extra)
-        .output()
-        .expect("run vcedit")
+        .args(settings)
+        .args(extra);
+    command
+}
+
+/// Ctrl-C in the middle of a run: one line naming the folder and `--resume`, the shell's status for
+/// SIGINT (130), and `--resume` then finishes the run.
+#[cfg(unix)]
+#[test]
+fn ctrl_c_says_how_to_resume_and_the_run_resumes() {
+    use std::io::{BufRead, Read};
+    let dir = tempfile::tempdir().unwrap();
+    let scene_path = dir.path().join("blobs.ply");
+    splat::ply::write_ply(&scene_path, &two_blobs()).unwrap();
+    let out = dir.path().join("out");
+    let mut child = edit_command(&scene_path, &out, &RUN_SETTINGS, &[])
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    let mut stderr = std::io::BufReader::new(child.stderr.take().unwrap());
+    let mut seen = String::new();
+    // Interrupt during the second of two iterations, after the first one's checkpoint.
+    loop {
+        let mut line = String::new();
+        assert!(
+            stderr.read_line(&mut line).unwrap() > 0,
+            "no iteration line: {seen}"
+        );
+        seen.push_str(&line);
+        if line.contains("iteration 1 done") {
+            break;
+        }
+    }
+    // SAFETY: a signal to the child this test spawned.
+    unsafe { libc::kill(child.id() as libc::pid_t, libc::SIGINT) };
+    stderr.read_to_string(&mut seen).unwrap();
+    let status = child.wait().unwrap();
+    assert_eq!(status.code(), Some(130), "{seen}");
+    let said = format!(
+        "interrupted: {} keeps every finished iteration; the same command with --resume continues",
+        out.display()
+    );
+    assert!(seen.contains(&said), "{seen}");
+    assert!(!out.join("edited.ply").exists());
+
+    let o = run_edit(&scene_path, &out, &["--resume"]);
+    let stderr = String::from_utf8_lossy(&o.stderr);
+    assert!(o.status.success(), "--resume failed: {stderr}");
+    assert!(out.join("edited.ply").exists());
+}
+
+/// A run of 52 UNet passes (4 views × 13) is timed first: the estimate is printed with the work plan and
+/// kept in run.json beside the measured timings; `--no-estimate` skips it.
+#[test]
+fn a_long_run_prints_a_time_estimate_first() {
+    let dir = tempfile::tempdir().unwrap();
+    let scene_path = dir.path().join("blobs.ply");
+    splat::ply::write_ply(&scene_path, &two_blobs()).unwrap();
+    let mut long = RUN_SETTINGS;
+    for (option, value) in [
+        ("--steps", "12"),
+        ("--iterations", "1"),
+        ("--fit-steps", "5"),
+    ] {
+        let at = long.iter().position(|a| *a == option).unwrap();
+        long[at + 1] = value;
+    }
+    let out = dir.path().join("out");
+    let o = run_edit_with(&scene_path, &out, &long, &[]);
+    let stderr = String::from_utf8_lossy(&o.stderr);
+    assert!(o.status.success(), "vcedit edit failed: {stderr}");
+    let plan = stderr.find("52 UNet passes").expect("work plan");
+    let estimate = stderr.find("time: about").expect("time estimate");
+    let first_iteration = stderr.find("iteration 1 done").expect("iteration line");
+    assert!(plan < estimate && estimate < first_iteration, "{stderr}");
+    let run: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(out.join("run.json")).unwrap()).unwrap();
+    let e = &run["estimate"];
+    let unit = |k: &str| e["calibration"][k].as_f64().unwrap();
+    assert!(
+        unit("unet_call") > 0.0 && unit("render") > 0.0 && unit("lift") > 0.0,
+        "{e}"
+    );
+    assert!(
+        e["total"].as_f64().unwrap() >= e["unet"].as_f64().unwrap(),
+        "{e}"
+    );
+
+    let skipped = dir.path().join("skipped");
+    let o = run_edit_with(&scene_path, &skipped, &long, &["--no-estimate"]);
+    let stderr = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        o.status.success() && !stderr.contains("time: about"),
+        "{stderr}"
+    );
+    let run: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(skipped.join("run.json")).unwrap()).unwrap();
+    assert!(run.get("estimate").is_none());
 }
 
 #[test]
@@ -104,6 +220,8 @@ fn edit_writes_every_output_and_changes_only_the_mask() {
         stderr.contains("UNet passes") && stderr.contains("memory needed"),
         "work plan printed: {stderr}"
     );
+    // 40 UNet passes: too short a run to be worth timing its unit costs first.
+    assert!(!stderr.contains("time: about"), "{stderr}");
     assert_eq!(
         std::fs::read(&scene_path).unwrap(),
         before_bytes,

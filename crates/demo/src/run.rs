@@ -303,6 +303,7 @@ pub fn run_variant(
             format!("vcedit demo, {}", variant.name()),
             oracle_note(&final_score, guidance_score.as_ref()),
         ],
+        estimate: None,
     };
     let written = write_outputs(
         out,

@@ -139,6 +139,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     let model_files = files_under(&model_dir, 3);
     let inputs: Vec<&std::path::Path> = model_files.iter().map(PathBuf::as_path).collect();
     let out_dir = OutputDir::open(&args.out, "demo", &settings_key, args.force.force, &inputs)?;
+    crate::interrupt::resumable_run_in(&args.out);
     let mut progress = Reporter::new().on_gpu(!model.compute.splat().is_cpu());
     if args.compare {
         let mut scores = Vec::new();

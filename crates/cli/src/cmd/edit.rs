@@ -144,6 +144,10 @@ pub struct Args {
     pub resume: bool,
     #[command(flatten)]
     pub memory: MemoryCheckArg,
+    /// Skip the time estimate of a long run (one UNet call, one render and one lifting round timed
+    /// before it starts; runs of 50 UNet passes or more, not resumed ones).
+    #[arg(long)]
+    pub no_estimate: bool,
     /// Stop right after this iteration's checkpoint, as a kill would (tests of --resume).
     #[arg(
         long,
@@ -308,6 +312,18 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         args.force.force,
         &input_refs,
     )?;
+    crate::interrupt::resumable_run_in(&args.out);
+    if !args.no_estimate && !args.resume && edit::run::worth_calibrating(&plan) {
+        // After every check, so a refused run costs nothing; the GPU's kernels compiled here are the run's.
+        eprintln!("      timing one UNet call, one render and one lifting round for an estimate…");
+        let camera = &cameras[0];
+        let calibration = edit::run::calibrate(&job, &model, &scene, camera, plan.view_batch)
+            .context("timing the run's unit costs (--no-estimate skips it)")?;
+        let estimate = edit::run::Estimate::new(&plan, calibration);
+        eprintln!("      {}", estimate.describe());
+        plan.estimate = Some(estimate);
+    }
+    let estimate = plan.estimate;
     let mut progress = Reporter::new().on_gpu(!compute.splat().is_cpu());
     let inputs = RunInputs {
         scene: &args.scene.display().to_string(),
@@ -321,6 +337,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         model: &model_dir.display().to_string(),
         loss: loss.describe(),
         notes,
+        estimate,
     };
     let (_, written) = edit_scene(
         &job,

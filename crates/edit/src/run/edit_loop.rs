@@ -16,6 +16,7 @@ use crate::fit::{EditTrainer, ImageLoss};
 use crate::sampler::{EditModel, EditPlan, SeededNoise};
 
 use super::checkpoint::{fingerprint, Checkpoint, TrainerSetup};
+use super::estimate::about;
 use super::job::{
     EditJob, EditResult, GuidanceMode, IterationTimes, MaskSource, Progress, RunError, SeedPurpose,
 };
@@ -395,17 +396,6 @@ pub fn scene_extent(cameras: &[Camera]) -> f32 {
         })
         .fold(0.0f64, f64::max);
     (1.1 * r).max(1e-3) as f32
-}
-
-/// A duration for a progress line: "45 s", "12 min", "2.1 h".
-fn about(secs: f64) -> String {
-    if secs < 90.0 {
-        format!("{secs:.0} s")
-    } else if secs < 5400.0 {
-        format!("{:.0} min", secs / 60.0)
-    } else {
-        format!("{:.1} h", secs / 3600.0)
-    }
 }
 
 #[cfg(test)]

@@ -13,16 +13,19 @@
 //! - `masks`: the editable region;
 //! - `checkpoint`: the state saved after every iteration;
 //! - `outputs`: the files written per iteration and at the end ([`write_outputs`]);
-//! - `work`: the work and memory a run needs ([`work_plan`]).
+//! - `work`: the work and memory a run needs ([`work_plan`]);
+//! - `estimate`: how long it will take, from unit costs timed here ([`calibrate`], [`Estimate`]).
 
 mod checkpoint;
 mod edit_loop;
+mod estimate;
 mod job;
 mod masks;
 mod outputs;
 mod work;
 
 pub use edit_loop::{edit_scene, run_edit, scene_extent};
+pub use estimate::{calibrate, worth_calibrating, Calibration, Estimate};
 pub use job::{
     DeltaDecode, EditJob, EditResult, GuidanceMode, IterationTimes, MaskSource, Progress, Quiet,
     RunError,

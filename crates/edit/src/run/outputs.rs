@@ -18,6 +18,7 @@ use crate::present::viewer::{self, InitialView, ViewerOptions, ViewerScene};
 use crate::present::viz;
 use crate::sampler::{EditPlan, ViewState};
 
+use super::estimate::Estimate;
 use super::job::{io_err, EditJob, EditResult, IterationTimes, Progress, RunError};
 use super::masks::render_mask;
 
@@ -35,6 +36,8 @@ pub struct RunInputs<'a> {
     pub model: &'a str,
     pub loss: String,
     pub notes: Vec<String>,
+    /// The time estimate printed before the run, if one was made (kept beside the measured timings).
+    pub estimate: Option<Estimate>,
 }
 
 fn metrics_err(e: MetricsError) -> RunError {
@@ -292,6 +295,9 @@ pub fn write_outputs(
     if let Some(k) = result.resumed_from {
         notes.push(format!("resumed after iteration {k}"));
     }
+    if let Some(e) = &inputs.estimate {
+        notes.push(format!("estimated before the run: {}", e.describe()));
+    }
     let data = ReportData {
         title: format!("vcedit: {} → {}", job.prompts.source, job.prompts.target),
         source_prompt: job.prompts.source.clone(),
@@ -353,6 +359,8 @@ pub fn write_outputs(
         metrics: &'a MetricsSummary,
         timings: &'a [StageTiming],
         iterations: &'a [IterationTimes],
+        #[serde(skip_serializing_if = "Option::is_none")]
+        estimate: Option<&'a Estimate>,
     }
     let run = RunJson {
         vcedit_version: env!("CARGO_PKG_VERSION"),
@@ -367,6 +375,7 @@ pub fn write_outputs(
         metrics: &metrics,
         timings: &timings,
         iterations: &result.times,
+        estimate: inputs.estimate.as_ref(),
     };
     let p = out.join("run.json");
     files::atomic_write(&p, &serde_json::to_vec_pretty(&run).expect("serialisable"))

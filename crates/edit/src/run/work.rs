@@ -5,8 +5,9 @@ use serde::Serialize;
 use splat::GaussianScene;
 
 use crate::fit::LPIPS_CACHE_BYTES;
-use crate::sampler::EditModel;
+use crate::sampler::{EditModel, DEFAULT_STORE_MAX_TOKENS};
 
+use super::estimate::Estimate;
 use super::job::{EditJob, GuidanceMode};
 
 /// The work a run will do and the memory it needs, printed before it starts.
@@ -20,6 +21,8 @@ pub struct WorkPlan {
     pub renders: usize,
     pub fit_steps: usize,
     pub lifts: usize,
+    /// Cross-attention layers a CCM step records (maps of at most 32² queries).
+    pub ccm_layers: usize,
     pub memory_bytes: u64,
     /// GPU memory the run needs on its device (`None` on the CPU).
     pub gpu_memory_bytes: Option<u64>,
@@ -27,6 +30,8 @@ pub struct WorkPlan {
     pub gpu_free_bytes: Option<u64>,
     /// Views per UNet call.
     pub view_batch: usize,
+    /// How long the run will take, where it was calibrated ([`super::estimate`]).
+    pub estimate: Option<Estimate>,
 }
 
 impl WorkPlan {
@@ -42,9 +47,12 @@ impl WorkPlan {
             n => format!("batch 6 per view, {n} views per call"),
         };
         use crate::present::count;
-        // Two lines, each within 80 columns for the sizes runs have.
+        let time = self
+            .estimate
+            .map_or(String::new(), |e| format!("\n      {}", e.describe()));
+        // Lines within 80 columns for the sizes runs have.
         format!(
-            "work: {} × {}: {} ({batch}),\n      {}, {}, {}; memory needed ≈ {:.1} GB{gpu}",
+            "work: {} × {}: {} ({batch}),\n      {}, {}, {}; memory needed ≈ {:.1} GB{gpu}{time}",
             count(self.views, "view", "views"),
             count(self.iterations, "iteration", "iterations"),
             count(self.unet_calls, "UNet pass", "UNet passes"),
@@ -196,8 +204,14 @@ pub fn work_plan(
     };
     let (epochs, _) = job.consistency.ecm.schedule(v);
     let unet_calls = job.iterations * v * (steps + ccm);
-    // Attention layers recorded by CCM, at most one per transformer block: a generous 16.
-    let ccm_layers = 16;
+    let f = model.downscale();
+    let latent_size = (job.size.1 as usize / f, job.size.0 as usize / f);
+    // The layers CCM lifts: those the attention store records. A config the UNet loaded resolves.
+    let ccm_layers = model
+        .unet
+        .config()
+        .cross_attention_layers(latent_size.0, latent_size.1, DEFAULT_STORE_MAX_TOKENS)
+        .unwrap_or(0);
     let renders = job.iterations
         * (v + ecm * (2 * epochs * v + 2 * v) + blend * v + ccm * ccm_layers * v)
         + 2 * v
@@ -206,10 +220,8 @@ pub fn work_plan(
     let fit_steps = job.iterations * job.fit_steps;
 
     let (w, h) = (job.size.0 as u64, job.size.1 as u64);
-    let f = model.downscale() as u64;
-    let latent = (w / f) * (h / f);
+    let latent = (latent_size.0 * latent_size.1) as u64;
     let weights = model.parameters * 4;
-    let latent_size = ((h / f) as usize, (w / f) as usize);
     // One view per UNet call on the host.
     let unet = rough_unet_call_bytes(model, 1, latent_size);
     // Per view: latents and attention stores (blend layers, CCM records at most 32² queries × 77 tokens).
@@ -234,7 +246,7 @@ pub fn work_plan(
     let memory_bytes =
         weights + unet + v as u64 * per_view + images + train + lift + lpips + 300_000_000;
     // On a GPU: what the run keeps there (`gpu_state_bytes`) plus one hooked UNet call of `view_batch`
-    // views (diffusion's documented upper bound; flash self-attention keeps no probability matrix).
+    // views (diffusion's documented upper bound, self-attention's score chunks included).
     let gpu_memory_bytes = model.compute.networks().gpu().map(|_| {
         gpu_state_bytes(job, model, scene) + unet_call_bytes(model, view_batch, latent_size)
     });
@@ -250,10 +262,12 @@ pub fn work_plan(
         renders,
         fit_steps,
         lifts,
+        ccm_layers,
         memory_bytes,
         gpu_memory_bytes,
         gpu_free_bytes,
         view_batch,
+        estimate: None,
     }
 }
 

@@ -16,7 +16,7 @@ mod model;
 mod noise;
 
 pub use align::{align_prompts, global_align, AlignError, AlignInputs, TokenAlignment};
-pub use control::{ControlSettings, EditController, RecordedMaps};
+pub use control::{ControlSettings, EditController, RecordedMaps, DEFAULT_STORE_MAX_TOKENS};
 pub use infedit::{
     edit_image, EditError, EditOutcome, EditPlan, EditPrompts, InfEditSettings, ViewState,
 };
