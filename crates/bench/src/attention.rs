@@ -18,7 +18,9 @@ use candle_core::{Device, Tensor};
 use diffusion::device::ops::{self, AttentionPath};
 use diffusion::device::{DeviceTensor, GpuDevice, GpuTensor, Precision};
 
-use crate::{arg_parsed, arg_value, relative_error, report, secs, sync, BenchError, Result};
+use crate::{
+    arg_parsed, arg_value, relative_error, report, required_gpu, secs, sync, BenchError, Result,
+};
 
 /// `ENTRIESxQUERIESxKEYSxHEAD_DIM`.
 fn parse_shape(s: &str) -> Result<[usize; 4]> {
@@ -44,14 +46,7 @@ fn parse_path(s: &str) -> Result<AttentionPath> {
 pub fn main(args: &[String]) -> Result<()> {
     let runs: usize = arg_parsed(args, "--runs", 3)?;
     let repeat: usize = arg_parsed(args, "--repeat", 5usize)?.max(1);
-    let choice: gpu::DeviceChoice = arg_value(args, "--device")
-        .unwrap_or_else(|| "gpu".into())
-        .parse()?;
-    let Some(context) = gpu::open(choice)? else {
-        return Err(BenchError::new(format!(
-            "attention bench: no GPU (device {choice})"
-        )));
-    };
+    let context = required_gpu(args, "attention")?;
     let paths = arg_value(args, "--paths")
         .unwrap_or_else(|| "flash,products".into())
         .split(',')

@@ -288,6 +288,16 @@ pub fn network_device(
     Ok(gpu::open(choice)?.map(|ctx| diffusion::device::GpuDevice::with_precision(ctx, precision)))
 }
 
+/// The GPU `--device` names (default `gpu`) for a bench that runs only there; an error naming the bench
+/// where there is none.
+pub fn required_gpu(args: &[String], bench: &str) -> Result<gpu::GpuContext> {
+    let choice: gpu::DeviceChoice = arg_value(args, "--device")
+        .unwrap_or_else(|| "gpu".into())
+        .parse()?;
+    gpu::open(choice)?
+        .ok_or_else(|| BenchError::new(format!("{bench} bench: no GPU (device {choice})")))
+}
+
 /// Waits for every GPU command submitted so far.
 pub fn sync(ctx: &gpu::GpuContext) -> Result<()> {
     gpu::cubecl::future::block_on(ctx.client.sync())

@@ -15,7 +15,8 @@ use candle_core::{Device, Tensor};
 use diffusion::device::{ops, GpuDevice, GpuTensor, Precision};
 
 use crate::{
-    arg_list, arg_parsed, arg_value, relative_error, report, secs, sync, BenchError, Result,
+    arg_list, arg_parsed, arg_value, relative_error, report, required_gpu, secs, sync, BenchError,
+    Result,
 };
 
 /// One product launch (its result stays on the device).
@@ -35,14 +36,7 @@ fn parse_shape(s: &str) -> Result<(usize, usize, usize)> {
 pub fn main(args: &[String]) -> Result<()> {
     let runs: usize = arg_parsed(args, "--runs", 3)?;
     let repeat: usize = arg_parsed(args, "--repeat", 20usize)?.max(1);
-    let choice: gpu::DeviceChoice = arg_value(args, "--device")
-        .unwrap_or_else(|| "gpu".into())
-        .parse()?;
-    let Some(context) = gpu::open(choice)? else {
-        return Err(BenchError::new(format!(
-            "matmul bench: no GPU (device {choice})"
-        )));
-    };
+    let context = required_gpu(args, "matmul")?;
     let precisions: Vec<Precision> = arg_list(args, "--precisions", "f32,f16")?;
     let shapes = arg_value(args, "--shapes")
         .unwrap_or_else(|| "4096x320x320,4096x320x1280".into())

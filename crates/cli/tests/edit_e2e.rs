@@ -296,34 +296,7 @@ fn resume_after_an_interruption_equals_an_uninterrupted_run() {
 
     // Interrupt after the first iteration's checkpoint, then resume.
     let part = dir.path().join("part");
-    let o = Command::new(env!("CARGO_BIN_EXE_vcedit"))
-        .args(["edit", "--scene"])
-        .arg(&scene_path)
-        .args(["--orbit", "6", "--model"])
-        .arg(fixtures().join("models/tiny-lcm"))
-        .args(["--source", "a ball", "--target", "a red ball", "--out"])
-        .arg(&part)
-        .args([
-            "--size",
-            "64",
-            "--steps",
-            "4",
-            "--max-views",
-            "4",
-            "--iterations",
-            "2",
-            "--fit-steps",
-            "30",
-            "--ccm-steps",
-            "1",
-            "--ecm-steps",
-            "2",
-            "--mask-box=-0.8,-0.8,-0.8,0.8,0.8,0.8",
-            "--stop-after-iteration",
-            "1",
-        ])
-        .output()
-        .unwrap();
+    let o = run_edit(&scene_path, &part, &["--stop-after-iteration", "1"]);
     assert!(
         !o.status.success(),
         "the simulated interruption must stop the run"

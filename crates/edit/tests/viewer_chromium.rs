@@ -780,14 +780,9 @@ fn minus3(a: &serde_json::Value, b: &serde_json::Value) -> serde_json::Value {
 /// how to leave, Escape leaves, and the canvas goes back to its place and size.
 #[test]
 fn viewer_goes_full_screen_and_back() {
-    if !chromium_available() {
+    let Some((_tmp, mut tools)) = viewer_under_devtools() else {
         return;
-    }
-    let tmp = tempfile::tempdir().unwrap();
-    let page = tmp.path().join("viewer.html");
-    write_page(&page);
-    let mut tools = DevTools::open(&file_url(&page), tmp.path(), WINDOW);
-    wait_for_viewer(&mut tools);
+    };
     let before = tools.evaluate("t.layout()");
     println!("before: {before}");
     assert_eq!(before["hidden"], false, "the button shows: {before}");
@@ -849,6 +844,20 @@ fn viewer_goes_full_screen_and_back() {
     assert!(tools.console.is_empty(), "console: {:?}", tools.console);
 }
 
+/// The test page open in Chromium under its debugging interface, with [`PAGE_HELPERS`] loaded (and the
+/// folder it lives in); `None` without Chromium.
+fn viewer_under_devtools() -> Option<(tempfile::TempDir, DevTools)> {
+    if !chromium_available() {
+        return None;
+    }
+    let tmp = tempfile::tempdir().unwrap();
+    let page = tmp.path().join("viewer.html");
+    write_page(&page);
+    let mut tools = DevTools::open(&file_url(&page), tmp.path(), WINDOW);
+    wait_for_viewer(&mut tools);
+    Some((tmp, tools))
+}
+
 /// Loads [`PAGE_HELPERS`] once the viewer is there.
 fn wait_for_viewer(tools: &mut DevTools) {
     let started =
@@ -874,14 +883,9 @@ fn wait_for_viewer(tools: &mut DevTools) {
 /// only while held, keep the horizon level, and go by the scene's size.
 #[test]
 fn viewer_flies_with_the_keys_only_when_focused() {
-    if !chromium_available() {
+    let Some((_tmp, mut tools)) = viewer_under_devtools() else {
         return;
-    }
-    let tmp = tempfile::tempdir().unwrap();
-    let page = tmp.path().join("viewer.html");
-    write_page(&page);
-    let mut tools = DevTools::open(&file_url(&page), tmp.path(), WINDOW);
-    wait_for_viewer(&mut tools);
+    };
     let hold_w = |tools: &mut DevTools, shift: bool| {
         tools.evaluate("t.countRenders(); 0");
         tools.key(true, "w", "KeyW", 87, shift);
