@@ -60,10 +60,10 @@ impl Estimate {
         }
     }
 
-    /// One line for the work plan, within 80 columns for durations runs have.
+    /// One line for the work plan, within 74 columns (80 with the plan's indent) for durations runs have.
     pub fn describe(&self) -> String {
         format!(
-            "time: about {} here (UNet {}, splatting {}; rough: one UNet call {})",
+            "time ≈ {} (UNet {}, splatting {}; a UNet call {} here)",
             about(self.total),
             about(self.unet),
             about(self.splatting),
@@ -210,8 +210,19 @@ mod tests {
         assert_eq!(Estimate::new(&plan(272, 8), c).unet, 68.0);
         assert_eq!(
             e.describe(),
-            "time: about 12 min here (UNet 9 min, splatting 3 min; rough: one UNet call 2.0 s)"
+            "time ≈ 12 min (UNet 9 min, splatting 3 min; a UNet call 2.0 s here)"
         );
+        // The widest words: days, hours and a call of tens of seconds.
+        let long = Estimate {
+            total: 1.9 * 86400.0,
+            unet: 1.8 * 86400.0,
+            splatting: 2.5 * 3600.0,
+            calibration: Calibration {
+                unet_call: 41.3,
+                ..c
+            },
+        };
+        assert!(long.describe().chars().count() <= 74, "{}", long.describe());
         assert_eq!(unit_cost(0.089), "89 ms");
     }
 
