@@ -188,6 +188,9 @@ step matmul 60 "$V" bench matmul --precisions f32,f16 --shapes "$SHAPES" --repea
 # The same products on the WGSL compiler (no cooperative matrices): the A/B for the SPIR-V path.
 step matmul-wgsl 60 env VCEDIT_GPU_COMPILER=wgsl "$V" bench matmul --precisions f16 --shapes "$SHAPES" --repeat "$REPEAT" --runs 3
 if have_torch; then step matmul-torch 60 python3 "$TB" matmul --shapes "$SHAPES" --repeat "$REPEAT"; fi
+# The f16 weight product on each of the library's tensor-core routines: which one a card should use.
+if [ "$MODE" = device ]; then ROUTINES=all; else ROUTINES=simple_cyclic_cmma,double_cyclic_cmma; fi
+step matmul-routines 150 "$V" bench matmul --precisions f16 --shapes "$SHAPES" --routines "$ROUTINES" --repeat "$REPEAT" --runs 3
 
 # ---- attention at SD 1.5's shapes (one view's six branches × 8 heads): our flash kernel against products
 # around a softmax (the default for heads wider than 8; tensor cores where the card has them); PyTorch SDPA

@@ -154,6 +154,14 @@ def build_table(res, steps, mode, torch_present):
                    f"{r.get('compiler', '?')} (ms)", r.get("ms"), t.get("ms") if t else None,
                    fmt_s(r.get("first_s")), f"PyTorch: fp16 SDPA{err}")
         line["ratio_vcedit_over_pytorch"] = ratio(r.get("ms"), t.get("ms") if t else None)
+    for r in [x for x in res.get("matmul-routines", []) if x.get("bench") == "matmul"]:
+        shape = f"{r['m']}x{r['k']}x{r['n']}"
+        t = find(mt, precision="f16", m=r["m"], k=r["k"], n=r["n"])
+        line = row(f"matmul {shape}, f16 weights, routine {r.get('routine')} (ran as {r.get('route')}) (TFLOP/s)",
+                   r.get("tflops"), t.get("tflops") if t else None, fmt_s(r.get("first_s")),
+                   f"rel. error vs CPU f32 {r['rel_err']:.1e}" if r.get("rel_err") is not None else "")
+        if t:
+            line["ratio_vcedit_over_pytorch"] = ratio(r["ms"], t["ms"])
     ut, ut32 = res.get("unet-torch", []), res.get("unet-torch-f32", [])
     for step_name, label in (("unet", ""), ("unet-tasks", ", 256 tasks per submission, 2nd process"),
                              ("unet-flash", ", flash attention for every head"), ("unet-wgsl", ", WGSL")):

@@ -3,7 +3,12 @@
 //! transposed, in the device's weight precision) and, for f32, as a plain activation × activation product.
 //!
 //! `vcedit bench matmul [--runs 3] [--repeat 20] [--device gpu] [--precisions f32,f16]
-//! [--shapes 4096x320x320,4096x320x1280]`
+//! [--shapes 4096x320x320,4096x320x1280] [--routines simple_cyclic_cmma,double_cyclic_cmma,…|all]`
+//!
+//! `--routines` times the f16 linear product on each of the library's tensor-core routines
+//! (`ops::TENSOR_CORE_ROUTINES`; `all` for every one): which is fastest differs between cards. Each
+//! result names the route the product took (`route`): the routine, or `unit` where the card has no tensor
+//! cores or the routine declined the shape.
 //!
 //! The first call (kernel compilation) is timed on its own; each warm run then launches the product
 //! `--repeat` times and waits for the device once, so the time is the device's, not one read-back's
@@ -43,6 +48,7 @@ pub fn main(args: &[String]) -> Result<()> {
         .split(',')
         .map(parse_shape)
         .collect::<Result<Vec<_>>>()?;
+    let routines = parse_routines(arg_value(args, "--routines").as_deref())?;
     for precision in precisions {
         let device = GpuDevice::with_precision(context.clone(), precision);
         eprintln!(
@@ -64,57 +70,114 @@ pub fn main(args: &[String]) -> Result<()> {
                 products.push(("matmul", Box::new(|| ops::matmul(&ga, &gb))));
             }
             let path = ops::matmul_path(&device);
-            for (what, product) in products {
-                let start = Instant::now();
-                let got = product()?.to_cpu()?;
-                let first = start.elapsed();
-                // The product checked against the CPU's f32 one: the error the path's rounding costs.
-                let want = if what == "linear" {
-                    a.matmul(&w.t()?)?
+            // The weight product once per asked routine (f16 weights: tensor-core operands), else once.
+            let runs_of = |what: &str| -> Vec<Option<&'static str>> {
+                if what == "linear" && precision == Precision::F16 && !routines.is_empty() {
+                    routines.iter().copied().map(Some).collect()
                 } else {
-                    a.matmul(&b)?
-                };
-                let rel_err = relative_error(&got, &want)?;
-                let mut best = f64::INFINITY;
-                for _ in 0..runs.max(1) {
-                    let start = Instant::now();
-                    for _ in 0..repeat {
-                        std::hint::black_box(product()?);
-                    }
-                    sync(&context)?;
-                    best = best.min(start.elapsed().as_secs_f64() / repeat as f64);
+                    vec![None]
                 }
-                let tflops = 2.0 * (m * k * n) as f64 / best / 1e12;
-                eprintln!(
-                    "  {what} {m}x{k}x{n} ({path}): {:.3} ms, {tflops:.2} TFLOP/s (first call {:.1} ms), \
-                     relative error {rel_err:.1e}",
+            };
+            for (what, product) in &products {
+                for routine in runs_of(what) {
+                    let product = || -> candle_core::Result<GpuTensor> {
+                        match routine {
+                            Some(name) => ops::with_tensor_core_routine(name, product)?,
+                            None => product(),
+                        }
+                    };
+                    let start = Instant::now();
+                    let got = product()?.to_cpu()?;
+                    let first = start.elapsed();
+                    let route = ops::last_product_route();
+                    // The product checked against the CPU's f32 one: the error the path's rounding costs.
+                    let want = if *what == "linear" {
+                        a.matmul(&w.t()?)?
+                    } else {
+                        a.matmul(&b)?
+                    };
+                    let rel_err = relative_error(&got, &want)?;
+                    let mut best = f64::INFINITY;
+                    for _ in 0..runs.max(1) {
+                        let start = Instant::now();
+                        for _ in 0..repeat {
+                            std::hint::black_box(product()?);
+                        }
+                        sync(&context)?;
+                        best = best.min(start.elapsed().as_secs_f64() / repeat as f64);
+                    }
+                    let tflops = 2.0 * (m * k * n) as f64 / best / 1e12;
+                    eprintln!(
+                    "  {what} {m}x{k}x{n} ({path}, {route}): {:.3} ms, {tflops:.2} TFLOP/s (first call \
+                     {:.1} ms), relative error {rel_err:.1e}",
                     best * 1e3,
                     first.as_secs_f64() * 1e3
                 );
-                report(serde_json::json!({
-                    "bench": "matmul",
-                    "what": what,
-                    "precision": precision.to_string(),
-                    "m": m, "k": k, "n": n,
-                    "best_s": (best * 1e9).round() / 1e9,
-                    "ms": (best * 1e6).round() / 1e3,
-                    "tflops": (tflops * 1e3).round() / 1e3,
-                    "first_s": secs(first),
-                    "repeat": repeat,
-                    "device": device.name(),
-                    "compiler": context.compiler,
-                    "path": path.to_string(),
-                    "rel_err": rel_err,
-                }));
+                    report(serde_json::json!({
+                        "bench": "matmul",
+                        "what": what,
+                        "precision": precision.to_string(),
+                        "m": m, "k": k, "n": n,
+                        "best_s": (best * 1e9).round() / 1e9,
+                        "ms": (best * 1e6).round() / 1e3,
+                        "tflops": (tflops * 1e3).round() / 1e3,
+                        "first_s": secs(first),
+                        "repeat": repeat,
+                        "device": device.name(),
+                        "compiler": context.compiler,
+                        "path": path.to_string(),
+                        "routine": routine,
+                    "route": route,
+                        "rel_err": rel_err,
+                    }));
+                }
             }
         }
     }
     Ok(())
 }
 
+/// `--routines`: names of `ops::TENSOR_CORE_ROUTINES`, or `all`; none when absent.
+fn parse_routines(value: Option<&str>) -> Result<Vec<&'static str>> {
+    match value {
+        None => Ok(Vec::new()),
+        Some("all") => Ok(ops::TENSOR_CORE_ROUTINES.to_vec()),
+        Some(list) => list
+            .split(',')
+            .map(|name| {
+                ops::TENSOR_CORE_ROUTINES
+                    .iter()
+                    .copied()
+                    .find(|r| *r == name.trim())
+                    .ok_or_else(|| {
+                        BenchError::new(format!(
+                            "--routines: unknown routine '{name}' (expected all, or some of {})",
+                            ops::TENSOR_CORE_ROUTINES.join(", ")
+                        ))
+                    })
+            })
+            .collect(),
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn routines_parse_or_say_what_is_wrong() {
+        assert!(parse_routines(None).unwrap().is_empty());
+        assert_eq!(
+            parse_routines(Some("all")).unwrap().len(),
+            ops::TENSOR_CORE_ROUTINES.len()
+        );
+        assert_eq!(
+            parse_routines(Some("double_cyclic_cmma, simple_cyclic_mma")).unwrap(),
+            ["double_cyclic_cmma", "simple_cyclic_mma"]
+        );
+        let e = parse_routines(Some("fast")).unwrap_err().to_string();
+        assert!(e.contains("unknown routine 'fast'"), "{e}");
+    }
 
     #[test]
     fn shapes_parse_or_say_what_is_wrong() {

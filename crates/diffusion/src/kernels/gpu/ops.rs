@@ -475,7 +475,9 @@ fn gemm(
     g: &Gemm,
     out_shape: Vec<usize>,
 ) -> Result<GpuTensor> {
-    if let Some(product) = library_gemm(a, b, g, &out_shape) {
+    let library = library_gemm(a, b, g, &out_shape);
+    LAST_ROUTE.set(library.as_ref().map_or("own", |(_, route)| *route));
+    if let Some((product, _)) = library {
         // The library computes the plain product; scale and bias follow as one elementwise pass each.
         let product = if g.alpha == 1.0 {
             product
@@ -651,15 +653,108 @@ fn narrow_f16(x: &GpuTensor) -> GpuTensor {
 /// does not apply (our own kernel chosen, a shared B under a strided A, an empty product) or declines
 /// the problem; the caller then runs our own kernel. A tensor-core product the library declines is
 /// retried on the unit routine.
-fn library_gemm(a: &GpuTensor, b: &GpuTensor, g: &Gemm, out_shape: &[usize]) -> Option<GpuTensor> {
+fn library_gemm(
+    a: &GpuTensor,
+    b: &GpuTensor,
+    g: &Gemm,
+    out_shape: &[usize],
+) -> Option<(GpuTensor, &'static str)> {
     if g.m == 0 || g.n == 0 || g.k == 0 {
         return None;
     }
+    let unit = || library_gemm_on(a, b, g, out_shape, MatmulPath::Unit).map(|p| (p, "unit"));
     match matmul_path(a.device()) {
         MatmulPath::Own => None,
-        MatmulPath::Unit => library_gemm_on(a, b, g, out_shape, MatmulPath::Unit),
-        path => library_gemm_on(a, b, g, out_shape, path)
-            .or_else(|| library_gemm_on(a, b, g, out_shape, MatmulPath::Unit)),
+        MatmulPath::Unit => unit(),
+        MatmulPath::UnitF16 => library_gemm_on(a, b, g, out_shape, MatmulPath::UnitF16)
+            .map(|p| (p, "unit-f16"))
+            .or_else(unit),
+        MatmulPath::TensorCores => {
+            let routine = tensor_core_routine();
+            library_gemm_on(a, b, g, out_shape, MatmulPath::TensorCores)
+                .map(|p| (p, routine))
+                .or_else(unit)
+        }
+    }
+}
+
+/// The library's tensor-core routines a product may take on a card with cooperative matrices (`cmma`:
+/// the portable cooperative-matrix instructions; `mma`: manual fragments). Which is fastest differs
+/// between cards and shapes: `vcedit bench matmul --routines` times each, tools/gpu-check runs it.
+pub const TENSOR_CORE_ROUTINES: [&str; 10] = [
+    "simple_cyclic_cmma",
+    "simple_strided_cmma",
+    "simple_tilewise_cmma",
+    "double_cyclic_cmma",
+    "double_tilewise_cmma",
+    "double_hybrid_cmma",
+    "ordered_double_cmma",
+    "specialized_cyclic_cmma",
+    "simple_cyclic_mma",
+    "double_cyclic_mma",
+];
+
+/// The routine products take on tensor cores unless told otherwise (the library's own first choice).
+pub const DEFAULT_TENSOR_CORE_ROUTINE: &str = "simple_cyclic_cmma";
+
+thread_local! {
+    /// Set by benches to time one tensor-core routine on their thread.
+    static ROUTINE_OVERRIDE: std::cell::Cell<Option<&'static str>> = const { std::cell::Cell::new(None) };
+    /// How the last product of this thread ran: a routine name, `unit`, `unit-f16` or `own`.
+    static LAST_ROUTE: std::cell::Cell<&'static str> = const { std::cell::Cell::new("own") };
+}
+
+/// Runs `f` with this thread's tensor-core products on routine `name` (one of [`TENSOR_CORE_ROUTINES`];
+/// an unknown name is an error).
+pub fn with_tensor_core_routine<T>(name: &str, f: impl FnOnce() -> T) -> Result<T> {
+    let Some(&known) = TENSOR_CORE_ROUTINES.iter().find(|r| **r == name) else {
+        candle_core::bail!(
+            "unknown tensor-core routine '{name}' (expected one of {})",
+            TENSOR_CORE_ROUTINES.join(", ")
+        );
+    };
+    let before = ROUTINE_OVERRIDE.replace(Some(known));
+    let result = f();
+    ROUTINE_OVERRIDE.set(before);
+    Ok(result)
+}
+
+/// How the last product of this thread ran: the tensor-core routine's name, `unit` (also where tensor
+/// cores declined the product), `unit-f16`, or `own` (our kernel).
+pub fn last_product_route() -> &'static str {
+    LAST_ROUTE.get()
+}
+
+/// The tensor-core routine of this thread's products: a bench's choice, else `VCEDIT_GPU_MATMUL_ROUTINE`,
+/// else [`DEFAULT_TENSOR_CORE_ROUTINE`].
+fn tensor_core_routine() -> &'static str {
+    static FROM_ENV: std::sync::OnceLock<Option<&'static str>> = std::sync::OnceLock::new();
+    ROUTINE_OVERRIDE
+        .get()
+        .or(*FROM_ENV.get_or_init(|| {
+            let name = std::env::var("VCEDIT_GPU_MATMUL_ROUTINE").unwrap_or_default();
+            TENSOR_CORE_ROUTINES
+                .iter()
+                .copied()
+                .find(|r| *r == name.trim())
+        }))
+        .unwrap_or(DEFAULT_TENSOR_CORE_ROUTINE)
+}
+
+/// The library strategy of a routine of [`TENSOR_CORE_ROUTINES`].
+fn tensor_core_strategy(name: &str) -> cubek_matmul::multi_level::Strategy {
+    use cubek_matmul::multi_level::Strategy as R;
+    match name {
+        "simple_strided_cmma" => R::SimpleStridedCmma(Default::default()),
+        "simple_tilewise_cmma" => R::SimpleTilewiseCmma(Default::default()),
+        "double_cyclic_cmma" => R::DoubleCyclicCmma(Default::default()),
+        "double_tilewise_cmma" => R::DoubleTilewiseCmma(Default::default()),
+        "double_hybrid_cmma" => R::DoubleHybridCmma(Default::default()),
+        "ordered_double_cmma" => R::OrderedDoubleCmma(Default::default()),
+        "specialized_cyclic_cmma" => R::SpecializedCyclicCmma(Default::default()),
+        "simple_cyclic_mma" => R::SimpleCyclicMma(Default::default()),
+        "double_cyclic_mma" => R::DoubleCyclicMma(Default::default()),
+        _ => R::SimpleCyclicCmma(Default::default()),
     }
 }
 
@@ -711,7 +806,7 @@ fn library_gemm_on(
         out: f32_type,
     });
     let routine = match path {
-        MatmulPath::TensorCores => Routine::SimpleCyclicCmma(Default::default()),
+        MatmulPath::TensorCores => tensor_core_strategy(tensor_core_routine()),
         _ => Routine::SimpleUnit(Default::default()),
     };
     let launched = cubek_matmul::launch::launch_ref(

@@ -587,6 +587,37 @@ fn the_library_takes_the_networks_products() {
         assert!(out.is_some(), "{what}: the library declined");
     }
     assert!(with_own_matmul(|| library_gemm(&a, &shared, &gemm([0, n, 1]), &[2, m, n])).is_none());
+    // Each product records how it ran (no read-back: see .ci/run on Mesa 25).
+    let weight = up(&dev, &randn(&[n, k]));
+    linear(&a, &weight, None).unwrap();
+    let expected = match matmul_path(&dev) {
+        MatmulPath::TensorCores => DEFAULT_TENSOR_CORE_ROUTINE,
+        MatmulPath::UnitF16 => "unit-f16",
+        _ => "unit",
+    };
+    assert_eq!(last_product_route(), expected);
+    with_own_matmul(|| linear(&a, &weight, None)).unwrap();
+    assert_eq!(last_product_route(), "own");
+}
+
+#[test]
+fn tensor_core_routines_are_known_by_their_library_names() {
+    for name in TENSOR_CORE_ROUTINES {
+        let strategy = tensor_core_strategy(name).to_string();
+        assert!(
+            strategy.starts_with(&format!("matmul_{name}")),
+            "{name}: {strategy}"
+        );
+        assert_eq!(
+            with_tensor_core_routine(name, tensor_core_routine).unwrap(),
+            name
+        );
+    }
+    assert_eq!(tensor_core_routine(), DEFAULT_TENSOR_CORE_ROUTINE);
+    let unknown = with_tensor_core_routine("fastest", || ()).unwrap_err();
+    assert!(unknown
+        .to_string()
+        .contains("unknown tensor-core routine 'fastest'"));
 }
 
 #[test]
