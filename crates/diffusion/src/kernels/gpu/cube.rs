@@ -534,20 +534,22 @@ pub fn softmax_rows(x: &[f32], out: &mut [f32], meta: &[u32], scale: f32) {
     // −∞ stand-in: finite for WGSL; exp(it − any score) = 0. Built at run time so it is a runtime value.
     let mut floor = 0.0f32;
     floor -= 3.0e38f32;
-    let mut m = floor;
+    // One pass for the statistics (online: each unit's running max and its sum rescaled as the max
+    // grows), then one for the output: the row is read twice, not three times (the scores are the
+    // largest tensor attention touches).
+    let mut unit_max = floor;
+    let mut unit_sum = 0.0f32;
     let mut i = UNIT_POS;
     while i < width {
-        m = f32::max(m, x[(base + i) as usize] * scale);
+        let v = x[(base + i) as usize] * scale;
+        let grown = f32::max(unit_max, v);
+        unit_sum = unit_sum * f32::exp(unit_max - grown) + f32::exp(v - grown);
+        unit_max = grown;
         i += units;
     }
-    let m = cube_max::<f32>(m, units);
-    let mut sum = 0.0f32;
-    i = UNIT_POS;
-    while i < width {
-        sum += f32::exp(x[(base + i) as usize] * scale - m);
-        i += units;
-    }
-    let inv = 1.0f32 / cube_sum::<f32>(sum, units);
+    let m = cube_max::<f32>(unit_max, units);
+    // A unit that saw no element keeps the floor and a zero sum: its share is 0 · exp(floor − m) = 0.
+    let inv = 1.0f32 / cube_sum::<f32>(unit_sum * f32::exp(unit_max - m), units);
     i = UNIT_POS;
     while i < width {
         if valid {
