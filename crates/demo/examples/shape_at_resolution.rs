@@ -11,8 +11,7 @@ use std::path::PathBuf;
 use demo::run::{demo_scene, DemoOptions};
 use demo::world::{Oracle, OracleSettings};
 use splat::cameras::to_working_resolution;
-use splat::render::{render, RenderSettings};
-use splat::{Camera, GaussianScene, Image};
+use splat::{Camera, SplatDevice};
 
 fn main() -> Result<(), Box<dyn std::error::Error>> {
     let args: Vec<String> = std::env::args().skip(1).collect();
@@ -26,21 +25,14 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let scene = demo_scene(&opts)?;
     let edited = splat::read_scene(&run.join("edited.ply"))?;
     let oracle = Oracle::new(&scene.source, &scene.target, OracleSettings::default())?;
-    let settings = RenderSettings {
-        background: scene.source.background,
-    };
-    let render_all = |s: &GaussianScene, cams: &[Camera]| -> Vec<Image> {
-        cams.iter()
-            .map(|c| render(s, c, &settings, None).rgb_image())
-            .collect()
-    };
     for factor in [1, scale] {
         let cams: Vec<Camera> = scene
             .cameras
             .iter()
             .map(|c| to_working_resolution(c, c.width * factor, c.height * factor))
             .collect();
-        let score = oracle.score(&cams, &render_all(&edited, &cams))?;
+        let renders = SplatDevice::Cpu.render_images(&edited, &cams, scene.source.background)?;
+        let score = oracle.score(&cams, &renders)?;
         let f = |v: Option<f64>| v.map_or("–".to_string(), |v| format!("{v:.3}"));
         println!(
             "{}x{}: silhouette IoU {}, outside change {}, colour fidelity {}, layout fidelity {}",

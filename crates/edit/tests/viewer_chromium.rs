@@ -290,18 +290,12 @@ fn viewer_shows_degree_1_shading_as_the_cpu_renderer() {
         return;
     }
     let dc = before_scene();
-    let mut shaded = GaussianScene::new(1);
-    shaded.means = dc.means.clone();
-    shaded.log_scales = dc.log_scales.clone();
-    shaded.quats = dc.quats.clone();
-    shaded.opacity_logits = dc.opacity_logits.clone();
-    for i in 0..dc.len() {
-        shaded.sh.extend_from_slice(&dc.sh[3 * i..3 * i + 3]);
+    let shaded = with_sh(&dc, 1, |i| {
+        let mut sh = dc.sh[3 * i..3 * i + 3].to_vec();
         // c1 (−y), c2 (z), c3 (−x), each RGB.
-        shaded
-            .sh
-            .extend([0.1, 0.0, -0.1, -0.75, 0.75, 0.0, 0.2, 0.0, -0.2]);
-    }
+        sh.extend([0.1, 0.0, -0.1, -0.75, 0.75, 0.0, 0.2, 0.0, -0.2]);
+        sh
+    });
     let tmp = tempfile::tempdir().unwrap();
     let page = tmp.path().join("viewer.html");
     write_page_of(&page, &shaded, &dc);
@@ -323,14 +317,20 @@ fn viewer_shows_degree_1_shading_as_the_cpu_renderer() {
 /// `scene` with only its SH bands up to `degree` (the higher ones dropped).
 fn truncated(scene: &GaussianScene, degree: u32) -> GaussianScene {
     let (from, to) = (scene.sh_coeffs(), splat::scene::sh_coeffs(degree));
+    with_sh(scene, degree, |i| {
+        scene.sh[3 * from * i..3 * (from * i + to)].to_vec()
+    })
+}
+
+/// `scene`'s Gaussians at SH degree `degree`, Gaussian `i` with the coefficients `sh_of(i)` (DC first).
+fn with_sh(scene: &GaussianScene, degree: u32, sh_of: impl Fn(usize) -> Vec<f32>) -> GaussianScene {
     let mut out = GaussianScene::new(degree);
     out.means = scene.means.clone();
     out.log_scales = scene.log_scales.clone();
     out.quats = scene.quats.clone();
     out.opacity_logits = scene.opacity_logits.clone();
     for i in 0..scene.len() {
-        out.sh
-            .extend_from_slice(&scene.sh[3 * from * i..3 * (from * i + to)]);
+        out.sh.extend(sh_of(i));
     }
     out
 }
@@ -348,16 +348,11 @@ fn degree_3_scene() -> GaussianScene {
     coefficients[6] = [0.0, 0.5, -0.25]; // band 2, x z
     coefficients[11] = [0.0, -0.375, 0.375]; // band 3, z (2zz − 3xx − 3yy)
     coefficients[12] = [0.5, 0.0, -0.5]; // band 3, x (4zz − xx − yy)
-    let mut shaded = GaussianScene::new(3);
-    shaded.means = dc.means.clone();
-    shaded.log_scales = dc.log_scales.clone();
-    shaded.quats = dc.quats.clone();
-    shaded.opacity_logits = dc.opacity_logits.clone();
-    for i in 0..dc.len() {
-        shaded.sh.extend_from_slice(&dc.sh[3 * i..3 * i + 3]);
-        shaded.sh.extend(coefficients.iter().flatten());
-    }
-    shaded
+    with_sh(&dc, 3, |i| {
+        let mut sh = dc.sh[3 * i..3 * i + 3].to_vec();
+        sh.extend(coefficients.iter().flatten());
+        sh
+    })
 }
 
 /// A degree-3 scene shown on the left ("before") and its degree-2 truncation on the right ("after"):
