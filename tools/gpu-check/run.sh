@@ -201,6 +201,13 @@ if have_torch; then step attention-torch 60 python3 "$TB" attention --shapes "$A
 # ---- the UNet, batch 1 and 6 (one InfEdit step), plain and with the InfEdit-shaped hook; PyTorch fp16 SDPA
 # `--check`: batch 1 once more on the CPU, so the table says what the GPU path's rounding costs end to end.
 step unet 180 "$V" bench unet --model "$MODEL" --device gpu --size "$LAT" --batches 1,6 --hooks none,device --runs "$RUNS" --check
+# Where the UNet's GPU time goes: cubecl's per-kernel profile of batch 6 (it waits for every kernel, so
+# its total is kernel time, and the gap to the `unet` row is what launching and waiting cost), summed by
+# kernel over one warm forward (tools/gpu-check/profile.py).
+[ "$MODE" = device ] && step unet-profile 90 env CUBECL_DEBUG_LOG="$WORK/unet.prof" CUBECL_DEBUG_OPTION=profile \
+  bash -c '"$1" bench unet --model "$2" --device gpu --size "$3" --batches 6 --hooks none --runs 2 >/dev/null &&
+    unset CUBECL_DEBUG_LOG && python3 "$4" "$5" --segments 3 --label "UNet forward, batch 6"' \
+  _ "$V" "$MODEL" "$LAT" "$HERE/profile.py" "$WORK/unet.prof"
 # The same UNet in a second process with 256 kernels per command submission instead of cubecl's 32 (is a
 # forward bound by submissions? batch 1 costs a third of batch 6), and its first call says what the SPIR-V
 # kernels the `unet` step persisted save in a new process.
@@ -208,6 +215,24 @@ step unet 180 "$V" bench unet --model "$MODEL" --device gpu --size "$LAT" --batc
 # The whole forward with the flash kernel for every head (the default before products): the A/B for the
 # attention path.
 [ "$MODE" = device ] && step unet-flash 120 env VCEDIT_GPU_ATTENTION=flash "$V" bench unet --model "$MODEL" --device gpu --size "$LAT" --batches 6 --hooks none --runs "$RUNS"
+# The whole forward on the tensor-core routine that was fastest at 4096x320x1280 in `matmul-routines`
+# (when that is not already the default): does the product's gain carry to the network?
+BEST_ROUTINE=$(python3 - "$WORK/matmul-routines.out" <<'PY' 2>/dev/null
+import json, sys
+best = None
+for line in open(sys.argv[1], errors="replace"):
+    if line.startswith("RESULT "):
+        r = json.loads(line[7:])
+        if r.get("n") == 1280 and r.get("route") == r.get("routine") and r.get("tflops"):
+            if best is None or r["tflops"] > best["tflops"]:
+                best = r
+print(best["routine"] if best else "")
+PY
+)
+if [ "$MODE" = device ] && [ -n "$BEST_ROUTINE" ]; then
+  say "   fastest tensor-core routine at 4096x320x1280: $BEST_ROUTINE"
+  step unet-routine 120 env VCEDIT_GPU_MATMUL_ROUTINE="$BEST_ROUTINE" "$V" bench unet --model "$MODEL" --device gpu --size "$LAT" --batches 1,6 --hooks none --runs "$RUNS"
+fi
 step unet-wgsl 120 env VCEDIT_GPU_COMPILER=wgsl "$V" bench unet --model "$MODEL" --device gpu --size "$LAT" --batches 6 --hooks none --runs "$RUNS"
 if have_torch; then
   step unet-torch 90 python3 "$TB" unet --model "$MODEL" --size "$LAT" --batches 1,6 --dtype f16 --runs 5
@@ -253,6 +278,14 @@ step edit 240 "$V" edit --scene "$IN/playbot-31k.ply" "${EDIT_SIZE[@]}" --model 
 # ---- a whole fit from posed images (lego-200), and the demo end to end
 if [ "$MODE" = device ]; then FIT_SIZE=(--steps 5000); else FIT_SIZE=(--steps 30 --init-points 2000); fi
 step fit 150 "$V" fit --data "$IN/lego-200" --out "$WORK/lego.ply" --background white --device gpu "${FIT_SIZE[@]}"
+# Where a fit's time goes: 1500 steps of the same fit under the kernel profile, beside its wall time
+# (`vcedit fit` on lego-200 took 34 s on WGSL on the first H200 and 87–90 s since, growing with the
+# Gaussian count: kernels or what lies between them?).
+[ "$MODE" = device ] && step fit-profile 90 env CUBECL_DEBUG_LOG="$WORK/fit.prof" CUBECL_DEBUG_OPTION=profile \
+  bash -c 't0=$(date +%s%N); "$1" fit --data "$2" --out "$3" --background white --device gpu --steps 1500 \
+      >/dev/null 2>&1 || exit 1; wall=$(( ($(date +%s%N) - t0) / 1000000 )); unset CUBECL_DEBUG_LOG
+    python3 "$4" "$5" --label "vcedit fit lego-200, 1500 steps, ${wall} ms wall"' \
+  _ "$V" "$IN/lego-200" "$WORK/lego-profile.ply" "$HERE/profile.py" "$WORK/fit.prof"
 # The packed vcedit has no built-in demo model (prepare.sh): the checkout's is named.
 if [ "$MODE" = device ]; then
   step demo 150 "$V" demo --model "$ROOT/models/demo" --device gpu --out "$WORK/demo"

@@ -163,8 +163,13 @@ def build_table(res, steps, mode, torch_present):
         if t:
             line["ratio_vcedit_over_pytorch"] = ratio(r["ms"], t["ms"])
     ut, ut32 = res.get("unet-torch", []), res.get("unet-torch-f32", [])
+    # run.sh's choice for `unet-routine`: the fastest routine that ran as itself at n = 1280.
+    ran = [x for x in res.get("matmul-routines", []) if x.get("bench") == "matmul" and x.get("n") == 1280
+           and x.get("route") == x.get("routine") and x.get("tflops")]
+    best = max(ran, key=lambda x: x["tflops"])["routine"] if ran else "?"
     for step_name, label in (("unet", ""), ("unet-tasks", ", 256 tasks per submission, 2nd process"),
-                             ("unet-flash", ", flash attention for every head"), ("unet-wgsl", ", WGSL")):
+                             ("unet-flash", ", flash attention for every head"), ("unet-wgsl", ", WGSL"),
+                             ("unet-routine", f", routine {best}")):
         for r in res.get(step_name, []):
             t = find(ut, batch=r["batch"])
             err = f"; rel. error vs CPU {r['rel_err']:.1e}" if r.get("rel_err") is not None else ""
@@ -307,6 +312,12 @@ def main():
                       f"CCM/ECM/blend on): {edit['total_s']} s in all; stages (s): {stages} ({per_it}). Estimate for "
                       f"96 views × 15 steps × 2 iterations from the {edit['estimated_from']}: **{lo:.0f}–{hi:.0f} s** "
                       f"(scaled from the slice, not a measurement)."]
+    # Kernel profiles (profile.py's tables, as the steps printed them).
+    for name in ("unet-profile", "fit-profile"):
+        path = os.path.join(a.work, f"{name}.out")
+        if steps.get(name, {}).get("status") == "ok" and os.path.exists(path):
+            text = [l.rstrip() for l in open(path, errors="replace") if not l.startswith("PROFILE ")]
+            lines += ["", f"Kernel profile (`{name}`): " + (text[0] if text else "")] + [""] + text[1:]
     lines += ["", "Steps: " + ", ".join(f"{k} {v.get('status')}" + (f" {v.get('seconds')}s" if v.get('seconds') else "")
                                       for k, v in steps.items())]
     open(os.path.join(a.out, "gpu-check.md"), "w").write("\n".join(lines) + "\n")

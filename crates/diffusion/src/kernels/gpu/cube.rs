@@ -393,9 +393,10 @@ pub fn matmul(
 
 /// im2col of one convolution over a block of its output: images `n0..` of x [batch, cin, h, w] and output
 /// rows `oy0..oy0 + oh` → cols [images, cin·kh·kw, oh·ow] (zero padding).
-/// `meta = [cin, h, w, kh, kw, stride, padding, oh, ow, oy0, n0]`.
+/// `meta = [cin, h, w, kh, kw, stride, padding, oh, ow, oy0, n0]`. `F`: f32, or f16 where the product
+/// that reads the columns takes f16 operands (written at once, so no narrowing pass follows).
 #[cube(launch_unchecked)]
-pub fn im2col(x: &[f32], cols: &mut [f32], meta: &[u32]) {
+pub fn im2col<F: Float>(x: &[f32], cols: &mut [F], meta: &[u32]) {
     let i = linear_pos();
     if (i as usize) < cols.len() {
         let cin = meta[0];
@@ -422,7 +423,7 @@ pub fn im2col(x: &[f32], cols: &mut [f32], meta: &[u32]) {
         if py >= pad && py < pad + h && px >= pad && px < pad + w {
             v = x[(((n * cin + ci) * h + py - pad) * w + px - pad) as usize];
         }
-        cols[i as usize] = v;
+        cols[i as usize] = F::cast_from(v);
     }
 }
 
@@ -524,9 +525,11 @@ pub fn layer_norm(
 }
 
 /// Softmax of `scale · x` over the last dimension, one cube per row; `meta = [width, rows]`. The scale is
-/// applied here so attention's scores need no pass of their own to be scaled.
+/// applied here so attention's scores need no pass of their own to be scaled. `F`: f32, or f16 where the
+/// probabilities only feed an f16-operand product (attention's `P V`): the narrowing pass before that
+/// product was a fifth of an SD 1.5 UNet's kernel time on an H200 (docs/gpu-results.md, 2026-11-27).
 #[cube(launch_unchecked)]
-pub fn softmax_rows(x: &[f32], out: &mut [f32], meta: &[u32], scale: f32) {
+pub fn softmax_rows<F: Float>(x: &[f32], out: &mut [F], meta: &[u32], scale: f32) {
     let units = comptime!(REDUCE_UNITS);
     let width = meta[0];
     let valid = cube_index() < meta[1];
@@ -553,7 +556,8 @@ pub fn softmax_rows(x: &[f32], out: &mut [f32], meta: &[u32], scale: f32) {
     i = UNIT_POS;
     while i < width {
         if valid {
-            out[(base + i) as usize] = f32::exp(x[(base + i) as usize] * scale - m) * inv;
+            out[(base + i) as usize] =
+                F::cast_from(f32::exp(x[(base + i) as usize] * scale - m) * inv);
         }
         i += units;
     }

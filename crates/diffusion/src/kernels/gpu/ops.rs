@@ -611,6 +611,16 @@ pub fn matmul_path(device: &super::GpuDevice) -> MatmulPath {
     }
 }
 
+/// Whether products on `device` take f16 operands (tensor cores, or the unit routine on f16): then an
+/// op whose output only feeds a product writes it as f16 at once instead of leaving a narrowing pass
+/// to the product.
+fn half_operands(device: &super::GpuDevice) -> bool {
+    matches!(
+        matmul_path(device),
+        MatmulPath::TensorCores | MatmulPath::UnitF16
+    )
+}
+
 /// An f32 copy of a packed f16 tensor; an f32 tensor as it is (shared buffer).
 fn widen_f16(x: &GpuTensor) -> GpuTensor {
     if !x.is_f16() {
@@ -950,23 +960,23 @@ fn conv2d_blocked(
     let oh = (h + 2 * padding - kh) / stride + 1;
     let ow = (w + 2 * padding - kw) / stride + 1;
     let depth = cin * kh * kw;
-    let per_row = depth * ow * std::mem::size_of::<f32>();
+    // The columns in the product's operand precision: f16 columns need no narrowing pass.
+    let half = half_operands(x.device());
+    let per_row = depth * ow * if half { 2 } else { 4 };
     let per_image = per_row * oh;
     let block = |n0: usize, images: usize, oy0: usize, rows: usize| -> Result<GpuTensor> {
-        let cols = x.empty_like_device(vec![images, depth, rows * ow]);
-        let meta = Meta::new(x, &[cin, h, w, kh, kw, stride, padding, rows, ow, oy0, n0])?;
-        // SAFETY: the kernel bound-checks against cols and reads x only inside images n0.. of the batch
-        // and [0, h) × [0, w).
-        unsafe {
-            cube::im2col::launch_unchecked(
-                x.client(),
-                grid_for(cols.elem_count(), ELEMENTWISE_UNITS),
-                CubeDim::new_1d(ELEMENTWISE_UNITS),
-                x.arg(),
-                cols.arg(),
-                meta.arg(),
-            )
+        let window = ConvWindow {
+            kh,
+            kw,
+            stride,
+            padding,
+            n0,
+            images,
+            oy0,
+            rows,
+            ow,
         };
+        let cols = im2col(x, &window, half)?;
         let g = Gemm {
             batch: images,
             m: cout,
@@ -999,6 +1009,73 @@ fn conv2d_blocked(
         parts.push(cat(&bands.iter().collect::<Vec<_>>(), 2)?);
     }
     cat(&parts.iter().collect::<Vec<_>>(), 0)?.reshape(&[n, cout, oh, ow])
+}
+
+/// Which part of a convolution's output one im2col block covers.
+#[derive(Clone, Copy)]
+struct ConvWindow {
+    kh: usize,
+    kw: usize,
+    stride: usize,
+    padding: usize,
+    /// Images `n0..n0 + images` of the batch.
+    n0: usize,
+    images: usize,
+    /// Output rows `oy0..oy0 + rows`, each `ow` wide.
+    oy0: usize,
+    rows: usize,
+    ow: usize,
+}
+
+/// The im2col columns [images, cin·kh·kw, rows·ow] of x [batch, cin, h, w] over `window`: f16 when
+/// `half` (the product reads them as they are, no narrowing pass), else f32.
+fn im2col(x: &GpuTensor, window: &ConvWindow, half: bool) -> Result<GpuTensor> {
+    let &[_, cin, h, w] = x.dims() else {
+        candle_core::bail!("gpu im2col: input {:?} is not 4D", x.dims());
+    };
+    let ConvWindow {
+        kh,
+        kw,
+        stride,
+        padding,
+        n0,
+        images,
+        oy0,
+        rows,
+        ow,
+    } = *window;
+    let shape = vec![images, cin * kh * kw, rows * ow];
+    let meta = Meta::new(x, &[cin, h, w, kh, kw, stride, padding, rows, ow, oy0, n0])?;
+    let count = grid_for(shape.iter().product(), ELEMENTWISE_UNITS);
+    let units = CubeDim::new_1d(ELEMENTWISE_UNITS);
+    // SAFETY: the kernel bound-checks against cols and reads x only inside images n0.. of the batch
+    // and [0, h) × [0, w).
+    let cols = unsafe {
+        if half {
+            let cols = x.empty_half_like(shape);
+            cube::im2col::launch_unchecked::<half::f16>(
+                x.client(),
+                count,
+                units,
+                x.arg(),
+                cols.half_arg(),
+                meta.arg(),
+            );
+            cols
+        } else {
+            let cols = x.empty_like_device(shape);
+            cube::im2col::launch_unchecked::<f32>(
+                x.client(),
+                count,
+                units,
+                x.arg(),
+                cols.arg(),
+                meta.arg(),
+            );
+            cols
+        }
+    };
+    Ok(cols)
 }
 
 /// Largest transient buffer one block of a blocked op may take (a convolution's im2col buffer, a chunk of
@@ -1096,29 +1173,47 @@ pub fn layer_norm(
 
 /// Softmax over the last dimension.
 pub fn softmax_last_dim(x: &GpuTensor) -> Result<GpuTensor> {
-    softmax_scaled(x, 1.0)
+    softmax_scaled(x, 1.0, false)
 }
 
-/// Softmax of `scale · x` over the last dimension (attention's scaled scores, without a pass to scale them).
-fn softmax_scaled(x: &GpuTensor, scale: f32) -> Result<GpuTensor> {
+/// Softmax of `scale · x` over the last dimension (attention's scaled scores, without a pass to scale
+/// them), written as f16 when `half` (probabilities that only feed an f16-operand product).
+fn softmax_scaled(x: &GpuTensor, scale: f32, half: bool) -> Result<GpuTensor> {
     let width = *x.dims().last().unwrap_or(&0);
     if width == 0 {
         candle_core::bail!("gpu softmax: empty last dimension in {:?}", x.dims());
     }
     let rows = x.elem_count() / width;
     let meta = Meta::new(x, &[width, rows])?;
-    let out = x.empty_like_device(x.dims().to_vec());
+    let (count, units) = (grid(rows), CubeDim::new_1d(REDUCE_UNITS));
+    let shape = x.dims().to_vec();
     // SAFETY: one cube per row.
-    unsafe {
-        cube::softmax_rows::launch_unchecked(
-            x.client(),
-            grid(rows),
-            CubeDim::new_1d(REDUCE_UNITS),
-            x.arg(),
-            out.arg(),
-            meta.arg(),
-            scale,
-        )
+    let out = unsafe {
+        if half {
+            let out = x.empty_half_like(shape);
+            cube::softmax_rows::launch_unchecked::<half::f16>(
+                x.client(),
+                count,
+                units,
+                x.arg(),
+                out.half_arg(),
+                meta.arg(),
+                scale,
+            );
+            out
+        } else {
+            let out = x.empty_like_device(shape);
+            cube::softmax_rows::launch_unchecked::<f32>(
+                x.client(),
+                count,
+                units,
+                x.arg(),
+                out.arg(),
+                meta.arg(),
+                scale,
+            );
+            out
+        }
     };
     Ok(out)
 }
@@ -1293,7 +1388,7 @@ fn attention_in_chunks(
     let per_entry = (q_len * k_len * std::mem::size_of::<f32>()).max(1);
     let entries = (cap / per_entry).max(1);
     if entries >= batch {
-        return Ok(attention_with_probs(q, k, v, scale)?.0);
+        return attention_products(q, k, v, scale);
     }
     let (q3, k3, v3) = (
         q.reshape(&[batch, q_len, d])?,
@@ -1304,13 +1399,12 @@ fn attention_in_chunks(
         .step_by(entries)
         .map(|b0| {
             let n = entries.min(batch - b0);
-            let (out, _) = attention_with_probs(
+            attention_products(
                 &narrow(&q3, 0, b0, n)?,
                 &narrow(&k3, 0, b0, n)?,
                 &narrow(&v3, 0, b0, n)?,
                 scale,
-            )?;
-            Ok(out)
+            )
         })
         .collect::<Result<Vec<_>>>()?;
     let mut shape = q.dims().to_vec();
@@ -1329,9 +1423,23 @@ pub fn attention_with_probs(
 ) -> Result<(GpuTensor, GpuTensor)> {
     attention_dims(q, k, v)?;
     let scores = matmul_scaled(q, k, true, 1.0)?;
-    let probs = softmax_scaled(&scores, scale as f32)?;
+    let probs = softmax_scaled(&scores, scale as f32, false)?;
     let out = matmul(&probs, v)?;
     Ok((out, probs))
+}
+
+/// [`attention_with_probs`] without the probabilities: where the products take f16 operands, the
+/// softmax writes them as f16 (the product would narrow them to f16 anyway, in a pass of its own).
+fn attention_products(
+    q: &GpuTensor,
+    k: &GpuTensor,
+    v: &GpuTensor,
+    scale: f64,
+) -> Result<GpuTensor> {
+    attention_dims(q, k, v)?;
+    let scores = matmul_scaled(q, k, true, 1.0)?;
+    let probs = softmax_scaled(&scores, scale as f32, half_operands(q.device()))?;
+    matmul(&probs, v)
 }
 
 // -------------------------------------------------------------------------- VGG feature-loss ops

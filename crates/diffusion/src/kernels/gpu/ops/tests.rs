@@ -376,6 +376,25 @@ fn f16_operands_match_cpu() {
         .unwrap();
         let want = crate::kernels::conv2d(&rounded(&xi), &rounded(&conv_w), None, 1, 1).unwrap();
         check_within("f16-operand conv2d", &got, &want, 1e-5);
+        // Attention as products: the softmax writes its probabilities as f16 for the second product.
+        let (q, k, v) = (
+            randn(&[2, 3, 29, 16]),
+            randn(&[2, 3, 33, 16]),
+            randn(&[2, 3, 33, 12]),
+        );
+        let got = with_attention_path(AttentionPath::Products, || {
+            attention(
+                &up(&half_dev, &q),
+                &up(&half_dev, &k),
+                &up(&half_dev, &v),
+                0.25,
+            )
+        })
+        .unwrap();
+        let scores = (rounded(&q).matmul(&rounded(&k).t().unwrap()).unwrap() * 0.25).unwrap();
+        let probs = crate::kernels::softmax_last_dim(&scores).unwrap();
+        let want = rounded(&probs).matmul(&rounded(&v)).unwrap();
+        check_within("f16-operand attention", &got, &want, 1e-3);
     });
     // The library takes these products itself (no silent fallback to the f32 routine).
     let (m, k, n) = (17, 19, 21);
@@ -391,6 +410,49 @@ fn f16_operands_match_cpu() {
         alpha: 1.0,
     };
     assert!(library_gemm_on(&a, &b, &g, &[1, m, n], MatmulPath::UnitF16).is_some());
+}
+
+/// im2col's f16 columns (what an f16-operand product reads) are exactly its f32 columns rounded: one
+/// kernel, only the store narrows. Elementwise, so it also runs on Mesa 25's SPIR-V path (f16, no
+/// workgroup memory); skipped where the device has no native f16.
+#[test]
+fn f16_im2col_is_the_f32_columns_rounded() {
+    let Some(dev) = device_or_skip() else {
+        return;
+    };
+    let f16 = cubecl::ir::ElemType::Float(cubecl::ir::FloatKind::F16);
+    if !dev.client().properties().supports_type(f16) {
+        eprintln!("skipped: {} has no native f16", dev.context().describe());
+        return;
+    }
+    // Output rows 1..3 of the second image, stride 2 and padding 1: a 7×6 input gives 4×3 outputs.
+    let x = up(&dev, &randn(&[2, 3, 7, 6]));
+    let window = ConvWindow {
+        kh: 3,
+        kw: 3,
+        stride: 2,
+        padding: 1,
+        n0: 1,
+        images: 1,
+        oy0: 1,
+        rows: 2,
+        ow: 3,
+    };
+    let (full, half) = (
+        im2col(&x, &window, false).unwrap(),
+        im2col(&x, &window, true).unwrap(),
+    );
+    assert!(half.is_f16() && !full.is_f16());
+    assert_eq!(half.dims(), [1, 27, 6]);
+    let values = |t: Tensor| t.flatten_all().unwrap().to_vec1::<f32>().unwrap();
+    let want = full
+        .to_cpu()
+        .unwrap()
+        .to_dtype(candle_core::DType::F16)
+        .unwrap()
+        .to_dtype(candle_core::DType::F32)
+        .unwrap();
+    assert_eq!(values(half.to_cpu().unwrap()), values(want));
 }
 
 #[test]
