@@ -216,7 +216,7 @@ step unet 180 "$V" bench unet --model "$MODEL" --device gpu --size "$LAT" --batc
 # attention path.
 [ "$MODE" = device ] && step unet-flash 120 env VCEDIT_GPU_ATTENTION=flash "$V" bench unet --model "$MODEL" --device gpu --size "$LAT" --batches 6 --hooks none --runs "$RUNS"
 # The whole forward on the tensor-core routine that was fastest at 4096x320x1280 in `matmul-routines`
-# (when that is not already the default): does the product's gain carry to the network?
+# (the default included, as the A/B baseline of the same process kind): does the gain carry to the network?
 BEST_ROUTINE=$(python3 - "$WORK/matmul-routines.out" <<'PY' 2>/dev/null
 import json, sys
 best = None

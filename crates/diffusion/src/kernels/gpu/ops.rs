@@ -691,11 +691,18 @@ fn library_gemm(
 /// The library's tensor-core routines a product may take on a card with cooperative matrices (`cmma`:
 /// the portable cooperative-matrix instructions; `mma`: manual fragments). Which is fastest differs
 /// between cards and shapes: `vcedit bench matmul --routines` times each, tools/gpu-check runs it.
-pub const TENSOR_CORE_ROUTINES: [&str; 10] = [
+/// `_multi_rows`: the library's other tiling for the simple routines (8×32×16 tiles, four partitions of
+/// rows per plane); `_specialized`: double buffering with planes specialised into loaders and computers.
+/// On an H200 (2026-11-27) the seven routines without a suffix reached 5–14 TFLOP/s at 4096×320×1280
+/// against cuBLAS's 155, so the tilings are the next thing to measure.
+pub const TENSOR_CORE_ROUTINES: [&str; 13] = [
     "simple_cyclic_cmma",
+    "simple_cyclic_cmma_multi_rows",
     "simple_strided_cmma",
+    "simple_strided_cmma_multi_rows",
     "simple_tilewise_cmma",
     "double_cyclic_cmma",
+    "double_cyclic_cmma_specialized",
     "double_tilewise_cmma",
     "double_hybrid_cmma",
     "ordered_double_cmma",
@@ -753,8 +760,21 @@ fn tensor_core_routine() -> &'static str {
 
 /// The library strategy of a routine of [`TENSOR_CORE_ROUTINES`].
 fn tensor_core_strategy(name: &str) -> cubek_matmul::multi_level::Strategy {
+    use cubek_matmul::multi_level::routines::batch::{double_buffering, simple};
     use cubek_matmul::multi_level::Strategy as R;
+    use cubek_matmul::routine::BlueprintStrategy::Inferred;
+    let multi_rows = simple::SimpleArgs {
+        multi_rows: true,
+        ..Default::default()
+    };
+    let specialized = double_buffering::DoubleBufferingArgs {
+        specialized: true,
+        ..Default::default()
+    };
     match name {
+        "simple_cyclic_cmma_multi_rows" => R::SimpleCyclicCmma(Inferred(multi_rows)),
+        "simple_strided_cmma_multi_rows" => R::SimpleStridedCmma(Inferred(multi_rows)),
+        "double_cyclic_cmma_specialized" => R::DoubleCyclicCmma(Inferred(specialized)),
         "simple_strided_cmma" => R::SimpleStridedCmma(Default::default()),
         "simple_tilewise_cmma" => R::SimpleTilewiseCmma(Default::default()),
         "double_cyclic_cmma" => R::DoubleCyclicCmma(Default::default()),
