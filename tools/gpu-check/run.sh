@@ -172,6 +172,8 @@ if [ "$MODE" = device ] && grep -q '"step":"adapter","status":"failed\|"step":"a
   say "!! vcedit opened no hardware GPU: the vcedit GPU steps are skipped. Adapter step output:"
   tail -n 5 "$WORK/adapter.err" | tee -a "$LOG"
 fi
+# What the host costs around the kernels: launches, waited-for reads, fresh buffers, the fits' radix sort.
+step overhead 60 "$V" bench device --device gpu --overhead $REQUIRE
 if have_torch; then
   step torch-info 60 python3 "$TB" info
 fi

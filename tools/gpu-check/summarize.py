@@ -199,6 +199,15 @@ def build_table(res, steps, mode, torch_present):
             where = "gpu" if name == "lpips" else "cpu"
             row(f"LPIPS-VGG16 {r['what']}, {r['size']}², {where} (s)", r.get("best_s"), None,
                 fmt_s(r.get("first_s")), "full width, generated weights; f32", torch_expected=False)
+    for r in [x for x in res.get("overhead", []) if x.get("bench") == "overhead"]:
+        for key, what in (("launch_us", "launch of a one-element kernel (µs)"),
+                          ("round_trip_us", "launch + 4-byte read, waited for (µs)"),
+                          ("read_mib_ms", "1 MiB read back (ms)"),
+                          ("fill_reused_us", "16 MiB fill, same buffer (µs)"),
+                          ("fill_fresh_us", "16 MiB fill, fresh buffer of a new size (µs)"),
+                          ("sort_60k_ms", "radix sort of 60k pairs by 32-bit keys + read (ms)")):
+            row(f"host overhead: {what}, {r.get('compiler', '?')}", r.get(key), None, None,
+                "what the host costs around kernels", torch_expected=False)
     for name in ("lift", "lift-cpu"):
         for r in res.get(name, []):
             if r.get("bench") != "lift":

@@ -4,6 +4,9 @@
 //! `vcedit bench device [--device gpu|auto] [--require-hardware]`: one `RESULT` line with every adapter
 //! wgpu lists and the one opened. `--require-hardware` fails (exit 1) when the opened adapter is a
 //! software rasteriser (lavapipe/llvmpipe): a hardware measurement must never silently run on the CPU.
+//! `--overhead` adds a second `RESULT` line: what the host costs around the kernels (see [`overhead`]).
+
+use std::time::Instant;
 
 use crate::{arg_value, has_flag, report, BenchError, Result};
 
@@ -61,5 +64,109 @@ pub fn main(args: &[String]) -> Result<()> {
             ctx.describe()
         )));
     }
+    if has_flag(args, "--overhead") {
+        let measured = overhead(&ctx)?;
+        eprintln!("overhead: {measured}");
+        report(measured);
+    }
     Ok(())
+}
+
+/// What the host costs around the kernels, in the runtime's own terms (a splatting fit step is ~75
+/// launches, a radix sort and two reads; on an H200 `vcedit fit` spent 86 % of its wall time outside
+/// its kernels, docs/gpu-results.md 2026-11-27):
+/// - `launch_us`: one launch of a one-element kernel, 2000 in a row and one read at the end;
+/// - `round_trip_us`: one launch and a 4-byte read, waited for (what every read of a count or a loss
+///   costs a fit step);
+/// - `read_mib_ms`: reading 1 MiB back;
+/// - `fill_reused_us` / `fill_fresh_us`: filling a 16 MiB buffer, the same buffer each time against a
+///   fresh one of a slightly different size each time (a fit's buffers change size every step);
+/// - `sort_60k_ms`: the fit's depth sort, 60k pairs by 32-bit keys, with the read that follows it.
+fn overhead(ctx: &gpu::GpuContext) -> Result<serde_json::Value> {
+    use gpu::prims::{empty32, fill32, read_u32, sort_pairs, upload_u32};
+    let c = &ctx.client;
+    let per = |start: Instant, n: usize| start.elapsed().as_secs_f64() / n as f64;
+    let one = empty32(c, 1);
+    fill32(c, &one, 1, 0);
+    read_u32(c, &one, 1)?;
+
+    let launches = 2000;
+    let start = Instant::now();
+    for i in 0..launches {
+        fill32(c, &one, 1, i as u32);
+    }
+    read_u32(c, &one, 1)?;
+    let launch_us = per(start, launches) * 1e6;
+
+    let trips = 200;
+    let start = Instant::now();
+    for i in 0..trips {
+        fill32(c, &one, 1, i as u32);
+        read_u32(c, &one, 1)?;
+    }
+    let round_trip_us = per(start, trips) * 1e6;
+
+    let mib = 1 << 18;
+    let big = empty32(c, mib);
+    fill32(c, &big, mib, 7);
+    read_u32(c, &big, mib)?;
+    let reads = 20;
+    let start = Instant::now();
+    for _ in 0..reads {
+        read_u32(c, &big, mib)?;
+    }
+    let read_mib_ms = per(start, reads) * 1e3;
+
+    let words = 1 << 22;
+    let fills = 50;
+    let reused = empty32(c, words);
+    fill32(c, &reused, words, 0);
+    read_u32(c, &one, 1)?;
+    let start = Instant::now();
+    for i in 0..fills {
+        fill32(c, &reused, words, i as u32);
+    }
+    read_u32(c, &one, 1)?;
+    let fill_reused_us = per(start, fills) * 1e6;
+    let start = Instant::now();
+    for i in 0..fills {
+        let fresh = empty32(c, words + 1024 * i);
+        fill32(c, &fresh, words, i as u32);
+    }
+    read_u32(c, &one, 1)?;
+    let fill_fresh_us = per(start, fills) * 1e6;
+
+    let n = 60_000;
+    // A fixed pseudo-random key per pair (splitmix-style), so runs compare.
+    let keys: Vec<u32> = (0..n as u64)
+        .map(|i| {
+            let z = (i + 1).wrapping_mul(0x9E37_79B9_7F4A_7C15);
+            ((z ^ (z >> 31)) >> 16) as u32
+        })
+        .collect();
+    let vals: Vec<u32> = (0..n as u32).collect();
+    let (mut k, mut v) = (upload_u32(c, &keys), upload_u32(c, &vals));
+    (k, v) = sort_pairs(c, k, v, n, 32);
+    read_u32(c, &k, 1)?;
+    let sorts = 20;
+    let start = Instant::now();
+    for _ in 0..sorts {
+        (k, v) = sort_pairs(c, k, v, n, 32);
+        read_u32(c, &k, 1)?;
+    }
+    let sort_60k_ms = per(start, sorts) * 1e3;
+    drop(v);
+
+    let round = |x: f64| (x * 100.0).round() / 100.0;
+    Ok(serde_json::json!({
+        "bench": "overhead",
+        "device": ctx.adapter,
+        "compiler": ctx.compiler,
+        "launch_us": round(launch_us),
+        "round_trip_us": round(round_trip_us),
+        "read_mib_ms": round(read_mib_ms),
+        "fill_reused_us": round(fill_reused_us),
+        "fill_fresh_us": round(fill_fresh_us),
+        "sort_60k_ms": round(sort_60k_ms),
+    }))
 }
