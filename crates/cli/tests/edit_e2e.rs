@@ -258,6 +258,14 @@ fn edit_writes_every_output_and_changes_only_the_mask() {
         "{run}"
     );
     assert!(run["metrics"]["preservation_outside_mask"]["psnr"].is_number());
+    // Each iteration's fit says what it did with the masked region's geometry (measured: a mask is given).
+    let shape = run["shape"].as_array().expect("shape decisions");
+    assert_eq!(shape.len(), 2, "{run}");
+    for s in shape {
+        let rate = s["geometry_rate"].as_f64().unwrap();
+        assert!(rate == 1.0 || rate == 0.1f32 as f64, "{s}");
+        assert!(s["footprint_change"].as_f64().unwrap() >= 0.0, "{s}");
+    }
     let html = std::fs::read_to_string(out.join("report.html")).unwrap();
     assert!(html.contains("a red ball") && html.contains("edited.ply"));
 

@@ -15,7 +15,8 @@ use edit::eval::metrics::{
 };
 use edit::fit::{ImageLoss, TrainSettings};
 use edit::run::{
-    run_edit, write_outputs, DeltaDecode, EditJob, GuidanceMode, MaskSource, Progress, RunInputs,
+    run_edit, write_outputs, DeltaDecode, EditJob, GuidanceMode, KeepShape, MaskSource, Progress,
+    RunInputs,
 };
 use edit::sampler::{image_to_tensor, EditModel, EditPrompts, InfEditSettings, SeededNoise};
 use serde::Serialize;
@@ -66,6 +67,8 @@ pub struct DemoOptions {
     pub resume: bool,
     /// Which iterations' guidance is the source plus the decoded change (as `vcedit edit`).
     pub delta_decode: DeltaDecode,
+    /// When the fits keep the object's geometry (as `vcedit edit`).
+    pub keep_shape: KeepShape,
 }
 
 impl DemoOptions {
@@ -82,6 +85,7 @@ impl DemoOptions {
             seed: 0,
             resume: false,
             delta_decode: DeltaDecode::Always,
+            keep_shape: KeepShape::Auto,
         }
     }
 }
@@ -235,6 +239,7 @@ pub fn demo_job(opts: &DemoOptions, scene: &DemoScene, variant: Variant) -> Edit
             GuidanceMode::Joint
         },
         delta_decode: opts.delta_decode,
+        keep_shape: opts.keep_shape,
         iterations: opts.iterations,
         fit_steps: opts.fit_steps,
         max_views: opts.views,

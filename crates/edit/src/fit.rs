@@ -21,7 +21,7 @@ use serde::Serialize;
 use splat::train::anchor::{Anchor, AnchorConfig};
 use splat::train::densify::EditStrategy;
 use splat::train::loss;
-use splat::train::optim::LearningRates;
+use splat::train::optim::{Group, LearningRates};
 use splat::train::{FitLoss, L1DssimWeights, StepKind, StepOutcome, Trainer};
 use splat::train::{RenderedView, TrainState};
 use splat::{Camera, GaussianScene, Image, SplatDevice};
@@ -350,6 +350,14 @@ impl EditTrainer {
 
     pub fn scene(&self) -> &GaussianScene {
         &self.state.scene
+    }
+
+    /// Sets the factor on the position, scale and rotation rates of the fits that follow (1: the
+    /// reference's rates; `run::shape` keeps the geometry of appearance edits at a tenth).
+    pub fn set_geometry_rate(&mut self, rate: f32) {
+        for g in [Group::Means, Group::LogScales, Group::Quats] {
+            self.state.adam.group_lr_scale[g.index()] = rate;
+        }
     }
 
     /// Fits to one target per camera for `steps` single-view steps (views drawn without replacement,

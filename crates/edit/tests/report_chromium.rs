@@ -122,6 +122,8 @@ fn dummy_run(dir: &Path) -> ReportData {
             renders: Vec::new(),
             guidance_consistency: Some(consistency(0.031)),
             seconds: Some(75.5),
+            geometry_rate: Some(0.1),
+            footprint_change: Some(0.0),
         }],
         attention: vec![WordImage {
             word: "clown".into(),

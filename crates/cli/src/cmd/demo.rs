@@ -3,7 +3,7 @@
 use std::path::PathBuf;
 
 use edit::compute::Compute;
-use edit::run::DeltaDecode;
+use edit::run::{DeltaDecode, KeepShape};
 
 use demo::run::{
     demo_job, demo_scene, load_model, reference_rows, reference_table, run_variant, summary, table,
@@ -68,6 +68,9 @@ pub struct Args {
     /// Which iterations hand on the source plus the decoded change (as `vcedit edit`).
     #[arg(long, value_enum, default_value = "always")]
     pub delta_decode: DeltaDecode,
+    /// When the fits keep the object's geometry (as `vcedit edit`).
+    #[arg(long, value_enum, default_value = "auto")]
+    pub keep_shape: KeepShape,
     #[command(flatten)]
     pub memory: MemoryCheckArg,
 }
@@ -102,6 +105,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     opts.seed = args.seed;
     opts.resume = args.resume;
     opts.delta_decode = args.delta_decode;
+    opts.keep_shape = args.keep_shape;
     let scene = demo_scene(&opts)?;
     // The demo's networks are tiny (a 128² latent UNet of a few MB); its time goes to lifting, renders
     // and ECM's fits, which ran faster on WGSL (docs/gpu-results.md: on an H100 its SPIR-V run took 71 s
@@ -135,6 +139,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         args.steps,
         args.seed,
         args.delta_decode,
+        args.keep_shape,
     ));
     let model_files = files_under(&model_dir, 3);
     let inputs: Vec<&std::path::Path> = model_files.iter().map(PathBuf::as_path).collect();

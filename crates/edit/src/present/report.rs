@@ -59,6 +59,12 @@ pub struct IterationInfo {
     pub guidance_consistency: Option<ConsistencySummary>,
     #[serde(default)]
     pub seconds: Option<f64>,
+    /// The factor on the geometry rates of this iteration's fit (below 1: the shape was kept).
+    #[serde(default)]
+    pub geometry_rate: Option<f32>,
+    /// Pixels the guidance changed outside the editable footprint, per footprint pixel.
+    #[serde(default)]
+    pub footprint_change: Option<f64>,
 }
 
 /// A per-word attention map image.
@@ -439,6 +445,7 @@ impl Page<'_> {
                         " · cross-view error " (fmt_opt(c.mean_abs_error, 4)) " (" (fmt_opt(c.psnr, 2)) " dB)"
                     }
                     @if let Some(s) = it.seconds { " · " (fmt_seconds(s)) }
+                    @if let Some(r) = it.geometry_rate.filter(|&r| r < 1.0) { " · shape kept (geometry × " (r) ")" }
                 }
                 @for (label, list) in [("guidance", &it.guidance), ("render after fit", &it.renders)] {
                     @if !list.is_empty() {

@@ -14,6 +14,7 @@ use crate::eval::metrics::ConsistencySummary;
 use crate::fit::{EditTrainer, TrainSettings};
 
 use super::job::{io_err, EditJob, IterationTimes, RunError};
+use super::shape::ShapeDecision;
 
 /// Bumped when the format changes.
 const VERSION: u32 = 1;
@@ -33,6 +34,9 @@ pub(super) struct Checkpoint {
     pub mask: Option<Vec<bool>>,
     pub times: Vec<IterationTimes>,
     pub guidance_consistency: Vec<Option<ConsistencySummary>>,
+    /// What each finished iteration's fit did with the geometry rates.
+    #[serde(default)]
+    pub shape: Vec<ShapeDecision>,
     /// Per-word attention images of iteration 0: (word, file under `attention/`).
     pub attention: Vec<(String, String)>,
 }
@@ -63,6 +67,7 @@ impl Checkpoint {
             mask,
             times: vec![],
             guidance_consistency: vec![],
+            shape: vec![],
             attention: vec![],
         }
     }

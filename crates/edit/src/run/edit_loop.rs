@@ -7,7 +7,7 @@ use rand::seq::SliceRandom;
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use splat::render::Frame;
-use splat::render::RenderSettings;
+use splat::render::{ExtraChannels, RenderSettings};
 use splat::{Camera, GaussianScene, Image};
 
 use crate::consistency::{ConsistencySettings, EcmFitter, MultiView, MultiViewOutcome, Stage};
@@ -22,6 +22,7 @@ use super::job::{
 };
 use super::masks::{self, Box3};
 use super::outputs;
+use super::shape::{footprint_change, KeepShape, ShapeDecision};
 
 /// A whole edit into `out`: [`run_edit`], then [`outputs::write_outputs`] — the one sequence `vcedit edit`
 /// and the demo run. Returns the result (the demo scores it) and the written paths.
@@ -104,17 +105,26 @@ pub fn run_edit(
             }
         }
 
-        // Fit the scene to the guidance.
+        // Fit the scene to the guidance, its geometry kept where the guidance keeps the footprint.
         let t = Instant::now();
+        let shape = run.shape_decision(&trainer, &cams, &sources, &edited.images)?;
+        if job.keep_shape != KeepShape::Never {
+            progress.log(&shape.describe());
+        }
         progress.stage(&run.stage(k, "fitting"), job.fit_steps as u64);
-        trainer.fit(
+        trainer.set_geometry_rate(shape.geometry_rate);
+        let fitted = trainer.fit(
             &cams,
             &edited.images,
             job.fit_steps,
             loss,
             job.seed_for(k, SeedPurpose::Fit),
             &mut |n| progress.advance(n),
-        )?;
+        );
+        // ECM's fits copy the trainer's state: they keep the reference's rates.
+        trainer.set_geometry_rate(1.0);
+        fitted?;
+        state.shape.push(shape);
         times.fit = t.elapsed().as_secs_f64();
         guidance.push(edited.images);
 
@@ -157,8 +167,49 @@ pub fn run_edit(
             .map(|(w, f)| (w.clone(), out.join("attention").join(f)))
             .collect(),
         guidance_consistency: state.guidance_consistency,
+        shape: state.shape,
         resumed_from,
     })
+}
+
+impl Run<'_> {
+    /// Whether iteration's fit keeps the editable region's geometry: under `auto` with a mask, from the
+    /// pixels the guidance changed outside the mask's rendered footprint (`shape` module).
+    fn shape_decision(
+        &self,
+        trainer: &EditTrainer,
+        cams: &[Camera],
+        sources: &[Image],
+        guidance: &[Image],
+    ) -> Result<ShapeDecision, RunError> {
+        let keep = self.job.keep_shape;
+        let mask = trainer.state.trainable.as_deref();
+        let change = match (keep, mask) {
+            (KeepShape::Auto, Some(mask)) => {
+                let values: Vec<f32> = mask.iter().map(|&m| m as u8 as f32).collect();
+                let extra = ExtraChannels {
+                    values: &values,
+                    channels: 1,
+                };
+                let coverage: Vec<Vec<f32>> = self
+                    .model
+                    .compute
+                    .splat()
+                    .render_views(
+                        trainer.scene(),
+                        cams,
+                        &RenderSettings::default(),
+                        Some(extra),
+                    )?
+                    .into_iter()
+                    .map(|f| f.extra)
+                    .collect();
+                footprint_change(&coverage, sources, guidance)
+            }
+            _ => None,
+        };
+        Ok(ShapeDecision::new(keep, change))
+    }
 }
 
 /// What every part of a run reads: the job, the model, the fits' loss and the output folder.

@@ -11,6 +11,7 @@ use crate::fit::{TrainError, TrainSettings};
 use crate::sampler::{EditError, EditPrompts, InfEditSettings};
 
 use super::masks::MaskError;
+use super::shape::{KeepShape, ShapeDecision};
 
 /// How the views' guidance images are produced.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
@@ -109,6 +110,8 @@ pub struct EditJob {
     pub guidance: GuidanceMode,
     /// Which iterations' guidance is the source plus the decoded change ([`DeltaDecode`]).
     pub delta_decode: DeltaDecode,
+    /// When the fits keep the editable region's geometry ([`KeepShape`]).
+    pub keep_shape: KeepShape,
     pub iterations: usize,
     pub fit_steps: usize,
     pub max_views: usize,
@@ -216,6 +219,8 @@ pub struct EditResult {
     pub word_maps: Vec<(String, PathBuf)>,
     /// Multi-view consistency of each iteration's guidance (with that iteration's scene geometry).
     pub guidance_consistency: Vec<Option<ConsistencySummary>>,
+    /// What each iteration's fit did with the geometry rates.
+    pub shape: Vec<ShapeDecision>,
     /// Whether the run continued from a checkpoint.
     pub resumed_from: Option<usize>,
 }
@@ -259,6 +264,7 @@ pub(crate) mod tests {
             consistency: ConsistencySettings::reference(15),
             guidance: GuidanceMode::Joint,
             delta_decode: DeltaDecode::Never,
+            keep_shape: KeepShape::Auto,
             iterations: 2,
             fit_steps: 10,
             max_views: 4,

@@ -13,6 +13,7 @@
 //! - `masks`: the editable region;
 //! - `checkpoint`: the state saved after every iteration;
 //! - `outputs`: the files written per iteration and at the end ([`write_outputs`]);
+//! - `shape`: whether a fit keeps the editable region's geometry ([`KeepShape`]);
 //! - `work`: the work and memory a run needs ([`work_plan`]);
 //! - `estimate`: how long it will take, from unit costs timed here ([`calibrate`], [`Estimate`]).
 
@@ -22,6 +23,7 @@ mod estimate;
 mod job;
 mod masks;
 mod outputs;
+mod shape;
 mod work;
 
 pub use edit_loop::{edit_scene, run_edit, scene_extent};
@@ -32,4 +34,5 @@ pub use job::{
 };
 pub use masks::{mask_from_box, Box3, MaskError};
 pub use outputs::{write_outputs, RunInputs, Written};
+pub use shape::{footprint_change, KeepShape, ShapeDecision, KEPT_SHAPE_RATE};
 pub use work::{image_edit_memory, work_plan, WorkPlan};

@@ -21,6 +21,7 @@ use crate::sampler::{EditPlan, ViewState};
 use super::estimate::Estimate;
 use super::job::{io_err, EditJob, EditResult, IterationTimes, Progress, RunError};
 use super::masks::render_mask;
+use super::shape::ShapeDecision;
 
 /// Where the main outputs went.
 pub struct Written {
@@ -270,6 +271,8 @@ pub fn write_outputs(
             renders: Vec::new(),
             guidance_consistency: result.guidance_consistency.get(k).cloned().flatten(),
             seconds: result.times.get(k).map(IterationTimes::total),
+            geometry_rate: result.shape.get(k).map(|s| s.geometry_rate),
+            footprint_change: result.shape.get(k).and_then(|s| s.footprint_change),
         })
         .collect();
     let mut timings = Vec::new();
@@ -359,6 +362,8 @@ pub fn write_outputs(
         metrics: &'a MetricsSummary,
         timings: &'a [StageTiming],
         iterations: &'a [IterationTimes],
+        /// Per iteration: whether its fit kept the editable region's geometry, and why.
+        shape: &'a [ShapeDecision],
         #[serde(skip_serializing_if = "Option::is_none")]
         estimate: Option<&'a Estimate>,
     }
@@ -375,6 +380,7 @@ pub fn write_outputs(
         metrics: &metrics,
         timings: &timings,
         iterations: &result.times,
+        shape: &result.shape,
         estimate: inputs.estimate.as_ref(),
     };
     let p = out.join("run.json");
