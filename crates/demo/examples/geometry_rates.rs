@@ -1,8 +1,8 @@
 //! What the editing fit's geometry rates do to a demo edit's outline: refits the demo scene to a demo
 //! run's guidance images (both iterations, 300 steps each, as `vcedit demo`) with the position, scale and
-//! rotation rates at 1 (the reference), 0.1 (`--keep-shape`'s) and 0, without densification, and at twice
-//! the guidance's resolution (Lanczos-upsampled targets), then scores each result with the oracle at the
-//! edit's resolution and at 4× it (`crates/edit/src/run/shape.rs` cites the numbers).
+//! rotation rates at 1 (the reference), 0.1 (`--keep-shape`'s) and 0, with the opacity's at 0.1 too,
+//! without densification, and at twice the guidance's resolution (Lanczos-upsampled targets), then scores
+//! each result with the oracle at the edit's resolution and at 4× it (docs/demo-model.md has the table).
 //!
 //! cargo run --release -p vcedit-demo --example geometry_rates -- RUN_DIR [PAIR]
 
@@ -44,15 +44,16 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             .map(|c| to_working_resolution(c, c.width * f, c.height * f))
             .collect()
     };
-    // (name, geometry rate, densify, fit resolution factor)
+    // (name, geometry rate, opacity rate, densify, fit resolution factor)
     let variants = [
-        ("reference rates", 1.0, true, 1),
-        ("geometry at 0.1x", 0.1, true, 1),
-        ("geometry frozen", 0.0, true, 1),
-        ("no densification", 1.0, false, 1),
-        ("fit at 2x resolution", 1.0, true, 2),
+        ("reference rates", 1.0, 1.0, true, 1),
+        ("geometry at 0.1x", 0.1, 1.0, true, 1),
+        ("geometry frozen", 0.0, 1.0, true, 1),
+        ("geometry+opacity 0.1x", 0.1, 0.1, true, 1),
+        ("no densification", 1.0, 1.0, false, 1),
+        ("fit at 2x resolution", 1.0, 1.0, true, 2),
     ];
-    for (name, rate, densify, factor) in variants {
+    for (name, rate, opacity, densify, factor) in variants {
         let mut settings = TrainSettings::new(600);
         if !densify {
             settings.strategy.densify_from = u64::MAX;
@@ -65,6 +66,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             scene.source.background,
         );
         trainer.set_geometry_rate(rate);
+        trainer.state.adam.group_lr_scale[splat::train::optim::Group::Opacity.index()] = opacity;
         let cams = scaled(factor);
         for (k, images) in rounds.iter().enumerate() {
             let targets: Vec<Image> = images

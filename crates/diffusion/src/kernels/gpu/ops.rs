@@ -1032,7 +1032,6 @@ fn conv2d_blocked(
 }
 
 /// Which part of a convolution's output one im2col block covers.
-#[derive(Clone, Copy)]
 struct ConvWindow {
     kh: usize,
     kw: usize,
@@ -1053,19 +1052,14 @@ fn im2col(x: &GpuTensor, window: &ConvWindow, half: bool) -> Result<GpuTensor> {
     let &[_, cin, h, w] = x.dims() else {
         candle_core::bail!("gpu im2col: input {:?} is not 4D", x.dims());
     };
-    let ConvWindow {
-        kh,
-        kw,
-        stride,
-        padding,
-        n0,
-        images,
-        oy0,
-        rows,
-        ow,
-    } = *window;
-    let shape = vec![images, cin * kh * kw, rows * ow];
-    let meta = Meta::new(x, &[cin, h, w, kh, kw, stride, padding, rows, ow, oy0, n0])?;
+    let c = window;
+    let shape = vec![c.images, cin * c.kh * c.kw, c.rows * c.ow];
+    let meta = Meta::new(
+        x,
+        &[
+            cin, h, w, c.kh, c.kw, c.stride, c.padding, c.rows, c.ow, c.oy0, c.n0,
+        ],
+    )?;
     let count = grid_for(shape.iter().product(), ELEMENTWISE_UNITS);
     let units = CubeDim::new_1d(ELEMENTWISE_UNITS);
     // SAFETY: the kernel bound-checks against cols and reads x only inside images n0.. of the batch
