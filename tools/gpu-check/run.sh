@@ -205,11 +205,11 @@ if have_torch; then step attention-torch 60 python3 "$TB" attention --shapes "$A
 step unet 180 "$V" bench unet --model "$MODEL" --device gpu --size "$LAT" --batches 1,6 --hooks none,device --runs "$RUNS" --check
 # Where the UNet's GPU time goes: cubecl's per-kernel profile of batch 6 (it waits for every kernel, so
 # its total is kernel time, and the gap to the `unet` row is what launching and waiting cost), summed by
-# kernel over one warm forward (tools/gpu-check/profile.py).
+# kernel over one warm forward (tools/gpu-check/kernel_profile.py).
 [ "$MODE" = device ] && step unet-profile 90 env CUBECL_DEBUG_LOG="$WORK/unet.prof" CUBECL_DEBUG_OPTION=profile \
   bash -c '"$1" bench unet --model "$2" --device gpu --size "$3" --batches 6 --hooks none --runs 2 >/dev/null &&
     unset CUBECL_DEBUG_LOG && python3 "$4" "$5" --segments 3 --label "UNet forward, batch 6"' \
-  _ "$V" "$MODEL" "$LAT" "$HERE/profile.py" "$WORK/unet.prof"
+  _ "$V" "$MODEL" "$LAT" "$HERE/kernel_profile.py" "$WORK/unet.prof"
 # The same UNet in a second process with 256 kernels per command submission instead of cubecl's 32 (is a
 # forward bound by submissions? batch 1 costs a third of batch 6), and its first call says what the SPIR-V
 # kernels the `unet` step persisted save in a new process.
@@ -287,7 +287,7 @@ step fit 150 "$V" fit --data "$IN/lego-200" --out "$WORK/lego.ply" --background 
   bash -c 't0=$(date +%s%N); "$1" fit --data "$2" --out "$3" --background white --device gpu --steps 1500 \
       >/dev/null 2>&1 || exit 1; wall=$(( ($(date +%s%N) - t0) / 1000000 )); unset CUBECL_DEBUG_LOG
     python3 "$4" "$5" --label "vcedit fit lego-200, 1500 steps, ${wall} ms wall"' \
-  _ "$V" "$IN/lego-200" "$WORK/lego-profile.ply" "$HERE/profile.py" "$WORK/fit.prof"
+  _ "$V" "$IN/lego-200" "$WORK/lego-profile.ply" "$HERE/kernel_profile.py" "$WORK/fit.prof"
 # The packed vcedit has no built-in demo model (prepare.sh): the checkout's is named.
 if [ "$MODE" = device ]; then
   step demo 150 "$V" demo --model "$ROOT/models/demo" --device gpu --out "$WORK/demo"

@@ -321,7 +321,7 @@ def main():
                       f"CCM/ECM/blend on): {edit['total_s']} s in all; stages (s): {stages} ({per_it}). Estimate for "
                       f"96 views × 15 steps × 2 iterations from the {edit['estimated_from']}: **{lo:.0f}–{hi:.0f} s** "
                       f"(scaled from the slice, not a measurement)."]
-    # Kernel profiles (profile.py's tables, as the steps printed them).
+    # Kernel profiles (kernel_profile.py's tables, as the steps printed them).
     for name in ("unet-profile", "fit-profile"):
         path = os.path.join(a.work, f"{name}.out")
         if steps.get(name, {}).get("status") == "ok" and os.path.exists(path):

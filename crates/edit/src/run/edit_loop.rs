@@ -172,46 +172,6 @@ pub fn run_edit(
     })
 }
 
-impl Run<'_> {
-    /// Whether iteration's fit keeps the editable region's geometry: under `auto` with a mask, from the
-    /// pixels the guidance changed outside the mask's rendered footprint (`shape` module).
-    fn shape_decision(
-        &self,
-        trainer: &EditTrainer,
-        cams: &[Camera],
-        sources: &[Image],
-        guidance: &[Image],
-    ) -> Result<ShapeDecision, RunError> {
-        let keep = self.job.keep_shape;
-        let mask = trainer.state.trainable.as_deref();
-        let change = match (keep, mask) {
-            (KeepShape::Auto, Some(mask)) => {
-                let values: Vec<f32> = mask.iter().map(|&m| m as u8 as f32).collect();
-                let extra = ExtraChannels {
-                    values: &values,
-                    channels: 1,
-                };
-                let coverage: Vec<Vec<f32>> = self
-                    .model
-                    .compute
-                    .splat()
-                    .render_views(
-                        trainer.scene(),
-                        cams,
-                        &RenderSettings::default(),
-                        Some(extra),
-                    )?
-                    .into_iter()
-                    .map(|f| f.extra)
-                    .collect();
-                footprint_change(&coverage, sources, guidance)
-            }
-            _ => None,
-        };
-        Ok(ShapeDecision::new(keep, change))
-    }
-}
-
 /// What every part of a run reads: the job, the model, the fits' loss and the output folder.
 struct Run<'a> {
     job: &'a EditJob,
@@ -323,6 +283,44 @@ impl Run<'_> {
         })?;
         progress.advance(1);
         Ok((plan, edited))
+    }
+
+    /// Whether an iteration's fit keeps the editable region's geometry: under `auto` with a mask, from the
+    /// pixels the guidance changed outside the mask's rendered footprint (`shape` module).
+    fn shape_decision(
+        &self,
+        trainer: &EditTrainer,
+        cams: &[Camera],
+        sources: &[Image],
+        guidance: &[Image],
+    ) -> Result<ShapeDecision, RunError> {
+        let keep = self.job.keep_shape;
+        let mask = trainer.state.trainable.as_deref();
+        let change = match (keep, mask) {
+            (KeepShape::Auto, Some(mask)) => {
+                let values: Vec<f32> = mask.iter().map(|&m| m as u8 as f32).collect();
+                let extra = ExtraChannels {
+                    values: &values,
+                    channels: 1,
+                };
+                let coverage: Vec<Vec<f32>> = self
+                    .model
+                    .compute
+                    .splat()
+                    .render_views(
+                        trainer.scene(),
+                        cams,
+                        &RenderSettings::default(),
+                        Some(extra),
+                    )?
+                    .into_iter()
+                    .map(|f| f.extra)
+                    .collect();
+                footprint_change(&coverage, sources, guidance)
+            }
+            _ => None,
+        };
+        Ok(ShapeDecision::new(keep, change))
     }
 }
 

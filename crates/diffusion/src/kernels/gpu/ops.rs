@@ -1032,6 +1032,7 @@ fn conv2d_blocked(
 }
 
 /// Which part of a convolution's output one im2col block covers.
+#[derive(Clone, Copy)]
 struct ConvWindow {
     kh: usize,
     kw: usize,
@@ -1052,14 +1053,12 @@ fn im2col(x: &GpuTensor, window: &ConvWindow, half: bool) -> Result<GpuTensor> {
     let &[_, cin, h, w] = x.dims() else {
         candle_core::bail!("gpu im2col: input {:?} is not 4D", x.dims());
     };
-    let c = window;
-    let shape = vec![c.images, cin * c.kh * c.kw, c.rows * c.ow];
-    let meta = Meta::new(
-        x,
-        &[
-            cin, h, w, c.kh, c.kw, c.stride, c.padding, c.rows, c.ow, c.oy0, c.n0,
-        ],
-    )?;
+    let ConvWindow {
+        kh, kw, rows, ow, ..
+    } = *window;
+    let shape = vec![window.images, cin * kh * kw, rows * ow];
+    let (stride, padding, oy0, n0) = (window.stride, window.padding, window.oy0, window.n0);
+    let meta = Meta::new(x, &[cin, h, w, kh, kw, stride, padding, rows, ow, oy0, n0])?;
     let count = grid_for(shape.iter().product(), ELEMENTWISE_UNITS);
     let units = CubeDim::new_1d(ELEMENTWISE_UNITS);
     // SAFETY: the kernel bound-checks against cols and reads x only inside images n0.. of the batch

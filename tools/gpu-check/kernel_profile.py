@@ -2,13 +2,14 @@
 """Sums a CubeCL kernel profile by kernel: where a command's GPU time goes.
 
     CUBECL_DEBUG_LOG=run.prof CUBECL_DEBUG_OPTION=profile vcedit bench unet ...
-    tools/gpu-check/profile.py run.prof [--segments 3] [--top 20]
+    tools/gpu-check/kernel_profile.py run.prof [--segments 3] [--top 20]
 
 cubecl's profile option waits for every kernel and logs one `| duration | kernel name ...` line per launch
 (and, at exit, its own summary, which this ignores). `--segments N` cuts the launches into N equal parts
 and reports the last one: a bench that ran a first call and N-1 timed runs of the same work thereby reports
 one warm run, without the first call's pipeline creation. Prints a markdown table and a `PROFILE {json}`
-line (summarize.py reads it).
+line. (Not named profile.py: that would shadow Python's own `profile` module for every script in this
+folder, torch_bench.py's imports included.)
 """
 import argparse
 import collections
