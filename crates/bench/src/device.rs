@@ -85,56 +85,45 @@ pub fn main(args: &[String]) -> Result<()> {
 fn overhead(ctx: &gpu::GpuContext) -> Result<serde_json::Value> {
     use gpu::prims::{empty32, fill32, read_u32, sort_pairs, upload_u32};
     let c = &ctx.client;
-    let per = |start: Instant, n: usize| start.elapsed().as_secs_f64() / n as f64;
     let one = empty32(c, 1);
-    fill32(c, &one, 1, 0);
-    read_u32(c, &one, 1)?;
-
-    let launches = 2000;
-    let start = Instant::now();
-    for i in 0..launches {
+    // Seconds per round of `n` rounds of `round`, ended by one waited-for read (after one warm-up
+    // round, which compiles what the rounds launch).
+    let timed = |n: usize, round: &mut dyn FnMut(usize) -> Result<()>| -> Result<f64> {
+        round(0)?;
+        read_u32(c, &one, 1)?;
+        let start = Instant::now();
+        for i in 0..n {
+            round(i)?;
+        }
+        read_u32(c, &one, 1)?;
+        Ok(start.elapsed().as_secs_f64() / n as f64)
+    };
+    let launch_us = timed(2000, &mut |i| {
         fill32(c, &one, 1, i as u32);
-    }
-    read_u32(c, &one, 1)?;
-    let launch_us = per(start, launches) * 1e6;
-
-    let trips = 200;
-    let start = Instant::now();
-    for i in 0..trips {
+        Ok(())
+    })? * 1e6;
+    let round_trip_us = timed(200, &mut |i| {
         fill32(c, &one, 1, i as u32);
         read_u32(c, &one, 1)?;
-    }
-    let round_trip_us = per(start, trips) * 1e6;
-
+        Ok(())
+    })? * 1e6;
     let mib = 1 << 18;
     let big = empty32(c, mib);
     fill32(c, &big, mib, 7);
-    read_u32(c, &big, mib)?;
-    let reads = 20;
-    let start = Instant::now();
-    for _ in 0..reads {
+    let read_mib_ms = timed(20, &mut |_| {
         read_u32(c, &big, mib)?;
-    }
-    let read_mib_ms = per(start, reads) * 1e3;
-
+        Ok(())
+    })? * 1e3;
     let words = 1 << 22;
-    let fills = 50;
     let reused = empty32(c, words);
-    fill32(c, &reused, words, 0);
-    read_u32(c, &one, 1)?;
-    let start = Instant::now();
-    for i in 0..fills {
+    let fill_reused_us = timed(50, &mut |i| {
         fill32(c, &reused, words, i as u32);
-    }
-    read_u32(c, &one, 1)?;
-    let fill_reused_us = per(start, fills) * 1e6;
-    let start = Instant::now();
-    for i in 0..fills {
-        let fresh = empty32(c, words + 1024 * i);
-        fill32(c, &fresh, words, i as u32);
-    }
-    read_u32(c, &one, 1)?;
-    let fill_fresh_us = per(start, fills) * 1e6;
+        Ok(())
+    })? * 1e6;
+    let fill_fresh_us = timed(50, &mut |i| {
+        fill32(c, &empty32(c, words + 1024 * i), words, i as u32);
+        Ok(())
+    })? * 1e6;
 
     let n = 60_000;
     // A fixed pseudo-random key per pair (splitmix-style), so runs compare.
@@ -145,17 +134,14 @@ fn overhead(ctx: &gpu::GpuContext) -> Result<serde_json::Value> {
         })
         .collect();
     let vals: Vec<u32> = (0..n as u32).collect();
-    let (mut k, mut v) = (upload_u32(c, &keys), upload_u32(c, &vals));
-    (k, v) = sort_pairs(c, k, v, n, 32);
-    read_u32(c, &k, 1)?;
-    let sorts = 20;
-    let start = Instant::now();
-    for _ in 0..sorts {
-        (k, v) = sort_pairs(c, k, v, n, 32);
+    let mut pairs = Some((upload_u32(c, &keys), upload_u32(c, &vals)));
+    let sort_60k_ms = timed(20, &mut |_| {
+        let (k, v) = pairs.take().expect("put back every round");
+        let (k, v) = sort_pairs(c, k, v, n, 32);
         read_u32(c, &k, 1)?;
-    }
-    let sort_60k_ms = per(start, sorts) * 1e3;
-    drop(v);
+        pairs = Some((k, v));
+        Ok(())
+    })? * 1e3;
 
     let round = |x: f64| (x * 100.0).round() / 100.0;
     Ok(serde_json::json!({
