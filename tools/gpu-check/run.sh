@@ -233,6 +233,8 @@ PY
 )
 if [ "$MODE" = device ] && [ -n "$BEST_ROUTINE" ]; then
   say "   fastest tensor-core routine at 4096x320x1280: $BEST_ROUTINE"
+  # summarize.py labels the step's rows with it.
+  echo "$BEST_ROUTINE" > "$WORK/unet-routine.name"
   step unet-routine 120 env VCEDIT_GPU_MATMUL_ROUTINE="$BEST_ROUTINE" "$V" bench unet --model "$MODEL" --device gpu --size "$LAT" --batches 1,6 --hooks none --runs "$RUNS"
 fi
 step unet-wgsl 120 env VCEDIT_GPU_COMPILER=wgsl "$V" bench unet --model "$MODEL" --device gpu --size "$LAT" --batches 6 --hooks none --runs "$RUNS"

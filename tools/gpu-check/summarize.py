@@ -115,7 +115,7 @@ def ratio(a, b):
     return round(a / b, 2) if a and b else None
 
 
-def build_table(res, steps, mode, torch_present):
+def build_table(res, steps, mode, torch_present, work):
     rows = []
     torch_missing = "n/a (no PyTorch here)" if not torch_present else None
 
@@ -163,10 +163,9 @@ def build_table(res, steps, mode, torch_present):
         if t:
             line["ratio_vcedit_over_pytorch"] = ratio(r["ms"], t["ms"])
     ut, ut32 = res.get("unet-torch", []), res.get("unet-torch-f32", [])
-    # run.sh's choice for `unet-routine`: the fastest routine that ran as itself at n = 1280.
-    ran = [x for x in res.get("matmul-routines", []) if x.get("bench") == "matmul" and x.get("n") == 1280
-           and x.get("route") == x.get("routine") and x.get("tflops")]
-    best = max(ran, key=lambda x: x["tflops"])["routine"] if ran else "?"
+    # The routine run.sh chose for `unet-routine` (the fastest of `matmul-routines`).
+    name_path = os.path.join(work, "unet-routine.name")
+    best = open(name_path).read().strip() if os.path.exists(name_path) else "?"
     for step_name, label in (("unet", ""), ("unet-tasks", ", 256 tasks per submission, 2nd process"),
                              ("unet-flash", ", flash attention for every head"), ("unet-wgsl", ", WGSL"),
                              ("unet-routine", f", routine {best}")):
@@ -272,7 +271,7 @@ def main():
                 "gaussians": run.get("gaussians_before")}
         edit.update(paper_estimate(run))
     torch_present = "torch-info" in steps
-    table = build_table(res, steps, a.mode, torch_present)
+    table = build_table(res, steps, a.mode, torch_present, a.work)
     complete = bool(steps) and all(s.get("status") == "ok" for s in steps.values())
     doc = {
         "version": 1,
