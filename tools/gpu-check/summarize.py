@@ -228,7 +228,9 @@ def build_table(res, steps, mode, torch_present, work):
     fit = steps.get("fit", {})
     if fit.get("psnr") is not None:
         row("vcedit fit lego-200 (s; held-out PSNR dB)", fit.get("seconds"), None, None,
-            f"{fit['psnr']:.2f} dB, {fit.get('gaussians')} Gaussians", torch_expected=False)
+            f"{fit['psnr']:.2f} dB, {fit.get('gaussians')} Gaussians"
+            + (f"; {fit['reads']} device reads waited {fit['wait']:.1f} s" if "wait" in fit else ""),
+            torch_expected=False)
     if "demo" in steps and steps["demo"].get("status") == "ok":
         row("vcedit demo (s)", steps["demo"].get("seconds"), None, None, "16 views at 128², 2 iterations"
             if mode == "device" else "2 views, 2 steps", torch_expected=False)
@@ -257,6 +259,12 @@ def main():
         if m:
             steps["fit"]["psnr"] = float(m.group(1))
             steps["fit"]["gaussians"] = int(m.group(2))
+        # How long the host waited in device reads: near the total, the device is the bound; far below
+        # it, the host's launching is.
+        m = re.search(r"(\d+) device reads waited ([\d.]+)s", open(fit_out).read())
+        if m:
+            steps["fit"]["reads"] = int(m.group(1))
+            steps["fit"]["wait"] = float(m.group(2))
     build = {}
     if os.path.exists(os.path.join(a.work, "build.json")):
         build = json.load(open(os.path.join(a.work, "build.json")))

@@ -227,9 +227,11 @@ pub fn run(args: Args) -> Result<()> {
     let mut smoothed = None::<f32>;
     let mut last_psnr = None::<f64>;
     let result = fit_on(&dataset, &config, &device, &mut |p| {
-        // Exponential moving average, as the INRIA trainer shows.
-        let ema = smoothed.map_or(p.loss, |s| 0.6 * p.loss + 0.4 * s);
-        smoothed = Some(ema);
+        // Exponential moving average of the losses read (every step on the CPU, every
+        // `LOSS_READ_EVERY`-th on a GPU), as the INRIA trainer shows.
+        if let Some(loss) = p.loss {
+            smoothed = Some(smoothed.map_or(loss, |s| 0.6 * loss + 0.4 * s));
+        }
         if let Some(psnr) = p.test_psnr {
             last_psnr = Some(psnr);
             progress.log(&format!(
@@ -241,7 +243,8 @@ pub fn run(args: Args) -> Result<()> {
         }
         if p.step % 10 == 0 || p.step == p.steps {
             let psnr = last_psnr.map_or(String::new(), |v| format!(" PSNR {v:.2}"));
-            progress.set_message(format!("loss {ema:.4}{psnr} N {}", p.gaussians));
+            let loss = smoothed.map_or(String::new(), |v| format!("loss {v:.4}"));
+            progress.set_message(format!("{loss}{psnr} N {}", p.gaussians));
             progress.set_position(p.step);
         }
     })?;
@@ -259,14 +262,22 @@ pub fn run(args: Args) -> Result<()> {
     }
     let t = result.seconds;
     eprintln!(
-        "time: render {:.0}s, loss {:.0}s, backward {:.0}s, optimiser {:.0}s, densify {:.0}s, eval {:.0}s; total {:.0}s",
+        "time: render {:.0}s, loss {:.0}s, backward {:.0}s, optimiser {:.0}s, densify {:.0}s, eval {:.0}s; total {:.0}s{}",
         t.render,
         t.loss,
         t.backward,
         t.optimise,
         t.densify,
         t.eval,
-        started.elapsed().as_secs_f64()
+        started.elapsed().as_secs_f64(),
+        if t.device_reads > 0 {
+            format!(
+                "; {} device reads waited {:.1}s",
+                t.device_reads, t.device_wait
+            )
+        } else {
+            String::new()
+        }
     );
     match result.test_psnr {
         Some(p) => println!(

@@ -212,6 +212,32 @@ impl L1DssimWeights {
     }
 }
 
+/// Units summing the two loss maps in [`GpuLoss::value`]: each adds every `LOSS_SUM_UNITS`-th element of
+/// both maps (adjacent units read adjacent elements), so the host reads 2 × 256 partial sums instead of
+/// two image-sized maps.
+const LOSS_SUM_UNITS: u32 = 256;
+
+/// Partial sums of `abs_diff` and `ssim_map` (both `len` long): unit `u` writes the sum of elements
+/// `u, u + units, u + 2·units, …` of each to `partials[u]` and `partials[units + u]`. No shared memory, so
+/// it runs wherever the other loss kernels do (Mesa 25's SPIR-V path included).
+#[cube(launch)]
+fn loss_partials(abs_diff: &[f32], ssim_map: &[f32], len: u32, partials: &mut [f32]) {
+    let u = ABSOLUTE_POS as u32;
+    let units = comptime!(LOSS_SUM_UNITS);
+    if u < units {
+        let mut l1 = 0.0f32;
+        let mut ssim = 0.0f32;
+        let mut i = u;
+        while i < len {
+            l1 += abs_diff[i as usize];
+            ssim += ssim_map[i as usize];
+            i += units;
+        }
+        partials[u as usize] = l1;
+        partials[(units + u) as usize] = ssim;
+    }
+}
+
 /// The loss on the device: the gradient (interleaved like `pred`) stays there; the value needs a read.
 pub struct GpuLoss {
     pub grad: Handle,
@@ -222,22 +248,31 @@ pub struct GpuLoss {
 }
 
 impl GpuLoss {
-    /// Reads the two maps back and sums them: the loss value.
+    /// The loss value: the two maps summed on the device into 2 × [`LOSS_SUM_UNITS`] partial sums, read
+    /// back (one wait for the device, 2 KiB) and added in f64.
     pub fn value(&self, ctx: &GpuContext) -> Result<f32, GpuError> {
         let c = &ctx.client;
         if self.len == 0 {
             return Ok(0.0);
         }
-        let l1 = read_f32(c, &self.abs_diff, self.len)?
-            .iter()
-            .map(|&v| v as f64)
-            .sum::<f64>()
-            / self.len as f64;
-        let ssim = read_f32(c, &self.ssim_map, self.len)?
-            .iter()
-            .map(|&v| v as f64)
-            .sum::<f64>()
-            / self.len as f64;
+        let units = LOSS_SUM_UNITS as usize;
+        let partials = empty32(c, 2 * units);
+        gpu_call(|| {
+            let (count, dim) = grid(units);
+            loss_partials::launch(
+                c,
+                count,
+                dim,
+                arg(&self.abs_diff, self.len),
+                arg(&self.ssim_map, self.len),
+                self.len as u32,
+                arg(&partials, 2 * units),
+            );
+            Ok(())
+        })?;
+        let sums = read_f32(c, &partials, 2 * units)?;
+        let mean = |part: &[f32]| part.iter().map(|&v| v as f64).sum::<f64>() / self.len as f64;
+        let (l1, ssim) = (mean(&sums[..units]), mean(&sums[units..]));
         let w = self.weights;
         Ok((w.l1 * l1 + w.dssim * (1.0 - ssim)) as f32)
     }

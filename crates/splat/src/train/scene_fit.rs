@@ -291,14 +291,20 @@ impl FitConfig {
     }
 }
 
+/// How often a device-resident step of [`fit`] reads its loss back. Reading it waits for everything
+/// queued before it, so reading every step leaves the GPU idle while the host queues the next step
+/// (the only other wait of a step is the binning's pair count).
+pub const LOSS_READ_EVERY: u64 = 10;
+
 /// Progress reported by [`fit`] after every step.
 #[derive(Clone, Debug)]
 pub struct FitProgress {
     /// Steps done.
     pub step: u64,
     pub steps: u64,
-    /// Training loss of this step.
-    pub loss: f32,
+    /// Training loss of this step, where it was read: every step that runs on the host, and every
+    /// [`LOSS_READ_EVERY`]-th step and the last on a device (a read waits for the device to finish).
+    pub loss: Option<f32>,
     pub gaussians: usize,
     /// Mean held-out PSNR when it was evaluated at this step.
     pub test_psnr: Option<f64>,
@@ -327,6 +333,10 @@ pub struct StageTimes {
     pub optimise: f64,
     pub densify: f64,
     pub eval: f64,
+    /// Reads from the device during the fit (pair counts, losses, state downloads) and the seconds the
+    /// host waited in them: of a resident step's time, what the device took beyond the host's launching.
+    pub device_reads: u64,
+    pub device_wait: f64,
 }
 
 /// Initial Gaussians: the dataset's points if it has some, else `count` random points in the region the
@@ -627,6 +637,7 @@ pub fn fit_on(
     rates.means.max_steps = config.steps;
     let mut state = TrainState::new(scene, rates, extent);
     let mut times = StageTimes::default();
+    let reads_before = ::gpu::prims::read_waits();
     let mut order: Vec<usize> = Vec::new();
     let clock = std::time::Instant::now;
     let mut fit_loss = SceneFitLoss {
@@ -656,7 +667,7 @@ pub fn fit_on(
         } else {
             StepKind::Ordinary {
                 track_stats: step < config.strategy.refine_stop,
-                read_loss: true,
+                read_loss: (step + 1) % LOSS_READ_EVERY == 0 || step + 1 == config.steps,
             }
         };
         state.adam.set_iteration(step);
@@ -668,7 +679,7 @@ pub fn fit_on(
                     progress(&FitProgress {
                         step: step + 1,
                         steps: config.steps,
-                        loss: loss.unwrap_or(f32::NAN),
+                        loss,
                         gaussians: state.len(),
                         test_psnr: None,
                         refine: None,
@@ -710,7 +721,7 @@ pub fn fit_on(
         progress(&FitProgress {
             step: done,
             steps: config.steps,
-            loss,
+            loss: Some(loss),
             gaussians: state.len(),
             test_psnr,
             refine,
@@ -721,6 +732,9 @@ pub fn fit_on(
         .then(|| evaluate(&state.scene, &dataset.test, config.background));
     let train_psnr = evaluate(&state.scene, &dataset.train, config.background);
     times.eval += t.elapsed().as_secs_f64();
+    let reads_after = ::gpu::prims::read_waits();
+    times.device_reads = reads_after.0 - reads_before.0;
+    times.device_wait = (reads_after.1 - reads_before.1).as_secs_f64();
     Ok(FitResult {
         scene: state.scene,
         test_psnr,
