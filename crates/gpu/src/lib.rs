@@ -7,7 +7,8 @@
 //!   with `VCEDIT_ALLOW_SOFTWARE_GPU=1`. The backend is pinned so wgpu never silently falls back to GL.
 //! - The shader compiler: SPIR-V on Vulkan adapters with the features cubecl's SPIR-V path needs (Vulkan
 //!   memory model, 16-bit storage; it also brings cooperative matrices, i.e. tensor cores, and native
-//!   f16), WGSL everywhere else, lavapipe included (it crashes on SPIR-V workgroup memory).
+//!   f16) and `VK_KHR_workgroup_memory_explicit_layout` (without it cubecl-spirv's workgroup memory is
+//!   invalid SPIR-V), WGSL everywhere else, lavapipe included; splatting-only commands take WGSL.
 //!   `VCEDIT_GPU_COMPILER=wgsl|spirv` forces one (an A/B switch for benchmarks and the tests);
 //!   [`GpuContext::compiler`] says which one a device got.
 //! - [`gpu_call`]: runs a unit of GPU work ("launch…; read") and maps every failure, panics included, to
@@ -63,7 +64,8 @@ pub enum CompilerChoice {
     Auto,
     /// WGSL on every adapter (no cooperative matrices, f32 arithmetic).
     Wgsl,
-    /// SPIR-V wherever the adapter supports it, lavapipe included (see `AdapterEntry::spirv_crashes`).
+    /// SPIR-V wherever the adapter supports it, lavapipe included (its kernels with workgroup memory
+    /// then crash: see `AdapterEntry::spirv_workgroup_memory_invalid`).
     Spirv,
 }
 
@@ -220,17 +222,35 @@ pub struct AdapterEntry {
     pub software: bool,
     /// The driver's own description, e.g. "Mesa 25.0.7-2~bpo12+1 (LLVM 15.0.6)".
     pub driver_info: String,
+    /// A Vulkan adapter offering `VK_KHR_workgroup_memory_explicit_layout` (false elsewhere).
+    pub explicit_workgroup_layout: bool,
     kind: WgpuDeviceKind,
 }
 
 impl AdapterEntry {
-    /// Mesa's lavapipe crashes (SIGSEGV) on every cubecl SPIR-V kernel with workgroup memory: 22.3 and
-    /// 25.0.7 (LLVM 15, Debian's bookworm-backports) alike, while the kernels without it run. Under
-    /// `auto` it gets the WGSL compiler; `VCEDIT_GPU_COMPILER=spirv` still forces SPIR-V (the tests of
-    /// the kernels that run there).
-    fn spirv_crashes(&self) -> bool {
-        self.name.contains("llvmpipe")
+    /// Whether cubecl's SPIR-V kernels with workgroup (shared) memory are invalid on this adapter.
+    /// cubecl-spirv 0.11.3 lowers workgroup memory two ways: through
+    /// `VK_KHR_workgroup_memory_explicit_layout` where the device has it (NVIDIA, RADV, ANV), and
+    /// otherwise as plain `Workgroup` variables, where it declares each variable with the *pointer* type
+    /// as its contents and takes its address as the array type. The Vulkan validation layer rejects
+    /// that module ("OpInBoundsAccessChain reached non-composite type while indexes still remain to be
+    /// traversed") and Mesa's lavapipe (22.3 and 25.0.7, which lack the extension) crashes compiling it.
+    /// `tools/spirv-lavapipe` holds the two-line fix and runs the tests with it. Such adapters get WGSL
+    /// under `auto`; `VCEDIT_GPU_COMPILER=spirv` still forces SPIR-V (the tests of the kernels without
+    /// workgroup memory).
+    fn spirv_workgroup_memory_invalid(&self) -> bool {
+        self.backend == WgpuBackend::Vulkan && !self.explicit_workgroup_layout
     }
+}
+
+/// Whether a Vulkan adapter offers `VK_KHR_workgroup_memory_explicit_layout` (see
+/// [`AdapterEntry::spirv_workgroup_memory_invalid`]); false for other backends.
+fn has_explicit_workgroup_layout(adapter: &wgpu::Adapter) -> bool {
+    // SAFETY: the raw adapter is only queried for its extension list, not used to create anything.
+    unsafe { adapter.as_hal::<wgpu::hal::api::Vulkan>() }.is_some_and(|hal| {
+        hal.physical_device_capabilities()
+            .supports_extension(c"VK_KHR_workgroup_memory_explicit_layout")
+    })
 }
 
 /// Adapters on the compute backends we use (Vulkan, Metal, DX12), in wgpu's order. Never panics.
@@ -243,14 +263,14 @@ pub fn list_adapters() -> Vec<AdapterEntry> {
         });
         cubecl::future::block_on(instance.enumerate_adapters(backends))
             .iter()
-            .map(|a| a.get_info())
+            .map(|a| (a.get_info(), has_explicit_workgroup_layout(a)))
             .collect::<Vec<_>>()
     })
     .unwrap_or_default();
     // CubeCL addresses adapters as "the n-th adapter of this type", counted over all backends.
     let mut next = [0usize; 4];
     let mut out = vec![];
-    for info in found {
+    for (info, explicit_workgroup_layout) in found {
         let kind = match info.device_type {
             wgpu::DeviceType::DiscreteGpu => WgpuDeviceKind::DiscreteGpu(bump(&mut next[0])),
             wgpu::DeviceType::IntegratedGpu => WgpuDeviceKind::IntegratedGpu(bump(&mut next[1])),
@@ -281,6 +301,7 @@ pub fn list_adapters() -> Vec<AdapterEntry> {
             backend,
             software,
             driver_info: info.driver_info,
+            explicit_workgroup_layout,
             kind,
         });
     }
@@ -329,7 +350,9 @@ fn forces_wgsl(compiler: CompilerChoice, workload: Workload, a: &AdapterEntry) -
     match compiler {
         CompilerChoice::Wgsl => true,
         CompilerChoice::Spirv => false,
-        CompilerChoice::Auto => workload == Workload::Splatting || a.spirv_crashes(),
+        CompilerChoice::Auto => {
+            workload == Workload::Splatting || a.spirv_workgroup_memory_invalid()
+        }
     }
 }
 
@@ -500,16 +523,18 @@ mod tests {
 
     #[test]
     fn the_compiler_follows_workload_adapter_and_override() {
-        let entry = |name: &str| AdapterEntry {
+        let entry = |name: &str, explicit_workgroup_layout: bool| AdapterEntry {
             name: name.into(),
             backend: WgpuBackend::Vulkan,
             software: true,
             driver_info: String::new(),
+            explicit_workgroup_layout,
             kind: WgpuDeviceKind::Cpu,
         };
+        // What the adapters report: lavapipe lacks the extension, the NVIDIA driver has it.
         let (lavapipe, card) = (
-            entry("llvmpipe (LLVM 15.0.6, 256 bits)"),
-            entry("NVIDIA H200"),
+            entry("llvmpipe (LLVM 15.0.6, 256 bits)", false),
+            entry("NVIDIA H200", true),
         );
         use {CompilerChoice as C, Workload as W};
         assert!(forces_wgsl(C::Auto, W::Networks, &lavapipe));
@@ -518,6 +543,35 @@ mod tests {
         assert!(forces_wgsl(C::Auto, W::Splatting, &card));
         assert!(!forces_wgsl(C::Spirv, W::Splatting, &card));
         assert!(forces_wgsl(C::Wgsl, W::Networks, &card));
+        // The decision follows the extension, not the name: a hardware adapter without it (older
+        // mobile drivers) gets WGSL too, and Metal/DX12 never compile SPIR-V anyway.
+        assert!(forces_wgsl(C::Auto, W::Networks, &entry("Mali-G78", false)));
+        let metal = AdapterEntry {
+            backend: WgpuBackend::Metal,
+            ..entry("Apple M2", false)
+        };
+        assert!(!forces_wgsl(C::Auto, W::Networks, &metal));
+    }
+
+    #[test]
+    fn lavapipe_reports_no_explicit_workgroup_layout() {
+        // Mesa's lavapipe (22.3, 25.0.7) is the adapter CI has: it lacks the extension, so `auto`
+        // keeps it on WGSL whatever its name.
+        let lavapipes: Vec<_> = list_adapters()
+            .into_iter()
+            .filter(|a| a.name.contains("llvmpipe"))
+            .collect();
+        if lavapipes.is_empty() {
+            eprintln!("skipped: no lavapipe adapter");
+        }
+        for a in lavapipes {
+            assert!(
+                !a.explicit_workgroup_layout,
+                "{}: {}",
+                a.name, a.driver_info
+            );
+            assert!(a.spirv_workgroup_memory_invalid());
+        }
     }
 
     #[test]
@@ -536,6 +590,39 @@ mod tests {
         if ABSOLUTE_POS < x.len() {
             x[ABSOLUTE_POS] += 1.0;
         }
+    }
+
+    /// The smallest kernel with workgroup memory: each unit writes its slot and reads it back.
+    #[cube(launch)]
+    fn workgroup_round_trip(out: &mut [f32]) {
+        let mut s = Shared::<[f32]>::new_slice(64usize);
+        let u = UNIT_POS as usize;
+        s[u] = u as f32;
+        out[u] = s[u];
+    }
+
+    /// The minimal case of cubecl-spirv's invalid workgroup memory (`AdapterEntry::
+    /// spirv_workgroup_memory_invalid`): on lavapipe's SPIR-V path it crashes the process unless
+    /// cubecl-spirv carries tools/spirv-lavapipe's patch (`tools/spirv-lavapipe/run.sh test
+    /// workgroup_memory`); on WGSL and on adapters with the explicit layout it runs.
+    #[test]
+    fn workgroup_memory_round_trips() {
+        let Some(ctx) = testing::context_or_skip() else {
+            return;
+        };
+        let c = &ctx.client;
+        let out = prims::empty32(c, 64);
+        workgroup_round_trip::launch(
+            c,
+            CubeCount::new_single(),
+            CubeDim::new_1d(64),
+            prims::arg(&out, 64),
+        );
+        let got = prims::read_f32(c, &out, 64).unwrap();
+        assert!(
+            got.iter().enumerate().all(|(i, &v)| v == i as f32),
+            "{got:?}"
+        );
     }
 
     #[test]
