@@ -261,7 +261,10 @@ def main():
             steps["fit"]["gaussians"] = int(m.group(2))
         # How long the host waited in device reads: near the total, the device is the bound; far below
         # it, the host's launching is.
-        m = re.search(r"(\d+) device reads waited ([\d.]+)s", open(fit_out).read())
+        # (the time line is on stderr)
+        fit_err = os.path.join(a.work, "fit.err")
+        m = re.search(r"(\d+) device reads waited ([\d.]+)s",
+                      open(fit_err).read() if os.path.exists(fit_err) else "")
         if m:
             steps["fit"]["reads"] = int(m.group(1))
             steps["fit"]["wait"] = float(m.group(2))
