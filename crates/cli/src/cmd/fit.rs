@@ -2,7 +2,7 @@
 
 use anyhow::{bail, Context, Result};
 use splat::cameras::{load_cameras, CameraSet};
-use splat::train::scene_fit::{fit_on, load_dataset, DatasetOptions, FitConfig};
+use splat::train::scene_fit::{fit_on, load_dataset, DatasetOptions, FitConfig, LOSS_READ_EVERY};
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
@@ -241,7 +241,8 @@ pub fn run(args: Args) -> Result<()> {
                 started.elapsed().as_secs_f64()
             ));
         }
-        if p.step % 10 == 0 || p.step == p.steps {
+        // Redrawn on the steps whose loss a GPU fit reads, so the line shows a fresh value.
+        if p.step % LOSS_READ_EVERY == 0 || p.step == p.steps {
             let psnr = last_psnr.map_or(String::new(), |v| format!(" PSNR {v:.2}"));
             let loss = smoothed.map_or(String::new(), |v| format!("loss {v:.4}"));
             progress.set_message(format!("{loss}{psnr} N {}", p.gaussians));
