@@ -290,6 +290,22 @@ step fit 150 "$V" fit --data "$IN/lego-200" --out "$WORK/lego.ply" --background 
       >/dev/null 2>&1 || exit 1; wall=$(( ($(date +%s%N) - t0) / 1000000 )); unset CUBECL_DEBUG_LOG
     python3 "$4" "$5" --label "vcedit fit lego-200, 1500 steps, ${wall} ms wall"' \
   _ "$V" "$IN/lego-200" "$WORK/lego-profile.ply" "$HERE/kernel_profile.py" "$WORK/fit.prof"
+# Where a fit's host time goes, and the A/Bs of the suspects of its 34 -> 87-90 s regression (ba738fd's
+# H100: 33.8 s on WGSL; 3639af9's H200: 89.7 s on WGSL): 1500 steps under host_profile.py (CPU time per
+# thread, context switches, the fit's own device-read waits) as `auto` runs it, without persisted kernels
+# (8b821eb turned cubecl's compilation cache on), without cubecl's environment records, and on SPIR-V.
+if [ "$MODE" = device ]; then
+  AB_SIZE="--steps 1500"
+  AB_VARIANTS="auto VCEDIT_GPU_CACHE=off CUBECL_ENVIRONMENT_RECORDS=off VCEDIT_GPU_COMPILER=spirv"
+else
+  AB_SIZE="--steps 30 --init-points 2000"
+  AB_VARIANTS="auto"
+fi
+step fit-ab 240 bash -c 'for v in $5; do
+    if [ "$v" = auto ]; then set_env=(); else set_env=("$v"); fi
+    env "${set_env[@]}" python3 "$4" --label "$v" -- "$1" fit --data "$2" --out "$3" --background white \
+      --device gpu $6 || exit 1
+  done' _ "$V" "$IN/lego-200" "$WORK/lego-ab.ply" "$HERE/host_profile.py" "$AB_VARIANTS" "$AB_SIZE"
 # The packed vcedit has no built-in demo model (prepare.sh): the checkout's is named.
 if [ "$MODE" = device ]; then
   step demo 150 "$V" demo --model "$ROOT/models/demo" --device gpu --out "$WORK/demo"

@@ -337,6 +337,21 @@ def main():
         if steps.get(name, {}).get("status") == "ok" and os.path.exists(path):
             text = [l.rstrip() for l in open(path, errors="replace") if not l.startswith("PROFILE ")]
             lines += ["", f"Kernel profile (`{name}`): " + (text[0] if text else "")] + [""] + text[1:]
+    # The fit's host profile and A/Bs (host_profile.py's HOSTPROF lines).
+    ab_path = os.path.join(a.work, "fit-ab.out")
+    ab = [json.loads(l[len("HOSTPROF "):]) for l in (open(ab_path, errors="replace") if os.path.exists(ab_path) else [])
+          if l.startswith("HOSTPROF ")]
+    if ab:
+        lines += ["", "Fit A/B (`fit-ab`: the same fit of lego-200 per variant; CPU time of the whole process; "
+                      "the waits are the fit's own count of device reads):", "",
+                  "| variant | wall s | CPU user + sys s | peak MiB | device reads, waited s | busiest threads (CPU s) |",
+                  "| --- | --- | --- | --- | --- | --- |"]
+        for r in ab:
+            reads = r.get("device_reads") or {}
+            busy = ", ".join(f"{t['name']}×{t['threads']} {t['user'] + t['sys']:.1f}" for t in r["threads"][:3])
+            lines.append(f"| {r['label']}{'' if r['rc'] == 0 else ' (rc ' + str(r['rc']) + ')'} | {r['wall_s']} | "
+                         f"{r['user_s']} + {r['sys_s']} | {r.get('peak_mib', '–')} | "
+                         f"{reads.get('reads', '–')}, {reads.get('wait_s', '–')} | {busy} |")
     lines += ["", "Steps: " + ", ".join(f"{k} {v.get('status')}" + (f" {v.get('seconds')}s" if v.get('seconds') else "")
                                       for k, v in steps.items())]
     open(os.path.join(a.out, "gpu-check.md"), "w").write("\n".join(lines) + "\n")

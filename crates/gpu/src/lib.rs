@@ -362,6 +362,8 @@ fn forces_wgsl(compiler: CompilerChoice, workload: Workload, a: &AdapterEntry) -
 /// `Cargo.toml` above it (`target/environment`), so a run inside any Rust project wrote there, and it
 /// compiled every kernel again in each process (~35 s of the first UNet call on an H100; WGSL kernels
 /// are never persisted, SPIR-V ones are with `compilation.cache`). Its `CUBECL_*` variables still apply.
+/// `VCEDIT_GPU_CACHE=off` persists no kernels (each process compiles them again): for a read-only cache
+/// folder, and the A/B of whether persisting costs anything per launch (`tools/gpu-check`'s `fit-ab`).
 fn configure_runtime() {
     use cubecl::config::cache::CacheConfig;
     use cubecl::config::{CubeClRuntimeConfig, RuntimeConfig};
@@ -369,11 +371,23 @@ fn configure_runtime() {
     ONCE.call_once(|| {
         let mut config = CubeClRuntimeConfig::default().override_from_env();
         config.environment.path = CacheConfig::Directory(runtime_cache_dir());
-        config.compilation.cache = true;
+        config.compilation.cache = persist_kernels();
         // `false`: something read the configuration first; it keeps cubecl's defaults.
         let _ = CubeClRuntimeConfig::try_set(config);
     });
 }
+
+/// Whether compiled kernels persist between processes: unless `VCEDIT_GPU_CACHE` is `off`, `0` or
+/// `false`.
+fn persist_kernels() -> bool {
+    !matches!(
+        std::env::var(CACHE_ENV).as_deref().map(str::trim),
+        Ok("off" | "0" | "false")
+    )
+}
+
+/// The switch that keeps compiled kernels from being persisted.
+const CACHE_ENV: &str = "VCEDIT_GPU_CACHE";
 
 /// Where cubecl's caches go: `cubecl` in vcedit's cache folder.
 fn runtime_cache_dir() -> std::path::PathBuf {
