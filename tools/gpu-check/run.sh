@@ -285,11 +285,15 @@ step fit 150 "$V" fit --data "$IN/lego-200" --out "$WORK/lego.ply" --background 
 # Where a fit's time goes: 1500 steps of the same fit under the kernel profile, beside its wall time
 # (`vcedit fit` on lego-200 took 34 s on WGSL on the first H200 and 87–90 s since, growing with the
 # Gaussian count: kernels or what lies between them?).
-[ "$MODE" = device ] && step fit-profile 90 env CUBECL_DEBUG_LOG="$WORK/fit.prof" CUBECL_DEBUG_OPTION=profile \
-  bash -c 't0=$(date +%s%N); "$1" fit --data "$2" --out "$3" --background white --device gpu --steps 1500 \
+# FIT_PROFILE_STEPS=5000 profiles the whole fit (~2 min): the last quarter of its launches is then shown
+# apart (the late steps, at ~60k Gaussians, take 3-4x as long as the first 1500).
+FIT_PROFILE_STEPS=${FIT_PROFILE_STEPS:-1500}
+[ "$MODE" = device ] && step fit-profile $(( FIT_PROFILE_STEPS / 25 + 60 )) env CUBECL_DEBUG_LOG="$WORK/fit.prof" CUBECL_DEBUG_OPTION=profile \
+  bash -c 't0=$(date +%s%N); "$1" fit --data "$2" --out "$3" --background white --device gpu --steps "$6" \
       >/dev/null 2>&1 || exit 1; wall=$(( ($(date +%s%N) - t0) / 1000000 )); unset CUBECL_DEBUG_LOG
-    python3 "$4" "$5" --label "vcedit fit lego-200, 1500 steps, ${wall} ms wall"' \
-  _ "$V" "$IN/lego-200" "$WORK/lego-profile.ply" "$HERE/kernel_profile.py" "$WORK/fit.prof"
+    python3 "$4" "$5" --label "vcedit fit lego-200, $6 steps, ${wall} ms wall" || exit 1
+    [ "$6" -gt 1500 ] && python3 "$4" "$5" --segments 4 --label "the last quarter of its launches"; exit 0' \
+  _ "$V" "$IN/lego-200" "$WORK/lego-profile.ply" "$HERE/kernel_profile.py" "$WORK/fit.prof" "$FIT_PROFILE_STEPS"
 # Where a fit's host time goes, and the A/Bs of the suspects of its 34 -> 87-90 s regression (ba738fd's
 # H100: 33.8 s on WGSL; 3639af9's H200: 89.7 s on WGSL): 1500 steps under host_profile.py (CPU time per
 # thread, context switches, the fit's own device-read waits) as `auto` runs it, without persisted kernels
