@@ -299,13 +299,13 @@ FIT_PROFILE_STEPS=${FIT_PROFILE_STEPS:-1500}
 # thread, context switches, the fit's own device-read waits) as `auto` runs it, without persisted kernels
 # (8b821eb turned cubecl's compilation cache on), without cubecl's environment records, and on SPIR-V.
 if [ "$MODE" = device ]; then
-  AB_SIZE="--steps 1500"
-  AB_VARIANTS="auto VCEDIT_GPU_CACHE=off CUBECL_ENVIRONMENT_RECORDS=off VCEDIT_GPU_COMPILER=spirv"
+  AB_SIZE="${FIT_AB_SIZE:---steps 1500}"
+  AB_VARIANTS="${FIT_AB_VARIANTS:-auto VCEDIT_GPU_CACHE=off CUBECL_ENVIRONMENT_RECORDS=off VCEDIT_GPU_COMPILER=spirv}"
 else
   AB_SIZE="--steps 30 --init-points 2000"
   AB_VARIANTS="auto"
 fi
-step fit-ab 240 bash -c 'for v in $5; do
+step fit-ab "${FIT_AB_TIMEOUT:-240}" bash -c 'for v in $5; do
     if [ "$v" = auto ]; then set_env=(); else set_env=("$v"); fi
     env "${set_env[@]}" python3 "$4" --label "$v" -- "$1" fit --data "$2" --out "$3" --background white \
       --device gpu $6 || exit 1
