@@ -362,19 +362,31 @@ fn forces_wgsl(compiler: CompilerChoice, workload: Workload, a: &AdapterEntry) -
 /// `Cargo.toml` above it (`target/environment`), so a run inside any Rust project wrote there, and it
 /// compiled every kernel again in each process (~35 s of the first UNet call on an H100; WGSL kernels
 /// are never persisted, SPIR-V ones are with `compilation.cache`). Its `CUBECL_*` variables still apply.
-/// `VCEDIT_GPU_CACHE=off` persists no kernels (each process compiles them again): for a read-only cache
-/// folder, and the A/B of whether persisting costs anything per launch (`tools/gpu-check`'s `fit-ab`).
-fn configure_runtime() {
+///
+/// Kernels persist only in a process whose first device is on SPIR-V (`spirv`): cubecl 0.11.3 keys a
+/// persisted kernel by the kernel and the device, not by the compiler, so a WGSL-typed device loads the
+/// SPIR-V kernels an earlier process stored and runs them instead of its own. That made `vcedit fit`
+/// (WGSL under `auto`) run SPIR-V's splatting kernels whenever an edit had run before it: 83-90 s
+/// instead of 31-34 s on an H200 (docs/gpu-results.md, 2026-11-27 third run). `VCEDIT_GPU_CACHE=off`
+/// persists nothing (for a read-only cache folder). Returns whether this process persists kernels.
+fn configure_runtime(spirv: bool) -> bool {
     use cubecl::config::cache::CacheConfig;
     use cubecl::config::{CubeClRuntimeConfig, RuntimeConfig};
+    use std::sync::atomic::{AtomicBool, Ordering};
     static ONCE: std::sync::Once = std::sync::Once::new();
+    static PERSISTING: AtomicBool = AtomicBool::new(false);
     ONCE.call_once(|| {
+        let persist = spirv && persist_kernels();
         let mut config = CubeClRuntimeConfig::default().override_from_env();
         config.environment.path = CacheConfig::Directory(runtime_cache_dir());
-        config.compilation.cache = persist_kernels();
-        // `false`: something read the configuration first; it keeps cubecl's defaults.
-        let _ = CubeClRuntimeConfig::try_set(config);
+        config.compilation.cache = persist;
+        // `false`: something read the configuration first; it keeps cubecl's defaults (nothing
+        // persisted).
+        if CubeClRuntimeConfig::try_set(config) {
+            PERSISTING.store(persist, Ordering::Relaxed);
+        }
     });
+    PERSISTING.load(Ordering::Relaxed)
 }
 
 /// Whether compiled kernels persist between processes: unless `VCEDIT_GPU_CACHE` is `off`, `0` or
@@ -396,7 +408,14 @@ fn runtime_cache_dir() -> std::path::PathBuf {
 
 /// Opens `a` on cubecl's automatic compiler (SPIR-V where the adapter supports it), or on WGSL.
 fn open_adapter(a: &AdapterEntry, wgsl: bool) -> Result<GpuContext, GpuError> {
-    configure_runtime();
+    if configure_runtime(!wgsl) && wgsl {
+        // Its kernels would be the SPIR-V ones this process persists (see `configure_runtime`).
+        return Err(GpuError::Kernel(format!(
+            "cannot open {} on WGSL in a process that opened a device on SPIR-V and persists its \
+             kernels: set {CACHE_ENV}=off, or {COMPILER_ENV} to one compiler",
+            a.name
+        )));
+    }
     let device = WgpuDevice::new(a.kind.clone()).on(a.backend);
     let cannot =
         |e: &dyn fmt::Display| GpuError::Kernel(format!("cannot initialise {}: {e}", a.name));
