@@ -283,8 +283,7 @@ step edit 240 "$V" edit --scene "$IN/playbot-31k.ply" "${EDIT_SIZE[@]}" --model 
 if [ "$MODE" = device ]; then FIT_SIZE=(--steps 5000); else FIT_SIZE=(--steps 30 --init-points 2000); fi
 step fit 150 "$V" fit --data "$IN/lego-200" --out "$WORK/lego.ply" --background white --device gpu "${FIT_SIZE[@]}"
 # Where a fit's time goes: 1500 steps of the same fit under the kernel profile, beside its wall time
-# (`vcedit fit` on lego-200 took 34 s on WGSL on the first H200 and 87–90 s since, growing with the
-# Gaussian count: kernels or what lies between them?).
+# (late steps, at ~60k Gaussians, cost 3-4x the early ones; the backward's atomics dominate).
 # FIT_PROFILE_STEPS=5000 profiles the whole fit (~2 min): the last quarter of its launches is then shown
 # apart (the late steps, at ~60k Gaussians, take 3-4x as long as the first 1500).
 FIT_PROFILE_STEPS=${FIT_PROFILE_STEPS:-1500}
@@ -294,10 +293,10 @@ FIT_PROFILE_STEPS=${FIT_PROFILE_STEPS:-1500}
     python3 "$4" "$5" --label "vcedit fit lego-200, $6 steps, ${wall} ms wall" || exit 1
     [ "$6" -gt 1500 ] && python3 "$4" "$5" --segments 4 --label "the last quarter of its launches"; exit 0' \
   _ "$V" "$IN/lego-200" "$WORK/lego-profile.ply" "$HERE/kernel_profile.py" "$WORK/fit.prof" "$FIT_PROFILE_STEPS"
-# Where a fit's host time goes, and the A/Bs of the suspects of its 34 -> 87-90 s regression (ba738fd's
-# H100: 33.8 s on WGSL; 3639af9's H200: 89.7 s on WGSL): 1500 steps under host_profile.py (CPU time per
-# thread, context switches, the fit's own device-read waits) as `auto` runs it, without persisted kernels
-# (8b821eb turned cubecl's compilation cache on), without cubecl's environment records, and on SPIR-V.
+# Where a fit's host time goes, and A/Bs of what the runtime does around it: 1500 steps under
+# host_profile.py (CPU time per thread, context switches, the fit's own device-read waits) as `auto` runs
+# it, without persisted kernels, without cubecl's environment records, and on SPIR-V. (It found the 34 ->
+# 83-90 s regression of 2026-11-27: a WGSL fit loaded the SPIR-V kernels an earlier step had persisted.)
 if [ "$MODE" = device ]; then
   AB_SIZE="${FIT_AB_SIZE:---steps 1500}"
   AB_VARIANTS="${FIT_AB_VARIANTS:-auto VCEDIT_GPU_CACHE=off CUBECL_ENVIRONMENT_RECORDS=off VCEDIT_GPU_COMPILER=spirv}"
