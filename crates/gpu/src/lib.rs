@@ -408,7 +408,8 @@ fn runtime_cache_dir() -> std::path::PathBuf {
 
 /// Opens `a` on cubecl's automatic compiler (SPIR-V where the adapter supports it), or on WGSL.
 fn open_adapter(a: &AdapterEntry, wgsl: bool) -> Result<GpuContext, GpuError> {
-    if configure_runtime(!wgsl) && wgsl {
+    // cubecl's automatic compiler takes SPIR-V on Vulkan only.
+    if configure_runtime(!wgsl && a.backend == WgpuBackend::Vulkan) && wgsl {
         // Its kernels would be the SPIR-V ones this process persists (see `configure_runtime`).
         return Err(GpuError::Kernel(format!(
             "cannot open {} on WGSL in a process that opened a device on SPIR-V and persists its \
@@ -656,6 +657,28 @@ mod tests {
             got.iter().enumerate().all(|(i, &v)| v == i as f32),
             "{got:?}"
         );
+    }
+
+    /// Kernels persist only where the device compiles SPIR-V, and a process that persists them opens
+    /// no WGSL device: cubecl 0.11.3's kernel store is blind to the compiler, so that device would run
+    /// the stored SPIR-V kernels in place of its own (`configure_runtime`). CI runs this on both paths.
+    #[test]
+    fn kernels_persist_only_on_spirv() {
+        use cubecl::config::{CubeClRuntimeConfig, RuntimeConfig};
+        let Some(ctx) = testing::context_or_skip() else {
+            return;
+        };
+        let persisting = CubeClRuntimeConfig::get().compilation.cache;
+        let spirv = ctx.compiler == "wgpu<spirv>";
+        assert_eq!(persisting, spirv && persist_kernels(), "{}", ctx.describe());
+        if persisting {
+            let same = list_adapters()
+                .into_iter()
+                .find(|a| a.name == ctx.adapter)
+                .unwrap();
+            let e = open_adapter(&same, true).map(|_| ()).unwrap_err();
+            assert!(e.to_string().contains(CACHE_ENV), "{e}");
+        }
     }
 
     #[test]
