@@ -7,8 +7,8 @@ Every S seconds (default 0.2) it reads /proc/PID/task/*/stat and status of the r
 time each thread spent in user and kernel mode, and its voluntary and involuntary context switches. At the
 end it prints the last reading of every thread (threads that ended keep their last one), summed by thread
 name, and one `HOSTPROF {json}` line that summarize.py turns into a table row, on stdout. The command's
-stdout and stderr go to stderr; its `vcedit fit` time line ("time: ... N device reads waited Xs") is
-also kept in the report.
+stdout and stderr go to stderr; its `vcedit fit` time line ("time: ... N device reads waited Xs") and
+last held-out PSNR are also kept in the report.
 
 What it answers: a process whose CPU time is close to its wall time is bound by the host (launching,
 encoding, driver calls: the busiest thread says which); one far below it waits, for the device or for
@@ -72,18 +72,22 @@ def main():
         ap.error("no command given")
 
     t0 = time.time()
-    # The command's own stdout goes to stderr: stdout is this report's.
-    proc = subprocess.Popen(cmd, stdout=sys.stderr.fileno(), stderr=subprocess.PIPE, text=True, errors="replace")
-    time_line = []
+    # The command's own stdout and stderr go to stderr (stdout is this report's), read for the lines the
+    # report keeps: a fit's time line and its last held-out PSNR.
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, errors="replace")
+    time_line, psnr_line = [], []
 
-    def pass_stderr():
-        for line in proc.stderr:
+    def pass_on(stream):
+        for line in stream:
             sys.stderr.write(line)
             if "device reads waited" in line:
                 time_line.append(line.strip())
+            if "held-out PSNR" in line:
+                psnr_line.append(line.strip())
 
-    reader = threading.Thread(target=pass_stderr, daemon=True)
-    reader.start()
+    readers = [threading.Thread(target=pass_on, args=(s,), daemon=True) for s in (proc.stdout, proc.stderr)]
+    for r in readers:
+        r.start()
     threads = {}
     # wait4 rather than poll: the exit status comes with the whole process's resource use (every thread,
     # to the end), which the samples miss for the last interval of each thread.
@@ -96,7 +100,8 @@ def main():
             usage = ru
             proc.returncode = os.waitstatus_to_exitcode(status)
     wall = time.time() - t0
-    reader.join(timeout=5)
+    for r in readers:
+        r.join(timeout=5)
 
     groups = {}
     for name, user, system, vol, invol in threads.values():
@@ -121,9 +126,14 @@ def main():
         m = re.search(r"(\d+) device reads waited ([\d.]+)s", time_line[-1])
         if m:
             waits = {"reads": int(m.group(1)), "wait_s": float(m.group(2))}
+    psnr = None
+    if psnr_line:
+        print("  " + psnr_line[-1])
+        m = re.search(r"held-out PSNR ([\d.]+) dB", psnr_line[-1])
+        psnr = float(m.group(1)) if m else None
     print("HOSTPROF " + json.dumps({
         "label": a.label, "rc": proc.returncode, "wall_s": round(wall, 2), "user_s": round(user, 2),
-        "sys_s": round(system, 2), "peak_mib": round(usage.ru_maxrss / 1024), "device_reads": waits,
+        "sys_s": round(system, 2), "peak_mib": round(usage.ru_maxrss / 1024), "device_reads": waits, "psnr_db": psnr,
         "threads": [{"name": n, **{k: (round(v, 2) if isinstance(v, float) else v) for k, v in g.items()}}
                     for n, g in top[:8]],
     }))

@@ -293,19 +293,21 @@ FIT_PROFILE_STEPS=${FIT_PROFILE_STEPS:-1500}
     python3 "$4" "$5" --label "vcedit fit lego-200, $6 steps, ${wall} ms wall" || exit 1
     [ "$6" -gt 1500 ] && python3 "$4" "$5" --segments 4 --label "the last quarter of its launches"; exit 0' \
   _ "$V" "$IN/lego-200" "$WORK/lego-profile.ply" "$HERE/kernel_profile.py" "$WORK/fit.prof" "$FIT_PROFILE_STEPS"
-# Where a fit's host time goes, and A/Bs of what the runtime does around it: 1500 steps under
-# host_profile.py (CPU time per thread, context switches, the fit's own device-read waits) as `auto` runs
-# it, without persisted kernels, without cubecl's environment records, and on SPIR-V. (It found the 34 ->
-# 83-90 s regression of 2026-11-27: a WGSL fit loaded the SPIR-V kernels an earlier step had persisted.)
+# Where a fit's host time goes, and A/Bs: 1500 steps under host_profile.py (CPU time per thread, context
+# switches, the fit's own device-read waits, its held-out PSNR) as `auto` runs it, with the raster
+# backward's plane sums (VCEDIT_GPU_PLANE_SUMS, off until a card has checked them: same PSNR, how much
+# faster?), on SPIR-V (an edit's splatting path), and on SPIR-V with plane sums. Variants are
+# comma-separated settings. (It found the 34 -> 83-90 s regression of 2026-11-27: a WGSL fit loaded the
+# SPIR-V kernels an earlier step had persisted.)
 if [ "$MODE" = device ]; then
   AB_SIZE="${FIT_AB_SIZE:---steps 1500}"
-  AB_VARIANTS="${FIT_AB_VARIANTS:-auto VCEDIT_GPU_CACHE=off CUBECL_ENVIRONMENT_RECORDS=off VCEDIT_GPU_COMPILER=spirv}"
+  AB_VARIANTS="${FIT_AB_VARIANTS:-auto VCEDIT_GPU_PLANE_SUMS=on VCEDIT_GPU_COMPILER=spirv VCEDIT_GPU_COMPILER=spirv,VCEDIT_GPU_PLANE_SUMS=on}"
 else
   AB_SIZE="--steps 30 --init-points 2000"
   AB_VARIANTS="auto"
 fi
 step fit-ab "${FIT_AB_TIMEOUT:-240}" bash -c 'for v in $5; do
-    if [ "$v" = auto ]; then set_env=(); else set_env=("$v"); fi
+    if [ "$v" = auto ]; then set_env=(); else IFS=, read -r -a set_env <<< "$v"; fi
     env "${set_env[@]}" python3 "$4" --label "$v" -- "$1" fit --data "$2" --out "$3" --background white \
       --device gpu $6 || exit 1
   done' _ "$V" "$IN/lego-200" "$WORK/lego-ab.ply" "$HERE/host_profile.py" "$AB_VARIANTS" "$AB_SIZE"

@@ -344,12 +344,13 @@ def main():
     if ab:
         lines += ["", "Fit A/B (`fit-ab`: the same fit of lego-200 per variant; CPU time of the whole process; "
                       "the waits are the fit's own count of device reads):", "",
-                  "| variant | wall s | CPU user + sys s | peak MiB | device reads, waited s | busiest threads (CPU s) |",
-                  "| --- | --- | --- | --- | --- | --- |"]
+                  "| variant | wall s | held-out dB | CPU user + sys s | peak MiB | device reads, waited s | busiest threads (CPU s) |",
+                  "| --- | --- | --- | --- | --- | --- | --- |"]
         for r in ab:
             reads = r.get("device_reads") or {}
             busy = ", ".join(f"{t['name']}×{t['threads']} {t['user'] + t['sys']:.1f}" for t in r["threads"][:3])
             lines.append(f"| {r['label']}{'' if r['rc'] == 0 else ' (rc ' + str(r['rc']) + ')'} | {r['wall_s']} | "
+                         f"{r.get('psnr_db') or '–'} | "
                          f"{r['user_s']} + {r['sys_s']} | {r.get('peak_mib', '–')} | "
                          f"{reads.get('reads', '–')}, {reads.get('wait_s', '–')} | {busy} |")
     lines += ["", "Steps: " + ", ".join(f"{k} {v.get('status')}" + (f" {v.get('seconds')}s" if v.get('seconds') else "")

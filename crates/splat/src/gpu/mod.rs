@@ -433,11 +433,47 @@ pub fn render_backward_device(
     grads: &GpuOutputGrads<'_>,
 ) -> Result<GpuSceneGrads, GpuError> {
     let ppu = backward_pixels_per_unit(ctx);
-    render_backward_device_with(ctx, scene, settings, extra, frame, grads, ppu)
+    let plane = plane_sums_asked() && plane_reductions(ctx) && plane_fits(ctx, ppu);
+    render_backward_device_with(ctx, scene, settings, extra, frame, grads, ppu, plane)
 }
 
-/// [`render_backward_device`] with `ppu` pixels per raster unit (every layout gives the same gradients
-/// up to the order of float sums; the tests try each).
+/// Whether `VCEDIT_GPU_PLANE_SUMS=on` asks the raster backward to sum each plane's gradients before its
+/// atomics. Off by default until a hardware run has checked it: cubecl registers plane operations only
+/// on hardware adapters, so the tests here (lavapipe) cannot run that path; `tools/gpu-check`'s `fit-ab`
+/// compares a fit with and without it (time and held-out PSNR).
+fn plane_sums_asked() -> bool {
+    static ASKED: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
+    *ASKED.get_or_init(|| {
+        matches!(
+            std::env::var("VCEDIT_GPU_PLANE_SUMS")
+                .as_deref()
+                .map(str::trim),
+            Ok("on" | "1" | "true")
+        )
+    })
+}
+
+/// Whether the adapter offers plane (subgroup) reductions to the raster backward: cubecl registers
+/// them on hardware adapters with subgroups, not on software ones (lavapipe has subgroups, but cubecl's
+/// compiler refuses plane operations there).
+fn plane_reductions(ctx: &GpuContext) -> bool {
+    ctx.client
+        .properties()
+        .features
+        .plane
+        .contains(::gpu::cubecl::ir::features::Plane::Ops)
+}
+
+/// Whether the raster backward's `TILE * TILE / ppu` units split into whole planes.
+fn plane_fits(ctx: &GpuContext, ppu: u32) -> bool {
+    let (units, plane) = (TILE * TILE / ppu, ctx.limits.plane_size);
+    plane > 0 && plane <= units && units % plane == 0
+}
+
+/// [`render_backward_device`] with `ppu` pixels per raster unit, and with (`plane`) or without plane
+/// reductions before the atomics (every layout gives the same gradients up to the order of float sums;
+/// the tests try each).
+#[allow(clippy::too_many_arguments)]
 fn render_backward_device_with(
     ctx: &GpuContext,
     scene: &GpuScene,
@@ -446,10 +482,15 @@ fn render_backward_device_with(
     frame: &GpuFrame,
     grads: &GpuOutputGrads<'_>,
     ppu: u32,
+    plane: bool,
 ) -> Result<GpuSceneGrads, GpuError> {
     assert!(
         ppu.is_power_of_two() && ppu <= TILE,
         "pixels per unit must be a power of two ≤ {TILE}"
+    );
+    assert!(
+        !plane || plane_fits(ctx, ppu),
+        "{ppu} pixels per unit: no whole planes"
     );
     gpu_call(|| {
         let c = &ctx.client;
@@ -498,6 +539,7 @@ fn render_backward_device_with(
                 arg(g_extra.as_ref().unwrap_or(&dummy), channels * n),
                 channels as u32,
                 ppu,
+                plane,
             );
         }
         let out = GpuSceneGrads {
@@ -608,11 +650,13 @@ pub fn render_backward(
     grads: &OutputGrads<'_>,
 ) -> Result<SceneGrads, GpuError> {
     let ppu = backward_pixels_per_unit(ctx);
-    render_backward_with(ctx, scene, camera, settings, extra, grads, ppu)
+    let plane = plane_sums_asked() && plane_reductions(ctx) && plane_fits(ctx, ppu);
+    render_backward_with(ctx, scene, camera, settings, extra, grads, ppu, plane)
 }
 
-/// [`render_backward`] with `ppu` pixels per raster backward unit.
+/// [`render_backward`] with `ppu` pixels per raster backward unit, with or without plane reductions.
 #[cfg(test)]
+#[allow(clippy::too_many_arguments)]
 fn render_backward_with(
     ctx: &GpuContext,
     scene: &GaussianScene,
@@ -621,6 +665,7 @@ fn render_backward_with(
     extra: Option<ExtraChannels<'_>>,
     grads: &OutputGrads<'_>,
     ppu: u32,
+    plane: bool,
 ) -> Result<SceneGrads, GpuError> {
     let c = &ctx.client;
     let n = scene.len();
@@ -647,6 +692,7 @@ fn render_backward_with(
             extra: ext.as_ref(),
         },
         ppu,
+        plane,
     )?;
     read_grads(ctx, &g, n, scene.sh_degree, extra_ref.map(|e| e.1))
 }

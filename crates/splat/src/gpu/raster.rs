@@ -234,10 +234,11 @@ pub fn raster_forward(
 /// rows y·ppu.. of the tile. The whole cube walks the tile's list back to front in step, from the
 /// largest `last` of its pixels, in batches of one Gaussian per unit loaded into shared memory; each
 /// pixel skips the Gaussians at or after its own `last`. A unit sums its pixels' gradients for the
-/// current Gaussian in registers and adds them with one atomic per parameter: `ppu` times fewer global
-/// atomics than one per pixel, without barriers per Gaussian (plane reductions are not available on
-/// every adapter, lavapipe's included). Per pixel the arithmetic is that of the CPU backward, in the
-/// same order.
+/// current Gaussian in registers: `ppu` times fewer global atomics than one per pixel, without barriers
+/// per Gaussian. With `plane` (adapters with plane reductions, on request: `plane_sums_asked`) the
+/// units of a plane sum their values and one of them adds them: 32x fewer again on NVIDIA, where every atomic costs device-scope acquire-release ordering on the SPIR-V
+/// path (cubecl-spirv 0.11.3) and the backward was half of a late fit step. Per pixel the arithmetic is
+/// that of the CPU backward, in the same order.
 #[cube(launch)]
 pub fn raster_backward(
     splats: &[f32],
@@ -261,6 +262,7 @@ pub fn raster_backward(
     g_extra: &mut [Atomic<f32>],
     #[comptime] channels: u32,
     #[comptime] ppu: u32,
+    #[comptime] plane: bool,
 ) {
     let units = comptime!(TILE * TILE / ppu);
     let np = comptime!(ppu as usize);
@@ -409,7 +411,14 @@ pub fn raster_backward(
                     }
                 }
             }
-            if any_hit {
+            // With plane reductions every unit of a plane that has a hit takes part (a unit without
+            // one sums zeros), and one unit per plane adds the plane's sums.
+            let take_part = if comptime!(plane) {
+                plane_any(any_hit)
+            } else {
+                any_hit
+            };
+            if take_part {
                 let gi = batch_ids[local as usize] as usize;
                 for ch in 0..c {
                     let val = extra_vals[gi * c + ch];
@@ -424,7 +433,14 @@ pub fn raster_backward(
                             behind[e] += val * fac[q];
                         }
                     }
-                    g_extra[gi * c + ch].fetch_add(g_ch);
+                    if comptime!(plane) {
+                        let sum = plane_sum(g_ch);
+                        if UNIT_POS_PLANE == 0 {
+                            g_extra[gi * c + ch].fetch_add(sum);
+                        }
+                    } else {
+                        g_extra[gi * c + ch].fetch_add(g_ch);
+                    }
                 }
                 let mut g_mx = 0.0f32;
                 let mut g_my = 0.0f32;
@@ -448,20 +464,61 @@ pub fn raster_backward(
                     }
                 }
                 let g = gi * 10;
-                grads[g].fetch_add(g_mx);
-                grads[g + 1].fetch_add(g_my);
-                grads[g + 2].fetch_add(g_ca);
-                grads[g + 3].fetch_add(g_cb);
-                grads[g + 4].fetch_add(g_cc);
-                grads[g + 5].fetch_add(g_o);
-                grads[g + 6].fetch_add(g_r);
-                grads[g + 7].fetch_add(g_g);
-                grads[g + 8].fetch_add(g_b);
-                grads[g + 9].fetch_add(g_d);
+                if comptime!(plane) {
+                    let s_mx = plane_sum(g_mx);
+                    let s_my = plane_sum(g_my);
+                    let s_ca = plane_sum(g_ca);
+                    let s_cb = plane_sum(g_cb);
+                    let s_cc = plane_sum(g_cc);
+                    let s_o = plane_sum(g_o);
+                    let s_r = plane_sum(g_r);
+                    let s_g = plane_sum(g_g);
+                    let s_b = plane_sum(g_b);
+                    let s_d = plane_sum(g_d);
+                    if UNIT_POS_PLANE == 0 {
+                        add_gradient(
+                            grads, g, s_mx, s_my, s_ca, s_cb, s_cc, s_o, s_r, s_g, s_b, s_d,
+                        );
+                    }
+                } else {
+                    add_gradient(
+                        grads, g, g_mx, g_my, g_ca, g_cb, g_cc, g_o, g_r, g_g, g_b, g_d,
+                    );
+                }
             }
         }
         hi = lo;
     }
+}
+
+/// Adds one Gaussian's ten parameter gradients (mean x/y, conic a/b/c, opacity, colour r/g/b, depth)
+/// at `grads[g..g + 10]`.
+#[cube]
+#[allow(clippy::too_many_arguments)]
+fn add_gradient(
+    grads: &mut [Atomic<f32>],
+    g: usize,
+    mx: f32,
+    my: f32,
+    ca: f32,
+    cb: f32,
+    cc: f32,
+    o: f32,
+    r: f32,
+    gr: f32,
+    b: f32,
+    d: f32,
+) {
+    grads[g].fetch_add(mx);
+    grads[g + 1].fetch_add(my);
+    grads[g + 2].fetch_add(ca);
+    grads[g + 3].fetch_add(cb);
+    grads[g + 4].fetch_add(cc);
+    grads[g + 5].fetch_add(o);
+    grads[g + 6].fetch_add(r);
+    grads[g + 7].fetch_add(gr);
+    grads[g + 8].fetch_add(b);
+    grads[g + 9].fetch_add(d);
 }
 
 /// Per-tile list ranges from the tile-sorted keys: tile `t` owns `ids[start[t]..end[t]]` (both arrays

@@ -221,13 +221,23 @@ fn backward_matches_the_cpu_per_parameter_kind() {
     let out = render::render(&scene, &cam, &settings, extra);
     let want = render::render_backward(&scene, &cam, &settings, extra, &out, &grads);
     let flat2 = |v: &[[f32; 2]]| v.iter().flatten().copied().collect::<Vec<_>>();
-    // The adapter's raster layout, then every other one (pixels per unit of the raster backward).
+    // The adapter's raster layout, then every other one (pixels per unit of the raster backward, each
+    // also with plane reductions where the adapter has them and its units make whole planes: hardware
+    // only, cubecl refuses plane operations on lavapipe).
     let default = super::render_backward(&ctx, &scene, &cam, &settings, extra, &grads).unwrap();
-    let layouts = [1, 2, 4, 8, 16].map(|ppu| {
-        let g = super::render_backward_with(&ctx, &scene, &cam, &settings, extra, &grads, ppu);
-        (ppu, g.unwrap())
-    });
-    for (ppu, got) in std::iter::once((0, default)).chain(layouts) {
+    let mut layouts = vec![(0, false, default)];
+    for ppu in [1, 2, 4, 8, 16] {
+        for plane in [false, true] {
+            if plane && !(super::plane_reductions(&ctx) && super::plane_fits(&ctx, ppu)) {
+                continue;
+            }
+            let g = super::render_backward_with(
+                &ctx, &scene, &cam, &settings, extra, &grads, ppu, plane,
+            );
+            layouts.push((ppu, plane, g.unwrap()));
+        }
+    }
+    for (ppu, plane, got) in layouts {
         let kinds: [(&str, &[f32], &[f32]); 7] = [
             ("means", &got.means, &want.means),
             ("log_scales", &got.log_scales, &want.log_scales),
@@ -239,7 +249,9 @@ fn backward_matches_the_cpu_per_parameter_kind() {
         ];
         for (name, g, w) in kinds {
             let e = rel_err(g, w);
-            eprintln!("{ppu} pixels/unit (0 = default), {name}: relative error {e:.2e}");
+            eprintln!(
+                "{ppu} pixels/unit (0 = default), plane sums {plane}, {name}: relative error {e:.2e}"
+            );
             assert!(w.iter().any(|v| *v != 0.0), "{name}: no gradient at all");
             assert!(e <= 1e-3, "{name}: relative error {e}");
         }
