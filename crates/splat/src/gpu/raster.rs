@@ -236,9 +236,10 @@ pub fn raster_forward(
 /// pixel skips the Gaussians at or after its own `last`. A unit sums its pixels' gradients for the
 /// current Gaussian in registers: `ppu` times fewer global atomics than one per pixel, without barriers
 /// per Gaussian. With `plane` (adapters with plane reductions, on request: `plane_sums_asked`) the
-/// units of a plane sum their values and one of them adds them: 32x fewer again on NVIDIA, where every atomic costs device-scope acquire-release ordering on the SPIR-V
-/// path (cubecl-spirv 0.11.3) and the backward was half of a late fit step. Per pixel the arithmetic is
-/// that of the CPU backward, in the same order.
+/// units of a plane sum their values and one of them adds them: 32x fewer again on NVIDIA, where every
+/// atomic costs device-scope acquire-release ordering on the SPIR-V path (cubecl-spirv 0.11.3) and the
+/// backward was half of a late fit step. Per pixel the arithmetic is that of the CPU backward, in the
+/// same order.
 #[cube(launch)]
 pub fn raster_backward(
     splats: &[f32],
