@@ -15,8 +15,8 @@ use crate::{server_error, GpuError};
 
 /// Units per cube of the 1-D launches here.
 pub const BLOCK: u32 = 256;
-/// Arrays up to this long are scanned by a single unit.
-const SERIAL_SCAN_MAX: usize = 2048;
+/// Arrays up to this long are scanned by one cube ([`scan_block`]); longer ones in chunks first.
+const BLOCK_SCAN_MAX: usize = 2048;
 /// Sort digits are this many bits wide (16 buckets).
 const RADIX_BITS: u32 = 4;
 const RADIX: u32 = 1 << RADIX_BITS;
@@ -156,32 +156,74 @@ fn scan_chunks(input: &[u32], n: u32, chunk: u32, bases: &[u32], out: &mut [u32]
     }
 }
 
-/// One unit scans the whole (short) array and writes its total.
+/// One cube of [`BLOCK_SCAN_UNITS`] units scans the whole (short) array and writes its total: each unit
+/// sums a stripe of `stripe` values, the stripe sums are scanned in `partial` (Hillis–Steele, one round
+/// per doubling, barriers in between), then each unit writes its stripe's prefix sums. Storage scratch
+/// rather than workgroup memory, which cubecl-spirv 0.11.3 lowers wrongly on adapters without
+/// `VK_KHR_workgroup_memory_explicit_layout` (docs/gpu.md): this kernel runs on every path. It replaced
+/// a single unit walking up to 2048 values, ~50 µs a call on an H200 and 11 calls a render (one per
+/// radix pass): 12 % of a late fit step's kernel time.
 #[cube(launch)]
-fn scan_serial(input: &[u32], n: u32, out: &mut [u32], total: &mut [u32]) {
-    if ABSOLUTE_POS == 0 {
-        let mut s = 0u32;
-        for i in 0..n {
-            let v = input[i as usize];
-            out[i as usize] = s;
-            s += v;
-        }
-        total[0] = s;
+fn scan_block(
+    input: &[u32],
+    n: u32,
+    stripe: u32,
+    partial: &mut [u32],
+    out: &mut [u32],
+    total: &mut [u32],
+) {
+    let u = UNIT_POS;
+    let start = u * stripe;
+    let end = u32::min(start + stripe, n);
+    let mut own = 0u32;
+    for i in start..end {
+        own += input[i as usize];
+    }
+    partial[u as usize] = own;
+    sync_storage();
+    let mut off = 1u32;
+    for _ in 0..BLOCK_SCAN_ROUNDS {
+        // Every unit reads the previous round's value before any unit writes this round's.
+        let add = if u >= off {
+            partial[(u - off) as usize]
+        } else {
+            0u32
+        };
+        sync_storage();
+        partial[u as usize] += add;
+        sync_storage();
+        off *= 2;
+    }
+    let mut s = partial[u as usize] - own;
+    for i in start..end {
+        let v = input[i as usize];
+        out[i as usize] = s;
+        s += v;
+    }
+    if u == BLOCK_SCAN_UNITS - 1 {
+        total[0] = partial[u as usize];
     }
 }
+
+/// Units of [`scan_block`]'s one cube (WebGPU's guaranteed minimum), and its rounds (log2).
+const BLOCK_SCAN_UNITS: u32 = 256;
+const BLOCK_SCAN_ROUNDS: u32 = 8;
 
 /// Exclusive prefix sum of the first `n` values of `input`: returns (sums, total) where `total` is a
 /// one-element buffer. `input` is left unchanged.
 pub fn exclusive_scan(client: &Client, input: &Handle, n: usize) -> (Handle, Handle) {
     let out = empty32(client, n);
     let total = empty32(client, 1);
-    if n <= SERIAL_SCAN_MAX {
-        scan_serial::launch(
+    if n <= BLOCK_SCAN_MAX {
+        let partial = empty32(client, BLOCK_SCAN_UNITS as usize);
+        scan_block::launch(
             client,
             CubeCount::new_single(),
-            CubeDim::new_1d(1),
+            CubeDim::new_1d(BLOCK_SCAN_UNITS),
             arg(input, n),
             n as u32,
+            n.div_ceil(BLOCK_SCAN_UNITS as usize) as u32,
+            arg(&partial, BLOCK_SCAN_UNITS as usize),
             arg(&out, n),
             arg(&total, 1),
         );
@@ -349,7 +391,7 @@ mod tests {
         };
         let c = &ctx.client;
         let mut seed = 1;
-        for n in [1usize, 7, 2048, 2049, 100_000] {
+        for n in [1usize, 7, 255, 256, 257, 1000, 2048, 2049, 100_000] {
             let v: Vec<u32> = (0..n).map(|_| lcg(&mut seed) % 10).collect();
             let (out, total) = exclusive_scan(c, &upload_u32(c, &v), n);
             let got = read_u32(c, &out, n).unwrap();
