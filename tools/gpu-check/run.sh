@@ -283,10 +283,9 @@ step edit 240 "$V" edit --scene "$IN/playbot-31k.ply" "${EDIT_SIZE[@]}" --model 
 # ---- a whole fit from posed images (lego-200), and the demo end to end
 if [ "$MODE" = device ]; then FIT_SIZE=(--steps 5000); else FIT_SIZE=(--steps 30 --init-points 2000); fi
 step fit 150 "$V" fit --data "$IN/lego-200" --out "$WORK/lego.ply" --background white --device gpu "${FIT_SIZE[@]}"
-# Where a fit's time goes: 1500 steps of the same fit under the kernel profile, beside its wall time
-# (late steps, at ~60k Gaussians, cost 3-4x the early ones; the backward's atomics dominate).
-# FIT_PROFILE_STEPS=5000 profiles the whole fit (~2 min): the last quarter of its launches is then shown
-# apart (the late steps, at ~60k Gaussians, take 3-4x as long as the first 1500).
+# Where a fit's time goes: 1500 steps of the same fit under the kernel profile, beside its wall time.
+# FIT_PROFILE_STEPS=5000 profiles the whole fit (~1 min on an H200): the last quarter of its launches is
+# then shown apart (late steps, at ~60k Gaussians, cost 3-4x the early ones; the backward dominates).
 FIT_PROFILE_STEPS=${FIT_PROFILE_STEPS:-1500}
 [ "$MODE" = device ] && step fit-profile $(( FIT_PROFILE_STEPS / 25 + 60 )) env CUBECL_DEBUG_LOG="$WORK/fit.prof" CUBECL_DEBUG_OPTION=profile \
   bash -c 't0=$(date +%s%N); "$1" fit --data "$2" --out "$3" --background white --device gpu --steps "$6" \
@@ -307,11 +306,12 @@ else
   AB_SIZE="--steps 30 --init-points 2000"
   AB_VARIANTS="auto"
 fi
-step fit-ab "${FIT_AB_TIMEOUT:-240}" bash -c 'for v in $5; do
+# A variant that fails is a row with its exit code; the rest still run.
+step fit-ab "${FIT_AB_TIMEOUT:-240}" bash -c 'failed=0; for v in $5; do
     if [ "$v" = auto ]; then set_env=(); else IFS=, read -r -a set_env <<< "$v"; fi
     env "${set_env[@]}" python3 "$4" --label "$v" -- "$1" fit --data "$2" --out "$3" --background white \
-      --device gpu $6 || exit 1
-  done' _ "$V" "$IN/lego-200" "$WORK/lego-ab.ply" "$HERE/host_profile.py" "$AB_VARIANTS" "$AB_SIZE"
+      --device gpu $6 || failed=1
+  done; exit $failed' _ "$V" "$IN/lego-200" "$WORK/lego-ab.ply" "$HERE/host_profile.py" "$AB_VARIANTS" "$AB_SIZE"
 # The packed vcedit has no built-in demo model (prepare.sh): the checkout's is named.
 if [ "$MODE" = device ]; then
   step demo 150 "$V" demo --model "$ROOT/models/demo" --device gpu --out "$WORK/demo"
