@@ -433,8 +433,14 @@ pub fn render_backward_device(
     grads: &GpuOutputGrads<'_>,
 ) -> Result<GpuSceneGrads, GpuError> {
     let ppu = backward_pixels_per_unit(ctx);
-    let plane = plane_sums_asked() && plane_reductions(ctx) && plane_fits(ctx, ppu);
+    let plane = plane_sums(ctx, ppu);
     render_backward_device_with(ctx, scene, settings, extra, frame, grads, ppu, plane)
+}
+
+/// Whether the raster backward with `ppu` pixels per unit sums each plane's gradients: asked for, offered
+/// by the adapter, and whole planes.
+fn plane_sums(ctx: &GpuContext, ppu: u32) -> bool {
+    plane_sums_asked() && plane_reductions(ctx) && plane_fits(ctx, ppu)
 }
 
 /// Whether `VCEDIT_GPU_PLANE_SUMS=on` asks the raster backward to sum each plane's gradients before its
@@ -650,7 +656,7 @@ pub fn render_backward(
     grads: &OutputGrads<'_>,
 ) -> Result<SceneGrads, GpuError> {
     let ppu = backward_pixels_per_unit(ctx);
-    let plane = plane_sums_asked() && plane_reductions(ctx) && plane_fits(ctx, ppu);
+    let plane = plane_sums(ctx, ppu);
     render_backward_with(ctx, scene, camera, settings, extra, grads, ppu, plane)
 }
 
