@@ -24,7 +24,10 @@
 //!   is classified by the same rule, so where the object's colour happens to match what is behind it both
 //!   silhouettes leave the pixel out alike. The outside change counts pixels beyond the `margin_px`
 //!   dilation whose colour moved more than `outside_change` (any channel, 0–1) from the source render,
-//!   per pixel of the object (coverage ≥ 0.5): a colour edit should leave both at 1 and 0.
+//!   per pixel of the object (coverage ≥ 0.5): a colour edit should leave both at 1 and 0. The **outline
+//!   IoU** compares the same silhouettes with the holes they enclose filled: it tells an outline that moved
+//!   (both scores fall) from a part inside it whose colour came to match what is behind (only the
+//!   silhouette IoU falls: a washed-out stripe, a face that took the floor's colour).
 //!
 //! 3DGS renders carry no lighting, so colours are compared directly (CIELAB, so distances follow what the
 //! eye sees); expected images come from the same renderer as the edited ones.
@@ -153,6 +156,8 @@ pub struct ViewScore {
     pub outside_pixels: usize,
     /// Silhouette IoU against the ideal edit's; `None` when neither silhouette has a pixel.
     pub silhouette_iou: Option<f64>,
+    /// The same with each silhouette's enclosed holes filled (the outline alone).
+    pub outline_iou: Option<f64>,
     /// Changed pixels beyond the margin per object pixel; `None` when the object covers no pixel.
     pub outside_change: Option<f64>,
 }
@@ -165,6 +170,8 @@ pub struct EditScore {
     pub preservation_psnr: f64,
     /// Silhouette IoU against the ideal edit's (pooled over views).
     pub silhouette_iou: Option<f64>,
+    /// Outline IoU (silhouettes with their holes filled; pooled over views).
+    pub outline_iou: Option<f64>,
     /// Changed pixels beyond the margin per object pixel (pooled over views).
     pub outside_change: Option<f64>,
     /// Offset added to the target pattern's phase that matched best (zero without phase search).
@@ -332,21 +339,7 @@ impl Oracle {
     /// Scores images of an edited result seen from `cameras` (one image per camera, same size, RGB or
     /// RGBA; alpha is ignored).
     pub fn score(&self, cameras: &[Camera], images: &[Image]) -> Result<EditScore, WorldError> {
-        if cameras.len() != images.len() {
-            return Err(WorldError::Input(format!(
-                "oracle: {} cameras but {} images",
-                cameras.len(),
-                images.len()
-            )));
-        }
-        for (k, (cam, img)) in cameras.iter().zip(images).enumerate() {
-            if (cam.width, cam.height) != (img.width, img.height) || img.channels < 3 {
-                return Err(WorldError::Input(format!(
-                    "oracle: image {k} is {}x{}x{}, camera {} expects {}x{} RGB",
-                    img.width, img.height, img.channels, cam.name, cam.width, cam.height
-                )));
-            }
-        }
+        check_images(cameras, images)?;
         let candidates = self.candidates();
         let (values, c) = self.channels(&candidates)?;
         let colour_sets = ColourSets::new(&self.source, &self.target);
@@ -386,10 +379,56 @@ impl Oracle {
             color_fidelity: pooled.color_fidelity,
             preservation_psnr: pooled.preservation_psnr,
             silhouette_iou: pooled.silhouette_iou,
+            outline_iou: pooled.outline_iou,
             outside_change: pooled.outside_change,
             phase_offset: candidates[best].0,
             per_view,
         })
+    }
+
+    /// The ideal edit's silhouette and the edited image's (CIELAB pixels), each told apart from the
+    /// backdrop by the same rule.
+    fn silhouettes(&self, r: &RenderedView, edited: &[[f32; 3]]) -> (Vec<bool>, Vec<bool>) {
+        let contrast = self.settings.silhouette_contrast;
+        let lab = |rgb: &[f32], p: usize| srgb_to_lab([rgb[3 * p], rgb[3 * p + 1], rgb[3 * p + 2]]);
+        (0..edited.len())
+            .map(|p| {
+                let behind = lab(&r.backdrop, p);
+                (
+                    dist(lab(&r.targets[0], p), behind) > contrast,
+                    dist(edited[p], behind) > contrast,
+                )
+            })
+            .unzip()
+    }
+
+    /// Where the silhouettes of an edited view and of the ideal edit disagree, as an RGB image: white where
+    /// both see the object, red where only the ideal edit does (a part lost, or taken the colour of what is
+    /// behind it), blue where only the edited view does (a halo, or a kept part recoloured). For finding
+    /// what lowers a shape score (`cargo run --release -p vcedit-demo --example silhouette_maps`).
+    pub fn silhouette_map(&self, camera: &Camera, image: &Image) -> Result<Image, WorldError> {
+        check_images(std::slice::from_ref(camera), std::slice::from_ref(image))?;
+        let candidates = vec![([0.0; 2], self.target.clone())];
+        let (values, c) = self.channels(&candidates)?;
+        let r = self.render_view(camera, &values, c);
+        let ch = image.channels as usize;
+        let edited: Vec<[f32; 3]> = image
+            .data
+            .chunks_exact(ch)
+            .map(|px| srgb_to_lab([px[0], px[1], px[2]]))
+            .collect();
+        let (ideal, edited) = self.silhouettes(&r, &edited);
+        let data = ideal
+            .iter()
+            .zip(&edited)
+            .flat_map(|(&i, &e)| match (i, e) {
+                (true, true) => [1.0, 1.0, 1.0],
+                (true, false) => [1.0, 0.0, 0.0],
+                (false, true) => [0.0, 0.0, 1.0],
+                (false, false) => [0.0; 3],
+            })
+            .collect();
+        Ok(Image::from_data(r.width, r.height, 3, data))
     }
 
     /// Vote counts of one view for every candidate.
@@ -440,14 +479,16 @@ impl Oracle {
         }
         // Silhouettes: the edited image's and the ideal edit's (the exact target layout; every
         // candidate shares its geometry), each told apart from the backdrop by the same rule.
-        let contrast = self.settings.silhouette_contrast;
+        let (ideal, edited_object) = self.silhouettes(r, &edited);
         for p in 0..npix {
-            let behind = lab(&r.backdrop, p);
-            let ideal = dist(lab(&r.targets[0], p), behind) > contrast;
-            let edited_object = dist(edited[p], behind) > contrast;
-            base.silhouette_both += (ideal && edited_object) as usize;
-            base.silhouette_either += (ideal || edited_object) as usize;
+            base.silhouette_both += (ideal[p] && edited_object[p]) as usize;
+            base.silhouette_either += (ideal[p] || edited_object[p]) as usize;
             base.object_pixels += (r.main[p] >= 0.5) as usize;
+        }
+        let (ideal, edited_object) = (fill_holes(&ideal, w, h), fill_holes(&edited_object, w, h));
+        for p in 0..npix {
+            base.outline_both += (ideal[p] && edited_object[p]) as usize;
+            base.outline_either += (ideal[p] || edited_object[p]) as usize;
         }
         for p in (0..npix).filter(|&p| counted[p]) {
             match sets.nearest(edited[p]) {
@@ -502,6 +543,26 @@ impl Oracle {
     }
 }
 
+/// Fails unless there is one RGB(A) image per camera, at its size.
+fn check_images(cameras: &[Camera], images: &[Image]) -> Result<(), WorldError> {
+    if cameras.len() != images.len() {
+        return Err(WorldError::Input(format!(
+            "oracle: {} cameras but {} images",
+            cameras.len(),
+            images.len()
+        )));
+    }
+    for (k, (cam, img)) in cameras.iter().zip(images).enumerate() {
+        if (cam.width, cam.height) != (img.width, img.height) || img.channels < 3 {
+            return Err(WorldError::Input(format!(
+                "oracle: image {k} is {}x{}x{}, camera {} expects {}x{} RGB",
+                img.width, img.height, img.channels, cam.name, cam.width, cam.height
+            )));
+        }
+    }
+    Ok(())
+}
+
 /// Scores an edit in one call (see [`Oracle`]).
 pub fn score_edit(
     source: &SceneSpec,
@@ -535,6 +596,8 @@ struct ViewTally {
     outside_changed: usize,
     silhouette_both: usize,
     silhouette_either: usize,
+    outline_both: usize,
+    outline_either: usize,
     object_pixels: usize,
 }
 
@@ -549,6 +612,8 @@ impl ViewTally {
         self.outside_changed += o.outside_changed;
         self.silhouette_both += o.silhouette_both;
         self.silhouette_either += o.silhouette_either;
+        self.outline_both += o.outline_both;
+        self.outline_either += o.outline_either;
         self.object_pixels += o.object_pixels;
     }
 
@@ -569,6 +634,8 @@ impl ViewTally {
             outside_pixels: self.outside,
             silhouette_iou: (self.silhouette_either > 0)
                 .then(|| self.silhouette_both as f64 / self.silhouette_either as f64),
+            outline_iou: (self.outline_either > 0)
+                .then(|| self.outline_both as f64 / self.outline_either as f64),
             outside_change: (self.object_pixels > 0)
                 .then(|| self.outside_changed as f64 / self.object_pixels as f64),
         }
@@ -628,6 +695,37 @@ impl ColourSets {
             _ => None,
         }
     }
+}
+
+/// `mask` with every region of unset pixels that does not reach the image border set: a silhouette's
+/// outline and all it encloses (4-connected flood fill of the outside from the border).
+fn fill_holes(mask: &[bool], w: usize, h: usize) -> Vec<bool> {
+    let mut outside = vec![false; mask.len()];
+    let mut stack: Vec<usize> = (0..w)
+        .flat_map(|x| [x, (h - 1) * w + x])
+        .chain((0..h).flat_map(|y| [y * w, y * w + w - 1]))
+        .filter(|&p| !mask[p])
+        .collect();
+    while let Some(p) = stack.pop() {
+        if outside[p] || mask[p] {
+            continue;
+        }
+        outside[p] = true;
+        let (x, y) = (p % w, p / w);
+        if x > 0 {
+            stack.push(p - 1);
+        }
+        if x + 1 < w {
+            stack.push(p + 1);
+        }
+        if y > 0 {
+            stack.push(p - w);
+        }
+        if y + 1 < h {
+            stack.push(p + w);
+        }
+    }
+    outside.iter().map(|&o| !o).collect()
 }
 
 fn dist(a: [f32; 3], b: [f32; 3]) -> f32 {
@@ -736,6 +834,7 @@ mod tests {
             .collect();
         let halo = oracle.score(&cams, &haloed).unwrap();
         assert!(halo.silhouette_iou.unwrap() < 0.9, "{halo:?}");
+        assert!(halo.outline_iou.unwrap() < 0.9, "{halo:?}");
         assert!(halo.outside_change.unwrap() > 0.05, "{halo:?}");
         // A one-pixel shift keeps the outline's shape: IoU stays high, nothing far outside changes.
         let moved: Vec<Image> = renders(&target, &cams)
@@ -744,6 +843,82 @@ mod tests {
             .collect();
         let m = oracle.score(&cams, &moved).unwrap();
         assert!(m.silhouette_iou.unwrap() > 0.9, "{m:?}");
+    }
+
+    #[test]
+    fn a_part_that_takes_the_backdrops_colour_keeps_the_outline() {
+        let gen = GeneratorSettings::default();
+        let source = SceneSpec::from_caption("a red sphere", 3, &gen).unwrap();
+        let target = source.with_caption("a blue sphere").unwrap();
+        let cams = ring_views(&source, 2, 64, 64, 25.0, 15.0);
+        let oracle = Oracle::new(&source, &target, OracleSettings::default()).unwrap();
+        let settings = RenderSettings {
+            background: source.background,
+        };
+        let holed: Vec<Image> = cams
+            .iter()
+            .map(|cam| {
+                let e = oracle.expected(cam).unwrap();
+                let behind = render(&oracle.backdrop, cam, &settings, None)
+                    .into_frame()
+                    .rgb;
+                let mut img = e.target.clone();
+                let w = img.width as usize;
+                let inside = |p: usize| {
+                    let (x, y) = ((p % w) as i64, (p / w) as i64);
+                    (-4..=4).all(|d: i64| {
+                        [(x + d, y), (x, y + d)].iter().all(|&(xx, yy)| {
+                            xx >= 0
+                                && yy >= 0
+                                && (xx as usize) < w
+                                && (yy as usize) < img.height as usize
+                                && e.main[yy as usize * w + xx as usize] >= 0.5
+                        })
+                    })
+                };
+                // The object's inner part (4 px in from its outline) shows what is behind it.
+                for p in (0..w * img.height as usize).filter(|&p| inside(p)) {
+                    img.data[3 * p..3 * p + 3].copy_from_slice(&behind[3 * p..3 * p + 3]);
+                }
+                img
+            })
+            .collect();
+        let s = oracle.score(&cams, &holed).unwrap();
+        assert!(s.silhouette_iou.unwrap() < 0.7, "{s:?}");
+        assert!(s.outline_iou.unwrap() > 0.99, "{s:?}");
+        let t = oracle.score(&cams, &renders(&target, &cams)).unwrap();
+        assert_eq!(t.outline_iou, Some(1.0));
+        // The map shows the lost inner part in red (only the ideal edit sees it), and nothing in blue.
+        let count =
+            |img: &Image, rgb: [f32; 3]| img.data.chunks_exact(3).filter(|p| *p == rgb).count();
+        let map = oracle.silhouette_map(&cams[0], &holed[0]).unwrap();
+        assert!(count(&map, [1.0, 0.0, 0.0]) > 100, "no red");
+        assert_eq!(count(&map, [0.0, 0.0, 1.0]), 0);
+        let ideal = oracle
+            .silhouette_map(&cams[0], &renders(&target, &cams[..1])[0])
+            .unwrap();
+        assert_eq!(
+            count(&ideal, [1.0, 0.0, 0.0]) + count(&ideal, [0.0, 0.0, 1.0]),
+            0
+        );
+    }
+
+    #[test]
+    fn fill_holes_fills_what_the_border_cannot_reach() {
+        #[rustfmt::skip]
+        let ring = [
+            false, false, false, false, false,
+            false, true,  true,  true,  false,
+            false, true,  false, true,  false,
+            false, true,  true,  false, false,
+            false, false, false, false, false,
+        ];
+        let filled = fill_holes(&ring, 5, 5);
+        // The centre is enclosed; the gap at (3, 3) opens the ring's corner to the outside, but the
+        // centre's 4-neighbours are all set, so it stays enclosed.
+        assert!(filled[12]);
+        assert!(!filled[18] && !filled[0]);
+        assert_eq!(filled.iter().filter(|&&v| v).count(), 8);
     }
 
     #[test]
