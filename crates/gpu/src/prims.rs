@@ -207,7 +207,7 @@ fn scan_block(
 
 /// Units of [`scan_block`]'s one cube (WebGPU's guaranteed minimum), and its rounds (log2).
 const BLOCK_SCAN_UNITS: u32 = 256;
-const BLOCK_SCAN_ROUNDS: u32 = 8;
+const BLOCK_SCAN_ROUNDS: u32 = BLOCK_SCAN_UNITS.trailing_zeros();
 
 /// Exclusive prefix sum of the first `n` values of `input`: returns (sums, total) where `total` is a
 /// one-element buffer. `input` is left unchanged.

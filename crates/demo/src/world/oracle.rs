@@ -390,12 +390,11 @@ impl Oracle {
     /// backdrop by the same rule.
     fn silhouettes(&self, r: &RenderedView, edited: &[[f32; 3]]) -> (Vec<bool>, Vec<bool>) {
         let contrast = self.settings.silhouette_contrast;
-        let lab = |rgb: &[f32], p: usize| srgb_to_lab([rgb[3 * p], rgb[3 * p + 1], rgb[3 * p + 2]]);
         (0..edited.len())
             .map(|p| {
-                let behind = lab(&r.backdrop, p);
+                let behind = lab_at(&r.backdrop, p);
                 (
-                    dist(lab(&r.targets[0], p), behind) > contrast,
+                    dist(lab_at(&r.targets[0], p), behind) > contrast,
                     dist(edited[p], behind) > contrast,
                 )
             })
@@ -411,13 +410,7 @@ impl Oracle {
         let candidates = vec![([0.0; 2], self.target.clone())];
         let (values, c) = self.channels(&candidates)?;
         let r = self.render_view(camera, &values, c);
-        let ch = image.channels as usize;
-        let edited: Vec<[f32; 3]> = image
-            .data
-            .chunks_exact(ch)
-            .map(|px| srgb_to_lab([px[0], px[1], px[2]]))
-            .collect();
-        let (ideal, edited) = self.silhouettes(&r, &edited);
+        let (ideal, edited) = self.silhouettes(&r, &lab_pixels(image));
         let data = ideal
             .iter()
             .zip(&edited)
@@ -436,11 +429,8 @@ impl Oracle {
         let (w, h) = (r.width as usize, r.height as usize);
         let npix = w * h;
         let ch = img.channels as usize;
-        let lab = |rgb: &[f32], p: usize| srgb_to_lab([rgb[3 * p], rgb[3 * p + 1], rgb[3 * p + 2]]);
-        let edited: Vec<[f32; 3]> = (0..npix)
-            .map(|p| srgb_to_lab([img.data[ch * p], img.data[ch * p + 1], img.data[ch * p + 2]]))
-            .collect();
-        let source: Vec<[f32; 3]> = (0..npix).map(|p| lab(&r.source, p)).collect();
+        let edited = lab_pixels(img);
+        let source: Vec<[f32; 3]> = (0..npix).map(|p| lab_at(&r.source, p)).collect();
         let counted: Vec<bool> = r
             .main
             .iter()
@@ -506,7 +496,7 @@ impl Oracle {
         r.targets
             .iter()
             .map(|target| {
-                let target: Vec<[f32; 3]> = (0..npix).map(|p| lab(target, p)).collect();
+                let target: Vec<[f32; 3]> = (0..npix).map(|p| lab_at(target, p)).collect();
                 let mut t = base.clone();
                 for p in (0..npix).filter(|&p| counted[p]) {
                     let (x, y) = ((p % w) as i64, (p / w) as i64);
@@ -541,6 +531,19 @@ impl Oracle {
             })
             .collect()
     }
+}
+
+/// CIELAB of pixel `p` of an RGB buffer.
+fn lab_at(rgb: &[f32], p: usize) -> [f32; 3] {
+    srgb_to_lab([rgb[3 * p], rgb[3 * p + 1], rgb[3 * p + 2]])
+}
+
+/// CIELAB of every pixel of an RGB or RGBA image (alpha ignored).
+fn lab_pixels(img: &Image) -> Vec<[f32; 3]> {
+    img.data
+        .chunks_exact(img.channels as usize)
+        .map(|px| srgb_to_lab([px[0], px[1], px[2]]))
+        .collect()
 }
 
 /// Fails unless there is one RGB(A) image per camera, at its size.
