@@ -5,7 +5,7 @@
 #   tools/gpu-check/run.sh                  on the GPU machine (see README.md for the exact call)
 #   tools/gpu-check/run.sh --local          the same steps at small sizes here (Mesa lavapipe, CPU PyTorch
 #                                           when installed); CI runs this
-#   options: --budget SECONDS (default 450, 420 with --local: steps stop being started when it runs out)
+#   options: --budget SECONDS (default 450, 600 with --local: steps stop being started when it runs out)
 #            --only STEP,STEP  (rerun some steps, e.g. after one failed)
 #            --skip STEP,STEP
 #
@@ -34,8 +34,10 @@ while [ $# -gt 0 ]; do
   shift
 done
 
-# The budget: what one device call affords (see README.md); locally, what CI affords.
-[ -z "$BUDGET" ] && { [ "$MODE" = device ] && BUDGET=450 || BUDGET=420; }
+# The budget: what one device call affords (see README.md). Locally every step must pass, so the budget
+# only bounds a hang: the steps take ~6 min on 2 idle cores, and a 420-s budget failed CI's check on a
+# loaded machine (2026-11-27: the last step, the demo, was left 64 s of its 120 and timed out).
+[ -z "$BUDGET" ] && { [ "$MODE" = device ] && BUDGET=450 || BUDGET=600; }
 OUT="${OUT:-$ROOT/gpu-check-out}"
 mkdir -p "$OUT"
 WORK=$(mktemp -d /tmp/gpu-check.XXXXXX)
