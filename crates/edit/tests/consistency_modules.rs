@@ -182,3 +182,57 @@ fn blend_map_consistency_makes_masks_agree() {
         "masks disagree by {after} after, {before} before"
     );
 }
+
+/// ECM's two fits side by side (on the CPU) give what they give one after the other, bit for bit.
+#[test]
+fn ecm_fit_pair_matches_fits_in_turn() {
+    let scene = textured_blob();
+    let cams = cameras(32);
+    let renders: Vec<Image> = cams
+        .iter()
+        .map(|c| render(&scene, c, &RenderSettings::default(), None).rgb_image())
+        .collect();
+    let shifted = |d: f32| -> Vec<Image> {
+        let mut out = renders.clone();
+        for img in &mut out {
+            for p in img.data.chunks_exact_mut(3) {
+                p[0] = (p[0] + d).clamp(0.0, 1.0);
+                p[2] = (p[2] - d).clamp(0.0, 1.0);
+            }
+        }
+        out
+    };
+    let (a, b) = (shifted(0.3), shifted(-0.2));
+    for params in [EcmParams::Appearance, EcmParams::All] {
+        let ecm = EcmSettings {
+            params,
+            min_steps: 40,
+            ..EcmSettings::reference(0)
+        };
+        let trainer = EditTrainer::new(&scene, None, TrainSettings::new(100), 2.0, [0.0; 3]);
+        let loss = ImageLoss::dssim();
+        let fitter = EcmFitter::new(&trainer, &loss, &ecm);
+        let pair = fitter.fit_pair(&scene, &cams, [&a, &b], 11).unwrap();
+        let in_turn = [
+            fitter.fit(&scene, &cams, &a, 11).unwrap(),
+            fitter.fit(&scene, &cams, &b, 12).unwrap(),
+        ];
+        let bits = |s: &GaussianScene| -> Vec<u32> {
+            s.means
+                .iter()
+                .chain(&s.log_scales)
+                .chain(&s.quats)
+                .chain(&s.opacity_logits)
+                .chain(&s.sh)
+                .map(|v| v.to_bits())
+                .collect()
+        };
+        assert_ne!(
+            bits(&pair[0]),
+            bits(&pair[1]),
+            "{params:?}: different targets"
+        );
+        assert_eq!(bits(&pair[0]), bits(&in_turn[0]), "{params:?}");
+        assert_eq!(bits(&pair[1]), bits(&in_turn[1]), "{params:?}");
+    }
+}

@@ -9,7 +9,8 @@
 use crate::gpu::{GpuContext, GpuError, GpuLiftAccumulator, GpuScene};
 use crate::lift::{resample, LiftAccumulator, Lifted, MapGrid};
 use crate::render::{
-    render, render_backward, ExtraChannels, Frame, OutputGrads, RenderSettings, SceneGrads,
+    render, render_backward, render_backward_appearance, ExtraChannels, Frame, FrozenGeometry,
+    OutputGrads, RenderOutput, RenderSettings, SceneGrads,
 };
 use rayon::prelude::*;
 
@@ -144,25 +145,36 @@ impl SplatDevice {
         match self {
             SplatDevice::Cpu => {
                 let out = render(scene, camera, settings, None);
-                let (value, grad) = loss(&out.rgb);
-                let grads = render_backward(
-                    scene,
-                    camera,
-                    settings,
-                    None,
-                    &out,
-                    &OutputGrads {
-                        rgb: &grad,
-                        alpha: None,
-                        depth: None,
-                        extra: None,
-                    },
-                );
-                Ok((out.into_frame().radii, value, grads))
+                Ok(loss_and_backward(scene, camera, settings, out, loss, true))
             }
             SplatDevice::Gpu(ctx) => {
                 crate::gpu::render_with_loss(ctx, scene, camera, settings, loss)
             }
+        }
+    }
+
+    /// [`Self::render_with_loss`] of view `v` for fits that keep the geometry (means, scales and
+    /// rotations fixed, their gradients not needed). On the CPU the view's projection is kept in `frozen`
+    /// across steps and the gradients of the geometry are zero (that part of the backward pass is
+    /// skipped); on a GPU, where those passes cost little, it is the ordinary render.
+    pub fn render_with_loss_frozen<L>(
+        &self,
+        scene: &GaussianScene,
+        camera: &Camera,
+        v: usize,
+        frozen: &mut FrozenGeometry,
+        settings: &RenderSettings,
+        loss: impl FnOnce(&[f32]) -> (L, Vec<f32>),
+    ) -> Result<(Vec<u32>, L, SceneGrads), GpuError> {
+        match self {
+            SplatDevice::Cpu => {
+                let out = match frozen.view(scene, camera, v) {
+                    Some(view) => view.render(scene, settings),
+                    None => render(scene, camera, settings, None),
+                };
+                Ok(loss_and_backward(scene, camera, settings, out, loss, false))
+            }
+            SplatDevice::Gpu(_) => self.render_with_loss(scene, camera, settings, loss),
         }
     }
 
@@ -223,6 +235,31 @@ impl SplatDevice {
             ),
         }
     }
+}
+
+/// The CPU side of [`SplatDevice::render_with_loss`]: the loss of a render and its backward pass (of the
+/// appearance only without `geometry`).
+fn loss_and_backward<L>(
+    scene: &GaussianScene,
+    camera: &Camera,
+    settings: &RenderSettings,
+    out: RenderOutput,
+    loss: impl FnOnce(&[f32]) -> (L, Vec<f32>),
+    geometry: bool,
+) -> (Vec<u32>, L, SceneGrads) {
+    let (value, grad) = loss(&out.rgb);
+    let grads = OutputGrads {
+        rgb: &grad,
+        alpha: None,
+        depth: None,
+        extra: None,
+    };
+    let grads = if geometry {
+        render_backward(scene, camera, settings, None, &out, &grads)
+    } else {
+        render_backward_appearance(scene, camera, settings, &out, &grads)
+    };
+    (out.into_frame().radii, value, grads)
 }
 
 /// A lifting under way on the CPU or the GPU (see [`SplatDevice::lifter`]).

@@ -2,8 +2,10 @@
 
 use diffusion::device::Precision;
 use serde::Serialize;
+use splat::render::{FrozenGeometry, FrozenView};
 use splat::GaussianScene;
 
+use crate::consistency::EcmParams;
 use crate::fit::LPIPS_CACHE_BYTES;
 use crate::sampler::{EditModel, DEFAULT_STORE_MAX_TOKENS};
 
@@ -237,7 +239,14 @@ pub fn work_plan(
     let n = scene.len() as u64;
     let params = scene_param_bytes(scene);
     // Editing state (params, grads, 2 moments, anchors) + two ECM copies; splits can grow the scene.
-    let train = params * 5 * 3 / 2 + params * 4 * 2;
+    // Appearance-only ECM fits keep each view's projection, two fits at a time on the CPU.
+    let frozen_views = if ecm > 0 && job.consistency.ecm.params == EcmParams::Appearance {
+        let per_fit = v * FrozenView::memory_bytes_for(scene.len());
+        2 * per_fit.min(FrozenGeometry::DEFAULT_BUDGET) as u64
+    } else {
+        0
+    };
+    let train = params * 5 * 3 / 2 + params * 4 * 2 + frozen_views;
     // Lifting: per-thread sums of the widest map (CCM: 3 branches × heads × tokens).
     let threads = rayon::current_num_threads() as u64;
     let lift =

@@ -244,6 +244,7 @@ pub(crate) fn analytic(scene: &Scene64, cam: &Camera, bg: [f64; 3], w: &LossWeig
             depth: Some(&w.depth),
             extra: (scene.channels > 0).then_some(&w.extra[..]),
         },
+        true,
     )
 }
 

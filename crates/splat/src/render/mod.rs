@@ -19,6 +19,7 @@
 #![allow(clippy::neg_cmp_op_on_partial_ord, clippy::needless_range_loop)]
 
 mod cpu;
+mod frozen;
 pub(crate) mod project;
 pub(crate) mod raster;
 pub(crate) mod raster_backward;
@@ -41,6 +42,7 @@ use rayon::prelude::*;
 use real::Real;
 use tiles::TileBins;
 
+pub use frozen::{FrozenGeometry, FrozenView};
 pub use project::{ALPHA_MAX, ALPHA_MIN, LOW_PASS, NEAR_PLANE, TILE, T_MIN};
 
 /// Options of [`render`].
@@ -186,32 +188,38 @@ pub fn render(
         (e.values, e.channels)
     });
     let fwd = forward(&params, camera, settings.background.map(f64::from), extra);
-    let radii = fwd.splats.iter().map(|s| s.radius).collect();
-    let RasterOut {
-        rgb,
-        alpha,
-        depth,
-        extra: extra_img,
-        t_final,
-        last,
-    } = fwd.raster;
-    RenderOutput {
-        frame: Frame {
-            width: camera.width,
-            height: camera.height,
+    RenderOutput::new(camera, fwd, extra.map_or(0, |e| e.1))
+}
+
+impl RenderOutput {
+    fn new(camera: &Camera, fwd: Forward<f32>, channels: usize) -> Self {
+        let radii = fwd.splats.iter().map(|s| s.radius).collect();
+        let RasterOut {
             rgb,
             alpha,
             depth,
-            extra: extra_img,
-            channels: extra.map_or(0, |e| e.1),
-            radii,
-        },
-        state: SavedState {
-            splats: fwd.splats,
-            bins: fwd.bins,
+            extra,
             t_final,
             last,
-        },
+        } = fwd.raster;
+        RenderOutput {
+            frame: Frame {
+                width: camera.width,
+                height: camera.height,
+                rgb,
+                alpha,
+                depth,
+                extra,
+                channels,
+                radii,
+            },
+            state: SavedState {
+                splats: fwd.splats,
+                bins: fwd.bins,
+                t_final,
+                last,
+            },
+        }
     }
 }
 
@@ -228,6 +236,31 @@ pub fn render_backward(
     extra: Option<ExtraChannels<'_>>,
     out: &RenderOutput,
     grads: &OutputGrads<'_>,
+) -> SceneGrads {
+    backward_of_render(scene, camera, settings, extra, out, grads, true)
+}
+
+/// [`render_backward`] for fits that keep the geometry: the gradients of the opacities, SH coefficients,
+/// extra channels and screen positions (`means2d`, from the rasteriser); those of the means, scales and
+/// rotations are left at zero, their part of the projection's backward pass is skipped.
+pub fn render_backward_appearance(
+    scene: &GaussianScene,
+    camera: &Camera,
+    settings: &RenderSettings,
+    out: &RenderOutput,
+    grads: &OutputGrads<'_>,
+) -> SceneGrads {
+    backward_of_render(scene, camera, settings, None, out, grads, false)
+}
+
+fn backward_of_render(
+    scene: &GaussianScene,
+    camera: &Camera,
+    settings: &RenderSettings,
+    extra: Option<ExtraChannels<'_>>,
+    out: &RenderOutput,
+    grads: &OutputGrads<'_>,
+    geometry: bool,
 ) -> SceneGrads {
     let params = Params::from_scene(scene);
     let npix = (camera.width * camera.height) as usize;
@@ -265,6 +298,7 @@ pub fn render_backward(
             depth: grads.depth,
             extra: grads.extra,
         },
+        geometry,
     );
     SceneGrads {
         means: g.means,
@@ -443,6 +477,7 @@ pub(crate) fn backward<R: Real>(
     bins: &TileBins,
     saved: SavedPixels<'_, R>,
     grads: &ImageGrads<'_, R>,
+    geometry: bool,
 ) -> Grads<R> {
     let cam = CameraR::<R>::new(camera);
     let n = params.len();
@@ -459,7 +494,7 @@ pub(crate) fn backward<R: Real>(
     let mut out = Grads::zeros(n, params.sh_degree);
     out.extra = rg.extra;
     out.means2d = rg.splats.iter().map(|g| g.mean).collect();
-    project_backward_all(params, &cam, splats, &rg.splats, &mut out);
+    project_backward_all(params, &cam, splats, &rg.splats, &mut out, geometry);
     out
 }
 
@@ -477,13 +512,15 @@ impl<R: Real> Grads<R> {
     }
 }
 
-/// Backward of stage (a) for all Gaussians in parallel, writing the parameter gradients of `out`.
+/// Backward of stage (a) for all Gaussians in parallel, writing the parameter gradients of `out`
+/// (without `geometry`, those of the opacities and SH coefficients only).
 fn project_backward_all<R: Real>(
     params: &Params<'_, R>,
     cam: &CameraR<R>,
     splats: &[Splat<R>],
     splat_grads: &[project::SplatGrad<R>],
     out: &mut Grads<R>,
+    geometry: bool,
 ) {
     let k3 = 3 * sh_coeffs_of(params.sh_degree);
     let n = PROJECT_CHUNK;
@@ -502,6 +539,7 @@ fn project_backward_all<R: Real>(
                 cam,
                 splats,
                 splat_grads,
+                geometry,
                 out: GradChunk {
                     start: c * n,
                     mean,
@@ -530,6 +568,7 @@ struct ProjectBackwardChunk<'a, R> {
     cam: &'a CameraR<R>,
     splats: &'a [Splat<R>],
     splat_grads: &'a [project::SplatGrad<R>],
+    geometry: bool,
     out: GradChunk<'a, R>,
 }
 
@@ -544,6 +583,7 @@ impl<R: Real> Kernel for ProjectBackwardChunk<'_, R> {
             self.cam,
             self.splats,
             self.splat_grads,
+            self.geometry,
             self.out,
         )
     }
@@ -555,6 +595,7 @@ fn project_backward_chunk<R: Real>(
     cam: &CameraR<R>,
     splats: &[Splat<R>],
     splat_grads: &[project::SplatGrad<R>],
+    geometry: bool,
     c: GradChunk<'_, R>,
 ) {
     let k3 = 3 * sh_coeffs_of(params.sh_degree);
@@ -563,6 +604,15 @@ fn project_backward_chunk<R: Real>(
         // Occluded or off-screen Gaussians (most of a dense scene) got no gradient: their outputs are
         // already zero.
         if splat_grads[i].is_zero() {
+            continue;
+        }
+        if !geometry {
+            // The outputs start at zero, which is what a culled splat gets.
+            if splats[i].radius > 0 {
+                let sh = &mut c.sh[k3 * j..k3 * (j + 1)];
+                let s = (&splats[i], &splat_grads[i]);
+                project::appearance_backward(params, i, cam, s.0, s.1, opacity_logit, sh);
+            }
             continue;
         }
         project::project_one_backward(
@@ -627,7 +677,7 @@ pub fn profile_stages(
     times.push(("rasterize backward", t.elapsed()));
     let t = Instant::now();
     let mut grads = Grads::zeros(params.len(), params.sh_degree);
-    project_backward_all(&params, &cam, &splats, &rg.splats, &mut grads);
+    project_backward_all(&params, &cam, &splats, &rg.splats, &mut grads, true);
     times.push(("project backward", t.elapsed()));
     times
 }

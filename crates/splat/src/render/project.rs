@@ -294,14 +294,35 @@ pub fn project_one<R: Real>(
     cam: &CameraR<R>,
     with_color: bool,
 ) -> Splat<R> {
-    let culled = Splat::default();
-    let Some(g) = geometry(p, i, cam) else {
-        return culled;
-    };
+    match project_geometry(p, i, cam) {
+        Some(shape) => project_appearance(p, i, cam, &shape.splat, shape.cov_diag, with_color),
+        None => Splat::default(),
+    }
+}
+
+/// The part of a projection that depends only on the mean, scales and rotation (and the camera): a
+/// splat with its mean, conic, depth, radius and tiles set, and the 2D covariance's diagonal the
+/// opacity-dependent extents need. Fits that change appearance only reuse it across steps.
+#[derive(Clone, Copy, Debug)]
+pub struct SplatShape<R> {
+    pub splat: Splat<R>,
+    /// Diagonal (a, c) of the dilated 2D covariance.
+    pub cov_diag: [R; 2],
+}
+
+/// The geometry of the projection of Gaussian `i`; `None` where [`project_one`] culls it for reasons
+/// of geometry (behind the near plane, degenerate, off screen, non-finite).
+#[inline(always)]
+pub fn project_geometry<R: Real>(
+    p: &Params<'_, R>,
+    i: usize,
+    cam: &CameraR<R>,
+) -> Option<SplatShape<R>> {
+    let g = geometry(p, i, cam)?;
     let [a, b, cc] = g.cov2d;
     let det = a * cc - b * b;
     if !(det > R::ZERO) || !det.is_finite() {
-        return culled;
+        return None;
     }
     let conic = [cc / det, -b / det, a / det];
     let z = g.pc[2];
@@ -310,7 +331,7 @@ pub fn project_one<R: Real>(
     let lambda = mid + (mid * mid - det).max(c(0.1)).sqrt();
     let radius_f = (c::<R>(3.0) * lambda.sqrt()).ceil();
     if !radius_f.is_finite() || !mean[0].is_finite() || !mean[1].is_finite() {
-        return culled;
+        return None;
     }
     let radius = radius_f.to_f64().min(1e9) as u32;
     let (tiles_x, tiles_y) = cam.tiles();
@@ -321,12 +342,38 @@ pub fn project_one<R: Real>(
     let y0 = clamp_tile(((mean[1] - radius_f) / tile).floor(), tiles_y);
     let y1 = clamp_tile(((mean[1] + radius_f) / tile).ceil(), tiles_y);
     if radius == 0 || x1 <= x0 || y1 <= y0 {
-        return culled;
+        return None;
     }
+    Some(SplatShape {
+        splat: Splat {
+            mean,
+            conic,
+            depth: z,
+            radius,
+            tiles: [x0, y0, x1, y1].map(|t| t as u16),
+            ..Splat::default()
+        },
+        cov_diag: [a, cc],
+    })
+}
+
+/// Completes the projection of Gaussian `i` from its [`project_geometry`] (`shape` and `cov_diag`):
+/// opacity, the extents where its alpha can reach 1/255, and (with `with_color`) its colour. Culled when
+/// the opacity is NaN.
+#[inline(always)]
+pub fn project_appearance<R: Real>(
+    p: &Params<'_, R>,
+    i: usize,
+    cam: &CameraR<R>,
+    shape: &Splat<R>,
+    cov_diag: [R; 2],
+    with_color: bool,
+) -> Splat<R> {
     let opacity = sigmoid(p.opacity_logits[i]);
     if opacity.is_nan() {
-        return culled;
+        return Splat::default();
     }
+    let [a, cc] = cov_diag;
     // alpha = o·exp(-σ) ≥ 1/255  ⇔  σ ≤ ln(255·o). Enlarged a little so float rounding in the per-pixel
     // test can never accept a pixel this bound rejects.
     let sm = (opacity / c(ALPHA_MIN)).ln();
@@ -344,16 +391,10 @@ pub fn project_one<R: Real>(
         (R::ZERO, R::ZERO)
     };
     let mut splat = Splat {
-        mean,
-        conic,
         opacity,
         half_height,
         half_width,
-        color: [R::ZERO; 3],
-        depth: z,
-        radius,
-        tiles: [x0, y0, x1, y1].map(|t| t as u16),
-        clamped: 0,
+        ..*shape
     };
     if with_color {
         let (color, clamped) = eval_color(p, i, cam);
@@ -425,6 +466,54 @@ impl<R: Real> SplatGrad<R> {
     }
 }
 
+/// Backward of [`project_appearance`] for Gaussian `i`: overwrites `opacity_logit` and `sh` with their
+/// gradients; `sh` must be zero on entry. Returns the gradient the colour sends to the mean (through the
+/// view direction), which fits with frozen geometry drop.
+#[inline(always)]
+pub fn appearance_backward<R: Real>(
+    p: &Params<'_, R>,
+    i: usize,
+    cam: &CameraR<R>,
+    splat: &Splat<R>,
+    v: &SplatGrad<R>,
+    opacity_logit: &mut R,
+    sh: &mut [R],
+) -> [R; 3] {
+    // Opacity: o = sigmoid(logit).
+    let o = splat.opacity;
+    *opacity_logit = v.opacity * o * (R::ONE - o);
+
+    // Colour: SH coefficients and the view direction.
+    let mut v_mean = [R::ZERO; 3];
+    let mut v_col = v.color;
+    for (ch, vc) in v_col.iter_mut().enumerate() {
+        if splat.clamped & (1 << ch) != 0 {
+            *vc = R::ZERO;
+        }
+    }
+    if v_col.iter().any(|&x| x != R::ZERO) {
+        let k = super::sh_coeffs_of(p.sh_degree);
+        let coeffs = &p.sh[i * k * 3..(i + 1) * k * 3];
+        let (dir, dir_len) = view_dir(p, i, cam);
+        let mut basis = [R::ZERO; sh::MAX_COEFFS];
+        sh::basis(p.sh_degree, dir, &mut basis);
+        let mut v_basis = [R::ZERO; sh::MAX_COEFFS];
+        for kk in 0..k {
+            for ch in 0..3 {
+                sh[kk * 3 + ch] = basis[kk] * v_col[ch];
+                v_basis[kk] += coeffs[kk * 3 + ch] * v_col[ch];
+            }
+        }
+        let v_dir = sh::basis_vjp(p.sh_degree, dir, &v_basis);
+        // Through the normalisation d = raw/|raw|.
+        let dot = dir[0] * v_dir[0] + dir[1] * v_dir[1] + dir[2] * v_dir[2];
+        for a in 0..3 {
+            v_mean[a] += (v_dir[a] - dir[a] * dot) / dir_len;
+        }
+    }
+    v_mean
+}
+
 /// Gradients of one Gaussian's parameters, written into the given slices (same layouts as the scene).
 pub struct ParamGradsMut<'a, R> {
     pub mean: &'a mut [R],
@@ -456,39 +545,7 @@ pub fn project_one_backward<R: Real>(
         return;
     };
     let two: R = c(2.0);
-
-    // Opacity: o = sigmoid(logit).
-    let o = splat.opacity;
-    *out.opacity_logit = v.opacity * o * (R::ONE - o);
-
-    // Colour: SH coefficients and the view direction.
-    let mut v_mean = [R::ZERO; 3];
-    let mut v_col = v.color;
-    for (ch, vc) in v_col.iter_mut().enumerate() {
-        if splat.clamped & (1 << ch) != 0 {
-            *vc = R::ZERO;
-        }
-    }
-    if v_col.iter().any(|&x| x != R::ZERO) {
-        let k = super::sh_coeffs_of(p.sh_degree);
-        let coeffs = &p.sh[i * k * 3..(i + 1) * k * 3];
-        let (dir, dir_len) = view_dir(p, i, cam);
-        let mut basis = [R::ZERO; sh::MAX_COEFFS];
-        sh::basis(p.sh_degree, dir, &mut basis);
-        let mut v_basis = [R::ZERO; sh::MAX_COEFFS];
-        for kk in 0..k {
-            for ch in 0..3 {
-                out.sh[kk * 3 + ch] = basis[kk] * v_col[ch];
-                v_basis[kk] += coeffs[kk * 3 + ch] * v_col[ch];
-            }
-        }
-        let v_dir = sh::basis_vjp(p.sh_degree, dir, &v_basis);
-        // Through the normalisation d = raw/|raw|.
-        let dot = dir[0] * v_dir[0] + dir[1] * v_dir[1] + dir[2] * v_dir[2];
-        for a in 0..3 {
-            v_mean[a] += (v_dir[a] - dir[a] * dot) / dir_len;
-        }
-    }
+    let mut v_mean = appearance_backward(p, i, cam, splat, v, out.opacity_logit, out.sh);
 
     // Conic = S⁻¹ → gradient of S: V_S = -P G P with G the symmetric matrix of the conic gradient
     // (the off-diagonal conic entry stands for both off-diagonal elements).

@@ -41,19 +41,65 @@ struct Entry {
 /// The splats are sorted by depth once (a parallel sort of N keys instead of one sort per tile), then
 /// appended to the tile lists in that order, so every list comes out sorted.
 pub fn bin<R: Real>(splats: &[Splat<R>], tiles_x: u32, tiles_y: u32) -> TileBins {
-    let num_tiles = (tiles_x * tiles_y) as usize;
     let mut entries: Vec<Entry> = splats
         .par_iter()
         .enumerate()
         .filter(|(_, s)| s.is_drawable())
-        .map(|(i, s)| Entry {
+        .map(|(i, s)| Entry::of(i, s))
+        .collect();
+    entries.par_sort_unstable_by_key(|e| (e.key, e.index));
+    scatter(&entries, tiles_x, tiles_y)
+}
+
+impl Entry {
+    #[inline]
+    fn of<R: Real>(i: usize, s: &Splat<R>) -> Self {
+        Entry {
             key: s.depth.to_f64().to_bits(),
             index: i as u32,
             rect: s.tiles,
-        })
-        .collect();
-    entries.par_sort_unstable_by_key(|e| (e.key, e.index));
+        }
+    }
+}
 
+/// Every splat that is on screen (whatever its opacity), in the depth order of [`bin`]: where only
+/// opacities change between renders (fits with frozen geometry), [`DepthOrder::bin`] skips the sort.
+#[derive(Clone, Default)]
+pub struct DepthOrder {
+    entries: Vec<Entry>,
+}
+
+impl DepthOrder {
+    pub fn new<R: Real>(splats: &[Splat<R>]) -> Self {
+        let mut entries: Vec<Entry> = splats
+            .par_iter()
+            .enumerate()
+            .filter(|(_, s)| s.radius > 0)
+            .map(|(i, s)| Entry::of(i, s))
+            .collect();
+        entries.par_sort_unstable_by_key(|e| (e.key, e.index));
+        DepthOrder { entries }
+    }
+
+    /// [`bin`] of `splats`, which must have the geometry this order was made from: the drawable entries
+    /// keep their order (the sort key is unique), so the result is the same.
+    pub fn bin<R: Real>(&self, splats: &[Splat<R>], tiles_x: u32, tiles_y: u32) -> TileBins {
+        let entries: Vec<Entry> = self
+            .entries
+            .par_iter()
+            .filter(|e| splats[e.index as usize].is_drawable())
+            .copied()
+            .collect();
+        scatter(&entries, tiles_x, tiles_y)
+    }
+
+    /// Bytes per Gaussian on screen.
+    pub const ENTRY_BYTES: usize = std::mem::size_of::<Entry>();
+}
+
+/// Appends the depth-sorted `entries` to the lists of the tiles they cover.
+fn scatter(entries: &[Entry], tiles_x: u32, tiles_y: u32) -> TileBins {
+    let num_tiles = (tiles_x * tiles_y) as usize;
     // Chunks of the sorted order are scattered in parallel, each into slots reserved for it in every tile.
     let chunks = rayon::current_num_threads().max(1) * 4;
     let chunk_len = entries.len().div_ceil(chunks).max(1);

@@ -10,7 +10,8 @@
 use ::gpu::cubecl::server::Handle;
 
 use crate::gpu::{DeviceTrainer, GpuContext, GpuError, L1DssimWeights};
-use crate::render::{RenderSettings, SceneGrads};
+use crate::render::{FrozenGeometry, RenderSettings, SceneGrads};
+use crate::train::optim::{Adam, Group};
 use crate::train::TrainState;
 use crate::{Camera, SplatDevice};
 
@@ -95,6 +96,8 @@ pub struct Trainer {
     device: SplatDevice,
     settings: RenderSettings,
     resident: Option<Resident>,
+    /// Set by [`Trainer::freeze_geometry`]: the views' kept projections.
+    frozen: Option<FrozenGeometry>,
 }
 
 impl Trainer {
@@ -121,7 +124,16 @@ impl Trainer {
             device: device.clone(),
             settings: RenderSettings { background },
             resident,
+            frozen: None,
         }
+    }
+
+    /// From now on the caller keeps the geometry (means, scales, rotations) fixed and needs no gradients
+    /// for it, as ECM's appearance fits do: host steps whose geometry rates are all zero reuse each
+    /// view's projection and skip the geometry's backward pass (its gradients are zero; Adam then only
+    /// decays those moments). Steps with a geometry rate above zero run the full pass.
+    pub fn freeze_geometry(&mut self) {
+        self.frozen.get_or_insert_with(FrozenGeometry::default);
     }
 
     /// One step on view `v` seen from `camera`. `state.adam` gives the rates (callers set its
@@ -168,18 +180,25 @@ impl Trainer {
         let clock = std::time::Instant::now;
         let start = clock();
         let mut span = (start, start);
-        let (radii, value, mut grads) =
-            self.device
-                .render_with_loss(&state.scene, camera, &self.settings, |rgb| {
-                    let t = clock();
-                    let out = match loss.eval(rgb, v) {
-                        Ok((value, grad)) => (Ok(value), grad),
-                        // The backward still runs on a zero gradient; its result is dropped with the error.
-                        Err(e) => (Err(e), vec![0.0; rgb.len()]),
-                    };
-                    span = (t, clock());
-                    out
-                })?;
+        let eval = |rgb: &[f32]| {
+            let t = clock();
+            let out = match loss.eval(rgb, v) {
+                Ok((value, grad)) => (Ok(value), grad),
+                // The backward still runs on a zero gradient; its result is dropped with the error.
+                Err(e) => (Err(e), vec![0.0; rgb.len()]),
+            };
+            span = (t, clock());
+            out
+        };
+        let (scene, settings) = (&state.scene, &self.settings);
+        let (radii, value, mut grads) = match self.frozen.as_mut() {
+            Some(frozen) if geometry_fixed(&state.adam) => self
+                .device
+                .render_with_loss_frozen(scene, camera, v, frozen, settings, eval)?,
+            _ => self
+                .device
+                .render_with_loss(scene, camera, settings, eval)?,
+        };
         let value = value?;
         let backward_end = clock();
         if let Some(anchor) = &state.anchor {
@@ -209,5 +228,128 @@ impl Trainer {
             }
         }
         Ok(())
+    }
+}
+
+/// Whether a step with these rates leaves the means, scales and rotations as they are.
+fn geometry_fixed(adam: &Adam) -> bool {
+    [Group::Means, Group::LogScales, Group::Quats]
+        .iter()
+        .all(|&g| adam.lr(g) == 0.0)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::gpu::tests::{camera, random_scene};
+    use crate::render::render;
+    use crate::train::optim::LearningRates;
+
+    /// L1 to fixed targets.
+    struct L1<'a>(&'a [Vec<f32>]);
+
+    impl FitLoss for L1<'_> {
+        type Error = GpuError;
+        fn eval(&mut self, rgb: &[f32], v: usize) -> Result<(f32, Vec<f32>), GpuError> {
+            let l = crate::train::loss::l1(rgb, &self.0[v]);
+            Ok((l.value, l.grad))
+        }
+        fn device_weights(&self) -> Option<L1DssimWeights> {
+            None
+        }
+    }
+
+    /// An appearance fit with frozen geometry ends in the same scene, bit for bit, as the full passes;
+    /// its steps give no geometry gradients, and a step with a geometry rate runs the full pass.
+    #[test]
+    fn frozen_geometry_fit_matches_the_full_fit() {
+        let scene = random_scene(400, 2, 21);
+        let cams: Vec<Camera> = [(40, 30), (44, 28), (36, 36)]
+            .iter()
+            .map(|&(w, h)| camera(w, h))
+            .collect();
+        let settings = RenderSettings {
+            background: [0.3, 0.3, 0.3],
+        };
+        let mut target_scene = scene.clone();
+        target_scene
+            .sh
+            .iter_mut()
+            .step_by(3)
+            .for_each(|v| *v += 0.8);
+        let targets: Vec<Vec<f32>> = cams
+            .iter()
+            .map(|c| render(&target_scene, c, &settings, None).rgb.clone())
+            .collect();
+        let fit = |freeze: bool| {
+            let mut state = TrainState::new(scene.clone(), LearningRates::inria(100), 1.0);
+            state.trainable = Some((0..scene.len()).map(|i| i % 2 == 0).collect());
+            for g in [Group::Means, Group::LogScales, Group::Quats] {
+                state.adam.group_lr_scale[g.index()] = 0.0;
+            }
+            let mut loss = L1(&targets);
+            let mut trainer = Trainer::new(
+                &SplatDevice::Cpu,
+                &loss,
+                targets.iter().map(|t| t.as_slice()),
+                settings.background,
+            );
+            if freeze {
+                trainer.freeze_geometry();
+            }
+            let kind = StepKind::Ordinary {
+                track_stats: false,
+                read_loss: false,
+            };
+            let mut geometry_grads = false;
+            for step in 0..24 {
+                let v = (step * 5) % cams.len();
+                let out = trainer
+                    .step(&mut state, &cams[v], v, &mut loss, kind)
+                    .unwrap();
+                let StepOutcome::Host { grads, .. } = out else {
+                    panic!("a CPU step runs on the host")
+                };
+                geometry_grads |= grads.means.iter().any(|g| *g != 0.0);
+            }
+            (state, geometry_grads)
+        };
+        let (full, full_geometry) = fit(false);
+        let (frozen, frozen_geometry) = fit(true);
+        assert!(full_geometry && !frozen_geometry);
+        let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+        assert_ne!(
+            bits(&full.scene.sh),
+            bits(&scene.sh),
+            "the fit moved the colours"
+        );
+        assert_eq!(bits(&full.scene.sh), bits(&frozen.scene.sh));
+        assert_eq!(
+            bits(&full.scene.opacity_logits),
+            bits(&frozen.scene.opacity_logits)
+        );
+        assert_eq!(bits(&full.scene.means), bits(&frozen.scene.means));
+
+        // With a position rate the frozen trainer runs the full pass.
+        let mut state = TrainState::new(scene.clone(), LearningRates::inria(100), 1.0);
+        let mut loss = L1(&targets);
+        let mut trainer = Trainer::new(
+            &SplatDevice::Cpu,
+            &loss,
+            targets.iter().map(|t| t.as_slice()),
+            settings.background,
+        );
+        trainer.freeze_geometry();
+        let kind = StepKind::Ordinary {
+            track_stats: false,
+            read_loss: false,
+        };
+        let out = trainer
+            .step(&mut state, &cams[0], 0, &mut loss, kind)
+            .unwrap();
+        let StepOutcome::Host { grads, .. } = out else {
+            panic!("a CPU step runs on the host")
+        };
+        assert!(grads.means.iter().any(|g| *g != 0.0));
     }
 }
