@@ -210,8 +210,8 @@ impl SceneFitter for EcmFitter<'_> {
     }
 
     /// On the CPU the target and layout fits run side by side: a step's parallel loops are short at
-    /// editing sizes, so one fit alone leaves cores idle between them (the demo's ECM takes ~30 % less
-    /// time on 2 cores). The results are the same: no result of a fit depends on the threads' timing. On
+    /// editing sizes, so one fit alone leaves cores idle between them (two fits take ~17 % less wall
+    /// time on 2 cores, docs/performance.md). The results are the same: no result of a fit depends on the threads' timing. On
     /// a GPU the two fits would only queue on the one device and double its memory: one after the other.
     fn fit_pair(
         &self,

@@ -240,9 +240,9 @@ pub fn render_backward(
     backward_of_render(scene, camera, settings, extra, out, grads, true)
 }
 
-/// [`render_backward`] for fits that keep the geometry: the gradients of the opacities, SH coefficients,
-/// extra channels and screen positions (`means2d`, from the rasteriser); those of the means, scales and
-/// rotations are left at zero, their part of the projection's backward pass is skipped.
+/// [`render_backward`] (without extra channels) for fits that keep the geometry: the gradients of the
+/// opacities, SH coefficients and screen positions (`means2d`, from the rasteriser); those of the means,
+/// scales and rotations are left at zero, their part of the projection's backward pass is skipped.
 pub fn render_backward_appearance(
     scene: &GaussianScene,
     camera: &Camera,
