@@ -195,6 +195,10 @@ if have_torch; then step matmul-torch 60 python3 "$TB" matmul --shapes "$SHAPES"
 # The f16 weight product on each of the library's tensor-core routines: which one a card should use.
 if [ "$MODE" = device ]; then ROUTINES=all; else ROUTINES=simple_cyclic_cmma,double_cyclic_cmma; fi
 step matmul-routines 150 "$V" bench matmul --precisions f16 --shapes "$SHAPES" --routines "$ROUTINES" --repeat "$REPEAT" --runs 3
+# The default routine on a grid of tilings (planes per cube, stage depth, rows per plane, buffering):
+# every routine ran at 5-15 TFLOP/s on an H200 where cuBLAS reaches 155, so the tiling is the suspect.
+if [ "$MODE" = device ]; then TILINGS=grid; else TILINGS="default;planes=4,k=2"; fi
+step matmul-tilings 200 "$V" bench matmul --precisions f16 --shapes "$SHAPES" --tilings "$TILINGS" --repeat "$REPEAT" --runs 2
 
 # ---- attention at SD 1.5's shapes (one view's six branches × 8 heads): our flash kernel against products
 # around a softmax (the default for heads wider than 8; tensor cores where the card has them); PyTorch SDPA
@@ -238,6 +242,26 @@ if [ "$MODE" = device ] && [ -n "$BEST_ROUTINE" ]; then
   # summarize.py labels the step's rows with it.
   echo "$BEST_ROUTINE" > "$WORK/unet-routine.name"
   step unet-routine 120 env VCEDIT_GPU_MATMUL_ROUTINE="$BEST_ROUTINE" "$V" bench unet --model "$MODEL" --device gpu --size "$LAT" --batches 1,6 --hooks none --runs "$RUNS"
+fi
+# The whole forward on the tiling that was fastest at 4096x320x1280 in `matmul-tilings` (every product of
+# the default routine takes it where the library's inference accepts it for the shape).
+BEST_TILING=$(python3 - "$WORK/matmul-tilings.out" <<'PY' 2>/dev/null
+import json, sys
+best = None
+for line in open(sys.argv[1], errors="replace"):
+    if line.startswith("RESULT "):
+        r = json.loads(line[7:])
+        ran = r.get("tiled") or r.get("tiling") == "default"
+        if r.get("n") == 1280 and r.get("route") == r.get("routine") and ran and r.get("tflops"):
+            if best is None or r["tflops"] > best["tflops"]:
+                best = r
+print(best["tiling"] if best and best["tiling"] != "default" else "")
+PY
+)
+if [ "$MODE" = device ] && [ -n "$BEST_TILING" ]; then
+  say "   fastest tiling at 4096x320x1280: $BEST_TILING"
+  echo "$BEST_TILING" > "$WORK/unet-tiling.name"
+  step unet-tiling 120 env VCEDIT_GPU_MATMUL_TILING="$BEST_TILING" "$V" bench unet --model "$MODEL" --device gpu --size "$LAT" --batches 1,6 --hooks none --runs "$RUNS" --check
 fi
 step unet-wgsl 120 env VCEDIT_GPU_COMPILER=wgsl "$V" bench unet --model "$MODEL" --device gpu --size "$LAT" --batches 6 --hooks none --runs "$RUNS"
 if have_torch; then

@@ -157,18 +157,31 @@ def build_table(res, steps, mode, torch_present, work):
     for r in [x for x in res.get("matmul-routines", []) if x.get("bench") == "matmul"]:
         shape = f"{r['m']}x{r['k']}x{r['n']}"
         t = find(mt, precision="f16", m=r["m"], k=r["k"], n=r["n"])
-        line = row(f"matmul {shape}, f16 weights, routine {r.get('routine')} (ran as {r.get('route')}) (TFLOP/s)",
+        what = "" if r.get("what") == "linear" else ", activations × activations"
+        line = row(f"matmul {shape}{what}, f16 weights, routine {r.get('routine')} (ran as {r.get('route')}) (TFLOP/s)",
+                   r.get("tflops"), t.get("tflops") if t else None, fmt_s(r.get("first_s")),
+                   f"rel. error vs CPU f32 {r['rel_err']:.1e}" if r.get("rel_err") is not None else "")
+        if t:
+            line["ratio_vcedit_over_pytorch"] = ratio(r["ms"], t["ms"])
+    for r in [x for x in res.get("matmul-tilings", []) if x.get("bench") == "matmul"]:
+        shape = f"{r['m']}x{r['k']}x{r['n']}"
+        t = find(mt, precision="f16", m=r["m"], k=r["k"], n=r["n"])
+        taken = "" if r.get("tiled") or r.get("tiling") == "default" else ", not taken"
+        line = row(f"matmul {shape}, f16 weights, {r.get('route')}, tiling {r.get('tiling')}{taken} (TFLOP/s)",
                    r.get("tflops"), t.get("tflops") if t else None, fmt_s(r.get("first_s")),
                    f"rel. error vs CPU f32 {r['rel_err']:.1e}" if r.get("rel_err") is not None else "")
         if t:
             line["ratio_vcedit_over_pytorch"] = ratio(r["ms"], t["ms"])
     ut, ut32 = res.get("unet-torch", []), res.get("unet-torch-f32", [])
-    # The routine run.sh chose for `unet-routine` (the fastest of `matmul-routines`).
-    name_path = os.path.join(work, "unet-routine.name")
-    best = open(name_path).read().strip() if os.path.exists(name_path) else "?"
+    # The routine and tiling run.sh chose for `unet-routine` / `unet-tiling` (the fastest of
+    # `matmul-routines` / `matmul-tilings`).
+    def chosen(name):
+        path = os.path.join(work, name)
+        return open(path).read().strip() if os.path.exists(path) else "?"
     for step_name, label in (("unet", ""), ("unet-tasks", ", 256 tasks per submission, 2nd process"),
                              ("unet-flash", ", flash attention for every head"), ("unet-wgsl", ", WGSL"),
-                             ("unet-routine", f", routine {best}")):
+                             ("unet-routine", f", routine {chosen('unet-routine.name')}"),
+                             ("unet-tiling", f", tiling {chosen('unet-tiling.name')}")):
         for r in res.get(step_name, []):
             t = find(ut, batch=r["batch"])
             err = f"; rel. error vs CPU {r['rel_err']:.1e}" if r.get("rel_err") is not None else ""

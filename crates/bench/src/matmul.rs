@@ -3,12 +3,19 @@
 //! transposed, in the device's weight precision) and, for f32, as a plain activation × activation product.
 //!
 //! `vcedit bench matmul [--runs 3] [--repeat 20] [--device gpu] [--precisions f32,f16]
-//! [--shapes 4096x320x320,4096x320x1280] [--routines simple_cyclic_cmma,double_cyclic_cmma,…|all]`
+//! [--shapes 4096x320x320,4096x320x1280] [--routines simple_cyclic_cmma,double_cyclic_cmma,…|all]
+//! [--tilings grid|SPEC;SPEC…]`
 //!
-//! `--routines` times the f16 linear product on each of the library's tensor-core routines
+//! `--routines` times the f16 products (the linear layer and, as f16 operands, the activation ×
+//! activation product) on each of the library's tensor-core routines
 //! (`ops::TENSOR_CORE_ROUTINES`; `all` for every one): which is fastest differs between cards. Each
 //! result names the route the product took (`route`): the routine, or `unit` where the card has no tensor
 //! cores or the routine declined the shape.
+//!
+//! `--tilings grid|SPEC;SPEC…` times the f16 linear product on each tiling (`ops::Tiling`: `grid` is
+//! `Tiling::grid()`, a SPEC is e.g. `planes=8,k=4,rows=2,buffer=double`) of the default routine, or of
+//! each of `--routines`. `tiled` in the result says whether the product ran on the tiling (false: the
+//! inference or the launch declined it for the shape, and the routine's own tiling ran).
 //!
 //! The first call (kernel compilation) is timed on its own; each warm run then launches the product
 //! `--repeat` times and waits for the device once, so the time is the device's, not one read-back's
@@ -48,7 +55,11 @@ pub fn main(args: &[String]) -> Result<()> {
         .split(',')
         .map(parse_shape)
         .collect::<Result<Vec<_>>>()?;
-    let routines = parse_routines(arg_value(args, "--routines").as_deref())?;
+    let mut routines = parse_routines(arg_value(args, "--routines").as_deref())?;
+    let tilings = parse_tilings(arg_value(args, "--tilings").as_deref())?;
+    if !tilings.is_empty() && routines.is_empty() {
+        routines.push(ops::DEFAULT_TENSOR_CORE_ROUTINE);
+    }
     for precision in precisions {
         let device = GpuDevice::with_precision(context.clone(), precision);
         eprintln!(
@@ -65,31 +76,48 @@ pub fn main(args: &[String]) -> Result<()> {
             let gw = device.cached_matrix(&w)?;
             let mut products: Vec<(&str, Box<Product>)> =
                 vec![("linear", Box::new(|| ops::linear(&ga, &gw, None)))];
-            if precision == Precision::F32 {
-                // Activation × activation products do not depend on the weight precision.
+            // Activation × activation products do not depend on the weight precision, but with f16
+            // weights they take f16 operands on tensor cores, and some routines take only row-major
+            // operands (a linear layer's weight is read transposed): each routine meets both.
+            if precision == Precision::F32 || !routines.is_empty() {
                 products.push(("matmul", Box::new(|| ops::matmul(&ga, &gb))));
             }
             let path = ops::matmul_path(&device);
-            // The weight product once per asked routine (f16 weights: tensor-core operands), else once.
-            let runs_of = |what: &str| -> Vec<Option<&'static str>> {
-                if what == "linear" && precision == Precision::F16 && !routines.is_empty() {
-                    routines.iter().copied().map(Some).collect()
-                } else {
-                    vec![None]
+            // Each product once per asked routine and tiling (f16 weights: tensor-core operands),
+            // else once.
+            let runs_of = |what: &str| -> Vec<(Option<&'static str>, Option<ops::Tiling>)> {
+                if precision != Precision::F16 || routines.is_empty() {
+                    return vec![(None, None)];
                 }
+                // Tilings for the linear layer only: the networks' products are mostly weights.
+                let tilings: Vec<Option<ops::Tiling>> = if tilings.is_empty() || what != "linear" {
+                    vec![None]
+                } else {
+                    tilings.iter().copied().map(Some).collect()
+                };
+                routines
+                    .iter()
+                    .flat_map(|r| tilings.iter().map(move |t| (Some(*r), *t)))
+                    .collect()
             };
             for (what, product) in &products {
-                for routine in runs_of(what) {
+                for (routine, tiling) in runs_of(what) {
                     let product = || -> candle_core::Result<GpuTensor> {
-                        match routine {
-                            Some(name) => ops::with_tensor_core_routine(name, product)?,
+                        let tiled = || match tiling {
+                            Some(t) => ops::with_matmul_tiling(t, product),
                             None => product(),
+                        };
+                        match routine {
+                            Some(name) => ops::with_tensor_core_routine(name, tiled)?,
+                            None => tiled(),
                         }
                     };
                     let start = Instant::now();
                     let got = product()?.to_cpu()?;
                     let first = start.elapsed();
                     let route = ops::last_product_route();
+                    let tiled = ops::last_product_tiled();
+                    let tiling_name = tiling.map(|t| t.to_string());
                     // The product checked against the CPU's f32 one: the error the path's rounding costs.
                     let want = if *what == "linear" {
                         a.matmul(&w.t()?)?
@@ -107,12 +135,18 @@ pub fn main(args: &[String]) -> Result<()> {
                         best = best.min(start.elapsed().as_secs_f64() / repeat as f64);
                     }
                     let tflops = 2.0 * (m * k * n) as f64 / best / 1e12;
+                    let on_tiling = match (tiling, tiled) {
+                        (None, _) => String::new(),
+                        (Some(t), _) if t.is_default() => ", the routine's own tiling".into(),
+                        (Some(t), true) => format!(", tiling {t}"),
+                        (Some(t), false) => format!(", tiling {t} not taken"),
+                    };
                     eprintln!(
-                    "  {what} {m}x{k}x{n} ({path}, {route}): {:.3} ms, {tflops:.2} TFLOP/s (first call \
-                     {:.1} ms), relative error {rel_err:.1e}",
-                    best * 1e3,
-                    first.as_secs_f64() * 1e3
-                );
+                        "  {what} {m}x{k}x{n} ({path}, {route}{on_tiling}): {:.3} ms, {tflops:.2} \
+                         TFLOP/s (first call {:.1} ms), relative error {rel_err:.1e}",
+                        best * 1e3,
+                        first.as_secs_f64() * 1e3
+                    );
                     report(serde_json::json!({
                         "bench": "matmul",
                         "what": what,
@@ -127,7 +161,9 @@ pub fn main(args: &[String]) -> Result<()> {
                         "compiler": context.compiler,
                         "path": path.to_string(),
                         "routine": routine,
-                    "route": route,
+                        "route": route,
+                        "tiling": tiling_name,
+                        "tiled": tiled,
                         "rel_err": rel_err,
                     }));
                 }
@@ -160,6 +196,20 @@ fn parse_routines(value: Option<&str>) -> Result<Vec<&'static str>> {
     }
 }
 
+/// `--tilings`: `grid`, or tilings separated by `;`; none when absent.
+fn parse_tilings(value: Option<&str>) -> Result<Vec<ops::Tiling>> {
+    match value {
+        None => Ok(Vec::new()),
+        Some("grid") => Ok(ops::Tiling::grid()),
+        Some(list) => list
+            .split(';')
+            .map(|spec| {
+                ops::Tiling::parse(spec).map_err(|e| BenchError::new(format!("--tilings: {e}")))
+            })
+            .collect(),
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -177,6 +227,21 @@ mod tests {
         );
         let e = parse_routines(Some("fast")).unwrap_err().to_string();
         assert!(e.contains("unknown routine 'fast'"), "{e}");
+    }
+
+    #[test]
+    fn tilings_parse_or_say_what_is_wrong() {
+        assert!(parse_tilings(None).unwrap().is_empty());
+        assert_eq!(parse_tilings(Some("grid")).unwrap(), ops::Tiling::grid());
+        let two = parse_tilings(Some("default;planes=4,k=4")).unwrap();
+        assert_eq!(two.len(), 2);
+        assert!(two[0].is_default());
+        assert_eq!(two[1].to_string(), "planes=4,k=4");
+        let e = parse_tilings(Some("planes=4;k=0")).unwrap_err().to_string();
+        assert!(
+            e.starts_with("--tilings: ") && e.contains("k must be"),
+            "{e}"
+        );
     }
 
     #[test]

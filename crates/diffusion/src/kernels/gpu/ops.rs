@@ -12,6 +12,9 @@ use super::cube::{
 };
 use super::GpuTensor;
 
+mod tiling;
+pub use tiling::Tiling;
+
 /// Largest head width the flash kernel is compiled for (its rows live in registers); wider heads go
 /// through the explicit-probabilities path.
 const FLASH_MAX_HEAD_DIM: usize = 256;
@@ -694,8 +697,12 @@ fn library_gemm(
 /// `_multi_rows`: the library's other tiling for the simple routines (8×32×16 tiles, four partitions of
 /// rows per plane); `_specialized`: double buffering with planes specialised into loaders and computers.
 /// On an H200 (2026-11-27) the seven routines without a suffix reached 5–14 TFLOP/s at 4096×320×1280
-/// against cuBLAS's 155, so the tilings are the next thing to measure.
-pub const TENSOR_CORE_ROUTINES: [&str; 13] = [
+/// against cuBLAS's 155, so the tilings are the next thing to measure ([`Tiling`]). `tiled_cmma` is the
+/// library's other kernel family (written on its tile DSL: double-buffered stages sized to the shared
+/// memory, a swizzled cube order); it takes row-major operands whose shape its stage divides, so a
+/// linear layer's transposed weight goes to the unit routine, and only activation × activation products
+/// (attention, `vcedit bench matmul`'s `matmul`) measure it.
+pub const TENSOR_CORE_ROUTINES: [&str; 14] = [
     "simple_cyclic_cmma",
     "simple_cyclic_cmma_multi_rows",
     "simple_strided_cmma",
@@ -709,6 +716,7 @@ pub const TENSOR_CORE_ROUTINES: [&str; 13] = [
     "specialized_cyclic_cmma",
     "simple_cyclic_mma",
     "double_cyclic_mma",
+    "tiled_cmma",
 ];
 
 /// The routine products take on tensor cores unless told otherwise (the library's own first choice).
@@ -719,6 +727,41 @@ thread_local! {
     static ROUTINE_OVERRIDE: std::cell::Cell<Option<&'static str>> = const { std::cell::Cell::new(None) };
     /// How the last product of this thread ran: a routine name, `unit`, `unit-f16` or `own`.
     static LAST_ROUTE: std::cell::Cell<&'static str> = const { std::cell::Cell::new("own") };
+    /// Set by benches to run this thread's tensor-core products on one tiling.
+    static TILING_OVERRIDE: std::cell::Cell<Option<Tiling>> = const { std::cell::Cell::new(None) };
+    /// Whether the last library product of this thread ran on the asked tiling.
+    static LAST_TILED: std::cell::Cell<bool> = const { std::cell::Cell::new(false) };
+}
+
+/// Runs `f` with this thread's tensor-core products on `tiling` where it applies (the simple routines;
+/// a shape it does not fit keeps the routine's own tiling).
+pub fn with_matmul_tiling<T>(tiling: Tiling, f: impl FnOnce() -> T) -> T {
+    let before = TILING_OVERRIDE.replace(Some(tiling));
+    let result = f();
+    TILING_OVERRIDE.set(before);
+    result
+}
+
+/// Whether the last library product of this thread ran on the tiling asked for (not on the routine's
+/// own, and not on the unit routine).
+pub fn last_product_tiled() -> bool {
+    LAST_TILED.get()
+}
+
+/// The tiling of this thread's tensor-core products: a bench's choice, else `VCEDIT_GPU_MATMUL_TILING`
+/// (see [`Tiling::parse`]; one that does not parse is said once on stderr and not used), else the
+/// library's own.
+fn matmul_tiling() -> Tiling {
+    static FROM_ENV: std::sync::OnceLock<Tiling> = std::sync::OnceLock::new();
+    TILING_OVERRIDE.get().unwrap_or_else(|| {
+        *FROM_ENV.get_or_init(|| {
+            let spec = std::env::var("VCEDIT_GPU_MATMUL_TILING").unwrap_or_default();
+            Tiling::parse(&spec).unwrap_or_else(|e| {
+                eprintln!("VCEDIT_GPU_MATMUL_TILING ignored: {e}");
+                Tiling::default()
+            })
+        })
+    })
 }
 
 /// Runs `f` with this thread's tensor-core products on routine `name` (one of [`TENSOR_CORE_ROUTINES`];
@@ -759,10 +802,14 @@ fn tensor_core_routine() -> &'static str {
 }
 
 /// The library strategy of a routine of [`TENSOR_CORE_ROUTINES`].
-fn tensor_core_strategy(name: &str) -> cubek_matmul::multi_level::Strategy {
+fn tensor_core_strategy(name: &str) -> cubek_matmul::strategy::Strategy {
     use cubek_matmul::multi_level::routines::batch::{double_buffering, simple};
     use cubek_matmul::multi_level::Strategy as R;
     use cubek_matmul::routine::BlueprintStrategy::Inferred;
+    if name == "tiled_cmma" {
+        let tiled = cubek_matmul::tiled::Strategy::Cmma(Default::default());
+        return cubek_matmul::strategy::Strategy::Tiled(tiled);
+    }
     let multi_rows = simple::SimpleArgs {
         multi_rows: true,
         ..Default::default()
@@ -771,7 +818,7 @@ fn tensor_core_strategy(name: &str) -> cubek_matmul::multi_level::Strategy {
         specialized: true,
         ..Default::default()
     };
-    match name {
+    let routine = match name {
         "simple_cyclic_cmma_multi_rows" => R::SimpleCyclicCmma(Inferred(multi_rows)),
         "simple_strided_cmma_multi_rows" => R::SimpleStridedCmma(Inferred(multi_rows)),
         "double_cyclic_cmma_specialized" => R::DoubleCyclicCmma(Inferred(specialized)),
@@ -785,7 +832,8 @@ fn tensor_core_strategy(name: &str) -> cubek_matmul::multi_level::Strategy {
         "simple_cyclic_mma" => R::SimpleCyclicMma(Default::default()),
         "double_cyclic_mma" => R::DoubleCyclicMma(Default::default()),
         _ => R::SimpleCyclicCmma(Default::default()),
-    }
+    };
+    cubek_matmul::strategy::Strategy::MultiLevel(routine)
 }
 
 fn library_gemm_on(
@@ -835,19 +883,39 @@ fn library_gemm_on(
         rhs: operand,
         out: f32_type,
     });
-    let routine = match path {
-        MatmulPath::TensorCores => tensor_core_strategy(tensor_core_routine()),
-        _ => Routine::SimpleUnit(Default::default()),
+    let lhs = || InputBinding::new(a.binding(&[batch, m, g.k], &a_strides), operand);
+    let rhs = || InputBinding::new(b.binding(&[batch, g.k, g.n], &b_strides), operand);
+    let dst = || out.binding(&[batch, m, g.n], &[m * g.n, g.n, 1]);
+    let launch = |strategy: Strategy, dtypes: &mut MatmulElems| {
+        cubek_matmul::launch::launch_ref(&strategy, a.client(), lhs(), rhs(), dst(), dtypes).is_ok()
     };
-    let launched = cubek_matmul::launch::launch_ref(
-        &Strategy::MultiLevel(routine),
-        a.client(),
-        InputBinding::new(a.binding(&[batch, m, g.k], &a_strides), operand),
-        InputBinding::new(b.binding(&[batch, g.k, g.n], &b_strides), operand),
-        out.binding(&[batch, m, g.n], &[m * g.n, g.n, 1]),
-        &mut dtypes,
-    );
-    launched.ok().map(|()| out)
+    LAST_TILED.set(false);
+    if path == MatmulPath::TensorCores {
+        let name = tensor_core_routine();
+        let tiling = matmul_tiling();
+        if !tiling.is_default() {
+            // A tiling the inference or the launch declines for this shape leaves the routine's own.
+            let mut tiled_dtypes = dtypes.clone();
+            let forced = tiling::forced_routine(
+                name,
+                &tiling,
+                a.client(),
+                &lhs(),
+                &rhs(),
+                &dst(),
+                &tiled_dtypes,
+            );
+            if forced
+                .is_some_and(|routine| launch(Strategy::MultiLevel(routine), &mut tiled_dtypes))
+            {
+                LAST_TILED.set(true);
+                return Some(out);
+            }
+        }
+        return launch(tensor_core_strategy(name), &mut dtypes).then_some(out);
+    }
+    let unit = Routine::SimpleUnit(Default::default());
+    launch(Strategy::MultiLevel(unit), &mut dtypes).then_some(out)
 }
 
 /// Batched matrix product a [.., m, k] × b [.., k, n] → [.., m, n]; a rank-2 `b` is shared by every batch.
