@@ -163,7 +163,7 @@ def build_table(res, steps, mode, torch_present, work):
                    f"rel. error vs CPU f32 {r['rel_err']:.1e}" if r.get("rel_err") is not None else "")
         if t:
             line["ratio_vcedit_over_pytorch"] = ratio(r["ms"], t["ms"])
-    for r in [x for x in res.get("matmul-tilings", []) if x.get("bench") == "matmul"]:
+    for r in [x for x in res.get("matmul-tilings", []) if x.get("bench") == "matmul" and x.get("tiling")]:
         shape = f"{r['m']}x{r['k']}x{r['n']}"
         t = find(mt, precision="f16", m=r["m"], k=r["k"], n=r["n"])
         taken = "" if r.get("tiled") or r.get("tiling") == "default" else ", not taken"

@@ -55,8 +55,9 @@ pub fn main(args: &[String]) -> Result<()> {
         .split(',')
         .map(parse_shape)
         .collect::<Result<Vec<_>>>()?;
-    let mut routines = parse_routines(arg_value(args, "--routines").as_deref())?;
+    let asked_routines = parse_routines(arg_value(args, "--routines").as_deref())?;
     let tilings = parse_tilings(arg_value(args, "--tilings").as_deref())?;
+    let mut routines = asked_routines.clone();
     if !tilings.is_empty() && routines.is_empty() {
         routines.push(ops::DEFAULT_TENSOR_CORE_ROUTINE);
     }
@@ -79,7 +80,7 @@ pub fn main(args: &[String]) -> Result<()> {
             // Activation × activation products do not depend on the weight precision, but with f16
             // weights they take f16 operands on tensor cores, and some routines take only row-major
             // operands (a linear layer's weight is read transposed): each routine meets both.
-            if precision == Precision::F32 || !routines.is_empty() {
+            if precision == Precision::F32 || !asked_routines.is_empty() {
                 products.push(("matmul", Box::new(|| ops::matmul(&ga, &gb))));
             }
             let path = ops::matmul_path(&device);
