@@ -114,7 +114,20 @@ pub fn main(args: &[String]) -> Result<()> {
                         }
                     };
                     let start = Instant::now();
-                    let got = product()?.to_cpu()?;
+                    // A routine or tiling the library accepts but cannot compile panics inside it: say
+                    // so and go on with the next (one failed tiling must not end a card's sweep).
+                    let first_call = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+                        product().and_then(|p| p.to_cpu())
+                    }));
+                    let Ok(got) = first_call else {
+                        eprintln!(
+                            "  {what} {m}x{k}x{n}: routine {} tiling {} panicked; skipped",
+                            routine.unwrap_or("default"),
+                            tiling.map_or("default".into(), |t| t.to_string())
+                        );
+                        continue;
+                    };
+                    let got = got?;
                     let first = start.elapsed();
                     let route = ops::last_product_route();
                     let tiled = ops::last_product_tiled();

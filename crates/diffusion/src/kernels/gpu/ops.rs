@@ -736,10 +736,16 @@ thread_local! {
 /// Runs `f` with this thread's tensor-core products on `tiling` where it applies (the simple routines;
 /// a shape it does not fit keeps the routine's own tiling).
 pub fn with_matmul_tiling<T>(tiling: Tiling, f: impl FnOnce() -> T) -> T {
-    let before = TILING_OVERRIDE.replace(Some(tiling));
-    let result = f();
-    TILING_OVERRIDE.set(before);
-    result
+    /// Puts the thread's previous tiling back, also when `f` panics (a bench that catches the panic of
+    /// one tiling goes on with the next).
+    struct Restore(Option<Tiling>);
+    impl Drop for Restore {
+        fn drop(&mut self) {
+            TILING_OVERRIDE.set(self.0);
+        }
+    }
+    let _restore = Restore(TILING_OVERRIDE.replace(Some(tiling)));
+    f()
 }
 
 /// Whether the last library product of this thread ran on the tiling asked for (not on the routine's
@@ -773,10 +779,15 @@ pub fn with_tensor_core_routine<T>(name: &str, f: impl FnOnce() -> T) -> Result<
             TENSOR_CORE_ROUTINES.join(", ")
         );
     };
-    let before = ROUTINE_OVERRIDE.replace(Some(known));
-    let result = f();
-    ROUTINE_OVERRIDE.set(before);
-    Ok(result)
+    /// Puts the thread's previous routine back, also when `f` panics.
+    struct Restore(Option<&'static str>);
+    impl Drop for Restore {
+        fn drop(&mut self) {
+            ROUTINE_OVERRIDE.set(self.0);
+        }
+    }
+    let _restore = Restore(ROUTINE_OVERRIDE.replace(Some(known)));
+    Ok(f())
 }
 
 /// How the last product of this thread ran: the tensor-core routine's name, `unit` (also where tensor

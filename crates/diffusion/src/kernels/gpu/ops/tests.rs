@@ -684,6 +684,24 @@ fn tensor_core_routines_are_known_by_their_library_names() {
         .contains("unknown tensor-core routine 'fastest'"));
 }
 
+/// A bench that catches one routine's or tiling's panic goes on with the thread's own choice.
+#[test]
+fn routine_and_tiling_overrides_end_with_a_panic() {
+    let tiling = Tiling::parse("planes=4,k=2").unwrap();
+    let caught = std::panic::catch_unwind(|| {
+        with_matmul_tiling(tiling, || {
+            assert_eq!(matmul_tiling(), tiling);
+            with_tensor_core_routine("double_cyclic_cmma", || {
+                assert_eq!(tensor_core_routine(), "double_cyclic_cmma");
+                panic!("a kernel the card cannot compile")
+            })
+        })
+    });
+    assert!(caught.is_err());
+    assert!(matmul_tiling().is_default());
+    assert_eq!(tensor_core_routine(), DEFAULT_TENSOR_CORE_ROUTINE);
+}
+
 #[test]
 fn vgg_feature_loss_ops_match_cpu() {
     let Some(dev) = device_or_skip() else {
