@@ -4,17 +4,19 @@
 //! `vcedit bench render` (add `quick` for one size, `stages` for a per-stage breakdown, `channels` for
 //! extra-channel rendering and lifting with 24..300 channels).
 //!
-//! `gpu`: forward, backward and a full fit step (render, L1 + D-SSIM, backward, Adam, densification
-//! statistics) on the GPU beside the CPU, at 125k and 1M Gaussians, 512² and 1920x1080; `gpu quick`:
-//! 30k at 512². Filters select cases: `n=125k,1m size=512,1080p device=cpu,gpu
-//! stage=forward,backward,step runs=3 sh=3`, e.g. `gpu n=1m size=1080p device=gpu runs=1` (lavapipe
+//! `gpu`: forward, backward, a full fit step (render, L1 + D-SSIM, backward, Adam, densification
+//! statistics) and ECM's appearance step (the same with the geometry's rates at 0 and its projection
+//! kept, no statistics; on the GPU 10 steps per wait for the device, as a fit queues them) beside the CPU, at 125k and 1M Gaussians, 512² and 1920x1080; `gpu
+//! quick`: 30k at 512². Filters select cases: `n=125k,1m size=512,1080p device=cpu,gpu
+//! stage=forward,backward,step,appearance runs=3 sh=3`, e.g. `gpu n=1m size=1080p device=gpu runs=1` (lavapipe
 //! binds at most 128 MiB per buffer: 1M Gaussians need `sh=2` there). One `RESULT` line per
 //! measurement, then a markdown table. Scenes: [`crate::scenes`].
 
 use splat::cameras::orbit::look_at;
 use splat::lift::lift;
 use splat::render::{
-    profile_stages, render, render_backward, ExtraChannels, OutputGrads, RenderSettings,
+    profile_stages, render, render_backward, render_backward_appearance, ExtraChannels, FrozenView,
+    OutputGrads, RenderSettings,
 };
 use splat::{Camera, GaussianScene};
 use std::time::{Duration, Instant};
@@ -174,21 +176,22 @@ struct Timings {
     forward: Option<Duration>,
     backward: Option<Duration>,
     step: Option<Duration>,
+    appearance: Option<Duration>,
 }
 
-/// What the command line selects: `n=125k,1m size=512,1080p device=cpu,gpu stage=forward,backward,step
-/// runs=N sh=D` (each optional; comma-separated values; `sh`: the scenes' SH degree, 3 by default).
+/// What the command line selects: `n=125k,1m size=512,1080p device=cpu,gpu
+/// stage=forward,backward,step,appearance runs=N sh=D` (each optional; comma-separated values; `sh`: the scenes' SH degree, 3 by default).
 struct Selection {
     counts: Vec<usize>,
     sizes: Vec<(u32, u32)>,
     cpu: bool,
     gpu: bool,
-    stages: [bool; 3],
+    stages: [bool; 4],
     runs: Option<usize>,
     sh_degree: u32,
 }
 
-const STAGES: [&str; 3] = ["forward", "backward", "step"];
+const STAGES: [&str; 4] = ["forward", "backward", "step", "appearance"];
 
 fn parse_count(s: &str) -> Option<usize> {
     let s = s.to_ascii_lowercase();
@@ -227,7 +230,7 @@ impl Selection {
             },
             cpu: true,
             gpu: true,
-            stages: [true; 3],
+            stages: [true; 4],
             runs: None,
             sh_degree: 3,
         };
@@ -319,7 +322,7 @@ fn report_line(
 }
 
 /// CPU: forward, backward and one fit step (render, L1 + D-SSIM, backward, Adam, densification stats).
-fn measure_cpu(scene: &GaussianScene, case: &Case, runs: usize, stages: [bool; 3]) -> Timings {
+fn measure_cpu(scene: &GaussianScene, case: &Case, runs: usize, stages: [bool; 4]) -> Timings {
     use splat::train::loss::l1_dssim;
     use splat::train::optim::LearningRates;
     use splat::train::{RenderedView, TrainState};
@@ -391,7 +394,56 @@ fn measure_cpu(scene: &GaussianScene, case: &Case, runs: usize, stages: [bool; 3
         report_line("cpu", case, "step", &steps, serde_json::Value::Null);
         out.step = Some(median(steps));
     }
+    if stages[3] {
+        let target = pattern_target(npix);
+        let mut state = appearance_state(scene);
+        let (w, h) = (cam.width as usize, cam.height as usize);
+        let t = Instant::now();
+        let view = FrozenView::new(scene, &cam);
+        let keep_ms = t.elapsed().as_secs_f64() * 1e3;
+        let mut steps = vec![];
+        for _ in 0..runs {
+            let t = Instant::now();
+            let frame = view.render(&state.scene, &settings);
+            let loss = l1_dssim(&frame.rgb, &target, w, h, 3, 0.2);
+            let g = render_backward_appearance(
+                &state.scene,
+                &cam,
+                &settings,
+                &frame,
+                &OutputGrads {
+                    rgb: &loss.grad,
+                    alpha: None,
+                    depth: None,
+                    extra: None,
+                },
+            );
+            state.step(&g);
+            steps.push(t.elapsed());
+        }
+        report_line(
+            "cpu",
+            case,
+            "appearance",
+            &steps,
+            serde_json::json!({"keep_ms": keep_ms}),
+        );
+        out.appearance = Some(median(steps));
+    }
     out
+}
+
+/// Steps per wait for the device in the GPU's appearance-step runs.
+const APPEARANCE_BATCH: usize = 10;
+
+/// A fit state whose means, scales and rotations have rate 0, as ECM's appearance fits.
+fn appearance_state(scene: &GaussianScene) -> splat::train::TrainState {
+    use splat::train::optim::{Group, LearningRates};
+    let mut state = splat::train::TrainState::new(scene.clone(), LearningRates::inria(30_000), 3.0);
+    for g in [Group::Means, Group::LogScales, Group::Quats] {
+        state.adam.group_lr_scale[g.index()] = 0.0;
+    }
+    state
 }
 
 /// A fixed dL/d rgb for the backward benches.
@@ -413,7 +465,7 @@ fn measure_gpu(
     scene: &GaussianScene,
     case: &Case,
     runs: usize,
-    stages: [bool; 3],
+    stages: [bool; 4],
 ) -> std::result::Result<Timings, gpu::GpuError> {
     use splat::stages::{
         render_backward_device, render_device, DeviceTrainer, GpuOutputGrads, GpuScene,
@@ -503,6 +555,36 @@ fn measure_gpu(
         );
         out.step = Some(median(steps));
     }
+    if stages[3] {
+        let mut state = appearance_state(scene);
+        let mut trainer = DeviceTrainer::upload(ctx, &state);
+        trainer.freeze_geometry();
+        let target = gpu::prims::upload_f32(&ctx.client, &pattern_target(npix));
+        // A kept view's step reads nothing back, so steps queue on the device as in a fit: each run
+        // times `APPEARANCE_BATCH` steps and one wait, per step.
+        let mut steps_then_sync = |state: &mut TrainState, count: usize| {
+            let t = Instant::now();
+            for _ in 0..count {
+                trainer.step(ctx, &mut state.adam, &cam, &target, &settings, 0.2, false)?;
+            }
+            sync()?;
+            Ok::<_, gpu::GpuError>(t.elapsed() / count as u32)
+        };
+        // The first step compiles and keeps the view's projection and tile lists.
+        let first_step = steps_then_sync(&mut state, 1)?;
+        let mut steps = vec![];
+        for _ in 0..runs {
+            steps.push(steps_then_sync(&mut state, APPEARANCE_BATCH)?);
+        }
+        report_line(
+            "gpu",
+            case,
+            "appearance",
+            &steps,
+            serde_json::json!({"first_ms": first_step.as_secs_f64() * 1e3, "steps_per_sync": APPEARANCE_BATCH}),
+        );
+        out.appearance = Some(median(steps));
+    }
     Ok(out)
 }
 
@@ -564,20 +646,23 @@ fn main_gpu(args: &[String], quick: bool) -> Result<()> {
         "\nGPU = {device}; SH degree {}; medians in ms (runs in brackets).\n",
         sel.sh_degree
     );
-    println!("| Gaussians | size | device | forward | backward | fwd+bwd | fit step |");
-    println!("| --- | --- | --- | --- | --- | --- | --- |");
+    println!(
+        "| Gaussians | size | device | forward | backward | fwd+bwd | fit step | appearance step |"
+    );
+    println!("| --- | --- | --- | --- | --- | --- | --- | --- |");
     let ms =
         |d: Option<Duration>| d.map_or("–".into(), |d| format!("{:.1}", d.as_secs_f64() * 1e3));
     for (case, dev, runs, t) in rows {
         let both = t.forward.zip(t.backward).map(|(f, b)| f + b);
         println!(
-            "| {} | {} | {dev} ({runs}) | {} | {} | {} | {} |",
+            "| {} | {} | {dev} ({runs}) | {} | {} | {} | {} | {} |",
             case.count_label(),
             case.size_label(),
             ms(t.forward),
             ms(t.backward),
             ms(both),
-            ms(t.step)
+            ms(t.step),
+            ms(t.appearance)
         );
     }
     Ok(())

@@ -45,6 +45,22 @@ impl SplatDevice {
         matches!(self, SplatDevice::Cpu)
     }
 
+    /// Memory one appearance fit's kept views take ([`crate::train::Trainer::freeze_geometry`]): host
+    /// memory on the CPU, device memory on a GPU, for `views` views of `width`×`height` pixels and
+    /// `gaussians` Gaussians, within the per-fit budget. A GPU view's tile lists are only known once
+    /// binned: 4 pairs per Gaussian assumed.
+    pub fn kept_views_bytes(&self, gaussians: usize, views: usize, width: u32, height: u32) -> u64 {
+        let per_view = match self {
+            SplatDevice::Cpu => crate::render::FrozenView::memory_bytes_for(gaussians),
+            SplatDevice::Gpu(_) => {
+                crate::gpu::GpuFrozenGeometry::view_bytes(gaussians, 4 * gaussians, width, height)
+            }
+        };
+        views
+            .saturating_mul(per_view)
+            .min(FrozenGeometry::DEFAULT_BUDGET) as u64
+    }
+
     /// Renders `scene` from `camera`. `extra`: N*C values composited as extra channels.
     pub fn render(
         &self,

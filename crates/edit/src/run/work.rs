@@ -2,7 +2,6 @@
 
 use diffusion::device::Precision;
 use serde::Serialize;
-use splat::render::{FrozenGeometry, FrozenView};
 use splat::GaussianScene;
 
 use crate::consistency::EcmParams;
@@ -98,7 +97,7 @@ pub fn view_batch(job: &EditJob, model: &EditModel, scene: &GaussianScene, views
     let largest = 6 * lh * lw * (8 * width).max(8 * 77) * 4;
     let limits = gpu.context().limits;
     let budget = match (limits.free_bytes_at_open, limits.memory_bytes) {
-        (Some(free), _) => free.saturating_sub(gpu_state_bytes(job, model, scene)),
+        (Some(free), _) => free.saturating_sub(gpu_state_bytes(job, model, scene, views)),
         (None, Some(stated)) => stated / 3,
         (None, None) => AUTO_VIEW_BATCH_GPU_BYTES,
     };
@@ -121,7 +120,12 @@ const HEADS: u64 = 8;
 /// in the device cache), the fit's device state (scene, gradients, two Adam moments, anchor snapshot)
 /// and the one ECM fit alive at a time, one lifting's sums and one frame with CCM's channels, plus
 /// 100 MB of pools and small buffers. 0 on the CPU.
-pub fn gpu_state_bytes(job: &EditJob, model: &EditModel, scene: &GaussianScene) -> u64 {
+pub fn gpu_state_bytes(
+    job: &EditJob,
+    model: &EditModel,
+    scene: &GaussianScene,
+    views: usize,
+) -> u64 {
     let Some(gpu) = model.compute.networks().gpu() else {
         return 0;
     };
@@ -132,7 +136,26 @@ pub fn gpu_state_bytes(job: &EditJob, model: &EditModel, scene: &GaussianScene) 
     let (w, h) = (job.size.0 as u64, job.size.1 as u64);
     let n = scene.len() as u64;
     let frame = w * h * 4 * (3 + 1 + 1 + 3 * HEADS * 8);
-    weight_bytes + scene_param_bytes(scene) * 10 + n * 4 * (3 * HEADS * 8 + 1) + frame + 100_000_000
+    let kept_views = if ecm_keeps_views(job) {
+        let splat = model.compute.splat();
+        splat.kept_views_bytes(scene.len(), views, job.size.0, job.size.1)
+    } else {
+        0
+    };
+    weight_bytes
+        + scene_param_bytes(scene) * 10
+        + n * 4 * (3 * HEADS * 8 + 1)
+        + frame
+        + kept_views
+        + 100_000_000
+}
+
+/// Whether the run's ECM fits are appearance-only, and so keep each view's projection
+/// (`Trainer::freeze_geometry`).
+fn ecm_keeps_views(job: &EditJob) -> bool {
+    job.guidance == GuidanceMode::Joint
+        && !job.consistency.ecm.steps.is_empty()
+        && job.consistency.ecm.params == EcmParams::Appearance
 }
 
 /// The scene's trainable parameters in bytes (position, scale, rotation, opacity, SH).
@@ -239,10 +262,11 @@ pub fn work_plan(
     let n = scene.len() as u64;
     let params = scene_param_bytes(scene);
     // Editing state (params, grads, 2 moments, anchors) + two ECM copies; splits can grow the scene.
-    // Appearance-only ECM fits keep each view's projection, two fits at a time on the CPU.
-    let frozen_views = if ecm > 0 && job.consistency.ecm.params == EcmParams::Appearance {
-        let per_fit = v * FrozenView::memory_bytes_for(scene.len());
-        2 * per_fit.min(FrozenGeometry::DEFAULT_BUDGET) as u64
+    // Appearance-only ECM fits keep each view's projection, two fits at a time on the CPU (on a GPU
+    // they are device memory: `gpu_state_bytes`).
+    let splat = model.compute.splat();
+    let frozen_views = if ecm_keeps_views(job) && splat.is_cpu() {
+        2 * splat.kept_views_bytes(scene.len(), v, job.size.0, job.size.1)
     } else {
         0
     };
@@ -257,7 +281,7 @@ pub fn work_plan(
     // On a GPU: what the run keeps there (`gpu_state_bytes`) plus one hooked UNet call of `view_batch`
     // views (diffusion's documented upper bound, self-attention's score chunks included).
     let gpu_memory_bytes = model.compute.networks().gpu().map(|_| {
-        gpu_state_bytes(job, model, scene) + unet_call_bytes(model, view_batch, latent_size)
+        gpu_state_bytes(job, model, scene, v) + unet_call_bytes(model, view_batch, latent_size)
     });
     let gpu_free_bytes = model
         .compute
@@ -314,7 +338,7 @@ mod tests {
         let model = on(None, &mut ctx);
         let f = model.downscale();
         let (lh, lw) = (64 / f, 64 / f);
-        let state = gpu_state_bytes(&job, &model, &scene);
+        let state = gpu_state_bytes(&job, &model, &scene, 16);
         let needs = |views: usize| {
             state
                 + model
@@ -325,7 +349,7 @@ mod tests {
                     .total() as u64
         };
         assert!(state > 0 && needs(2) > needs(1));
-        assert_eq!(gpu_state_bytes(&job, &cpu, &scene), 0);
+        assert_eq!(gpu_state_bytes(&job, &cpu, &scene, 16), 0);
 
         let exactly_three = on(Some(needs(3)), &mut ctx);
         assert_eq!(view_batch(&job, &exactly_three, &scene, 16), 3);

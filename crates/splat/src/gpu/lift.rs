@@ -122,7 +122,7 @@ impl GpuLiftAccumulator {
             return Ok(());
         }
         gpu_call(|| {
-            let b = project_and_bin(ctx, &self.scene, cam)?;
+            let b = project_and_bin(ctx, &self.scene, cam, false)?;
             if b.intersections == 0 {
                 return Ok(());
             }

@@ -18,6 +18,7 @@
 
 mod anchor;
 mod densify;
+mod frozen;
 mod lift;
 mod loss;
 mod optim;
@@ -39,6 +40,7 @@ use ::gpu::prims::{
 pub use ::gpu::{GpuContext, GpuError};
 pub use anchor::GpuAnchor;
 pub use densify::GpuDensifyStats;
+pub use frozen::GpuFrozenGeometry;
 #[cfg(test)]
 pub use lift::lift;
 pub use lift::{lift_and_render_back, GpuLiftAccumulator};
@@ -123,6 +125,9 @@ pub struct GpuFrame {
     cam: Handle,
     tiles_x: u32,
     tiles_y: u32,
+    /// Whether the backward computes the geometry's gradients: false for a frame rendered from a kept
+    /// geometry ([`frozen`]), whose backward gives the opacity and SH gradients alone.
+    geometry_grads: bool,
 }
 
 /// Camera values in the kernels' layout, computed as `CameraR::<f32>` does (f64, then rounded).
@@ -157,7 +162,10 @@ pub fn render_device(
 }
 
 /// Projected and binned Gaussians of one view (stages 1 and 2).
-struct Binned {
+#[derive(Clone)]
+pub(crate) struct Binned {
+    width: u32,
+    height: u32,
     splats: Handle,
     info: Handle,
     ids: Handle,
@@ -169,10 +177,12 @@ struct Binned {
     tiles_y: u32,
 }
 
+/// With `keep_faint`, Gaussians below 1/255 opacity are binned too (see `project::project_forward`).
 fn project_and_bin(
     ctx: &GpuContext,
     scene: &GpuScene,
     camera: &Camera,
+    keep_faint: bool,
 ) -> Result<Binned, GpuError> {
     let c = &ctx.client;
     let n = scene.len;
@@ -202,12 +212,15 @@ fn project_and_bin(
             arg(&splats, SPLAT_F * n),
             arg(&info, INFO_U * n),
             scene.sh_degree,
+            keep_faint,
         );
     }
 
     // 2. Binning.
     let (ids, tile_start, tile_end, intersections) = bin(ctx, &info, n, tiles_x, num_tiles.max(1))?;
     Ok(Binned {
+        width: camera.width,
+        height: camera.height,
         splats,
         info,
         ids,
@@ -228,15 +241,30 @@ fn render_device_inner(
     extra: Option<(&Handle, usize)>,
     ppu: u32,
 ) -> Result<GpuFrame, GpuError> {
+    let binned = project_and_bin(ctx, scene, camera, false)?;
+    Ok(rasterise(
+        ctx, scene.len, binned, settings, extra, ppu, true,
+    ))
+}
+
+/// Stage 3 on a view's projected and binned `n` Gaussians; `geometry_grads` goes to the frame.
+fn rasterise(
+    ctx: &GpuContext,
+    n: usize,
+    binned: Binned,
+    settings: &RenderSettings,
+    extra: Option<(&Handle, usize)>,
+    ppu: u32,
+    geometry_grads: bool,
+) -> GpuFrame {
     assert!(
         ppu.is_power_of_two() && ppu <= TILE,
         "pixels per unit must be a power of two ≤ {TILE}"
     );
     let c = &ctx.client;
-    let n = scene.len;
-    let (width, height) = (camera.width, camera.height);
-    let npix = (width * height) as usize;
     let Binned {
+        width,
+        height,
         splats,
         info,
         ids,
@@ -246,7 +274,8 @@ fn render_device_inner(
         cam,
         tiles_x,
         tiles_y,
-    } = project_and_bin(ctx, scene, camera)?;
+    } = binned;
+    let npix = (width * height) as usize;
     let num_tiles = (tiles_x * tiles_y) as usize;
 
     // 3. Rasterisation.
@@ -285,7 +314,7 @@ fn render_device_inner(
             ppu,
         );
     }
-    Ok(GpuFrame {
+    GpuFrame {
         width,
         height,
         channels,
@@ -303,7 +332,8 @@ fn render_device_inner(
         cam,
         tiles_x,
         tiles_y,
-    })
+        geometry_grads,
+    }
 }
 
 /// Tile lists: (ids, start, end, number of pairs).
@@ -578,6 +608,7 @@ fn render_backward_device_with(
                 arg(&out.opacity_logits, n),
                 arg(&out.sh, 3 * k * n),
                 scene.sh_degree,
+                frame.geometry_grads,
             );
         }
         Ok(out)
@@ -741,7 +772,7 @@ pub fn render_with_loss<L>(
 }
 
 /// Reads device gradients back into the CPU renderer's type.
-fn read_grads(
+pub(crate) fn read_grads(
     ctx: &GpuContext,
     g: &GpuSceneGrads,
     n: usize,

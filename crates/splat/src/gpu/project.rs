@@ -206,7 +206,11 @@ fn view_dir(means: &[f32], cam: &[f32], i: usize) -> (f32, f32, f32, f32) {
     (dx * s, dy * s, dz * s, len)
 }
 
-/// Stage (a) forward. `degree` is the SH degree (0..=3).
+/// Stage (a) forward. `degree` is the SH degree (0..=3). With `keep_faint`, every Gaussian whose
+/// geometry is drawable gets its tiles and depth key whatever its opacity (a NaN one is stored as 0):
+/// the tile lists of a view whose geometry is then kept while the opacities move (see
+/// `gpu::frozen`). The raster kernels skip a Gaussian below 1/255 opacity at every pixel, so the
+/// extra entries change no output.
 #[cube(launch)]
 pub fn project_forward(
     means: &[f32],
@@ -221,6 +225,7 @@ pub fn project_forward(
     splats: &mut [f32],
     info: &mut [u32],
     #[comptime] degree: u32,
+    #[comptime] keep_faint: bool,
 ) {
     let i = ABSOLUTE_POS;
     if i < n as usize {
@@ -246,7 +251,7 @@ pub fn project_forward(
         let y0 = clamp_tile(((my - radius_f) / tile).floor(), tiles_y);
         let y1 = clamp_tile(((my + radius_f) / tile).ceil(), tiles_y);
         let radius = f32::min(radius_f, 1e9f32) as u32;
-        let opacity = 1.0f32 / (1.0f32 + (-opacity_logits[i]).exp());
+        let opacity = opacity_of(opacity_logits, i);
         let visible = g.ok
             && det > 0.0
             && finite(det)
@@ -256,45 +261,89 @@ pub fn project_forward(
             && radius > 0
             && x1 > x0
             && y1 > y0
-            && !opacity.is_nan();
+            && (keep_faint || !opacity.is_nan());
         if visible {
             splats[i * 10] = mx;
             splats[i * 10 + 1] = my;
             splats[i * 10 + 2] = g.c / det;
             splats[i * 10 + 3] = -g.b / det;
             splats[i * 10 + 4] = g.a / det;
-            splats[i * 10 + 5] = opacity;
             splats[i * 10 + 9] = g.pz;
             info[i * 8] = radius;
             info[i * 8 + 1] = x0;
             info[i * 8 + 2] = y0;
             info[i * 8 + 3] = x1;
             info[i * 8 + 4] = y1;
-            // Colour: 0.5 + Σ basis·sh, clamped at 0.
-            let (dx, dy, dz, _len) = view_dir(means, cam, i);
-            let basis = sh_basis(dx, dy, dz, degree);
-            let k = comptime!(((degree + 1) * (degree + 1)) as usize);
-            let mut clamped = 0u32;
-            #[unroll]
-            for ch in 0..3usize {
-                let mut col = 0.5f32;
-                #[unroll]
-                for kk in 0..k {
-                    col += basis[kk] * sh[(i * k + kk) * 3 + ch];
-                }
-                if col < 0.0 {
-                    col = 0.0;
-                    clamped |= 1u32 << ch as u32;
-                }
-                splats[i * 10 + 6 + ch] = col;
-            }
-            info[i * 8 + 5] = clamped;
-            // Below 1/255 opacity no pixel can pass the alpha test: not binned.
-            if opacity >= ALPHA_MIN as f32 {
+            write_appearance(means, sh, cam, i, opacity, splats, info, degree);
+            // Below 1/255 opacity no pixel can pass the alpha test: not binned (unless kept).
+            if keep_faint || opacity >= ALPHA_MIN as f32 {
                 info[i * 8 + 6] = (x1 - x0) * (y1 - y0);
                 info[i * 8 + 7] = u32::reinterpret(g.pz);
             }
         }
+    }
+}
+
+/// The opacity of Gaussian `i`: the sigmoid of its logit, NaN for a NaN logit.
+#[cube]
+fn opacity_of(opacity_logits: &[f32], i: usize) -> f32 {
+    1.0f32 / (1.0f32 + (-opacity_logits[i]).exp())
+}
+
+/// Writes the appearance of a drawable Gaussian: its opacity (0 for NaN: no pixel then takes it, where
+/// a GPU's `min(0.99, NaN)` might) and its colour `0.5 + Σ basis·sh` clamped at 0, with the clamped
+/// channels' bits.
+#[cube]
+fn write_appearance(
+    means: &[f32],
+    sh: &[f32],
+    cam: &[f32],
+    i: usize,
+    opacity: f32,
+    splats: &mut [f32],
+    info: &mut [u32],
+    #[comptime] degree: u32,
+) {
+    splats[i * 10 + 5] = select(opacity.is_nan(), 0.0f32, opacity);
+    let (dx, dy, dz, _len) = view_dir(means, cam, i);
+    let basis = sh_basis(dx, dy, dz, degree);
+    let k = comptime!(((degree + 1) * (degree + 1)) as usize);
+    let mut clamped = 0u32;
+    #[unroll]
+    for ch in 0..3usize {
+        let mut col = 0.5f32;
+        #[unroll]
+        for kk in 0..k {
+            col += basis[kk] * sh[(i * k + kk) * 3 + ch];
+        }
+        if col < 0.0 {
+            col = 0.0;
+            clamped |= 1u32 << ch as u32;
+        }
+        splats[i * 10 + 6 + ch] = col;
+    }
+    info[i * 8 + 5] = clamped;
+}
+
+/// Stage (a) forward for a kept geometry: rewrites the opacity and colour of every drawable Gaussian
+/// (`info`'s radius above 0) in `splats` and `info` made by [`project_forward`] with `keep_faint` for
+/// the same means, scales, rotations and camera. The same arithmetic as that kernel, so the values
+/// are the same, bit for bit.
+#[cube(launch)]
+pub fn project_appearance(
+    means: &[f32],
+    opacity_logits: &[f32],
+    sh: &[f32],
+    cam: &[f32],
+    n: u32,
+    splats: &mut [f32],
+    info: &mut [u32],
+    #[comptime] degree: u32,
+) {
+    let i = ABSOLUTE_POS;
+    if i < n as usize && info[i * 8] > 0 {
+        let opacity = opacity_of(opacity_logits, i);
+        write_appearance(means, sh, cam, i, opacity, splats, info, degree);
     }
 }
 
@@ -303,7 +352,9 @@ fn clamp_tile(v: f32, hi: u32) -> u32 {
     f32::min(f32::max(v, 0.0), hi as f32) as u32
 }
 
-/// Stage (a) backward: parameter gradients from the splat gradients (overwrites every output).
+/// Stage (a) backward: parameter gradients from the splat gradients (overwrites every output). Without
+/// `geometry`, the opacity and SH gradients alone (the means', scales' and rotations' are written as 0):
+/// the backward of a view whose geometry is kept.
 #[cube(launch)]
 pub fn project_backward(
     means: &[f32],
@@ -321,6 +372,7 @@ pub fn project_backward(
     g_logits: &mut [f32],
     g_sh: &mut [f32],
     #[comptime] degree: u32,
+    #[comptime] with_geometry: bool,
 ) {
     let i = ABSOLUTE_POS;
     if i < n as usize {
@@ -339,10 +391,12 @@ pub fn project_backward(
         for a in 0..comptime!(3 * k) {
             g_sh[i * 3 * k + a] = 0.0;
         }
-        let g = geometry(means, log_scales, quats, cam, i);
-        if info[i * 8] > 0 && g.ok {
+        // A radius above 0 means the geometry was drawable (`g.ok` included).
+        if info[i * 8] > 0 {
             project_backward_one(
                 means,
+                log_scales,
+                quats,
                 sh,
                 cam,
                 splats,
@@ -354,8 +408,8 @@ pub fn project_backward(
                 g_logits,
                 g_sh,
                 i,
-                g,
                 degree,
+                with_geometry,
             );
         }
     }
@@ -364,6 +418,8 @@ pub fn project_backward(
 #[cube]
 fn project_backward_one(
     means: &[f32],
+    log_scales: &[f32],
+    quats: &[f32],
     sh: &[f32],
     cam: &[f32],
     splats: &[f32],
@@ -375,17 +431,11 @@ fn project_backward_one(
     g_logits: &mut [f32],
     g_sh: &mut [f32],
     i: usize,
-    g: Geom,
     #[comptime] degree: u32,
+    #[comptime] with_geometry: bool,
 ) {
     let k = comptime!(((degree + 1) * (degree + 1)) as usize);
-    let v_mx = grads[i * 10];
-    let v_my = grads[i * 10 + 1];
-    let v_ca = grads[i * 10 + 2];
-    let v_cb = grads[i * 10 + 3];
-    let v_cc = grads[i * 10 + 4];
     let v_op = grads[i * 10 + 5];
-    let v_depth = grads[i * 10 + 9];
     let o = splats[i * 10 + 5];
     g_logits[i] = v_op * o * (1.0 - o);
 
@@ -417,12 +467,56 @@ fn project_backward_one(
             }
             v_basis[kk] = vb;
         }
-        let (gx, gy, gz) = sh_basis_vjp(dx, dy, dz, &v_basis, degree);
-        let dot = dx * gx + dy * gy + dz * gz;
-        vm0 += (gx - dx * dot) / len;
-        vm1 += (gy - dy * dot) / len;
-        vm2 += (gz - dz * dot) / len;
+        if comptime!(with_geometry) {
+            let (gx, gy, gz) = sh_basis_vjp(dx, dy, dz, &v_basis, degree);
+            let dot = dx * gx + dy * gy + dz * gz;
+            vm0 += (gx - dx * dot) / len;
+            vm1 += (gy - dy * dot) / len;
+            vm2 += (gz - dz * dot) / len;
+        }
     }
+    if comptime!(with_geometry) {
+        geometry_backward(
+            means,
+            log_scales,
+            quats,
+            cam,
+            splats,
+            grads,
+            g_means,
+            g_log_scales,
+            g_quats,
+            i,
+            (vm0, vm1, vm2),
+        );
+    }
+}
+
+/// The means', scales' and rotations' part of [`project_backward_one`]; `vm` is the means' gradient
+/// through the colours' view direction.
+#[cube]
+#[allow(clippy::too_many_arguments)]
+fn geometry_backward(
+    means: &[f32],
+    log_scales: &[f32],
+    quats: &[f32],
+    cam: &[f32],
+    splats: &[f32],
+    grads: &[f32],
+    g_means: &mut [f32],
+    g_log_scales: &mut [f32],
+    g_quats: &mut [f32],
+    i: usize,
+    vm: (f32, f32, f32),
+) {
+    let g = geometry(means, log_scales, quats, cam, i);
+    let (mut vm0, mut vm1, mut vm2) = vm;
+    let v_mx = grads[i * 10];
+    let v_my = grads[i * 10 + 1];
+    let v_ca = grads[i * 10 + 2];
+    let v_cb = grads[i * 10 + 3];
+    let v_cc = grads[i * 10 + 4];
+    let v_depth = grads[i * 10 + 9];
 
     // Conic = S⁻¹ → V_S = -P G P (the off-diagonal conic entry stands for both off-diagonal elements).
     let p00 = splats[i * 10 + 2];

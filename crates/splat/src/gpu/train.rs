@@ -3,6 +3,7 @@
 //! reference copy: structural changes (densification, opacity resets, SH degree changes) run there after
 //! [`DeviceTrainer::download_into`], and the trainer is rebuilt from it afterwards.
 
+use super::frozen::{render_kept, GpuFrozenGeometry};
 use super::{
     l1_dssim_weighted, render_backward_device, render_device, GpuAdam, GpuAnchor, GpuContext,
     GpuDensifyStats, GpuError, GpuLoss, GpuOutputGrads, GpuScene, L1DssimWeights,
@@ -23,6 +24,8 @@ pub struct DeviceTrainer {
     /// One u32 flag per Gaussian (`TrainState::trainable`).
     trainable: Option<Handle>,
     anchor: Option<GpuAnchor>,
+    /// Set by [`DeviceTrainer::freeze_geometry`]: the views' kept projections and tile lists.
+    frozen: Option<GpuFrozenGeometry>,
 }
 
 impl DeviceTrainer {
@@ -43,7 +46,22 @@ impl DeviceTrainer {
             stats: GpuDensifyStats::from_host(ctx, &state.stats),
             trainable,
             anchor,
+            frozen: None,
         }
+    }
+
+    /// From now on the caller keeps the geometry fixed and needs no gradients for it (ECM's appearance
+    /// fits): steps whose means, scales and rotations rates are all 0 and that track no densification
+    /// statistics render each view from its kept projection and tile lists (`gpu::frozen`) and skip
+    /// the geometry's backward (its gradients are 0; Adam then only decays those moments). A step with
+    /// a geometry rate above 0 runs the full pass and forgets the kept views.
+    pub fn freeze_geometry(&mut self) {
+        self.frozen.get_or_insert_with(GpuFrozenGeometry::default);
+    }
+
+    /// Device bytes the kept views hold (0 unless [`Self::freeze_geometry`] was called).
+    pub fn frozen_bytes(&self) -> usize {
+        self.frozen.as_ref().map_or(0, GpuFrozenGeometry::bytes)
     }
 
     /// Writes the device state back into `state` (the mask and anchors never change on the device).
@@ -54,7 +72,7 @@ impl DeviceTrainer {
         Ok(())
     }
 
-    /// One step on `target` (H*W*3 on the device) seen from `camera` with the loss
+    /// One step on `target` (H*W*3 on the device) seen from `camera` (view 0) with the loss
     /// `(1 − ssim_weight)·L1 + ssim_weight·D-SSIM`; `adam` gives the rates and counts the step. Returns
     /// the loss value. (The benches' and tests' entry; the trainer steps with [`Self::step_weighted`].)
     #[cfg(any(test, feature = "stages"))]
@@ -72,6 +90,7 @@ impl DeviceTrainer {
             ctx,
             adam,
             camera,
+            0,
             target,
             settings,
             L1DssimWeights::blend(ssim_weight),
@@ -82,7 +101,7 @@ impl DeviceTrainer {
     }
 
     /// [`DeviceTrainer::step`] with the loss `weights.l1·L1 + weights.dssim·D-SSIM` (the editing fit's
-    /// 10 : 2.5). The anchor gradient, when there are anchors, is added before Adam, as the editing fit
+    /// 10 : 2.5), on view `v` (the key of its kept projection after [`Self::freeze_geometry`]). The anchor gradient, when there are anchors, is added before Adam, as the editing fit
     /// does on the host. Returns the image loss (anchor term excluded) still on the device: reading its
     /// value copies two image-sized maps back, which a caller that does not need it skips.
     ///
@@ -94,13 +113,26 @@ impl DeviceTrainer {
         ctx: &GpuContext,
         adam: &mut Adam,
         camera: &Camera,
+        v: usize,
         target: &Handle,
         settings: &RenderSettings,
         weights: L1DssimWeights,
         track_stats: bool,
         term: impl FnOnce(&Handle, Handle) -> Result<Handle, E>,
     ) -> Result<GpuLoss, E> {
-        let frame = render_device(ctx, &self.scene, camera, settings, None)?;
+        let geometry_fixed = adam.geometry_fixed();
+        let kept = match self.frozen.as_mut() {
+            Some(frozen) if !geometry_fixed => {
+                frozen.clear();
+                None
+            }
+            Some(frozen) if !track_stats => frozen.view(ctx, &self.scene, camera, v)?,
+            _ => None,
+        };
+        let frame = match kept {
+            Some(bins) => render_kept(ctx, &self.scene, bins, settings)?,
+            None => render_device(ctx, &self.scene, camera, settings, None)?,
+        };
         let (w, h) = (camera.width as usize, camera.height as usize);
         let loss = l1_dssim_weighted(ctx, &frame.rgb, target, w, h, 3, weights)?;
         let rgb_grad = term(&frame.rgb, loss.grad.clone())?;

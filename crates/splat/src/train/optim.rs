@@ -258,6 +258,14 @@ impl Adam {
         base * self.group_lr_scale[group.index()] * self.lr_scale
     }
 
+    /// Whether a step at these rates leaves the means, scales and rotations as they are (their rates
+    /// are all 0), so each view's projected geometry stays valid.
+    pub fn geometry_fixed(&self) -> bool {
+        [Group::Means, Group::LogScales, Group::Quats]
+            .iter()
+            .all(|&g| self.lr(g) == 0.0)
+    }
+
     /// One Adam step on every parameter. `trainable` (one flag per Gaussian) freezes the others in the
     /// groups the mask hooks (see [`Group::hooked_by_mask`] and `mask_rotation`).
     ///

@@ -11,7 +11,6 @@ use ::gpu::cubecl::server::Handle;
 
 use crate::gpu::{DeviceTrainer, GpuContext, GpuError, L1DssimWeights};
 use crate::render::{FrozenGeometry, RenderSettings, SceneGrads};
-use crate::train::optim::{Adam, Group};
 use crate::train::TrainState;
 use crate::{Camera, SplatDevice};
 
@@ -129,11 +128,16 @@ impl Trainer {
     }
 
     /// From now on the caller keeps the geometry (means, scales, rotations) fixed and needs no gradients
-    /// for it, as ECM's appearance fits do: host steps whose geometry rates are all zero reuse each
-    /// view's projection and skip the geometry's backward pass (its gradients are zero; Adam then only
-    /// decays those moments). Steps with a geometry rate above zero run the full pass.
+    /// for it, as ECM's appearance fits do: steps whose geometry rates are all zero reuse each view's
+    /// projection and skip the geometry's backward pass (its gradients are zero; Adam then only decays
+    /// those moments): host steps through [`FrozenGeometry`], resident ones through the device's kept
+    /// views ([`DeviceTrainer::freeze_geometry`]). Steps with a geometry rate above zero run the full
+    /// pass.
     pub fn freeze_geometry(&mut self) {
         self.frozen.get_or_insert_with(FrozenGeometry::default);
+        if let Some(trainer) = self.resident.as_mut().and_then(|r| r.state.as_mut()) {
+            trainer.freeze_geometry();
+        }
     }
 
     /// One step on view `v` seen from `camera`. `state.adam` gives the rates (callers set its
@@ -157,12 +161,19 @@ impl Trainer {
             let ctx = &res.ctx;
             let trainer = match &mut res.state {
                 Some(t) => t,
-                None => res.state.insert(DeviceTrainer::upload(ctx, state)),
+                None => {
+                    let trainer = res.state.insert(DeviceTrainer::upload(ctx, state));
+                    if self.frozen.is_some() {
+                        trainer.freeze_geometry();
+                    }
+                    trainer
+                }
             };
             let value = trainer.step_weighted(
                 ctx,
                 &mut state.adam,
                 camera,
+                v,
                 &res.targets[v],
                 &self.settings,
                 res.weights,
@@ -192,7 +203,7 @@ impl Trainer {
         };
         let (scene, settings) = (&state.scene, &self.settings);
         let (radii, value, mut grads) = match self.frozen.as_mut() {
-            Some(frozen) if geometry_fixed(&state.adam) => self
+            Some(frozen) if state.adam.geometry_fixed() => self
                 .device
                 .render_with_loss_frozen(scene, camera, v, frozen, settings, eval)?,
             _ => self
@@ -231,18 +242,12 @@ impl Trainer {
     }
 }
 
-/// Whether a step with these rates leaves the means, scales and rotations as they are.
-fn geometry_fixed(adam: &Adam) -> bool {
-    [Group::Means, Group::LogScales, Group::Quats]
-        .iter()
-        .all(|&g| adam.lr(g) == 0.0)
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
     use crate::gpu::tests::{camera, random_scene};
     use crate::render::render;
+    use crate::train::optim::Group;
     use crate::train::optim::LearningRates;
 
     /// L1 to fixed targets.

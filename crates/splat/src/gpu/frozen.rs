@@ -1,0 +1,424 @@
+//! Views whose geometry is kept on the device, for fits that move only the opacities and colours (ECM's
+//! appearance fits): the host twin of [`crate::render::FrozenGeometry`].
+//!
+//! On the device a Gaussian's tile rectangle is its 3σ extent, whatever its opacity; the opacity only
+//! decides whether it is binned at all (at least 1/255, not NaN), and the raster kernels skip a
+//! Gaussian under 1/255 at every pixel before they touch any state. So a view's projection and tile
+//! lists, made once with the opacity test left out, serve every later step: a step rewrites the
+//! opacities and colours (one kernel) and rasterises; its backward skips the geometry's part. No
+//! sort, no scan, no pair emission, and no read back (the full pass reads the pair count to size its
+//! buffers: a wait for the device at every step). Renders and gradients are the full pass's, up to
+//! the order in which the backward's atomics add (the tests compare them).
+//!
+//! The caller keeps the geometry as it was ([`crate::gpu::DeviceTrainer`] forgets the views before a
+//! step whose geometry rates are not 0); a view is made again when its camera changes.
+
+use super::project::{self, CAM_F, INFO_U, SPLAT_F};
+use super::{
+    arg, forward_pixels_per_unit, project_and_bin, rasterise, Binned, GpuContext, GpuError,
+    GpuFrame, GpuScene,
+};
+use crate::render::{RenderSettings, TILE};
+use crate::Camera;
+use ::gpu::gpu_call;
+use ::gpu::prims::grid;
+
+/// One view's slot.
+enum Slot {
+    /// Not asked for yet (or forgotten).
+    Empty,
+    Kept(Box<KeptView>),
+    /// Over the budget: the view renders the ordinary way.
+    Refused,
+}
+
+/// A view's projection and tile lists, the camera they were made for, and their device bytes.
+struct KeptView {
+    camera: Camera,
+    bins: Binned,
+    bytes: usize,
+}
+
+/// The kept views of one fit, within a memory budget.
+pub struct GpuFrozenGeometry {
+    views: Vec<Slot>,
+    /// The number of Gaussians the views were made for.
+    len: usize,
+    bytes: usize,
+    budget: usize,
+}
+
+impl Default for GpuFrozenGeometry {
+    fn default() -> Self {
+        Self::with_budget(crate::render::FrozenGeometry::DEFAULT_BUDGET)
+    }
+}
+
+impl GpuFrozenGeometry {
+    /// Views are kept while their device bytes ([`Self::view_bytes`]) stay within `budget`.
+    pub fn with_budget(budget: usize) -> Self {
+        Self {
+            views: Vec::new(),
+            len: 0,
+            bytes: 0,
+            budget,
+        }
+    }
+
+    /// Device bytes of a kept view of `n` Gaussians with `pairs` tile intersections, `width`×`height`.
+    pub fn view_bytes(n: usize, pairs: usize, width: u32, height: u32) -> usize {
+        let tiles = (width.div_ceil(TILE) * height.div_ceil(TILE)) as usize;
+        4 * ((SPLAT_F + INFO_U) * n + pairs + 2 * tiles + CAM_F)
+    }
+
+    /// Forgets every view (the geometry is about to change).
+    pub fn clear(&mut self) {
+        self.views.clear();
+        self.bytes = 0;
+    }
+
+    /// Bytes the kept views hold on the device.
+    pub fn bytes(&self) -> usize {
+        self.bytes
+    }
+
+    /// View `v` of `scene` from `camera`: the kept one when the camera is the one it was made from,
+    /// else a new one when the budget allows it, else `None` (render the ordinary way).
+    pub(crate) fn view(
+        &mut self,
+        ctx: &GpuContext,
+        scene: &GpuScene,
+        camera: &Camera,
+        v: usize,
+    ) -> Result<Option<&Binned>, GpuError> {
+        if scene.len != self.len {
+            self.clear();
+            self.len = scene.len;
+        }
+        if self.views.len() <= v {
+            self.views.resize_with(v + 1, || Slot::Empty);
+        }
+        match &self.views[v] {
+            Slot::Kept(kept) if kept.camera == *camera => {}
+            Slot::Refused => return Ok(None),
+            slot => {
+                if let Slot::Kept(kept) = slot {
+                    self.bytes -= kept.bytes;
+                }
+                self.views[v] = Slot::Empty;
+                // Refused before anything is made when even the pair-free part does not fit.
+                let least = Self::view_bytes(scene.len, 0, camera.width, camera.height);
+                if self.bytes + least > self.budget {
+                    self.views[v] = Slot::Refused;
+                    return Ok(None);
+                }
+                let bins = gpu_call(|| project_and_bin(ctx, scene, camera, true))?;
+                let bytes =
+                    Self::view_bytes(scene.len, bins.intersections, camera.width, camera.height);
+                if self.bytes + bytes > self.budget {
+                    self.views[v] = Slot::Refused;
+                    return Ok(None);
+                }
+                self.bytes += bytes;
+                self.views[v] = Slot::Kept(Box::new(KeptView {
+                    camera: camera.clone(),
+                    bins,
+                    bytes,
+                }));
+            }
+        }
+        match &self.views[v] {
+            Slot::Kept(kept) => Ok(Some(&kept.bins)),
+            _ => unreachable!("view {v} was just kept"),
+        }
+    }
+}
+
+/// Renders a kept view with the scene's current opacities and colours; the frame's backward
+/// ([`super::render_backward_device`]) gives the opacity and SH gradients, the geometry's as 0.
+pub(crate) fn render_kept(
+    ctx: &GpuContext,
+    scene: &GpuScene,
+    bins: &Binned,
+    settings: &RenderSettings,
+) -> Result<GpuFrame, GpuError> {
+    let ppu = forward_pixels_per_unit(ctx);
+    gpu_call(|| {
+        let n = scene.len;
+        if n > 0 {
+            let (count, dim) = grid(n);
+            project::project_appearance::launch(
+                &ctx.client,
+                count,
+                dim,
+                arg(&scene.means, 3 * n),
+                arg(&scene.opacity_logits, n),
+                arg(&scene.sh, 3 * crate::scene::sh_coeffs(scene.sh_degree) * n),
+                arg(&bins.cam, CAM_F),
+                n as u32,
+                arg(&bins.splats, SPLAT_F * n),
+                arg(&bins.info, INFO_U * n),
+                scene.sh_degree,
+            );
+        }
+        Ok(rasterise(ctx, n, bins.clone(), settings, None, ppu, false))
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::gpu::tests::{camera, random_scene};
+    use crate::gpu::{
+        read_grads, render_backward_device, render_device, DeviceTrainer, GpuOutputGrads,
+        L1DssimWeights,
+    };
+    use crate::train::optim::{Group, LearningRates};
+    use crate::train::TrainState;
+    use crate::GaussianScene;
+    use ::gpu::prims::{read_f32, upload_f32};
+    use ::gpu::testing::context_or_skip;
+
+    fn bits(v: &[f32]) -> Vec<u32> {
+        v.iter().map(|x| x.to_bits()).collect()
+    }
+
+    /// Largest |a − b| over the largest |b|.
+    fn max_rel(a: &[f32], b: &[f32]) -> f32 {
+        assert_eq!(a.len(), b.len());
+        let scale = b.iter().fold(0f32, |m, v| m.max(v.abs())).max(1e-30);
+        a.iter().zip(b).fold(0f32, |m, (x, y)| m.max((x - y).abs())) / scale
+    }
+
+    /// Moves the opacities and colours as a fit would, with one opacity far below 1/255 and one NaN.
+    fn move_appearance(scene: &mut GaussianScene, round: usize) {
+        for (i, o) in scene.opacity_logits.iter_mut().enumerate() {
+            *o += ((i * 7 + round) % 13) as f32 * 0.4 - 2.6;
+        }
+        for (i, c) in scene.sh.iter_mut().enumerate() {
+            *c += ((i * 5 + round) % 11) as f32 * 0.05 - 0.25;
+        }
+        scene.opacity_logits[round] = -9.0;
+        scene.opacity_logits[3 + round] = f32::NAN;
+    }
+
+    /// A kept view renders as the full pass, bit for bit, after the opacities and colours move (some
+    /// opacities below 1/255, a NaN one, SH degrees 0-3), and its backward gives the full pass's
+    /// opacity and SH gradients and zero for the geometry.
+    #[test]
+    fn kept_views_render_and_differentiate_as_the_full_pass() {
+        let Some(ctx) = context_or_skip() else {
+            return;
+        };
+        let settings = RenderSettings {
+            background: [0.2, 0.5, 0.9],
+        };
+        for degree in 0..=3 {
+            let mut scene = random_scene(500, degree, 11 + degree as u64);
+            let cam = camera(70, 52);
+            let npix = (cam.width * cam.height) as usize;
+            let mut frozen = GpuFrozenGeometry::default();
+            for round in 0..3 {
+                if round > 0 {
+                    move_appearance(&mut scene, round);
+                }
+                let dev = GpuScene::upload(&ctx, &scene);
+                let full = render_device(&ctx, &dev, &cam, &settings, None).unwrap();
+                let bins = frozen.view(&ctx, &dev, &cam, 0).unwrap().unwrap().clone();
+                let kept = render_kept(&ctx, &dev, &bins, &settings).unwrap();
+                let read = |h: &_, len| read_f32(&ctx.client, h, len).unwrap();
+                let what = format!("degree {degree} round {round}");
+                assert_eq!(
+                    bits(&read(&full.rgb, 3 * npix)),
+                    bits(&read(&kept.rgb, 3 * npix)),
+                    "{what}"
+                );
+                assert_eq!(
+                    bits(&read(&full.alpha, npix)),
+                    bits(&read(&kept.alpha, npix)),
+                    "{what}"
+                );
+                assert_eq!(
+                    bits(&read(&full.depth, npix)),
+                    bits(&read(&kept.depth, npix)),
+                    "{what}"
+                );
+                // The kept lists hold the faint Gaussians too (from round 1 on there are some).
+                assert!(kept.intersections >= full.intersections, "{what}");
+                assert!(
+                    round == 0 || kept.intersections > full.intersections,
+                    "{what}"
+                );
+                let rgb = read(&full.rgb, 3 * npix);
+                let grad = upload_f32(
+                    &ctx.client,
+                    &rgb.iter().map(|v| v - 0.4).collect::<Vec<_>>(),
+                );
+                let out = GpuOutputGrads {
+                    rgb: &grad,
+                    alpha: None,
+                    depth: None,
+                    extra: None,
+                };
+                let n = scene.len();
+                let g = render_backward_device(&ctx, &dev, &settings, None, &full, &out).unwrap();
+                let g = read_grads(&ctx, &g, n, degree, None).unwrap();
+                let a = render_backward_device(&ctx, &dev, &settings, None, &kept, &out).unwrap();
+                let a = read_grads(&ctx, &a, n, degree, None).unwrap();
+                assert!(g.opacity_logits.iter().any(|v| *v != 0.0));
+                assert!(g.means.iter().any(|v| *v != 0.0));
+                // The backward's atomics may add in another order: equal up to float rounding.
+                for (name, got, want) in [
+                    ("opacity", &a.opacity_logits, &g.opacity_logits),
+                    ("sh", &a.sh, &g.sh),
+                ] {
+                    let e = max_rel(got, want);
+                    assert!(e <= 1e-5, "{what}: {name} differs by {e:e}");
+                    assert!(got.iter().all(|v| v.is_finite()), "{what}: {name}");
+                }
+                assert!(
+                    a.means
+                        .iter()
+                        .chain(&a.log_scales)
+                        .chain(&a.quats)
+                        .all(|v| *v == 0.0),
+                    "{what}: geometry gradients"
+                );
+            }
+        }
+    }
+
+    /// Views are kept while the camera stays, made again when it changes, refused beyond the budget
+    /// (before or after their pairs are counted), and forgotten for another scene size.
+    #[test]
+    fn views_are_kept_within_the_budget() {
+        let Some(ctx) = context_or_skip() else {
+            return;
+        };
+        let scene = random_scene(300, 1, 5);
+        let dev = GpuScene::upload(&ctx, &scene);
+        let (a, b) = (camera(40, 30), camera(48, 32));
+        let mut frozen = GpuFrozenGeometry::default();
+        let id = |bins: &Binned| bins.splats.memory.descriptor().id;
+        let first = id(frozen.view(&ctx, &dev, &a, 0).unwrap().unwrap());
+        let one_view = frozen.bytes();
+        assert!(one_view > GpuFrozenGeometry::view_bytes(scene.len(), 0, a.width, a.height));
+        let again = id(frozen.view(&ctx, &dev, &a, 0).unwrap().unwrap());
+        assert_eq!(first, again, "kept, not made again");
+        let pairs = frozen
+            .view(&ctx, &dev, &b, 0)
+            .unwrap()
+            .unwrap()
+            .intersections;
+        assert_eq!(
+            frozen.bytes(),
+            GpuFrozenGeometry::view_bytes(scene.len(), pairs, b.width, b.height),
+            "made again for the new camera, the old one's bytes returned"
+        );
+        frozen.view(&ctx, &dev, &a, 3).unwrap().unwrap();
+        assert!(frozen.bytes() > one_view);
+
+        // A budget of the pair-free part alone: made, counted, refused, and then never made again.
+        let mut tight = GpuFrozenGeometry::with_budget(GpuFrozenGeometry::view_bytes(
+            scene.len(),
+            0,
+            a.width,
+            a.height,
+        ));
+        assert!(tight.view(&ctx, &dev, &a, 0).unwrap().is_none());
+        assert!(tight.view(&ctx, &dev, &a, 0).unwrap().is_none());
+        assert_eq!(tight.bytes(), 0);
+        let mut none = GpuFrozenGeometry::with_budget(0);
+        assert!(none.view(&ctx, &dev, &a, 0).unwrap().is_none());
+
+        let smaller = GpuScene::upload(&ctx, &random_scene(100, 1, 6));
+        frozen.view(&ctx, &smaller, &a, 0).unwrap().unwrap();
+        assert!(frozen.bytes() < one_view, "the old scene's views forgotten");
+    }
+
+    /// A resident appearance fit over two views ends where the full passes end (up to the backward's
+    /// float sums), its geometry untouched; a step with a position rate forgets the kept views.
+    #[test]
+    fn resident_fit_with_kept_views_matches_the_full_fit() {
+        let Some(ctx) = context_or_skip() else {
+            return;
+        };
+        let scene = random_scene(400, 2, 9);
+        let cams = [camera(48, 40), camera(40, 48)];
+        let settings = RenderSettings::default();
+        let targets: Vec<_> = cams
+            .iter()
+            .map(|c| {
+                let npix = (c.width * c.height) as usize;
+                let t: Vec<f32> = (0..3 * npix).map(|i| (i % 7) as f32 / 7.0).collect();
+                upload_f32(&ctx.client, &t)
+            })
+            .collect();
+        let fit = |freeze: bool| {
+            let mut state = TrainState::new(scene.clone(), LearningRates::inria(1000), 2.0);
+            for g in [Group::Means, Group::LogScales, Group::Quats] {
+                state.adam.group_lr_scale[g.index()] = 0.0;
+            }
+            let mut trainer = DeviceTrainer::upload(&ctx, &state);
+            if freeze {
+                trainer.freeze_geometry();
+            }
+            for step in 0..12 {
+                let v = step % 2;
+                trainer
+                    .step_weighted(
+                        &ctx,
+                        &mut state.adam,
+                        &cams[v],
+                        v,
+                        &targets[v],
+                        &settings,
+                        L1DssimWeights::blend(0.2),
+                        false,
+                        |_, g| Ok::<_, GpuError>(g),
+                    )
+                    .unwrap();
+            }
+            let kept = trainer.frozen_bytes();
+            trainer.download_into(&ctx, &mut state).unwrap();
+            (state, trainer, kept)
+        };
+        let (full, _, none) = fit(false);
+        let (frozen, mut trainer, kept) = fit(true);
+        assert_eq!(none, 0);
+        assert!(kept > 0, "both views kept");
+        assert_eq!(bits(&full.scene.means), bits(&frozen.scene.means));
+        assert_eq!(bits(&scene.means), bits(&frozen.scene.means));
+        assert_eq!(bits(&scene.quats), bits(&frozen.scene.quats));
+        for (name, got, want, start) in [
+            (
+                "opacity",
+                &frozen.scene.opacity_logits,
+                &full.scene.opacity_logits,
+                &scene.opacity_logits,
+            ),
+            ("sh", &frozen.scene.sh, &full.scene.sh, &scene.sh),
+        ] {
+            assert_ne!(bits(want), bits(start), "{name}: the fit moved nothing");
+            let e = max_rel(got, want);
+            assert!(e <= 1e-5, "{name} differs by {e:e}");
+        }
+        // A step that moves the means forgets the views.
+        let mut state = frozen;
+        state.adam.group_lr_scale[Group::Means.index()] = 1.0;
+        trainer
+            .step_weighted(
+                &ctx,
+                &mut state.adam,
+                &cams[0],
+                0,
+                &targets[0],
+                &settings,
+                L1DssimWeights::blend(0.2),
+                false,
+                |_, g| Ok::<_, GpuError>(g),
+            )
+            .unwrap();
+        assert_eq!(trainer.frozen_bytes(), 0);
+    }
+}
