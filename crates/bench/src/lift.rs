@@ -3,7 +3,8 @@
 //! real tokens) resampled to the render resolution, lifted onto a scene over every view and rendered back.
 //! Beside it, the same round as it ran before the resampling moved onto the device (`host`): each view's
 //! full-resolution map resampled on the host, uploaded, and rendered back in full. At 512² and 144
-//! channels that map is 150 MB per view and layer.
+//! channels that map is 150 MB per view and layer. And a later round of one `LiftSession` (the scene
+//! uploaded and each view projected and binned by an earlier round), as CCM's later layers run.
 //!
 //! `vcedit bench lift [--gaussians 31000] [--views 8] [--size 512] [--grid 16] [--channels 144]
 //! [--runs 3] [--device cpu|gpu|auto]` (a GPU opens as an edit opens it: the networks' compiler).
@@ -178,5 +179,39 @@ pub fn main(args: &[String]) -> Result<()> {
             "size": size, "grid": cells, "channels": channels,
         })));
     }
+    // A later round of one session (CCM's second and later layers, the blend maps' later steps): the
+    // scene uploaded and every view projected and binned by an earlier round.
+    let mut session = device.lift_session(&scene, &cams);
+    let mut session_round = || -> Result<f32> {
+        let mut total = 0.0;
+        session.lift_and_render_back::<GpuError>(
+            &grid,
+            &mut |v| Ok(map(&grid, v)),
+            &mut |_, back| {
+                total += back.iter().sum::<f32>();
+                Ok(())
+            },
+        )?;
+        if let Some(ctx) = device.gpu() {
+            sync(ctx)?;
+        }
+        Ok(total)
+    };
+    let c = session_round()?;
+    if (c - b).abs() > 1e-3 * b.abs().max(1.0) {
+        return Err(BenchError::new(format!(
+            "a session's round disagrees: {c} against {b}"
+        )));
+    }
+    let t = Timed::measure(runs, &mut session_round)?;
+    eprintln!(
+        "  session, later round: best {:.3} s, {:.1} ms per view",
+        t.best().as_secs_f64(),
+        1e3 * t.best().as_secs_f64() / views as f64,
+    );
+    report(t.json(serde_json::json!({
+        "bench": "lift", "what": "session, later round", "device": on, "gaussians": gaussians,
+        "views": views, "size": size, "grid": cells, "channels": channels,
+    })));
     Ok(())
 }

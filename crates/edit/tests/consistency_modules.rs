@@ -153,9 +153,7 @@ fn blend_map_consistency_makes_masks_agree() {
     let before = consistency(&as_images(&maps), &cams, &scene);
     let mut back = vec![Vec::new(); cams.len()];
     make_consistent(
-        &Compute::cpu(),
-        &scene,
-        &cams,
+        &mut Compute::cpu().splat().lift_session(&scene, &cams),
         &MapGrid {
             height: 32,
             width: 32,

@@ -6,7 +6,7 @@
 //! Adding a backend: a variant here, and one arm in each method below (render, render with loss and
 //! backward, lifting); callers are unchanged.
 
-use crate::gpu::{GpuContext, GpuError, GpuLiftAccumulator, GpuScene};
+use crate::gpu::{GpuContext, GpuError, GpuLiftAccumulator, GpuLiftScene, GpuScene};
 use crate::lift::{resample, LiftAccumulator, Lifted, MapGrid};
 use crate::render::{
     render, render_backward, render_backward_appearance, ExtraChannels, Frame, FrozenGeometry,
@@ -199,6 +199,8 @@ impl SplatDevice {
     /// (`grid.up`) and lifted onto the Gaussians over all views ([`crate::lift`]); the lifted values are
     /// rendered back from every camera as extra channels (alpha-composited over 0), resampled to the grid
     /// (`grid.down`) and handed to `sink(v, map)`. On a GPU only the grid-sized maps cross the bus.
+    /// One round of a [`LiftSession`]: callers with several rounds over the same scene and cameras
+    /// keep one.
     ///
     /// # Panics
     /// When a map is not `grid.len()` long (a programming error).
@@ -210,11 +212,70 @@ impl SplatDevice {
         map_of: &mut dyn FnMut(usize) -> Result<Vec<f32>, E>,
         sink: &mut dyn FnMut(usize, Vec<f32>) -> Result<(), E>,
     ) -> Result<(), E> {
+        self.lift_session(scene, cameras)
+            .lift_and_render_back(grid, map_of, sink)
+    }
+
+    /// Lifting rounds over `scene` seen from `cameras` (CCM's layers and the blend maps' steps of one
+    /// sampler run): on a GPU the scene is uploaded once and each view's projection and tile lists are
+    /// made once for all rounds (at first use).
+    pub fn lift_session<'s>(
+        &self,
+        scene: &'s GaussianScene,
+        cameras: &'s [Camera],
+    ) -> LiftSession<'s> {
+        LiftSession {
+            device: self.clone(),
+            scene,
+            cameras,
+            gpu: None,
+        }
+    }
+
+    /// A lifting of per-view maps onto the Gaussians of `scene`, one view at a time.
+    pub fn lifter<'s>(&self, scene: &'s GaussianScene, channels: usize) -> Lifter<'s> {
+        match self {
+            SplatDevice::Cpu => Lifter::Cpu(LiftAccumulator::new(scene, channels)),
+            SplatDevice::Gpu(ctx) => Lifter::Gpu(
+                ctx.clone(),
+                Box::new(GpuLiftAccumulator::new(ctx, scene, channels)),
+            ),
+        }
+    }
+}
+
+/// Lifting rounds over one scene and one set of cameras ([`SplatDevice::lift_session`]).
+pub struct LiftSession<'s> {
+    device: SplatDevice,
+    scene: &'s GaussianScene,
+    cameras: &'s [Camera],
+    /// The uploaded scene and the kept views, made at the first round on a GPU.
+    gpu: Option<Box<GpuLiftScene>>,
+}
+
+impl LiftSession<'_> {
+    /// One round of [`SplatDevice::lift_and_render_back`] over the session's scene and cameras.
+    ///
+    /// # Panics
+    /// When a map is not `grid.len()` long (a programming error).
+    pub fn lift_and_render_back<E: From<GpuError>>(
+        &mut self,
+        grid: &MapGrid,
+        map_of: &mut dyn FnMut(usize) -> Result<Vec<f32>, E>,
+        sink: &mut dyn FnMut(usize, Vec<f32>) -> Result<(), E>,
+    ) -> Result<(), E> {
+        let (scene, cameras) = (self.scene, self.cameras);
         if cameras.is_empty() || grid.is_empty() {
             return Ok(());
         }
-        if let SplatDevice::Gpu(ctx) = self {
-            return crate::gpu::lift_and_render_back(ctx, scene, cameras, grid, map_of, sink);
+        if let SplatDevice::Gpu(ctx) = &self.device {
+            let lift = match &mut self.gpu {
+                Some(lift) => lift,
+                None => self.gpu.insert(Box::new(::gpu::gpu_call(|| {
+                    Ok(GpuLiftScene::new(ctx, scene))
+                })?)),
+            };
+            return lift.lift_and_render_back(ctx, cameras, grid, map_of, sink);
         }
         let native = (grid.height, grid.width);
         let size = |cam: &Camera| (cam.height as usize, cam.width as usize);
@@ -239,17 +300,6 @@ impl SplatDevice {
             )?;
         }
         Ok(())
-    }
-
-    /// A lifting of per-view maps onto the Gaussians of `scene`, one view at a time.
-    pub fn lifter<'s>(&self, scene: &'s GaussianScene, channels: usize) -> Lifter<'s> {
-        match self {
-            SplatDevice::Cpu => Lifter::Cpu(LiftAccumulator::new(scene, channels)),
-            SplatDevice::Gpu(ctx) => Lifter::Gpu(
-                ctx.clone(),
-                Box::new(GpuLiftAccumulator::new(ctx, scene, channels)),
-            ),
-        }
     }
 }
 

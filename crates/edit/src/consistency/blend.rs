@@ -5,6 +5,7 @@
 use candle_core::Tensor;
 
 use splat::lift::{MapGrid, Resample};
+use splat::LiftSession;
 
 use super::lift::make_consistent;
 use super::{MultiView, MultiViewError};
@@ -16,6 +17,7 @@ impl MultiView<'_> {
         &self,
         views: &mut [ViewState],
         i: usize,
+        lift: &mut LiftSession<'_>,
     ) -> Result<Vec<Tensor>, MultiViewError> {
         let plan = self.plan;
         let (lh, lw) = plan.latent_size;
@@ -35,9 +37,7 @@ impl MultiView<'_> {
             };
             let src = maps.clone();
             make_consistent(
-                &self.model.compute,
-                self.scene,
-                self.cameras,
+                lift,
                 &MapGrid {
                     height: lh,
                     width: lw,

@@ -11,6 +11,7 @@ use std::collections::HashMap;
 use candle_core::{DType, Tensor};
 
 use splat::lift::{MapGrid, Resample};
+use splat::LiftSession;
 
 use super::lift::make_consistent;
 use super::{MultiView, MultiViewError};
@@ -22,6 +23,7 @@ impl MultiView<'_> {
         &self,
         views: &mut [ViewState],
         i: usize,
+        lift: &mut LiftSession<'_>,
     ) -> Result<(), MultiViewError> {
         let plan = self.plan;
         let mut recorded = Vec::with_capacity(views.len());
@@ -61,9 +63,7 @@ impl MultiView<'_> {
             let rec = &recorded;
             let mut backs: Vec<Option<Vec<f32>>> = vec![None; views.len()];
             make_consistent(
-                &self.model.compute,
-                self.scene,
-                self.cameras,
+                lift,
                 &MapGrid {
                     height: sh,
                     width: sw,

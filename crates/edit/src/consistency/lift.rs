@@ -8,37 +8,33 @@
 //! is the sampler's side of it (candle errors in, [`MultiViewError`] out).
 
 use splat::lift::MapGrid;
-use splat::{Camera, GaussianScene};
+use splat::LiftSession;
 
 use super::MultiViewError;
-use crate::compute::Compute;
 
-/// Lifts per-view maps onto the Gaussians and renders them back.
+/// Lifts per-view maps onto the Gaussians and renders them back: one round of `lift`, a session over the
+/// sampler run's scene and cameras (made once per run, so a GPU keeps the scene and each view's
+/// projection for every round).
 ///
 /// `map_of(v)` gives view v's map on `grid`; it is resampled to the camera's resolution with `grid.up`,
 /// lifted over all views, rendered back, resampled to the grid with `grid.down`, and handed to
 /// `sink(v, map)`.
 pub fn make_consistent(
-    compute: &Compute,
-    scene: &GaussianScene,
-    cameras: &[Camera],
+    lift: &mut LiftSession<'_>,
     grid: &MapGrid,
     map_of: &mut dyn FnMut(usize) -> candle_core::Result<Vec<f32>>,
     sink: &mut dyn FnMut(usize, Vec<f32>) -> candle_core::Result<()>,
 ) -> Result<(), MultiViewError> {
-    compute.splat().lift_and_render_back::<MultiViewError>(
-        scene,
-        cameras,
-        grid,
-        &mut |v| Ok(map_of(v)?),
-        &mut |v, map| Ok(sink(v, map)?),
-    )
+    lift.lift_and_render_back::<MultiViewError>(grid, &mut |v| Ok(map_of(v)?), &mut |v, map| {
+        Ok(sink(v, map)?)
+    })
 }
 
 #[cfg(test)]
 mod consistency_tests {
     use super::*;
     use splat::lift::Resample;
+    use splat::{Camera, GaussianScene, SplatDevice};
 
     /// A camera at `(x, 0, -3)` looking down +z at the origin (OpenCV axes).
     fn cam(x: f64, size: u32) -> Camera {
@@ -114,9 +110,7 @@ mod consistency_tests {
         ];
         let mut back = [Vec::new(), Vec::new()];
         make_consistent(
-            &Compute::cpu(),
-            &scene,
-            &cams,
+            &mut SplatDevice::Cpu.lift_session(&scene, &cams),
             &MapGrid {
                 height: size as usize,
                 width: size as usize,

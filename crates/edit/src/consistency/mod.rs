@@ -183,11 +183,13 @@ impl MultiView<'_> {
         timed(Stage::Encode, t, &mut times);
 
         let mut last_maps = Vec::new();
+        // CCM's layers and the blend maps' steps lift over the same scene and cameras.
+        let mut lift = model.compute.splat().lift_session(self.scene, self.cameras);
         for i in 0..plan.timesteps.len() {
             let n = noise.sample(&shape)?;
             if self.consistency.ccm_steps.contains(&i) {
                 let t = Instant::now();
-                self.cross_attention_consistency(&mut views, i)?;
+                self.cross_attention_consistency(&mut views, i, &mut lift)?;
                 progress(i, Stage::Ccm);
                 timed(Stage::Ccm, t, &mut times);
             }
@@ -210,7 +212,7 @@ impl MultiView<'_> {
             }
             if i > 0 {
                 let t = Instant::now();
-                last_maps = self.local_blend(&mut views, i)?;
+                last_maps = self.local_blend(&mut views, i, &mut lift)?;
                 progress(i, Stage::Blend);
                 timed(Stage::Blend, t, &mut times);
             }

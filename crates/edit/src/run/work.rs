@@ -118,8 +118,9 @@ const HEADS: u64 = 8;
 
 /// GPU memory a run keeps besides one UNet call's activations: the networks' weights (f16 or f32 copies
 /// in the device cache), the fit's device state (scene, gradients, two Adam moments, anchor snapshot)
-/// and the one ECM fit alive at a time, one lifting's sums and one frame with CCM's channels, plus
-/// 100 MB of pools and small buffers. 0 on the CPU.
+/// and the one ECM fit alive at a time, one lifting's sums and one frame with CCM's channels, the views
+/// ECM's fit and the lifting session keep (`views` of them at most), plus 100 MB of pools and small
+/// buffers. 0 on the CPU.
 pub fn gpu_state_bytes(
     job: &EditJob,
     model: &EditModel,
@@ -136,12 +137,12 @@ pub fn gpu_state_bytes(
     let (w, h) = (job.size.0 as u64, job.size.1 as u64);
     let n = scene.len() as u64;
     let frame = w * h * 4 * (3 + 1 + 1 + 3 * HEADS * 8);
-    let kept_views = if ecm_keeps_views(job) {
-        let splat = model.compute.splat();
-        splat.kept_views_bytes(scene.len(), views, job.size.0, job.size.1)
-    } else {
-        0
-    };
+    // The views ECM's fit keeps, and those the sampler run's lifting session keeps (CCM, blend maps).
+    let splat = model.compute.splat();
+    let kept = || splat.kept_views_bytes(scene.len(), views, job.size.0, job.size.1);
+    let lifts = job.guidance == GuidanceMode::Joint
+        && (!job.consistency.ccm_steps.is_empty() || job.consistency.blend_consistency);
+    let kept_views = u64::from(ecm_keeps_views(job)) * kept() + u64::from(lifts) * kept();
     weight_bytes
         + scene_param_bytes(scene) * 10
         + n * 4 * (3 * HEADS * 8 + 1)

@@ -39,9 +39,12 @@ struct KeptView {
     bytes: usize,
 }
 
-/// The kept views of one fit, within a memory budget.
+/// The kept views of one fit (or of one scene's lifting rounds), within a memory budget.
 pub struct GpuFrozenGeometry {
     views: Vec<Slot>,
+    /// Whether the tile lists hold the Gaussians under 1/255 opacity too: for fits, whose opacities
+    /// move; not for a scene whose opacities stay (lifting), where they would only be skipped.
+    keep_faint: bool,
     /// The number of Gaussians the views were made for.
     len: usize,
     bytes: usize,
@@ -55,9 +58,11 @@ impl Default for GpuFrozenGeometry {
 }
 
 impl GpuFrozenGeometry {
-    /// Views are kept while their device bytes ([`Self::view_bytes`]) stay within `budget`.
+    /// Views for a fit that moves the opacities and colours, kept while their device bytes
+    /// ([`Self::view_bytes`]) stay within `budget`.
     pub fn with_budget(budget: usize) -> Self {
         Self {
+            keep_faint: true,
             views: Vec::new(),
             len: 0,
             bytes: 0,
@@ -69,6 +74,15 @@ impl GpuFrozenGeometry {
     pub fn view_bytes(n: usize, pairs: usize, width: u32, height: u32) -> usize {
         let tiles = (width.div_ceil(TILE) * height.div_ceil(TILE)) as usize;
         4 * ((SPLAT_F + INFO_U) * n + pairs + 2 * tiles + CAM_F)
+    }
+
+    /// Views of a scene whose opacities stay as they are (every round of a lifting session), within
+    /// `budget`: their tile lists are the ordinary render's.
+    pub fn fixed_opacities(budget: usize) -> Self {
+        Self {
+            keep_faint: false,
+            ..Self::with_budget(budget)
+        }
     }
 
     /// Forgets every view (the geometry is about to change).
@@ -112,7 +126,7 @@ impl GpuFrozenGeometry {
                     self.views[v] = Slot::Refused;
                     return Ok(None);
                 }
-                let bins = gpu_call(|| project_and_bin(ctx, scene, camera, true))?;
+                let bins = gpu_call(|| project_and_bin(ctx, scene, camera, self.keep_faint))?;
                 let bytes =
                     Self::view_bytes(scene.len, bins.intersections, camera.width, camera.height);
                 if self.bytes + bytes > self.budget {

@@ -2,13 +2,21 @@
 //! projected and binned as for rendering, then one kernel walks every pixel (laid out as the raster
 //! forward) and adds its map values to the Gaussians it hits.
 //!
-//! [`lift_and_render_back`] is the whole 2D → 3D → 2D round of CCM and blend-map consistency on the
-//! device: only each view's map on its native grid goes up and comes back. Resampling to and from the
+//! [`GpuLiftScene::lift_and_render_back`] is the whole 2D → 3D → 2D round of CCM and blend-map
+//! consistency on the device: only each view's map on its native grid goes up and comes back. A
+//! [`GpuLiftScene`] serves every round of one sampler run (CCM's layers, the blend maps' steps): the scene
+//! is uploaded once and each view's projection and tile lists are made once (`gpu::frozen`), where a
+//! round used to project and bin every view twice, to lift and to render back, each time waiting for
+//! the device to size the tile lists. Resampling to and from the
 //! render resolution, the averages and the renders of the lifted values stay on the device (at 512² a
 //! CCM layer's full-resolution map is 150 MB per view, which used to cross the bus twice and be
 //! resampled on one host thread).
 
-use super::{arg, project_and_bin, render_device, GpuContext, GpuError, GpuScene, TILE};
+use super::frozen::GpuFrozenGeometry;
+use super::{
+    arg, forward_pixels_per_unit, project_and_bin, rasterise, Binned, GpuContext, GpuError,
+    GpuScene, TILE,
+};
 use crate::lift::{Lifted, MapGrid, Resample};
 use crate::render::RenderSettings;
 use crate::{Camera, GaussianScene};
@@ -16,7 +24,7 @@ use ::gpu::cubecl;
 use ::gpu::cubecl::prelude::*;
 use ::gpu::cubecl::server::Handle;
 use ::gpu::gpu_call;
-use ::gpu::prims::{empty32, grid, read_f32, read_u32, upload_f32, zeros32};
+use ::gpu::prims::{empty32, grid as grid_of, read_f32, read_u32, upload_f32, zeros32};
 
 /// Lifts per-view maps (`maps[v]` is H*W*C for `cameras[v]`) onto the Gaussians of `scene`.
 ///
@@ -115,56 +123,22 @@ impl GpuLiftAccumulator {
         cam: &Camera,
         map: &Handle,
     ) -> Result<(), GpuError> {
-        let c = &ctx.client;
-        let (n, channels, ppu) = (self.n, self.channels, self.ppu);
-        let npix = (cam.width * cam.height) as usize;
-        if npix == 0 || n == 0 {
+        if cam.width * cam.height == 0 || self.n == 0 {
             return Ok(());
         }
         gpu_call(|| {
-            let b = project_and_bin(ctx, &self.scene, cam, false)?;
-            if b.intersections == 0 {
-                return Ok(());
-            }
-            let num_tiles = (b.tiles_x * b.tiles_y) as usize;
-            super::raster::lift_accumulate::launch(
-                c,
-                CubeCount::new_2d(b.tiles_x, b.tiles_y),
-                CubeDim::new_2d(TILE, TILE / ppu),
-                arg(&b.splats, super::SPLAT_F * n),
-                arg(&b.ids, b.intersections),
-                arg(&b.tile_start, num_tiles),
-                arg(&b.tile_end, num_tiles),
-                arg(map, npix * channels),
-                cam.width,
-                cam.height,
-                b.tiles_x,
-                arg(&self.sums, n * channels),
-                arg(&self.counts, n),
-                channels as u32,
-                ppu,
+            let bins = project_and_bin(ctx, &self.scene, cam, false)?;
+            accumulate(
+                ctx,
+                self.n,
+                &bins,
+                map,
+                &self.sums,
+                &self.counts,
+                self.channels,
+                self.ppu,
             );
             Ok(())
-        })
-    }
-
-    /// The per-Gaussian averages W / (C + 1e-7), left on the device (N*C), with the uploaded scene.
-    fn finish_on_device(self, ctx: &GpuContext) -> Result<(GpuScene, Handle), GpuError> {
-        let (n, channels) = (self.n, self.channels);
-        gpu_call(|| {
-            if n * channels > 0 {
-                let (count, dim) = grid(n * channels);
-                lift_average::launch(
-                    &ctx.client,
-                    count,
-                    dim,
-                    arg(&self.sums, n * channels),
-                    arg(&self.counts, n),
-                    (n * channels) as u32,
-                    channels as u32,
-                );
-            }
-            Ok((self.scene, self.sums))
         })
     }
 
@@ -198,46 +172,150 @@ fn lift_pixels_per_unit(ctx: &GpuContext) -> u32 {
     super::backward_pixels_per_unit(ctx)
 }
 
-/// Lifts per-view maps given on `grid` onto the Gaussians of `scene` and renders them back to that grid,
-/// as [`crate::SplatDevice::lift_and_render_back`] describes. Only the grid-sized maps cross the bus.
-///
-/// # Panics
-/// When a map from `map_of` is not `grid.len()` long (a programming error).
-pub fn lift_and_render_back<E: From<GpuError>>(
+/// Adds a view's `map` (H*W*C on the device) to the per-Gaussian `sums` (N*C) and hit `counts` (N), over
+/// the view's projected and binned `n` Gaussians.
+#[allow(clippy::too_many_arguments)]
+fn accumulate(
     ctx: &GpuContext,
-    scene: &GaussianScene,
-    cameras: &[Camera],
-    grid: &MapGrid,
-    map_of: &mut dyn FnMut(usize) -> Result<Vec<f32>, E>,
-    sink: &mut dyn FnMut(usize, Vec<f32>) -> Result<(), E>,
-) -> Result<(), E> {
-    let channels = grid.channels;
-    let native = (grid.height, grid.width);
-    let mut acc = GpuLiftAccumulator::new(ctx, scene, channels);
-    for (v, cam) in cameras.iter().enumerate() {
-        let map = map_of(v)?;
-        assert_eq!(map.len(), grid.len(), "map {v} must be on the grid");
-        let full = (cam.height as usize, cam.width as usize);
-        let full_map = gpu_call(|| {
-            let small = upload_f32(&ctx.client, &map);
-            Ok(resample_on_device(
-                ctx, &small, native, full, channels, grid.up,
-            ))
-        })?;
-        acc.add_device_view(ctx, cam, &full_map)?;
+    n: usize,
+    bins: &Binned,
+    map: &Handle,
+    sums: &Handle,
+    counts: &Handle,
+    channels: usize,
+    ppu: u32,
+) {
+    let npix = (bins.width * bins.height) as usize;
+    if bins.intersections == 0 || npix == 0 {
+        return;
     }
-    let (dev, values) = acc.finish_on_device(ctx)?;
-    let settings = RenderSettings::default();
-    for (v, cam) in cameras.iter().enumerate() {
-        let full = (cam.height as usize, cam.width as usize);
-        let back = gpu_call(|| {
-            let frame = render_device(ctx, &dev, cam, &settings, Some((&values, channels)))?;
-            let small = resample_on_device(ctx, &frame.extra, full, native, channels, grid.down);
-            read_f32(&ctx.client, &small, grid.len())
-        })?;
-        sink(v, back)?;
+    let num_tiles = (bins.tiles_x * bins.tiles_y) as usize;
+    super::raster::lift_accumulate::launch(
+        &ctx.client,
+        CubeCount::new_2d(bins.tiles_x, bins.tiles_y),
+        CubeDim::new_2d(TILE, TILE / ppu),
+        arg(&bins.splats, super::SPLAT_F * n),
+        arg(&bins.ids, bins.intersections),
+        arg(&bins.tile_start, num_tiles),
+        arg(&bins.tile_end, num_tiles),
+        arg(map, npix * channels),
+        bins.width,
+        bins.height,
+        bins.tiles_x,
+        arg(sums, n * channels),
+        arg(counts, n),
+        channels as u32,
+        ppu,
+    );
+}
+
+/// One scene's lifting rounds on the device (see the module documentation): the scene uploaded once,
+/// each view's projection and tile lists kept within [`crate::render::FrozenGeometry::DEFAULT_BUDGET`]
+/// (views beyond it are projected and binned for each use, as before).
+pub struct GpuLiftScene {
+    scene: GpuScene,
+    views: GpuFrozenGeometry,
+}
+
+impl GpuLiftScene {
+    /// Uploads `scene`.
+    pub fn new(ctx: &GpuContext, scene: &GaussianScene) -> Self {
+        Self::with_budget(ctx, scene, crate::render::FrozenGeometry::DEFAULT_BUDGET)
     }
-    Ok(())
+
+    /// [`Self::new`] with views kept within `budget` bytes.
+    pub(super) fn with_budget(ctx: &GpuContext, scene: &GaussianScene, budget: usize) -> Self {
+        Self {
+            scene: GpuScene::upload(ctx, scene),
+            views: GpuFrozenGeometry::fixed_opacities(budget),
+        }
+    }
+
+    /// Device bytes of the kept views.
+    #[cfg(test)]
+    pub(super) fn kept_bytes(&self) -> usize {
+        self.views.bytes()
+    }
+
+    /// View `v`'s projected and binned Gaussians: the kept ones, else made for this use.
+    fn bins(&mut self, ctx: &GpuContext, cam: &Camera, v: usize) -> Result<Binned, GpuError> {
+        match self.views.view(ctx, &self.scene, cam, v)? {
+            Some(bins) => Ok(bins.clone()),
+            None => gpu_call(|| project_and_bin(ctx, &self.scene, cam, false)),
+        }
+    }
+
+    /// Lifts per-view maps given on `grid` onto the Gaussians and renders them back to that grid, as
+    /// [`crate::SplatDevice::lift_and_render_back`] describes. Only the grid-sized maps cross the bus.
+    ///
+    /// # Panics
+    /// When a map from `map_of` is not `grid.len()` long (a programming error).
+    pub fn lift_and_render_back<E: From<GpuError>>(
+        &mut self,
+        ctx: &GpuContext,
+        cameras: &[Camera],
+        grid: &MapGrid,
+        map_of: &mut dyn FnMut(usize) -> Result<Vec<f32>, E>,
+        sink: &mut dyn FnMut(usize, Vec<f32>) -> Result<(), E>,
+    ) -> Result<(), E> {
+        let c = &ctx.client;
+        let (n, channels) = (self.scene.len, grid.channels);
+        let native = (grid.height, grid.width);
+        let ppu = lift_pixels_per_unit(ctx);
+        let (sums, counts) = gpu_call(|| Ok((zeros32(c, n * channels), zeros32(c, n))))?;
+        for (v, cam) in cameras.iter().enumerate() {
+            let map = map_of(v)?;
+            assert_eq!(map.len(), grid.len(), "map {v} must be on the grid");
+            if cam.width * cam.height == 0 || n == 0 {
+                continue;
+            }
+            let bins = self.bins(ctx, cam, v)?;
+            let full = (cam.height as usize, cam.width as usize);
+            gpu_call(|| {
+                let small = upload_f32(c, &map);
+                let full_map = resample_on_device(ctx, &small, native, full, channels, grid.up);
+                accumulate(ctx, n, &bins, &full_map, &sums, &counts, channels, ppu);
+                Ok(())
+            })?;
+        }
+        gpu_call(|| {
+            if n * channels > 0 {
+                let (count, dim) = grid_of(n * channels);
+                lift_average::launch(
+                    c,
+                    count,
+                    dim,
+                    arg(&sums, n * channels),
+                    arg(&counts, n),
+                    (n * channels) as u32,
+                    channels as u32,
+                );
+            }
+            Ok(())
+        })?;
+        let settings = RenderSettings::default();
+        let forward_ppu = forward_pixels_per_unit(ctx);
+        for (v, cam) in cameras.iter().enumerate() {
+            let full = (cam.height as usize, cam.width as usize);
+            let bins = self.bins(ctx, cam, v)?;
+            let back = gpu_call(|| {
+                let frame = rasterise(
+                    ctx,
+                    n,
+                    bins,
+                    &settings,
+                    Some((&sums, channels)),
+                    forward_ppu,
+                    true,
+                );
+                let small =
+                    resample_on_device(ctx, &frame.extra, full, native, channels, grid.down);
+                read_f32(c, &small, grid.len())
+            })?;
+            sink(v, back)?;
+        }
+        Ok(())
+    }
 }
 
 /// [`crate::lift::resample`] on the device: `src` (h*w*C) to a new (out_h*out_w*C) buffer; `src`
@@ -258,7 +336,7 @@ pub(super) fn resample_on_device(
     if len == 0 {
         return out;
     }
-    let (count, dim) = grid(len);
+    let (count, dim) = grid_of(len);
     resample_map::launch(
         &ctx.client,
         count,

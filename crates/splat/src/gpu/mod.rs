@@ -43,7 +43,7 @@ pub use densify::GpuDensifyStats;
 pub use frozen::GpuFrozenGeometry;
 #[cfg(test)]
 pub use lift::lift;
-pub use lift::{lift_and_render_back, GpuLiftAccumulator};
+pub use lift::{GpuLiftAccumulator, GpuLiftScene};
 #[cfg(test)]
 pub use loss::l1_dssim;
 pub use loss::{l1_dssim_weighted, GpuLoss, L1DssimWeights};

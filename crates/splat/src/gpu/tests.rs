@@ -469,6 +469,90 @@ fn lifting_and_rendering_back_matches_the_cpu() {
     }
 }
 
+/// A lifting session's rounds (different grids and channel counts, the views kept from the first round
+/// on) give what a fresh round gives, and what a session without room to keep any view gives.
+#[test]
+fn lifting_sessions_keep_views_across_rounds() {
+    use crate::lift::{MapGrid, Resample};
+    use crate::SplatDevice;
+    let Some(ctx) = context_or_skip() else {
+        return;
+    };
+    let scene = random_scene(300, 1, 8);
+    let cams = three_views();
+    let grids = [
+        (9, 10, 5, Resample::Bilinear),
+        (6, 6, 2, Resample::Nearest),
+        (9, 10, 1, Resample::Bilinear),
+    ]
+    .map(|(height, width, channels, mode)| MapGrid {
+        height,
+        width,
+        channels,
+        up: mode,
+        down: mode,
+    });
+    let maps = |grid: &MapGrid, v: usize| -> Vec<f32> {
+        (0..grid.len())
+            .map(|i| ((i * 5 + v * 7 + grid.channels) % 13) as f32 / 12.0)
+            .collect()
+    };
+    let round = |grid: &MapGrid, run: &mut dyn FnMut(&MapGrid, &mut Vec<Vec<f32>>)| {
+        let mut back = vec![Vec::new(); cams.len()];
+        run(grid, &mut back);
+        back
+    };
+    let mut session = lift::GpuLiftScene::new(&ctx, &scene);
+    let mut starved = lift::GpuLiftScene::with_budget(&ctx, &scene, 0);
+    let device = SplatDevice::Gpu(ctx.clone());
+    for grid in &grids {
+        let via = |lift: &mut lift::GpuLiftScene| {
+            round(grid, &mut |g, back| {
+                lift.lift_and_render_back::<GpuError>(
+                    &ctx,
+                    &cams,
+                    g,
+                    &mut |v| Ok(maps(g, v)),
+                    &mut |v, m| {
+                        back[v] = m;
+                        Ok(())
+                    },
+                )
+                .unwrap()
+            })
+        };
+        let kept = via(&mut session);
+        let refused = via(&mut starved);
+        let fresh = round(grid, &mut |g, back| {
+            device
+                .lift_and_render_back::<GpuError>(
+                    &scene,
+                    &cams,
+                    g,
+                    &mut |v| Ok(maps(g, v)),
+                    &mut |v, m| {
+                        back[v] = m;
+                        Ok(())
+                    },
+                )
+                .unwrap()
+        });
+        for v in 0..cams.len() {
+            assert!(fresh[v].iter().any(|&x| x > 0.05), "view {v} sees the maps");
+            for other in [&kept[v], &refused[v]] {
+                let e = rel_err(other, &fresh[v]);
+                assert!(
+                    e < 1e-5,
+                    "{} channels, view {v}: relative error {e}",
+                    grid.channels
+                );
+            }
+        }
+    }
+    assert!(session.kept_bytes() > 0, "the views were kept");
+    assert_eq!(starved.kept_bytes(), 0);
+}
+
 /// Three device Adam steps land where `Adam::step` does.
 #[test]
 fn adam_on_the_device_matches_the_cpu() {
