@@ -139,10 +139,10 @@ pub fn gpu_state_bytes(
     let frame = w * h * 4 * (3 + 1 + 1 + 3 * HEADS * 8);
     // The views ECM's fit keeps, and those the sampler run's lifting session keeps (CCM, blend maps).
     let splat = model.compute.splat();
-    let kept = || splat.kept_views_bytes(scene.len(), views, job.size.0, job.size.1);
     let lifts = job.guidance == GuidanceMode::Joint
         && (!job.consistency.ccm_steps.is_empty() || job.consistency.blend_consistency);
-    let kept_views = u64::from(ecm_keeps_views(job)) * kept() + u64::from(lifts) * kept();
+    let kept_views = (u64::from(ecm_keeps_views(job)) + u64::from(lifts))
+        * splat.kept_views_bytes(scene.len(), views, job.size.0, job.size.1);
     weight_bytes
         + scene_param_bytes(scene) * 10
         + n * 4 * (3 * HEADS * 8 + 1)

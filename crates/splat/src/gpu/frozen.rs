@@ -92,7 +92,8 @@ impl GpuFrozenGeometry {
     }
 
     /// Bytes the kept views hold on the device.
-    pub fn bytes(&self) -> usize {
+    #[cfg(test)]
+    pub(crate) fn bytes(&self) -> usize {
         self.bytes
     }
 

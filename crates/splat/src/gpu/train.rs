@@ -60,7 +60,8 @@ impl DeviceTrainer {
     }
 
     /// Device bytes the kept views hold (0 unless [`Self::freeze_geometry`] was called).
-    pub fn frozen_bytes(&self) -> usize {
+    #[cfg(test)]
+    pub(crate) fn frozen_bytes(&self) -> usize {
         self.frozen.as_ref().map_or(0, GpuFrozenGeometry::bytes)
     }
 
