@@ -326,14 +326,15 @@ FIT_PROFILE_STEPS=${FIT_PROFILE_STEPS:-1500}
     [ "$6" -gt 1500 ] && python3 "$4" "$5" --segments 4 --label "the last quarter of its launches"; exit 0' \
   _ "$V" "$IN/lego-200" "$WORK/lego-profile.ply" "$HERE/kernel_profile.py" "$WORK/fit.prof" "$FIT_PROFILE_STEPS"
 # Where a fit's host time goes, and A/Bs: 1500 steps under host_profile.py (CPU time per thread, context
-# switches, the fit's own device-read waits, its held-out PSNR) as `auto` runs it, with the raster
-# backward's plane sums (VCEDIT_GPU_PLANE_SUMS, off until a card has checked them: same PSNR, how much
-# faster?), on SPIR-V (an edit's splatting path), and on SPIR-V with plane sums. Variants are
-# comma-separated settings. (It found the 34 -> 83-90 s regression of 2026-11-27: a WGSL fit loaded the
-# SPIR-V kernels an earlier step had persisted.)
+# switches, the fit's own device-read waits, its held-out PSNR) as `auto` runs it (WGSL), WGSL with the
+# raster backward's shared-memory staging (VCEDIT_GPU_STAGED_BACKWARD=on: swapped bits there), on SPIR-V
+# (an edit's splatting path), SPIR-V with staging (shared float atomics), and SPIR-V with staging and
+# plane sums (VCEDIT_GPU_PLANE_SUMS). Variants are comma-separated settings. (It found the 34 -> 83-90 s
+# regression of 2026-11-27: a WGSL fit loaded the SPIR-V kernels an earlier step had persisted; and on
+# 2026-11-28 that SPIR-V's raster backward is 5.5x WGSL's, plane sums alone not helping.)
 if [ "$MODE" = device ]; then
   AB_SIZE="${FIT_AB_SIZE:---steps 1500}"
-  AB_VARIANTS="${FIT_AB_VARIANTS:-auto VCEDIT_GPU_PLANE_SUMS=on VCEDIT_GPU_COMPILER=spirv VCEDIT_GPU_COMPILER=spirv,VCEDIT_GPU_PLANE_SUMS=on}"
+  AB_VARIANTS="${FIT_AB_VARIANTS:-auto VCEDIT_GPU_STAGED_BACKWARD=on VCEDIT_GPU_COMPILER=spirv VCEDIT_GPU_COMPILER=spirv,VCEDIT_GPU_STAGED_BACKWARD=on VCEDIT_GPU_COMPILER=spirv,VCEDIT_GPU_STAGED_BACKWARD=on,VCEDIT_GPU_PLANE_SUMS=on}"
 else
   AB_SIZE="--steps 30 --init-points 2000"
   AB_VARIANTS="auto"

@@ -60,9 +60,15 @@ def machine_info(work):
 def iteration_stages(times):
     """One run.json `iterations` entry as {stage name: seconds} (the names of run.json's `timings`)."""
     s = times.get("sampler", {})
-    return {"render": times.get("render", 0), "encode": s.get("encode", 0), "CCM": s.get("ccm", 0),
-            "UNet passes": s.get("unet", 0), "ECM": s.get("ecm", 0), "blend-map consistency": s.get("blend", 0),
-            "decode": s.get("decode", 0), "fit": times.get("fit", 0)}
+    stages = {"render": times.get("render", 0), "encode": s.get("encode", 0), "CCM": s.get("ccm", 0),
+              "UNet passes": s.get("unet", 0), "ECM": s.get("ecm", 0), "blend-map consistency": s.get("blend", 0),
+              "decode": s.get("decode", 0), "fit": times.get("fit", 0)}
+    # Parts of CCM and ECM (run.json has them since 2026-11-28): not stages of their own.
+    if "ccm_lifting" in s:
+        stages["of CCM: lifting"] = s["ccm_lifting"]
+    if "ecm_fits" in s:
+        stages["of ECM: fits"] = s["ecm_fits"]
+    return stages
 
 
 def paper_estimate(run):
@@ -85,20 +91,24 @@ def paper_estimate(run):
     r = 96 / views
 
     def total(ecm_views_factor):
+        # Where run.json splits ECM, its fits (a fixed number of steps) stay and the rest (decoding,
+        # rendering and encoding every view) scales with the views: one estimate instead of a range.
+        ecm, fits = t.get("ECM", 0), t.get("of ECM: fits")
+        ecm_scaled = fits + (ecm - fits) * r if fits is not None else ecm * ecm_views_factor
         per_iteration = (
             t.get("render", 0) * r
             + t.get("encode", 0) * r
             + t.get("UNet passes", 0) * r * 15 / steps
             + t.get("blend-map consistency", 0) * r * 15 / steps
             + t.get("CCM", 0) * r * 2 / ccm_steps
-            + t.get("ECM", 0) * ecm_views_factor * 3 / ecm_steps
+            + ecm_scaled * 3 / ecm_steps
             + t.get("decode", 0) * r
             + t.get("fit", 0)
         )
         return round(2 * per_iteration, 1)
 
-    # An ECM step fits a fixed number of Adam steps (576) but renders and encodes every view: its time
-    # lies between "independent of the views" and "proportional to them".
+    # An ECM step fits a fixed number of Adam steps (576) but renders and encodes every view: without the
+    # split, its time lies between "independent of the views" and "proportional to them".
     return {"views": views, "steps": steps, "iterations": len(iterations), "ccm_steps": ccm_steps,
             "estimated_from": "last iteration" if len(iterations) > 1 else "the only iteration (with kernel compilation)",
             "per_iteration_s": [{k: round(v, 2) for k, v in iteration_stages(it).items()} for it in iterations],
@@ -342,7 +352,8 @@ def main():
                            for i, it in enumerate(edit["per_iteration_s"]))
         lines += ["", f"Editing slice ({edit['views']} views × {edit['steps']} steps × {edit['iterations']} iterations, "
                       f"CCM/ECM/blend on): {edit['total_s']} s in all; stages (s): {stages} ({per_it}). Estimate for "
-                      f"96 views × 15 steps × 2 iterations from the {edit['estimated_from']}: **{lo:.0f}–{hi:.0f} s** "
+                      f"96 views × 15 steps × 2 iterations from the {edit['estimated_from']}: "
+                      f"**{lo:.0f}{'' if round(lo) == round(hi) else f'–{hi:.0f}'} s** "
                       f"(scaled from the slice, not a measurement)."]
     # Kernel profiles (kernel_profile.py's tables, as the steps printed them).
     for name in ("unet-profile", "fit-profile"):

@@ -18,13 +18,14 @@ use super::{MultiView, MultiViewError};
 use crate::sampler::ViewState;
 
 impl MultiView<'_> {
-    /// CCM at step `i`: record, lift, render back, substitute.
+    /// CCM at step `i`: record, lift, render back, substitute. Returns the seconds from the recorded
+    /// maps to the consistent ones (the lifting rounds of every layer).
     pub(super) fn cross_attention_consistency(
         &self,
         views: &mut [ViewState],
         i: usize,
         lift: &mut LiftSession<'_>,
-    ) -> Result<(), MultiViewError> {
+    ) -> Result<f64, MultiViewError> {
         let plan = self.plan;
         let mut recorded = Vec::with_capacity(views.len());
         for batch in views.chunks_mut(self.view_batch.max(1)) {
@@ -43,6 +44,7 @@ impl MultiView<'_> {
                 "views recorded different attention layers".into(),
             ));
         }
+        let lifting = std::time::Instant::now();
         let real = plan.alignment.target_len.max(plan.source_len);
         let mut consistent: Vec<HashMap<String, Tensor>> = vec![HashMap::new(); views.len()];
         for k in 0..layers {
@@ -101,6 +103,6 @@ impl MultiView<'_> {
         for (view, maps) in views.iter_mut().zip(consistent) {
             view.controller.set_consistent_maps(maps);
         }
-        Ok(())
+        Ok(lifting.elapsed().as_secs_f64())
     }
 }

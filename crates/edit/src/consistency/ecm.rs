@@ -232,13 +232,14 @@ impl SceneFitter for EcmFitter<'_> {
 }
 
 impl MultiView<'_> {
-    /// ECM at step `i`: fit the scene to the decoded predictions, render, encode, substitute.
+    /// ECM at step `i`: fit the scene to the decoded predictions, render, encode, substitute. Returns
+    /// the seconds of the two fits.
     pub(super) fn editing_consistency(
         &self,
         views: &mut [ViewState],
         i: usize,
         noise: &mut dyn NoiseSource,
-    ) -> Result<(), MultiViewError> {
+    ) -> Result<f64, MultiViewError> {
         let fitter = self.fitter.expect("checked in run");
         let model = self.model;
         let batch = self.view_batch;
@@ -248,9 +249,11 @@ impl MultiView<'_> {
         let targets = model.decode_each(&preds(|v| v.pred_t.as_ref()), batch)?;
         let layouts = model.decode_each(&preds(|v| v.pred_m.as_ref()), batch)?;
         let seed = self.seed.wrapping_mul(1_000_003).wrapping_add(i as u64 * 2);
+        let fitting = std::time::Instant::now();
         let [fit_t, fit_m] = fitter
             .fit_pair(self.scene, self.cameras, [&targets, &layouts], seed)
             .map_err(MultiViewError::Fit)?;
+        let fit_seconds = fitting.elapsed().as_secs_f64();
         let compute = model.compute.splat();
         let render_t = compute
             .render_images(&fit_t, self.cameras, self.background)
@@ -271,7 +274,7 @@ impl MultiView<'_> {
             self.plan
                 .rebase(view, i, pair[0].clone(), pair[1].clone())?;
         }
-        Ok(())
+        Ok(fit_seconds)
     }
 }
 

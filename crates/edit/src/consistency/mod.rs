@@ -81,6 +81,14 @@ pub struct StageTimes {
     pub ecm: f64,
     pub blend: f64,
     pub decode: f64,
+    /// Of `ccm`: the layers' lifting rounds, from the recorded maps to the consistent ones (the rest is
+    /// the recording UNet passes). Where the time goes inside CCM; not a stage of its own.
+    #[serde(default)]
+    pub ccm_lifting: f64,
+    /// Of `ecm`: the two fits (the rest decodes the predictions, renders the fitted copies and encodes
+    /// the renders). Scales with the fits' steps, not with the views.
+    #[serde(default)]
+    pub ecm_fits: f64,
 }
 
 impl StageTimes {
@@ -189,7 +197,7 @@ impl MultiView<'_> {
             let n = noise.sample(&shape)?;
             if self.consistency.ccm_steps.contains(&i) {
                 let t = Instant::now();
-                self.cross_attention_consistency(&mut views, i, &mut lift)?;
+                times.ccm_lifting += self.cross_attention_consistency(&mut views, i, &mut lift)?;
                 progress(i, Stage::Ccm);
                 timed(Stage::Ccm, t, &mut times);
             }
@@ -206,7 +214,7 @@ impl MultiView<'_> {
             timed(Stage::Unet, t, &mut times);
             if self.consistency.ecm.steps.contains(&i) {
                 let t = Instant::now();
-                self.editing_consistency(&mut views, i, noise)?;
+                times.ecm_fits += self.editing_consistency(&mut views, i, noise)?;
                 progress(i, Stage::Ecm);
                 timed(Stage::Ecm, t, &mut times);
             }

@@ -462,15 +462,64 @@ pub fn render_backward_device(
     frame: &GpuFrame,
     grads: &GpuOutputGrads<'_>,
 ) -> Result<GpuSceneGrads, GpuError> {
-    let ppu = backward_pixels_per_unit(ctx);
-    let plane = plane_sums(ctx, ppu);
-    render_backward_device_with(ctx, scene, settings, extra, frame, grads, ppu, plane)
+    let layout = BackwardLayout::of(ctx);
+    render_backward_device_with(ctx, scene, settings, extra, frame, grads, layout)
+}
+
+/// How the raster backward sums its gradients (every layout gives the same gradients up to the order
+/// of float sums; the tests try each).
+#[derive(Clone, Copy, Debug)]
+struct BackwardLayout {
+    /// Pixels per unit (a power of two ≤ `TILE`).
+    ppu: u32,
+    /// Plane reductions before the atomics.
+    plane: bool,
+    /// Shared-memory sums per batch before the global atomics (`raster::STAGE_*`).
+    staging: u32,
+}
+
+impl BackwardLayout {
+    /// The adapter's layout.
+    fn of(ctx: &GpuContext) -> Self {
+        let ppu = backward_pixels_per_unit(ctx);
+        Self {
+            ppu,
+            plane: plane_sums(ctx, ppu),
+            staging: backward_staging(ctx),
+        }
+    }
+}
+
+/// How the raster backward stages each batch's gradients in shared memory before its global atomics
+/// (`raster::raster_backward`'s `staging`). Not by default: `VCEDIT_GPU_STAGED_BACKWARD=on` stages in
+/// shared float atomics on the SPIR-V compiler and in swapped bits on WGSL (which has no float atomics in
+/// shared memory), `=bits` in swapped bits on either. It is meant for SPIR-V, whose atomics are
+/// acquire-release ones (the backward was 5.5× slower there than on WGSL on an H200, 2026-11-28), and
+/// stays off until a card has measured it: gpu-check's `fit-ab` compares the variants.
+fn backward_staging(ctx: &GpuContext) -> u32 {
+    static ASKED: std::sync::OnceLock<Option<String>> = std::sync::OnceLock::new();
+    let asked = ASKED.get_or_init(|| {
+        std::env::var("VCEDIT_GPU_STAGED_BACKWARD")
+            .ok()
+            .map(|v| v.trim().to_string())
+    });
+    let spirv = ctx.compiler == "wgpu<spirv>";
+    match asked.as_deref() {
+        Some("bits") => raster::STAGE_BITS,
+        Some("on" | "1" | "true") if spirv => raster::STAGE_FLOAT,
+        Some("on" | "1" | "true") => raster::STAGE_BITS,
+        _ => raster::STAGE_NONE,
+    }
 }
 
 /// Whether the raster backward with `ppu` pixels per unit sums each plane's gradients: asked for, offered
-/// by the adapter, and whole planes.
+/// by the adapter, whole planes, and the SPIR-V compiler (on an H200 the WGSL kernel with plane sums
+/// failed to build, 2026-11-28; cubecl registers plane operations there all the same).
 fn plane_sums(ctx: &GpuContext, ppu: u32) -> bool {
-    plane_sums_asked() && plane_reductions(ctx) && plane_fits(ctx, ppu)
+    plane_sums_asked()
+        && ctx.compiler == "wgpu<spirv>"
+        && plane_reductions(ctx)
+        && plane_fits(ctx, ppu)
 }
 
 /// Whether `VCEDIT_GPU_PLANE_SUMS=on` asks the raster backward to sum each plane's gradients before its
@@ -506,10 +555,7 @@ fn plane_fits(ctx: &GpuContext, ppu: u32) -> bool {
     plane > 0 && plane <= units && units % plane == 0
 }
 
-/// [`render_backward_device`] with `ppu` pixels per raster unit, and with (`plane`) or without plane
-/// reductions before the atomics (every layout gives the same gradients up to the order of float sums;
-/// the tests try each).
-#[allow(clippy::too_many_arguments)]
+/// [`render_backward_device`] with the raster backward's `layout`.
 fn render_backward_device_with(
     ctx: &GpuContext,
     scene: &GpuScene,
@@ -517,9 +563,13 @@ fn render_backward_device_with(
     extra: Option<(&Handle, usize)>,
     frame: &GpuFrame,
     grads: &GpuOutputGrads<'_>,
-    ppu: u32,
-    plane: bool,
+    layout: BackwardLayout,
 ) -> Result<GpuSceneGrads, GpuError> {
+    let BackwardLayout {
+        ppu,
+        plane,
+        staging,
+    } = layout;
     assert!(
         ppu.is_power_of_two() && ppu <= TILE,
         "pixels per unit must be a power of two ≤ {TILE}"
@@ -576,6 +626,7 @@ fn render_backward_device_with(
                 channels as u32,
                 ppu,
                 plane,
+                staging,
             );
         }
         let out = GpuSceneGrads {
@@ -686,14 +737,19 @@ pub fn render_backward(
     extra: Option<ExtraChannels<'_>>,
     grads: &OutputGrads<'_>,
 ) -> Result<SceneGrads, GpuError> {
-    let ppu = backward_pixels_per_unit(ctx);
-    let plane = plane_sums(ctx, ppu);
-    render_backward_with(ctx, scene, camera, settings, extra, grads, ppu, plane)
+    render_backward_with(
+        ctx,
+        scene,
+        camera,
+        settings,
+        extra,
+        grads,
+        BackwardLayout::of(ctx),
+    )
 }
 
-/// [`render_backward`] with `ppu` pixels per raster backward unit, with or without plane reductions.
+/// [`render_backward`] with the raster backward's `layout`.
 #[cfg(test)]
-#[allow(clippy::too_many_arguments)]
 fn render_backward_with(
     ctx: &GpuContext,
     scene: &GaussianScene,
@@ -701,8 +757,7 @@ fn render_backward_with(
     settings: &RenderSettings,
     extra: Option<ExtraChannels<'_>>,
     grads: &OutputGrads<'_>,
-    ppu: u32,
-    plane: bool,
+    layout: BackwardLayout,
 ) -> Result<SceneGrads, GpuError> {
     let c = &ctx.client;
     let n = scene.len();
@@ -728,8 +783,7 @@ fn render_backward_with(
             depth: depth.as_ref(),
             extra: ext.as_ref(),
         },
-        ppu,
-        plane,
+        layout,
     )?;
     read_grads(ctx, &g, n, scene.sh_degree, extra_ref.map(|e| e.1))
 }

@@ -3,6 +3,7 @@
 
 // `super::render` is the GPU renderer; `render` alone names the CPU module imported below.
 #![allow(unused_qualifications)]
+use super::raster::{STAGE_BITS, STAGE_FLOAT, STAGE_NONE};
 use super::*;
 use crate::cameras::orbit::{look_at, robust_bounds};
 use crate::render;
@@ -222,22 +223,34 @@ fn backward_matches_the_cpu_per_parameter_kind() {
     let want = render::render_backward(&scene, &cam, &settings, extra, &out, &grads);
     let flat2 = |v: &[[f32; 2]]| v.iter().flatten().copied().collect::<Vec<_>>();
     // The adapter's raster layout, then every other one (pixels per unit of the raster backward, each
-    // also with plane reductions where the adapter has them and its units make whole planes: hardware
-    // only, cubecl refuses plane operations on lavapipe).
+    // with and without the batch's shared sums, and with plane reductions where the adapter has them
+    // and its units make whole planes: hardware only, cubecl refuses plane operations on lavapipe).
     let default = super::render_backward(&ctx, &scene, &cam, &settings, extra, &grads).unwrap();
-    let mut layouts = vec![(0, false, default)];
+    let mut layouts = vec![("default".to_string(), default)];
     for ppu in [1, 2, 4, 8, 16] {
+        let spirv = ctx.compiler == "wgpu<spirv>";
         for plane in [false, true] {
             if plane && !(super::plane_reductions(&ctx) && super::plane_fits(&ctx, ppu)) {
                 continue;
             }
-            let g = super::render_backward_with(
-                &ctx, &scene, &cam, &settings, extra, &grads, ppu, plane,
-            );
-            layouts.push((ppu, plane, g.unwrap()));
+            for staging in [STAGE_NONE, STAGE_FLOAT, STAGE_BITS] {
+                // Float atomics in shared memory are SPIR-V's only.
+                if staging == STAGE_FLOAT && !spirv {
+                    continue;
+                }
+                let layout = super::BackwardLayout {
+                    ppu,
+                    plane,
+                    staging,
+                };
+                let g = super::render_backward_with(
+                    &ctx, &scene, &cam, &settings, extra, &grads, layout,
+                );
+                layouts.push((format!("{layout:?}"), g.unwrap()));
+            }
         }
     }
-    for (ppu, plane, got) in layouts {
+    for (layout, got) in layouts {
         let kinds: [(&str, &[f32], &[f32]); 7] = [
             ("means", &got.means, &want.means),
             ("log_scales", &got.log_scales, &want.log_scales),
@@ -249,9 +262,7 @@ fn backward_matches_the_cpu_per_parameter_kind() {
         ];
         for (name, g, w) in kinds {
             let e = rel_err(g, w);
-            eprintln!(
-                "{ppu} pixels/unit (0 = default), plane sums {plane}, {name}: relative error {e:.2e}"
-            );
+            eprintln!("{layout}, {name}: relative error {e:.2e}");
             assert!(w.iter().any(|v| *v != 0.0), "{name}: no gradient at all");
             assert!(e <= 1e-3, "{name}: relative error {e}");
         }
