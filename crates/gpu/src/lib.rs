@@ -191,11 +191,19 @@ impl fmt::Debug for GpuContext {
     }
 }
 
+/// CubeCL's name for the SPIR-V compiler of the wgpu runtime (`GpuContext::compiler`).
+const SPIRV_COMPILER: &str = "wgpu<spirv>";
+
 impl GpuContext {
+    /// Whether the kernels go through the SPIR-V compiler (else WGSL).
+    pub fn on_spirv(&self) -> bool {
+        self.compiler == SPIRV_COMPILER
+    }
+
     /// One line for run logs: "llvmpipe (LLVM 15.0.6, 256 bits) via Vulkan, SPIR-V (software)".
     pub fn describe(&self) -> String {
         let compiler = match self.compiler.as_str() {
-            "wgpu<spirv>" => "SPIR-V",
+            SPIRV_COMPILER => "SPIR-V",
             "wgpu<wgsl>" => "WGSL",
             "wgpu<msl>" => "MSL",
             other => other,
@@ -458,7 +466,7 @@ fn open_adapter(a: &AdapterEntry, wgsl: bool) -> Result<GpuContext, GpuError> {
     } else {
         client.name().to_string()
     };
-    let tensor_cores = compiler == "wgpu<spirv>" && has_f16_tensor_cores(&client);
+    let tensor_cores = compiler == SPIRV_COMPILER && has_f16_tensor_cores(&client);
     Ok(GpuContext {
         adapter: props.identity.name.clone(),
         client,
@@ -669,8 +677,12 @@ mod tests {
             return;
         };
         let persisting = CubeClRuntimeConfig::get().compilation.cache;
-        let spirv = ctx.compiler == "wgpu<spirv>";
-        assert_eq!(persisting, spirv && persist_kernels(), "{}", ctx.describe());
+        assert_eq!(
+            persisting,
+            ctx.on_spirv() && persist_kernels(),
+            "{}",
+            ctx.describe()
+        );
         if persisting {
             let same = list_adapters()
                 .into_iter()

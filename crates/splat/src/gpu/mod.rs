@@ -503,7 +503,7 @@ fn backward_staging(ctx: &GpuContext) -> u32 {
             .ok()
             .map(|v| v.trim().to_string())
     });
-    let spirv = ctx.compiler == "wgpu<spirv>";
+    let spirv = ctx.on_spirv();
     match asked.as_deref() {
         Some("bits") => raster::STAGE_BITS,
         Some("on" | "1" | "true") if spirv => raster::STAGE_FLOAT,
@@ -516,10 +516,7 @@ fn backward_staging(ctx: &GpuContext) -> u32 {
 /// by the adapter, whole planes, and the SPIR-V compiler (on an H200 the WGSL kernel with plane sums
 /// failed to build, 2026-11-28; cubecl registers plane operations there all the same).
 fn plane_sums(ctx: &GpuContext, ppu: u32) -> bool {
-    plane_sums_asked()
-        && ctx.compiler == "wgpu<spirv>"
-        && plane_reductions(ctx)
-        && plane_fits(ctx, ppu)
+    plane_sums_asked() && ctx.on_spirv() && plane_reductions(ctx) && plane_fits(ctx, ppu)
 }
 
 /// Whether `VCEDIT_GPU_PLANE_SUMS=on` asks the raster backward to sum each plane's gradients before its

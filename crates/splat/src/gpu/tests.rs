@@ -228,7 +228,7 @@ fn backward_matches_the_cpu_per_parameter_kind() {
     let default = super::render_backward(&ctx, &scene, &cam, &settings, extra, &grads).unwrap();
     let mut layouts = vec![("default".to_string(), default)];
     for ppu in [1, 2, 4, 8, 16] {
-        let spirv = ctx.compiler == "wgpu<spirv>";
+        let spirv = ctx.on_spirv();
         for plane in [false, true] {
             if plane && !(super::plane_reductions(&ctx) && super::plane_fits(&ctx, ppu)) {
                 continue;
