@@ -230,11 +230,12 @@ def build_table(res, steps, mode, torch_present, work):
                           ("sort_60k_ms", "radix sort of 60k pairs by 32-bit keys + read (ms)")):
             row(f"host overhead: {what}, {r.get('compiler', '?')}", r.get(key), None, None,
                 "what the host costs around kernels", torch_expected=False)
-    for name in ("lift", "lift-cpu"):
+    wheres = {"lift": "gpu", "lift-pixels": "gpu, lifted per pixel (VCEDIT_GPU_LIFT=pixels)",
+              "lift-cpu": "cpu"}
+    for name, where in wheres.items():
         for r in res.get(name, []):
             if r.get("bench") != "lift":
                 continue
-            where = "gpu" if name == "lift" else "cpu"
             row(f"CCM lifting round, {r['what']}, {r['views']} views at {r['size']}², {r['channels']} channels, "
                 f"{where} (s)", r.get("best_s"), None, fmt_s(r.get("first_s")),
                 f"{r['gaussians'] // 1000}k Gaussians, {r['grid']}² maps", torch_expected=False)

@@ -113,6 +113,50 @@ fn tiny_training_run_learns_saves_loads_edits_and_resumes() {
     assert_eq!(more.state.unet_step, 220);
     assert_eq!(more.state.codec_step, 200);
 
+    // Training further from the exported model (`--init`): its codec is kept, the UNet starts trained
+    // (its first loss window well below the scratch run's), and other samples can be drawn (seed).
+    let tuned = dir.path().join("tuned");
+    let mut tune = config.clone();
+    tune.seed += 1;
+    tune.unet.steps = 100;
+    let options = TrainOptions {
+        init: Some(out.clone()),
+        ..Default::default()
+    };
+    let mut stages = Vec::new();
+    let summary = train(&tuned, &tune, &options, &mut |e| {
+        if let Event::Stage { name, .. } = e {
+            stages.push(name.to_string());
+        }
+    })
+    .unwrap();
+    assert_eq!(stages, ["render", "encode", "unet"]);
+    assert_eq!(summary.state.scaling_factor, Some(scaling));
+    let vae = |dir: &std::path::Path| {
+        std::fs::read(dir.join("vae/diffusion_pytorch_model.safetensors")).unwrap()
+    };
+    assert_eq!(vae(&tuned), vae(&out));
+    let first = mean_loss(&summary, "unet", true);
+    assert!(
+        first < 0.8 * u0,
+        "fine-tune starts at {first}, scratch at {u0}"
+    );
+    EditModel::load(&tuned, None).unwrap();
+    let readme = std::fs::read_to_string(tuned.join("README.md")).unwrap();
+    assert!(readme.contains("codec taken from"), "{readme}");
+
+    // A model of another architecture is refused, naming the file.
+    let mut wider = tune.clone();
+    wider.unet.block_out_channels[0] *= 2;
+    let err = train(&dir.path().join("wider"), &wider, &options, &mut |_| {})
+        .err()
+        .unwrap()
+        .to_string();
+    assert!(
+        err.contains("unet/diffusion_pytorch_model.safetensors") && err.contains("architecture"),
+        "{err}"
+    );
+
     // A different architecture refuses the old checkpoints.
     config.unet.lr *= 2.0;
     let err = train(&out, &config, &TrainOptions::default(), &mut |_| {})

@@ -39,6 +39,7 @@ pub enum Preset {
 #[command(after_help = "Examples:
   vcedit demo-model train --out models/demo
   vcedit demo-model train --out /tmp/tiny --preset tiny --unet-steps 50
+  vcedit demo-model train --out /tmp/tuned --init models/demo --seed 1 --unet-steps 1500
 
 Rerunning the same command continues from OUT/checkpoints; --restart discards them.")]
 pub struct TrainArgs {
@@ -65,6 +66,15 @@ pub struct TrainArgs {
     /// Discard existing checkpoints and start over.
     #[arg(long)]
     pub restart: bool,
+    /// Train further from an exported model of the same architecture (e.g. models/demo): its
+    /// autoencoder is kept, its UNet and text encoder are trained for --unet-steps more steps on
+    /// newly rendered samples (use another --seed for other samples). Only read when OUT has no
+    /// checkpoints yet.
+    #[arg(long, value_name = "DIR")]
+    pub init: Option<PathBuf>,
+    /// Peak learning rate of the UNet and text encoder (default: the preset's).
+    #[arg(long, value_parser = finite::<f64>, allow_negative_numbers = true)]
+    pub unet_lr: Option<f64>,
 }
 
 #[derive(clap::Args, Debug)]
@@ -134,6 +144,20 @@ fn run_train(args: TrainArgs) -> anyhow::Result<()> {
     if let Some(v) = args.checkpoint_minutes {
         config.checkpoint_minutes = v;
     }
+    if let Some(v) = args.unet_lr {
+        if v <= 0.0 {
+            bail!("--unet-lr {v} must be positive");
+        }
+        config.unet.lr = v;
+    }
+    if let Some(init) = &args.init {
+        if !init.join("unet/config.json").is_file() {
+            bail!(
+                "--init {}: not an exported model (no unet/config.json)",
+                init.display()
+            );
+        }
+    }
     // The exact command, for the model's README (without --restart, so rerunning it resumes).
     let command = std::iter::once("vcedit".to_string())
         .chain(std::env::args().skip(1).filter(|a| a != "--restart"))
@@ -166,6 +190,7 @@ fn run_train(args: TrainArgs) -> anyhow::Result<()> {
     let options = TrainOptions {
         restart: args.restart,
         command: Some(command),
+        init: args.init.clone(),
     };
     let summary = train(&args.out, &config, &options, &mut |event| match event {
         Event::Stage { name, total, done } => progress.resume_stage(name, total, done),

@@ -119,6 +119,10 @@ pub struct TrainState {
     pub loss_history: Vec<(String, u64, f64)>,
     /// Wall-clock seconds spent per stage (summed over resumed runs).
     pub seconds: HashMap<String, f64>,
+    /// The model folder this run started from (`--init`): its codec was taken as it is and its UNet and
+    /// text encoder were trained further.
+    #[serde(default)]
+    pub init_from: Option<PathBuf>,
 }
 
 /// A summary of a finished run.
@@ -259,6 +263,11 @@ pub struct TrainOptions {
     pub restart: bool,
     /// The command line that started the run (written into the model's README).
     pub command: Option<String>,
+    /// Start from this exported model (diffusers layout, same architecture) instead of from scratch:
+    /// its autoencoder is kept as it is (so the latent space stays the one its UNet learnt) and its
+    /// UNet and text encoder are trained further for `unet.steps` steps on freshly rendered samples.
+    /// Ignored when `OUT/checkpoints` already holds a run, which then continues.
+    pub init: Option<PathBuf>,
 }
 
 /// Trains (or continues training) the demo model into `out`. See the module docs.
@@ -308,8 +317,13 @@ pub fn train(
             unet_exported_at: None,
             loss_history: Vec::new(),
             seconds: HashMap::new(),
+            init_from: None,
         },
     };
+    if let (Some(init), 0, 0) = (&options.init, state.codec_step, state.unet_step) {
+        adopt_codec(init, out, config, &mut state, events)?;
+        save_state(&paths, &state)?;
+    }
 
     let bpe = crate::bpe::demo_bpe();
     let tokenizer_dir = out.join("tokenizer");
@@ -638,6 +652,14 @@ fn train_denoiser(
 ) -> Result<(), TrainError> {
     let u = &config.unet;
     let trainer = denoiser::DenoiserTrainer::new(config, vocab_size)?;
+    if let (Some(init), 0) = (&state.init_from, state.unet_step) {
+        // Before the optimiser and EMA are made, so the EMA starts from these weights too.
+        load_denoiser_weights(init, &trainer.varmap)?;
+        events(Event::Note(format!(
+            "UNet and text encoder start from {}",
+            init.display()
+        )));
+    }
     let mut trainable = Trainable::new(trainer.varmap.clone(), u.ema_decay)?;
     if state.unet_step > 0 {
         trainable.load(&paths.denoiser(), state.unet_step)?;
@@ -691,6 +713,114 @@ fn train_denoiser(
     save_state(paths, state)
 }
 
+/// `--init`: takes the autoencoder of the model in `init` as this run's, exported at the configured codec
+/// step so the codec stage is skipped (the UNet to be trained further learnt that codec's latents).
+fn adopt_codec(
+    init: &Path,
+    out: &Path,
+    config: &TrainConfig,
+    state: &mut TrainState,
+    events: &mut dyn FnMut(Event),
+) -> Result<(), TrainError> {
+    let src = init.join("vae");
+    let config_path = src.join("config.json");
+    let text = std::fs::read_to_string(&config_path).map_err(io_err(&config_path))?;
+    let bad = |msg: String| TrainError::File {
+        path: config_path.clone(),
+        msg,
+    };
+    let json: serde_json::Value = serde_json::from_str(&text).map_err(|e| bad(e.to_string()))?;
+    let scaling = json
+        .get("scaling_factor")
+        .and_then(serde_json::Value::as_f64)
+        .filter(|s| s.is_finite() && *s > 0.0)
+        .ok_or_else(|| bad("no positive scaling_factor".into()))?;
+    // The codec must be the one this config would have trained: same architecture, same weights' shapes.
+    let weights_path = src.join("diffusion_pytorch_model.safetensors");
+    let weights = load_tensors(&weights_path)?;
+    let expected = codec::CodecTrainer::new(config)?;
+    check_weights(
+        &weights_path,
+        &weights,
+        &optim::named_vars(&expected.varmap),
+        "",
+    )?;
+    let dst = out.join("vae");
+    if dst != src {
+        std::fs::create_dir_all(&dst).map_err(io_err(&dst))?;
+        save_tensors(&weights, &dst.join("diffusion_pytorch_model.safetensors"))?;
+        write_json(&dst.join("config.json"), &config.vae_config_json(scaling))?;
+    }
+    events(Event::Note(format!(
+        "codec taken from {} (scaling_factor {scaling:.5})",
+        src.display()
+    )));
+    state.codec_step = config.codec.steps;
+    state.codec_exported_at = Some(config.codec.steps);
+    state.scaling_factor = Some(scaling);
+    state.init_from = Some(init.to_path_buf());
+    Ok(())
+}
+
+/// Checks that `weights` (read from `path`) hold exactly the variables of `vars` whose names start with
+/// `prefix`, each under its name without the prefix and with its shape.
+fn check_weights(
+    path: &Path,
+    weights: &HashMap<String, Tensor>,
+    vars: &[(String, candle_core::Var)],
+    prefix: &str,
+) -> Result<(), TrainError> {
+    let bad = |msg: String| TrainError::File {
+        path: path.to_path_buf(),
+        msg: format!("{msg} (not the architecture this training config builds)"),
+    };
+    let mut count = 0;
+    for (name, var) in vars {
+        let Some(key) = name.strip_prefix(prefix) else {
+            continue;
+        };
+        count += 1;
+        let t = weights
+            .get(key)
+            .ok_or_else(|| bad(format!("missing tensor {key}")))?;
+        if t.dims() != var.as_tensor().dims() {
+            return Err(bad(format!(
+                "{key} has shape {:?}, expected {:?}",
+                t.dims(),
+                var.as_tensor().dims()
+            )));
+        }
+    }
+    if weights.len() != count {
+        return Err(bad(format!("{} tensors, expected {count}", weights.len())));
+    }
+    Ok(())
+}
+
+/// `--init`: sets the UNet and text encoder variables (prefixes `unet.` / `text_encoder.`) from the
+/// exported model in `init`, the inverse of [`train_denoiser`]'s export.
+fn load_denoiser_weights(init: &Path, varmap: &candle_nn::VarMap) -> Result<(), TrainError> {
+    let vars = optim::named_vars(varmap);
+    let unet_path = init.join("unet/diffusion_pytorch_model.safetensors");
+    let unet = load_tensors(&unet_path)?;
+    check_weights(&unet_path, &unet, &vars, "unet.")?;
+    let text_path = init.join("text_encoder/model.safetensors");
+    // Both the transformers-4 layout (`text_model.` prefix, what the export writes) and the bare one.
+    let text: HashMap<String, Tensor> = load_tensors(&text_path)?
+        .into_iter()
+        .map(|(k, t)| (k.strip_prefix("text_model.").unwrap_or(&k).to_string(), t))
+        .collect();
+    check_weights(&text_path, &text, &vars, "text_encoder.")?;
+    for (name, var) in &vars {
+        let t = match name.strip_prefix("unet.") {
+            Some(key) => &unet[key],
+            None => &text[name.strip_prefix("text_encoder.").unwrap_or(name)],
+        };
+        var.set(t)?;
+    }
+    Ok(())
+}
+
 /// Total size of the exported weight files.
 fn weight_bytes(out: &Path) -> u64 {
     [
@@ -740,8 +870,8 @@ fn write_readme(
          | UNet | UNet2DConditionModel, channels {uc:?}, cross-attention {ua:?}, {uh} heads, ε-prediction |\n\
          | VAE | AutoencoderKL, channels {vc:?}, {lat} latent channels, scaling_factor {sf:.5} |\n\
          | scheduler | LCMScheduler config, scaled-linear betas {bs} → {be}, 1000 steps |\n\n\
-         Training: seed {seed}, {n} rendered {size}×{size} samples; codec {cs} steps × {cb} crops of {cc}²\n\
-         ({cmin:.1} min); UNet + text encoder {us} steps × {ub} ({umin:.1} min). Exported weights are EMA\n\
+         Training: seed {seed}, {n} rendered {size}×{size} samples; {codec_part}; UNet + text encoder \
+         {us} steps × {ub} ({umin:.1} min){init_part}. Exported weights are EMA\n\
          averages, {mb:.1} MB in all (f32 safetensors).\n\n\
          - {codec_loss}\n- {unet_loss}\n",
         dir = out.display(),
@@ -762,15 +892,29 @@ fn write_readme(
         seed = c.seed,
         n = c.samples,
         size = c.image_size,
-        cs = state.codec_step,
-        cb = c.codec.batch,
-        cc = c.codec.crop,
-        cmin = secs("codec") / 60.0,
+        codec_part = match &state.init_from {
+            Some(init) => format!("codec taken from {}", init.display()),
+            None => format!(
+                "codec {} steps × {} crops of {}² ({:.1} min)",
+                state.codec_step,
+                c.codec.batch,
+                c.codec.crop,
+                secs("codec") / 60.0
+            ),
+        },
+        init_part = match &state.init_from {
+            Some(init) => format!(", starting from the UNet and text encoder of {}", init.display()),
+            None => String::new(),
+        },
         us = state.unet_step,
         ub = c.unet.batch,
         umin = secs("unet") / 60.0,
         mb = weight_bytes as f64 / 1e6,
-        codec_loss = loss_line("codec", "codec L1 reconstruction error (images in [-1, 1])"),
+        codec_loss = if state.init_from.is_some() {
+            "codec: not trained in this run (taken as it was)".to_string()
+        } else {
+            loss_line("codec", "codec L1 reconstruction error (images in [-1, 1])")
+        },
         unet_loss = loss_line("unet", "UNet noise-prediction MSE"),
     );
     let path = out.join("README.md");

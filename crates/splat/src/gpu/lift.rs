@@ -14,8 +14,8 @@
 
 use super::frozen::GpuFrozenGeometry;
 use super::{
-    arg, forward_pixels_per_unit, project_and_bin, rasterise, Binned, GpuContext, GpuError,
-    GpuScene, TILE,
+    arg, forward_pixels_per_unit, project_and_bin, raster, rasterise_sparse, Binned, GpuContext,
+    GpuError, GpuScene, TILE,
 };
 use crate::lift::{Lifted, MapGrid, Resample};
 use crate::render::RenderSettings;
@@ -24,7 +24,7 @@ use ::gpu::cubecl;
 use ::gpu::cubecl::prelude::*;
 use ::gpu::cubecl::server::Handle;
 use ::gpu::gpu_call;
-use ::gpu::prims::{empty32, grid as grid_of, read_f32, read_u32, upload_f32, zeros32};
+use ::gpu::prims::{empty32, grid as grid_of, read_f32, read_u32, upload_f32, upload_u32, zeros32};
 
 /// Lifts per-view maps (`maps[v]` is H*W*C for `cameras[v]`) onto the Gaussians of `scene`.
 ///
@@ -209,6 +209,183 @@ fn accumulate(
     );
 }
 
+/// Cells per axis the grid lifting stages per tile at most ([`raster::lift_accumulate_grid`]): a map
+/// grid finer than about a quarter of the tiles' pixels is lifted per pixel, from its upsampled version.
+const MAX_GRID_SPAN: u32 = 6;
+
+/// How [`raster::lift_accumulate_grid`] runs for one grid and view size.
+#[derive(Clone, Copy, Debug)]
+struct GridLayout {
+    /// Cells per axis a tile stages (comptime).
+    span: u32,
+    staging: u32,
+    ppu: u32,
+}
+
+/// The grid lifting's layout for maps on `grid` lifted at `full` (rows, columns), or None where the
+/// per-pixel kernel lifts them: a grid too fine for [`MAX_GRID_SPAN`], or `VCEDIT_GPU_LIFT=pixels`
+/// (the A/B switch of gpu-check). `VCEDIT_GPU_LIFT=float` stages in shared float atomics on the SPIR-V
+/// compiler; by default the weights' bits are swapped in, which every compiler has.
+fn grid_layout(ctx: &GpuContext, grid: &MapGrid, full: (usize, usize)) -> Option<GridLayout> {
+    static ASKED: std::sync::OnceLock<Option<String>> = std::sync::OnceLock::new();
+    let asked = ASKED.get_or_init(|| {
+        std::env::var("VCEDIT_GPU_LIFT")
+            .ok()
+            .map(|v| v.trim().to_string())
+    });
+    if asked.as_deref() == Some("pixels") || grid.channels == 0 {
+        return None;
+    }
+    let span =
+        grid_span(full.0, grid.height, grid.up)?.max(grid_span(full.1, grid.width, grid.up)?);
+    let staging = if asked.as_deref() == Some("float") && ctx.on_spirv() {
+        raster::STAGE_FLOAT
+    } else {
+        raster::STAGE_BITS
+    };
+    Some(GridLayout {
+        span,
+        staging,
+        ppu: lift_pixels_per_unit(ctx),
+    })
+}
+
+/// The most cells one tile's pixels read along an axis of `full` pixels upsampled from `cells` cells
+/// (as `resample_map`, in the same f32 arithmetic), plus one for a device that rounds a pixel's position
+/// differently; None beyond [`MAX_GRID_SPAN`].
+pub(super) fn grid_span(full: usize, cells: usize, mode: Resample) -> Option<u32> {
+    if full == 0 || cells == 0 {
+        return None;
+    }
+    let scale = cells as f32 / full as f32;
+    let first = |o: usize| -> usize {
+        match mode {
+            Resample::Bilinear => {
+                let f = ((o as f32 + 0.5) * scale - 0.5).max(0.0);
+                (f as usize).min(cells - 1)
+            }
+            Resample::Nearest => (o * cells / full).min(cells - 1),
+        }
+    };
+    let second = |o: usize| -> usize {
+        match mode {
+            Resample::Bilinear => (first(o) + 1).min(cells - 1),
+            Resample::Nearest => first(o),
+        }
+    };
+    let tile = TILE as usize;
+    let widest = (0..full.div_ceil(tile))
+        .map(|k| {
+            let last = ((k + 1) * tile).min(full) - 1;
+            second(last) - first(k * tile) + 1
+        })
+        .max()
+        .unwrap_or(1);
+    let span = widest as u32 + 1;
+    (span <= MAX_GRID_SPAN).then_some(span)
+}
+
+/// The tests' entry to both lifting kernels: `maps[v]` on `grid` lifted over `cameras`, through the grid
+/// kernel with `staging` (with the span the host would pick), or per pixel from the upsampled maps when
+/// `staging` is None.
+#[cfg(test)]
+pub(super) fn lift_on_grid(
+    ctx: &GpuContext,
+    scene: &GaussianScene,
+    cameras: &[Camera],
+    maps: &[Vec<f32>],
+    grid: &MapGrid,
+    staging: Option<u32>,
+) -> Result<Lifted, GpuError> {
+    let ppu = lift_pixels_per_unit(ctx);
+    let acc = GpuLiftAccumulator::with_layout(ctx, scene, grid.channels, ppu);
+    for (cam, map) in cameras.iter().zip(maps) {
+        let full = (cam.height as usize, cam.width as usize);
+        let bins = project_and_bin(ctx, &acc.scene, cam, false)?;
+        let small = upload_f32(&ctx.client, map);
+        match staging {
+            Some(staging) => {
+                let span = grid_span(full.0, grid.height, grid.up)
+                    .unwrap()
+                    .max(grid_span(full.1, grid.width, grid.up).unwrap());
+                let layout = GridLayout { span, staging, ppu };
+                accumulate_grid(
+                    ctx,
+                    acc.n,
+                    &bins,
+                    &small,
+                    grid,
+                    layout,
+                    &acc.sums,
+                    &acc.counts,
+                );
+            }
+            None => {
+                let native = (grid.height, grid.width);
+                let up = resample_on_device(ctx, &small, native, full, grid.channels, grid.up);
+                accumulate(
+                    ctx,
+                    acc.n,
+                    &bins,
+                    &up,
+                    &acc.sums,
+                    &acc.counts,
+                    grid.channels,
+                    ppu,
+                );
+            }
+        }
+    }
+    acc.finish(ctx)
+}
+
+/// Adds a view's map, given on `grid` (`small`, grid.len() values on the device), to the per-Gaussian
+/// `sums` and `counts` as [`accumulate`] adds its upsampled version (see
+/// [`raster::lift_accumulate_grid`]).
+#[allow(clippy::too_many_arguments)]
+fn accumulate_grid(
+    ctx: &GpuContext,
+    n: usize,
+    bins: &Binned,
+    small: &Handle,
+    grid: &MapGrid,
+    layout: GridLayout,
+    sums: &Handle,
+    counts: &Handle,
+) {
+    let npix = (bins.width * bins.height) as usize;
+    if bins.intersections == 0 || npix == 0 {
+        return;
+    }
+    let num_tiles = (bins.tiles_x * bins.tiles_y) as usize;
+    let channels = grid.channels;
+    raster::lift_accumulate_grid::launch(
+        &ctx.client,
+        CubeCount::new_2d(bins.tiles_x, bins.tiles_y),
+        CubeDim::new_2d(TILE, TILE / layout.ppu),
+        arg(&bins.splats, super::SPLAT_F * n),
+        arg(&bins.ids, bins.intersections),
+        arg(&bins.tile_start, num_tiles),
+        arg(&bins.tile_end, num_tiles),
+        arg(small, grid.len()),
+        bins.width,
+        bins.height,
+        bins.tiles_x,
+        grid.width as u32,
+        grid.height as u32,
+        // The axis scales in f32 from the host, as `resample_on_device` passes them.
+        grid.width as f32 / bins.width as f32,
+        grid.height as f32 / bins.height as f32,
+        u32::from(grid.up == Resample::Bilinear),
+        arg(sums, n * channels),
+        arg(counts, n),
+        channels as u32,
+        layout.ppu,
+        layout.span,
+        layout.staging,
+    );
+}
+
 /// One scene's lifting rounds on the device (see the module documentation): the scene uploaded once,
 /// each view's projection and tile lists kept within [`crate::render::FrozenGeometry::DEFAULT_BUDGET`]
 /// (views beyond it are projected and binned for each use, as before).
@@ -273,8 +450,16 @@ impl GpuLiftScene {
             let full = (cam.height as usize, cam.width as usize);
             gpu_call(|| {
                 let small = upload_f32(c, &map);
-                let full_map = resample_on_device(ctx, &small, native, full, channels, grid.up);
-                accumulate(ctx, n, &bins, &full_map, &sums, &counts, channels, ppu);
+                match grid_layout(ctx, grid, full) {
+                    Some(layout) => {
+                        accumulate_grid(ctx, n, &bins, &small, grid, layout, &sums, &counts)
+                    }
+                    None => {
+                        let full_map =
+                            resample_on_device(ctx, &small, native, full, channels, grid.up);
+                        accumulate(ctx, n, &bins, &full_map, &sums, &counts, channels, ppu);
+                    }
+                }
                 Ok(())
             })?;
         }
@@ -299,7 +484,10 @@ impl GpuLiftScene {
             let full = (cam.height as usize, cam.width as usize);
             let bins = self.bins(ctx, cam, v)?;
             let back = gpu_call(|| {
-                let frame = rasterise(
+                // Only the pixels the resampling to the grid reads composite the lifted channels.
+                let rows = upload_u32(c, &read_by_resampling(full.0, grid.height, grid.down));
+                let cols = upload_u32(c, &read_by_resampling(full.1, grid.width, grid.down));
+                let frame = rasterise_sparse(
                     ctx,
                     n,
                     bins,
@@ -307,6 +495,7 @@ impl GpuLiftScene {
                     Some((&sums, channels)),
                     forward_ppu,
                     true,
+                    Some((&rows, &cols)),
                 );
                 let small =
                     resample_on_device(ctx, &frame.extra, full, native, channels, grid.down);
@@ -316,6 +505,34 @@ impl GpuLiftScene {
         }
         Ok(())
     }
+}
+
+/// Flags (1 or 0) of the `full` rows (or columns) that resampling them to `cells` reads, as
+/// `resample_map` does; each with its neighbours, so a device that rounds a position differently still
+/// reads composited pixels.
+fn read_by_resampling(full: usize, cells: usize, mode: Resample) -> Vec<u32> {
+    let mut flags = vec![0u32; full];
+    if full == 0 {
+        return flags;
+    }
+    let scale = full as f32 / cells as f32;
+    let mut mark = |o: usize| {
+        for k in o.saturating_sub(1)..=(o + 1).min(full - 1) {
+            flags[k] = 1;
+        }
+    };
+    for o in 0..cells {
+        match mode {
+            Resample::Bilinear => {
+                let f = ((o as f32 + 0.5) * scale - 0.5).max(0.0);
+                let first = (f as usize).min(full - 1);
+                mark(first);
+                mark((first + 1).min(full - 1));
+            }
+            Resample::Nearest => mark((o * full / cells).min(full - 1)),
+        }
+    }
+    flags
 }
 
 /// [`crate::lift::resample`] on the device: `src` (h*w*C) to a new (out_h*out_w*C) buffer; `src`

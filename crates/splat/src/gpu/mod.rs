@@ -257,6 +257,22 @@ fn rasterise(
     ppu: u32,
     geometry_grads: bool,
 ) -> GpuFrame {
+    rasterise_sparse(ctx, n, binned, settings, extra, ppu, geometry_grads, None)
+}
+
+/// [`rasterise`], compositing the extra channels only at the pixels whose row and column `needed`
+/// flags (one u32 per row, one per column: 1 or 0); zero at the others.
+#[allow(clippy::too_many_arguments)]
+fn rasterise_sparse(
+    ctx: &GpuContext,
+    n: usize,
+    binned: Binned,
+    settings: &RenderSettings,
+    extra: Option<(&Handle, usize)>,
+    ppu: u32,
+    geometry_grads: bool,
+    needed: Option<(&Handle, &Handle)>,
+) -> GpuFrame {
     assert!(
         ppu.is_power_of_two() && ppu <= TILE,
         "pixels per unit must be a power of two ≤ {TILE}"
@@ -298,6 +314,14 @@ fn rasterise(
             arg(&tile_start, num_tiles),
             arg(&tile_end, num_tiles),
             arg(&extra_vals, channels * n),
+            arg(
+                needed.map_or(&extra_vals, |f| f.0),
+                needed.map_or(1, |_| height as usize),
+            ),
+            arg(
+                needed.map_or(&extra_vals, |f| f.1),
+                needed.map_or(1, |_| width as usize),
+            ),
             width,
             height,
             tiles_x,
@@ -312,6 +336,7 @@ fn rasterise(
             arg(&last, npix),
             channels as u32,
             ppu,
+            needed.is_some(),
         );
     }
     GpuFrame {
