@@ -39,7 +39,7 @@ pub enum Preset {
 #[command(after_help = "Examples:
   vcedit demo-model train --out models/demo
   vcedit demo-model train --out /tmp/tiny --preset tiny --unet-steps 50
-  vcedit demo-model train --out /tmp/tuned --init models/demo --seed 1 --unet-steps 1500
+  vcedit demo-model train --out /tmp/t --init models/demo --unet-steps 900
 
 Rerunning the same command continues from OUT/checkpoints; --restart discards them.")]
 pub struct TrainArgs {
