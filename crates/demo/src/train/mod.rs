@@ -870,9 +870,9 @@ fn write_readme(
          | UNet | UNet2DConditionModel, channels {uc:?}, cross-attention {ua:?}, {uh} heads, ε-prediction |\n\
          | VAE | AutoencoderKL, channels {vc:?}, {lat} latent channels, scaling_factor {sf:.5} |\n\
          | scheduler | LCMScheduler config, scaled-linear betas {bs} → {be}, 1000 steps |\n\n\
-         Training: seed {seed}, {n} rendered {size}×{size} samples; {codec_part}; UNet + text encoder \
-         {us} steps × {ub} ({umin:.1} min){init_part}. Exported weights are EMA\n\
-         averages, {mb:.1} MB in all (f32 safetensors).\n\n\
+         Training: seed {seed}, {n} rendered {size}×{size} samples; {codec_part};\n\
+         UNet + text encoder {us} steps × {ub} ({umin:.1} min){init_part}.\n\
+         Exported weights are EMA averages, {mb:.1} MB in all (f32 safetensors).\n\n\
          - {codec_loss}\n- {unet_loss}\n",
         dir = out.display(),
         cmd = command.unwrap_or("vcedit demo-model train (command not recorded)"),

@@ -233,51 +233,62 @@ fn grid_layout(ctx: &GpuContext, grid: &MapGrid, full: (usize, usize)) -> Option
             .ok()
             .map(|v| v.trim().to_string())
     });
-    if asked.as_deref() == Some("pixels") || grid.channels == 0 {
+    if asked.as_deref() == Some("pixels") {
         return None;
     }
-    let span =
-        grid_span(full.0, grid.height, grid.up)?.max(grid_span(full.1, grid.width, grid.up)?);
     let staging = if asked.as_deref() == Some("float") && ctx.on_spirv() {
         raster::STAGE_FLOAT
     } else {
         raster::STAGE_BITS
     };
-    Some(GridLayout {
-        span,
-        staging,
-        ppu: lift_pixels_per_unit(ctx),
-    })
+    GridLayout::new(ctx, grid, full, staging)
 }
 
-/// The most cells one tile's pixels read along an axis of `full` pixels upsampled from `cells` cells
-/// (as `resample_map`, in the same f32 arithmetic), plus one for a device that rounds a pixel's position
-/// differently; None beyond [`MAX_GRID_SPAN`].
+impl GridLayout {
+    /// The layout for maps on `grid` lifted at `full` with `staging`; None where the grid is too fine.
+    fn new(ctx: &GpuContext, grid: &MapGrid, full: (usize, usize), staging: u32) -> Option<Self> {
+        if grid.channels == 0 {
+            return None;
+        }
+        let span =
+            grid_span(full.0, grid.height, grid.up)?.max(grid_span(full.1, grid.width, grid.up)?);
+        Some(Self {
+            span,
+            staging,
+            ppu: lift_pixels_per_unit(ctx),
+        })
+    }
+}
+
+/// The samples (first, second) that output `o` reads when `resample_map` resamples an axis of `from`
+/// samples to `to` (in its f32 arithmetic): the two bilinear neighbours, or the nearest one twice.
+fn source_samples(o: usize, from: usize, to: usize, mode: Resample) -> (usize, usize) {
+    match mode {
+        Resample::Bilinear => {
+            let scale = from as f32 / to as f32;
+            let f = ((o as f32 + 0.5) * scale - 0.5).max(0.0);
+            let first = (f as usize).min(from - 1);
+            (first, (first + 1).min(from - 1))
+        }
+        Resample::Nearest => {
+            let k = (o * from / to).min(from - 1);
+            (k, k)
+        }
+    }
+}
+
+/// The most cells one tile's pixels read along an axis of `full` pixels upsampled from `cells` cells,
+/// plus one for a device that rounds a pixel's position differently; None beyond [`MAX_GRID_SPAN`].
 pub(super) fn grid_span(full: usize, cells: usize, mode: Resample) -> Option<u32> {
     if full == 0 || cells == 0 {
         return None;
     }
-    let scale = cells as f32 / full as f32;
-    let first = |o: usize| -> usize {
-        match mode {
-            Resample::Bilinear => {
-                let f = ((o as f32 + 0.5) * scale - 0.5).max(0.0);
-                (f as usize).min(cells - 1)
-            }
-            Resample::Nearest => (o * cells / full).min(cells - 1),
-        }
-    };
-    let second = |o: usize| -> usize {
-        match mode {
-            Resample::Bilinear => (first(o) + 1).min(cells - 1),
-            Resample::Nearest => first(o),
-        }
-    };
     let tile = TILE as usize;
     let widest = (0..full.div_ceil(tile))
         .map(|k| {
             let last = ((k + 1) * tile).min(full) - 1;
-            second(last) - first(k * tile) + 1
+            let (first, _) = source_samples(k * tile, cells, full, mode);
+            source_samples(last, cells, full, mode).1 - first + 1
         })
         .max()
         .unwrap_or(1);
@@ -305,10 +316,7 @@ pub(super) fn lift_on_grid(
         let small = upload_f32(&ctx.client, map);
         match staging {
             Some(staging) => {
-                let span = grid_span(full.0, grid.height, grid.up)
-                    .unwrap()
-                    .max(grid_span(full.1, grid.width, grid.up).unwrap());
-                let layout = GridLayout { span, staging, ppu };
+                let layout = GridLayout::new(ctx, grid, full, staging).expect("a coarse grid");
                 accumulate_grid(
                     ctx,
                     acc.n,
@@ -507,29 +515,17 @@ impl GpuLiftScene {
     }
 }
 
-/// Flags (1 or 0) of the `full` rows (or columns) that resampling them to `cells` reads, as
-/// `resample_map` does; each with its neighbours, so a device that rounds a position differently still
-/// reads composited pixels.
+/// Flags (1 or 0) of the `full` rows (or columns) that resampling them to `cells` reads; each with its
+/// neighbours, so a device that rounds a position differently still reads composited pixels.
 fn read_by_resampling(full: usize, cells: usize, mode: Resample) -> Vec<u32> {
     let mut flags = vec![0u32; full];
     if full == 0 {
         return flags;
     }
-    let scale = full as f32 / cells as f32;
-    let mut mark = |o: usize| {
-        for k in o.saturating_sub(1)..=(o + 1).min(full - 1) {
-            flags[k] = 1;
-        }
-    };
     for o in 0..cells {
-        match mode {
-            Resample::Bilinear => {
-                let f = ((o as f32 + 0.5) * scale - 0.5).max(0.0);
-                let first = (f as usize).min(full - 1);
-                mark(first);
-                mark((first + 1).min(full - 1));
-            }
-            Resample::Nearest => mark((o * full / cells).min(full - 1)),
+        let (first, second) = source_samples(o, full, cells, mode);
+        for k in first.saturating_sub(1)..=(second + 1).min(full - 1) {
+            flags[k] = 1;
         }
     }
     flags

@@ -75,8 +75,8 @@ impl DeviceTrainer {
 
     /// One step on `target` (H*W*3 on the device) seen from `camera` (view 0) with the loss
     /// `(1 − ssim_weight)·L1 + ssim_weight·D-SSIM`; `adam` gives the rates and counts the step. Returns
-    /// the loss value. (The benches' and tests' entry; the trainer steps with [`Self::step_weighted`].)
-    #[cfg(any(test, feature = "stages"))]
+    /// the loss value. (The benches' entry; the trainer steps with [`Self::step_weighted`].)
+    #[cfg(feature = "stages")]
     pub fn step(
         &mut self,
         ctx: &GpuContext,
