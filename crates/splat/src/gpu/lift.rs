@@ -495,9 +495,12 @@ impl GpuLiftScene {
                 // Only the pixels the resampling to the grid reads composite the lifted channels — off
                 // by default: `vcedit bench lift` at 256² and 144 channels found its round 8 % off the
                 // dense one (2026-11-28, after the session's tests had passed; not yet understood).
-                let sparse = std::env::var("VCEDIT_GPU_SPARSE_BACK").is_ok_and(|v| v == "on");
-                let rows = upload_u32(c, &read_by_resampling(full.0, grid.height, grid.down));
-                let cols = upload_u32(c, &read_by_resampling(full.1, grid.width, grid.down));
+                let flags = sparse_back().then(|| {
+                    (
+                        upload_u32(c, &read_by_resampling(full.0, grid.height, grid.down)),
+                        upload_u32(c, &read_by_resampling(full.1, grid.width, grid.down)),
+                    )
+                });
                 let frame = rasterise_sparse(
                     ctx,
                     n,
@@ -506,7 +509,7 @@ impl GpuLiftScene {
                     Some((&sums, channels)),
                     forward_ppu,
                     true,
-                    sparse.then_some((&rows, &cols)),
+                    flags.as_ref().map(|(rows, cols)| (rows, cols)),
                 );
                 let small =
                     resample_on_device(ctx, &frame.extra, full, native, channels, grid.down);
@@ -516,6 +519,12 @@ impl GpuLiftScene {
         }
         Ok(())
     }
+}
+
+/// Whether `VCEDIT_GPU_SPARSE_BACK=on` asks for the sparse render-back (read once per process).
+fn sparse_back() -> bool {
+    static ASKED: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
+    *ASKED.get_or_init(|| std::env::var("VCEDIT_GPU_SPARSE_BACK").is_ok_and(|v| v.trim() == "on"))
 }
 
 /// Flags (1 or 0) of the `full` rows (or columns) that resampling them to `cells` reads; each with its
