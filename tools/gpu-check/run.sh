@@ -299,8 +299,9 @@ step lpips-cpu 90 "$V" bench lpips --device cpu --sizes "$LPIPS_SIZE" --runs 1
 # through the device seam and as it ran before (host resampling, full-resolution maps over the bus)
 if [ "$MODE" = device ]; then LIFT=(--views 8 --size 512 --channels 144 --runs 3); else LIFT=(--views 2 --size 64 --channels 8 --gaussians 3000 --runs 1); fi
 step lift 90 "$V" bench lift --device gpu "${LIFT[@]}"
-# the A/B of the grid lifting: the maps upsampled on the device and lifted per pixel, as before 2026-11-28
-step lift-pixels 90 env VCEDIT_GPU_LIFT=pixels "$V" bench lift --device gpu "${LIFT[@]}"
+# the A/B of the grid lifting and sparse render-back: the maps upsampled on the device and lifted per pixel,
+# every pixel rendered back, as before 2026-11-28
+step lift-pixels 90 env VCEDIT_GPU_LIFT=pixels VCEDIT_GPU_SPARSE_BACK=off "$V" bench lift --device gpu "${LIFT[@]}"
 step lift-cpu 60 "$V" bench lift --device cpu "${LIFT[@]}"
 
 # ---- an editing slice at paper settings (SD 1.5 size, 512²): 8 views x 2 steps x 2 iterations, CCM, ECM

@@ -230,7 +230,7 @@ def build_table(res, steps, mode, torch_present, work):
                           ("sort_60k_ms", "radix sort of 60k pairs by 32-bit keys + read (ms)")):
             row(f"host overhead: {what}, {r.get('compiler', '?')}", r.get(key), None, None,
                 "what the host costs around kernels", torch_expected=False)
-    wheres = {"lift": "gpu", "lift-pixels": "gpu, lifted per pixel (VCEDIT_GPU_LIFT=pixels)",
+    wheres = {"lift": "gpu", "lift-pixels": "gpu, per pixel and rendered back densely (as before 2026-11-28)",
               "lift-cpu": "cpu"}
     for name, where in wheres.items():
         for r in res.get(name, []):

@@ -157,7 +157,7 @@ pub(crate) fn render_kept(
     bins: &Binned,
     settings: &RenderSettings,
 ) -> Result<GpuFrame, GpuError> {
-    let ppu = forward_pixels_per_unit(ctx);
+    let ppu = forward_pixels_per_unit(ctx, 0);
     gpu_call(|| {
         let n = scene.len;
         if n > 0 {

@@ -347,6 +347,38 @@ pub(super) fn lift_on_grid(
     acc.finish(ctx)
 }
 
+/// The tests' entry to the render-back: `values` (N*C) composited over `cam` at full resolution, densely
+/// or only at the pixels that resampling to `grid` reads ([`read_by_resampling`]'s rows and columns).
+#[cfg(test)]
+pub(super) fn render_back_pixels(
+    ctx: &GpuContext,
+    scene: &GaussianScene,
+    cam: &Camera,
+    values: &[f32],
+    grid: &MapGrid,
+    sparse: bool,
+) -> Result<Vec<f32>, GpuError> {
+    let c = &ctx.client;
+    let gpu_scene = GpuScene::upload(ctx, scene);
+    let (h, w) = (cam.height as usize, cam.width as usize);
+    let rows = read_by_resampling(h, grid.height, grid.down);
+    let cols = read_by_resampling(w, grid.width, grid.down);
+    let bins = project_and_bin(ctx, &gpu_scene, cam, false)?;
+    let extra = upload_f32(c, values);
+    let flags = sparse.then(|| (upload_u32(c, &rows), upload_u32(c, &cols)));
+    let frame = rasterise_sparse(
+        ctx,
+        scene.len(),
+        bins,
+        &RenderSettings::default(),
+        Some((&extra, grid.channels)),
+        forward_pixels_per_unit(ctx, grid.channels),
+        true,
+        flags.as_ref().map(|(r, k)| (r, k)),
+    );
+    read_f32(c, &frame.extra, h * w * grid.channels)
+}
+
 /// Adds a view's map, given on `grid` (`small`, grid.len() values on the device), to the per-Gaussian
 /// `sums` and `counts` as [`accumulate`] adds its upsampled version (see
 /// [`raster::lift_accumulate_grid`]).
@@ -487,14 +519,12 @@ impl GpuLiftScene {
             Ok(())
         })?;
         let settings = RenderSettings::default();
-        let forward_ppu = forward_pixels_per_unit(ctx);
+        let forward_ppu = forward_pixels_per_unit(ctx, channels);
         for (v, cam) in cameras.iter().enumerate() {
             let full = (cam.height as usize, cam.width as usize);
             let bins = self.bins(ctx, cam, v)?;
             let back = gpu_call(|| {
-                // Only the pixels the resampling to the grid reads composite the lifted channels — off
-                // by default: `vcedit bench lift` at 256² and 144 channels found its round 8 % off the
-                // dense one (2026-11-28, after the session's tests had passed; not yet understood).
+                // Only the pixels the resampling to the grid reads composite the lifted channels.
                 let flags = sparse_back().then(|| {
                     (
                         upload_u32(c, &read_by_resampling(full.0, grid.height, grid.down)),
@@ -521,15 +551,16 @@ impl GpuLiftScene {
     }
 }
 
-/// Whether `VCEDIT_GPU_SPARSE_BACK=on` asks for the sparse render-back (read once per process).
+/// Whether the render-back composites the lifted channels only where the grid reads them (the default;
+/// `VCEDIT_GPU_SPARSE_BACK=off` composites every pixel, the A/B; read once per process).
 fn sparse_back() -> bool {
-    static ASKED: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
-    *ASKED.get_or_init(|| std::env::var("VCEDIT_GPU_SPARSE_BACK").is_ok_and(|v| v.trim() == "on"))
+    static ON: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
+    *ON.get_or_init(|| std::env::var("VCEDIT_GPU_SPARSE_BACK").map_or(true, |v| v.trim() != "off"))
 }
 
 /// Flags (1 or 0) of the `full` rows (or columns) that resampling them to `cells` reads; each with its
 /// neighbours, so a device that rounds a position differently still reads composited pixels.
-fn read_by_resampling(full: usize, cells: usize, mode: Resample) -> Vec<u32> {
+pub(super) fn read_by_resampling(full: usize, cells: usize, mode: Resample) -> Vec<u32> {
     let mut flags = vec![0u32; full];
     if full == 0 {
         return flags;

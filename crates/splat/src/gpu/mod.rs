@@ -157,7 +157,7 @@ pub fn render_device(
     settings: &RenderSettings,
     extra: Option<(&Handle, usize)>,
 ) -> Result<GpuFrame, GpuError> {
-    let ppu = forward_pixels_per_unit(ctx);
+    let ppu = forward_pixels_per_unit(ctx, extra.map_or(0, |e| e.1));
     gpu_call(|| render_device_inner(ctx, scene, camera, settings, extra, ppu))
 }
 
@@ -455,14 +455,18 @@ pub struct GpuSceneGrads {
     pub splat: Handle,
 }
 
-/// Pixels each unit of the raster forward owns (a power of two dividing `TILE`). Hardware: one per
-/// unit (gsplat's layout, 256 units per tile). Software (lavapipe runs a cube on one CPU thread, 8 units
-/// per SIMD step): 16, as fast as the per-pixel kernel there and fewer barriers per Gaussian.
-fn forward_pixels_per_unit(ctx: &GpuContext) -> u32 {
-    if ctx.software {
-        16
-    } else {
-        1
+/// Pixels each unit of the raster forward owns (a power of two dividing `TILE`) when it composites
+/// `channels` extra channels. Hardware: one per unit (gsplat's layout, 256 units per tile). Software
+/// (lavapipe runs a cube on one CPU thread, 8 units per SIMD step): 16, as fast as the per-pixel kernel
+/// there and fewer barriers per Gaussian; but 4 above 16 channels, since Mesa 22.3's lavapipe mis-runs
+/// the 16-pixel kernel with more than 32 (colours and alpha wrong too; Mesa 25 is exact, as 4 is on
+/// both; `the_render_back_is_right_where_the_grid_reads_it`). On Mesa 25 the 4-pixel kernel costs
+/// 5–10 % of a 144-channel render.
+fn forward_pixels_per_unit(ctx: &GpuContext, channels: usize) -> u32 {
+    match (ctx.software, channels) {
+        (false, _) => 1,
+        (true, 0..=16) => 16,
+        (true, _) => 4,
     }
 }
 
@@ -719,7 +723,7 @@ pub fn render(
         camera,
         settings,
         extra,
-        forward_pixels_per_unit(ctx),
+        forward_pixels_per_unit(ctx, extra.map_or(0, |e| e.channels)),
     )
 }
 
