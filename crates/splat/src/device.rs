@@ -7,10 +7,10 @@
 //! backward, lifting); callers are unchanged.
 
 use crate::gpu::{GpuContext, GpuError, GpuLiftAccumulator, GpuLiftScene, GpuScene};
-use crate::lift::{resample, LiftAccumulator, Lifted, MapGrid};
+use crate::lift::{read_by_resampling, resample, LiftAccumulator, Lifted, MapGrid};
 use crate::render::{
-    render, render_backward, render_backward_appearance, ExtraChannels, Frame, FrozenGeometry,
-    OutputGrads, RenderOutput, RenderSettings, SceneGrads,
+    render, render_backward, render_backward_appearance, render_extra_at, ExtraChannels, Frame,
+    FrozenGeometry, OutputGrads, RenderOutput, RenderSettings, SceneGrads,
 };
 use rayon::prelude::*;
 
@@ -282,10 +282,7 @@ impl LiftSession<'_> {
         let mut acc = LiftAccumulator::new(scene, grid.channels);
         for (v, cam) in cameras.iter().enumerate() {
             let map = map_of(v)?;
-            acc.add_view(
-                cam,
-                &resample(&map, native, size(cam), grid.channels, grid.up),
-            );
+            acc.add_view_on_grid(cam, &map, grid);
         }
         let lifted = acc.finish();
         let extra = ExtraChannels {
@@ -293,7 +290,12 @@ impl LiftSession<'_> {
             channels: grid.channels,
         };
         for (v, cam) in cameras.iter().enumerate() {
-            let out = render(scene, cam, &RenderSettings::default(), Some(extra));
+            // Only the pixels the resampling to the grid reads composite the lifted channels.
+            let (h, w) = size(cam);
+            let rows = read_by_resampling(h, grid.height, grid.down);
+            let cols = read_by_resampling(w, grid.width, grid.down);
+            let settings = RenderSettings::default();
+            let out = render_extra_at(scene, cam, &settings, extra, (&rows, &cols));
             sink(
                 v,
                 resample(&out.extra, size(cam), native, grid.channels, grid.down),

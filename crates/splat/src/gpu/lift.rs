@@ -17,7 +17,7 @@ use super::{
     arg, forward_pixels_per_unit, project_and_bin, raster, rasterise_sparse, Binned, GpuContext,
     GpuError, GpuScene, TILE,
 };
-use crate::lift::{Lifted, MapGrid, Resample};
+use crate::lift::{read_by_resampling, Lifted, MapGrid, Resample};
 use crate::render::RenderSettings;
 use crate::{Camera, GaussianScene};
 use ::gpu::cubecl;
@@ -556,22 +556,6 @@ impl GpuLiftScene {
 fn sparse_back() -> bool {
     static ON: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
     *ON.get_or_init(|| std::env::var("VCEDIT_GPU_SPARSE_BACK").map_or(true, |v| v.trim() != "off"))
-}
-
-/// Flags (1 or 0) of the `full` rows (or columns) that resampling them to `cells` reads; each with its
-/// neighbours, so a device that rounds a position differently still reads composited pixels.
-pub(super) fn read_by_resampling(full: usize, cells: usize, mode: Resample) -> Vec<u32> {
-    let mut flags = vec![0u32; full];
-    if full == 0 {
-        return flags;
-    }
-    for o in 0..cells {
-        let (first, second) = source_samples(o, full, cells, mode);
-        for k in first.saturating_sub(1)..=(second + 1).min(full - 1) {
-            flags[k] = 1;
-        }
-    }
-    flags
 }
 
 /// [`crate::lift::resample`] on the device: `src` (h*w*C) to a new (out_h*out_w*C) buffer; `src`

@@ -591,8 +591,8 @@ fn the_render_back_is_right_where_the_grid_reads_it() {
         for sparse in [false, true] {
             let image =
                 lift::render_back_pixels(&ctx, &scene, &cam, &values, &grid, sparse).unwrap();
-            let rows = lift::read_by_resampling(size as usize, grid.height, mode);
-            let cols = lift::read_by_resampling(size as usize, grid.width, mode);
+            let rows = crate::lift::read_by_resampling(size as usize, grid.height, mode);
+            let cols = crate::lift::read_by_resampling(size as usize, grid.width, mode);
             let (mut read, mut wrong, mut worst) = (0usize, 0usize, 0.0f32);
             for (y, &row) in rows.iter().enumerate() {
                 for (x, &col) in cols.iter().enumerate() {

@@ -52,6 +52,63 @@ fn bilinear_taps(dst: usize, scale: f32, src_len: usize) -> (usize, usize, f32) 
     (i0, i1, f - i0 as f32)
 }
 
+/// The two cells (of `cells`) an image row or column (of `full`) reads when a map is upsampled with
+/// `mode`, and their weights (the nearest cell twice, weights 1 and 0).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub(crate) struct Taps {
+    pub cells: [u32; 2],
+    pub weights: [f32; 2],
+}
+
+/// [`Taps`] of every row (or column) of `full` pixels upsampled from `cells`, in [`resample`]'s arithmetic.
+pub(crate) fn axis_taps(full: usize, cells: usize, mode: Resample) -> Vec<Taps> {
+    let scale = cells as f32 / full as f32;
+    (0..full)
+        .map(|o| match mode {
+            Resample::Nearest => {
+                let k = nearest_index(o, cells, full) as u32;
+                Taps {
+                    cells: [k, k],
+                    weights: [1.0, 0.0],
+                }
+            }
+            Resample::Bilinear => {
+                let (i0, i1, t) = bilinear_taps(o, scale, cells);
+                Taps {
+                    cells: [i0 as u32, i1 as u32],
+                    weights: [1.0 - t, t],
+                }
+            }
+        })
+        .collect()
+}
+
+/// Flags (1 or 0) of the `full` rows (or columns) that [`resample`] reads when it takes them to `cells`,
+/// each with its neighbours, so a device that rounds a position differently still reads flagged pixels.
+pub(crate) fn read_by_resampling(full: usize, cells: usize, mode: Resample) -> Vec<u32> {
+    let mut flags = vec![0u32; full];
+    if full == 0 {
+        return flags;
+    }
+    let scale = full as f32 / cells as f32;
+    for o in 0..cells {
+        let (first, second) = match mode {
+            Resample::Nearest => {
+                let k = nearest_index(o, full, cells);
+                (k, k)
+            }
+            Resample::Bilinear => {
+                let (i0, i1, _) = bilinear_taps(o, scale, full);
+                (i0, i1)
+            }
+        };
+        for flag in &mut flags[first.saturating_sub(1)..=(second + 1).min(full - 1)] {
+            *flag = 1;
+        }
+    }
+    flags
+}
+
 /// Resamples a row-major, channel-interleaved map from (h, w) to (out_h, out_w), rows in parallel.
 pub fn resample(
     src: &[f32],

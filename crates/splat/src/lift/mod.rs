@@ -14,9 +14,13 @@ mod grid;
 
 pub use grid::{resample, MapGrid, Resample};
 
+pub(crate) use grid::read_by_resampling;
+use grid::{axis_taps, Taps};
+
 use crate::render::project::{CameraR, Splat};
 use crate::render::raster::{traverse_tile, Sink, Traversal};
 use crate::render::segment::{TileRect, SEG, TILE_PIXELS};
+use crate::render::TILE;
 use crate::render::{project_all, tiles, Params};
 use crate::{Camera, GaussianScene};
 use rayon::prelude::*;
@@ -106,6 +110,81 @@ impl Sink<f32> for LiftSink<'_> {
     }
 }
 
+/// A view's map given on its grid rather than at the image's resolution: an upsampled pixel is a weighted
+/// sum of at most four cells, so a Gaussian's sum over its hit pixels in a tile is the tile's cells
+/// weighted by the summed weights of those pixels. Per hit pixel this sink adds four weights to the
+/// Gaussian's row of the tile's cells (`span.0 × span.1` from `base`), where [`LiftSink`] adds every
+/// channel; the channels are added once per Gaussian and tile, from the cells its pixels read.
+struct GridSink<'a> {
+    tile: &'a mut TileSums,
+    rows: &'a [Taps],
+    cols: &'a [Taps],
+    rect: TileRect,
+    /// The tile's first cell (row, column) and the cells its pixels read along each axis.
+    base: (u32, u32),
+    span: (usize, usize),
+}
+
+impl Sink<f32> for GridSink<'_> {
+    #[inline(always)]
+    fn segment(
+        &mut self,
+        p0: usize,
+        k: usize,
+        _g: u32,
+        _splat: &Splat<f32>,
+        _w: &[f32; SEG],
+        hits: u32,
+    ) {
+        let len = self.span.0 * self.span.1;
+        let t = &mut *self.tile;
+        if t.seen[k] != t.epoch {
+            t.seen[k] = t.epoch;
+            t.touched.push(k as u32);
+            t.counts[k] = 0;
+            t.rows[k * len..(k + 1) * len].fill(0.0);
+        }
+        t.counts[k] += hits.count_ones();
+        let weights = &mut t.rows[k * len..(k + 1) * len];
+        let mut bits = hits;
+        while bits != 0 {
+            let l = bits.trailing_zeros() as usize;
+            bits &= bits - 1;
+            let p = p0 + l;
+            let ty = self.rows[(self.rect.y0 as usize) + p / TILE as usize];
+            let tx = self.cols[(self.rect.x0 as usize) + p % TILE as usize];
+            for a in 0..2 {
+                let row = (ty.cells[a] - self.base.0) as usize * self.span.1;
+                for b in 0..2 {
+                    weights[row + (tx.cells[b] - self.base.1) as usize] +=
+                        ty.weights[a] * tx.weights[b];
+                }
+            }
+        }
+    }
+}
+
+/// Cells per tile side beyond which [`LiftAccumulator::add_view_on_grid`] upsamples the map and lifts
+/// per pixel: with fine grids a Gaussian's pixels in a tile read nearly as many cells as there are
+/// pixels, and the per-tile weight rows only add work.
+const MAX_GRID_SPAN: usize = 8;
+
+/// The first cell and the number of cells the pixels `first..first + TILE` (clamped to the axis) read.
+fn tile_cells(taps: &[Taps], first: usize) -> (u32, usize) {
+    let last = (first + TILE as usize).min(taps.len()) - 1;
+    let base = taps[first].cells[0];
+    (base, (taps[last].cells[1] - base) as usize + 1)
+}
+
+/// The most cells any tile reads along an axis of `taps`.
+fn widest_tile(taps: &[Taps]) -> usize {
+    (0..taps.len())
+        .step_by(TILE as usize)
+        .map(|first| tile_cells(taps, first).1)
+        .max()
+        .unwrap_or(1)
+}
+
 /// Lifts per-view maps (`maps[v]` is H*W*C for `cameras[v]`, row-major, channel-interleaved) onto the
 /// Gaussians of `scene`.
 ///
@@ -119,6 +198,29 @@ pub fn lift(scene: &GaussianScene, cameras: &[Camera], maps: &[&[f32]], channels
         acc.add_view(cam, map);
     }
     acc.finish()
+}
+
+/// One view's map as [`LiftAccumulator`] takes it.
+enum ViewMap<'m> {
+    /// At the camera's resolution (H*W*C).
+    Full(&'m [f32]),
+    /// On a grid (cells row-major, `grid_width` per row, channels interleaved), with each image row's and
+    /// column's taps and the most cells a tile reads along each axis.
+    Grid {
+        map: &'m [f32],
+        grid_width: usize,
+        rows: &'m [Taps],
+        cols: &'m [Taps],
+        span: (usize, usize),
+    },
+}
+
+/// `dst += w · src`, elementwise.
+#[inline(always)]
+fn add_to(dst: &mut [f32], src: &[f32], w: f32) {
+    for (d, &s) in dst.iter_mut().zip(src) {
+        *d += w * s;
+    }
 }
 
 /// [`lift`] one view at a time, so callers never hold every view's (possibly many-channel, full-resolution)
@@ -148,7 +250,7 @@ impl<'s> LiftAccumulator<'s> {
     /// # Panics
     /// When the map has the wrong size (a programming error).
     pub fn add_view(&mut self, cam: &Camera, map: &[f32]) {
-        let (n, channels) = (self.scene.len(), self.channels);
+        let channels = self.channels;
         let npix = (cam.width * cam.height) as usize;
         assert_eq!(
             map.len(),
@@ -158,10 +260,52 @@ impl<'s> LiftAccumulator<'s> {
             cam.height,
             cam.width
         );
+        self.add(cam, &ViewMap::Full(map));
+    }
+
+    /// Adds one view's map given on `grid` (`grid.len()` values), as [`Self::add_view`] adds it upsampled
+    /// to the camera's resolution (`grid.up`), equal to float rounding, without making the upsampled map:
+    /// see [`GridSink`]. Grids finer than [`MAX_GRID_SPAN`] cells per tile side are upsampled.
+    ///
+    /// # Panics
+    /// When the map has the wrong size or `grid.channels` is not the accumulator's (programming errors).
+    pub fn add_view_on_grid(&mut self, cam: &Camera, map: &[f32], grid: &MapGrid) {
+        assert_eq!(map.len(), grid.len(), "map must be on the grid");
+        assert_eq!(grid.channels, self.channels, "grid channels");
+        let full = (cam.height as usize, cam.width as usize);
+        if full.0 * full.1 == 0 {
+            return;
+        }
+        let rows = axis_taps(full.0, grid.height, grid.up);
+        let cols = axis_taps(full.1, grid.width, grid.up);
+        let span = (widest_tile(&rows), widest_tile(&cols));
+        if span.0.max(span.1) > MAX_GRID_SPAN {
+            let native = (grid.height, grid.width);
+            let up = resample(map, native, full, grid.channels, grid.up);
+            return self.add_view(cam, &up);
+        }
+        self.add(
+            cam,
+            &ViewMap::Grid {
+                map,
+                grid_width: grid.width,
+                rows: &rows,
+                cols: &cols,
+                span,
+            },
+        );
+    }
+
+    fn add(&mut self, cam: &Camera, view: &ViewMap<'_>) {
+        let (n, channels) = (self.scene.len(), self.channels);
         let camr = CameraR::<f32>::new(cam);
         let splats = project_all(&self.params, &camr, false);
         let (tx, ty) = camr.tiles();
         let bins = tiles::bin(&splats, tx, ty);
+        let row_len = match view {
+            ViewMap::Full(_) => channels,
+            ViewMap::Grid { span, .. } => span.0 * span.1,
+        };
         // Each slot owns a fixed, interleaved subset of the tiles and walks it in order, so the sums do not
         // depend on thread scheduling: the same inputs give bit-identical results (resumable runs rely on it).
         let slots = &self.slots;
@@ -182,32 +326,75 @@ impl<'s> LiftAccumulator<'s> {
                     continue;
                 }
                 let rect = TileRect::new(tile, &bins, cam.width, cam.height);
-                tile_sums.start_tile(list.len(), channels);
-                let mut sink = LiftSink {
-                    tile: &mut tile_sums,
-                    map,
-                    channels,
-                    rect,
-                    width: cam.width,
-                };
-                traverse_tile(Traversal {
-                    splats: &splats,
-                    list,
-                    rect: &rect,
-                    sink: &mut sink,
-                    trans: &mut trans,
-                    last: &mut last,
-                });
-                for &k in &tile_sums.touched {
-                    let k = k as usize;
-                    let g = list[k] as usize;
-                    acc.counts[g] += tile_sums.counts[k];
-                    let src = &tile_sums.rows[k * channels..(k + 1) * channels];
-                    for (d, s) in acc.sums[g * channels..(g + 1) * channels]
-                        .iter_mut()
-                        .zip(src)
-                    {
-                        *d += s;
+                tile_sums.start_tile(list.len(), row_len);
+                match *view {
+                    ViewMap::Full(map) => {
+                        let mut sink = LiftSink {
+                            tile: &mut tile_sums,
+                            map,
+                            channels,
+                            rect,
+                            width: cam.width,
+                        };
+                        traverse_tile(Traversal {
+                            splats: &splats,
+                            list,
+                            rect: &rect,
+                            sink: &mut sink,
+                            trans: &mut trans,
+                            last: &mut last,
+                        });
+                        for &k in &tile_sums.touched {
+                            let k = k as usize;
+                            let g = list[k] as usize;
+                            acc.counts[g] += tile_sums.counts[k];
+                            let src = &tile_sums.rows[k * channels..(k + 1) * channels];
+                            add_to(&mut acc.sums[g * channels..(g + 1) * channels], src, 1.0);
+                        }
+                    }
+                    ViewMap::Grid {
+                        map,
+                        grid_width,
+                        rows,
+                        cols,
+                        span,
+                    } => {
+                        let base = (
+                            tile_cells(rows, rect.y0 as usize).0,
+                            tile_cells(cols, rect.x0 as usize).0,
+                        );
+                        let mut sink = GridSink {
+                            tile: &mut tile_sums,
+                            rows,
+                            cols,
+                            rect,
+                            base,
+                            span,
+                        };
+                        traverse_tile(Traversal {
+                            splats: &splats,
+                            list,
+                            rect: &rect,
+                            sink: &mut sink,
+                            trans: &mut trans,
+                            last: &mut last,
+                        });
+                        let len = span.0 * span.1;
+                        for &k in &tile_sums.touched {
+                            let k = k as usize;
+                            let g = list[k] as usize;
+                            acc.counts[g] += tile_sums.counts[k];
+                            let sums = &mut acc.sums[g * channels..(g + 1) * channels];
+                            for (c, &w) in tile_sums.rows[k * len..(k + 1) * len].iter().enumerate()
+                            {
+                                if w != 0.0 {
+                                    let cy = base.0 as usize + c / span.1;
+                                    let cx = base.1 as usize + c % span.1;
+                                    let cell = (cy * grid_width + cx) * channels;
+                                    add_to(sums, &map[cell..cell + channels], w);
+                                }
+                            }
+                        }
                     }
                 }
             }
@@ -397,6 +584,72 @@ mod tests {
         );
         assert!((lifted.values[1] - 18.0).abs() < 1e-3);
         assert!((lifted.values[2] - 2.0).abs() < 1e-5);
+    }
+
+    /// Lifting a map on its grid equals lifting it upsampled: the same hit counts, the values to float
+    /// rounding; odd ratios, a grid coarser than a tile, one finer than [`MAX_GRID_SPAN`] (upsampled).
+    #[test]
+    fn lifting_on_the_grid_matches_lifting_upsampled_maps() {
+        let mut scene = GaussianScene::new(0);
+        let mut state = 12345u64;
+        let mut next = || {
+            state = state
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            (state >> 40) as f32 / (1u64 << 24) as f32
+        };
+        for _ in 0..400 {
+            let m = [next() * 3.0 - 1.5, next() * 3.0 - 1.5, 2.0 + next() * 2.0];
+            push(&mut scene, m, 0.02 + 0.25 * next(), 0.05 + 0.9 * next());
+        }
+        let channels = 5;
+        for ((w, h), (gh, gw)) in [
+            ((40, 34), (9, 10)),
+            ((128, 128), (16, 16)),
+            ((70, 50), (3, 5)),
+            ((64, 64), (64, 64)),
+        ] {
+            for mode in [Resample::Bilinear, Resample::Nearest] {
+                let grid = MapGrid {
+                    height: gh,
+                    width: gw,
+                    channels,
+                    up: mode,
+                    down: mode,
+                };
+                let cams = [
+                    cam(w, h, w as f64 * 0.6, 0.0),
+                    cam(w, h, w as f64 * 0.8, 0.4),
+                ];
+                let maps: Vec<Vec<f32>> = (0..2)
+                    .map(|v| {
+                        (0..grid.len())
+                            .map(|i| ((i * 7 + v * 3) % 11) as f32 / 10.0)
+                            .collect()
+                    })
+                    .collect();
+                let mut on_grid = LiftAccumulator::new(&scene, channels);
+                let mut upsampled = LiftAccumulator::new(&scene, channels);
+                for (c, map) in cams.iter().zip(&maps) {
+                    on_grid.add_view_on_grid(c, map, &grid);
+                    let full = (h as usize, w as usize);
+                    upsampled.add_view(c, &resample(map, (gh, gw), full, channels, mode));
+                }
+                let (got, want) = (on_grid.finish(), upsampled.finish());
+                assert_eq!(got.counts, want.counts, "{w}x{h} on {gh}x{gw} {mode:?}");
+                assert!(want.counts.iter().filter(|&&c| c > 0.0).count() > 100);
+                let worst = got
+                    .values
+                    .iter()
+                    .zip(&want.values)
+                    .map(|(a, b)| (a - b).abs())
+                    .fold(0.0f32, f32::max);
+                assert!(
+                    worst < 1e-5,
+                    "{w}x{h} on {gh}x{gw} {mode:?}: off by {worst}"
+                );
+            }
+        }
     }
 
     #[test]

@@ -109,6 +109,7 @@ impl FrozenView {
             self.camera.height,
             settings.background,
             None,
+            None,
         );
         let fwd = Forward {
             splats,

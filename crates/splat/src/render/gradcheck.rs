@@ -396,7 +396,7 @@ fn means2d_gradient_matches_shifted_splat() {
     let (tx, ty) = camr.tiles();
     let bins = tiles::bin(&splats, tx, ty);
     let render_loss = |splats: &[Splat<f64>]| {
-        let r = raster::rasterize(splats, &bins, cam.width, cam.height, [0.0; 3], None);
+        let r = raster::rasterize(splats, &bins, cam.width, cam.height, [0.0; 3], None, None);
         let dot = |a: &[f64], b: &[f64]| a.iter().zip(b).map(|(x, y)| x * y).sum::<f64>();
         dot(&r.rgb, &w.rgb) + dot(&r.alpha, &w.alpha) + dot(&r.depth, &w.depth)
     };

@@ -191,6 +191,35 @@ pub fn render(
     RenderOutput::new(camera, fwd, extra.map_or(0, |e| e.1))
 }
 
+/// [`render`] with the extra channels composited only where `rows[y]` and `cols[x]` are both non-zero
+/// (one flag per image row and column) and 0 elsewhere: what lifting's render-back reads when it
+/// resamples the channels to a coarse grid ([`crate::lift::read_by_resampling`]).
+///
+/// # Panics
+/// When the values are not N*C or the flags not one per row and column (programming errors).
+pub(crate) fn render_extra_at(
+    scene: &GaussianScene,
+    camera: &Camera,
+    settings: &RenderSettings,
+    extra: ExtraChannels<'_>,
+    (rows, cols): (&[u32], &[u32]),
+) -> RenderOutput {
+    let params = Params::from_scene(scene);
+    assert_eq!(
+        extra.values.len(),
+        scene.len() * extra.channels,
+        "extra channel values must be N*C"
+    );
+    let fwd = forward_at(
+        &params,
+        camera,
+        settings.background.map(f64::from),
+        Some((extra.values, extra.channels)),
+        Some((rows, cols)),
+    );
+    RenderOutput::new(camera, fwd, extra.channels)
+}
+
 impl RenderOutput {
     fn new(camera: &Camera, fwd: Forward<f32>, channels: usize) -> Self {
         let radii = fwd.splats.iter().map(|s| s.radius).collect();
@@ -432,6 +461,17 @@ pub(crate) fn forward<R: Real>(
     background: [f64; 3],
     extra: Option<(&[R], usize)>,
 ) -> Forward<R> {
+    forward_at(params, camera, background, extra, None)
+}
+
+/// [`forward`], compositing the extra channels only at `extra_at`'s pixels when given.
+fn forward_at<R: Real>(
+    params: &Params<'_, R>,
+    camera: &Camera,
+    background: [f64; 3],
+    extra: Option<(&[R], usize)>,
+    extra_at: Option<raster::ExtraAt<'_>>,
+) -> Forward<R> {
     let cam = CameraR::<R>::new(camera);
     assert!(
         cam.tiles().0 <= u16::MAX as u32 && cam.tiles().1 <= u16::MAX as u32,
@@ -449,6 +489,7 @@ pub(crate) fn forward<R: Real>(
         camera.height,
         background.map(R::from_f64),
         extra,
+        extra_at,
     );
     Forward {
         splats,
@@ -652,7 +693,7 @@ pub fn profile_stages(
     let bins = tiles::bin(&splats, tx, ty);
     times.push(("bin", t.elapsed()));
     let t = Instant::now();
-    let raster = raster::rasterize(&splats, &bins, camera.width, camera.height, bg, None);
+    let raster = raster::rasterize(&splats, &bins, camera.width, camera.height, bg, None, None);
     times.push(("rasterize", t.elapsed()));
     let grad_rgb: Vec<f32> = raster.rgb.iter().map(|v| v - 0.5).collect();
     let t = Instant::now();
@@ -832,5 +873,58 @@ mod tests {
         let e = &with.extra;
         let centre = (10 * 24 + 12) * 2;
         assert!(e[centre] > 0.4 && e[centre] < 2.0, "{}", e[centre]);
+    }
+
+    /// Extra channels composited only at flagged rows × columns equal the full render's there and are 0
+    /// elsewhere; colours, alpha and depth are the full render's. Tiles cut by the image's edge included.
+    #[test]
+    fn extra_channels_only_where_asked() {
+        let mut s = GaussianScene::new(0);
+        for k in 0..40 {
+            let t = k as f32 * 0.37;
+            let m = [
+                0.6 * t.sin(),
+                0.5 * (1.3 * t).cos(),
+                2.5 + (k % 5) as f32 * 0.3,
+            ];
+            push(
+                &mut s,
+                m,
+                -1.8 + 0.02 * k as f32,
+                [1.0, 0.1 * t.cos(), 0.0, 0.2],
+                0.5,
+            );
+        }
+        let (w, h) = (37u32, 29u32);
+        let cam = camera(w, h);
+        let settings = RenderSettings::default();
+        let channels = 3;
+        let values: Vec<f32> = (0..40 * channels)
+            .map(|i| (i % 7) as f32 * 0.3 - 0.5)
+            .collect();
+        let extra = ExtraChannels {
+            values: &values,
+            channels,
+        };
+        let rows: Vec<u32> = (0..h).map(|y| u32::from(y % 3 == 1 || y == 17)).collect();
+        let cols: Vec<u32> = (0..w).map(|x| u32::from(x % 5 == 0 || x == 11 || x > 33)).collect();
+        let full = render(&s, &cam, &settings, Some(extra));
+        let some = render_extra_at(&s, &cam, &settings, extra, (&rows, &cols));
+        assert_eq!(some.rgb, full.rgb);
+        assert_eq!(some.alpha, full.alpha);
+        assert_eq!(some.depth, full.depth);
+        let mut kept = 0;
+        for y in 0..h as usize {
+            for x in 0..w as usize {
+                let p = (y * w as usize + x) * channels;
+                let asked = rows[y] * cols[x] == 1;
+                for c in 0..channels {
+                    let want = if asked { full.extra[p + c] } else { 0.0 };
+                    assert_eq!(some.extra[p + c], want, "pixel ({x}, {y}) channel {c}");
+                    kept += usize::from(asked && want != 0.0);
+                }
+            }
+        }
+        assert!(kept > 20, "{kept} composited values checked");
     }
 }

@@ -199,7 +199,13 @@ struct ColorSink<'a, R> {
     extra_out: &'a SyncPtr<R>,
     rect: TileRect,
     width: u32,
+    /// Per segment of the tile, the lanes that composite the extra channels (all, unless `ExtraAt`).
+    want: [u32; TILE_PIXELS / SEG],
 }
+
+/// Image rows and columns (1 or 0 each) at whose crossings [`rasterize`] composites the extra channels;
+/// elsewhere they stay 0. Lifting's render-back reads only a few pixels per grid cell.
+pub type ExtraAt<'a> = (&'a [u32], &'a [u32]);
 
 impl<R: Real> Sink<R> for ColorSink<'_, R> {
     #[inline(always)]
@@ -213,7 +219,7 @@ impl<R: Real> Sink<R> for ColorSink<'_, R> {
         let ch = self.channels;
         if ch > 0 {
             let vals = &self.values[g as usize * ch..(g as usize + 1) * ch];
-            let mut bits = hits;
+            let mut bits = hits & self.want[p0 / SEG];
             while bits != 0 {
                 let l = bits.trailing_zeros() as usize;
                 bits &= bits - 1;
@@ -228,7 +234,8 @@ impl<R: Real> Sink<R> for ColorSink<'_, R> {
     }
 }
 
-/// Renders all tiles in parallel. `extra` = per-Gaussian values (N*C, Gaussian-major) and C.
+/// Renders all tiles in parallel. `extra` = per-Gaussian values (N*C, Gaussian-major) and C, composited
+/// at every pixel or only at `extra_at`'s.
 pub fn rasterize<R: Real>(
     splats: &[Splat<R>],
     bins: &TileBins,
@@ -236,7 +243,14 @@ pub fn rasterize<R: Real>(
     height: u32,
     background: [R; 3],
     extra: Option<(&[R], usize)>,
+    extra_at: Option<ExtraAt<'_>>,
 ) -> RasterOut<R> {
+    if let Some((rows, cols)) = extra_at {
+        assert!(
+            rows.len() == height as usize && cols.len() == width as usize,
+            "one flag per row and column"
+        );
+    }
     let npix = (width * height) as usize;
     let (values, channels) = extra.unwrap_or((&[], 0));
     let mut out = RasterOut {
@@ -273,6 +287,7 @@ pub fn rasterize<R: Real>(
                         h: 0,
                     },
                     width,
+                    want: [u32::MAX; TILE_PIXELS / SEG],
                 },
             ))
         },
@@ -284,6 +299,19 @@ pub fn rasterize<R: Real>(
             sink.g.fill(R::ZERO);
             sink.b.fill(R::ZERO);
             sink.d.fill(R::ZERO);
+            if let Some((rows, cols)) = extra_at {
+                for (seg, lanes) in sink.want.iter_mut().enumerate() {
+                    let (r, i0) = ((seg * SEG) / TILE as usize, (seg * SEG) % TILE as usize);
+                    *lanes = 0;
+                    if r < rect.h as usize && rows[rect.y0 as usize + r] != 0 {
+                        for l in 0..SEG.min((rect.w as usize).saturating_sub(i0)) {
+                            if cols[rect.x0 as usize + i0 + l] != 0 {
+                                *lanes |= 1 << l;
+                            }
+                        }
+                    }
+                }
+            }
             traverse_tile(Traversal {
                 splats,
                 list: bins.list(tile),
@@ -374,6 +402,7 @@ mod tests {
             cam.height,
             bg,
             Some((&extra, channels)),
+            None,
         );
         let mut order: Vec<usize> = (0..n).filter(|&i| splats[i].is_drawable()).collect();
         order.sort_by(|&a, &b| {
