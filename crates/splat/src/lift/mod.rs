@@ -54,6 +54,19 @@ struct TileSums {
 }
 
 impl TileSums {
+    /// List entry `k`'s row (`len` values; zeroed at its first hit in the tile), its `hits` counted.
+    #[inline(always)]
+    fn hit_row(&mut self, k: usize, len: usize, hits: u32) -> &mut [f32] {
+        if self.seen[k] != self.epoch {
+            self.seen[k] = self.epoch;
+            self.touched.push(k as u32);
+            self.counts[k] = 0;
+            self.rows[k * len..(k + 1) * len].fill(0.0);
+        }
+        self.counts[k] += hits.count_ones();
+        &mut self.rows[k * len..(k + 1) * len]
+    }
+
     fn start_tile(&mut self, list_len: usize, channels: usize) {
         if self.seen.len() < list_len {
             self.seen.resize(list_len, 0);
@@ -89,15 +102,7 @@ impl Sink<f32> for LiftSink<'_> {
         hits: u32,
     ) {
         let ch = self.channels;
-        let t = &mut *self.tile;
-        if t.seen[k] != t.epoch {
-            t.seen[k] = t.epoch;
-            t.touched.push(k as u32);
-            t.counts[k] = 0;
-            t.rows[k * ch..(k + 1) * ch].fill(0.0);
-        }
-        t.counts[k] += hits.count_ones();
-        let sums = &mut t.rows[k * ch..(k + 1) * ch];
+        let sums = self.tile.hit_row(k, ch, hits);
         let mut bits = hits;
         while bits != 0 {
             let l = bits.trailing_zeros() as usize;
@@ -136,16 +141,7 @@ impl Sink<f32> for GridSink<'_> {
         _w: &[f32; SEG],
         hits: u32,
     ) {
-        let len = self.span.0 * self.span.1;
-        let t = &mut *self.tile;
-        if t.seen[k] != t.epoch {
-            t.seen[k] = t.epoch;
-            t.touched.push(k as u32);
-            t.counts[k] = 0;
-            t.rows[k * len..(k + 1) * len].fill(0.0);
-        }
-        t.counts[k] += hits.count_ones();
-        let weights = &mut t.rows[k * len..(k + 1) * len];
+        let weights = self.tile.hit_row(k, self.span.0 * self.span.1, hits);
         let mut bits = hits;
         while bits != 0 {
             let l = bits.trailing_zeros() as usize;

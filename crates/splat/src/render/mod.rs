@@ -907,7 +907,9 @@ mod tests {
             channels,
         };
         let rows: Vec<u32> = (0..h).map(|y| u32::from(y % 3 == 1 || y == 17)).collect();
-        let cols: Vec<u32> = (0..w).map(|x| u32::from(x % 5 == 0 || x == 11 || x > 33)).collect();
+        let cols: Vec<u32> = (0..w)
+            .map(|x| u32::from(x % 5 == 0 || x == 11 || x > 33))
+            .collect();
         let full = render(&s, &cam, &settings, Some(extra));
         let some = render_extra_at(&s, &cam, &settings, extra, (&rows, &cols));
         assert_eq!(some.rgb, full.rgb);
