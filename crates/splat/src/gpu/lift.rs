@@ -17,7 +17,7 @@ use super::{
     arg, forward_pixels_per_unit, project_and_bin, raster, rasterise_sparse, Binned, GpuContext,
     GpuError, GpuScene, TILE,
 };
-use crate::lift::{read_by_resampling, Lifted, MapGrid, Resample};
+use crate::lift::{axis_taps, read_by_resampling, widest_tile, Lifted, MapGrid, Resample};
 use crate::render::RenderSettings;
 use crate::{Camera, GaussianScene};
 use ::gpu::cubecl;
@@ -260,39 +260,14 @@ impl GridLayout {
     }
 }
 
-/// The samples (first, second) that output `o` reads when `resample_map` resamples an axis of `from`
-/// samples to `to` (in its f32 arithmetic): the two bilinear neighbours, or the nearest one twice.
-fn source_samples(o: usize, from: usize, to: usize, mode: Resample) -> (usize, usize) {
-    match mode {
-        Resample::Bilinear => {
-            let scale = from as f32 / to as f32;
-            let f = ((o as f32 + 0.5) * scale - 0.5).max(0.0);
-            let first = (f as usize).min(from - 1);
-            (first, (first + 1).min(from - 1))
-        }
-        Resample::Nearest => {
-            let k = (o * from / to).min(from - 1);
-            (k, k)
-        }
-    }
-}
-
-/// The most cells one tile's pixels read along an axis of `full` pixels upsampled from `cells` cells,
-/// plus one for a device that rounds a pixel's position differently; None beyond [`MAX_GRID_SPAN`].
+/// The most cells one tile's pixels read along an axis of `full` pixels upsampled from `cells` cells
+/// (`resample_map` takes the host's f32 scale, so its taps are the CPU's), plus one for a device that
+/// rounds a pixel's position differently; None beyond [`MAX_GRID_SPAN`].
 pub(super) fn grid_span(full: usize, cells: usize, mode: Resample) -> Option<u32> {
     if full == 0 || cells == 0 {
         return None;
     }
-    let tile = TILE as usize;
-    let widest = (0..full.div_ceil(tile))
-        .map(|k| {
-            let last = ((k + 1) * tile).min(full) - 1;
-            let (first, _) = source_samples(k * tile, cells, full, mode);
-            source_samples(last, cells, full, mode).1 - first + 1
-        })
-        .max()
-        .unwrap_or(1);
-    let span = widest as u32 + 1;
+    let span = widest_tile(&axis_taps(full, cells, mode)) as u32 + 1;
     (span <= MAX_GRID_SPAN).then_some(span)
 }
 

@@ -2,6 +2,7 @@
 //! the cameras' resolution before lifting and back to their grid after rendering. The CPU functions here
 //! are the reference the GPU's resampling kernel is tested against.
 
+use crate::render::TILE;
 use rayon::prelude::*;
 
 /// How maps are resampled between their native grid and the render resolution.
@@ -107,6 +108,22 @@ pub(crate) fn read_by_resampling(full: usize, cells: usize, mode: Resample) -> V
         }
     }
     flags
+}
+
+/// The first cell and the number of cells the pixels `first..first + TILE` (clamped to the axis) read.
+pub(crate) fn tile_cells(taps: &[Taps], first: usize) -> (u32, usize) {
+    let last = (first + TILE as usize).min(taps.len()) - 1;
+    let base = taps[first].cells[0];
+    (base, (taps[last].cells[1] - base) as usize + 1)
+}
+
+/// The most cells any tile reads along an axis of `taps` (the CPU's and the GPU's grid lifting).
+pub(crate) fn widest_tile(taps: &[Taps]) -> usize {
+    (0..taps.len())
+        .step_by(TILE as usize)
+        .map(|first| tile_cells(taps, first).1)
+        .max()
+        .unwrap_or(1)
 }
 
 /// Resamples a row-major, channel-interleaved map from (h, w) to (out_h, out_w), rows in parallel.

@@ -14,8 +14,8 @@ mod grid;
 
 pub use grid::{resample, MapGrid, Resample};
 
-pub(crate) use grid::read_by_resampling;
-use grid::{axis_taps, Taps};
+pub(crate) use grid::{axis_taps, read_by_resampling, widest_tile};
+use grid::{tile_cells, Taps};
 
 use crate::render::project::{CameraR, Splat};
 use crate::render::raster::{traverse_tile, Sink, Traversal};
@@ -164,22 +164,6 @@ impl Sink<f32> for GridSink<'_> {
 /// per pixel: with fine grids a Gaussian's pixels in a tile read nearly as many cells as there are
 /// pixels, and the per-tile weight rows only add work.
 const MAX_GRID_SPAN: usize = 8;
-
-/// The first cell and the number of cells the pixels `first..first + TILE` (clamped to the axis) read.
-fn tile_cells(taps: &[Taps], first: usize) -> (u32, usize) {
-    let last = (first + TILE as usize).min(taps.len()) - 1;
-    let base = taps[first].cells[0];
-    (base, (taps[last].cells[1] - base) as usize + 1)
-}
-
-/// The most cells any tile reads along an axis of `taps`.
-fn widest_tile(taps: &[Taps]) -> usize {
-    (0..taps.len())
-        .step_by(TILE as usize)
-        .map(|first| tile_cells(taps, first).1)
-        .max()
-        .unwrap_or(1)
-}
 
 /// Lifts per-view maps (`maps[v]` is H*W*C for `cameras[v]`, row-major, channel-interleaved) onto the
 /// Gaussians of `scene`.
