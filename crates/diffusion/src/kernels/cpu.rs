@@ -63,6 +63,12 @@ impl Storage for Tensor {
         Tensor::narrow(self, dim, start, len)
     }
 
+    fn narrow_permute(&self, dim: usize, start: usize, len: usize, dims: &[usize]) -> Result<Self> {
+        Tensor::narrow(self, dim, start, len)?
+            .permute(dims)?
+            .contiguous()
+    }
+
     fn index_select(&self, indices: &[u32], dim: usize) -> Result<Self> {
         Tensor::index_select(self, &Tensor::new(indices, self.device())?, dim)
     }

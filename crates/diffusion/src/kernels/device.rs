@@ -100,6 +100,8 @@ pub trait Storage: Sized {
     /// Permuted and made contiguous.
     fn permute_contiguous(&self, dims: &[usize]) -> Result<Self>;
     fn narrow(&self, dim: usize, start: usize, len: usize) -> Result<Self>;
+    /// `narrow(dim, start, len)`, permuted and made contiguous, in one copy.
+    fn narrow_permute(&self, dim: usize, start: usize, len: usize, dims: &[usize]) -> Result<Self>;
     /// The slices of `dim` at `indices`, in that order.
     fn index_select(&self, indices: &[u32], dim: usize) -> Result<Self>;
     /// One zero row at the bottom and one zero column at the right.
@@ -310,6 +312,18 @@ impl DeviceTensor {
     /// `narrow(dim, start, len)` (a view on the CPU, a copy on the GPU).
     pub fn narrow(&self, dim: usize, start: usize, len: usize) -> Result<DeviceTensor> {
         Ok(dispatch!(self, x => Storage::narrow(x, dim, start, len)))
+    }
+
+    /// `narrow(dim, start, len)` permuted by `dims` and made contiguous, in one copy (a part of a fused
+    /// projection taken out head-major).
+    pub fn narrow_permute(
+        &self,
+        dim: usize,
+        start: usize,
+        len: usize,
+        dims: &[usize],
+    ) -> Result<DeviceTensor> {
+        Ok(dispatch!(self, x => Storage::narrow_permute(x, dim, start, len, dims)))
     }
 
     /// The slices of `dim` at `indices`, in that order (candle `index_select`).

@@ -22,7 +22,7 @@ const FLASH_MAX_HEAD_DIM: usize = 256;
 /// A 2D launch of `cubes` cubes (the X count is capped at 65535; kernels bound-check the excess).
 fn grid(cubes: usize) -> CubeCount {
     let cubes = cubes.max(1) as u32;
-    let x = cubes.min(65535);
+    let x = cubes.min(GRID_LIMIT);
     CubeCount::Static(x, cubes.div_ceil(x), 1)
 }
 
@@ -62,6 +62,48 @@ fn contiguous_strides(shape: &[usize]) -> Vec<usize> {
         strides[d] = strides[d + 1] * shape[d + 1];
     }
     strides
+}
+
+/// Merges the dimensions of `shape` that every stride set walks as one: size-1 dimensions go, and a
+/// dimension joins the next where each set's stride is the next one's times the next size (broadcast
+/// zeros included). The elementwise kernels then decompose an index into fewer coordinates, each a
+/// division (a bias over [batch, channels, h, w] becomes [batch·channels, h·w]; equal shapes become
+/// one dimension and no division). Returns the merged shape, at least one dimension.
+fn coalesce<const S: usize>(
+    shape: &[usize],
+    strides: [&[usize]; S],
+) -> (Vec<usize>, [Vec<usize>; S]) {
+    let mut merged: Vec<usize> = Vec::with_capacity(shape.len());
+    let mut out: [Vec<usize>; S] = std::array::from_fn(|_| Vec::with_capacity(shape.len()));
+    for (d, &size) in shape.iter().enumerate() {
+        if size == 1 {
+            continue;
+        }
+        let joins = merged.last().is_some_and(|_| {
+            strides
+                .iter()
+                .zip(&out)
+                .all(|(s, o)| o.last() == Some(&(s[d] * size)))
+        });
+        if joins {
+            *merged.last_mut().expect("checked") *= size;
+            for (o, s) in out.iter_mut().zip(&strides) {
+                *o.last_mut().expect("checked") = s[d];
+            }
+        } else {
+            merged.push(size);
+            for (o, s) in out.iter_mut().zip(&strides) {
+                o.push(s[d]);
+            }
+        }
+    }
+    if merged.is_empty() {
+        merged.push(1);
+        for o in &mut out {
+            o.push(0);
+        }
+    }
+    (merged, out)
 }
 
 // ------------------------------------------------------------------------------------------ elementwise
@@ -199,11 +241,14 @@ fn broadcast_strides(shape: &[usize], out_shape: &[usize]) -> Vec<usize> {
 
 fn binary(a: &GpuTensor, b: &GpuTensor, op: u32) -> Result<GpuTensor> {
     let shape = broadcast_shape(a.dims(), b.dims())?;
-    let mut meta = shape.clone();
-    meta.extend(broadcast_strides(a.dims(), &shape));
-    meta.extend(broadcast_strides(b.dims(), &shape));
+    let a_strides = broadcast_strides(a.dims(), &shape);
+    let b_strides = broadcast_strides(b.dims(), &shape);
+    let (walk, [a_strides, b_strides]) = coalesce(&shape, [&a_strides, &b_strides]);
+    let mut meta = walk.clone();
+    meta.extend(a_strides);
+    meta.extend(b_strides);
     let meta = Meta::new(a, &meta)?;
-    let rank = shape.len().max(1) as u32;
+    let rank = walk.len() as u32;
     let out = a.empty_like_device(shape);
     // SAFETY: the strides address within a and b for every coordinate of the broadcast shape.
     unsafe {
@@ -263,7 +308,9 @@ fn copy_strided(
     if count == 0 {
         return Ok(());
     }
-    let mut meta = shape.to_vec();
+    let (walk, [src_strides, dst_strides]) = coalesce(shape, [src_strides, dst_strides]);
+    let rank = walk.len() as u32;
+    let mut meta = walk;
     meta.extend(src_strides);
     meta.extend(dst_strides);
     meta.extend([src_offset, dst_offset, count]);
@@ -277,7 +324,7 @@ fn copy_strided(
             src.arg(),
             dst.arg(),
             meta.arg(),
-            shape.len() as u32,
+            rank,
         )
     };
     Ok(())
@@ -285,29 +332,8 @@ fn copy_strided(
 
 /// `x.permute(dims)` materialised (contiguous).
 pub fn permute(x: &GpuTensor, dims: &[usize]) -> Result<GpuTensor> {
-    let rank = x.dims().len();
-    let mut seen = vec![false; rank];
-    if dims.len() != rank
-        || dims
-            .iter()
-            .any(|&d| d >= rank || std::mem::replace(&mut seen[d], true))
-    {
-        candle_core::bail!("gpu permute: {dims:?} is not a permutation of rank {rank}");
-    }
-    let strides = contiguous_strides(x.dims());
-    let shape: Vec<usize> = dims.iter().map(|&d| x.dims()[d]).collect();
-    let src_strides: Vec<usize> = dims.iter().map(|&d| strides[d]).collect();
-    let out = x.empty_like_device(shape.clone());
-    copy_strided(
-        x,
-        &out,
-        &shape,
-        &src_strides,
-        0,
-        &contiguous_strides(&shape),
-        0,
-    )?;
-    Ok(out)
+    let len = x.dims().first().copied().unwrap_or(0);
+    narrow_permute(x, 0, 0, len, dims)
 }
 
 /// `x.transpose(d0, d1)` materialised.
@@ -319,19 +345,46 @@ pub fn transpose(x: &GpuTensor, d0: usize, d1: usize) -> Result<GpuTensor> {
 
 /// `x.narrow(dim, start, len)` materialised.
 pub fn narrow(x: &GpuTensor, dim: usize, start: usize, len: usize) -> Result<GpuTensor> {
-    if dim >= x.dims().len() || start + len > x.dims()[dim] {
+    let dims: Vec<usize> = (0..x.dims().len()).collect();
+    narrow_permute(x, dim, start, len, &dims)
+}
+
+/// `x.narrow(dim, start, len).permute(dims)` materialised in one copy (attention takes its heads out
+/// of a fused projection this way).
+pub fn narrow_permute(
+    x: &GpuTensor,
+    dim: usize,
+    start: usize,
+    len: usize,
+    dims: &[usize],
+) -> Result<GpuTensor> {
+    let rank = x.dims().len();
+    let mut seen = vec![false; rank];
+    if dims.len() != rank
+        || dims
+            .iter()
+            .any(|&d| d >= rank || std::mem::replace(&mut seen[d], true))
+    {
+        candle_core::bail!("gpu permute: {dims:?} is not a permutation of rank {rank}");
+    }
+    if rank > 0 && (dim >= rank || start + len > x.dims()[dim]) {
         candle_core::bail!("gpu narrow: {start}+{len} on dim {dim} of {:?}", x.dims());
     }
     let strides = contiguous_strides(x.dims());
-    let mut shape = x.dims().to_vec();
-    shape[dim] = len;
+    let mut narrowed = x.dims().to_vec();
+    if rank > 0 {
+        narrowed[dim] = len;
+    }
+    let shape: Vec<usize> = dims.iter().map(|&d| narrowed[d]).collect();
+    let src_strides: Vec<usize> = dims.iter().map(|&d| strides[d]).collect();
     let out = x.empty_like_device(shape.clone());
+    let offset = if rank > 0 { start * strides[dim] } else { 0 };
     copy_strided(
         x,
         &out,
         &shape,
-        &strides,
-        start * strides[dim],
+        &src_strides,
+        offset,
         &contiguous_strides(&shape),
         0,
     )?;
@@ -1129,6 +1182,15 @@ struct ConvWindow {
 /// The im2col columns [images, cin·kh·kw, rows·ow] of x [batch, cin, h, w] over `window`: f16 when
 /// `half` (the product reads them as they are, no narrowing pass), else f32.
 fn im2col(x: &GpuTensor, window: &ConvWindow, half: bool) -> Result<GpuTensor> {
+    im2col_on_grid(x, window, half, GRID_LIMIT)
+}
+
+/// The most cubes along one dimension of a launch (Vulkan guarantees 65535).
+const GRID_LIMIT: u32 = 65535;
+
+/// [`im2col`] with at most `limit` cubes along each grid dimension (tests take a small one, so that the
+/// kernel's strides past the grid are exercised).
+fn im2col_on_grid(x: &GpuTensor, window: &ConvWindow, half: bool, limit: u32) -> Result<GpuTensor> {
     let &[_, cin, h, w] = x.dims() else {
         candle_core::bail!("gpu im2col: input {:?} is not 4D", x.dims());
     };
@@ -1137,11 +1199,24 @@ fn im2col(x: &GpuTensor, window: &ConvWindow, half: bool) -> Result<GpuTensor> {
     } = *window;
     let shape = vec![window.images, cin * kh * kw, rows * ow];
     let (stride, padding, oy0, n0) = (window.stride, window.padding, window.oy0, window.n0);
-    let meta = Meta::new(x, &[cin, h, w, kh, kw, stride, padding, rows, ow, oy0, n0])?;
-    let count = grid_for(shape.iter().product(), ELEMENTWISE_UNITS);
-    let units = CubeDim::new_1d(ELEMENTWISE_UNITS);
-    // SAFETY: the kernel bound-checks against cols and reads x only inside images n0.. of the batch
-    // and [0, h) × [0, w).
+    let images = window.images;
+    let meta = Meta::new(
+        x,
+        &[
+            cin, h, w, kh, kw, stride, padding, rows, ow, oy0, n0, images,
+        ],
+    )?;
+    // x: output pixels, y: input channels, z: images (the kernel strides past the grid's size). Deep
+    // layers have few pixels (8² at SD 1.5's lowest level), so a cube is only as wide as they need.
+    let pixels = rows * ow;
+    let width = pixels
+        .next_power_of_two()
+        .clamp(32, ELEMENTWISE_UNITS as usize);
+    let cap = |n: usize| n.clamp(1, limit as usize) as u32;
+    let count = CubeCount::Static(cap(pixels.div_ceil(width)), cap(cin), cap(images));
+    let units = CubeDim::new_1d(width as u32);
+    // SAFETY: the kernel writes the [images, cin·kh·kw, rows·ow] columns it walks, and reads x only
+    // inside images n0..n0 + images of the batch and [0, h) × [0, w).
     let cols = unsafe {
         if half {
             let cols = x.empty_half_like(shape);

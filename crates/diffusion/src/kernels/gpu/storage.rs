@@ -88,6 +88,10 @@ impl Storage for GpuTensor {
         ops::narrow(self, dim, start, len)
     }
 
+    fn narrow_permute(&self, dim: usize, start: usize, len: usize, dims: &[usize]) -> Result<Self> {
+        ops::narrow_permute(self, dim, start, len, dims)
+    }
+
     fn index_select(&self, indices: &[u32], dim: usize) -> Result<Self> {
         ops::index_select(self, indices, dim)
     }

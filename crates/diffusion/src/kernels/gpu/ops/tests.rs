@@ -130,6 +130,16 @@ fn copies_match_cpu() {
         &narrow(&g, 1, 1, 2).unwrap(),
         &x.narrow(1, 1, 2).unwrap().contiguous().unwrap(),
     );
+    check(
+        "narrow_permute",
+        &narrow_permute(&g, 1, 1, 2, &[0, 2, 3, 1]).unwrap(),
+        &x.narrow(1, 1, 2)
+            .unwrap()
+            .permute((0, 2, 3, 1))
+            .unwrap()
+            .contiguous()
+            .unwrap(),
+    );
     let y = randn(&[2, 6, 4, 5]);
     check(
         "cat",
@@ -453,6 +463,103 @@ fn f16_im2col_is_the_f32_columns_rounded() {
         .to_dtype(candle_core::DType::F32)
         .unwrap();
     assert_eq!(values(half.to_cpu().unwrap()), values(want));
+}
+
+#[test]
+fn im2col_strides_past_a_small_grid() {
+    let Some(dev) = device_or_skip() else {
+        return;
+    };
+    // Images 1..3 of three, 2 channels, 3×3 taps: 360 output pixels (two cubes of 256) in the first
+    // window, 5×4 from rows 1.. at stride 2 in the second. Grids of 1 and 2 cubes per dimension make
+    // units walk several pixels, channels and images.
+    let (cin, h, w) = (2, 20, 18);
+    let cpu = randn(&[3, cin, h, w]);
+    let x = up(&dev, &cpu);
+    let values = cpu.flatten_all().unwrap().to_vec1::<f32>().unwrap();
+    for (stride, padding, oy0, rows, ow) in [(1, 1, 0, 20, 18), (2, 1, 1, 5, 4)] {
+        let window = ConvWindow {
+            kh: 3,
+            kw: 3,
+            stride,
+            padding,
+            n0: 1,
+            images: 2,
+            oy0,
+            rows,
+            ow,
+        };
+        // The columns by their definition: image n0 + i, channel c, tap (ky, kx), output pixel p.
+        let mut want = Vec::new();
+        for image in 1..3 {
+            for r in 0..cin * 9 {
+                let (c, ky, kx) = (r / 9, r / 3 % 3, r % 3);
+                for p in 0..rows * ow {
+                    let y = ((oy0 + p / ow) * stride + ky) as isize - padding as isize;
+                    let x = (p % ow * stride + kx) as isize - padding as isize;
+                    let inside = (0..h as isize).contains(&y) && (0..w as isize).contains(&x);
+                    want.push(if inside {
+                        values[((image * cin + c) * h + y as usize) * w + x as usize]
+                    } else {
+                        0.0
+                    });
+                }
+            }
+        }
+        // Every result stays alive, so no run can land in a buffer an earlier one filled.
+        let mut kept = Vec::new();
+        for limit in [1, 2, GRID_LIMIT] {
+            let got = im2col_on_grid(&x, &window, false, limit).unwrap();
+            assert_eq!(got.dims(), [2, cin * 9, rows * ow]);
+            let got_values = got.to_cpu().unwrap().flatten_all().unwrap();
+            let got_values = got_values.to_vec1::<f32>().unwrap();
+            assert!(got_values == want, "stride {stride}, grid limit {limit}");
+            kept.push(got);
+        }
+    }
+}
+
+#[test]
+fn coalesced_walks_keep_every_offset() {
+    // Offsets of every index along (shape, strides) and along the coalesced walk must agree.
+    fn offsets(shape: &[usize], strides: &[usize]) -> Vec<usize> {
+        let count: usize = shape.iter().product();
+        (0..count)
+            .map(|mut i| {
+                let mut offset = 0;
+                for d in (0..shape.len()).rev() {
+                    offset += (i % shape[d]) * strides[d];
+                    i /= shape[d];
+                }
+                offset
+            })
+            .collect()
+    }
+    /// Shape, two stride sets, the coalesced rank.
+    type Case<'a> = (&'a [usize], &'a [usize], &'a [usize], usize);
+    let cases: [Case; 6] = [
+        // Equal shapes: one dimension.
+        (&[2, 3, 4, 5], &[60, 20, 5, 1], &[60, 20, 5, 1], 1),
+        // A per-channel bias over [batch, channels, h, w]: [batch, channels, h·w].
+        (&[2, 3, 4, 5], &[60, 20, 5, 1], &[0, 1, 0, 0], 3),
+        // A time embedding [batch, channels, 1, 1]: [batch·channels, h·w].
+        (&[2, 3, 4, 5], &[60, 20, 5, 1], &[3, 1, 0, 0], 2),
+        // A permute [0, 2, 3, 1] read from a contiguous [2, 3, 4, 5].
+        (&[2, 4, 5, 3], &[60, 5, 1, 20], &[60, 15, 3, 1], 3),
+        // Size-1 dimensions vanish; a broadcast of a scalar.
+        (&[1, 6, 1, 7], &[42, 7, 7, 1], &[0, 0, 0, 0], 1),
+        (&[1, 1], &[1, 1], &[1, 1], 1),
+    ];
+    for (shape, a, b, rank) in cases {
+        let (walk, [wa, wb]) = coalesce(shape, [a, b]);
+        assert_eq!(walk.len(), rank, "{shape:?} {a:?} {b:?} → {walk:?}");
+        assert_eq!(
+            walk.iter().product::<usize>(),
+            shape.iter().product::<usize>()
+        );
+        assert_eq!(offsets(&walk, &wa), offsets(shape, a), "{shape:?} {a:?}");
+        assert_eq!(offsets(&walk, &wb), offsets(shape, b), "{shape:?} {b:?}");
+    }
 }
 
 #[test]
