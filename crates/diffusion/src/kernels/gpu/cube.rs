@@ -521,17 +521,24 @@ pub fn group_norm(
     let base = cube * len;
     let mean = segment_mean(x, base, len, units);
     let inv = segment_inv_std(x, base, len, mean, eps, units);
-    let mut i = UNIT_POS;
-    while i < len {
-        let c = group * per_group + i / spatial;
-        let mut v = (x[(base + i) as usize] - mean) * inv * weight[c as usize] + bias[c as usize];
-        if comptime!(silu) {
-            v = v / (1.0f32 + f32::exp(-v));
+    // Channel by channel, so that no element divides to find its channel, and each channel's scale
+    // and shift are read once per unit.
+    for local in 0..per_group {
+        let c = group * per_group + local;
+        let scale = inv * weight[c as usize];
+        let shift = bias[c as usize];
+        let row = base + local * spatial;
+        let mut i = UNIT_POS;
+        while i < spatial {
+            let mut v = (x[(row + i) as usize] - mean) * scale + shift;
+            if comptime!(silu) {
+                v = v / (1.0f32 + f32::exp(-v));
+            }
+            if valid {
+                out[(row + i) as usize] = v;
+            }
+            i += units;
         }
-        if valid {
-            out[(base + i) as usize] = v;
-        }
-        i += units;
     }
 }
 
