@@ -123,7 +123,9 @@ impl Net {
                         &inputs.context,
                         inputs.timestep_cond.as_ref(),
                         None,
-                        device.as_ref(),
+                        &device
+                            .clone()
+                            .map_or(diffusion::device::Device::Cpu, diffusion::device::Device::Gpu),
                     )
                     .unwrap();
                 host(&out).0
