@@ -113,19 +113,14 @@ pub fn unary(x: &[f32], out: &mut [f32], a: f32, b: f32, #[comptime] op: u32) {
 }
 
 /// The offsets into two operands of the element at linear index `i` of a contiguous `shape`, each
-/// operand read at its own strides: `meta[0..rank]` the shape, then `rank` strides from `meta[first]`
-/// and `rank` from `meta[second]`. The host merges dimensions first (`ops::coalesce`), so `rank` is
+/// operand read at its own strides: `meta = [shape; rank][first strides; rank][second strides; rank]`. The host merges dimensions first (`ops::coalesce`), so `rank` is
 /// usually 1–3; the outermost coordinate is what is left of `i`, so a rank-1 walk divides nothing
 /// (integer division is the dearest instruction of these kernels: tens of cycles on a GPU, and
 /// scalarised on a SIMD CPU).
 #[cube]
-fn strided_offsets(
-    i: u32,
-    meta: &[u32],
-    first: u32,
-    second: u32,
-    #[comptime] rank: u32,
-) -> (u32, u32) {
+fn strided_offsets(i: u32, meta: &[u32], #[comptime] rank: u32) -> (u32, u32) {
+    let first = rank;
+    let second = 2 * rank;
     let mut rest = i;
     let mut o1 = 0u32;
     let mut o2 = 0u32;
@@ -156,7 +151,7 @@ pub fn binary(
 ) {
     let i = linear_pos();
     if (i as usize) < out.len() {
-        let (ia, ib) = strided_offsets(i, meta, rank, 2 * rank, rank);
+        let (ia, ib) = strided_offsets(i, meta, rank);
         let x = a[ia as usize];
         let y = b[ib as usize];
         let v = if comptime!(op == binary_op::ADD) {
@@ -181,7 +176,7 @@ pub fn binary(
 pub fn strided_copy(x: &[f32], out: &mut [f32], meta: &[u32], #[comptime] rank: u32) {
     let i = linear_pos();
     if i < meta[(3 * rank + 2) as usize] {
-        let (ix, io) = strided_offsets(i, meta, rank, 2 * rank, rank);
+        let (ix, io) = strided_offsets(i, meta, rank);
         let ix = ix + meta[(3 * rank) as usize];
         let io = io + meta[(3 * rank + 1) as usize];
         out[io as usize] = x[ix as usize];
