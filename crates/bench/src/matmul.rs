@@ -76,7 +76,7 @@ pub fn main(args: &[String]) -> Result<()> {
             let gb = GpuTensor::upload(&device, &b)?;
             let gw = device.cached_matrix(&w)?;
             let mut products: Vec<(&str, Box<Product>)> =
-                vec![("linear", Box::new(|| ops::linear(&ga, &gw, None)))];
+                vec![("linear", Box::new(|| ops::linear(&ga, &gw, None, None)))];
             // Activation × activation products do not depend on the weight precision, but with f16
             // weights they take f16 operands on tensor cores, and some routines take only row-major
             // operands (a linear layer's weight is read transposed): each routine meets both.

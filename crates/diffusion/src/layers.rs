@@ -9,7 +9,7 @@ use candle_core::{Module, Result, Tensor};
 use candle_nn::{Linear, VarBuilder};
 
 use crate::kernels;
-use crate::kernels::{DeviceTensor, Unary};
+use crate::kernels::{Addend, DeviceTensor, Unary};
 
 /// Loads a `nn.Linear` (`weight` [out, in], optional `bias` [out]) under `vb`.
 pub fn linear(in_dim: usize, out_dim: usize, bias: bool, vb: VarBuilder) -> Result<Linear> {
@@ -88,6 +88,21 @@ impl Conv2d {
     /// The convolution on the input's device (the CPU branch is [`Module::forward`]'s call).
     pub fn forward_device(&self, x: &kernels::DeviceTensor) -> Result<kernels::DeviceTensor> {
         x.conv2d(&self.weight, self.bias.as_ref(), self.stride, self.padding)
+    }
+
+    /// [`Self::forward_device`] plus `addend`, added with the bias (one pass on the GPU).
+    pub fn forward_device_add(
+        &self,
+        x: &kernels::DeviceTensor,
+        addend: kernels::Addend<'_, kernels::DeviceTensor>,
+    ) -> Result<kernels::DeviceTensor> {
+        x.conv2d_add(
+            &self.weight,
+            self.bias.as_ref(),
+            self.stride,
+            self.padding,
+            addend,
+        )
     }
 }
 
@@ -307,22 +322,23 @@ impl ResnetBlock2D {
         x: &DeviceTensor,
         temb: Option<&DeviceTensor>,
     ) -> Result<DeviceTensor> {
-        let h = self
-            .conv1
-            .forward_device(&self.norm1.forward_device(x, true)?)?;
         let emb = match (&self.time_emb_proj, temb) {
             (Some(proj), Some(t)) => {
                 let e = t.unary(Unary::Silu)?.linear(proj)?;
-                let &[b, c] = e.dims() else {
+                if e.dims().len() != 2 {
                     candle_core::bail!("time embedding {:?} is not [batch, channels]", e.dims());
-                };
-                Some(e.reshape(&[b, c, 1, 1])?)
+                }
+                Some(e)
             }
             _ => None,
         };
+        let normed = self.norm1.forward_device(x, true)?;
         let h = match (self.time_embedding_norm, emb) {
             (TimeEmbeddingNorm::ScaleShift, Some(emb)) => {
-                let half = emb.dims()[1] / 2;
+                let h = self.conv1.forward_device(&normed)?;
+                let (b, c) = (emb.dims()[0], emb.dims()[1]);
+                let emb = emb.reshape(&[b, c, 1, 1])?;
+                let half = c / 2;
                 let (scale, shift) = (emb.narrow(1, 0, half)?, emb.narrow(1, half, half)?);
                 let normed = self.norm2.forward_device(&h, false)?;
                 normed
@@ -330,15 +346,25 @@ impl ResnetBlock2D {
                     .broadcast_add(&shift)?
                     .unary(Unary::Silu)?
             }
-            (_, Some(emb)) => self.norm2.forward_device(&h.broadcast_add(&emb)?, true)?,
-            (_, None) => self.norm2.forward_device(&h, true)?,
+            // The time embedding joins conv1's bias (one pass over conv1's output on the GPU).
+            (_, Some(emb)) => {
+                let h = self
+                    .conv1
+                    .forward_device_add(&normed, Addend::PerChannel(&emb))?;
+                self.norm2.forward_device(&h, true)?
+            }
+            (_, None) => self
+                .norm2
+                .forward_device(&self.conv1.forward_device(&normed)?, true)?,
         };
-        let h = self.conv2.forward_device(&h)?;
         let shortcut = match &self.conv_shortcut {
             Some(conv) => conv.forward_device(x)?,
             None => x.clone(),
         };
-        let out = shortcut.add(&h)?;
+        // The skip connection joins conv2's bias (`shortcut + conv2(h)` before: two terms commute exactly).
+        let out = self
+            .conv2
+            .forward_device_add(&h, Addend::Residual(&shortcut))?;
         if self.output_scale_factor == 1.0 {
             Ok(out)
         } else {

@@ -5,7 +5,7 @@
 use candle_core::{Module, Result, Tensor, D};
 use candle_nn::Activation;
 
-use super::device::{Storage, Unary};
+use super::device::{Addend, Storage, Unary};
 
 impl Storage for Tensor {
     fn dims(&self) -> &[usize] {
@@ -92,12 +92,25 @@ impl Storage for Tensor {
         bias: Option<&Tensor>,
         stride: usize,
         padding: usize,
+        addend: Addend<'_, Self>,
     ) -> Result<Self> {
-        super::conv2d(self, weight, bias, stride, padding)
+        let out = super::conv2d(self, weight, bias, stride, padding)?;
+        match addend {
+            Addend::None => Ok(out),
+            Addend::Residual(r) => out + r,
+            Addend::PerChannel(t) => {
+                let (n, c) = t.dims2()?;
+                out.broadcast_add(&t.reshape((n, c, 1, 1))?)
+            }
+        }
     }
 
-    fn linear(&self, layer: &candle_nn::Linear) -> Result<Self> {
-        layer.forward(self)
+    fn linear(&self, layer: &candle_nn::Linear, residual: Option<&Self>) -> Result<Self> {
+        let out = layer.forward(self)?;
+        match residual {
+            Some(r) => out + r,
+            None => Ok(out),
+        }
     }
 
     fn group_norm(

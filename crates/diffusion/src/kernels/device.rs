@@ -76,6 +76,24 @@ pub enum Unary {
     QuickGelu,
 }
 
+/// What a convolution adds to its output besides its bias. A backend may add it in the pass that adds
+/// the bias (the GPU does: one pass over the output instead of two).
+#[derive(Debug)]
+pub enum Addend<'a, T> {
+    None,
+    /// [batch, out channels, h, w]: a skip connection.
+    Residual(&'a T),
+    /// [batch, out channels]: one value per image and channel (a ResNet's time embedding).
+    PerChannel(&'a T),
+}
+
+impl<T> Clone for Addend<'_, T> {
+    fn clone(&self) -> Self {
+        *self
+    }
+}
+impl<T> Copy for Addend<'_, T> {}
+
 /// The ops of a network, declared once, implemented once per backend. Shapes are validated by each
 /// implementation; operands of the binary ops are on the same device (the dispatch checks that).
 pub trait Storage: Sized {
@@ -109,16 +127,17 @@ pub trait Storage: Sized {
     fn upsample_nearest2d(&self, out_h: usize, out_w: usize) -> Result<Self>;
     fn cat(parts: &[&Self], dim: usize) -> Result<Self>;
 
-    /// [`super::conv2d`] (NCHW, OIHW weights).
+    /// [`super::conv2d`] (NCHW, OIHW weights), plus `addend`.
     fn conv2d(
         &self,
         weight: &Tensor,
         bias: Option<&Tensor>,
         stride: usize,
         padding: usize,
+        addend: Addend<'_, Self>,
     ) -> Result<Self>;
-    /// `x·weightᵀ + bias` (candle-nn `Linear`).
-    fn linear(&self, layer: &candle_nn::Linear) -> Result<Self>;
+    /// `x·weightᵀ + bias` (candle-nn `Linear`), plus `residual` (of the output's shape).
+    fn linear(&self, layer: &candle_nn::Linear, residual: Option<&Self>) -> Result<Self>;
     /// [`super::group_norm`], SiLU fused when `silu`.
     fn group_norm(
         &self,
@@ -361,12 +380,51 @@ impl DeviceTensor {
         stride: usize,
         padding: usize,
     ) -> Result<DeviceTensor> {
-        Ok(dispatch!(self, x => Storage::conv2d(x, weight, bias, stride, padding)))
+        self.conv2d_add(weight, bias, stride, padding, Addend::None)
+    }
+
+    /// [`Self::conv2d`] plus `addend` (on the same device).
+    pub fn conv2d_add(
+        &self,
+        weight: &Tensor,
+        bias: Option<&Tensor>,
+        stride: usize,
+        padding: usize,
+        addend: Addend<'_, DeviceTensor>,
+    ) -> Result<DeviceTensor> {
+        let (term, per_channel) = match addend {
+            Addend::None => {
+                return Ok(
+                    dispatch!(self, x => Storage::conv2d(x, weight, bias, stride, padding, Addend::None)),
+                )
+            }
+            Addend::Residual(t) => (t, false),
+            Addend::PerChannel(t) => (t, true),
+        };
+        fn wrap<T>(t: &T, per_channel: bool) -> Addend<'_, T> {
+            if per_channel {
+                Addend::PerChannel(t)
+            } else {
+                Addend::Residual(t)
+            }
+        }
+        Ok(dispatch2!(self, term, (x, t) =>
+            Storage::conv2d(x, weight, bias, stride, padding, wrap(t, per_channel))))
     }
 
     /// A linear layer `x·weightᵀ + bias` (candle-nn `Linear`).
     pub fn linear(&self, layer: &candle_nn::Linear) -> Result<DeviceTensor> {
-        Ok(dispatch!(self, x => Storage::linear(x, layer)))
+        Ok(dispatch!(self, x => Storage::linear(x, layer, None)))
+    }
+
+    /// [`Self::linear`] plus `residual` (of the output's shape, on the same device): a skip connection
+    /// added in the bias's pass.
+    pub fn linear_add(
+        &self,
+        layer: &candle_nn::Linear,
+        residual: &DeviceTensor,
+    ) -> Result<DeviceTensor> {
+        Ok(dispatch2!(self, residual, (x, r) => Storage::linear(x, layer, Some(r))))
     }
 
     /// [`super::group_norm`] on the tensor's device.

@@ -63,7 +63,7 @@ mod vgg;
 
 pub use attention::attention;
 pub use conv::conv2d;
-pub use device::{Device, DeviceTensor, Storage, Unary};
+pub use device::{Addend, Device, DeviceTensor, Storage, Unary};
 pub use geglu::geglu;
 pub use norm::{group_norm, layer_norm};
 pub use softmax::softmax_last_dim;

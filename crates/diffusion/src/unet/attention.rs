@@ -343,13 +343,15 @@ impl Attention {
 
     /// `x` [batch, h·w, query_dim]; `context` [batch, tokens, context_dim] for cross-attention, on one
     /// device. Without a hook, or when the hook does not read this call's probabilities, the flash kernel
-    /// runs (no probability matrix); the hook sees the tensors on the device they are on.
+    /// runs (no probability matrix); the hook sees the tensors on the device they are on. Returns the
+    /// output projection plus `residual` (the block's skip connection, added with the bias).
     pub fn forward_device(
         &self,
         x: &DeviceTensor,
         context: Option<&DeviceTensor>,
         (height, width): (usize, usize),
         hook: Option<&mut (dyn AttentionHook + '_)>,
+        residual: &DeviceTensor,
     ) -> Result<DeviceTensor> {
         let &[batch, tokens, _] = x.dims() else {
             candle_core::bail!(
@@ -426,7 +428,7 @@ impl Attention {
         };
         out.permute_contiguous(&[0, 2, 1, 3])?
             .reshape(&[batch, tokens, self.heads * self.head_dim])?
-            .linear(&self.to_out)
+            .linear_add(&self.to_out, residual)
     }
 }
 

@@ -4,7 +4,7 @@ use candle_core::Result;
 use candle_nn::{Linear, VarBuilder};
 
 use super::attention::{Attention, AttentionHook};
-use crate::kernels::DeviceTensor;
+use crate::kernels::{Addend, DeviceTensor};
 use crate::layers::{conv2d, linear, Conv2d, GroupNorm, LayerNorm};
 
 /// diffusers `GEGLU` + output linear (`ff.net.0.proj`, `ff.net.2`): `W2 (h ⊙ gelu(g))` with `[h, g] = W1 x`.
@@ -23,9 +23,16 @@ impl FeedForward {
         })
     }
 
-    pub fn forward_device(&self, x: &DeviceTensor) -> Result<DeviceTensor> {
+    /// The feed-forward of `x`, plus `residual` (added with the output layer's bias).
+    pub fn forward_device(
+        &self,
+        x: &DeviceTensor,
+        residual: &DeviceTensor,
+    ) -> Result<DeviceTensor> {
         // diffusers uses the exact (erf) GELU here.
-        x.linear(&self.proj)?.geglu()?.linear(&self.out)
+        x.linear(&self.proj)?
+            .geglu()?
+            .linear_add(&self.out, residual)
     }
 }
 
@@ -69,23 +76,23 @@ impl BasicTransformerBlock {
         size: (usize, usize),
         mut hook: Option<&mut (dyn AttentionHook + '_)>,
     ) -> Result<DeviceTensor> {
+        // Each residual is added in its output projection's bias pass.
         let attn1_context = self.only_cross_attention.then_some(context);
-        let h = self.attn1.forward_device(
+        let x = self.attn1.forward_device(
             &self.norm1.forward_device(x)?,
             attn1_context,
             size,
             hook.as_deref_mut(),
+            x,
         )?;
-        let x = h.add(x)?;
-        let h = self.attn2.forward_device(
+        let x = self.attn2.forward_device(
             &self.norm2.forward_device(&x)?,
             Some(context),
             size,
             hook,
+            &x,
         )?;
-        let x = h.add(&x)?;
-        let h = self.ff.forward_device(&self.norm3.forward_device(&x)?)?;
-        h.add(&x)
+        self.ff.forward_device(&self.norm3.forward_device(&x)?, &x)
     }
 }
 
@@ -170,10 +177,12 @@ impl Transformer2D {
         let to_image = |t: &DeviceTensor| -> Result<DeviceTensor> {
             t.permute_contiguous(&[0, 2, 1])?.reshape(&[b, c, h, w])
         };
-        let out = match &self.proj_out {
-            Projection::Conv(conv) => conv.forward_device(&to_image(&tokens)?)?,
-            Projection::Linear(lin) => to_image(&tokens.linear(lin)?)?,
-        };
-        out.add(x)
+        match &self.proj_out {
+            // The residual joins the bias's pass.
+            Projection::Conv(conv) => {
+                conv.forward_device_add(&to_image(&tokens)?, Addend::Residual(x))
+            }
+            Projection::Linear(lin) => to_image(&tokens.linear(lin)?)?.add(x),
+        }
     }
 }

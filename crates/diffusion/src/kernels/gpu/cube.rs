@@ -169,6 +169,46 @@ pub fn binary(
     }
 }
 
+/// Bias modes of [`product_epilogue`].
+pub mod epilogue_bias {
+    pub const NONE: u32 = 0;
+    /// One value per output column (a linear layer's bias): `bias[i % cols]`.
+    pub const PER_COLUMN: u32 = 1;
+    /// One value per output row (a convolution's bias over [batch, rows, cols]): `bias[(i / cols) %
+    /// bias_rows]`, `bias_rows` the rows of one matrix, or of the whole batch when the bias varies per
+    /// image (a time embedding folded in).
+    pub const PER_ROW: u32 = 2;
+}
+
+/// The finishing pass of a library product, in place: `values[i] = values[i]·alpha + bias + residual[i]`
+/// (the library computes the plain product; its scale, bias and a layer's residual add cost one pass
+/// over the result together instead of one each).
+#[cube(launch_unchecked)]
+pub fn product_epilogue(
+    values: &mut [f32],
+    bias: &[f32],
+    residual: &[f32],
+    alpha: f32,
+    cols: u32,
+    bias_rows: u32,
+    #[comptime] bias_mode: u32,
+    #[comptime] with_residual: bool,
+) {
+    let i = linear_pos();
+    if (i as usize) < values.len() {
+        let mut v = values[i as usize] * alpha;
+        if comptime!(bias_mode == epilogue_bias::PER_COLUMN) {
+            v += bias[(i % cols) as usize];
+        } else if comptime!(bias_mode == epilogue_bias::PER_ROW) {
+            v += bias[((i / cols) % bias_rows) as usize];
+        }
+        if comptime!(with_residual) {
+            v += residual[i as usize];
+        }
+        values[i as usize] = v;
+    }
+}
+
 /// Strided copy over `shape`: `out[out_offset + Σ cᵢ·out_strideᵢ] = x[in_offset + Σ cᵢ·in_strideᵢ]`;
 /// `meta = [shape; rank][in strides; rank][out strides; rank][in_offset, out_offset, count]`.
 /// Serves permutes, narrows, broadcasts and concatenation (one copy per part).

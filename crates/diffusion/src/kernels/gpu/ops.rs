@@ -11,6 +11,7 @@ use super::cube::{
     REDUCE_UNITS,
 };
 use super::GpuTensor;
+use crate::kernels::device::Addend;
 
 mod tiling;
 pub use tiling::Tiling;
@@ -517,46 +518,51 @@ struct Gemm {
     alpha: f32,
 }
 
-/// Bias of a product: none, one per output column (linear), one per output row (convolution).
+/// Bias of a product: none, one per output column (linear), one per output row (convolution), one per
+/// output row of each matrix of the batch ([batch·m]: a convolution's bias with a time embedding folded in).
+#[derive(Clone, Copy)]
 enum GemmBias<'a> {
     None,
     PerColumn(&'a GpuTensor),
     PerRow(&'a GpuTensor),
+    PerBatchRow(&'a GpuTensor),
 }
 
+/// `alpha·A[b]B[b] + bias (+ residual)`, `residual` of the output's shape (a layer's skip connection).
 fn gemm(
     a: &GpuTensor,
     b: &GpuTensor,
     bias: GemmBias,
+    residual: Option<&GpuTensor>,
     g: &Gemm,
     out_shape: Vec<usize>,
 ) -> Result<GpuTensor> {
+    if let Some(r) = residual {
+        if r.dims() != out_shape.as_slice() {
+            candle_core::bail!(
+                "gpu product: residual {:?} for an output {out_shape:?}",
+                r.dims()
+            );
+        }
+    }
     let library = library_gemm(a, b, g, &out_shape);
     LAST_ROUTE.set(library.as_ref().map_or("own", |(_, route)| *route));
     if let Some((product, _)) = library {
-        // The library computes the plain product; scale and bias follow as one elementwise pass each.
-        let product = if g.alpha == 1.0 {
-            product
-        } else {
-            affine(&product, g.alpha, 0.0)
-        };
-        return match bias {
-            GemmBias::None => Ok(product),
-            GemmBias::PerColumn(t) => add(&product, t),
-            GemmBias::PerRow(t) => {
-                let rows = product.reshape(&[g.batch, g.m, g.n])?;
-                add(&rows, &t.reshape(&[g.m, 1])?)?.reshape(&out_shape)
-            }
-        };
+        return finish_product(product, bias, residual, g);
     }
-    let out = a.empty_like_device(out_shape);
+    // Our kernel adds a bias shared by the batch itself; a per-image bias and the residual follow.
+    let (bias, late_bias) = match bias {
+        GemmBias::PerBatchRow(t) => (GemmBias::None, Some(t)),
+        other => (other, None),
+    };
+    let out = a.empty_like_device(out_shape.clone());
     let mut meta = vec![g.batch, g.m, g.n, g.k];
     meta.extend(g.a_strides);
     meta.extend(g.b_strides);
     let meta = Meta::new(a, &meta)?;
     let (bias_arg, mode) = match bias {
         // Not read: any buffer will do.
-        GemmBias::None => (out.arg(), 0u32),
+        GemmBias::None | GemmBias::PerBatchRow(_) => (out.arg(), 0u32),
         GemmBias::PerColumn(t) => (t.arg(), 1),
         GemmBias::PerRow(t) => (t.arg(), 2),
     };
@@ -581,7 +587,76 @@ fn gemm(
             b_k_contiguous,
         )
     };
-    Ok(out)
+    let out = match late_bias {
+        Some(t) => add(
+            &out.reshape(&[g.batch * g.m, g.n])?,
+            &t.reshape(&[g.batch * g.m, 1])?,
+        )?
+        .reshape(&out_shape)?,
+        None => out,
+    };
+    match residual {
+        Some(r) => add(&out, r),
+        None => Ok(out),
+    }
+}
+
+/// The library product's scale, bias and residual in one pass over it, in place (nothing else holds the
+/// fresh product), or none when there is nothing to add.
+fn finish_product(
+    product: GpuTensor,
+    bias: GemmBias,
+    residual: Option<&GpuTensor>,
+    g: &Gemm,
+) -> Result<GpuTensor> {
+    use cube::epilogue_bias;
+    let (bias, mode, bias_rows) = match bias {
+        GemmBias::None => (None, epilogue_bias::NONE, 1),
+        GemmBias::PerColumn(t) => (Some(t), epilogue_bias::PER_COLUMN, 1),
+        GemmBias::PerRow(t) => (Some(t), epilogue_bias::PER_ROW, g.m),
+        GemmBias::PerBatchRow(t) => (Some(t), epilogue_bias::PER_ROW, g.batch * g.m),
+    };
+    // An operand the kernel does not read is bound to one it does (never to the written product).
+    let Some(bound) = bias.or(residual) else {
+        return Ok(if g.alpha == 1.0 {
+            product
+        } else {
+            affine(&product, g.alpha, 0.0)
+        });
+    };
+    if let Some(t) = bias {
+        let expected = if mode == epilogue_bias::PER_COLUMN {
+            g.n
+        } else {
+            bias_rows
+        };
+        if t.elem_count() != expected {
+            candle_core::bail!(
+                "gpu product: bias {:?} for {} rows × {} columns",
+                t.dims(),
+                g.batch * g.m,
+                g.n
+            );
+        }
+    }
+    // SAFETY: the bias holds every index the mode reads (checked above), the residual has the product's
+    // shape (checked by `gemm`); the kernel bound-checks against the product.
+    unsafe {
+        cube::product_epilogue::launch_unchecked(
+            product.client(),
+            grid_for(product.elem_count(), ELEMENTWISE_UNITS),
+            CubeDim::new_1d(ELEMENTWISE_UNITS),
+            product.arg(),
+            bias.unwrap_or(bound).arg(),
+            residual.unwrap_or(bound).arg(),
+            g.alpha,
+            to_u32(g.n, "product columns")?,
+            to_u32(bias_rows, "bias rows")?,
+            mode,
+            residual.is_some(),
+        )
+    };
+    Ok(product)
 }
 
 /// How a product runs: our own kernel, or the matrix-product library (cubek) on f32 or f16 operands.
@@ -1035,11 +1110,17 @@ pub fn matmul_scaled(
         b_strides,
         alpha,
     };
-    gemm(a, b, GemmBias::None, &g, out_shape)
+    gemm(a, b, GemmBias::None, None, &g, out_shape)
 }
 
-/// A linear layer: x [.., in] × weightᵀ (weight [out, in]) + bias [out].
-pub fn linear(x: &GpuTensor, weight: &GpuTensor, bias: Option<&GpuTensor>) -> Result<GpuTensor> {
+/// A linear layer: x [.., in] × weightᵀ (weight [out, in]) + bias [out] (+ `residual`, of the output's
+/// shape, in the same pass as the bias).
+pub fn linear(
+    x: &GpuTensor,
+    weight: &GpuTensor,
+    bias: Option<&GpuTensor>,
+    residual: Option<&GpuTensor>,
+) -> Result<GpuTensor> {
     let rank = x.dims().len();
     let (out_dim, in_dim) = match weight.dims() {
         [o, i] => (*o, *i),
@@ -1065,17 +1146,18 @@ pub fn linear(x: &GpuTensor, weight: &GpuTensor, bias: Option<&GpuTensor>) -> Re
         alpha: 1.0,
     };
     let bias = bias.map_or(GemmBias::None, GemmBias::PerColumn);
-    gemm(x, weight, bias, &g, out_shape)
+    gemm(x, weight, bias, residual, &g, out_shape)
 }
 
 /// 2D convolution of x [batch, cin, h, w] with weight [cout, cin, kh, kw], as im2col + one product per
-/// image (the bias is added in the product).
+/// image; the bias and `addend` are added in the product's finishing pass.
 pub fn conv2d(
     x: &GpuTensor,
     weight: &GpuTensor,
     bias: Option<&GpuTensor>,
     stride: usize,
     padding: usize,
+    addend: Addend<'_, GpuTensor>,
 ) -> Result<GpuTensor> {
     let (&[_, cin, h, w], &[_, wcin, kh, kw]) = (x.dims(), weight.dims()) else {
         candle_core::bail!(
@@ -1094,7 +1176,7 @@ pub fn conv2d(
     // The im2col buffer is cin·kh·kw times the output's pixels: in a full-resolution VAE layer it alone
     // outgrows a device's largest buffer (lavapipe: 128 MiB; 512² × 128 channels × 9 = 1.2 GB per image).
     // Past the cap the convolution runs in blocks of whole images, then of output rows.
-    conv2d_blocked(x, weight, bias, stride, padding, transient_cap(x))
+    conv2d_blocked(x, weight, bias, stride, padding, addend, transient_cap(x))
 }
 
 /// [`conv2d`] with im2col blocks of at most `cap` bytes (where one output row does not fit, one row).
@@ -1104,6 +1186,7 @@ fn conv2d_blocked(
     bias: Option<&GpuTensor>,
     stride: usize,
     padding: usize,
+    addend: Addend<'_, GpuTensor>,
     cap: usize,
 ) -> Result<GpuTensor> {
     let (&[n, cin, h, w], &[cout, _, kh, kw]) = (x.dims(), weight.dims()) else {
@@ -1111,12 +1194,30 @@ fn conv2d_blocked(
     };
     let oh = (h + 2 * padding - kh) / stride + 1;
     let ow = (w + 2 * padding - kw) / stride + 1;
+    match addend {
+        Addend::Residual(r) if r.dims() != [n, cout, oh, ow] => candle_core::bail!(
+            "gpu conv2d: residual {:?} for an output [{n}, {cout}, {oh}, {ow}]",
+            r.dims()
+        ),
+        Addend::PerChannel(t) if t.elem_count() != n * cout => candle_core::bail!(
+            "gpu conv2d: per-channel addend {:?} for {n} images × {cout} channels",
+            t.dims()
+        ),
+        _ => {}
+    }
     let depth = cin * kh * kw;
     // The columns in the product's operand precision: f16 columns need no narrowing pass.
     let half = half_operands(x.device());
     let per_row = depth * ow * if half { 2 } else { 4 };
     let per_image = per_row * oh;
-    let block = |n0: usize, images: usize, oy0: usize, rows: usize| -> Result<GpuTensor> {
+    let row_bias = bias.map_or(GemmBias::None, GemmBias::PerRow);
+    let block = |n0: usize,
+                 images: usize,
+                 oy0: usize,
+                 rows: usize,
+                 bias: GemmBias,
+                 residual: Option<&GpuTensor>|
+     -> Result<GpuTensor> {
         let window = ConvWindow {
             kh,
             kw,
@@ -1138,29 +1239,57 @@ fn conv2d_blocked(
             b_strides: [depth * rows * ow, rows * ow, 1],
             alpha: 1.0,
         };
-        let bias = bias.map_or(GemmBias::None, GemmBias::PerRow);
-        gemm(weight, &cols, bias, &g, vec![images, cout, rows * ow])
+        gemm(
+            weight,
+            &cols,
+            bias,
+            residual,
+            &g,
+            vec![images, cout, rows * ow],
+        )
     };
     if n * per_image <= cap {
-        return block(0, n, 0, oh)?.reshape(&[n, cout, oh, ow]);
+        // One block: the addend joins the bias in the product's finishing pass.
+        let out = match addend {
+            Addend::None => block(0, n, 0, oh, row_bias, None)?,
+            Addend::Residual(r) => {
+                let r = r.reshape(&[n, cout, oh * ow])?;
+                block(0, n, 0, oh, row_bias, Some(&r))?
+            }
+            Addend::PerChannel(t) => {
+                let t = t.reshape(&[n, cout])?;
+                let per_image = match bias {
+                    Some(b) => add(&t, &b.reshape(&[1, cout])?)?,
+                    None => t,
+                };
+                block(0, n, 0, oh, GemmBias::PerBatchRow(&per_image), None)?
+            }
+        };
+        return out.reshape(&[n, cout, oh, ow]);
     }
     let mut parts = Vec::new();
     if per_image <= cap {
         let images = cap / per_image;
         for n0 in (0..n).step_by(images) {
-            parts.push(block(n0, images.min(n - n0), 0, oh)?);
+            parts.push(block(n0, images.min(n - n0), 0, oh, row_bias, None)?);
         }
-        return cat(&parts.iter().collect::<Vec<_>>(), 0)?.reshape(&[n, cout, oh, ow]);
+    } else {
+        let rows = (cap / per_row).max(1);
+        for n0 in 0..n {
+            let bands = (0..oh)
+                .step_by(rows)
+                .map(|oy0| block(n0, 1, oy0, rows.min(oh - oy0), row_bias, None))
+                .collect::<Result<Vec<_>>>()?;
+            parts.push(cat(&bands.iter().collect::<Vec<_>>(), 2)?);
+        }
     }
-    let rows = (cap / per_row).max(1);
-    for n0 in 0..n {
-        let bands = (0..oh)
-            .step_by(rows)
-            .map(|oy0| block(n0, 1, oy0, rows.min(oh - oy0)))
-            .collect::<Result<Vec<_>>>()?;
-        parts.push(cat(&bands.iter().collect::<Vec<_>>(), 2)?);
+    let out = cat(&parts.iter().collect::<Vec<_>>(), 0)?.reshape(&[n, cout, oh, ow])?;
+    // Blocks: the addend follows in a pass of its own.
+    match addend {
+        Addend::None => Ok(out),
+        Addend::Residual(r) => add(&out, r),
+        Addend::PerChannel(t) => add(&out, &t.reshape(&[n, cout, 1, 1])?),
     }
-    cat(&parts.iter().collect::<Vec<_>>(), 0)?.reshape(&[n, cout, oh, ow])
 }
 
 /// Which part of a convolution's output one im2col block covers.

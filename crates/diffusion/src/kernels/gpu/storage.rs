@@ -5,7 +5,7 @@ use candle_core::{Result, Tensor};
 use candle_nn::Activation;
 
 use super::{ops, GpuTensor};
-use crate::kernels::device::{Storage, Unary};
+use crate::kernels::device::{Addend, Storage, Unary};
 
 impl GpuTensor {
     /// A weight (or any CPU constant) on this tensor's device, in f32.
@@ -114,6 +114,7 @@ impl Storage for GpuTensor {
         bias: Option<&Tensor>,
         stride: usize,
         padding: usize,
+        addend: Addend<'_, Self>,
     ) -> Result<Self> {
         let bias = bias.map(|b| self.constant(b)).transpose()?;
         ops::conv2d(
@@ -122,12 +123,18 @@ impl Storage for GpuTensor {
             bias.as_ref(),
             stride,
             padding,
+            addend,
         )
     }
 
-    fn linear(&self, layer: &candle_nn::Linear) -> Result<Self> {
+    fn linear(&self, layer: &candle_nn::Linear, residual: Option<&Self>) -> Result<Self> {
         let bias = layer.bias().map(|b| self.constant(b)).transpose()?;
-        ops::linear(self, &self.matrix_constant(layer.weight())?, bias.as_ref())
+        ops::linear(
+            self,
+            &self.matrix_constant(layer.weight())?,
+            bias.as_ref(),
+            residual,
+        )
     }
 
     fn group_norm(

@@ -218,9 +218,23 @@ fn matmul_and_linear_match_cpu_on(dev: &GpuDevice) {
     let want = candle_core::Module::forward(&cpu, &x).unwrap();
     check(
         "linear",
-        &linear(&up(&dev, &x), &up(&dev, &w), Some(&up(&dev, &bias))).unwrap(),
+        &linear(&up(&dev, &x), &up(&dev, &w), Some(&up(&dev, &bias)), None).unwrap(),
         &want,
     );
+    // A skip connection added in the bias's pass, with and without a bias.
+    let residual = randn(&[2, 5, 7]);
+    let (gx, gw, gr) = (up(&dev, &x), up(&dev, &w), up(&dev, &residual));
+    check(
+        "linear + residual",
+        &linear(&gx, &gw, Some(&up(&dev, &bias)), Some(&gr)).unwrap(),
+        &(&want + &residual).unwrap(),
+    );
+    check(
+        "linear without bias + residual",
+        &linear(&gx, &gw, None, Some(&gr)).unwrap(),
+        &(x.broadcast_matmul(&w.t().unwrap()).unwrap() + &residual).unwrap(),
+    );
+    assert!(linear(&gx, &gw, None, Some(&up(&dev, &randn(&[2, 5, 6])))).is_err());
     assert!(matmul(&up(&dev, &a), &up(&dev, &a)).is_err());
 }
 
@@ -302,7 +316,7 @@ fn f16_weights_match_cpu_on(dev: &GpuDevice) {
     check_within("f16 weight read-back", &gw, &rounded(&w), 0.0);
     let gx = up(&half_dev, &x);
     let gbias = up(&half_dev, &bias);
-    let got = linear(&gx, &gw, Some(&gbias)).unwrap();
+    let got = linear(&gx, &gw, Some(&gbias), None).unwrap();
     let cpu = |w: Tensor| {
         candle_core::Module::forward(&candle_nn::Linear::new(w, Some(bias.clone())), &x).unwrap()
     };
@@ -324,6 +338,7 @@ fn f16_weights_match_cpu_on(dev: &GpuDevice) {
         Some(&narrow(&gbias, 0, 0, 6).unwrap()),
         1,
         1,
+        Addend::None,
     )
     .unwrap();
     let want = |w: &Tensor| {
@@ -362,7 +377,7 @@ fn f16_operands_match_cpu() {
     with_matmul_path(MatmulPath::UnitF16, || {
         let (x, w, bias) = (randn(&[2, 5, 19]), randn(&[7, 19]), randn(&[7]));
         let gw = half_dev.cached_matrix(&w).unwrap();
-        let got = linear(&up(&half_dev, &x), &gw, Some(&up(&half_dev, &bias))).unwrap();
+        let got = linear(&up(&half_dev, &x), &gw, Some(&up(&half_dev, &bias)), None).unwrap();
         let want = candle_core::Module::forward(
             &candle_nn::Linear::new(rounded(&w), Some(bias.clone())),
             &rounded(&x),
@@ -382,6 +397,7 @@ fn f16_operands_match_cpu() {
             None,
             1,
             1,
+            Addend::None,
         )
         .unwrap();
         let want = crate::kernels::conv2d(&rounded(&xi), &rounded(&conv_w), None, 1, 1).unwrap();
@@ -562,6 +578,75 @@ fn coalesced_walks_keep_every_offset() {
     }
 }
 
+/// The library product's finishing pass on its own (a product made up, so it also runs where the library
+/// cannot: SPIR-V on lavapipe): scale, each bias mode, the residual, and a bias of the wrong length.
+#[test]
+fn product_epilogue_matches_cpu() {
+    let Some(dev) = device_or_skip() else {
+        return;
+    };
+    let (batch, m, n) = (3, 5, 7);
+    let product = randn(&[batch, m, n]);
+    let g = |alpha: f32| Gemm {
+        batch,
+        m,
+        n,
+        k: 1,
+        a_strides: [0; 3],
+        b_strides: [0; 3],
+        alpha,
+    };
+    let (columns, rows, batch_rows) = (randn(&[n]), randn(&[m]), randn(&[batch, m]));
+    let residual = randn(&[batch, m, n]);
+    let (gc, gr, gbr) = (up(&dev, &columns), up(&dev, &rows), up(&dev, &batch_rows));
+    let g_residual = up(&dev, &residual);
+    let scaled = (&product * 0.5).unwrap();
+    let cases = [
+        ("scale", GemmBias::None, scaled.clone()),
+        (
+            "per column",
+            GemmBias::PerColumn(&gc),
+            scaled.broadcast_add(&columns).unwrap(),
+        ),
+        (
+            "per row",
+            GemmBias::PerRow(&gr),
+            scaled
+                .broadcast_add(&rows.reshape((m, 1)).unwrap())
+                .unwrap(),
+        ),
+        (
+            "per image and row",
+            GemmBias::PerBatchRow(&gbr),
+            scaled
+                .broadcast_add(&batch_rows.reshape((batch, m, 1)).unwrap())
+                .unwrap(),
+        ),
+    ];
+    for (what, bias, want) in cases {
+        let got = finish_product(up(&dev, &product), bias, None, &g(0.5)).unwrap();
+        check(&format!("epilogue, {what}"), &got, &want);
+        let got = finish_product(up(&dev, &product), bias, Some(&g_residual), &g(0.5)).unwrap();
+        check(
+            &format!("epilogue, {what} + residual"),
+            &got,
+            &(&want + &residual).unwrap(),
+        );
+    }
+    let got = finish_product(
+        up(&dev, &product),
+        GemmBias::None,
+        Some(&g_residual),
+        &g(1.0),
+    );
+    check(
+        "epilogue, residual alone",
+        &got.unwrap(),
+        &(&product + &residual).unwrap(),
+    );
+    assert!(finish_product(up(&dev, &product), GemmBias::PerRow(&gc), None, &g(1.0)).is_err());
+}
+
 #[test]
 fn conv2d_matches_cpu() {
     let Some(dev) = device_or_skip() else {
@@ -582,37 +667,48 @@ fn conv2d_matches_cpu_on(dev: &GpuDevice) {
         let x = randn(&[n, cin, h, w]);
         let weight = randn(&[cout, cin, k, k]);
         let bias = with_bias.then(|| randn(&[cout]));
-        let want = crate::kernels::conv2d(&x, &weight, bias.as_ref(), stride, padding).unwrap();
+        let plain = crate::kernels::conv2d(&x, &weight, bias.as_ref(), stride, padding).unwrap();
         let gbias = bias.as_ref().map(|b| up(&dev, b));
-        let got = conv2d(
-            &up(&dev, &x),
-            &up(&dev, &weight),
-            gbias.as_ref(),
-            stride,
-            padding,
-        )
-        .unwrap();
-        check(&format!("conv2d k{k} s{stride} p{padding}"), &got, &want);
-        // Blocked: one image per block, then bands of one and of three output rows (the last band
-        // shorter where the rows do not divide).
-        let oh = (h + 2 * padding - k) / stride + 1;
-        let ow = (w + 2 * padding - k) / stride + 1;
-        let per_row = cin * k * k * ow * 4;
-        for cap in [per_row * oh, per_row, 3 * per_row] {
-            let got = conv2d_blocked(
-                &up(&dev, &x),
-                &up(&dev, &weight),
-                gbias.as_ref(),
-                stride,
-                padding,
-                cap,
-            )
-            .unwrap();
+        let (oh, ow) = (plain.dims()[2], plain.dims()[3]);
+        // What the convolution adds in its finishing pass: nothing, a skip connection, a time embedding.
+        let residual = randn(&[n, cout, oh, ow]);
+        let per_channel = randn(&[n, cout]);
+        let (g_residual, g_per_channel) = (up(&dev, &residual), up(&dev, &per_channel));
+        let addends = [
+            ("", Addend::None, plain.clone()),
+            (
+                " + residual",
+                Addend::Residual(&g_residual),
+                (&plain + &residual).unwrap(),
+            ),
+            (
+                " + per channel",
+                Addend::PerChannel(&g_per_channel),
+                plain
+                    .broadcast_add(&per_channel.reshape((n, cout, 1, 1)).unwrap())
+                    .unwrap(),
+            ),
+        ];
+        let (gx, gw) = (up(&dev, &x), up(&dev, &weight));
+        for (what, addend, want) in &addends {
+            let got = conv2d(&gx, &gw, gbias.as_ref(), stride, padding, *addend).unwrap();
             check(
-                &format!("conv2d k{k} s{stride} p{padding}, im2col cap {cap}"),
+                &format!("conv2d k{k} s{stride} p{padding}{what}"),
                 &got,
-                &want,
+                want,
             );
+            // Blocked: one image per block, then bands of one and of three output rows (the last band
+            // shorter where the rows do not divide).
+            let per_row = cin * k * k * ow * 4;
+            for cap in [per_row * oh, per_row, 3 * per_row] {
+                let got = conv2d_blocked(&gx, &gw, gbias.as_ref(), stride, padding, *addend, cap)
+                    .unwrap();
+                check(
+                    &format!("conv2d k{k} s{stride} p{padding}{what}, im2col cap {cap}"),
+                    &got,
+                    want,
+                );
+            }
         }
     }
 }
@@ -758,14 +854,14 @@ fn the_library_takes_the_networks_products() {
     assert!(with_own_matmul(|| library_gemm(&a, &shared, &gemm([0, n, 1]), &[2, m, n])).is_none());
     // Each product records how it ran (no read-back: see .ci/run on Mesa 25).
     let weight = up(&dev, &randn(&[n, k]));
-    linear(&a, &weight, None).unwrap();
+    linear(&a, &weight, None, None).unwrap();
     let expected = match matmul_path(&dev) {
         MatmulPath::TensorCores => DEFAULT_TENSOR_CORE_ROUTINE,
         MatmulPath::UnitF16 => "unit-f16",
         _ => "unit",
     };
     assert_eq!(last_product_route(), expected);
-    with_own_matmul(|| linear(&a, &weight, None)).unwrap();
+    with_own_matmul(|| linear(&a, &weight, None, None)).unwrap();
     assert_eq!(last_product_route(), "own");
 }
 
