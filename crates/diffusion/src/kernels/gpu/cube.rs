@@ -577,6 +577,110 @@ pub fn group_norm(
     }
 }
 
+/// Largest number of a channel's elements one cube of the split group norm takes.
+pub const GROUP_NORM_CHUNK: u32 = 4096;
+
+/// Where a cube of the split group norm works: its chunk is part `part` of channel `local` of group
+/// `bg` (batch · groups + group); `meta = [channels, spatial, groups, parts]`. Returns (bg, local, part,
+/// first element, length).
+#[cube]
+fn group_norm_chunk(meta: &[u32]) -> (u32, u32, u32, u32, u32) {
+    let channels = meta[0];
+    let spatial = meta[1];
+    let groups = meta[2];
+    let parts = meta[3];
+    let bg = CUBE_POS_Y;
+    let local = CUBE_POS_X / parts;
+    let part = CUBE_POS_X % parts;
+    let start = part * comptime!(GROUP_NORM_CHUNK);
+    let len = u32::min(comptime!(GROUP_NORM_CHUNK), spatial - start);
+    let base = (bg * (channels / groups) + local) * spatial + start;
+    (bg, local, part, base, len)
+}
+
+/// Elements of chunk `k` of a group (part `k % parts` of a channel of `spatial` elements).
+#[cube]
+fn chunk_count(k: u32, parts: u32, spatial: u32) -> f32 {
+    let start = (k % parts) * comptime!(GROUP_NORM_CHUNK);
+    f32::cast_from(u32::min(comptime!(GROUP_NORM_CHUNK), spatial - start))
+}
+
+/// First pass of the split group norm (large groups, where one cube per group would leave most of a
+/// card idle): each cube writes its chunk's mean and sum of squared deviations (two passes over a chunk
+/// that stays in cache) to `partials[2·(bg·chunks + chunk)]`. Grid: (chunks of a group, batch · groups).
+#[cube(launch_unchecked)]
+pub fn group_norm_partials(x: &[f32], partials: &mut [f32], meta: &[u32]) {
+    let units = comptime!(REDUCE_UNITS);
+    let (bg, _, _, base, len) = group_norm_chunk(meta);
+    let mean = segment_mean(x, base, len, units);
+    let mut sq = 0.0f32;
+    let mut i = UNIT_POS;
+    while i < len {
+        let d = x[(base + i) as usize] - mean;
+        sq += d * d;
+        i += units;
+    }
+    let m2 = cube_sum::<f32>(sq, units);
+    if UNIT_POS == 0 {
+        let at = 2 * (bg * CUBE_COUNT_X + CUBE_POS_X);
+        partials[at as usize] = mean;
+        partials[(at + 1) as usize] = m2;
+    }
+}
+
+/// Second pass of the split group norm: each cube combines its group's chunk statistics (the mean of
+/// the means weighted by their counts, then the deviations' sums plus each chunk's count times its
+/// squared offset from that mean: exact, and as stable as the two-pass form) and normalises its own
+/// chunk (+ optional SiLU). Same grid and `meta` as [`group_norm_partials`].
+#[cube(launch_unchecked)]
+pub fn group_norm_apply(
+    x: &[f32],
+    partials: &[f32],
+    weight: &[f32],
+    bias: &[f32],
+    out: &mut [f32],
+    meta: &[u32],
+    eps: f32,
+    #[comptime] silu: bool,
+) {
+    let units = comptime!(REDUCE_UNITS);
+    let (bg, local, _, base, len) = group_norm_chunk(meta);
+    let spatial = meta[1];
+    let groups = meta[2];
+    let parts = meta[3];
+    let chunks = CUBE_COUNT_X;
+    let per_group = meta[0] / groups;
+    let total = f32::cast_from(per_group * spatial);
+    let first = bg * chunks;
+    let mut weighted = 0.0f32;
+    let mut k = UNIT_POS;
+    while k < chunks {
+        weighted += chunk_count(k, parts, spatial) * partials[(2 * (first + k)) as usize];
+        k += units;
+    }
+    let mean = cube_sum::<f32>(weighted, units) / total;
+    let mut sq = 0.0f32;
+    k = UNIT_POS;
+    while k < chunks {
+        let d = partials[(2 * (first + k)) as usize] - mean;
+        sq += partials[(2 * (first + k) + 1) as usize] + chunk_count(k, parts, spatial) * d * d;
+        k += units;
+    }
+    let inv = 1.0f32 / f32::sqrt(cube_sum::<f32>(sq, units) / total + eps);
+    let c = (bg % groups) * per_group + local;
+    let scale = inv * weight[c as usize];
+    let shift = bias[c as usize];
+    let mut i = UNIT_POS;
+    while i < len {
+        let mut v = (x[(base + i) as usize] - mean) * scale + shift;
+        if comptime!(silu) {
+            v = v / (1.0f32 + f32::exp(-v));
+        }
+        out[(base + i) as usize] = v;
+        i += units;
+    }
+}
+
 /// Layer norm over the last dimension, one cube per row; `meta = [width, rows]`.
 #[cube(launch_unchecked)]
 pub fn layer_norm(

@@ -726,6 +726,46 @@ fn norms_match_cpu() {
         let got = group_norm(&up(&dev, &x), &up(&dev, &w), &up(&dev, &b), 4, 1e-5, silu).unwrap();
         check(&format!("group_norm silu={silu}"), &got, &want);
     }
+    // Groups large enough to split over cubes: channels of two chunks (the second short), of one
+    // partial chunk, and a 3D input; offset and scaled per channel so the combined statistics matter.
+    for (shape, groups) in [
+        (&[2usize, 8, 64, 70][..], 4),
+        (&[1, 32, 30, 30][..], 2),
+        (&[3, 6, 5000][..], 3),
+    ] {
+        let c = shape[1];
+        let offsets = Tensor::arange(0f32, c as f32, &Device::Cpu).unwrap();
+        let mut per_channel = vec![1usize; shape.len()];
+        per_channel[1] = c;
+        let x = randn(shape)
+            .broadcast_mul(
+                &offsets
+                    .affine(0.5, 1.0)
+                    .unwrap()
+                    .reshape(per_channel.clone())
+                    .unwrap(),
+            )
+            .unwrap()
+            .broadcast_add(
+                &offsets
+                    .affine(3.0, -4.0)
+                    .unwrap()
+                    .reshape(per_channel)
+                    .unwrap(),
+            )
+            .unwrap();
+        let (w, b) = (randn(&[c]), randn(&[c]));
+        let (gx, gw, gb) = (up(&dev, &x), up(&dev, &w), up(&dev, &b));
+        for (silu, split) in [(false, true), (true, true), (true, false)] {
+            let want = crate::kernels::group_norm(&x, &w, &b, groups, 1e-5, silu).unwrap();
+            let got = group_norm_on(&gx, &gw, &gb, groups, 1e-5, silu, split).unwrap();
+            check(
+                &format!("group_norm {shape:?} / {groups} silu={silu} split={split}"),
+                &got,
+                &want,
+            );
+        }
+    }
     let x = (randn(&[3, 4, 300]) + 1.0).unwrap();
     let (w, b) = (randn(&[300]), randn(&[300]));
     let want = crate::kernels::layer_norm(&x, &w, &b, 1e-5).unwrap();
