@@ -99,7 +99,7 @@ impl Storage for Tensor {
             Addend::None => Ok(out),
             Addend::Residual(r) => out + r,
             Addend::PerChannel(t) => {
-                let (n, c) = t.dims2()?;
+                let (n, c, _, _) = out.dims4()?;
                 out.broadcast_add(&t.reshape((n, c, 1, 1))?)
             }
         }

@@ -531,6 +531,41 @@ fn segment_inv_std(
     1.0f32 / f32::sqrt(cube_sum::<f32>(sq, units) / f32::cast_from(len) + eps)
 }
 
+/// A channel's normalisation: `(x − mean)·scale + shift`.
+#[derive(CubeType, Clone, Copy)]
+struct Affine {
+    mean: f32,
+    scale: f32,
+    shift: f32,
+}
+
+/// `out[start + i] = affine(x[start + i])` (then SiLU) for `i < len`, the cube's units striding; nothing
+/// is written unless `write` (a cube past the last group only takes part in the reductions).
+#[cube]
+#[allow(clippy::too_many_arguments)]
+fn normalise_span(
+    x: &[f32],
+    out: &mut [f32],
+    start: u32,
+    len: u32,
+    affine: Affine,
+    write: bool,
+    #[comptime] silu: bool,
+    #[comptime] units: u32,
+) {
+    let mut i = UNIT_POS;
+    while i < len {
+        let mut v = (x[(start + i) as usize] - affine.mean) * affine.scale + affine.shift;
+        if comptime!(silu) {
+            v = apply_unary(v, 0.0f32, 0.0f32, unary_op::SILU);
+        }
+        if write {
+            out[(start + i) as usize] = v;
+        }
+        i += units;
+    }
+}
+
 /// Group norm (+ optional SiLU) of x [batch, channels, spatial]: one cube per (batch, group), two passes
 /// (mean, then the mean squared deviation) for accuracy. `meta = [channels, spatial, groups, cubes]`.
 #[cube(launch_unchecked)]
@@ -562,18 +597,17 @@ pub fn group_norm(
         let c = group * per_group + local;
         let scale = inv * weight[c as usize];
         let shift = bias[c as usize];
-        let row = base + local * spatial;
-        let mut i = UNIT_POS;
-        while i < spatial {
-            let mut v = (x[(row + i) as usize] - mean) * scale + shift;
-            if comptime!(silu) {
-                v = v / (1.0f32 + f32::exp(-v));
-            }
-            if valid {
-                out[(row + i) as usize] = v;
-            }
-            i += units;
-        }
+        let affine = Affine { mean, scale, shift };
+        normalise_span(
+            x,
+            out,
+            base + local * spatial,
+            spatial,
+            affine,
+            valid,
+            silu,
+            units,
+        );
     }
 }
 
@@ -670,15 +704,8 @@ pub fn group_norm_apply(
     let c = (bg % groups) * per_group + local;
     let scale = inv * weight[c as usize];
     let shift = bias[c as usize];
-    let mut i = UNIT_POS;
-    while i < len {
-        let mut v = (x[(base + i) as usize] - mean) * scale + shift;
-        if comptime!(silu) {
-            v = v / (1.0f32 + f32::exp(-v));
-        }
-        out[(base + i) as usize] = v;
-        i += units;
-    }
+    let affine = Affine { mean, scale, shift };
+    normalise_span(x, out, base, len, affine, true, silu, units);
 }
 
 /// Layer norm over the last dimension, one cube per row; `meta = [width, rows]`.
