@@ -1419,10 +1419,12 @@ fn group_norm_on(
         || groups == 0
         || !dims[1].is_multiple_of(groups)
         || weight.elem_count() != dims[1]
+        || bias.elem_count() != dims[1]
     {
         candle_core::bail!(
-            "gpu group_norm: input {dims:?}, {groups} groups, weight {:?}",
-            weight.dims()
+            "gpu group_norm: input {dims:?}, {groups} groups, weight {:?}, bias {:?}",
+            weight.dims(),
+            bias.dims()
         );
     }
     let channels = dims[1];

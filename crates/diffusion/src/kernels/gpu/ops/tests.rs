@@ -726,6 +726,8 @@ fn norms_match_cpu() {
         let got = group_norm(&up(&dev, &x), &up(&dev, &w), &up(&dev, &b), 4, 1e-5, silu).unwrap();
         check(&format!("group_norm silu={silu}"), &got, &want);
     }
+    let short_bias = up(&dev, &randn(&[7]));
+    assert!(group_norm(&up(&dev, &x), &up(&dev, &w), &short_bias, 4, 1e-5, false).is_err());
     // Groups large enough to split over cubes: channels of two chunks (the second short), of one
     // partial chunk, and a 3D input; offset and scaled per channel so the combined statistics matter.
     for (shape, groups) in [
