@@ -87,6 +87,25 @@ pub enum Addend<'a, T> {
     PerChannel(&'a T),
 }
 
+impl<'a, T> Addend<'a, T> {
+    /// The added tensor, if any.
+    fn term(self) -> Option<&'a T> {
+        match self {
+            Addend::None => None,
+            Addend::Residual(t) | Addend::PerChannel(t) => Some(t),
+        }
+    }
+
+    /// The same kind of addend with `u` as its tensor (a backend's own tensor for the dispatched one).
+    fn with<U>(self, u: &U) -> Addend<'_, U> {
+        match self {
+            Addend::None => Addend::None,
+            Addend::Residual(_) => Addend::Residual(u),
+            Addend::PerChannel(_) => Addend::PerChannel(u),
+        }
+    }
+}
+
 impl<T> Clone for Addend<'_, T> {
     fn clone(&self) -> Self {
         *self
@@ -392,24 +411,13 @@ impl DeviceTensor {
         padding: usize,
         addend: Addend<'_, DeviceTensor>,
     ) -> Result<DeviceTensor> {
-        let (term, per_channel) = match addend {
-            Addend::None => {
-                return Ok(
-                    dispatch!(self, x => Storage::conv2d(x, weight, bias, stride, padding, Addend::None)),
-                )
-            }
-            Addend::Residual(t) => (t, false),
-            Addend::PerChannel(t) => (t, true),
+        let Some(term) = addend.term() else {
+            return Ok(
+                dispatch!(self, x => Storage::conv2d(x, weight, bias, stride, padding, Addend::None)),
+            );
         };
-        fn wrap<T>(t: &T, per_channel: bool) -> Addend<'_, T> {
-            if per_channel {
-                Addend::PerChannel(t)
-            } else {
-                Addend::Residual(t)
-            }
-        }
         Ok(dispatch2!(self, term, (x, t) =>
-            Storage::conv2d(x, weight, bias, stride, padding, wrap(t, per_channel))))
+            Storage::conv2d(x, weight, bias, stride, padding, addend.with(t))))
     }
 
     /// A linear layer `x·weightᵀ + bias` (candle-nn `Linear`).

@@ -615,10 +615,10 @@ pub fn group_norm(
 pub const GROUP_NORM_CHUNK: u32 = 4096;
 
 /// Where a cube of the split group norm works: its chunk is part `part` of channel `local` of group
-/// `bg` (batch · groups + group); `meta = [channels, spatial, groups, parts]`. Returns (bg, local, part,
-/// first element, length).
+/// `bg` (batch · groups + group); `meta = [channels, spatial, groups, parts]`. Returns (bg, local, first
+/// element, length).
 #[cube]
-fn group_norm_chunk(meta: &[u32]) -> (u32, u32, u32, u32, u32) {
+fn group_norm_chunk(meta: &[u32]) -> (u32, u32, u32, u32) {
     let channels = meta[0];
     let spatial = meta[1];
     let groups = meta[2];
@@ -629,7 +629,7 @@ fn group_norm_chunk(meta: &[u32]) -> (u32, u32, u32, u32, u32) {
     let start = part * comptime!(GROUP_NORM_CHUNK);
     let len = u32::min(comptime!(GROUP_NORM_CHUNK), spatial - start);
     let base = (bg * (channels / groups) + local) * spatial + start;
-    (bg, local, part, base, len)
+    (bg, local, base, len)
 }
 
 /// Elements of chunk `k` of a group (part `k % parts` of a channel of `spatial` elements).
@@ -645,7 +645,7 @@ fn chunk_count(k: u32, parts: u32, spatial: u32) -> f32 {
 #[cube(launch_unchecked)]
 pub fn group_norm_partials(x: &[f32], partials: &mut [f32], meta: &[u32]) {
     let units = comptime!(REDUCE_UNITS);
-    let (bg, _, _, base, len) = group_norm_chunk(meta);
+    let (bg, _, base, len) = group_norm_chunk(meta);
     let mean = segment_mean(x, base, len, units);
     let mut sq = 0.0f32;
     let mut i = UNIT_POS;
@@ -678,7 +678,7 @@ pub fn group_norm_apply(
     #[comptime] silu: bool,
 ) {
     let units = comptime!(REDUCE_UNITS);
-    let (bg, local, _, base, len) = group_norm_chunk(meta);
+    let (bg, local, base, len) = group_norm_chunk(meta);
     let spatial = meta[1];
     let groups = meta[2];
     let parts = meta[3];
