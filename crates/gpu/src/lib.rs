@@ -72,14 +72,20 @@ pub enum CompilerChoice {
 impl CompilerChoice {
     /// The choice in `VCEDIT_GPU_COMPILER` (`auto` when unset).
     pub fn from_env() -> Result<CompilerChoice, GpuError> {
-        match std::env::var(COMPILER_ENV) {
-            Ok(v) => match v.trim().to_ascii_lowercase().as_str() {
-                "" | "auto" => Ok(Self::Auto),
-                "wgsl" => Ok(Self::Wgsl),
-                "spirv" => Ok(Self::Spirv),
-                other => Err(GpuError::BadCompiler(other.to_string())),
-            },
-            Err(_) => Ok(Self::Auto),
+        std::env::var(COMPILER_ENV).map_or(Ok(Self::Auto), |v| v.parse())
+    }
+}
+
+impl FromStr for CompilerChoice {
+    type Err = GpuError;
+
+    fn from_str(s: &str) -> Result<Self, GpuError> {
+        match s.trim().to_ascii_lowercase().as_str() {
+            "" | "auto" => Ok(Self::Auto),
+            "wgsl" => Ok(Self::Wgsl),
+            "spirv" if cfg!(feature = "spirv") => Ok(Self::Spirv),
+            "spirv" => Err(GpuError::SpirvNotBuilt),
+            other => Err(GpuError::BadCompiler(other.to_string())),
         }
     }
 }
@@ -141,6 +147,8 @@ pub enum GpuError {
     BadChoice(String),
     #[error("unknown shader compiler '{0}' in VCEDIT_GPU_COMPILER (expected auto, wgsl or spirv)")]
     BadCompiler(String),
+    #[error("{COMPILER_ENV}=spirv: this build has no SPIR-V compiler (built without vcedit-gpu's `spirv` feature)")]
+    SpirvNotBuilt,
 }
 
 /// Hardware limits the kernels size themselves by.
@@ -354,7 +362,11 @@ pub fn open_for(choice: DeviceChoice, workload: Workload) -> Result<Option<GpuCo
 }
 
 /// The one decision of the shader compiler: whether the device gets WGSL where cubecl would take SPIR-V.
+/// A build without the `spirv` feature has WGSL only.
 fn forces_wgsl(compiler: CompilerChoice, workload: Workload, a: &AdapterEntry) -> bool {
+    if !cfg!(feature = "spirv") {
+        return true;
+    }
     match compiler {
         CompilerChoice::Wgsl => true,
         CompilerChoice::Spirv => false,
@@ -563,7 +575,29 @@ mod tests {
         }
     }
 
+    /// `cargo test -p vcedit-gpu --no-default-features`.
     #[test]
+    #[cfg(not(feature = "spirv"))]
+    fn without_spirv_every_adapter_gets_wgsl() {
+        let card = AdapterEntry {
+            name: "NVIDIA H200".into(),
+            backend: WgpuBackend::Vulkan,
+            software: false,
+            driver_info: String::new(),
+            explicit_workgroup_layout: true,
+            kind: WgpuDeviceKind::Cpu,
+        };
+        for compiler in [CompilerChoice::Auto, CompilerChoice::Spirv] {
+            assert!(forces_wgsl(compiler, Workload::Networks, &card));
+        }
+        assert!(matches!(
+            "spirv".parse::<CompilerChoice>(),
+            Err(GpuError::SpirvNotBuilt)
+        ));
+    }
+
+    #[test]
+    #[cfg(feature = "spirv")]
     fn the_compiler_follows_workload_adapter_and_override() {
         let entry = |name: &str, explicit_workgroup_layout: bool| AdapterEntry {
             name: name.into(),

@@ -984,7 +984,6 @@ fn library_gemm_on(
 ) -> Option<GpuTensor> {
     use cubecl::ir::{ElemType, FloatKind};
     use cubek_matmul::definition::{MatmulElems, MatmulGlobalElems};
-    use cubek_matmul::multi_level::Strategy as Routine;
     use cubek_matmul::strategy::Strategy;
     use cubek_std::InputBinding;
     let half = path != MatmulPath::Unit;
@@ -1053,8 +1052,30 @@ fn library_gemm_on(
         }
         return launch(tensor_core_strategy(name), &mut dtypes).then_some(out);
     }
-    let unit = Routine::SimpleUnit(Default::default());
-    launch(Strategy::MultiLevel(unit), &mut dtypes).then_some(out)
+    launch(Strategy::MultiLevel(unit_routine()), &mut dtypes).then_some(out)
+}
+
+/// The library's routine for products without tensor cores: `VCEDIT_GPU_UNIT_ROUTINE` = `simple_max`
+/// (the default: one stage, the largest unit tile the shape allows), `simple_min`, `double_max` or
+/// `double_min` (double-buffered stages) — the four burn's autotune chooses among.
+fn unit_routine() -> cubek_matmul::multi_level::Strategy {
+    use cubek_matmul::multi_level::routines::batch::{double_unit, simple_unit};
+    use cubek_matmul::multi_level::routines::TileSizeSelection as T;
+    use cubek_matmul::multi_level::Strategy as R;
+    use cubek_matmul::routine::BlueprintStrategy::Inferred;
+    static FROM_ENV: std::sync::OnceLock<String> = std::sync::OnceLock::new();
+    let name =
+        FROM_ENV.get_or_init(|| std::env::var("VCEDIT_GPU_UNIT_ROUTINE").unwrap_or_default());
+    let tile_size = if name.ends_with("_min") {
+        T::MinTileSize
+    } else {
+        T::MaxTileSize
+    };
+    if name.starts_with("double") {
+        R::DoubleUnit(Inferred(double_unit::DoubleUnitSelectionArgs { tile_size }))
+    } else {
+        R::SimpleUnit(Inferred(simple_unit::SimpleUnitSelectionArgs { tile_size }))
+    }
 }
 
 /// Batched matrix product a [.., m, k] × b [.., k, n] → [.., m, n]; a rank-2 `b` is shared by every batch.
