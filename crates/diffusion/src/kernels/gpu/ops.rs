@@ -1063,9 +1063,22 @@ fn unit_routine() -> cubek_matmul::multi_level::Strategy {
     use cubek_matmul::multi_level::routines::TileSizeSelection as T;
     use cubek_matmul::multi_level::Strategy as R;
     use cubek_matmul::routine::BlueprintStrategy::Inferred;
-    static FROM_ENV: std::sync::OnceLock<String> = std::sync::OnceLock::new();
-    let name =
-        FROM_ENV.get_or_init(|| std::env::var("VCEDIT_GPU_UNIT_ROUTINE").unwrap_or_default());
+    const NAMES: [&str; 4] = ["simple_max", "simple_min", "double_max", "double_min"];
+    static FROM_ENV: std::sync::OnceLock<&str> = std::sync::OnceLock::new();
+    // An unknown name is said once on stderr (as `VCEDIT_GPU_MATMUL_TILING` does) and not used.
+    let name = FROM_ENV.get_or_init(|| {
+        let asked = std::env::var("VCEDIT_GPU_UNIT_ROUTINE").unwrap_or_default();
+        let asked = asked.trim();
+        NAMES.into_iter().find(|n| *n == asked).unwrap_or_else(|| {
+            if !asked.is_empty() {
+                eprintln!(
+                    "VCEDIT_GPU_UNIT_ROUTINE ignored: unknown routine '{asked}' (expected one of {})",
+                    NAMES.join(", ")
+                );
+            }
+            NAMES[0]
+        })
+    });
     let tile_size = if name.ends_with("_min") {
         T::MinTileSize
     } else {
