@@ -409,6 +409,16 @@ mod tests {
     use diffusion::vae::AutoencoderKLConfig;
 
     #[test]
+    fn the_scaling_factor_reads_back_bit_exactly() {
+        // `--init` takes the codec's scaling factor from its config.json; serde_json's default float
+        // parser is one ulp off on values like this one (seen in CI), hence `float_roundtrip`.
+        let scaling = 0.477_375_679_563_579_07;
+        let text = TrainConfig::tiny().vae_config_json(scaling).to_string();
+        let json: serde_json::Value = serde_json::from_str(&text).unwrap();
+        assert_eq!(json["scaling_factor"].as_f64(), Some(scaling));
+    }
+
+    #[test]
     fn configs_validate_and_parse_with_the_model_code() {
         for c in [TrainConfig::demo(), TrainConfig::tiny()] {
             c.validate().unwrap();
