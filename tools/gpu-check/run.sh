@@ -202,9 +202,11 @@ step matmul-routines 150 "$V" bench matmul --precisions f16 --shapes "$SHAPES" -
 if [ "$MODE" = device ]; then TILINGS=grid; TSHAPES=4096x320x1280,24576x320x1280; else TILINGS="default;planes=4,k=2"; TSHAPES=512x64x128; fi
 step matmul-tilings 200 "$V" bench matmul --precisions f16 --shapes "$TSHAPES" --tilings "$TILINGS" --repeat "$REPEAT" --runs 2
 
-# ---- attention at SD 1.5's shapes (one view's six branches × 8 heads): our flash kernel against products
-# around a softmax (the default for heads wider than 8; tensor cores where the card has them); PyTorch SDPA
-if [ "$MODE" = device ]; then ASHAPES=48x4096x4096x40,48x1024x1024x80,48x4096x77x40; AREPEAT=5; else ASHAPES=8x256x256x40,8x256x77x40; AREPEAT=1; fi
+# ---- attention at SD 1.5's shapes (one view's six branches × 8 heads): our flash kernel, products around a
+# softmax (the default for heads wider than 8 on tensor cores) and the library's flash attention (cubek's
+# cooperative-matrix tiles on tensor cores, else its unit routine); PyTorch SDPA. Locally 8-wide heads:
+# lavapipe compiles the library's kernel for 40-wide heads for minutes.
+if [ "$MODE" = device ]; then ASHAPES=48x4096x4096x40,48x1024x1024x80,48x4096x77x40; AREPEAT=5; else ASHAPES=8x256x256x8,8x256x77x8; AREPEAT=1; fi
 step attention 90 "$V" bench attention --shapes "$ASHAPES" --repeat "$AREPEAT" --runs 3
 if have_torch; then step attention-torch 60 python3 "$TB" attention --shapes "$ASHAPES" --repeat "$AREPEAT"; fi
 
@@ -225,6 +227,8 @@ step unet 180 "$V" bench unet --model "$MODEL" --device gpu --size "$LAT" --batc
 # The whole forward with the flash kernel for every head (the default before products): the A/B for the
 # attention path.
 [ "$MODE" = device ] && step unet-flash 120 env VCEDIT_GPU_ATTENTION=flash "$V" bench unet --model "$MODEL" --device gpu --size "$LAT" --batches 6 --hooks none --runs "$RUNS"
+# ... and with the library's flash attention for every head (the default on GPUs without tensor cores).
+[ "$MODE" = device ] && step unet-library 120 env VCEDIT_GPU_ATTENTION=library "$V" bench unet --model "$MODEL" --device gpu --size "$LAT" --batches 6 --hooks none --runs "$RUNS"
 # The whole forward on the tensor-core routine that was fastest at 4096x320x1280 in `matmul-routines`
 # (the default included, as the A/B baseline of the same process kind): does the gain carry to the network?
 BEST_ROUTINE=$(python3 - "$WORK/matmul-routines.out" <<'PY' 2>/dev/null

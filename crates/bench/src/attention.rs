@@ -1,8 +1,9 @@
-//! GPU attention at SD 1.5's shapes, on both paths: our flash kernel (scalar f32, no score matrix) and
+//! GPU attention at SD 1.5's shapes, on each path: our flash kernel (scalar f32, no score matrix),
 //! products through the matrix-product path around a row softmax (tensor cores where the device has
-//! them; the default, see `ops::attention_path`).
+//! them), and the library's flash attention (see `ops::attention_path`; where the library declines a
+//! problem, its line times the fallback).
 //!
-//! `vcedit bench attention [--runs 3] [--repeat 5] [--device gpu] [--paths flash,products]
+//! `vcedit bench attention [--runs 3] [--repeat 5] [--device gpu] [--paths flash,products,library]
 //! [--shapes 48x4096x4096x40,48x1024x1024x80,48x4096x77x40]`
 //!
 //! A shape is `ENTRIESxQUERIESxKEYSxHEAD_DIM`, entries being batch × heads: the defaults are one 512²
@@ -37,8 +38,9 @@ fn parse_path(s: &str) -> Result<AttentionPath> {
     match s.trim() {
         "flash" => Ok(AttentionPath::Flash),
         "products" => Ok(AttentionPath::Products),
+        "library" => Ok(AttentionPath::Library),
         other => Err(BenchError::new(format!(
-            "--paths: unknown path '{other}' (expected flash or products)"
+            "--paths: unknown path '{other}' (expected flash, products or library)"
         ))),
     }
 }
@@ -48,7 +50,7 @@ pub fn main(args: &[String]) -> Result<()> {
     let repeat: usize = arg_parsed(args, "--repeat", 5usize)?.max(1);
     let context = required_gpu(args, "attention")?;
     let paths = arg_value(args, "--paths")
-        .unwrap_or_else(|| "flash,products".into())
+        .unwrap_or_else(|| "flash,products,library".into())
         .split(',')
         .map(parse_path)
         .collect::<Result<Vec<_>>>()?;
@@ -141,6 +143,7 @@ mod tests {
                 .contains("is not ENTRIESxQUERIESxKEYSxHEAD_DIM"));
         }
         assert_eq!(parse_path("flash").unwrap(), AttentionPath::Flash);
+        assert_eq!(parse_path("library").unwrap(), AttentionPath::Library);
         assert!(parse_path("cmma")
             .unwrap_err()
             .to_string()

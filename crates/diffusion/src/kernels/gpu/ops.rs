@@ -1676,6 +1676,11 @@ pub enum AttentionPath {
     /// Two products through the matrix-product path (tensor cores where the device has them) around a
     /// row softmax, the scores held in chunks of whole heads of at most [`transient_cap`] bytes.
     Products,
+    /// The library's flash attention (`cubek-attention`, what burn runs): its unit routine (one query
+    /// row per unit, tiles of the widest vector) without tensor cores, cooperative-matrix tiles with
+    /// them. Where it declines a problem (f16 activations, a scale other than 1/√d, a head width its
+    /// tiles do not divide) the attention takes the flash kernel or the products as by default.
+    Library,
 }
 
 impl std::fmt::Display for AttentionPath {
@@ -1683,6 +1688,7 @@ impl std::fmt::Display for AttentionPath {
         f.write_str(match self {
             Self::Flash => "flash",
             Self::Products => "products",
+            Self::Library => "library",
         })
     }
 }
@@ -1700,20 +1706,25 @@ pub fn with_attention_path<T>(path: AttentionPath, f: impl FnOnce() -> T) -> T {
     result
 }
 
-/// Heads at most this wide take the flash kernel by default: a score costs the kernel `d` multiply-adds,
-/// against a fixed write, softmax and read of it as products. `vcedit bench attention` on lavapipe,
-/// 2026-11-26, 8 heads of 1024 queries and keys: d = 8 flash 171 ms / products 359 ms; d = 16 698 / 394;
-/// d = 32 1365 / 440. At SD 1.5's d = 40: 16 heads of 1024², 3.4 s / 0.96 s; 8 heads of 4096², 18.8 s /
-/// 3.6 s.
+/// Heads at most this wide take the flash kernel where the library's attention declines them: a score
+/// costs the kernel `d` multiply-adds, against a fixed write, softmax and read of it as products.
+/// `vcedit bench attention` on lavapipe, 2026-11-26, 8 heads of 1024 queries and keys: d = 8 flash
+/// 171 ms / products 359 ms; d = 16 698 / 394; d = 32 1365 / 440. At SD 1.5's d = 40: 16 heads of
+/// 1024², 3.4 s / 0.96 s; 8 heads of 4096², 18.8 s / 3.6 s.
 const FLASH_DEFAULT_MAX_HEAD_DIM: usize = 8;
 
-/// The attention path of heads `d` wide (values `dv`): the flash kernel for narrow heads (the demo
-/// model's first level), products above [`FLASH_DEFAULT_MAX_HEAD_DIM`], which is every real model's
-/// heads (SD 1.5: 40–160; SD 2 and SDXL: 64); on a card with tensor cores the products run on them, the
-/// flash kernel's arithmetic is scalar. `VCEDIT_GPU_ATTENTION=flash|products` forces one (A/B switch for
-/// benches; `vcedit bench attention` times both at SD 1.5's shapes); heads wider than the flash kernel
-/// can take always run as products.
-pub fn attention_path(d: usize, dv: usize) -> AttentionPath {
+/// The attention path of heads `d` wide (values `dv`) on `device`, where none is forced: the library's
+/// flash attention, except for heads wider than [`FLASH_DEFAULT_MAX_HEAD_DIM`] on tensor cores, where
+/// the products run on them (until `tools/gpu-check` has timed the library's cooperative-matrix tiles
+/// against them: `attention`, `unet-library`). Measured on lavapipe (Mesa 25.0.7, WGSL, 2026-11-29,
+/// `vcedit bench attention`, 48 entries, the small UNet's shapes): the library took 14.6 ms at 256
+/// queries × 256 keys × d 8 against the flash kernel's 82.6 and the products' 245; 2.2 ms at 64² × 16
+/// against 18.0 / 31.7; 2.0 ms at 16² × 32 against 12.7 / 14.0. Its kernel is compiled per shape, and
+/// slowly by lavapipe as heads widen (first call 11 s at d 8, 37 s at d 16, 169 s at d 32), once per
+/// machine: Mesa keeps compiled pipelines in its shader cache.
+/// `VCEDIT_GPU_ATTENTION=flash|products|library` forces one (A/B switch for benches; `vcedit bench
+/// attention` times all three); heads wider than the flash kernel can take run as products instead.
+pub fn attention_path(device: &super::GpuDevice, d: usize, dv: usize) -> AttentionPath {
     static FORCED: std::sync::OnceLock<Option<AttentionPath>> = std::sync::OnceLock::new();
     let forced = ATTENTION_OVERRIDE.get().or(*FORCED.get_or_init(|| {
         match std::env::var("VCEDIT_GPU_ATTENTION")
@@ -1724,22 +1735,106 @@ pub fn attention_path(d: usize, dv: usize) -> AttentionPath {
         {
             "flash" => Some(AttentionPath::Flash),
             "products" => Some(AttentionPath::Products),
+            "library" => Some(AttentionPath::Library),
             _ => None,
         }
     }));
     let widest = d.max(dv);
     match forced {
-        _ if widest > FLASH_MAX_HEAD_DIM => AttentionPath::Products,
+        Some(AttentionPath::Flash) if widest > FLASH_MAX_HEAD_DIM => AttentionPath::Products,
         Some(path) => path,
-        None if widest <= FLASH_DEFAULT_MAX_HEAD_DIM => AttentionPath::Flash,
-        None => AttentionPath::Products,
+        None if widest > FLASH_DEFAULT_MAX_HEAD_DIM
+            && matmul_path(device) == MatmulPath::TensorCores =>
+        {
+            AttentionPath::Products
+        }
+        None => AttentionPath::Library,
     }
+}
+
+/// Where the library declines a problem: the flash kernel for narrow heads, else products.
+fn fallback_attention_path(widest: usize) -> AttentionPath {
+    if widest <= FLASH_DEFAULT_MAX_HEAD_DIM {
+        AttentionPath::Flash
+    } else {
+        AttentionPath::Products
+    }
+}
+
+/// The library's flash attention of q [.., q_len, d], k [.., k_len, d], v [.., k_len, dv] (f32, the
+/// scale 1/√d, which the library applies itself), or `None` where it declines the problem.
+fn library_attention(q: &GpuTensor, k: &GpuTensor, v: &GpuTensor, scale: f64) -> Option<GpuTensor> {
+    use cubecl::ir::{ElemType, FloatKind};
+    use cubek_attention::forward::definition::{
+        AccumulatorPrecision, AttentionGlobalTypes, AttentionOptions,
+    };
+    use cubek_attention::forward::launch::{launch_ref, BlueprintStrategy, Strategy};
+    use cubek_attention::forward::routines::blackbox_accelerated::BlackboxAcceleratedStrategy;
+    let (batch, q_len, k_len, d, dv) = attention_dims(q, k, v).ok()?;
+    let library_scale = 1.0 / (d as f64).sqrt();
+    if q.is_f16() || k.is_f16() || v.is_f16() || q_len == 0 || k_len == 0 {
+        return None;
+    }
+    if (scale - library_scale).abs() > 1e-6 * library_scale {
+        return None;
+    }
+    let f32_type = ElemType::Float(FloatKind::F32);
+    let dtypes = AttentionGlobalTypes::from_single_float_dtype(
+        f32_type,
+        AttentionGlobalTypes::mask_dtype(q.client()),
+    );
+    let options = AttentionOptions {
+        causal: false,
+        accumulator_precision: AccumulatorPrecision::Strict(f32_type),
+    };
+    // The library's layout is [batch, heads, seq, dim]: every (batch, head) entry as one batch.
+    let bind = |t: &GpuTensor, rows: usize, width: usize| {
+        t.binding(
+            &[batch, 1, rows, width],
+            &[rows * width, rows * width, width, 1],
+        )
+    };
+    let mut shape = q.dims().to_vec();
+    *shape.last_mut().expect("rank >= 2") = dv;
+    let out = q.empty_like_device(shape);
+    let launch = |strategy: Strategy| {
+        launch_ref(
+            strategy,
+            q.client(),
+            bind(q, q_len, d),
+            bind(k, k_len, d),
+            bind(v, k_len, dv),
+            None,
+            bind(&out, q_len, dv),
+            &dtypes,
+            options.clone(),
+        )
+        .is_ok()
+    };
+    // On tensor cores the cooperative-matrix tiles (burn's middle candidate: four planes, one tile of
+    // queries and keys each), else or where those decline, the unit routine.
+    let tensor_cores = matmul_path(q.device()) == MatmulPath::TensorCores
+        && launch(Strategy::BlackboxAccelerated(BlueprintStrategy::Inferred(
+            BlackboxAcceleratedStrategy {
+                num_planes: 4,
+                seq_q: 1,
+                seq_kv: 1,
+            },
+        )));
+    (tensor_cores || launch(Strategy::Unit(BlueprintStrategy::Inferred(())))).then_some(out)
 }
 
 /// `softmax(q kᵀ · scale) v` without returning the probabilities, on the [`attention_path`].
 pub fn attention(q: &GpuTensor, k: &GpuTensor, v: &GpuTensor, scale: f64) -> Result<GpuTensor> {
     let (batch, q_len, k_len, d, dv) = attention_dims(q, k, v)?;
-    if attention_path(d, dv) == AttentionPath::Products || k_len == 0 {
+    let mut path = attention_path(q.device(), d, dv);
+    if path == AttentionPath::Library {
+        if let Some(out) = library_attention(q, k, v, scale) {
+            return Ok(out);
+        }
+        path = fallback_attention_path(d.max(dv));
+    }
+    if path == AttentionPath::Products || k_len == 0 {
         return attention_in_chunks(q, k, v, scale, transient_cap(q));
     }
     let mut shape = q.dims().to_vec();

@@ -813,13 +813,33 @@ fn attention_matches_cpu() {
     let scale = 1.0 / 8f64.sqrt();
     let want = crate::kernels::attention(&q, &k, &v, scale).unwrap();
     let (gq, gk, gv) = (up(&dev, &q), up(&dev, &k), up(&dev, &v));
-    for path in [AttentionPath::Flash, AttentionPath::Products] {
+    for path in [
+        AttentionPath::Flash,
+        AttentionPath::Products,
+        AttentionPath::Library,
+    ] {
         check(
             &format!("attention ({path})"),
             &with_attention_path(path, || attention(&gq, &gk, &gv, scale)).unwrap(),
             &want,
         );
     }
+    // The library takes this problem itself (were it to decline, the path above would silently test
+    // the fallback), and declines a scale other than its own 1/√d; the attention then falls back.
+    check(
+        "library attention",
+        &library_attention(&gq, &gk, &gv, scale).expect("the library takes f32 attention"),
+        &want,
+    );
+    assert!(library_attention(&gq, &gk, &gv, 0.5 * scale).is_none());
+    check(
+        "attention (library path, another scale)",
+        &with_attention_path(AttentionPath::Library, || {
+            attention(&gq, &gk, &gv, 0.5 * scale)
+        })
+        .unwrap(),
+        &crate::kernels::attention(&q, &k, &v, 0.5 * scale).unwrap(),
+    );
     // Scores in chunks: one (batch, head) entry per chunk, then three entries of four in one, one in another.
     let entry = 37 * 45 * 4;
     for cap in [1, entry, 3 * entry] {
@@ -836,10 +856,18 @@ fn attention_matches_cpu() {
             .unwrap();
     check("attention probabilities", &probs, &want_probs);
     // The default path by head width, and a forced path that the flash kernel cannot take.
-    assert_eq!(attention_path(8, 8), AttentionPath::Flash);
-    assert_eq!(attention_path(40, 40), AttentionPath::Products);
+    assert_eq!(attention_path(&dev, 8, 8), AttentionPath::Library);
+    let wide = if matmul_path(&dev) == MatmulPath::TensorCores {
+        AttentionPath::Products
+    } else {
+        AttentionPath::Library
+    };
+    assert_eq!(attention_path(&dev, 40, 40), wide);
+    assert_eq!(fallback_attention_path(8), AttentionPath::Flash);
+    assert_eq!(fallback_attention_path(40), AttentionPath::Products);
     assert_eq!(
         with_attention_path(AttentionPath::Flash, || attention_path(
+            &dev,
             FLASH_MAX_HEAD_DIM + 1,
             8
         )),
@@ -848,7 +876,11 @@ fn attention_matches_cpu() {
     // Few keys (one partial tile) and a single query.
     let (q1, k1, v1) = (randn(&[1, 1, 8]), randn(&[1, 3, 8]), randn(&[1, 3, 8]));
     let want = crate::kernels::attention(&q1, &k1, &v1, scale).unwrap();
-    for path in [AttentionPath::Flash, AttentionPath::Products] {
+    for path in [
+        AttentionPath::Flash,
+        AttentionPath::Products,
+        AttentionPath::Library,
+    ] {
         check(
             &format!("attention ({path}), 3 keys"),
             &with_attention_path(path, || {
