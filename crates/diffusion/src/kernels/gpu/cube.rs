@@ -708,7 +708,8 @@ pub fn group_norm_apply(
     normalise_span(x, out, base, len, affine, true, silu, units);
 }
 
-/// Layer norm over the last dimension, one cube per row; `meta = [width, rows]`.
+/// Layer norm over the last dimension, one cube of `units` units (a power of two) per row;
+/// `meta = [width, rows]`.
 #[cube(launch_unchecked)]
 pub fn layer_norm(
     x: &[f32],
@@ -717,8 +718,8 @@ pub fn layer_norm(
     out: &mut [f32],
     meta: &[u32],
     eps: f32,
+    #[comptime] units: u32,
 ) {
-    let units = comptime!(REDUCE_UNITS);
     let width = meta[0];
     let valid = cube_index() < meta[1];
     let base = u32::min(cube_index(), meta[1] - 1) * width;

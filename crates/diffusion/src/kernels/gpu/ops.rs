@@ -1547,21 +1547,30 @@ pub fn layer_norm(
     let rows = x.elem_count() / width;
     let meta = Meta::new(x, &[width, rows])?;
     let out = x.empty_like_device(x.dims().to_vec());
+    let units = row_units(width);
     // SAFETY: one cube per row.
     unsafe {
         cube::layer_norm::launch_unchecked(
             x.client(),
             grid(rows),
-            CubeDim::new_1d(REDUCE_UNITS),
+            CubeDim::new_1d(units),
             x.arg(),
             weight.arg(),
             bias.arg(),
             out.arg(),
             meta.arg(),
             eps as f32,
+            units,
         )
     };
     Ok(out)
+}
+
+/// Units of a cube that reduces one row `width` wide: at least four elements each, from 32 (a warp) to
+/// [`REDUCE_UNITS`]. Narrow rows on 128 units left most of them idle through every level of the
+/// reduction tree: the small UNet's LayerNorms (rows 64–256 wide) took 4–6 ms a launch on lavapipe.
+fn row_units(width: usize) -> u32 {
+    (width.next_power_of_two() / 4).clamp(32, REDUCE_UNITS as usize) as u32
 }
 
 /// Softmax over the last dimension.
@@ -1716,12 +1725,14 @@ const FLASH_DEFAULT_MAX_HEAD_DIM: usize = 8;
 /// The attention path of heads `d` wide (values `dv`) on `device`, where none is forced: the library's
 /// flash attention, except for heads wider than [`FLASH_DEFAULT_MAX_HEAD_DIM`] on tensor cores, where
 /// the products run on them (until `tools/gpu-check` has timed the library's cooperative-matrix tiles
-/// against them: `attention`, `unet-library`). Measured on lavapipe (Mesa 25.0.7, WGSL, 2026-11-29,
+/// against them: `attention`, `unet-library`), and on software adapters (below). Measured on lavapipe (Mesa 25.0.7, WGSL, 2026-11-29,
 /// `vcedit bench attention`, 48 entries, the small UNet's shapes): the library took 14.6 ms at 256
 /// queries × 256 keys × d 8 against the flash kernel's 82.6 and the products' 245; 2.2 ms at 64² × 16
 /// against 18.0 / 31.7; 2.0 ms at 16² × 32 against 12.7 / 14.0. Its kernel is compiled per shape, and
-/// slowly by lavapipe as heads widen (first call 11 s at d 8, 37 s at d 16, 169 s at d 32), once per
-/// machine: Mesa keeps compiled pipelines in its shader cache.
+/// slowly by lavapipe as heads widen (first call 11 s at d 8, 37 s at d 16, 169 s at d 32; Mesa's
+/// shader cache keeps them, but CI machines start cold: the demo model's 16- and 32-wide heads took
+/// `vcedit demo --device gpu` in tools/gpu-check's local run from 71 s to 118 s), so software adapters,
+/// which only tests and CI use, keep the products for wider heads.
 /// `VCEDIT_GPU_ATTENTION=flash|products|library` forces one (A/B switch for benches; `vcedit bench
 /// attention` times all three); heads wider than the flash kernel can take run as products instead.
 pub fn attention_path(device: &super::GpuDevice, d: usize, dv: usize) -> AttentionPath {
@@ -1744,7 +1755,7 @@ pub fn attention_path(device: &super::GpuDevice, d: usize, dv: usize) -> Attenti
         Some(AttentionPath::Flash) if widest > FLASH_MAX_HEAD_DIM => AttentionPath::Products,
         Some(path) => path,
         None if widest > FLASH_DEFAULT_MAX_HEAD_DIM
-            && matmul_path(device) == MatmulPath::TensorCores =>
+            && (matmul_path(device) == MatmulPath::TensorCores || device.context().software) =>
         {
             AttentionPath::Products
         }

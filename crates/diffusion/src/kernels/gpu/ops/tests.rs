@@ -768,13 +768,20 @@ fn norms_match_cpu() {
             );
         }
     }
-    let x = (randn(&[3, 4, 300]) + 1.0).unwrap();
-    let (w, b) = (randn(&[300]), randn(&[300]));
-    let want = crate::kernels::layer_norm(&x, &w, &b, 1e-5).unwrap();
-    check(
-        "layer_norm",
-        &layer_norm(&up(&dev, &x), &up(&dev, &w), &up(&dev, &b), 1e-5).unwrap(),
-        &want,
+    // Rows on every cube width: 32 units (5, 64 wide), 64 (256), 128 (300, 2000).
+    for width in [5, 64, 256, 300, 2000] {
+        let x = (randn(&[3, 4, width]) + 1.0).unwrap();
+        let (w, b) = (randn(&[width]), randn(&[width]));
+        let want = crate::kernels::layer_norm(&x, &w, &b, 1e-5).unwrap();
+        check(
+            &format!("layer_norm {width} wide"),
+            &layer_norm(&up(&dev, &x), &up(&dev, &w), &up(&dev, &b), 1e-5).unwrap(),
+            &want,
+        );
+    }
+    assert_eq!(
+        [5, 64, 128, 256, 300, 2000].map(row_units),
+        [32, 32, 32, 64, 128, 128]
     );
 }
 
@@ -857,7 +864,7 @@ fn attention_matches_cpu() {
     check("attention probabilities", &probs, &want_probs);
     // The default path by head width, and a forced path that the flash kernel cannot take.
     assert_eq!(attention_path(&dev, 8, 8), AttentionPath::Library);
-    let wide = if matmul_path(&dev) == MatmulPath::TensorCores {
+    let wide = if dev.context().software || matmul_path(&dev) == MatmulPath::TensorCores {
         AttentionPath::Products
     } else {
         AttentionPath::Library
