@@ -1725,8 +1725,9 @@ const FLASH_DEFAULT_MAX_HEAD_DIM: usize = 8;
 /// The attention path of heads `d` wide (values `dv`) on `device`, where none is forced: the library's
 /// flash attention, except for heads wider than [`FLASH_DEFAULT_MAX_HEAD_DIM`] on tensor cores, where
 /// the products run on them (until `tools/gpu-check` has timed the library's cooperative-matrix tiles
-/// against them: `attention`, `unet-library`), and on software adapters (below). Measured on lavapipe (Mesa 25.0.7, WGSL, 2026-11-29,
-/// `vcedit bench attention`, 48 entries, the small UNet's shapes): the library took 14.6 ms at 256
+/// against them: `attention`, `unet-library`), and on software adapters (below). Measured on lavapipe
+/// (Mesa 25.0.7, WGSL, 2026-11-29, `vcedit bench attention`, 48 entries, the small UNet's shapes):
+/// the library took 14.6 ms at 256
 /// queries × 256 keys × d 8 against the flash kernel's 82.6 and the products' 245; 2.2 ms at 64² × 16
 /// against 18.0 / 31.7; 2.0 ms at 16² × 32 against 12.7 / 14.0. Its kernel is compiled per shape, and
 /// slowly by lavapipe as heads widen (first call 11 s at d 8, 37 s at d 16, 169 s at d 32; Mesa's
