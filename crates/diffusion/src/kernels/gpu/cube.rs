@@ -566,9 +566,11 @@ fn normalise_span(
     }
 }
 
-/// Group norm (+ optional SiLU) of x [batch, channels, spatial]: one cube per (batch, group), two passes
-/// (mean, then the mean squared deviation) for accuracy. `meta = [channels, spatial, groups, cubes]`.
+/// Group norm (+ optional SiLU) of x [batch, channels, spatial]: one cube of `units` units (a power of
+/// two) per (batch, group), two passes (mean, then the mean squared deviation) for accuracy.
+/// `meta = [channels, spatial, groups, cubes]`.
 #[cube(launch_unchecked)]
+#[allow(clippy::too_many_arguments)]
 pub fn group_norm(
     x: &[f32],
     weight: &[f32],
@@ -577,8 +579,8 @@ pub fn group_norm(
     meta: &[u32],
     eps: f32,
     #[comptime] silu: bool,
+    #[comptime] units: u32,
 ) {
-    let units = comptime!(REDUCE_UNITS);
     let channels = meta[0];
     let spatial = meta[1];
     let groups = meta[2];
@@ -735,13 +737,19 @@ pub fn layer_norm(
     }
 }
 
-/// Softmax of `scale · x` over the last dimension, one cube per row; `meta = [width, rows]`. The scale is
+/// Softmax of `scale · x` over the last dimension, one cube of `units` units (a power of two) per row;
+/// `meta = [width, rows]`. The scale is
 /// applied here so attention's scores need no pass of their own to be scaled. `F`: f32, or f16 where the
 /// probabilities only feed an f16-operand product (attention's `P V`): the narrowing pass before that
 /// product was a fifth of an SD 1.5 UNet's kernel time on an H200 (docs/gpu-results.md, 2026-11-27).
 #[cube(launch_unchecked)]
-pub fn softmax_rows<F: Float>(x: &[f32], out: &mut [F], meta: &[u32], scale: f32) {
-    let units = comptime!(REDUCE_UNITS);
+pub fn softmax_rows<F: Float>(
+    x: &[f32],
+    out: &mut [F],
+    meta: &[u32],
+    scale: f32,
+    #[comptime] units: u32,
+) {
     let width = meta[0];
     let valid = cube_index() < meta[1];
     let base = u32::min(cube_index(), meta[1] - 1) * width;

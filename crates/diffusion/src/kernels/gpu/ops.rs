@@ -1507,12 +1507,13 @@ fn group_norm_on(
     }
     let cubes = dims[0] * groups;
     let meta = Meta::new(x, &[channels, spatial, groups, cubes])?;
+    let units = row_units((channels / groups) * spatial);
     // SAFETY: one cube per (batch, group) reads/writes that group's channels only.
     unsafe {
         cube::group_norm::launch_unchecked(
             x.client(),
             grid(cubes),
-            CubeDim::new_1d(REDUCE_UNITS),
+            CubeDim::new_1d(units),
             x.arg(),
             weight.arg(),
             bias.arg(),
@@ -1520,6 +1521,7 @@ fn group_norm_on(
             meta.arg(),
             eps as f32,
             silu,
+            units,
         )
     };
     Ok(out)
@@ -1566,9 +1568,10 @@ pub fn layer_norm(
     Ok(out)
 }
 
-/// Units of a cube that reduces one row `width` wide: at least four elements each, from 32 (a warp) to
-/// [`REDUCE_UNITS`]. Narrow rows on 128 units left most of them idle through every level of the
-/// reduction tree: the small UNet's LayerNorms (rows 64–256 wide) took 4–6 ms a launch on lavapipe.
+/// Units of a cube that reduces one row (or group) `width` elements wide: at least four elements each,
+/// from 32 (a warp) to [`REDUCE_UNITS`]. Narrow rows on 128 units left most of them idle through every
+/// level of the reduction tree: the small UNet's LayerNorms (rows 64–256 wide) took 4–6 ms a launch on
+/// lavapipe.
 fn row_units(width: usize) -> u32 {
     (width.next_power_of_two() / 4).clamp(32, REDUCE_UNITS as usize) as u32
 }
@@ -1587,7 +1590,8 @@ fn softmax_scaled(x: &GpuTensor, scale: f32, half: bool) -> Result<GpuTensor> {
     }
     let rows = x.elem_count() / width;
     let meta = Meta::new(x, &[width, rows])?;
-    let (count, units) = (grid(rows), CubeDim::new_1d(REDUCE_UNITS));
+    let units = row_units(width);
+    let (count, dim) = (grid(rows), CubeDim::new_1d(units));
     let shape = x.dims().to_vec();
     // SAFETY: one cube per row.
     let out = unsafe {
@@ -1596,11 +1600,12 @@ fn softmax_scaled(x: &GpuTensor, scale: f32, half: bool) -> Result<GpuTensor> {
             cube::softmax_rows::launch_unchecked::<half::f16>(
                 x.client(),
                 count,
-                units,
+                dim,
                 x.arg(),
                 out.half_arg(),
                 meta.arg(),
                 scale,
+                units,
             );
             out
         } else {
@@ -1608,11 +1613,12 @@ fn softmax_scaled(x: &GpuTensor, scale: f32, half: bool) -> Result<GpuTensor> {
             cube::softmax_rows::launch_unchecked::<f32>(
                 x.client(),
                 count,
-                units,
+                dim,
                 x.arg(),
                 out.arg(),
                 meta.arg(),
                 scale,
+                units,
             );
             out
         }

@@ -663,6 +663,8 @@ fn conv2d_matches_cpu_on(dev: &GpuDevice) {
         (2, 4, 6, 9, 8, 3, 2, 1, false),
         (2, 5, 3, 6, 6, 1, 1, 0, true),
         (1, 2, 4, 5, 7, 3, 2, 0, true),
+        // Output channels and rows past the small cases' (the product's tiles and im2col's bands).
+        (2, 3, 11, 12, 10, 3, 1, 1, true),
     ] {
         let x = randn(&[n, cin, h, w]);
         let weight = randn(&[cout, cin, k, k]);
@@ -718,14 +720,37 @@ fn norms_match_cpu() {
     let Some(dev) = device_or_skip() else {
         return;
     };
-    // Offset inputs test the two-pass variance.
-    let x = randn(&[2, 8, 5, 7]).affine(2.0, 3.0).unwrap();
-    let (w, b) = (randn(&[8]), randn(&[8]));
-    for silu in [false, true] {
-        let want = crate::kernels::group_norm(&x, &w, &b, 4, 1e-5, silu).unwrap();
-        let got = group_norm(&up(&dev, &x), &up(&dev, &w), &up(&dev, &b), 4, 1e-5, silu).unwrap();
-        check(&format!("group_norm silu={silu}"), &got, &want);
+    // Offset inputs test the two-pass variance. Groups of 70, 256 and 600 elements: cubes of 32, 64
+    // and 128 units.
+    for (shape, groups) in [
+        (&[2usize, 8, 5, 7][..], 4),
+        (&[2, 16, 8, 8][..], 4),
+        (&[1, 6, 300][..], 3),
+    ] {
+        let c = shape[1];
+        let x = randn(shape).affine(2.0, 3.0).unwrap();
+        let (w, b) = (randn(&[c]), randn(&[c]));
+        for silu in [false, true] {
+            let want = crate::kernels::group_norm(&x, &w, &b, groups, 1e-5, silu).unwrap();
+            let got = group_norm_on(
+                &up(&dev, &x),
+                &up(&dev, &w),
+                &up(&dev, &b),
+                groups,
+                1e-5,
+                silu,
+                false,
+            )
+            .unwrap();
+            check(
+                &format!("group_norm {shape:?} / {groups} silu={silu}"),
+                &got,
+                &want,
+            );
+        }
     }
+    let x = randn(&[2, 8, 5, 7]);
+    let w = randn(&[8]);
     let short_bias = up(&dev, &randn(&[7]));
     assert!(group_norm(&up(&dev, &x), &up(&dev, &w), &short_bias, 4, 1e-5, false).is_err());
     // Groups large enough to split over cubes: channels of two chunks (the second short), of one
@@ -790,7 +815,8 @@ fn softmax_and_geglu_match_cpu() {
     let Some(dev) = device_or_skip() else {
         return;
     };
-    for width in [1, 7, 300] {
+    // Cubes of 32 (1, 7), 64 (200) and 128 units (300).
+    for width in [1, 7, 200, 300] {
         let x = (randn(&[3, 5, width]) * 4.0).unwrap();
         let want = crate::kernels::softmax_last_dim(&x).unwrap();
         check(
