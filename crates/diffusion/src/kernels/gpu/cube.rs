@@ -738,10 +738,10 @@ pub fn layer_norm(
 }
 
 /// Softmax of `scale · x` over the last dimension, one cube of `units` units (a power of two) per row;
-/// `meta = [width, rows]`. The scale is
-/// applied here so attention's scores need no pass of their own to be scaled. `F`: f32, or f16 where the
-/// probabilities only feed an f16-operand product (attention's `P V`): the narrowing pass before that
-/// product was a fifth of an SD 1.5 UNet's kernel time on an H200 (docs/gpu-results.md, 2026-11-27).
+/// `meta = [width, rows]`. The scale is applied here so attention's scores need no pass of their own to
+/// be scaled. `F`: f32, or f16 where the probabilities only feed an f16-operand product (attention's
+/// `P V`): the narrowing pass before that product was a fifth of an SD 1.5 UNet's kernel time on an H200
+/// (docs/gpu-results.md, 2026-11-27).
 #[cube(launch_unchecked)]
 pub fn softmax_rows<F: Float>(
     x: &[f32],
