@@ -1733,9 +1733,8 @@ const FLASH_DEFAULT_MAX_HEAD_DIM: usize = 8;
 /// the products run on them (until `tools/gpu-check` has timed the library's cooperative-matrix tiles
 /// against them: `attention`, `unet-library`), and on software adapters (below). Measured on lavapipe
 /// (Mesa 25.0.7, WGSL, 2026-11-29, `vcedit bench attention`, 48 entries, the small UNet's shapes):
-/// the library took 14.6 ms at 256
-/// queries × 256 keys × d 8 against the flash kernel's 82.6 and the products' 245; 2.2 ms at 64² × 16
-/// against 18.0 / 31.7; 2.0 ms at 16² × 32 against 12.7 / 14.0. Its kernel is compiled per shape, and
+/// the library took 14.6 ms at 256 queries × 256 keys × d 8 against the flash kernel's 82.6 and the
+/// products' 245; 2.2 ms at 64² × 16 against 18.0 / 31.7; 2.0 ms at 16² × 32 against 12.7 / 14.0. Its kernel is compiled per shape, and
 /// slowly by lavapipe as heads widen (first call 11 s at d 8, 37 s at d 16, 169 s at d 32; Mesa's
 /// shader cache keeps them, but CI machines start cold: the demo model's 16- and 32-wide heads took
 /// `vcedit demo --device gpu` in tools/gpu-check's local run from 71 s to 118 s), so software adapters,
