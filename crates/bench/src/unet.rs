@@ -432,6 +432,10 @@ pub fn main(args: &[String], reexec: &[String]) -> Result<()> {
                         .into(),
                 );
                 map.insert(
+                    "conv_path".into(),
+                    diffusion::device::ops::conv_path(device).to_string().into(),
+                );
+                map.insert(
                     "weights_mb".into(),
                     (device.weight_bytes() as f64 / 1e6).round().into(),
                 );

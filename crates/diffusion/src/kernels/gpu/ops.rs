@@ -1183,8 +1183,10 @@ pub fn linear(
     gemm(x, weight, bias, residual, &g, out_shape)
 }
 
-/// 2D convolution of x [batch, cin, h, w] with weight [cout, cin, kh, kw], as im2col + one product per
-/// image; the bias and `addend` are added in the product's finishing pass.
+/// 2D convolution of x [batch, cin, h, w] with weight [cout, cin, kh, kw]: a pointwise one as one product
+/// (the image is its own im2col matrix), others on the [`conv_path`] (im2col + products, or the library's
+/// direct kernel). The bias and `addend` join the product's finishing pass; after the direct kernel the
+/// addend is a pass of its own.
 pub fn conv2d(
     x: &GpuTensor,
     weight: &GpuTensor,
@@ -1193,7 +1195,7 @@ pub fn conv2d(
     padding: usize,
     addend: Addend<'_, GpuTensor>,
 ) -> Result<GpuTensor> {
-    let (&[_, cin, h, w], &[_, wcin, kh, kw]) = (x.dims(), weight.dims()) else {
+    let (&[n, cin, h, w], &[cout, wcin, kh, kw]) = (x.dims(), weight.dims()) else {
         candle_core::bail!(
             "gpu conv2d: input {:?}, weight {:?} are not 4D",
             x.dims(),
@@ -1207,10 +1209,152 @@ pub fn conv2d(
             weight.dims()
         );
     }
+    let oh = (h + 2 * padding - kh) / stride + 1;
+    let ow = (w + 2 * padding - kw) / stride + 1;
+    match addend {
+        Addend::Residual(r) if r.dims() != [n, cout, oh, ow] => candle_core::bail!(
+            "gpu conv2d: residual {:?} for an output [{n}, {cout}, {oh}, {ow}]",
+            r.dims()
+        ),
+        Addend::PerChannel(t) if t.elem_count() != n * cout => candle_core::bail!(
+            "gpu conv2d: per-channel addend {:?} for {n} images × {cout} channels",
+            t.dims()
+        ),
+        _ => {}
+    }
+    if kh == 1 && kw == 1 && stride == 1 && padding == 0 {
+        // A pointwise convolution: the image [cin, h·w] is its own im2col matrix.
+        let g = Gemm {
+            batch: n,
+            m: cout,
+            n: h * w,
+            k: cin,
+            a_strides: [0, cin, 1],
+            b_strides: [cin * h * w, h * w, 1],
+            alpha: 1.0,
+        };
+        let product = |bias: GemmBias, residual: Option<&GpuTensor>| {
+            gemm(weight, x, bias, residual, &g, vec![n, cout, h * w])
+        };
+        return whole_batch_conv(product, bias, addend, [n, cout, oh, ow]);
+    }
+    if conv_path(x.device()) == ConvPath::Direct {
+        if let Some(out) = direct_conv2d(x, weight, bias, stride, padding)? {
+            return match addend {
+                Addend::None => Ok(out),
+                Addend::Residual(r) => add(&out, r),
+                Addend::PerChannel(t) => add(&out, &t.reshape(&[n, cout, 1, 1])?),
+            };
+        }
+    }
     // The im2col buffer is cin·kh·kw times the output's pixels: in a full-resolution VAE layer it alone
     // outgrows a device's largest buffer (lavapipe: 128 MiB; 512² × 128 channels × 9 = 1.2 GB per image).
     // Past the cap the convolution runs in blocks of whole images, then of output rows.
     conv2d_blocked(x, weight, bias, stride, padding, addend, transient_cap(x))
+}
+
+/// How a convolution that is not pointwise runs on the GPU (pointwise ones are one product each).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum ConvPath {
+    /// im2col columns, then one product per block: the product runs on tensor cores where the device
+    /// has them, which a direct kernel cannot use.
+    Im2col,
+    /// The convolution library's direct kernel (`cubek-convolution`'s `launch_direct`, burn's pick on
+    /// lavapipe) on channels-last copies of the input and weights: a unit per output pixel and vector of
+    /// output channels, its input read as vectors along the input channels; no im2col buffer.
+    Direct,
+}
+
+impl std::fmt::Display for ConvPath {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            Self::Im2col => "im2col",
+            Self::Direct => "direct",
+        })
+    }
+}
+
+thread_local! {
+    /// Set by tests to pick a convolution path on their thread.
+    static CONV_OVERRIDE: std::cell::Cell<Option<ConvPath>> = const { std::cell::Cell::new(None) };
+}
+
+/// Runs `f` with the convolutions of this thread on `path` (tests, benches).
+pub fn with_conv_path<T>(path: ConvPath, f: impl FnOnce() -> T) -> T {
+    let before = CONV_OVERRIDE.replace(Some(path));
+    let result = f();
+    CONV_OVERRIDE.set(before);
+    result
+}
+
+/// The convolution path on `device`, where none is forced: the direct kernel on software adapters,
+/// im2col elsewhere (until `tools/gpu-check`'s `unet-direct` step has timed the direct kernel on a
+/// card). On lavapipe (Mesa 25.0.7, WGSL, 2026-11-29, `vcedit bench unet --small --size 16 --batches 6
+/// --precision f32`, alternating processes) the direct kernel took a forward from 7.7–8.2 s to
+/// 6.6–6.7 s: its 52 launches 1.65 s against 4.0 s of im2col products, less 0.2 s of layout copies.
+/// `VCEDIT_GPU_CONV=im2col|direct` forces one (A/B switch for benches).
+pub fn conv_path(device: &super::GpuDevice) -> ConvPath {
+    static FORCED: std::sync::OnceLock<Option<ConvPath>> = std::sync::OnceLock::new();
+    let forced = CONV_OVERRIDE.get().or(*FORCED.get_or_init(|| {
+        match std::env::var("VCEDIT_GPU_CONV")
+            .unwrap_or_default()
+            .trim()
+            .to_ascii_lowercase()
+            .as_str()
+        {
+            "im2col" => Some(ConvPath::Im2col),
+            "direct" => Some(ConvPath::Direct),
+            _ => None,
+        }
+    }));
+    forced.unwrap_or(if device.context().software {
+        ConvPath::Direct
+    } else {
+        ConvPath::Im2col
+    })
+}
+
+/// x [batch, cin, h, w] ⊛ weight [cout, cin, kh, kw] (+ bias) by the library's direct kernel on
+/// channels-last copies, or `None` where it declines the problem.
+fn direct_conv2d(
+    x: &GpuTensor,
+    weight: &GpuTensor,
+    bias: Option<&GpuTensor>,
+    stride: usize,
+    padding: usize,
+) -> Result<Option<GpuTensor>> {
+    use cubecl::ir::{ElemType, FloatKind};
+    use cubek_convolution::{launch_direct, ConvolutionArgs, DirectTensors};
+    let (&[n, _, h, w], &[cout, _, kh, kw]) = (x.dims(), weight.dims()) else {
+        candle_core::bail!("gpu conv2d: input or weight not 4D");
+    };
+    let oh = (h + 2 * padding - kh) / stride + 1;
+    let ow = (w + 2 * padding - kw) / stride + 1;
+    let input = permute(x, &[0, 2, 3, 1])?;
+    let kernel = permute(&widen_f16(weight), &[0, 2, 3, 1])?;
+    let bias = bias.map(widen_f16);
+    let out = x.empty_like_device(vec![n, oh, ow, cout]);
+    let bind = |t: &GpuTensor| t.binding(t.dims(), &contiguous_strides(t.dims()));
+    let launched = launch_direct::<2>(
+        x.client(),
+        DirectTensors {
+            input: bind(&input),
+            weight: bind(&kernel),
+            bias: bias.as_ref().map(bind),
+            out: bind(&out),
+        },
+        ConvolutionArgs {
+            stride: [stride; 2],
+            padding: [padding; 2],
+            dilation: [1; 2],
+        },
+        1,
+        ElemType::Float(FloatKind::F32),
+    );
+    if launched.is_err() {
+        return Ok(None);
+    }
+    Ok(Some(permute(&out, &[0, 3, 1, 2])?))
 }
 
 /// [`conv2d`] with im2col blocks of at most `cap` bytes (where one output row does not fit, one row).
@@ -1228,17 +1372,6 @@ fn conv2d_blocked(
     };
     let oh = (h + 2 * padding - kh) / stride + 1;
     let ow = (w + 2 * padding - kw) / stride + 1;
-    match addend {
-        Addend::Residual(r) if r.dims() != [n, cout, oh, ow] => candle_core::bail!(
-            "gpu conv2d: residual {:?} for an output [{n}, {cout}, {oh}, {ow}]",
-            r.dims()
-        ),
-        Addend::PerChannel(t) if t.elem_count() != n * cout => candle_core::bail!(
-            "gpu conv2d: per-channel addend {:?} for {n} images × {cout} channels",
-            t.dims()
-        ),
-        _ => {}
-    }
     let depth = cin * kh * kw;
     // The columns in the product's operand precision: f16 columns need no narrowing pass.
     let half = half_operands(x.device());
@@ -1283,23 +1416,12 @@ fn conv2d_blocked(
         )
     };
     if n * per_image <= cap {
-        // One block: the addend joins the bias in the product's finishing pass.
-        let out = match addend {
-            Addend::None => block(0, n, 0, oh, row_bias, None)?,
-            Addend::Residual(r) => {
-                let r = r.reshape(&[n, cout, oh * ow])?;
-                block(0, n, 0, oh, row_bias, Some(&r))?
-            }
-            Addend::PerChannel(t) => {
-                let t = t.reshape(&[n, cout])?;
-                let per_image = match bias {
-                    Some(b) => add(&t, &b.reshape(&[1, cout])?)?,
-                    None => t,
-                };
-                block(0, n, 0, oh, GemmBias::PerBatchRow(&per_image), None)?
-            }
-        };
-        return out.reshape(&[n, cout, oh, ow]);
+        return whole_batch_conv(
+            |bias, residual| block(0, n, 0, oh, bias, residual),
+            bias,
+            addend,
+            [n, cout, oh, ow],
+        );
     }
     let mut parts = Vec::new();
     if per_image <= cap {
@@ -1324,6 +1446,30 @@ fn conv2d_blocked(
         Addend::Residual(r) => add(&out, r),
         Addend::PerChannel(t) => add(&out, &t.reshape(&[n, cout, 1, 1])?),
     }
+}
+
+/// A convolution's output [n, cout, oh, ow] from one `product` over the whole batch (its rows the output
+/// channels, its columns the pixels): the bias and the addend join the product's finishing pass.
+fn whole_batch_conv(
+    product: impl Fn(GemmBias, Option<&GpuTensor>) -> Result<GpuTensor>,
+    bias: Option<&GpuTensor>,
+    addend: Addend<'_, GpuTensor>,
+    [n, cout, oh, ow]: [usize; 4],
+) -> Result<GpuTensor> {
+    let row_bias = bias.map_or(GemmBias::None, GemmBias::PerRow);
+    let out = match addend {
+        Addend::None => product(row_bias, None)?,
+        Addend::Residual(r) => product(row_bias, Some(&r.reshape(&[n, cout, oh * ow])?))?,
+        Addend::PerChannel(t) => {
+            let t = t.reshape(&[n, cout])?;
+            let per_image = match bias {
+                Some(b) => add(&t, &b.reshape(&[1, cout])?)?,
+                None => t,
+            };
+            product(GemmBias::PerBatchRow(&per_image), None)?
+        }
+    };
+    out.reshape(&[n, cout, oh, ow])
 }
 
 /// Which part of a convolution's output one im2col block covers.

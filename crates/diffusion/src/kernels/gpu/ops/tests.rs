@@ -391,14 +391,17 @@ fn f16_operands_match_cpu() {
         check_within("f16-operand transposed product", &got, &want, 1e-5);
         let conv_w = randn(&[6, 5, 3, 3]);
         let xi = randn(&[2, 5, 9, 7]);
-        let got = conv2d(
-            &up(&half_dev, &xi),
-            &half_dev.cached_matrix(&conv_w).unwrap(),
-            None,
-            1,
-            1,
-            Addend::None,
-        )
+        // On im2col, whose product takes the f16 operands (the direct kernel computes in f32).
+        let got = with_conv_path(ConvPath::Im2col, || {
+            conv2d(
+                &up(&half_dev, &xi),
+                &half_dev.cached_matrix(&conv_w).unwrap(),
+                None,
+                1,
+                1,
+                Addend::None,
+            )
+        })
         .unwrap();
         let want = crate::kernels::conv2d(&rounded(&xi), &rounded(&conv_w), None, 1, 1).unwrap();
         check_within("f16-operand conv2d", &got, &want, 1e-5);
@@ -652,11 +655,23 @@ fn conv2d_matches_cpu() {
     let Some(dev) = device_or_skip() else {
         return;
     };
-    on_both_engines(|| conv2d_matches_cpu_on(&dev));
+    on_both_engines(|| conv2d_matches_cpu_on(&dev, &[ConvPath::Im2col, ConvPath::Direct]));
 }
 
-fn conv2d_matches_cpu_on(dev: &GpuDevice) {
+/// The direct kernel alone (no product, no workgroup memory: it runs on Mesa 25's SPIR-V path too).
+#[test]
+fn direct_conv2d_matches_cpu() {
+    let Some(dev) = device_or_skip() else {
+        return;
+    };
+    conv2d_matches_cpu_on(&dev, &[ConvPath::Direct]);
+}
+
+/// Convolutions on each of `paths` against the CPU's; im2col's blocks too where `paths` has it.
+/// Pointwise convolutions are products on every path, so they are left out where im2col is.
+fn conv2d_matches_cpu_on(dev: &GpuDevice, paths: &[ConvPath]) {
     let dev = dev.clone();
+    let im2col = paths.contains(&ConvPath::Im2col);
     // (batch, cin, cout, h, w, kernel, stride, padding, bias)
     for (n, cin, cout, h, w, k, stride, padding, with_bias) in [
         (1, 3, 5, 9, 7, 3, 1, 1, true),
@@ -665,7 +680,13 @@ fn conv2d_matches_cpu_on(dev: &GpuDevice) {
         (1, 2, 4, 5, 7, 3, 2, 0, true),
         // Output channels and rows past the small cases' (the product's tiles and im2col's bands).
         (2, 3, 11, 12, 10, 3, 1, 1, true),
+        // Channels the direct kernel reads and writes as vectors of four (above: one at a time).
+        (2, 8, 12, 7, 9, 3, 1, 1, true),
+        (1, 8, 8, 9, 9, 3, 2, 1, false),
     ] {
+        if k == 1 && !im2col {
+            continue;
+        }
         let x = randn(&[n, cin, h, w]);
         let weight = randn(&[cout, cin, k, k]);
         let bias = with_bias.then(|| randn(&[cout]));
@@ -693,12 +714,20 @@ fn conv2d_matches_cpu_on(dev: &GpuDevice) {
         ];
         let (gx, gw) = (up(&dev, &x), up(&dev, &weight));
         for (what, addend, want) in &addends {
-            let got = conv2d(&gx, &gw, gbias.as_ref(), stride, padding, *addend).unwrap();
-            check(
-                &format!("conv2d k{k} s{stride} p{padding}{what}"),
-                &got,
-                want,
-            );
+            for &path in paths {
+                let got = with_conv_path(path, || {
+                    conv2d(&gx, &gw, gbias.as_ref(), stride, padding, *addend)
+                })
+                .unwrap();
+                check(
+                    &format!("conv2d ({path}) c{cin}→{cout} k{k} s{stride} p{padding}{what}"),
+                    &got,
+                    want,
+                );
+            }
+            if !im2col {
+                continue;
+            }
             // Blocked: one image per block, then bands of one and of three output rows (the last band
             // shorter where the rows do not divide).
             let per_row = cin * k * k * ow * 4;
@@ -712,6 +741,45 @@ fn conv2d_matches_cpu_on(dev: &GpuDevice) {
                 );
             }
         }
+    }
+}
+
+/// With f16 weights (an f16 device) both convolution paths compute with the rounded weights: the direct
+/// kernel on an f32 copy of them, im2col on f16 operands or widened ones.
+#[test]
+fn conv2d_with_f16_weights_matches_cpu() {
+    let Some(dev) = device_or_skip() else {
+        return;
+    };
+    let half_dev = GpuDevice::with_precision(dev.context().clone(), Precision::F16);
+    let rounded = |t: &Tensor| {
+        t.to_dtype(candle_core::DType::F16)
+            .unwrap()
+            .to_dtype(candle_core::DType::F32)
+            .unwrap()
+    };
+    let x = randn(&[2, 8, 6, 7]);
+    let weight = randn(&[4, 8, 3, 3]);
+    let bias = randn(&[4]);
+    let want = crate::kernels::conv2d(&x, &rounded(&weight), Some(&bias), 1, 1).unwrap();
+    let gw = half_dev.cached_matrix(&weight).unwrap();
+    assert!(gw.is_f16());
+    let (gx, gbias) = (up(&half_dev, &x), up(&half_dev, &bias));
+    for path in [ConvPath::Im2col, ConvPath::Direct] {
+        let got =
+            with_conv_path(path, || conv2d(&gx, &gw, Some(&gbias), 1, 1, Addend::None)).unwrap();
+        // im2col rounds the columns to f16 as well where the products take f16 operands; the direct
+        // kernel computes in f32 on the widened weights.
+        let tolerance = match path {
+            ConvPath::Direct => 1e-5,
+            ConvPath::Im2col => 2e-3,
+        };
+        check_within(
+            &format!("conv2d ({path}), f16 weights"),
+            &got,
+            &want,
+            tolerance,
+        );
     }
 }
 
