@@ -2,6 +2,8 @@
 //! broadcasting, layouts) as the CPU op it mirrors. Launches are asynchronous; errors surface when a result
 //! is read back ([`GpuTensor::to_cpu`]).
 
+use std::sync::OnceLock;
+
 use candle_core::Result;
 use cubecl::prelude::*;
 use cubecl::server::Handle;
@@ -659,6 +661,24 @@ fn finish_product(
     Ok(product)
 }
 
+/// The path an A/B environment variable `var` forces, read once per process (`once`): `parse` of its
+/// trimmed, lower-case value; `None` (the default path) where it is unset or names no path.
+fn forced_by_env<T: Copy>(
+    once: &OnceLock<Option<T>>,
+    var: &str,
+    parse: impl FnOnce(&str) -> Option<T>,
+) -> Option<T> {
+    *once.get_or_init(|| {
+        parse(
+            std::env::var(var)
+                .unwrap_or_default()
+                .trim()
+                .to_ascii_lowercase()
+                .as_str(),
+        )
+    })
+}
+
 /// How a product runs: our own kernel, or the matrix-product library (cubek) on f32 or f16 operands.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum MatmulPath {
@@ -710,20 +730,18 @@ pub(crate) fn with_own_matmul<T>(f: impl FnOnce() -> T) -> T {
 /// 4096×320×1280 product). `VCEDIT_GPU_MATMUL=own|unit|unit-f16` forces one (A/B switch for
 /// benchmarks); a path the device cannot take falls back to the default.
 pub fn matmul_path(device: &super::GpuDevice) -> MatmulPath {
-    static FORCED: std::sync::OnceLock<Option<MatmulPath>> = std::sync::OnceLock::new();
-    let forced = PATH_OVERRIDE.get().or(*FORCED.get_or_init(|| {
-        match std::env::var("VCEDIT_GPU_MATMUL")
-            .unwrap_or_default()
-            .trim()
-            .to_ascii_lowercase()
-            .as_str()
-        {
-            "own" => Some(MatmulPath::Own),
-            "unit" => Some(MatmulPath::Unit),
-            "unit-f16" => Some(MatmulPath::UnitF16),
-            _ => None,
-        }
-    }));
+    static FORCED: OnceLock<Option<MatmulPath>> = OnceLock::new();
+    let forced =
+        PATH_OVERRIDE.get().or(forced_by_env(
+            &FORCED,
+            "VCEDIT_GPU_MATMUL",
+            |name| match name {
+                "own" => Some(MatmulPath::Own),
+                "unit" => Some(MatmulPath::Unit),
+                "unit-f16" => Some(MatmulPath::UnitF16),
+                _ => None,
+            },
+        ));
     let half_weights = device.precision() == super::Precision::F16;
     let native_f16 = device
         .client()
@@ -1287,31 +1305,25 @@ pub fn with_conv_path<T>(path: ConvPath, f: impl FnOnce() -> T) -> T {
     result
 }
 
-/// The convolution path on `device`, where none is forced: the direct kernel on software adapters,
-/// im2col elsewhere (until `tools/gpu-check`'s `unet-direct` step has timed the direct kernel on a
-/// card). On lavapipe (Mesa 25.0.7, WGSL, 2026-11-29, `vcedit bench unet --small --size 16 --batches 6
-/// --precision f32`, alternating processes) the direct kernel took a forward from 7.7–8.2 s to
-/// 6.6–6.7 s: its 52 launches 1.65 s against 4.0 s of im2col products, less 0.2 s of layout copies.
-/// `VCEDIT_GPU_CONV=im2col|direct` forces one (A/B switch for benches).
-pub fn conv_path(device: &super::GpuDevice) -> ConvPath {
-    static FORCED: std::sync::OnceLock<Option<ConvPath>> = std::sync::OnceLock::new();
-    let forced = CONV_OVERRIDE.get().or(*FORCED.get_or_init(|| {
-        match std::env::var("VCEDIT_GPU_CONV")
-            .unwrap_or_default()
-            .trim()
-            .to_ascii_lowercase()
-            .as_str()
-        {
+/// The convolution path on `device`: im2col unless `VCEDIT_GPU_CONV=im2col|direct` forces one (A/B
+/// switch for benches). The direct kernel is faster on some shapes and much slower on others, so it is
+/// no default until a per-shape choice exists. On lavapipe (Mesa 25.0.7, WGSL, 2026-11-29) it took the
+/// small UNet (`vcedit bench unet --small --size 16 --batches 6`, channels 32–256 at 16² and below)
+/// from 7.6–8.2 s to 6.6–6.7 s a forward, but LPIPS-VGG16 (`vcedit bench lpips --sizes 64`, channels
+/// 64–512 at 64² and below) from 4.9 s to 14.1 s for value and gradient, and still 7.5 s with it limited
+/// to the layers of at most 128 input channels, 8.1 s to those of at most 64 output pixels.
+pub fn conv_path(_device: &super::GpuDevice) -> ConvPath {
+    static FORCED: OnceLock<Option<ConvPath>> = OnceLock::new();
+    let forced = CONV_OVERRIDE.get().or(forced_by_env(
+        &FORCED,
+        "VCEDIT_GPU_CONV",
+        |name| match name {
             "im2col" => Some(ConvPath::Im2col),
             "direct" => Some(ConvPath::Direct),
             _ => None,
-        }
-    }));
-    forced.unwrap_or(if device.context().software {
-        ConvPath::Direct
-    } else {
-        ConvPath::Im2col
-    })
+        },
+    ));
+    forced.unwrap_or(ConvPath::Im2col)
 }
 
 /// x [batch, cin, h, w] ⊛ weight [cout, cin, kh, kw] (+ bias) by the library's direct kernel on
@@ -1888,20 +1900,17 @@ const FLASH_DEFAULT_MAX_HEAD_DIM: usize = 8;
 /// `VCEDIT_GPU_ATTENTION=flash|products|library` forces one (A/B switch for benches; `vcedit bench
 /// attention` times all three); heads wider than the flash kernel can take run as products instead.
 pub fn attention_path(device: &super::GpuDevice, d: usize, dv: usize) -> AttentionPath {
-    static FORCED: std::sync::OnceLock<Option<AttentionPath>> = std::sync::OnceLock::new();
-    let forced = ATTENTION_OVERRIDE.get().or(*FORCED.get_or_init(|| {
-        match std::env::var("VCEDIT_GPU_ATTENTION")
-            .unwrap_or_default()
-            .trim()
-            .to_ascii_lowercase()
-            .as_str()
-        {
+    static FORCED: OnceLock<Option<AttentionPath>> = OnceLock::new();
+    let forced = ATTENTION_OVERRIDE.get().or(forced_by_env(
+        &FORCED,
+        "VCEDIT_GPU_ATTENTION",
+        |name| match name {
             "flash" => Some(AttentionPath::Flash),
             "products" => Some(AttentionPath::Products),
             "library" => Some(AttentionPath::Library),
             _ => None,
-        }
-    }));
+        },
+    ));
     let widest = d.max(dv);
     match forced {
         Some(AttentionPath::Flash) if widest > FLASH_MAX_HEAD_DIM => AttentionPath::Products,

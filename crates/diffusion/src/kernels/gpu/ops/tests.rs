@@ -30,6 +30,14 @@ fn check_within(what: &str, gpu: &GpuTensor, cpu: &Tensor, tolerance: f32) -> f3
     rel
 }
 
+/// `t` rounded to f16 and back (what an f16 weight or operand holds).
+fn rounded_f16(t: &Tensor) -> Tensor {
+    t.to_dtype(candle_core::DType::F16)
+        .unwrap()
+        .to_dtype(candle_core::DType::F32)
+        .unwrap()
+}
+
 #[test]
 fn elementwise_ops_match_cpu() {
     let Some(dev) = device_or_skip() else {
@@ -301,19 +309,13 @@ fn f16_weights_match_cpu() {
 fn f16_weights_match_cpu_on(dev: &GpuDevice) {
     let dev = dev.clone();
     let half_dev = GpuDevice::with_precision(dev.context().clone(), Precision::F16);
-    let rounded = |t: &Tensor| {
-        t.to_dtype(candle_core::DType::F16)
-            .unwrap()
-            .to_dtype(candle_core::DType::F32)
-            .unwrap()
-    };
     // Odd element counts leave half a word unused.
     let x = randn(&[2, 5, 19]);
     let w = randn(&[7, 19]);
     let bias = randn(&[7]);
     let gw = half_dev.cached_matrix(&w).unwrap();
     assert!(gw.is_f16() && gw.storage_bytes() == (7 * 19usize).div_ceil(2) * 4);
-    check_within("f16 weight read-back", &gw, &rounded(&w), 0.0);
+    check_within("f16 weight read-back", &gw, &rounded_f16(&w), 0.0);
     let gx = up(&half_dev, &x);
     let gbias = up(&half_dev, &bias);
     let got = linear(&gx, &gw, Some(&gbias), None).unwrap();
@@ -323,7 +325,7 @@ fn f16_weights_match_cpu_on(dev: &GpuDevice) {
     check_within(
         "f16 linear vs rounded weights",
         &got,
-        &cpu(rounded(&w)),
+        &cpu(rounded_f16(&w)),
         1e-5,
     );
     let rel = check_within("f16 linear vs f32", &got, &cpu(w.clone()), 1e-2);
@@ -332,25 +334,35 @@ fn f16_weights_match_cpu_on(dev: &GpuDevice) {
     let x = randn(&[2, 5, 9, 7]);
     let weight = randn(&[6, 5, 3, 3]);
     let gw = half_dev.cached_matrix(&weight).unwrap();
-    let got = conv2d(
-        &up(&half_dev, &x),
-        &gw,
-        Some(&narrow(&gbias, 0, 0, 6).unwrap()),
-        1,
-        1,
-        Addend::None,
-    )
-    .unwrap();
     let want = |w: &Tensor| {
         crate::kernels::conv2d(&x, w, Some(&bias.narrow(0, 0, 6).unwrap()), 1, 1).unwrap()
     };
-    check_within(
-        "f16 conv2d vs rounded weights",
-        &got,
-        &want(&rounded(&weight)),
-        1e-5,
-    );
-    check_within("f16 conv2d vs f32", &got, &want(&weight), 1e-2);
+    // im2col's product unpacks the weights as it reads them; the direct kernel reads an f32 copy.
+    for path in [ConvPath::Im2col, ConvPath::Direct] {
+        let got = with_conv_path(path, || {
+            conv2d(
+                &up(&half_dev, &x),
+                &gw,
+                Some(&narrow(&gbias, 0, 0, 6).unwrap()),
+                1,
+                1,
+                Addend::None,
+            )
+        })
+        .unwrap();
+        check_within(
+            &format!("f16 conv2d ({path}) vs rounded weights"),
+            &got,
+            &want(&rounded_f16(&weight)),
+            1e-5,
+        );
+        check_within(
+            &format!("f16 conv2d ({path}) vs f32"),
+            &got,
+            &want(&weight),
+            1e-2,
+        );
+    }
     // An f32 device keeps f32 matrix weights.
     assert!(!dev.cached_matrix(&weight).unwrap().is_f16());
 }
@@ -368,26 +380,24 @@ fn f16_operands_match_cpu() {
         eprintln!("skipped: {} has no native f16", dev.context().describe());
         return;
     }
-    let rounded = |t: &Tensor| {
-        t.to_dtype(candle_core::DType::F16)
-            .unwrap()
-            .to_dtype(candle_core::DType::F32)
-            .unwrap()
-    };
     with_matmul_path(MatmulPath::UnitF16, || {
         let (x, w, bias) = (randn(&[2, 5, 19]), randn(&[7, 19]), randn(&[7]));
         let gw = half_dev.cached_matrix(&w).unwrap();
         let got = linear(&up(&half_dev, &x), &gw, Some(&up(&half_dev, &bias)), None).unwrap();
         let want = candle_core::Module::forward(
-            &candle_nn::Linear::new(rounded(&w), Some(bias.clone())),
-            &rounded(&x),
+            &candle_nn::Linear::new(rounded_f16(&w), Some(bias.clone())),
+            &rounded_f16(&x),
         )
         .unwrap();
         check_within("f16-operand linear", &got, &want, 1e-5);
         // Activation × activation, transposed and scaled (attention-shaped).
         let (a, bt) = (randn(&[2, 3, 17, 19]), randn(&[2, 3, 21, 19]));
         let got = matmul_scaled(&up(&half_dev, &a), &up(&half_dev, &bt), true, 0.5).unwrap();
-        let want = (rounded(&a).matmul(&rounded(&bt).t().unwrap()).unwrap() * 0.5).unwrap();
+        let want = (rounded_f16(&a)
+            .matmul(&rounded_f16(&bt).t().unwrap())
+            .unwrap()
+            * 0.5)
+            .unwrap();
         check_within("f16-operand transposed product", &got, &want, 1e-5);
         let conv_w = randn(&[6, 5, 3, 3]);
         let xi = randn(&[2, 5, 9, 7]);
@@ -403,7 +413,8 @@ fn f16_operands_match_cpu() {
             )
         })
         .unwrap();
-        let want = crate::kernels::conv2d(&rounded(&xi), &rounded(&conv_w), None, 1, 1).unwrap();
+        let want =
+            crate::kernels::conv2d(&rounded_f16(&xi), &rounded_f16(&conv_w), None, 1, 1).unwrap();
         check_within("f16-operand conv2d", &got, &want, 1e-5);
         // Attention as products: the softmax writes its probabilities as f16 for the second product.
         let (q, k, v) = (
@@ -420,9 +431,13 @@ fn f16_operands_match_cpu() {
             )
         })
         .unwrap();
-        let scores = (rounded(&q).matmul(&rounded(&k).t().unwrap()).unwrap() * 0.25).unwrap();
+        let scores = (rounded_f16(&q)
+            .matmul(&rounded_f16(&k).t().unwrap())
+            .unwrap()
+            * 0.25)
+            .unwrap();
         let probs = crate::kernels::softmax_last_dim(&scores).unwrap();
-        let want = rounded(&probs).matmul(&rounded(&v)).unwrap();
+        let want = rounded_f16(&probs).matmul(&rounded_f16(&v)).unwrap();
         check_within("f16-operand attention", &got, &want, 1e-3);
     });
     // The library takes these products itself (no silent fallback to the f32 routine).
@@ -741,45 +756,6 @@ fn conv2d_matches_cpu_on(dev: &GpuDevice, paths: &[ConvPath]) {
                 );
             }
         }
-    }
-}
-
-/// With f16 weights (an f16 device) both convolution paths compute with the rounded weights: the direct
-/// kernel on an f32 copy of them, im2col on f16 operands or widened ones.
-#[test]
-fn conv2d_with_f16_weights_matches_cpu() {
-    let Some(dev) = device_or_skip() else {
-        return;
-    };
-    let half_dev = GpuDevice::with_precision(dev.context().clone(), Precision::F16);
-    let rounded = |t: &Tensor| {
-        t.to_dtype(candle_core::DType::F16)
-            .unwrap()
-            .to_dtype(candle_core::DType::F32)
-            .unwrap()
-    };
-    let x = randn(&[2, 8, 6, 7]);
-    let weight = randn(&[4, 8, 3, 3]);
-    let bias = randn(&[4]);
-    let want = crate::kernels::conv2d(&x, &rounded(&weight), Some(&bias), 1, 1).unwrap();
-    let gw = half_dev.cached_matrix(&weight).unwrap();
-    assert!(gw.is_f16());
-    let (gx, gbias) = (up(&half_dev, &x), up(&half_dev, &bias));
-    for path in [ConvPath::Im2col, ConvPath::Direct] {
-        let got =
-            with_conv_path(path, || conv2d(&gx, &gw, Some(&gbias), 1, 1, Addend::None)).unwrap();
-        // im2col rounds the columns to f16 as well where the products take f16 operands; the direct
-        // kernel computes in f32 on the widened weights.
-        let tolerance = match path {
-            ConvPath::Direct => 1e-5,
-            ConvPath::Im2col => 2e-3,
-        };
-        check_within(
-            &format!("conv2d ({path}), f16 weights"),
-            &got,
-            &want,
-            tolerance,
-        );
     }
 }
 
