@@ -1257,7 +1257,7 @@ pub fn conv2d(
         return whole_batch_conv(product, bias, addend, [n, cout, oh, ow]);
     }
     if conv_path(x.device()) == ConvPath::Direct {
-        if let Some(out) = direct_conv2d(x, weight, bias, stride, padding)? {
+        if let Some(out) = direct_conv2d(x, weight, bias, stride, padding, [oh, ow])? {
             return match addend {
                 Addend::None => Ok(out),
                 Addend::Residual(r) => add(&out, r),
@@ -1326,22 +1326,20 @@ pub fn conv_path(_device: &super::GpuDevice) -> ConvPath {
     forced.unwrap_or(ConvPath::Im2col)
 }
 
-/// x [batch, cin, h, w] ⊛ weight [cout, cin, kh, kw] (+ bias) by the library's direct kernel on
-/// channels-last copies, or `None` where it declines the problem.
+/// x [batch, cin, h, w] ⊛ weight [cout, cin, kh, kw] (+ bias) into [batch, cout, oh, ow] by the
+/// library's direct kernel on channels-last copies, or `None` where it declines the problem (shapes
+/// checked by [`conv2d`]).
 fn direct_conv2d(
     x: &GpuTensor,
     weight: &GpuTensor,
     bias: Option<&GpuTensor>,
     stride: usize,
     padding: usize,
+    [oh, ow]: [usize; 2],
 ) -> Result<Option<GpuTensor>> {
     use cubecl::ir::{ElemType, FloatKind};
     use cubek_convolution::{launch_direct, ConvolutionArgs, DirectTensors};
-    let (&[n, _, h, w], &[cout, _, kh, kw]) = (x.dims(), weight.dims()) else {
-        candle_core::bail!("gpu conv2d: input or weight not 4D");
-    };
-    let oh = (h + 2 * padding - kh) / stride + 1;
-    let ow = (w + 2 * padding - kw) / stride + 1;
+    let (n, cout) = (x.dims()[0], weight.dims()[0]);
     let input = permute(x, &[0, 2, 3, 1])?;
     let kernel = permute(&widen_f16(weight), &[0, 2, 3, 1])?;
     let bias = bias.map(widen_f16);
