@@ -229,9 +229,11 @@ step unet 180 "$V" bench unet --model "$MODEL" --device gpu --size "$LAT" --batc
 [ "$MODE" = device ] && step unet-flash 120 env VCEDIT_GPU_ATTENTION=flash "$V" bench unet --model "$MODEL" --device gpu --size "$LAT" --batches 6 --hooks none --runs "$RUNS"
 # ... and with the library's flash attention for every head (the default on GPUs without tensor cores).
 [ "$MODE" = device ] && step unet-library 120 env VCEDIT_GPU_ATTENTION=library "$V" bench unet --model "$MODEL" --device gpu --size "$LAT" --batches 6 --hooks none --runs "$RUNS"
-# ... and with the convolution library's direct kernel for every convolution that is not pointwise (im2col,
-# the default, feeds tensor cores, which the direct kernel cannot use; on lavapipe it is faster on some
-# shapes and much slower on others).
+# ... and with every convolution that is not pointwise on one path, against the default that times both per
+# problem (the `unet` step's `conv_path` says how many took the direct kernel): im2col, whose product runs
+# on tensor cores, and the convolution library's direct kernel (on lavapipe faster on some shapes and much
+# slower on others).
+[ "$MODE" = device ] && step unet-im2col 120 env VCEDIT_GPU_CONV=im2col "$V" bench unet --model "$MODEL" --device gpu --size "$LAT" --batches 6 --hooks none --runs "$RUNS"
 [ "$MODE" = device ] && step unet-direct 120 env VCEDIT_GPU_CONV=direct "$V" bench unet --model "$MODEL" --device gpu --size "$LAT" --batches 6 --hooks none --runs "$RUNS"
 # The whole forward on the tensor-core routine that was fastest at 4096x320x1280 in `matmul-routines`
 # (the default included, as the A/B baseline of the same process kind): does the gain carry to the network?

@@ -431,10 +431,7 @@ pub fn main(args: &[String], reexec: &[String]) -> Result<()> {
                         .to_string()
                         .into(),
                 );
-                map.insert(
-                    "conv_path".into(),
-                    diffusion::device::ops::conv_path(device).to_string().into(),
-                );
+                map.insert("conv_path".into(), conv_paths().into());
                 map.insert(
                     "weights_mb".into(),
                     (device.weight_bytes() as f64 / 1e6).round().into(),
@@ -477,4 +474,16 @@ pub fn main(args: &[String], reexec: &[String]) -> Result<()> {
         return Err(BenchError::new("the load-memory measurement failed"));
     }
     Ok(())
+}
+
+/// How the run's convolutions were routed: the forced path, or "tuned: D of N direct" over the problems
+/// the tuner settled (pointwise convolutions are products and never tuned).
+fn conv_paths() -> String {
+    use diffusion::device::ops::{forced_conv_path, tuned_conv_paths, ConvPath};
+    if let Some(path) = forced_conv_path() {
+        return path.to_string();
+    }
+    let tuned = tuned_conv_paths();
+    let direct = tuned.iter().filter(|(_, p)| *p == ConvPath::Direct).count();
+    format!("tuned: {direct} of {} direct", tuned.len())
 }

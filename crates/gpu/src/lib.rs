@@ -388,7 +388,8 @@ fn forces_wgsl(compiler: CompilerChoice, workload: Workload, a: &AdapterEntry) -
 /// SPIR-V kernels an earlier process stored and runs them instead of its own. That made `vcedit fit`
 /// (WGSL under `auto`) run SPIR-V's splatting kernels whenever an edit had run before it: 83-90 s
 /// instead of 31-34 s on an H200 (docs/gpu-results.md, 2026-11-27 third run). `VCEDIT_GPU_CACHE=off`
-/// persists nothing (for a read-only cache folder). Returns whether this process persists kernels.
+/// persists nothing, kernels or tuning results (for a read-only cache folder). Returns whether this
+/// process persists kernels.
 fn configure_runtime(spirv: bool) -> bool {
     use cubecl::config::cache::CacheConfig;
     use cubecl::config::{CubeClRuntimeConfig, RuntimeConfig};
@@ -400,6 +401,15 @@ fn configure_runtime(spirv: bool) -> bool {
         let mut config = CubeClRuntimeConfig::default().override_from_env();
         config.environment.path = CacheConfig::Directory(runtime_cache_dir());
         config.compilation.cache = persist;
+        // Tuning results are kept per adapter and compiler (vcedit names them so), so they persist on
+        // either compiler; `VCEDIT_GPU_CACHE=off` keeps them in memory only.
+        config.autotune.disable_cache = !persist_kernels();
+        // vcedit's only tuned op is the convolution path, two candidates, which cubecl's tuner never
+        // eliminates (it keeps two survivors): each runs until its best time stops improving, up to
+        // `max_samples` (10). Three samples after the warm-up (the best of the last two counts) keep the
+        // choice and cut the one-off cost: on lavapipe the direct kernel takes ~0.6 s a pass on some of
+        // LPIPS's layers, and tuning LPIPS at 64² took 29 s at the default (2026-11-29).
+        config.autotune.bench.max_samples = 3;
         // `false`: something read the configuration first; it keeps cubecl's defaults (nothing
         // persisted).
         if CubeClRuntimeConfig::try_set(config) {

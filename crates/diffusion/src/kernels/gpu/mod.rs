@@ -25,6 +25,24 @@ use cubecl::prelude::*;
 use cubecl::server::Handle;
 use gpu::{DeviceChoice, GpuContext, GpuError};
 
+/// The name tuning results on `context`'s device are kept under: adapter, graphics API and compiler (a
+/// timing on WGSL says nothing of SPIR-V), as one path segment of ASCII letters, digits, '-' and '.'.
+fn tune_id(context: &GpuContext) -> String {
+    let name = format!(
+        "{} {} {}",
+        context.adapter, context.backend, context.compiler
+    );
+    name.chars()
+        .map(|c| {
+            if c.is_ascii_alphanumeric() || c == '.' {
+                c
+            } else {
+                '-'
+            }
+        })
+        .collect()
+}
+
 /// An opened GPU for the networks: the shared [`GpuContext`] and the uploaded-weight cache.
 #[derive(Clone)]
 pub struct GpuDevice {
@@ -34,6 +52,8 @@ pub struct GpuDevice {
 struct Inner {
     context: GpuContext,
     precision: Precision,
+    /// Names the device's tuning results (adapter, graphics API, compiler) in cubecl's persistent cache.
+    tune_id: String,
     /// Weights already on the device, keyed by tensor id and whether the copy is f16. The CPU tensor is
     /// kept beside its copy so its id stays unique.
     weights: Mutex<HashMap<(TensorId, bool), CachedWeight>>,
@@ -66,6 +86,7 @@ impl GpuDevice {
     pub fn with_precision(context: GpuContext, precision: Precision) -> GpuDevice {
         GpuDevice {
             inner: Arc::new(Inner {
+                tune_id: tune_id(&context),
                 context,
                 precision,
                 weights: Mutex::new(HashMap::new()),
@@ -95,6 +116,11 @@ impl GpuDevice {
 
     pub(crate) fn client(&self) -> &Client {
         &self.inner.context.client
+    }
+
+    /// What the device's tuning results are kept under (see [`tune_id`]).
+    pub(crate) fn tune_id(&self) -> &str {
+        &self.inner.tune_id
     }
 
     /// The f32 device copy of a (weight) tensor, uploaded on first use.

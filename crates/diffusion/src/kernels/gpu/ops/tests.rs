@@ -6,6 +6,7 @@ use candle_core::{Device, Tensor};
 use super::super::testing::{device_or_skip, relative_error};
 use super::super::{GpuDevice, GpuTensor, Precision};
 use super::*;
+use crate::kernels::device::Addend;
 
 const TOLERANCE: f32 = 1e-4;
 
@@ -680,6 +681,44 @@ fn direct_conv2d_matches_cpu() {
         return;
     };
     conv2d_matches_cpu_on(&dev, &[ConvPath::Direct]);
+}
+
+/// Without a forced path a convolution takes the tuner's: the first call (the tuning round's output plus
+/// the addend in a pass of its own) and the next (the settled path, the addend fused where that is
+/// im2col) both agree with the CPU, and the problem is among the settled ones after the first.
+#[test]
+fn tuned_conv2d_matches_cpu() {
+    let Some(dev) = device_or_skip() else {
+        return;
+    };
+    if let Some(path) = forced_conv_path() {
+        eprintln!("skipped: VCEDIT_GPU_CONV forces {path}");
+        return;
+    }
+    // A shape no other test takes, so that this test's first call is the one that settles it.
+    let (n, cin, cout, h, w) = (2, 12, 20, 11, 13);
+    let x = randn(&[n, cin, h, w]);
+    let weight = randn(&[cout, cin, 3, 3]);
+    let bias = randn(&[cout]);
+    let residual = randn(&[n, cout, h, w]);
+    let plain = crate::kernels::conv2d(&x, &weight, Some(&bias), 1, 1).unwrap();
+    let want = (&plain + &residual).unwrap();
+    let (gx, gw, gb, gr) = (
+        up(&dev, &x),
+        up(&dev, &weight),
+        up(&dev, &bias),
+        up(&dev, &residual),
+    );
+    let described = "x 2x12x11x13 w 20x12x3x3 s1 p1 +bias";
+    for call in ["first", "second"] {
+        let got = conv2d(&gx, &gw, Some(&gb), 1, 1, Addend::Residual(&gr)).unwrap();
+        check(&format!("tuned conv2d, {call} call"), &got, &want);
+        let settled = tuned_conv_paths();
+        assert!(
+            settled.iter().any(|(key, _)| key.starts_with(described)),
+            "{described} not among the settled problems {settled:?}"
+        );
+    }
 }
 
 /// Convolutions on each of `paths` against the CPU's; im2col's blocks too where `paths` has it.

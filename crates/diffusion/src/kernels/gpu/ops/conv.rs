@@ -1,0 +1,552 @@
+//! Convolutions: a pointwise one is one product; the others run as im2col columns and a product, or on
+//! the convolution library's direct kernel, whichever the tuner timed faster for the problem on this device
+//! ([`conv_path`]).
+
+use std::collections::HashMap;
+use std::sync::{Mutex, OnceLock};
+
+use candle_core::Result;
+use cubecl::prelude::*;
+
+use super::super::cube;
+use super::super::GpuTensor;
+use super::{
+    add, cat, contiguous_strides, forced_by_env, gemm, half_operands, permute, transient_cap,
+    widen_f16, Gemm, GemmBias, Meta, ELEMENTWISE_UNITS, GRID_LIMIT,
+};
+use crate::kernels::device::Addend;
+
+/// 2D convolution of x [batch, cin, h, w] with weight [cout, cin, kh, kw]: a pointwise one as one product
+/// (the image is its own im2col matrix), others on the [`conv_path`] (im2col + products, or the library's
+/// direct kernel). The bias and `addend` join the product's finishing pass; after the direct kernel the
+/// addend is a pass of its own.
+pub fn conv2d(
+    x: &GpuTensor,
+    weight: &GpuTensor,
+    bias: Option<&GpuTensor>,
+    stride: usize,
+    padding: usize,
+    addend: Addend<'_, GpuTensor>,
+) -> Result<GpuTensor> {
+    let (&[n, cin, h, w], &[cout, wcin, kh, kw]) = (x.dims(), weight.dims()) else {
+        candle_core::bail!(
+            "gpu conv2d: input {:?}, weight {:?} are not 4D",
+            x.dims(),
+            weight.dims()
+        );
+    };
+    if cin != wcin || stride == 0 || h + 2 * padding < kh || w + 2 * padding < kw {
+        candle_core::bail!(
+            "gpu conv2d: input {:?}, weight {:?}, stride {stride}, padding {padding}",
+            x.dims(),
+            weight.dims()
+        );
+    }
+    let oh = (h + 2 * padding - kh) / stride + 1;
+    let ow = (w + 2 * padding - kw) / stride + 1;
+    match addend {
+        Addend::Residual(r) if r.dims() != [n, cout, oh, ow] => candle_core::bail!(
+            "gpu conv2d: residual {:?} for an output [{n}, {cout}, {oh}, {ow}]",
+            r.dims()
+        ),
+        Addend::PerChannel(t) if t.elem_count() != n * cout => candle_core::bail!(
+            "gpu conv2d: per-channel addend {:?} for {n} images × {cout} channels",
+            t.dims()
+        ),
+        _ => {}
+    }
+    if kh == 1 && kw == 1 && stride == 1 && padding == 0 {
+        // A pointwise convolution: the image [cin, h·w] is its own im2col matrix.
+        let g = Gemm {
+            batch: n,
+            m: cout,
+            n: h * w,
+            k: cin,
+            a_strides: [0, cin, 1],
+            b_strides: [cin * h * w, h * w, 1],
+            alpha: 1.0,
+        };
+        let product = |bias: GemmBias, residual: Option<&GpuTensor>| {
+            gemm(weight, x, bias, residual, &g, vec![n, cout, h * w])
+        };
+        return whole_batch_conv(product, bias, addend, [n, cout, oh, ow]);
+    }
+    let path = match forced_conv_path() {
+        Some(path) => path,
+        None => {
+            let problem = ConvProblem {
+                x: x.clone(),
+                weight: weight.clone(),
+                bias: bias.cloned(),
+                stride,
+                padding,
+                out: [oh, ow],
+            };
+            match tuned_conv_path(&problem) {
+                Tuned::Settled(path) => path,
+                // The tuning round's own result, without the addend.
+                Tuned::Ran(out) => return with_addend(out, addend),
+            }
+        }
+    };
+    if path == ConvPath::Direct {
+        if let Some(out) = direct_conv2d(x, weight, bias, stride, padding, [oh, ow])? {
+            return with_addend(out, addend);
+        }
+    }
+    // The im2col buffer is cin·kh·kw times the output's pixels: in a full-resolution VAE layer it alone
+    // outgrows a device's largest buffer (lavapipe: 128 MiB; 512² × 128 channels × 9 = 1.2 GB per image).
+    // Past the cap the convolution runs in blocks of whole images, then of output rows.
+    conv2d_blocked(x, weight, bias, stride, padding, addend, transient_cap(x))
+}
+
+/// How a convolution that is not pointwise runs on the GPU (pointwise ones are one product each).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum ConvPath {
+    /// im2col columns, then one product per block: the product runs on tensor cores where the device
+    /// has them, which a direct kernel cannot use.
+    Im2col,
+    /// The convolution library's direct kernel (`cubek-convolution`'s `launch_direct`, burn's pick on
+    /// lavapipe) on channels-last copies of the input and weights: a unit per output pixel and vector of
+    /// output channels, its input read as vectors along the input channels; no im2col buffer.
+    Direct,
+}
+
+impl std::fmt::Display for ConvPath {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            Self::Im2col => "im2col",
+            Self::Direct => "direct",
+        })
+    }
+}
+
+thread_local! {
+    /// Set by tests to pick a convolution path on their thread.
+    static CONV_OVERRIDE: std::cell::Cell<Option<ConvPath>> = const { std::cell::Cell::new(None) };
+}
+
+/// Runs `f` with the convolutions of this thread on `path` (tests, benches).
+pub fn with_conv_path<T>(path: ConvPath, f: impl FnOnce() -> T) -> T {
+    let before = CONV_OVERRIDE.replace(Some(path));
+    let result = f();
+    CONV_OVERRIDE.set(before);
+    result
+}
+
+/// The path `VCEDIT_GPU_CONV=im2col|direct` (A/B switch for benches) or a test's [`with_conv_path`]
+/// forces on every convolution, or `None`: each problem takes the path the tuner timed faster for it on
+/// its device ([`tuned_conv_paths`]).
+pub fn forced_conv_path() -> Option<ConvPath> {
+    static FORCED: OnceLock<Option<ConvPath>> = OnceLock::new();
+    CONV_OVERRIDE.get().or(forced_by_env(
+        &FORCED,
+        "VCEDIT_GPU_CONV",
+        |name| match name {
+            "im2col" => Some(ConvPath::Im2col),
+            "direct" => Some(ConvPath::Direct),
+            _ => None,
+        },
+    ))
+}
+
+/// One convolution as the tuner sees it: what it reads and where it writes, without the addend (which
+/// joins afterwards, fused on the im2col path).
+#[derive(Clone)]
+struct ConvProblem {
+    x: GpuTensor,
+    weight: GpuTensor,
+    bias: Option<GpuTensor>,
+    stride: usize,
+    padding: usize,
+    /// Output rows and columns.
+    out: [usize; 2],
+}
+
+impl ConvProblem {
+    fn key(&self) -> ConvKey {
+        let dims4 = |t: &GpuTensor| <[usize; 4]>::try_from(t.dims()).unwrap_or_default();
+        ConvKey {
+            input: dims4(&self.x),
+            weight: dims4(&self.weight),
+            stride: self.stride,
+            padding: self.padding,
+            f16_weights: self.weight.is_f16(),
+            bias: self.bias.is_some(),
+            matmul: super::matmul_path(self.x.device()).to_string(),
+        }
+    }
+
+    /// The convolution on `path`; an error where the path declines the problem.
+    fn run(&self, path: ConvPath) -> std::result::Result<GpuTensor, String> {
+        let (x, weight, bias) = (&self.x, &self.weight, self.bias.as_ref());
+        match path {
+            ConvPath::Im2col => {
+                let cap = transient_cap(x);
+                conv2d_blocked(
+                    x,
+                    weight,
+                    bias,
+                    self.stride,
+                    self.padding,
+                    Addend::None,
+                    cap,
+                )
+                .map_err(|e| e.to_string())
+            }
+            ConvPath::Direct => direct_conv2d(x, weight, bias, self.stride, self.padding, self.out)
+                .map_err(|e| e.to_string())?
+                .ok_or_else(|| "the direct kernel declines this problem".to_string()),
+        }
+    }
+}
+
+impl cubecl::tune::AutotuneOutput for GpuTensor {}
+
+/// What a convolution's timing depends on: its shapes, the weights' storage, and the product path
+/// im2col's columns go to (which follows the precision and `VCEDIT_GPU_MATMUL`).
+#[derive(Clone, Debug, PartialEq, Eq, Hash, serde::Serialize, serde::Deserialize)]
+pub struct ConvKey {
+    input: [usize; 4],
+    weight: [usize; 4],
+    stride: usize,
+    padding: usize,
+    f16_weights: bool,
+    bias: bool,
+    matmul: String,
+}
+
+impl std::fmt::Display for ConvKey {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let dims = |d: &[usize; 4]| d.map(|v| v.to_string()).join("x");
+        write!(
+            f,
+            "x {} w {}{} s{} p{}{}, {} products",
+            dims(&self.input),
+            dims(&self.weight),
+            if self.f16_weights { " f16" } else { "" },
+            self.stride,
+            self.padding,
+            if self.bias { " +bias" } else { "" },
+            self.matmul
+        )
+    }
+}
+
+impl cubecl::tune::AutotuneKey for ConvKey {}
+
+/// What [`tuned_conv_path`] has for a problem.
+enum Tuned {
+    /// The path settled for it.
+    Settled(ConvPath),
+    /// The problem's output from the round that just timed its paths (or read the persisted result).
+    Ran(GpuTensor),
+}
+
+/// The paths settled in this process, per device (its [`GpuDevice::tune_id`]) and problem.
+type Settled = HashMap<(String, ConvKey), ConvPath>;
+
+fn settled() -> &'static Mutex<Settled> {
+    static SETTLED: OnceLock<Mutex<Settled>> = OnceLock::new();
+    SETTLED.get_or_init(Default::default)
+}
+
+/// The path for `problem` on its device, timed once per problem and device like burn's autotune: the
+/// first call runs both paths a few times (cubecl's tuner: at least 3 samples each, a candidate 1.5×
+/// slower than the best is dropped) and keeps the faster in cubecl's persistent cache
+/// (`files::cache_dir()/cubecl`), so later processes only look it up. Neither path wins everywhere: on
+/// lavapipe (Mesa 25.0.7, WGSL, 2026-11-29) the direct kernel took the small UNet (channels 32–256 at
+/// 16² and below) from 7.6–8.2 s to 6.6–6.7 s a forward, but LPIPS-VGG16 at 64² (channels 64–512)
+/// from 4.9 s to 14.1 s for value and gradient, and no rule on channels or pixels separated the two;
+/// on a GPU with tensor cores im2col's product runs on them, which the direct kernel cannot use.
+fn tuned_conv_path(problem: &ConvProblem) -> Tuned {
+    use cubecl::tune::{local_tuner, LocalTuner, Tunable, TunableSet};
+    static TUNER: LocalTuner<ConvKey, String> = local_tuner!("conv2d");
+    let device = problem.x.device();
+    let id = device.tune_id().to_string();
+    let key = problem.key();
+    let settled_key = (id, key);
+    if let Some(&path) = settled().lock().expect("settled paths").get(&settled_key) {
+        return Tuned::Settled(path);
+    }
+    let (id, key) = &settled_key;
+    let set = TUNER.init(id, || {
+        let candidate = |path: ConvPath| {
+            Tunable::<ConvKey, ConvProblem, GpuTensor, ConvPath>::identified(
+                path,
+                move |problem: ConvProblem| problem.run(path),
+            )
+        };
+        TunableSet::new_cloning_inputs(|problem: &ConvProblem| problem.key())
+            .with(candidate(ConvPath::Im2col))
+            .with(candidate(ConvPath::Direct))
+    });
+    let ran = match TUNER.fastest_identity(id, &set, key) {
+        Some(path) => Tuned::Settled(path),
+        None => Tuned::Ran(TUNER.execute(id, device.client(), set.clone(), problem.clone())),
+    };
+    if let Some(path) = TUNER.fastest_identity(id, &set, key) {
+        settled()
+            .lock()
+            .expect("settled paths")
+            .insert(settled_key.clone(), path);
+    }
+    ran
+}
+
+/// The convolution paths settled in this process (for reports): each problem, described, and its path.
+pub fn tuned_conv_paths() -> Vec<(String, ConvPath)> {
+    let mut paths: Vec<_> = settled()
+        .lock()
+        .expect("settled paths")
+        .iter()
+        .map(|((_, key), &path)| (key.to_string(), path))
+        .collect();
+    paths.sort_by(|a, b| a.0.cmp(&b.0));
+    paths
+}
+
+/// x [batch, cin, h, w] ⊛ weight [cout, cin, kh, kw] (+ bias) into [batch, cout, oh, ow] by the
+/// library's direct kernel on channels-last copies, or `None` where it declines the problem (shapes
+/// checked by [`conv2d`]).
+fn direct_conv2d(
+    x: &GpuTensor,
+    weight: &GpuTensor,
+    bias: Option<&GpuTensor>,
+    stride: usize,
+    padding: usize,
+    [oh, ow]: [usize; 2],
+) -> Result<Option<GpuTensor>> {
+    use cubecl::ir::{ElemType, FloatKind};
+    use cubek_convolution::{launch_direct, ConvolutionArgs, DirectTensors};
+    let (n, cout) = (x.dims()[0], weight.dims()[0]);
+    let input = permute(x, &[0, 2, 3, 1])?;
+    let kernel = permute(&widen_f16(weight), &[0, 2, 3, 1])?;
+    let bias = bias.map(widen_f16);
+    let out = x.empty_like_device(vec![n, oh, ow, cout]);
+    let bind = |t: &GpuTensor| t.binding(t.dims(), &contiguous_strides(t.dims()));
+    let launched = launch_direct::<2>(
+        x.client(),
+        DirectTensors {
+            input: bind(&input),
+            weight: bind(&kernel),
+            bias: bias.as_ref().map(bind),
+            out: bind(&out),
+        },
+        ConvolutionArgs {
+            stride: [stride; 2],
+            padding: [padding; 2],
+            dilation: [1; 2],
+        },
+        1,
+        ElemType::Float(FloatKind::F32),
+    );
+    if launched.is_err() {
+        return Ok(None);
+    }
+    Ok(Some(permute(&out, &[0, 3, 1, 2])?))
+}
+
+/// [`conv2d`] with im2col blocks of at most `cap` bytes (where one output row does not fit, one row).
+pub(super) fn conv2d_blocked(
+    x: &GpuTensor,
+    weight: &GpuTensor,
+    bias: Option<&GpuTensor>,
+    stride: usize,
+    padding: usize,
+    addend: Addend<'_, GpuTensor>,
+    cap: usize,
+) -> Result<GpuTensor> {
+    let (&[n, cin, h, w], &[cout, _, kh, kw]) = (x.dims(), weight.dims()) else {
+        candle_core::bail!("gpu conv2d: input or weight not 4D");
+    };
+    let oh = (h + 2 * padding - kh) / stride + 1;
+    let ow = (w + 2 * padding - kw) / stride + 1;
+    let depth = cin * kh * kw;
+    // The columns in the product's operand precision: f16 columns need no narrowing pass.
+    let half = half_operands(x.device());
+    let per_row = depth * ow * if half { 2 } else { 4 };
+    let per_image = per_row * oh;
+    let row_bias = bias.map_or(GemmBias::None, GemmBias::PerRow);
+    let block = |n0: usize,
+                 images: usize,
+                 oy0: usize,
+                 rows: usize,
+                 bias: GemmBias,
+                 residual: Option<&GpuTensor>|
+     -> Result<GpuTensor> {
+        let window = ConvWindow {
+            kh,
+            kw,
+            stride,
+            padding,
+            n0,
+            images,
+            oy0,
+            rows,
+            ow,
+        };
+        let cols = im2col(x, &window, half)?;
+        let g = Gemm {
+            batch: images,
+            m: cout,
+            n: rows * ow,
+            k: depth,
+            a_strides: [0, depth, 1],
+            b_strides: [depth * rows * ow, rows * ow, 1],
+            alpha: 1.0,
+        };
+        gemm(
+            weight,
+            &cols,
+            bias,
+            residual,
+            &g,
+            vec![images, cout, rows * ow],
+        )
+    };
+    if n * per_image <= cap {
+        return whole_batch_conv(
+            |bias, residual| block(0, n, 0, oh, bias, residual),
+            bias,
+            addend,
+            [n, cout, oh, ow],
+        );
+    }
+    let mut parts = Vec::new();
+    if per_image <= cap {
+        let images = cap / per_image;
+        for n0 in (0..n).step_by(images) {
+            parts.push(block(n0, images.min(n - n0), 0, oh, row_bias, None)?);
+        }
+    } else {
+        let rows = (cap / per_row).max(1);
+        for n0 in 0..n {
+            let bands = (0..oh)
+                .step_by(rows)
+                .map(|oy0| block(n0, 1, oy0, rows.min(oh - oy0), row_bias, None))
+                .collect::<Result<Vec<_>>>()?;
+            parts.push(cat(&bands.iter().collect::<Vec<_>>(), 2)?);
+        }
+    }
+    let out = cat(&parts.iter().collect::<Vec<_>>(), 0)?.reshape(&[n, cout, oh, ow])?;
+    // Blocks: the addend follows in a pass of its own.
+    with_addend(out, addend)
+}
+
+/// A convolution's output [n, cout, oh, ow] plus `addend`, in a pass of its own.
+fn with_addend(out: GpuTensor, addend: Addend<'_, GpuTensor>) -> Result<GpuTensor> {
+    match addend {
+        Addend::None => Ok(out),
+        Addend::Residual(r) => add(&out, r),
+        Addend::PerChannel(t) => add(&out, &t.reshape(&[out.dims()[0], out.dims()[1], 1, 1])?),
+    }
+}
+
+/// A convolution's output [n, cout, oh, ow] from one `product` over the whole batch (its rows the output
+/// channels, its columns the pixels): the bias and the addend join the product's finishing pass.
+fn whole_batch_conv(
+    product: impl Fn(GemmBias, Option<&GpuTensor>) -> Result<GpuTensor>,
+    bias: Option<&GpuTensor>,
+    addend: Addend<'_, GpuTensor>,
+    [n, cout, oh, ow]: [usize; 4],
+) -> Result<GpuTensor> {
+    let row_bias = bias.map_or(GemmBias::None, GemmBias::PerRow);
+    let out = match addend {
+        Addend::None => product(row_bias, None)?,
+        Addend::Residual(r) => product(row_bias, Some(&r.reshape(&[n, cout, oh * ow])?))?,
+        Addend::PerChannel(t) => {
+            let t = t.reshape(&[n, cout])?;
+            let per_image = match bias {
+                Some(b) => add(&t, &b.reshape(&[1, cout])?)?,
+                None => t,
+            };
+            product(GemmBias::PerBatchRow(&per_image), None)?
+        }
+    };
+    out.reshape(&[n, cout, oh, ow])
+}
+
+/// Which part of a convolution's output one im2col block covers.
+#[derive(Clone, Copy)]
+pub(super) struct ConvWindow {
+    pub(super) kh: usize,
+    pub(super) kw: usize,
+    pub(super) stride: usize,
+    pub(super) padding: usize,
+    /// Images `n0..n0 + images` of the batch.
+    pub(super) n0: usize,
+    pub(super) images: usize,
+    /// Output rows `oy0..oy0 + rows`, each `ow` wide.
+    pub(super) oy0: usize,
+    pub(super) rows: usize,
+    pub(super) ow: usize,
+}
+
+/// The im2col columns [images, cin·kh·kw, rows·ow] of x [batch, cin, h, w] over `window`: f16 when
+/// `half` (the product reads them as they are, no narrowing pass), else f32.
+pub(super) fn im2col(x: &GpuTensor, window: &ConvWindow, half: bool) -> Result<GpuTensor> {
+    im2col_on_grid(x, window, half, GRID_LIMIT)
+}
+
+/// [`im2col`] with at most `limit` cubes along each grid dimension (tests take a small one, so that the
+/// kernel's strides past the grid are exercised).
+pub(super) fn im2col_on_grid(
+    x: &GpuTensor,
+    window: &ConvWindow,
+    half: bool,
+    limit: u32,
+) -> Result<GpuTensor> {
+    let &[_, cin, h, w] = x.dims() else {
+        candle_core::bail!("gpu im2col: input {:?} is not 4D", x.dims());
+    };
+    let ConvWindow {
+        kh, kw, rows, ow, ..
+    } = *window;
+    let shape = vec![window.images, cin * kh * kw, rows * ow];
+    let (stride, padding, oy0, n0) = (window.stride, window.padding, window.oy0, window.n0);
+    let images = window.images;
+    let meta = Meta::new(
+        x,
+        &[
+            cin, h, w, kh, kw, stride, padding, rows, ow, oy0, n0, images,
+        ],
+    )?;
+    // x: output pixels, y: input channels, z: images (the kernel strides past the grid's size). Deep
+    // layers have few pixels (8² at SD 1.5's lowest level), so a cube is only as wide as they need.
+    let pixels = rows * ow;
+    let width = pixels
+        .next_power_of_two()
+        .clamp(32, ELEMENTWISE_UNITS as usize);
+    let cap = |n: usize| n.clamp(1, limit as usize) as u32;
+    let count = CubeCount::Static(cap(pixels.div_ceil(width)), cap(cin), cap(images));
+    let units = CubeDim::new_1d(width as u32);
+    // SAFETY: the kernel writes the [images, cin·kh·kw, rows·ow] columns it walks, and reads x only
+    // inside images n0..n0 + images of the batch and [0, h) × [0, w).
+    let cols = unsafe {
+        if half {
+            let cols = x.empty_half_like(shape);
+            cube::im2col::launch_unchecked::<half::f16>(
+                x.client(),
+                count,
+                units,
+                x.arg(),
+                cols.half_arg(),
+                meta.arg(),
+            );
+            cols
+        } else {
+            let cols = x.empty_like_device(shape);
+            cube::im2col::launch_unchecked::<f32>(
+                x.client(),
+                count,
+                units,
+                x.arg(),
+                cols.arg(),
+                meta.arg(),
+            );
+            cols
+        }
+    };
+    Ok(cols)
+}
