@@ -302,7 +302,7 @@ if have_torch; then step text-torch 60 python3 "$TB" text --model "$MODEL" --bat
 
 # ---- LPIPS-VGG16 (the fits' perceptual loss; generated full-width weights): value + input gradient
 if [ "$MODE" = device ]; then LPIPS_SIZE=512 LPIPS_RUNS=5; else LPIPS_SIZE=64 LPIPS_RUNS=1; fi
-step lpips 60 "$V" bench lpips --device gpu --sizes "$LPIPS_SIZE" --runs "$LPIPS_RUNS"
+step lpips 90 "$V" bench lpips --device gpu --sizes "$LPIPS_SIZE" --runs "$LPIPS_RUNS"
 step lpips-cpu 90 "$V" bench lpips --device cpu --sizes "$LPIPS_SIZE" --runs 1
 
 # ---- CCM's lifting round (one attention layer: 16² maps, 144 channels, 8 views at 512², 31k Gaussians),

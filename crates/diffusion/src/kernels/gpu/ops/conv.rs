@@ -166,8 +166,11 @@ struct ConvProblem {
 impl ConvProblem {
     fn key(&self) -> ConvKey {
         let dims4 = |t: &GpuTensor| <[usize; 4]>::try_from(t.dims()).unwrap_or_default();
+        let mut input = dims4(&self.x);
+        // Batches of 5 to 8 images share one result (an edit's view batches vary in size).
+        input[0] = input[0].next_power_of_two();
         ConvKey {
-            input: dims4(&self.x),
+            input,
             weight: dims4(&self.weight),
             stride: self.stride,
             padding: self.padding,
@@ -203,8 +206,9 @@ impl ConvProblem {
 
 impl cubecl::tune::AutotuneOutput for GpuTensor {}
 
-/// What a convolution's timing depends on: its shapes, the weights' storage, and the product path
-/// im2col's columns go to (which follows the precision and `VCEDIT_GPU_MATMUL`).
+/// What a convolution's timing depends on: its shapes (the batch rounded up to a power of two), the
+/// weights' storage, and the product path im2col's columns go to (which follows the precision and
+/// `VCEDIT_GPU_MATMUL`).
 #[derive(Clone, Debug, PartialEq, Eq, Hash, serde::Serialize, serde::Deserialize)]
 pub struct ConvKey {
     input: [usize; 4],
@@ -252,13 +256,15 @@ fn settled() -> &'static Mutex<Settled> {
 }
 
 /// The path for `problem` on its device, timed once per problem and device like burn's autotune: the
-/// first call runs both paths a few times (cubecl's tuner: at least 3 samples each, a candidate 1.5×
-/// slower than the best is dropped) and keeps the faster in cubecl's persistent cache
-/// (`files::cache_dir()/cubecl`), so later processes only look it up. Neither path wins everywhere: on
-/// lavapipe (Mesa 25.0.7, WGSL, 2026-11-29) the direct kernel took the small UNet (channels 32–256 at
-/// 16² and below) from 7.6–8.2 s to 6.6–6.7 s a forward, but LPIPS-VGG16 at 64² (channels 64–512)
-/// from 4.9 s to 14.1 s for value and gradient, and no rule on channels or pixels separated the two;
-/// on a GPU with tensor cores im2col's product runs on them, which the direct kernel cannot use.
+/// first call runs each path twice (cubecl's tuner: a warm-up and one sample, see `gpu`'s
+/// `configure_runtime`) and keeps the faster in cubecl's persistent cache (`files::cache_dir()/cubecl`),
+/// so later processes only look it up. Neither path wins everywhere: on lavapipe (Mesa 25.0.7, WGSL,
+/// 2026-11-29) the direct kernel took the small UNet (channels 32–256 at 16² and below) from 7.6–8.2 s
+/// to 6.6–6.7 s a forward, but LPIPS-VGG16 at 64² (channels 64–512) from 4.9 s to 14.1 s for value and
+/// gradient, and no rule on channels or pixels separated the two; on a GPU with tensor cores im2col's
+/// product runs on them, which the direct kernel cannot use. The one-off cost is two runs of the slower
+/// path per problem: on lavapipe 26 s for LPIPS at 64² (18 problems), a few milliseconds a problem on
+/// a hardware GPU.
 fn tuned_conv_path(problem: &ConvProblem) -> Tuned {
     use cubecl::tune::{local_tuner, LocalTuner, Tunable, TunableSet};
     static TUNER: LocalTuner<ConvKey, String> = local_tuner!("conv2d");
