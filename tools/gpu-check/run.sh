@@ -362,7 +362,9 @@ step fit-ab "${FIT_AB_TIMEOUT:-240}" bash -c 'failed=0; for v in $5; do
 if [ "$MODE" = device ]; then
   step demo 150 "$V" demo --model "$ROOT/models/demo" --device gpu --out "$WORK/demo"
 else
-  step demo 120 "$V" demo --model "$ROOT/models/demo" --device gpu --out "$WORK/demo" --views 2 \
+  # 180 s: the first run on empty caches also times both convolution paths per problem (~40 s on lavapipe;
+  # 75 s in all in CI on 2026-11-29, 34 s with im2col forced).
+  step demo 180 "$V" demo --model "$ROOT/models/demo" --device gpu --out "$WORK/demo" --views 2 \
     --steps 2 --iterations 1 --fit-steps 5
 fi
 
