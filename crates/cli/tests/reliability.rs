@@ -829,6 +829,40 @@ fn counts_and_durations_out_of_range_are_refused() {
 }
 
 #[test]
+fn training_configs_that_do_not_parse_or_fit_are_named() {
+    let dir = tempfile::tempdir().unwrap();
+    let train = |config: &str| {
+        vcedit_in(
+            dir.path(),
+            &["demo-model", "train", "--out", "m", "--config", config],
+        )
+    };
+    std::fs::write(
+        dir.path().join("cut.json"),
+        r#"{"seed": 0, "image_size": 12"#,
+    )
+    .unwrap();
+    assert_one_clear_error(
+        &train("cut.json"),
+        1,
+        &["cut.json", "not a training config"],
+    );
+    // Parses, but 102 is no multiple of the codec's downscale (4).
+    let mut config: serde_json::Value = serde_json::from_str(
+        &std::fs::read_to_string(
+            PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../tools/demo-model/fine.json"),
+        )
+        .unwrap(),
+    )
+    .unwrap();
+    config["image_size"] = 102.into();
+    std::fs::write(dir.path().join("odd.json"), config.to_string()).unwrap();
+    assert_one_clear_error(&train("odd.json"), 1, &["odd.json", "image size 102"]);
+    assert_one_clear_error(&train("missing.json"), 1, &["missing.json", "cannot read"]);
+    assert!(!dir.path().join("m").exists());
+}
+
+#[test]
 fn an_empty_merges_file_is_refused() {
     let dir = tempfile::tempdir().unwrap();
     let model = broken_model(dir.path(), |m| {

@@ -40,14 +40,19 @@ pub enum Preset {
   vcedit demo-model train --out models/demo
   vcedit demo-model train --out /tmp/tiny --preset tiny --unet-steps 50
   vcedit demo-model train --out /tmp/t --init models/demo --unet-steps 900
+  vcedit demo-model train --out /tmp/f --config fine.json
 
 Rerunning the same command continues from OUT/checkpoints; --restart discards them.")]
 pub struct TrainArgs {
     /// Output folder (diffusers layout; checkpoints go to OUT/checkpoints).
     #[arg(long, value_name = "DIR")]
     pub out: PathBuf,
-    #[arg(long, value_enum, default_value = "demo")]
+    #[arg(long, value_enum, default_value = "demo", conflicts_with = "config")]
     pub preset: Preset,
+    /// A whole training config as JSON instead of a preset: the fields of the "config" object in a
+    /// run's OUT/checkpoints/state.json (architecture, steps, rates). The options below override it.
+    #[arg(long, value_name = "FILE")]
+    pub config: Option<PathBuf>,
     /// Random seed (world samples, initialisation, batches).
     #[arg(long, value_parser = whole::<u64>, allow_negative_numbers = true)]
     pub seed: Option<u64>,
@@ -116,18 +121,31 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     }
 }
 
+/// A training config from a JSON file; a file that does not parse or whose numbers do not fit together is
+/// named with the problem.
+fn read_config(path: &std::path::Path) -> anyhow::Result<TrainConfig> {
+    let text = std::fs::read_to_string(path)
+        .with_context(|| format!("--config {}: cannot read it", path.display()))?;
+    let config: TrainConfig = serde_json::from_str(&text)
+        .map_err(|e| anyhow::anyhow!("--config {}: not a training config: {e}", path.display()))?;
+    config
+        .validate()
+        .map_err(|e| anyhow::anyhow!("--config {}: {e}", path.display()))?;
+    Ok(config)
+}
+
 fn run_train(args: TrainArgs) -> anyhow::Result<()> {
     if let Some(m) = args.checkpoint_minutes {
         if m <= 0.0 {
             bail!("--checkpoint-minutes {m} must be positive");
         }
     }
-    // Temporary files of a killed training run (the folder is resumable, so its own files stay).
-    files::clean_stale_temps(&args.out)?;
-    files::clean_stale_temps(&args.out.join("checkpoints"))?;
-    let mut config = match args.preset {
-        Preset::Demo => TrainConfig::demo(),
-        Preset::Tiny => TrainConfig::tiny(),
+    let mut config = match &args.config {
+        Some(path) => read_config(path)?,
+        None => match args.preset {
+            Preset::Demo => TrainConfig::demo(),
+            Preset::Tiny => TrainConfig::tiny(),
+        },
     };
     if let Some(v) = args.seed {
         config.seed = v;
@@ -150,6 +168,9 @@ fn run_train(args: TrainArgs) -> anyhow::Result<()> {
         }
         config.unet.lr = v;
     }
+    // Temporary files of a killed training run (the folder is resumable, so its own files stay).
+    files::clean_stale_temps(&args.out)?;
+    files::clean_stale_temps(&args.out.join("checkpoints"))?;
     if let Some(init) = &args.init {
         if !init.join("unet/config.json").is_file() {
             bail!(

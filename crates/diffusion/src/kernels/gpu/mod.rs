@@ -27,7 +27,7 @@ use gpu::{DeviceChoice, GpuContext, GpuError};
 
 /// The name tuning results on `context`'s device are kept under: adapter, graphics API and compiler (a
 /// timing on WGSL says nothing of SPIR-V), as one path segment of ASCII letters, digits, '-' and '.'.
-fn tune_id(context: &GpuContext) -> String {
+fn tune_id(context: &GpuContext) -> Arc<str> {
     let name = format!(
         "{} {} {}",
         context.adapter, context.backend, context.compiler
@@ -40,7 +40,8 @@ fn tune_id(context: &GpuContext) -> String {
                 '-'
             }
         })
-        .collect()
+        .collect::<String>()
+        .into()
 }
 
 /// An opened GPU for the networks: the shared [`GpuContext`] and the uploaded-weight cache.
@@ -52,8 +53,9 @@ pub struct GpuDevice {
 struct Inner {
     context: GpuContext,
     precision: Precision,
-    /// Names the device's tuning results (adapter, graphics API, compiler) in cubecl's persistent cache.
-    tune_id: String,
+    /// Names the device's tuning results (adapter, graphics API, compiler) in cubecl's persistent cache;
+    /// shared, as the tuner clones it on every lookup.
+    tune_id: Arc<str>,
     /// Weights already on the device, keyed by tensor id and whether the copy is f16. The CPU tensor is
     /// kept beside its copy so its id stays unique.
     weights: Mutex<HashMap<(TensorId, bool), CachedWeight>>,
@@ -119,7 +121,7 @@ impl GpuDevice {
     }
 
     /// What the device's tuning results are kept under (see [`tune_id`]).
-    pub(crate) fn tune_id(&self) -> &str {
+    pub(crate) fn tune_id(&self) -> &Arc<str> {
         &self.inner.tune_id
     }
 

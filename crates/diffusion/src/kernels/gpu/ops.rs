@@ -683,7 +683,8 @@ fn forced_by_env<T: Copy>(
 }
 
 /// How a product runs: our own kernel, or the matrix-product library (cubek) on f32 or f16 operands.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "kebab-case")]
 pub enum MatmulPath {
     /// Our register-blocked kernel (f32 sums; f16 weights unpacked as they are read).
     Own,

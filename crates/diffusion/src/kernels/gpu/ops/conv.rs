@@ -2,8 +2,8 @@
 //! the convolution library's direct kernel, whichever the tuner timed faster for the problem on this device
 //! ([`conv_path`]).
 
-use std::collections::HashMap;
-use std::sync::{Mutex, OnceLock};
+use std::collections::BTreeMap;
+use std::sync::{Arc, Mutex, OnceLock};
 
 use candle_core::Result;
 use cubecl::prelude::*;
@@ -12,7 +12,7 @@ use super::super::cube;
 use super::super::GpuTensor;
 use super::{
     add, cat, contiguous_strides, forced_by_env, gemm, half_operands, permute, transient_cap,
-    widen_f16, Gemm, GemmBias, Meta, ELEMENTWISE_UNITS, GRID_LIMIT,
+    widen_f16, Gemm, GemmBias, MatmulPath, Meta, ELEMENTWISE_UNITS, GRID_LIMIT,
 };
 use crate::kernels::device::Addend;
 
@@ -176,7 +176,7 @@ impl ConvProblem {
             padding: self.padding,
             f16_weights: self.weight.is_f16(),
             bias: self.bias.is_some(),
-            matmul: super::matmul_path(self.x.device()).to_string(),
+            matmul: super::matmul_path(self.x.device()),
         }
     }
 
@@ -217,7 +217,7 @@ pub struct ConvKey {
     padding: usize,
     f16_weights: bool,
     bias: bool,
-    matmul: String,
+    matmul: MatmulPath,
 }
 
 impl std::fmt::Display for ConvKey {
@@ -247,11 +247,10 @@ enum Tuned {
     Ran(GpuTensor),
 }
 
-/// The paths settled in this process, per device (its [`GpuDevice::tune_id`]) and problem.
-type Settled = HashMap<(String, ConvKey), ConvPath>;
-
-fn settled() -> &'static Mutex<Settled> {
-    static SETTLED: OnceLock<Mutex<Settled>> = OnceLock::new();
+/// The paths settled in this process, each problem described (for reports only: the tuner's own cache
+/// decides).
+fn settled_report() -> &'static Mutex<BTreeMap<String, ConvPath>> {
+    static SETTLED: OnceLock<Mutex<BTreeMap<String, ConvPath>>> = OnceLock::new();
     SETTLED.get_or_init(Default::default)
 }
 
@@ -267,15 +266,10 @@ fn settled() -> &'static Mutex<Settled> {
 /// a hardware GPU.
 fn tuned_conv_path(problem: &ConvProblem) -> Tuned {
     use cubecl::tune::{local_tuner, LocalTuner, Tunable, TunableSet};
-    static TUNER: LocalTuner<ConvKey, String> = local_tuner!("conv2d");
+    static TUNER: LocalTuner<ConvKey, Arc<str>> = local_tuner!("conv2d");
     let device = problem.x.device();
-    let id = device.tune_id().to_string();
+    let id = device.tune_id();
     let key = problem.key();
-    let settled_key = (id, key);
-    if let Some(&path) = settled().lock().expect("settled paths").get(&settled_key) {
-        return Tuned::Settled(path);
-    }
-    let (id, key) = &settled_key;
     let set = TUNER.init(id, || {
         let candidate = |path: ConvPath| {
             Tunable::<ConvKey, ConvProblem, GpuTensor, ConvPath>::identified(
@@ -287,29 +281,28 @@ fn tuned_conv_path(problem: &ConvProblem) -> Tuned {
             .with(candidate(ConvPath::Im2col))
             .with(candidate(ConvPath::Direct))
     });
-    let ran = match TUNER.fastest_identity(id, &set, key) {
-        Some(path) => Tuned::Settled(path),
-        None => Tuned::Ran(TUNER.execute(id, device.client(), set.clone(), problem.clone())),
-    };
-    if let Some(path) = TUNER.fastest_identity(id, &set, key) {
-        settled()
+    // Settled in this process: the tuner's in-memory result. Otherwise this call times the paths, or
+    // validates the result persisted by an earlier process, and runs the problem on the faster.
+    if let Some(path) = TUNER.fastest_identity(id, &set, &key) {
+        return Tuned::Settled(path);
+    }
+    let out = TUNER.execute(id, device.client(), set.clone(), problem.clone());
+    if let Some(path) = TUNER.fastest_identity(id, &set, &key) {
+        settled_report()
             .lock()
             .expect("settled paths")
-            .insert(settled_key.clone(), path);
+            .insert(key.to_string(), path);
     }
-    ran
+    Tuned::Ran(out)
 }
 
 /// The convolution paths settled in this process (for reports): each problem, described, and its path.
 pub fn tuned_conv_paths() -> Vec<(String, ConvPath)> {
-    let mut paths: Vec<_> = settled()
-        .lock()
-        .expect("settled paths")
+    let report = settled_report().lock().expect("settled paths");
+    report
         .iter()
-        .map(|((_, key), &path)| (key.to_string(), path))
-        .collect();
-    paths.sort_by(|a, b| a.0.cmp(&b.0));
-    paths
+        .map(|(key, &path)| (key.clone(), path))
+        .collect()
 }
 
 /// x [batch, cin, h, w] ⊛ weight [cout, cin, kh, kw] (+ bias) into [batch, cout, oh, ow] by the
