@@ -1,6 +1,6 @@
 //! Convolutions: a pointwise one is one product; the others run as im2col columns and a product, or on
 //! the convolution library's direct kernel, whichever the tuner timed faster for the problem on this device
-//! ([`conv_path`]).
+//! ([`tuned_conv_path`]).
 
 use std::collections::BTreeMap;
 use std::sync::{Arc, Mutex, OnceLock};
@@ -17,7 +17,7 @@ use super::{
 use crate::kernels::device::Addend;
 
 /// 2D convolution of x [batch, cin, h, w] with weight [cout, cin, kh, kw]: a pointwise one as one product
-/// (the image is its own im2col matrix), others on the [`conv_path`] (im2col + products, or the library's
+/// (the image is its own im2col matrix), others on the path [`tuned_conv_path`] picks (im2col + products, or the library's
 /// direct kernel). The bias and `addend` join the product's finishing pass; after the direct kernel the
 /// addend is a pass of its own.
 pub fn conv2d(
