@@ -858,6 +858,14 @@ fn training_configs_that_do_not_parse_or_fit_are_named() {
     config["image_size"] = 102.into();
     std::fs::write(dir.path().join("odd.json"), config.to_string()).unwrap();
     assert_one_clear_error(&train("odd.json"), 1, &["odd.json", "image size 102"]);
+    config["image_size"] = 128.into();
+    config["unet"]["beta_end"] = 0.0001.into();
+    std::fs::write(dir.path().join("betas.json"), config.to_string()).unwrap();
+    assert_one_clear_error(
+        &train("betas.json"),
+        1,
+        &["betas.json", "unet.beta_end 0.0001"],
+    );
     assert_one_clear_error(&train("missing.json"), 1, &["missing.json", "cannot read"]);
     assert!(!dir.path().join("m").exists());
 }

@@ -59,6 +59,24 @@ pub struct UnetConfig {
     /// Min-SNR-γ loss weighting (Hang et al. 2023): weight min(SNR, γ)/SNR per timestep.
     pub min_snr_gamma: f64,
     pub ema_decay: f64,
+    /// First and last β of the scaled-linear noise schedule the UNet learns (and the exported scheduler
+    /// config carries). SD 1.x's 0.00085 → 0.012 where absent. A latent twice as wide at the same noise
+    /// level keeps more of its image (neighbouring latents share it), so a finer codec needs noisier
+    /// steps for the same difficulty: 0.00335 → 0.0107 divides SD's signal-to-noise ratio by 4 at every
+    /// step to within 10 % (what 32² latents need to match SD's at 16²; Hoogeboom et al. 2023, "simple
+    /// diffusion", shift the schedule the same way).
+    #[serde(default = "sd_beta_start")]
+    pub beta_start: f64,
+    #[serde(default = "sd_beta_end")]
+    pub beta_end: f64,
+}
+
+fn sd_beta_start() -> f64 {
+    BETA_START
+}
+
+fn sd_beta_end() -> f64 {
+    BETA_END
 }
 
 /// Everything a run depends on besides its output folder.
@@ -77,7 +95,8 @@ pub struct TrainConfig {
     pub checkpoint_minutes: f64,
 }
 
-/// The noise schedule of SD 1.x (and of the exported scheduler config).
+/// The noise schedule of SD 1.x: its step count (every demo model's) and betas (the default of
+/// [`UnetConfig::beta_start`] / [`UnetConfig::beta_end`]).
 pub const TRAIN_TIMESTEPS: usize = 1000;
 pub const BETA_START: f64 = 0.00085;
 pub const BETA_END: f64 = 0.012;
@@ -131,6 +150,8 @@ impl TrainConfig {
                 caption_dropout: 0.1,
                 min_snr_gamma: 5.0,
                 ema_decay: 0.999,
+                beta_start: BETA_START,
+                beta_end: BETA_END,
             },
             checkpoint_minutes: 5.0,
         }
@@ -249,6 +270,12 @@ impl TrainConfig {
         if !(0.0..1.0).contains(&u.caption_dropout) {
             return Err("caption dropout must be in [0, 1)".into());
         }
+        if !(u.beta_start > 0.0 && u.beta_start < u.beta_end && u.beta_end < 1.0) {
+            return Err(format!(
+                "unet.beta_start {} and unet.beta_end {} must satisfy 0 < start < end < 1",
+                u.beta_start, u.beta_end
+            ));
+        }
         Ok(())
     }
 
@@ -357,15 +384,16 @@ impl TrainConfig {
         })
     }
 
-    /// `scheduler/scheduler_config.json`: an `LCMScheduler` over SD 1.x's schedule, so the editor's LCM
-    /// step selection (15 of 50 "original" steps) applies; DDIM reads the same betas.
-    pub fn scheduler_config_json() -> Value {
+    /// `scheduler/scheduler_config.json`: an `LCMScheduler` over the scaled-linear schedule the UNet
+    /// learned, so the editor's LCM step selection (15 of 50 "original" steps) applies; DDIM reads the
+    /// same betas.
+    pub fn scheduler_config_json(&self) -> Value {
         json!({
             "_class_name": "LCMScheduler",
             "_diffusers_version": "0.42.1",
-            "beta_end": BETA_END,
+            "beta_end": self.unet.beta_end,
             "beta_schedule": "scaled_linear",
-            "beta_start": BETA_START,
+            "beta_start": self.unet.beta_start,
             "clip_sample": false,
             "clip_sample_range": 1.0,
             "dynamic_thresholding_ratio": 0.995,
@@ -459,5 +487,62 @@ mod tests {
         let mut c = TrainConfig::demo();
         c.unet.cross_attention = vec![false, false, false];
         assert!(c.validate().unwrap_err().contains("cross_attention"));
+        let mut c = TrainConfig::demo();
+        c.unet.beta_end = c.unet.beta_start;
+        assert!(c.validate().unwrap_err().contains("beta_end"));
+    }
+
+    #[test]
+    fn the_exported_scheduler_runs_the_schedule_the_unet_learned() {
+        use diffusion::scheduler::{LcmConfig, LcmScheduler, LcmVariant};
+        let mut c = TrainConfig::demo();
+        (c.unet.beta_start, c.unet.beta_end) = (0.00335, 0.0107);
+        c.validate().unwrap();
+        let lcm: LcmConfig = serde_json::from_value(c.scheduler_config_json()).unwrap();
+        let exported = LcmScheduler::new(lcm, LcmVariant::default()).unwrap();
+        let trained = super::super::denoiser::noise_schedule(&c.unet);
+        for t in [0, 250, 999] {
+            let (e, l) = (
+                exported.noise_schedule().alpha_cumprod(t).unwrap(),
+                trained.alpha_cumprod(t).unwrap(),
+            );
+            assert_eq!(e, l, "t {t}");
+            // Not SD's: the shifted schedule is noisier at every step.
+            let sd = super::super::denoiser::noise_schedule(&TrainConfig::demo().unet);
+            assert!(l < sd.alpha_cumprod(t).unwrap(), "t {t}");
+        }
+    }
+
+    #[test]
+    fn the_committed_training_configs_parse_and_fit() {
+        let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../tools/demo-model");
+        let mut seen = 0;
+        for entry in std::fs::read_dir(&dir).unwrap() {
+            let path = entry.unwrap().path();
+            if path.extension().is_some_and(|e| e == "json") {
+                let text = std::fs::read_to_string(&path).unwrap();
+                let config: TrainConfig = serde_json::from_str(&text)
+                    .unwrap_or_else(|e| panic!("{}: {e}", path.display()));
+                config
+                    .validate()
+                    .unwrap_or_else(|e| panic!("{}: {e}", path.display()));
+                seen += 1;
+            }
+        }
+        assert!(seen >= 2, "configs in {}", dir.display());
+    }
+
+    #[test]
+    fn configs_written_before_the_schedule_was_configurable_mean_sds() {
+        let mut json = serde_json::to_value(TrainConfig::demo()).unwrap();
+        let unet = json["unet"].as_object_mut().unwrap();
+        unet.remove("beta_start");
+        unet.remove("beta_end");
+        let parsed: TrainConfig = serde_json::from_value(json).unwrap();
+        assert_eq!(parsed, TrainConfig::demo());
+        assert_eq!(
+            (parsed.unet.beta_start, parsed.unet.beta_end),
+            (0.00085, 0.012)
+        );
     }
 }

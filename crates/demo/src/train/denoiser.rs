@@ -13,7 +13,7 @@ use diffusion::unet::{UNet2DConditionModel, UNetConfig};
 use rand::Rng;
 
 use super::codec::randn;
-use super::config::{TrainConfig, BETA_END, BETA_START, TRAIN_TIMESTEPS};
+use super::config::{TrainConfig, UnetConfig, TRAIN_TIMESTEPS};
 use super::data::random_indices;
 
 /// The encoded training set: posterior statistics of every sample and its caption's token ids.
@@ -39,18 +39,18 @@ impl LatentSet {
     }
 }
 
-/// SD 1.x's training noise schedule.
-pub fn noise_schedule() -> NoiseSchedule {
+/// The training noise schedule: SD 1.x's shape with the run's betas.
+pub fn noise_schedule(unet: &UnetConfig) -> NoiseSchedule {
     NoiseSchedule::new(&BetaParams {
         num_train_timesteps: TRAIN_TIMESTEPS,
-        beta_start: BETA_START,
-        beta_end: BETA_END,
+        beta_start: unet.beta_start,
+        beta_end: unet.beta_end,
         beta_schedule: BetaSchedule::ScaledLinear,
         trained_betas: None,
         rescale_betas_zero_snr: false,
         set_alpha_to_one: false,
     })
-    .expect("valid schedule")
+    .expect("betas checked by TrainConfig::validate")
 }
 
 /// The text encoder and UNet being trained, in one `VarMap` (prefixes `text_encoder.` and `unet.`).
@@ -87,7 +87,7 @@ impl DenoiserTrainer {
             varmap,
             text_encoder,
             unet,
-            schedule: noise_schedule(),
+            schedule: noise_schedule(&config.unet),
         })
     }
 

@@ -10,7 +10,7 @@
 //! | codec | `AutoencoderKL`, channels 16/32/64/64, 1 resnet per block, 4 latent channels | 128² images → 16×16×4 latents (8×, as SD); the narrow high-resolution stages keep training affordable |
 //! | text encoder | `CLIPTextModel`, hidden 64, 2 layers, 4 heads, 77 positions | the demo grammar needs little capacity; 77 positions because the edit pipeline pads to SD's length |
 //! | UNet | `UNet2DConditionModel`, channels 32/64/128, cross-attention at 16×16 and 8×8 (+ mid block), 4 heads | ~3M parameters: trainable in about two hours here; two cross-attention resolutions for the local blend and CCM |
-//! | scheduler | `LCMScheduler` config over SD's scaled-linear betas (0.00085 → 0.012, 1000 steps) | the editor's 15-step LCM schedule runs on it; DDIM reads the same betas |
+//! | scheduler | `LCMScheduler` config over SD's scaled-linear betas (0.00085 → 0.012, 1000 steps; `unet.beta_start`/`beta_end` in a `--config` change them) | the editor's 15-step LCM schedule runs on it; DDIM reads the same betas |
 //!
 //! The UNet is an ordinary ε-prediction model (no LCM distillation): InfEdit only needs ε and the x₀ it
 //! implies at each of its steps.
@@ -380,7 +380,7 @@ pub fn train(
         )?;
         write_json(
             &out.join("scheduler/scheduler_config.json"),
-            &TrainConfig::scheduler_config_json(),
+            &config.scheduler_config_json(),
         )?;
         write_json(
             &out.join("model_index.json"),
@@ -887,8 +887,8 @@ fn write_readme(
         vc = c.codec.block_out_channels,
         lat = c.codec.latent_channels,
         sf = state.scaling_factor.unwrap_or(f64::NAN),
-        bs = config::BETA_START,
-        be = config::BETA_END,
+        bs = c.unet.beta_start,
+        be = c.unet.beta_end,
         seed = c.seed,
         n = c.samples,
         size = c.image_size,
