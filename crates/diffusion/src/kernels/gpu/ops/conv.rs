@@ -9,7 +9,7 @@ use candle_core::Result;
 use cubecl::prelude::*;
 
 use super::super::cube;
-use super::super::GpuTensor;
+use super::super::{GpuDevice, GpuTensor};
 use super::{
     add, cat, contiguous_strides, forced_by_env, gemm, half_operands, permute, transient_cap,
     widen_f16, Gemm, GemmBias, MatmulPath, Meta, ELEMENTWISE_UNITS, GRID_LIMIT,
@@ -74,7 +74,9 @@ pub fn conv2d(
     let path = match forced_conv_path() {
         Some(path) => path,
         None => {
-            let problem = ConvProblem {
+            let key = conv_key(x, weight, bias.is_some(), stride, padding);
+            // The tensors are cloned (handles only) only for a problem the tuner has not settled.
+            let problem = || ConvProblem {
                 x: x.clone(),
                 weight: weight.clone(),
                 bias: bias.cloned(),
@@ -82,7 +84,7 @@ pub fn conv2d(
                 padding,
                 out: [oh, ow],
             };
-            match tuned_conv_path(&problem) {
+            match tuned_conv_path(x.device(), key, problem) {
                 Tuned::Settled(path) => path,
                 // The tuning round's own result, without the addend.
                 Tuned::Ran(out) => return with_addend(out, addend),
@@ -163,21 +165,38 @@ struct ConvProblem {
     out: [usize; 2],
 }
 
+/// The tuner's key of the convolution of `x` by `weight` (shapes checked by [`conv2d`]).
+fn conv_key(
+    x: &GpuTensor,
+    weight: &GpuTensor,
+    bias: bool,
+    stride: usize,
+    padding: usize,
+) -> ConvKey {
+    let dims4 = |t: &GpuTensor| <[usize; 4]>::try_from(t.dims()).unwrap_or_default();
+    let mut input = dims4(x);
+    // Batches of 5 to 8 images share one result (an edit's view batches vary in size).
+    input[0] = input[0].next_power_of_two();
+    ConvKey {
+        input,
+        weight: dims4(weight),
+        stride,
+        padding,
+        f16_weights: weight.is_f16(),
+        bias,
+        matmul: super::matmul_path(x.device()),
+    }
+}
+
 impl ConvProblem {
     fn key(&self) -> ConvKey {
-        let dims4 = |t: &GpuTensor| <[usize; 4]>::try_from(t.dims()).unwrap_or_default();
-        let mut input = dims4(&self.x);
-        // Batches of 5 to 8 images share one result (an edit's view batches vary in size).
-        input[0] = input[0].next_power_of_two();
-        ConvKey {
-            input,
-            weight: dims4(&self.weight),
-            stride: self.stride,
-            padding: self.padding,
-            f16_weights: self.weight.is_f16(),
-            bias: self.bias.is_some(),
-            matmul: super::matmul_path(self.x.device()),
-        }
+        conv_key(
+            &self.x,
+            &self.weight,
+            self.bias.is_some(),
+            self.stride,
+            self.padding,
+        )
     }
 
     /// The convolution on `path`; an error where the path declines the problem.
@@ -264,12 +283,14 @@ fn settled_report() -> &'static Mutex<BTreeMap<String, ConvPath>> {
 /// product runs on them, which the direct kernel cannot use. The one-off cost is two runs of the slower
 /// path per problem: on lavapipe 26 s for LPIPS at 64² (18 problems), a few milliseconds a problem on
 /// a hardware GPU.
-fn tuned_conv_path(problem: &ConvProblem) -> Tuned {
+fn tuned_conv_path(
+    device: &GpuDevice,
+    key: ConvKey,
+    problem: impl FnOnce() -> ConvProblem,
+) -> Tuned {
     use cubecl::tune::{local_tuner, LocalTuner, Tunable, TunableSet};
     static TUNER: LocalTuner<ConvKey, Arc<str>> = local_tuner!("conv2d");
-    let device = problem.x.device();
     let id = device.tune_id();
-    let key = problem.key();
     let set = TUNER.init(id, || {
         let candidate = |path: ConvPath| {
             Tunable::<ConvKey, ConvProblem, GpuTensor, ConvPath>::identified(
@@ -286,7 +307,7 @@ fn tuned_conv_path(problem: &ConvProblem) -> Tuned {
     if let Some(path) = TUNER.fastest_identity(id, &set, &key) {
         return Tuned::Settled(path);
     }
-    let out = TUNER.execute(id, device.client(), set.clone(), problem.clone());
+    let out = TUNER.execute(id, device.client(), set.clone(), problem());
     if let Some(path) = TUNER.fastest_identity(id, &set, &key) {
         settled_report()
             .lock()
