@@ -18,8 +18,8 @@ use crate::kernels::device::Addend;
 
 /// 2D convolution of x [batch, cin, h, w] with weight [cout, cin, kh, kw]: a pointwise one as one product
 /// (the image is its own im2col matrix), others on the path [`tuned_conv_path`] picks (im2col +
-/// products, or the library's direct kernel). The bias and `addend` join the product's finishing pass; after the direct kernel the
-/// addend is a pass of its own.
+/// products, or the library's direct kernel). The bias and `addend` join the product's finishing pass;
+/// after the direct kernel the addend is a pass of its own.
 pub fn conv2d(
     x: &GpuTensor,
     weight: &GpuTensor,
