@@ -41,7 +41,7 @@ for need in scenes/playbot-31k.ply lego-200/transforms_train.json clip-bpe/vocab
 done
 
 if [ "$build" = 1 ]; then
-  # Without the built-in demo model (17 MB that would not fit the carried files' limit); the device runs
+  # Without the built-in demo model (16 MB that would not fit the carried files' limit); the device runs
   # in a copy of the checkout, whose models/demo the demo step reads.
   cargo build --release --bin vcedit --no-default-features
 fi

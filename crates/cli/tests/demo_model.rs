@@ -173,6 +173,8 @@ fn demo_model_edits_a_red_sphere_into_a_blue_sphere() {
             "0.3",
             "--thresh-e",
             thresh,
+            "--blend-level",
+            "1",
             "--out",
             output.to_str().unwrap(),
         ])
@@ -181,7 +183,7 @@ fn demo_model_edits_a_red_sphere_into_a_blue_sphere() {
     let (code, _, stderr) = edit("1");
     assert_eq!(code, 0, "{stderr}");
     assert!(
-        stderr.contains("warning: the edit changed little"),
+        stderr.contains("warning: the edit's blend region is empty"),
         "{stderr}"
     );
     assert!(stderr.contains("--thresh-e"), "{stderr}");

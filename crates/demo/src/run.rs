@@ -210,21 +210,25 @@ pub fn demo_scene(opts: &DemoOptions) -> Result<DemoScene, DemoError> {
     })
 }
 
-/// InfEdit settings for the demo model. Three differ from the reference's (tuned for Stable Diffusion):
+/// InfEdit settings for the demo model. Four differ from the reference's (tuned for Stable Diffusion):
 /// - cross_replace 0.3, not 0.7: the small model follows a new colour word only when the target's own
 ///   cross-attention acts for most steps;
 /// - thresh_e 0.3 (InfEdit's app default), not 0.6: its attention is more diffuse, and with 0.6 the
 ///   object's rim keeps the old colour;
-/// - target guidance 4, not 2: at 2 its prior wins over the source's layout where it is unsure (a purple
+/// - target guidance 3, not 2: at 2 its prior wins over the source's layout where it is unsure (a purple
 ///   cube came out as a purple blob whose top face took the floor's colour: silhouette IoU 0.79, layout
-///   fidelity 0.78); at 4 the cube keeps every face (0.989, 0.995) and the sphere is unchanged
-///   (docs/demo-model.md, "Target guidance").
+///   fidelity 0.78); at 3 the cube keeps every face (0.986, 0.992) and the sphere is unchanged
+///   (docs/demo-model.md, "Target guidance");
+/// - blend level 1 (its 16×16 maps at 128²), not its coarsest cross-attention level (8×8): there its
+///   words hardly localize, so every blend region covered the whole image and `edit-image` repainted the
+///   floor; at 16×16 the sphere's and the cube's maps follow the object.
 pub fn demo_infedit_settings(steps: usize) -> InfEditSettings {
     InfEditSettings {
         steps,
         cross_replace: 0.3,
         thresh_e: 0.3,
         guidance_target: 3.0,
+        blend_level: Some(1),
         ..InfEditSettings::default()
     }
 }

@@ -191,6 +191,11 @@ pub struct SamplerArgs {
         allow_negative_numbers = true
     )]
     pub strength: Option<f64>,
+    /// UNet level whose cross-attention maps drive the local blend and CCM (0 = the latents'
+    /// resolution, each level halves it); default: the coarsest with cross-attention (SD 1.x's 16×16
+    /// maps at 512²). The built-in demo model's words localize at level 1.
+    #[arg(long, value_name = "LEVEL", value_parser = whole::<usize>, allow_negative_numbers = true)]
+    pub blend_level: Option<usize>,
     /// LCM timestep selection.
     #[arg(long, value_enum, default_value = "diffusers-0.22")]
     pub lcm_schedule: LcmSchedule,
@@ -224,6 +229,7 @@ impl SamplerArgs {
             thresh_m: self.thresh_m,
             eta: self.eta,
             denoise_strength: self.strength,
+            blend_level: self.blend_level,
             lcm_variant: match self.lcm_schedule {
                 LcmSchedule::Diffusers022 => diffusion::scheduler::LcmVariant::Diffusers022,
                 LcmSchedule::Current => diffusion::scheduler::LcmVariant::Current,
@@ -237,9 +243,11 @@ impl SamplerArgs {
         self.size.size
     }
 
-    /// Whether `model` works at `--size` (each model has its own multiple), before any work.
-    pub fn check_size(&self, model: &EditModel) -> anyhow::Result<()> {
+    /// Whether `model` works at `--size` (each model has its own multiple) and has cross-attention at
+    /// `--blend-level`, before any work.
+    pub fn check_model(&self, model: &EditModel) -> anyhow::Result<()> {
         let (w, h) = self.size();
-        EditPlan::check_size(model, (w as usize, h as usize)).context("--size")
+        EditPlan::check_size(model, (w as usize, h as usize)).context("--size")?;
+        EditPlan::check_blend_level(model, self.blend_level).context("--blend-level")
     }
 }

@@ -7,10 +7,10 @@
 //! | part | architecture | why |
 //! | --- | --- | --- |
 //! | tokenizer | CLIP BPE learnt on the caption words ([`crate::bpe`]) | one token per word: one cross-attention map per word |
-//! | codec | `AutoencoderKL`, channels 16/32/64/64, 1 resnet per block, 4 latent channels | 128² images → 16×16×4 latents (8×, as SD); the narrow high-resolution stages keep training affordable |
+//! | codec | `AutoencoderKL`, channels 16/32/64, 1 resnet per block, 4 latent channels | 128² images → 32×32×4 latents (4×, SD's is 8×): at 8× one latent pixel spanned the vase's stripes and the mushroom's stem (docs/demo-model.md); the narrow high-resolution stages keep training affordable |
 //! | text encoder | `CLIPTextModel`, hidden 64, 2 layers, 4 heads, 77 positions | the demo grammar needs little capacity; 77 positions because the edit pipeline pads to SD's length |
-//! | UNet | `UNet2DConditionModel`, channels 32/64/128, cross-attention at 16×16 and 8×8 (+ mid block), 4 heads | ~3M parameters: trainable in about two hours here; two cross-attention resolutions for the local blend and CCM |
-//! | scheduler | `LCMScheduler` config over SD's scaled-linear betas (0.00085 → 0.012, 1000 steps; `unet.beta_start`/`beta_end` in a `--config` change them) | the editor's 15-step LCM schedule runs on it; DDIM reads the same betas |
+//! | UNet | `UNet2DConditionModel`, channels 16/32/64/128, cross-attention at 16×16 and 8×8 (+ mid block), 4 heads | ~3M parameters: trainable in about two hours here; a narrow first level at 32² without attention; two cross-attention resolutions for the local blend and CCM |
+//! | scheduler | `LCMScheduler` config over scaled-linear betas 0.00335 → 0.0107, 1000 steps (SD's 0.00085 → 0.012 shifted for 32² latents; `unet.beta_start`/`beta_end` in a `--config` change them) | the editor's 15-step LCM schedule runs on it; DDIM reads the same betas |
 //!
 //! The UNet is an ordinary ε-prediction model (no LCM distillation): InfEdit only needs ε and the x₀ it
 //! implies at each of its steps.

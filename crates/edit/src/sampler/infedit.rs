@@ -40,6 +40,11 @@ pub struct InfEditSettings {
     /// `Some(strength)`: start from the source latents noised to the strength-truncated first timestep
     /// ("denoise" mode); `None`: start from pure noise (the reference default).
     pub denoise_strength: Option<f64>,
+    /// The UNet level (0 = the latents' resolution, each down block halves it) whose cross-attention
+    /// maps the local blend and CCM read. `None`: the coarsest down block with cross-attention, the
+    /// reference's choice (SD 1.x: level 2, its "16×16 layers" at 512²). Which level localizes words is
+    /// a property of the trained model, so a model unlike SD may need another.
+    pub blend_level: Option<usize>,
 }
 
 impl Default for InfEditSettings {
@@ -56,6 +61,7 @@ impl Default for InfEditSettings {
             thresh_m: 0.6,
             eta: 1.0,
             denoise_strength: None,
+            blend_level: None,
         }
     }
 }
@@ -131,14 +137,19 @@ pub struct EditPlan {
     pub thresholds: BlendThresholds,
 }
 
-/// Spatial size of the down/up cross-attention layers at the coarsest resolution that has them (SD 1.x:
-/// latent/4, the reference's "16×16 layers" at 512²).
-pub fn blend_layer_size(down_block_types: &[String], latent: (usize, usize)) -> (usize, usize) {
+/// Spatial size of the down/up cross-attention layers at UNet level `level`, or with `None` at the
+/// coarsest level that has them (SD 1.x: latent/4, the reference's "16×16 layers" at 512²). A level
+/// without cross-attention is an error naming the levels that have it.
+pub fn blend_layer_size(
+    down_block_types: &[String],
+    latent: (usize, usize),
+    level: Option<usize>,
+) -> Result<(usize, usize), EditError> {
     let (mut h, mut w) = latent;
-    let mut size = latent;
+    let mut sizes = Vec::new();
     for (i, kind) in down_block_types.iter().enumerate() {
         if kind.contains("CrossAttn") {
-            size = (h, w);
+            sizes.push((i, (h, w)));
         }
         if i + 1 < down_block_types.len() {
             // A stride-2 conv with padding 1: ceil(n / 2).
@@ -146,7 +157,22 @@ pub fn blend_layer_size(down_block_types: &[String], latent: (usize, usize)) -> 
             w = w.div_ceil(2);
         }
     }
-    size
+    match level {
+        None => Ok(sizes.last().map_or(latent, |&(_, size)| size)),
+        Some(l) => {
+            sizes
+                .iter()
+                .find(|&&(i, _)| i == l)
+                .map(|&(_, size)| size)
+                .ok_or_else(|| {
+                    let with: Vec<String> = sizes.iter().map(|(i, _)| i.to_string()).collect();
+                    EditError::Settings(format!(
+                    "blend level {l}: the UNet has no cross-attention there (levels with it: {})",
+                    if with.is_empty() { "none".to_string() } else { with.join(", ") }
+                ))
+                })
+        }
+    }
 }
 
 impl EditPlan {
@@ -170,6 +196,13 @@ impl EditPlan {
             )));
         }
         Ok(())
+    }
+
+    /// Whether `model` has cross-attention at the chosen blend level (see
+    /// [`InfEditSettings::blend_level`]): the cheap check callers make before any work.
+    pub fn check_blend_level(model: &EditModel, level: Option<usize>) -> Result<(), EditError> {
+        let blocks = &model.unet.config().down_block_types;
+        blend_layer_size(blocks, (1, 1), level).map(|_| ())
     }
 
     /// Prepares an edit of images of `image_size` (width, height) pixels.
@@ -256,7 +289,11 @@ impl EditPlan {
             alpha_prev.push(sched_alpha(*timesteps.get(i + 1).unwrap_or(&t))?);
         }
 
-        let blend_size = blend_layer_size(&model.unet.config().down_block_types, latent_size);
+        let blend_size = blend_layer_size(
+            &model.unet.config().down_block_types,
+            latent_size,
+            settings.blend_level,
+        )?;
         // Raw BPE pieces (with their `</w>` word ends) so per-word maps can group sub-word tokens.
         let target_tokens = target_ids
             .iter()
@@ -707,15 +744,42 @@ mod tests {
             "DownBlock2D",
         ]
         .map(String::from);
-        assert_eq!(blend_layer_size(&sd, (64, 64)), (16, 16));
-        assert_eq!(blend_layer_size(&sd, (32, 48)), (8, 12));
+        let size =
+            |blocks: &[String], latent, level| blend_layer_size(blocks, latent, level).unwrap();
+        assert_eq!(size(&sd, (64, 64), None), (16, 16));
+        assert_eq!(size(&sd, (32, 48), None), (8, 12));
         let tiny = [
             "CrossAttnDownBlock2D",
             "CrossAttnDownBlock2D",
             "DownBlock2D",
         ]
         .map(String::from);
-        assert_eq!(blend_layer_size(&tiny, (16, 16)), (8, 8));
-        assert_eq!(blend_layer_size(&sd, (9, 9)), (3, 3));
+        assert_eq!(size(&tiny, (16, 16), None), (8, 8));
+        assert_eq!(size(&sd, (9, 9), None), (3, 3));
+    }
+
+    #[test]
+    fn a_chosen_blend_level_must_have_cross_attention() {
+        // The demo model's layout: no attention at full latent resolution.
+        let demo = [
+            "DownBlock2D",
+            "CrossAttnDownBlock2D",
+            "CrossAttnDownBlock2D",
+            "DownBlock2D",
+        ]
+        .map(String::from);
+        assert_eq!(blend_layer_size(&demo, (32, 32), None).unwrap(), (8, 8));
+        assert_eq!(
+            blend_layer_size(&demo, (32, 32), Some(1)).unwrap(),
+            (16, 16)
+        );
+        assert_eq!(blend_layer_size(&demo, (32, 32), Some(2)).unwrap(), (8, 8));
+        for level in [0, 3, 7] {
+            let err = blend_layer_size(&demo, (32, 32), Some(level))
+                .unwrap_err()
+                .to_string();
+            assert!(err.contains(&format!("blend level {level}")), "{err}");
+            assert!(err.contains("levels with it: 1, 2"), "{err}");
+        }
     }
 }
