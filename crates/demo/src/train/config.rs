@@ -487,7 +487,7 @@ mod tests {
     #[test]
     fn invalid_settings_are_named() {
         let mut c = TrainConfig::demo();
-        c.image_size = 100;
+        c.image_size = 102;
         assert!(c.validate().unwrap_err().contains("image size"));
         let mut c = TrainConfig::demo();
         c.unet.cross_attention = vec![false, false, false];
