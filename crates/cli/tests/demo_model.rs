@@ -187,6 +187,31 @@ fn demo_model_edits_a_red_sphere_into_a_blue_sphere() {
         "{stderr}"
     );
     assert!(stderr.contains("--thresh-e"), "{stderr}");
+    // A blend level without cross-attention is one error line naming the levels that have it, before
+    // any work (no output written).
+    let (code, _, stderr) = vcedit(&[
+        "edit-image",
+        "--model",
+        model.to_str().unwrap(),
+        "--image",
+        input.to_str().unwrap(),
+        "--source",
+        "a red sphere",
+        "--target",
+        "a blue sphere",
+        "--size",
+        "128",
+        "--blend-level",
+        "0",
+        "--out",
+        dir.path().join("never.png").to_str().unwrap(),
+    ]);
+    assert_eq!(code, 1, "{stderr}");
+    let errors: Vec<&str> = stderr.lines().filter(|l| l.starts_with("error")).collect();
+    assert_eq!(errors.len(), 1, "{stderr}");
+    assert!(errors[0].contains("--blend-level"), "{stderr}");
+    assert!(errors[0].contains("levels with it: 1, 2"), "{stderr}");
+    assert!(!dir.path().join("never.png").exists());
     let (code, _, stderr) = edit("0.3");
     assert_eq!(code, 0, "{stderr}");
     assert!(!stderr.contains("warning"), "{stderr}");

@@ -362,6 +362,10 @@ fn edit_refuses_bad_arguments_before_making_its_folder() {
             &["--mask-box", "none of the scene's 64 Gaussians"],
         ),
         (&["--blend-words", "dog"], &["--blend-words: 'dog'"]),
+        (
+            &["--blend-level", "9"],
+            &["--blend-level", "blend level 9", "levels with it"],
+        ),
     ] {
         let o = vcedit_in(dir.path(), &edit_args("ball.ply", model, "out", extra));
         assert_one_clear_error(&o, 1, says);
