@@ -154,10 +154,9 @@ fn demo_model_edits_a_red_sphere_into_a_blue_sphere() {
     assert!(object.iter().filter(|&&o| o).count() > 128 * 128 / 10);
 
     let output = dir.path().join("blue.png");
-    // The small model's settings (see `demo::run::demo_infedit_settings`): the target's own
-    // cross-attention for most steps and a looser blend threshold than SD's defaults.
-    let edit = |thresh: &str| {
-        vcedit(&[
+    // `vcedit edit-image` of the red sphere into "a blue sphere" at 128², writing `out`.
+    let edit_image = |extra: &[&str], out: &Path| {
+        let mut args = vec![
             "edit-image",
             "--model",
             model.to_str().unwrap(),
@@ -169,15 +168,18 @@ fn demo_model_edits_a_red_sphere_into_a_blue_sphere() {
             "a blue sphere",
             "--size",
             "128",
-            "--cross",
-            "0.3",
-            "--thresh-e",
-            thresh,
-            "--blend-level",
-            "1",
             "--out",
-            output.to_str().unwrap(),
-        ])
+            out.to_str().unwrap(),
+        ];
+        args.extend_from_slice(extra);
+        vcedit(&args)
+    };
+    // The small model's settings (see `demo::run::demo_infedit_settings`): the target's own
+    // cross-attention for most steps, a looser blend threshold than SD's defaults, and the maps of the
+    // level where its words localize.
+    let edit = |thresh: &str| {
+        let settings = ["--cross", "0.3", "--thresh-e", thresh, "--blend-level", "1"];
+        edit_image(&settings, &output)
     };
     // An edit that cannot change anything (an empty blend region) ends with a warning naming the knobs.
     let (code, _, stderr) = edit("1");
@@ -189,29 +191,14 @@ fn demo_model_edits_a_red_sphere_into_a_blue_sphere() {
     assert!(stderr.contains("--thresh-e"), "{stderr}");
     // A blend level without cross-attention is one error line naming the levels that have it, before
     // any work (no output written).
-    let (code, _, stderr) = vcedit(&[
-        "edit-image",
-        "--model",
-        model.to_str().unwrap(),
-        "--image",
-        input.to_str().unwrap(),
-        "--source",
-        "a red sphere",
-        "--target",
-        "a blue sphere",
-        "--size",
-        "128",
-        "--blend-level",
-        "0",
-        "--out",
-        dir.path().join("never.png").to_str().unwrap(),
-    ]);
+    let never = dir.path().join("never.png");
+    let (code, _, stderr) = edit_image(&["--blend-level", "0"], &never);
     assert_eq!(code, 1, "{stderr}");
     let errors: Vec<&str> = stderr.lines().filter(|l| l.starts_with("error")).collect();
     assert_eq!(errors.len(), 1, "{stderr}");
     assert!(errors[0].contains("--blend-level"), "{stderr}");
     assert!(errors[0].contains("levels with it: 1, 2"), "{stderr}");
-    assert!(!dir.path().join("never.png").exists());
+    assert!(!never.exists());
     let (code, _, stderr) = edit("0.3");
     assert_eq!(code, 0, "{stderr}");
     assert!(!stderr.contains("warning"), "{stderr}");
