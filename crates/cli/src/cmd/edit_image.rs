@@ -111,15 +111,16 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     let changed = edit::eval::metrics::changed_fraction(&[&source], &[&out], None)?;
     // The target-word region of the last step at image size, thresholded as the blend did.
     let (tau_e, _, _) = plan.thresholds.at(*plan.alpha.last().expect("steps"));
-    let region: Option<Vec<f32>> = match &outcome.blend_maps {
-        Some(bm) => Some(
-            viz::resize_map(&bm.get(0)?, h as usize, w as usize)?
-                .into_iter()
-                .map(|v| if v as f64 > tau_e { 1.0 } else { 0.0 })
-                .collect(),
-        ),
-        None => None,
-    };
+    let region: Option<Vec<f32>> = outcome
+        .blend_maps
+        .as_ref()
+        .map(|bm| -> anyhow::Result<Vec<f32>> {
+            let e = viz::resize_map(&bm.get(0)?, h as usize, w as usize)?;
+            Ok(e.into_iter()
+                .map(|v| f32::from(u8::from(v as f64 > tau_e)))
+                .collect())
+        })
+        .transpose()?;
     let region_fraction = region
         .as_ref()
         .map(|m| m.iter().sum::<f32>() as f64 / m.len().max(1) as f64);

@@ -202,6 +202,7 @@ impl EditPlan {
     /// [`InfEditSettings::blend_level`]): the cheap check callers make before any work.
     pub fn check_blend_level(model: &EditModel, level: Option<usize>) -> Result<(), EditError> {
         let blocks = &model.unet.config().down_block_types;
+        // Which levels have cross-attention does not depend on the latents' size.
         blend_layer_size(blocks, (1, 1), level).map(|_| ())
     }
 
