@@ -218,7 +218,10 @@ pub fn demo_scene(opts: &DemoOptions) -> Result<DemoScene, DemoError> {
 /// - target guidance 3, not 2: at 2 its prior wins over the source's layout where it is unsure (a purple
 ///   cube came out as a purple blob whose top face took the floor's colour: silhouette IoU 0.79, layout
 ///   fidelity 0.78); at 3 the cube keeps every face (0.986, 0.992) and the sphere is unchanged
-///   (docs/demo-model.md, "Target guidance");
+///   (docs/demo-model.md, "The third fix"). The current model keeps the cube at 2 as well, but its
+///   edits are weaker there (the vase's colour fidelity 0.02–0.035 lower, the cube's IoU 0.005, the
+///   playbot check's masked region only partly recoloured) and only the sphere and the mushroom gain,
+///   too little to matter (docs/demo-model.md, "The mushroom's stem");
 /// - blend level 1 (its 16×16 maps at 128²), not its coarsest cross-attention level (8×8): there its
 ///   words hardly localize, so every blend region covered the whole image and `edit-image` repainted the
 ///   floor; at 16×16 the sphere's and the cube's maps follow the object.
