@@ -73,8 +73,9 @@ pub struct TrainArgs {
     pub restart: bool,
     /// Train further from an exported model of the same architecture (e.g. models/demo): its
     /// autoencoder is kept, its UNet and text encoder are trained for --unet-steps more steps on
-    /// newly rendered samples (use another --seed for other samples). Only read when OUT has no
-    /// checkpoints yet.
+    /// newly rendered samples (use another --seed for other samples). The config may add attention
+    /// to UNet blocks that had none (unet.cross_attention, unet.only_cross_attention): it starts
+    /// out adding nothing and is learnt from there. Only read when OUT has no checkpoints yet.
     #[arg(long, value_name = "DIR")]
     pub init: Option<PathBuf>,
     /// Peak learning rate of the UNet and text encoder (default: the preset's).

@@ -46,6 +46,12 @@ pub struct UnetConfig {
     /// Per down block: cross-attention (`CrossAttnDownBlock2D`) or not (`DownBlock2D`); mirrored on the
     /// way up. The mid block always has cross-attention.
     pub cross_attention: Vec<bool>,
+    /// Per down block (mirrored on the way up; empty = none): its transformers attend to the text in
+    /// both attention layers and never to the image (diffusers' `only_cross_attention`). It puts words
+    /// on a fine level without self-attention's cost there (at 32×32 latents a step took 15 s with
+    /// self-attention, 2.6 s without; docs/demo-model.md). Only where `cross_attention` is true.
+    #[serde(default)]
+    pub only_cross_attention: Vec<bool>,
     pub layers_per_block: usize,
     /// Attention heads per transformer (SD 1.x's `attention_head_dim` key, which counts heads).
     pub heads: usize,
@@ -140,6 +146,7 @@ impl TrainConfig {
             unet: UnetConfig {
                 block_out_channels: vec![16, 32, 64, 128],
                 cross_attention: vec![false, true, true, false],
+                only_cross_attention: Vec::new(),
                 layers_per_block: 1,
                 heads: 4,
                 norm_num_groups: 8,
@@ -257,6 +264,16 @@ impl TrainConfig {
                 "unet.cross_attention needs one entry per block and at least one true".into(),
             );
         }
+        let only = &u.only_cross_attention;
+        if !(only.is_empty() || only.len() == u.cross_attention.len())
+            || only.iter().zip(&u.cross_attention).any(|(&o, &c)| o && !c)
+        {
+            return Err(
+                "unet.only_cross_attention needs one entry per block (or none), true only \
+                 where unet.cross_attention is"
+                    .into(),
+            );
+        }
         if !self
             .latent_size()
             .is_multiple_of(1 << (u.block_out_channels.len() - 1))
@@ -332,6 +349,12 @@ impl TrainConfig {
             .rev()
             .map(|&x| if x { "CrossAttnUpBlock2D" } else { "UpBlock2D" })
             .collect();
+        // diffusers' key takes one flag for all blocks or one per down block.
+        let only_cross_attention = if u.only_cross_attention.contains(&true) {
+            json!(u.only_cross_attention)
+        } else {
+            json!(false)
+        };
         json!({
             "_class_name": "UNet2DConditionModel",
             "_diffusers_version": "0.42.1",
@@ -352,7 +375,7 @@ impl TrainConfig {
             "norm_eps": 1e-5,
             "norm_num_groups": u.norm_num_groups,
             "num_attention_heads": null,
-            "only_cross_attention": false,
+            "only_cross_attention": only_cross_attention,
             "out_channels": self.codec.latent_channels,
             "sample_size": self.latent_size(),
             "time_cond_proj_dim": null,
@@ -495,6 +518,34 @@ mod tests {
         let mut c = TrainConfig::demo();
         c.unet.beta_end = c.unet.beta_start;
         assert!(c.validate().unwrap_err().contains("beta_end"));
+        // only_cross_attention: one entry per block, and only on blocks that have attention.
+        let mut c = TrainConfig::demo();
+        c.unet.only_cross_attention = vec![true, false];
+        assert!(c.validate().unwrap_err().contains("only_cross_attention"));
+        c.unet.only_cross_attention = vec![true, false, false, false];
+        assert!(c.validate().unwrap_err().contains("only_cross_attention"));
+    }
+
+    #[test]
+    fn only_cross_attention_reaches_the_model_config() {
+        let mut c = TrainConfig::demo();
+        assert_eq!(c.unet_config_json()["only_cross_attention"], json!(false));
+        c.unet.cross_attention = vec![true, true, true, false];
+        c.unet.only_cross_attention = vec![true, false, false, false];
+        c.validate().unwrap();
+        let resolved = UNetConfig::from_json(&c.unet_config_json().to_string())
+            .unwrap()
+            .resolve()
+            .unwrap();
+        assert_eq!(resolved.only_cross_attention, [true, false, false, false]);
+        // A config written before the field existed reads as none.
+        let mut old = serde_json::to_value(TrainConfig::demo()).unwrap();
+        old["unet"]
+            .as_object_mut()
+            .unwrap()
+            .remove("only_cross_attention");
+        let old: TrainConfig = serde_json::from_value(old).unwrap();
+        assert_eq!(old, TrainConfig::demo());
     }
 
     #[test]

@@ -654,9 +654,14 @@ fn train_denoiser(
     let trainer = denoiser::DenoiserTrainer::new(config, vocab_size)?;
     if let (Some(init), 0) = (&state.init_from, state.unet_step) {
         // Before the optimiser and EMA are made, so the EMA starts from these weights too.
-        load_denoiser_weights(init, &trainer.varmap)?;
+        let added = load_denoiser_weights(init, &trainer.varmap)?;
+        let grown = if added > 0 {
+            format!(" ({added} tensors of added attention start as identity)")
+        } else {
+            String::new()
+        };
         events(Event::Note(format!(
-            "UNet and text encoder start from {}",
+            "UNet and text encoder start from {}{grown}",
             init.display()
         )));
     }
@@ -744,6 +749,7 @@ fn adopt_codec(
         &weights,
         &optim::named_vars(&expected.varmap),
         "",
+        |_| false,
     )?;
     let dst = out.join("vae");
     if dst != src {
@@ -763,26 +769,33 @@ fn adopt_codec(
 }
 
 /// Checks that `weights` (read from `path`) hold exactly the variables of `vars` whose names start with
-/// `prefix`, each under its name without the prefix and with its shape.
+/// `prefix`, each under its name without the prefix and with its shape, except those `may_lack` accepts
+/// as absent. Returns the absent ones (with the prefix).
 fn check_weights(
     path: &Path,
     weights: &HashMap<String, Tensor>,
     vars: &[(String, candle_core::Var)],
     prefix: &str,
-) -> Result<(), TrainError> {
+    may_lack: impl Fn(&str) -> bool,
+) -> Result<Vec<String>, TrainError> {
     let bad = |msg: String| TrainError::File {
         path: path.to_path_buf(),
         msg: format!("{msg} (not the architecture this training config builds)"),
     };
     let mut count = 0;
+    let mut absent = Vec::new();
     for (name, var) in vars {
         let Some(key) = name.strip_prefix(prefix) else {
             continue;
         };
+        let Some(t) = weights.get(key) else {
+            if may_lack(key) {
+                absent.push(name.clone());
+                continue;
+            }
+            return Err(bad(format!("missing tensor {key}")));
+        };
         count += 1;
-        let t = weights
-            .get(key)
-            .ok_or_else(|| bad(format!("missing tensor {key}")))?;
         if t.dims() != var.as_tensor().dims() {
             return Err(bad(format!(
                 "{key} has shape {:?}, expected {:?}",
@@ -794,31 +807,54 @@ fn check_weights(
     if weights.len() != count {
         return Err(bad(format!("{} tensors, expected {count}", weights.len())));
     }
-    Ok(())
+    Ok(absent)
+}
+
+/// The UNet attention module (`…attentions.N.`) that `key` belongs to, when `init` has no tensor of that
+/// module at all: an attention the training config adds to a block that had none.
+fn added_attention<'a>(key: &'a str, init: &HashMap<String, Tensor>) -> Option<&'a str> {
+    const MARK: &str = ".attentions.";
+    let start = key.find(MARK)? + MARK.len();
+    let module = &key[..start + key[start..].find('.')? + 1];
+    (!init.keys().any(|k| k.starts_with(module))).then_some(module)
 }
 
 /// `--init`: sets the UNet and text encoder variables (prefixes `unet.` / `text_encoder.`) from the
-/// exported model in `init`, the inverse of [`train_denoiser`]'s export.
-fn load_denoiser_weights(init: &Path, varmap: &candle_nn::VarMap) -> Result<(), TrainError> {
+/// exported model in `init`, the inverse of [`train_denoiser`]'s export. The config may grow the init
+/// model's UNet by attention on blocks that had none (e.g. text at a finer level): those modules keep
+/// their fresh initialisation but for `proj_out`, set to zero, so that each new transformer adds nothing
+/// to its residual and the grown UNet starts out computing exactly what the init model does (ControlNet's
+/// zero convolutions); it then learns to use the new attention instead of starting over. Returns the
+/// number of added variables.
+fn load_denoiser_weights(init: &Path, varmap: &candle_nn::VarMap) -> Result<usize, TrainError> {
     let vars = optim::named_vars(varmap);
     let unet_path = init.join("unet/diffusion_pytorch_model.safetensors");
     let unet = load_tensors(&unet_path)?;
-    check_weights(&unet_path, &unet, &vars, "unet.")?;
+    let added = check_weights(&unet_path, &unet, &vars, "unet.", |key| {
+        added_attention(key, &unet).is_some()
+    })?;
     let text_path = init.join("text_encoder/model.safetensors");
     // Both the transformers-4 layout (`text_model.` prefix, what the export writes) and the bare one.
     let text: HashMap<String, Tensor> = load_tensors(&text_path)?
         .into_iter()
         .map(|(k, t)| (k.strip_prefix("text_model.").unwrap_or(&k).to_string(), t))
         .collect();
-    check_weights(&text_path, &text, &vars, "text_encoder.")?;
+    check_weights(&text_path, &text, &vars, "text_encoder.", |_| false)?;
     for (name, var) in &vars {
+        if added.contains(name) {
+            let module = added_attention(&name["unet.".len()..], &unet).unwrap_or_default();
+            if name["unet.".len() + module.len()..].starts_with("proj_out.") {
+                var.set(&var.as_tensor().zeros_like()?)?;
+            }
+            continue;
+        }
         let t = match name.strip_prefix("unet.") {
             Some(key) => &unet[key],
             None => &text[name.strip_prefix("text_encoder.").unwrap_or(name)],
         };
         var.set(t)?;
     }
-    Ok(())
+    Ok(added.len())
 }
 
 /// Total size of the exported weight files.
@@ -919,4 +955,117 @@ fn write_readme(
     );
     let path = out.join("README.md");
     files::atomic_write(&path, text.as_bytes()).map_err(io_err(&path))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use candle_core::Device;
+
+    /// Writes `trainer`'s weights as an exported model folder would hold them.
+    fn export(trainer: &denoiser::DenoiserTrainer, dir: &Path) {
+        let mut unet = HashMap::new();
+        let mut text = HashMap::new();
+        for (name, var) in optim::named_vars(&trainer.varmap) {
+            let t = var.as_tensor().clone();
+            match name.strip_prefix("unet.") {
+                Some(key) => unet.insert(key.to_string(), t),
+                None => text.insert(format!("text_model.{}", &name["text_encoder.".len()..]), t),
+            };
+        }
+        for (sub, file, tensors) in [
+            ("unet", "diffusion_pytorch_model.safetensors", &unet),
+            ("text_encoder", "model.safetensors", &text),
+        ] {
+            std::fs::create_dir_all(dir.join(sub)).unwrap();
+            save_tensors(tensors, &dir.join(sub).join(file)).unwrap();
+        }
+    }
+
+    fn predict(trainer: &denoiser::DenoiserTrainer) -> Tensor {
+        let dev = Device::Cpu;
+        let ids = Tensor::from_vec(
+            (0..2 * 77).map(|i| (i * 7 % 50) as u32).collect(),
+            (2, 77),
+            &dev,
+        )
+        .unwrap();
+        let context = trainer.text_encoder.forward(&ids).unwrap();
+        let noisy = (Tensor::arange(0f32, 128.0, &dev).unwrap() * 0.7)
+            .unwrap()
+            .sin()
+            .unwrap()
+            .reshape((2, 4, 4, 4))
+            .unwrap();
+        let t = Tensor::new(&[100f32, 700.0], &dev).unwrap();
+        trainer
+            .unet
+            .forward(&noisy, &t, &context, None, None)
+            .unwrap()
+    }
+
+    #[test]
+    fn init_grows_attention_that_starts_as_identity() {
+        let dir = tempfile::tempdir().unwrap();
+        let mut small = TrainConfig::tiny();
+        small.unet.cross_attention = vec![false, true];
+        let init = denoiser::DenoiserTrainer::new(&small, 50).unwrap();
+        export(&init, dir.path());
+
+        // Text at the top level too, attending to nothing but the text there.
+        let mut grown = small.clone();
+        grown.unet.cross_attention = vec![true, true];
+        grown.unet.only_cross_attention = vec![true, false];
+        grown.validate().unwrap();
+        let trainer = denoiser::DenoiserTrainer::new(&grown, 50).unwrap();
+        let added = load_denoiser_weights(dir.path(), &trainer.varmap).unwrap();
+        assert!(added > 0);
+        let before = predict(&init);
+        let after = predict(&trainer);
+        let diff = (&before - &after)
+            .unwrap()
+            .abs()
+            .unwrap()
+            .max_all()
+            .unwrap();
+        assert!(diff.to_scalar::<f32>().unwrap() < 1e-5, "{diff}");
+
+        // The new modules are on the path: a non-zero proj_out changes the prediction.
+        let vars = optim::named_vars(&trainer.varmap);
+        let (_, proj) = vars
+            .iter()
+            .find(|(n, _)| n == "unet.down_blocks.0.attentions.0.proj_out.weight")
+            .unwrap();
+        assert_eq!(
+            proj.as_tensor()
+                .abs()
+                .unwrap()
+                .sum_all()
+                .unwrap()
+                .to_scalar::<f32>()
+                .unwrap(),
+            0.0
+        );
+        proj.set(&proj.as_tensor().ones_like().unwrap()).unwrap();
+        let changed = predict(&trainer);
+        let diff = (&before - &changed)
+            .unwrap()
+            .abs()
+            .unwrap()
+            .max_all()
+            .unwrap();
+        assert!(diff.to_scalar::<f32>().unwrap() > 1e-3);
+
+        // A shape that does not match is still refused, naming the file.
+        let mut other = grown.clone();
+        other.unet.only_cross_attention = vec![true, true];
+        let trainer = denoiser::DenoiserTrainer::new(&other, 50).unwrap();
+        let err = load_denoiser_weights(dir.path(), &trainer.varmap)
+            .unwrap_err()
+            .to_string();
+        assert!(
+            err.contains("unet/diffusion_pytorch_model.safetensors") && err.contains("attn1"),
+            "{err}"
+        );
+    }
 }
