@@ -654,7 +654,7 @@ fn train_denoiser(
     let trainer = denoiser::DenoiserTrainer::new(config, vocab_size)?;
     if let (Some(init), 0) = (&state.init_from, state.unet_step) {
         // Before the optimiser and EMA are made, so the EMA starts from these weights too.
-        let added = load_denoiser_weights(init, &trainer.varmap)?;
+        let added = load_denoiser_weights(init, config, &trainer.varmap)?;
         let grown = if added > 0 {
             format!(" ({added} tensors of added attention start as identity)")
         } else {
@@ -826,7 +826,12 @@ fn added_attention<'a>(key: &'a str, init: &HashMap<String, Tensor>) -> Option<&
 /// to its residual and the grown UNet starts out computing exactly what the init model does (ControlNet's
 /// zero convolutions); it then learns to use the new attention instead of starting over. Returns the
 /// number of added variables.
-fn load_denoiser_weights(init: &Path, varmap: &candle_nn::VarMap) -> Result<usize, TrainError> {
+fn load_denoiser_weights(
+    init: &Path,
+    config: &TrainConfig,
+    varmap: &candle_nn::VarMap,
+) -> Result<usize, TrainError> {
+    check_attention_kinds(init, config)?;
     let vars = optim::named_vars(varmap);
     let unet_path = init.join("unet/diffusion_pytorch_model.safetensors");
     let unet = load_tensors(&unet_path)?;
@@ -855,6 +860,39 @@ fn load_denoiser_weights(init: &Path, varmap: &candle_nn::VarMap) -> Result<usiz
         var.set(t)?;
     }
     Ok(added.len())
+}
+
+/// An attention the init model has must attend to what it learnt to: its self-attention layer read as a
+/// text one (`only_cross_attention` switched on a block that had attention) holds weights of the right
+/// shape whenever the block's width is the text's, so the shapes alone would not catch it.
+fn check_attention_kinds(init: &Path, config: &TrainConfig) -> Result<(), TrainError> {
+    let path = init.join("unet/config.json");
+    let text = std::fs::read_to_string(&path).map_err(io_err(&path))?;
+    let bad = |msg: String| TrainError::File {
+        path: path.clone(),
+        msg,
+    };
+    let resolved = diffusion::unet::UNetConfig::from_json(&text)
+        .map_err(|e| bad(e.to_string()))?
+        .resolve()
+        .map_err(|e| bad(e.join("; ")))?;
+    let wanted = &config.unet;
+    for (i, kind) in resolved.down.iter().enumerate() {
+        let has = *kind == diffusion::unet::BlockKind::CrossAttn;
+        let only_init = resolved
+            .only_cross_attention
+            .get(i)
+            .copied()
+            .unwrap_or(false);
+        let only_wanted = wanted.only_cross_attention.get(i).copied().unwrap_or(false);
+        if has && wanted.cross_attention.get(i) == Some(&true) && only_init != only_wanted {
+            return Err(bad(format!(
+                "down block {i}'s attention has only_cross_attention {only_init}, the training config \
+                 asks {only_wanted}: a block's attention cannot change what it attends to"
+            )));
+        }
+    }
+    Ok(())
 }
 
 /// Total size of the exported weight files.
@@ -962,8 +1000,8 @@ mod tests {
     use super::*;
     use candle_core::Device;
 
-    /// Writes `trainer`'s weights as an exported model folder would hold them.
-    fn export(trainer: &denoiser::DenoiserTrainer, dir: &Path) {
+    /// Writes `trainer`'s weights (built from `config`) as an exported model folder would hold them.
+    fn export(trainer: &denoiser::DenoiserTrainer, config: &TrainConfig, dir: &Path) {
         let mut unet = HashMap::new();
         let mut text = HashMap::new();
         for (name, var) in optim::named_vars(&trainer.varmap) {
@@ -980,6 +1018,7 @@ mod tests {
             std::fs::create_dir_all(dir.join(sub)).unwrap();
             save_tensors(tensors, &dir.join(sub).join(file)).unwrap();
         }
+        write_json(&dir.join("unet/config.json"), &config.unet_config_json()).unwrap();
     }
 
     fn predict(trainer: &denoiser::DenoiserTrainer) -> Tensor {
@@ -1010,7 +1049,7 @@ mod tests {
         let mut small = TrainConfig::tiny();
         small.unet.cross_attention = vec![false, true];
         let init = denoiser::DenoiserTrainer::new(&small, 50).unwrap();
-        export(&init, dir.path());
+        export(&init, &small, dir.path());
 
         // Text at the top level too, attending to nothing but the text there.
         let mut grown = small.clone();
@@ -1018,7 +1057,7 @@ mod tests {
         grown.unet.only_cross_attention = vec![true, false];
         grown.validate().unwrap();
         let trainer = denoiser::DenoiserTrainer::new(&grown, 50).unwrap();
-        let added = load_denoiser_weights(dir.path(), &trainer.varmap).unwrap();
+        let added = load_denoiser_weights(dir.path(), &grown, &trainer.varmap).unwrap();
         assert!(added > 0);
         let before = predict(&init);
         let after = predict(&trainer);
@@ -1056,16 +1095,26 @@ mod tests {
             .unwrap();
         assert!(diff.to_scalar::<f32>().unwrap() > 1e-3);
 
-        // A shape that does not match is still refused, naming the file.
+        // An attention the init has cannot switch to the text, though its shapes match here (both the
+        // block and the text are 16 wide); the error names the init's config.
         let mut other = grown.clone();
         other.unet.only_cross_attention = vec![true, true];
         let trainer = denoiser::DenoiserTrainer::new(&other, 50).unwrap();
-        let err = load_denoiser_weights(dir.path(), &trainer.varmap)
+        let err = load_denoiser_weights(dir.path(), &other, &trainer.varmap)
             .unwrap_err()
             .to_string();
         assert!(
-            err.contains("unet/diffusion_pytorch_model.safetensors") && err.contains("attn1"),
+            err.contains("unet/config.json") && err.contains("down block 1"),
             "{err}"
         );
+
+        // Any other difference from the init's architecture is still refused, naming the weights.
+        let mut fewer = small.clone();
+        fewer.unet.layers_per_block = 2;
+        let trainer = denoiser::DenoiserTrainer::new(&fewer, 50).unwrap();
+        let err = load_denoiser_weights(dir.path(), &fewer, &trainer.varmap)
+            .unwrap_err()
+            .to_string();
+        assert!(err.contains("diffusion_pytorch_model.safetensors"), "{err}");
     }
 }

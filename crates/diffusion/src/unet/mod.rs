@@ -17,8 +17,8 @@ use candle_nn::VarBuilder;
 
 pub use attention::{edit_maps, AttentionHook, AttnCall, AttnKind, MapEdit};
 use blocks::{BlockAttention, DownBlock, MidBlock, ResnetShared, UpBlock};
-use config::{BlockKind, ResolvedBlocks};
-pub use config::{PerBlock, UNetConfig};
+use config::ResolvedBlocks;
+pub use config::{BlockKind, PerBlock, UNetConfig};
 use embeddings::{timestep_embedding, TimestepEmbedding};
 pub use memory::ActivationEstimate;
 
