@@ -941,7 +941,7 @@ fn write_readme(
          | part | architecture |\n| --- | --- |\n\
          | tokenizer | CLIP BPE, {vocab} tokens, one per caption word |\n\
          | text encoder | CLIPTextModel, hidden {th}, {tl} layers, {thd} heads, {tp} positions |\n\
-         | UNet | UNet2DConditionModel, channels {uc:?}, cross-attention {ua:?}, {uh} heads, ε-prediction |\n\
+         | UNet | UNet2DConditionModel, channels {uc:?}, cross-attention {ua:?}{only}, {uh} heads, ε-prediction |\n\
          | VAE | AutoencoderKL, channels {vc:?}, {lat} latent channels, scaling_factor {sf:.5} |\n\
          | scheduler | LCMScheduler config, scaled-linear betas {bs} → {be}, 1000 steps |\n\n\
          Training: seed {seed}, {n} rendered {size}×{size} samples; {codec_part};\n\
@@ -957,6 +957,11 @@ fn write_readme(
         tp = c.text.max_positions,
         uc = c.unet.block_out_channels,
         ua = c.unet.cross_attention,
+        only = if c.unet.only_cross_attention.contains(&true) {
+            format!(" (text only, no self-attention: {:?})", c.unet.only_cross_attention)
+        } else {
+            String::new()
+        },
         uh = c.unet.heads,
         vc = c.codec.block_out_channels,
         lat = c.codec.latent_channels,
