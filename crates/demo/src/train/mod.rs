@@ -1048,6 +1048,17 @@ mod tests {
             .unwrap()
     }
 
+    fn max_abs_diff(a: &Tensor, b: &Tensor) -> f32 {
+        (a - b)
+            .unwrap()
+            .abs()
+            .unwrap()
+            .max_all()
+            .unwrap()
+            .to_scalar()
+            .unwrap()
+    }
+
     #[test]
     fn init_grows_attention_that_starts_as_identity() {
         let dir = tempfile::tempdir().unwrap();
@@ -1066,13 +1077,8 @@ mod tests {
         assert!(added > 0);
         let before = predict(&init);
         let after = predict(&trainer);
-        let diff = (&before - &after)
-            .unwrap()
-            .abs()
-            .unwrap()
-            .max_all()
-            .unwrap();
-        assert!(diff.to_scalar::<f32>().unwrap() < 1e-5, "{diff}");
+        let diff = max_abs_diff(&before, &after);
+        assert!(diff < 1e-5, "{diff}");
 
         // The new modules are on the path: a non-zero proj_out changes the prediction.
         let vars = optim::named_vars(&trainer.varmap);
@@ -1092,13 +1098,8 @@ mod tests {
         );
         proj.set(&proj.as_tensor().ones_like().unwrap()).unwrap();
         let changed = predict(&trainer);
-        let diff = (&before - &changed)
-            .unwrap()
-            .abs()
-            .unwrap()
-            .max_all()
-            .unwrap();
-        assert!(diff.to_scalar::<f32>().unwrap() > 1e-3);
+        let diff = max_abs_diff(&before, &changed);
+        assert!(diff > 1e-3, "{diff}");
 
         // An attention the init has cannot switch to the text, though its shapes match here (both the
         // block and the text are 16 wide); the error names the init's config.
