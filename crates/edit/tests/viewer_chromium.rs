@@ -906,10 +906,13 @@ fn viewer_flies_with_the_keys_only_when_focused() {
         )
     };
 
-    // Typing in a text field elsewhere on the page moves nothing.
+    // Typing in a text field elsewhere on the page moves nothing. The field changes the page's layout,
+    // and the canvas's resize observer may then ask for a frame of its own (CI once counted it, on a loaded
+    // machine, as a frame for the key): the page settles, that frame drawn, before the key is pressed.
     let start = tools.evaluate(
-        "(() => { const input = document.createElement('input'); input.id = 'elsewhere'; \
-         document.body.append(input); input.focus(); return t.camera(); })()",
+        "(async () => { const input = document.createElement('input'); input.id = 'elsewhere'; \
+         document.body.append(input); input.focus(); await t.frames(2); \
+         while (t.v().pending) await t.frames(1); return t.camera(); })()",
     );
     let (held, _, _) = hold_w(&mut tools, false, false);
     let unmoved = tools.evaluate("t.camera()");
