@@ -574,6 +574,24 @@ fn out_of_range_values_are_usage_errors() {
         assert_one_clear_error(&o, 2, says);
         assert!(!dir.path().join("d").exists(), "{extra:?} left a folder");
     }
+    // A level the model lacks is known only once the model is read, still before any folder is made.
+    let o = vcedit_in(
+        dir.path(),
+        &[
+            "demo",
+            "--out",
+            "d",
+            "--blend-level",
+            "9",
+            "--device",
+            "cpu",
+        ],
+    );
+    assert_one_clear_error(&o, 1, &["--blend-level", "blend level 9", "levels with it"]);
+    assert!(
+        !dir.path().join("d").exists(),
+        "--blend-level 9 left a folder"
+    );
 }
 
 #[test]

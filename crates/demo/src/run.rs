@@ -69,6 +69,10 @@ pub struct DemoOptions {
     pub delta_decode: DeltaDecode,
     /// When the fits keep the object's geometry (as `vcedit edit`).
     pub keep_shape: KeepShape,
+    /// UNet level whose cross-attention maps drive the local blend and CCM; `None`: the demo's own
+    /// (see [`demo_infedit_settings`]). For probing other demo models, e.g. one grown with text at
+    /// a finer level.
+    pub blend_level: Option<usize>,
 }
 
 impl DemoOptions {
@@ -86,6 +90,7 @@ impl DemoOptions {
             resume: false,
             delta_decode: DeltaDecode::Always,
             keep_shape: KeepShape::Auto,
+            blend_level: None,
         }
     }
 }
@@ -238,7 +243,10 @@ pub fn demo_infedit_settings(steps: usize) -> InfEditSettings {
 
 /// The edit job of one variant of the demo.
 pub fn demo_job(opts: &DemoOptions, scene: &DemoScene, variant: Variant) -> EditJob {
-    let infedit = demo_infedit_settings(opts.steps);
+    let mut infedit = demo_infedit_settings(opts.steps);
+    if opts.blend_level.is_some() {
+        infedit.blend_level = opts.blend_level;
+    }
     let mut consistency = ConsistencySettings::reference(opts.steps);
     match variant {
         Variant::NoCcm => consistency.ccm_steps.clear(),

@@ -2,6 +2,8 @@
 
 use std::path::PathBuf;
 
+use anyhow::Context;
+
 use edit::compute::Compute;
 use edit::run::{DeltaDecode, KeepShape};
 
@@ -71,6 +73,11 @@ pub struct Args {
     /// When the fits keep the object's geometry (as `vcedit edit`).
     #[arg(long, value_enum, default_value = "auto")]
     pub keep_shape: KeepShape,
+    /// UNet level whose cross-attention maps drive the local blend and CCM (as `vcedit edit`);
+    /// default: the built-in model's level 1 (its 16×16 maps). For other demo models, e.g. one grown
+    /// with `demo-model train --config tools/demo-model/text32.json`.
+    #[arg(long, value_name = "LEVEL", value_parser = whole::<usize>, allow_negative_numbers = true)]
+    pub blend_level: Option<usize>,
     #[command(flatten)]
     pub memory: MemoryCheckArg,
 }
@@ -106,11 +113,16 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     opts.resume = args.resume;
     opts.delta_decode = args.delta_decode;
     opts.keep_shape = args.keep_shape;
+    opts.blend_level = args.blend_level;
     let scene = demo_scene(&opts)?;
     // The demo's networks are tiny (a 128² latent UNet of a few MB); its time goes to lifting, renders
     // and ECM's fits, which ran faster on WGSL (docs/gpu-results.md: on an H100 its SPIR-V run took 71 s
     // for the first of two iterations, the H200's WGSL run 57.9 s for both).
     let model = load_model(&model_dir)?;
+    if args.blend_level.is_some() {
+        edit::sampler::EditPlan::check_blend_level(&model, args.blend_level)
+            .context("--blend-level")?;
+    }
     let gpu = args.device.open_for(gpu::Workload::Splatting)?;
     let model = model.on(Compute::on(gpu, args.precision.precision));
     eprintln!(
@@ -140,6 +152,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         args.seed,
         args.delta_decode,
         args.keep_shape,
+        args.blend_level,
     ));
     let model_files = files_under(&model_dir, 3);
     let inputs: Vec<&std::path::Path> = model_files.iter().map(PathBuf::as_path).collect();
