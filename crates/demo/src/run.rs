@@ -627,3 +627,21 @@ pub fn reference_table(rows: &[ReferenceRow]) -> String {
 pub fn variant_dir(out: &Path, variant: Variant) -> PathBuf {
     out.join(variant.folder())
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_chosen_blend_level_replaces_the_demo_models_own() {
+        let mut opts = DemoOptions::new(PathBuf::from("model"), PathBuf::from("out"));
+        opts.views = 2;
+        let scene = demo_scene(&opts).unwrap();
+        let level = |opts: &DemoOptions, v| demo_job(opts, &scene, v).infedit.blend_level;
+        assert_eq!(level(&opts, Variant::Full), Some(1));
+        opts.blend_level = Some(0);
+        for v in Variant::ALL {
+            assert_eq!(level(&opts, v), Some(0), "{v:?}");
+        }
+    }
+}
