@@ -244,9 +244,7 @@ pub fn demo_infedit_settings(steps: usize) -> InfEditSettings {
 /// The edit job of one variant of the demo.
 pub fn demo_job(opts: &DemoOptions, scene: &DemoScene, variant: Variant) -> EditJob {
     let mut infedit = demo_infedit_settings(opts.steps);
-    if opts.blend_level.is_some() {
-        infedit.blend_level = opts.blend_level;
-    }
+    infedit.blend_level = opts.blend_level.or(infedit.blend_level);
     let mut consistency = ConsistencySettings::reference(opts.steps);
     match variant {
         Variant::NoCcm => consistency.ccm_steps.clear(),

@@ -119,10 +119,11 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     // and ECM's fits, which ran faster on WGSL (docs/gpu-results.md: on an H100 its SPIR-V run took 71 s
     // for the first of two iterations, the H200's WGSL run 57.9 s for both).
     let model = load_model(&model_dir)?;
-    if args.blend_level.is_some() {
-        edit::sampler::EditPlan::check_blend_level(&model, args.blend_level)
-            .context("--blend-level")?;
-    }
+    let job = demo_job(&opts, &scene, Variant::Full);
+    // The level the demo will use (its own, or --blend-level): a --model without cross-attention there
+    // is refused here, before any folder is made.
+    edit::sampler::EditPlan::check_blend_level(&model, job.infedit.blend_level)
+        .context("--blend-level")?;
     let gpu = args.device.open_for(gpu::Workload::Splatting)?;
     let model = model.on(Compute::on(gpu, args.precision.precision));
     eprintln!(
@@ -135,7 +136,6 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         model_dir.display()
     );
     // The same work plan `vcedit edit` prints (memory, and on a GPU the view batch), for the full variant.
-    let job = demo_job(&opts, &scene, Variant::Full);
     let plan = edit::run::work_plan(&job, &model, &scene.built.scene, scene.cameras.len());
     eprintln!("{}", plan.describe());
     args.memory.check(plan.memory_bytes, "--views")?;
