@@ -14,6 +14,9 @@
 #                      X/Wayland client libraries, unpacked into a private folder there)
 #   wheels/            diffusers and importlib_metadata (the device image has PyTorch, transformers,
 #                      safetensors, huggingface_hub, numpy and pillow, but no diffusers)
+#   cuda-headers.tar.xz  the CUDA 13.0 headers NVRTC compiles vcedit's CUDA kernels against (cuda/include,
+#                      with CCCL under include/cccl: NVIDIA's nvidia-cuda-runtime and nvidia-cuda-cccl
+#                      wheels), for a machine whose PyTorch brings NVRTC but no toolkit
 #   inputs.tar.xz      playbot-31k.ply (a real scene), lego-200 (posed views), clip-bpe (the CLIP vocabulary
 #                      for the SD 1.5-sized random weights, which are made there with PyTorch)
 #   build.json         commit, date, toolchain: what the numbers belong to
@@ -43,7 +46,8 @@ done
 if [ "$build" = 1 ]; then
   # Without the built-in demo model (16 MB that would not fit the carried files' limit); the device runs
   # in a copy of the checkout, whose models/demo the demo step reads.
-  cargo build --release --bin vcedit --no-default-features
+  # With the CUDA runtime beside wgpu (`--features cuda`), so that one binary measures both.
+  cargo build --release --bin vcedit --no-default-features --features cuda
 fi
 # Where cargo puts it (CARGO_TARGET_DIR or the workspace's target/).
 BIN="$(cargo metadata --format-version 1 --no-deps | python3 -c 'import json,sys; print(json.load(sys.stdin)["target_directory"])')/release/vcedit"
@@ -77,6 +81,30 @@ pip_download() {
 }
 pip_download || { sleep 5; pip_download; } || { echo "prepare.sh: pip download failed" >&2; exit 1; }
 
+echo "downloading the CUDA headers..."
+headers_dl=$(mktemp -d)
+pip_headers() {
+  python3 -m pip download -q --no-deps --only-binary=:all: --platform manylinux2014_x86_64 --python-version 3.12 \
+    -d "$headers_dl" "nvidia-cuda-runtime==13.0.*" "nvidia-cuda-cccl==13.0.*"
+}
+pip_headers || { sleep 5; pip_headers; } || { echo "prepare.sh: pip download of the CUDA headers failed" >&2; exit 1; }
+python3 - "$headers_dl" "$PACK.tmp/cuda-headers.tar.xz" <<'PY'
+import glob, io, lzma, sys, tarfile, zipfile
+src, out = sys.argv[1:]
+with lzma.open(out, "wb", preset=6) as xz, tarfile.open(fileobj=xz, mode="w") as tar:
+    for wheel in sorted(glob.glob(f"{src}/*.whl")):
+        with zipfile.ZipFile(wheel) as z:
+            for name in z.namelist():
+                # nvidia/cu13/include/... -> cuda/include/...
+                if "/include/" not in name or name.endswith("/"):
+                    continue
+                info = tarfile.TarInfo("cuda/include/" + name.split("/include/", 1)[1])
+                data = z.read(name)
+                info.size = len(data)
+                tar.addfile(info, io.BytesIO(data))
+PY
+rm -rf "$headers_dl"
+
 echo "packing the inputs..."
 staging=$(mktemp -d)
 mkdir -p "$staging/inputs/clip-bpe"
@@ -104,7 +132,7 @@ pack_bytes=$(du -sb "$PACK" | cut -f1)
 tree_bytes=$(git ls-files -z --cached --others --exclude-standard | xargs -0 -r stat -c %s -- 2>/dev/null | awk '{s+=$1} END {print s+0}')
 total=$((pack_bytes + tree_bytes))
 mib() { awk -v b="$1" 'BEGIN {printf "%.1f MiB", b / 1048576}'; }
-echo "carried folder .gpu-check: $(mib "$pack_bytes") (vcedit $(mib "$(stat -c %s "$PACK/bin/vcedit.xz")"), inputs $(mib "$(stat -c %s "$PACK/inputs.tar.xz")"), wheels $(mib "$(du -sb "$PACK/wheels" | cut -f1)"), debs $(mib "$(du -sb "$PACK/debs" | cut -f1)"))"
+echo "carried folder .gpu-check: $(mib "$pack_bytes") (vcedit $(mib "$(stat -c %s "$PACK/bin/vcedit.xz")"), inputs $(mib "$(stat -c %s "$PACK/inputs.tar.xz")"), wheels $(mib "$(du -sb "$PACK/wheels" | cut -f1)"), debs $(mib "$(du -sb "$PACK/debs" | cut -f1)"), CUDA headers $(mib "$(stat -c %s "$PACK/cuda-headers.tar.xz")"))"
 echo "working tree: $(mib "$tree_bytes"); together $(mib "$total") of the ${LIMIT_MIB} MiB that may travel"
 if [ "$total" -gt $((LIMIT_MIB * 1048576)) ]; then
   echo "prepare.sh: over the ${LIMIT_MIB} MiB limit" >&2

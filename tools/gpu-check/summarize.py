@@ -115,6 +115,16 @@ def paper_estimate(run):
             "ecm_steps": ecm_steps, "estimate_96_views_15_steps_2_iterations_s": [total(1), total(r)]}
 
 
+# The runtimes a core step runs on (run.sh's `on_runtimes`): wgpu under the step's own name, CUDA as
+# NAME-cuda; the label goes into the row's name.
+RUNTIME_STEPS = (("", ""), ("-cuda", ", CUDA"))
+
+
+def on_runtimes(res, name):
+    """(results, label) of step `name` on each runtime that ran it."""
+    return [(res.get(name + suffix, []), label) for suffix, label in RUNTIME_STEPS if name + suffix in res]
+
+
 def fmt_s(v):
     if v is None:
         return None
@@ -142,7 +152,7 @@ def build_table(res, steps, mode, torch_present, work):
 
     mt = res.get("matmul-torch", [])
     # vcedit's default path (SPIR-V, tensor cores where the card has them), then the WGSL path (A/B).
-    for step_name in ("matmul", "matmul-wgsl"):
+    for step_name in ("matmul-cuda", "matmul", "matmul-wgsl"):
         for r in [x for x in res.get(step_name, []) if x.get("what") == "linear"]:
             shape = f"{r['m']}x{r['k']}x{r['n']}"
             t = find(mt, precision=r["precision"], m=r["m"], k=r["k"], n=r["n"])
@@ -156,7 +166,7 @@ def build_table(res, steps, mode, torch_present, work):
                 line["ratio_vcedit_over_pytorch"] = ratio(r["ms"], t["ms"])
                 line["pytorch_tf32"] = (find(mt, precision="tf32", m=r["m"], k=r["k"], n=r["n"]) or {}).get("tflops")
     at = res.get("attention-torch", [])
-    for r in [x for x in res.get("attention", []) if x.get("bench") == "attention"]:
+    for r in [x for x in res.get("attention-cuda", []) + res.get("attention", []) if x.get("bench") == "attention"]:
         shape = f"{r['entries']}x{r['queries']}x{r['keys']}x{r['dim']}"
         t = find(at, entries=r["entries"], queries=r["queries"], keys=r["keys"], dim=r["dim"])
         err = f"; rel. error vs CPU f32 {r['rel_err']:.1e}" if r.get("rel_err") is not None else ""
@@ -164,11 +174,13 @@ def build_table(res, steps, mode, torch_present, work):
                    f"{r.get('compiler', '?')} (ms)", r.get("ms"), t.get("ms") if t else None,
                    fmt_s(r.get("first_s")), f"PyTorch: fp16 SDPA{err}")
         line["ratio_vcedit_over_pytorch"] = ratio(r.get("ms"), t.get("ms") if t else None)
-    for r in [x for x in res.get("matmul-routines", []) if x.get("bench") == "matmul"]:
+    for r in [x for x in res.get("matmul-routines-cuda", []) + res.get("matmul-routines", [])
+              if x.get("bench") == "matmul"]:
         shape = f"{r['m']}x{r['k']}x{r['n']}"
         t = find(mt, precision="f16", m=r["m"], k=r["k"], n=r["n"])
         what = "" if r.get("what") == "linear" else ", activations × activations"
-        line = row(f"matmul {shape}{what}, f16 weights, routine {r.get('routine')} (ran as {r.get('route')}) (TFLOP/s)",
+        line = row(f"matmul {shape}{what}, f16 weights, routine {r.get('routine')} (ran as {r.get('route')}), "
+                   f"{r.get('compiler', '?')} (TFLOP/s)",
                    r.get("tflops"), t.get("tflops") if t else None, fmt_s(r.get("first_s")),
                    f"rel. error vs CPU f32 {r['rel_err']:.1e}" if r.get("rel_err") is not None else "")
         if t:
@@ -188,7 +200,8 @@ def build_table(res, steps, mode, torch_present, work):
     def chosen(name):
         path = os.path.join(work, name)
         return open(path).read().strip() if os.path.exists(path) else "?"
-    for step_name, label in (("unet", ""), ("unet-tasks", ", 256 tasks per submission, 2nd process"),
+    for step_name, label in (("unet-cuda", ", CUDA"), ("unet", ""),
+                             ("unet-tasks", ", 256 tasks per submission, 2nd process"),
                              ("unet-flash", ", flash attention for every head"), ("unet-wgsl", ", WGSL"),
                              ("unet-routine", f", routine {chosen('unet-routine.name')}"),
                              ("unet-tiling", f", tiling {chosen('unet-tiling.name')}")):
@@ -202,26 +215,27 @@ def build_table(res, steps, mode, torch_present, work):
             t32 = find(ut32, batch=r["batch"])
             if t32:
                 line["pytorch_f32"] = t32.get("best_s")
-    cd, ct = res.get("codec", []), res.get("codec-torch", [])
-    for r in cd:
-        t = find(ct, what=r["what"])
-        line = row(f"AutoencoderKL {r['what']}, {r['size']}² (s)", r.get("best_s"), t.get("best_s") if t else None,
-                   fmt_s(r.get("first_s")))
-        line["ratio_vcedit_over_pytorch"] = ratio(r.get("best_s"), t.get("best_s") if t else None)
-    tx, tt = res.get("text", []), res.get("text-torch", [])
-    for r in [x for x in tx if x.get("what") == "encode"]:
-        t = find(tt, batch=r["batch"])
-        line = row(f"CLIP text encoder, batch {r['batch']} (s)", r.get("best_s"), t.get("best_s") if t else None,
-                   fmt_s(r.get("first_s")))
-        line["ratio_vcedit_over_pytorch"] = ratio(r.get("best_s"), t.get("best_s") if t else None)
-    for name in ("lpips", "lpips-cpu"):
+    ct = res.get("codec-torch", [])
+    for cd, rt in on_runtimes(res, "codec"):
+        for r in cd:
+            t = find(ct, what=r["what"])
+            line = row(f"AutoencoderKL {r['what']}, {r['size']}²{rt} (s)", r.get("best_s"),
+                       t.get("best_s") if t else None, fmt_s(r.get("first_s")))
+            line["ratio_vcedit_over_pytorch"] = ratio(r.get("best_s"), t.get("best_s") if t else None)
+    tt = res.get("text-torch", [])
+    for tx, rt in on_runtimes(res, "text"):
+        for r in [x for x in tx if x.get("what") == "encode"]:
+            t = find(tt, batch=r["batch"])
+            line = row(f"CLIP text encoder, batch {r['batch']}{rt} (s)", r.get("best_s"),
+                       t.get("best_s") if t else None, fmt_s(r.get("first_s")))
+            line["ratio_vcedit_over_pytorch"] = ratio(r.get("best_s"), t.get("best_s") if t else None)
+    for name, where in (("lpips-cuda", "gpu, CUDA"), ("lpips", "gpu"), ("lpips-cpu", "cpu")):
         for r in res.get(name, []):
             if r.get("bench") != "lpips":
                 continue
-            where = "gpu" if name == "lpips" else "cpu"
             row(f"LPIPS-VGG16 {r['what']}, {r['size']}², {where} (s)", r.get("best_s"), None,
                 fmt_s(r.get("first_s")), "full width, generated weights; f32", torch_expected=False)
-    for r in [x for x in res.get("overhead", []) if x.get("bench") == "overhead"]:
+    for r in [x for x in res.get("overhead-cuda", []) + res.get("overhead", []) if x.get("bench") == "overhead"]:
         for key, what in (("launch_us", "launch of a one-element kernel (µs)"),
                           ("round_trip_us", "launch + 4-byte read, waited for (µs)"),
                           ("read_mib_ms", "1 MiB read back (ms)"),
@@ -230,8 +244,8 @@ def build_table(res, steps, mode, torch_present, work):
                           ("sort_60k_ms", "radix sort of 60k pairs by 32-bit keys + read (ms)")):
             row(f"host overhead: {what}, {r.get('compiler', '?')}", r.get(key), None, None,
                 "what the host costs around kernels", torch_expected=False)
-    wheres = {"lift": "gpu", "lift-pixels": "gpu, per pixel and rendered back densely (as before 2026-11-28)",
-              "lift-cpu": "cpu"}
+    wheres = {"lift-cuda": "gpu, CUDA", "lift": "gpu",
+              "lift-pixels": "gpu, per pixel and rendered back densely (as before 2026-11-28)", "lift-cpu": "cpu"}
     for name, where in wheres.items():
         for r in res.get(name, []):
             if r.get("bench") != "lift":
@@ -239,22 +253,32 @@ def build_table(res, steps, mode, torch_present, work):
             row(f"CCM lifting round, {r['what']}, {r['views']} views at {r['size']}², {r['channels']} channels, "
                 f"{where} (s)", r.get("best_s"), None, fmt_s(r.get("first_s")),
                 f"{r['gaussians'] // 1000}k Gaussians, {r['grid']}² maps", torch_expected=False)
-    for name in ("splat", "splat-cpu"):
+    for name, rt in (("splat-cuda", ", CUDA"), ("splat", ""), ("splat-cpu", "")):
         for r in res.get(name, []):
             if r.get("bench") != "render":
                 continue
             first = r.get("first_ms")
             n = r["gaussians"]
             count = f"{n // 1_000_000}M" if n >= 1_000_000 and n % 1_000_000 == 0 else f"{n // 1000}k"
-            row(f"splat {r['stage']}, {count}, {r['width']}x{r['height']}, {r['device']} (ms)",
+            row(f"splat {r['stage']}, {count}, {r['width']}x{r['height']}, {r['device']}{rt} (ms)",
                 r.get("median_ms"), None, f"{first:.1f} ms" if first is not None else None,
                 torch_expected=False)
-    fit = steps.get("fit", {})
-    if fit.get("psnr") is not None:
-        row("vcedit fit lego-200 (s; held-out PSNR dB)", fit.get("seconds"), None, None,
-            f"{fit['psnr']:.2f} dB, {fit.get('gaussians')} Gaussians"
-            + (f"; {fit['reads']} device reads waited {fit['wait']:.1f} s" if "wait" in fit else ""),
-            torch_expected=False)
+    for name, rt in (("fit-cuda", ", CUDA"), ("fit", "")):
+        fit = steps.get(name, {})
+        if fit.get("psnr") is not None:
+            row(f"vcedit fit lego-200{rt} (s; held-out PSNR dB)", fit.get("seconds"), None, None,
+                f"{fit['psnr']:.2f} dB, {fit.get('gaussians')} Gaussians"
+                + (f"; {fit['reads']} device reads waited {fit['wait']:.1f} s" if "wait" in fit else ""),
+                torch_expected=False)
+    for name, rt in (("check-cuda", "CUDA"), ("check", "wgpu")):
+        checked = [r for r in res.get(name, []) if r.get("bench") == "check" and r.get("what") != "summary"]
+        if name not in steps:
+            continue
+        failed = [r["what"] for r in checked if not r.get("pass")]
+        worst = max((r.get("rel_err") or 0 for r in checked), default=None)
+        row(f"kernels against the CPU, {rt} (checks passed / run)", f"{len(checked) - len(failed)} / {len(checked)}",
+            None, None, (f"failed: {', '.join(failed)}" if failed else "all within tolerance")
+            + (f"; largest relative error {worst:.1e}" if worst is not None else ""), torch_expected=False)
     if "demo" in steps and steps["demo"].get("status") == "ok":
         row("vcedit demo (s)", steps["demo"].get("seconds"), None, None, "16 views at 128², 2 iterations"
             if mode == "device" else "2 views, 2 steps", torch_expected=False)
@@ -277,34 +301,41 @@ def main():
                 s = json.loads(line)
                 steps[s["step"]] = s
     res = {name: read_results(os.path.join(a.work, f"{name}.out")) for name in steps}
-    fit_out = os.path.join(a.work, "fit.out")
-    if "fit" in steps and os.path.exists(fit_out):
+    for fit_name in ("fit", "fit-cuda"):
+        fit_out = os.path.join(a.work, f"{fit_name}.out")
+        if fit_name not in steps or not os.path.exists(fit_out):
+            continue
         m = re.search(r"held-out PSNR ([\d.]+) dB .*?(\d+) Gaussians", open(fit_out).read())
         if m:
-            steps["fit"]["psnr"] = float(m.group(1))
-            steps["fit"]["gaussians"] = int(m.group(2))
+            steps[fit_name]["psnr"] = float(m.group(1))
+            steps[fit_name]["gaussians"] = int(m.group(2))
         # How long the host waited in device reads: near the total, the device is the bound; far below
         # it, the host's launching is.
         # (the time line is on stderr)
-        fit_err = os.path.join(a.work, "fit.err")
+        fit_err = os.path.join(a.work, f"{fit_name}.err")
         m = re.search(r"(\d+) device reads waited ([\d.]+)s",
                       open(fit_err).read() if os.path.exists(fit_err) else "")
         if m:
-            steps["fit"]["reads"] = int(m.group(1))
-            steps["fit"]["wait"] = float(m.group(2))
+            steps[fit_name]["reads"] = int(m.group(1))
+            steps[fit_name]["wait"] = float(m.group(2))
     build = {}
     if os.path.exists(os.path.join(a.work, "build.json")):
         build = json.load(open(os.path.join(a.work, "build.json")))
     adapter = (res.get("adapter") or [{}])[0]
+    adapter_cuda = (res.get("adapter-cuda") or [{}])[0]
     torch_info = (res.get("torch-info") or [{}])[0]
-    edit = None
-    run_path = os.path.join(a.work, "edit-run.json")
-    if os.path.exists(run_path):
+
+    def edit_slice(name):
+        run_path = os.path.join(a.work, f"{name}-run.json")
+        if not os.path.exists(run_path):
+            return None
         run = json.load(open(run_path))
         edit = {"stages_s": {s["stage"]: round(s["seconds"], 2) for s in run.get("timings", [])},
-                "total_s": steps.get("edit", {}).get("seconds"),
+                "total_s": steps.get(name, {}).get("seconds"),
                 "gaussians": run.get("gaussians_before")}
         edit.update(paper_estimate(run))
+        return edit
+    edit, edit_cuda = edit_slice("edit"), edit_slice("edit-cuda")
     torch_present = "torch-info" in steps
     table = build_table(res, steps, a.mode, torch_present, a.work)
     complete = bool(steps) and all(s.get("status") == "ok" for s in steps.values())
@@ -315,11 +346,13 @@ def main():
         "build": build,
         "machine": machine_info(a.work),
         "adapter": adapter.get("opened"),
+        "adapter_cuda": adapter_cuda.get("opened"),
         "adapters_seen": adapter.get("adapters"),
         "pytorch": torch_info or "not installed",
         "steps": steps,
         "table": table,
         "edit_slice": edit,
+        "edit_slice_cuda": edit_cuda,
         "results": res,
         "complete": complete,
     }
@@ -340,21 +373,32 @@ def main():
                      f"{' (software)' if ad.get('software') else ''}; driver {doc['machine'].get('driver', '?')}; "
                      f"PyTorch {torch_info.get('torch', 'n/a') if isinstance(torch_info, dict) else 'n/a'}.")
         lines.append("")
+    cu = doc["adapter_cuda"] or {}
+    if cu:
+        lines.append(f"CUDA: {cu.get('adapter')}, {'tensor cores' if cu.get('tensor_cores') else 'no tensor cores'} "
+                     f"({len(cu.get('cmma') or [])} WMMA shapes); rows marked CUDA ran there, the others on wgpu.")
+        lines.append("")
+    elif "adapter-cuda" in steps:
+        err = open(os.path.join(a.work, "adapter-cuda.err"), errors="replace").read().strip().splitlines()
+        lines.append(f"CUDA: not opened ({steps['adapter-cuda'].get('status')}: {err[-1] if err else 'no message'}).")
+        lines.append("")
     lines += ["| what | vcedit (warm) | vcedit first call | PyTorch | vcedit / PyTorch | note |",
               "| --- | --- | --- | --- | --- | --- |"]
     for r in table:
         cell = lambda v: "–" if v is None else str(v)
         lines.append(f"| {r['what']} | {cell(r['vcedit'])} | {cell(r['vcedit_first_call'])} | {cell(r['pytorch'])} | "
                      f"{cell(r['ratio_vcedit_over_pytorch'])} | {r['note']} |")
-    if edit:
-        lo, hi = edit["estimate_96_views_15_steps_2_iterations_s"]
-        stages = ", ".join(f"{k} {v:.1f}" for k, v in edit["stages_s"].items())
+    for slice_, rt in ((edit_cuda, " on CUDA"), (edit, "")):
+        if not slice_:
+            continue
+        lo, hi = slice_["estimate_96_views_15_steps_2_iterations_s"]
+        stages = ", ".join(f"{k} {v:.1f}" for k, v in slice_["stages_s"].items())
         per_it = "; ".join(f"iteration {i + 1}: " + ", ".join(f"{k} {v:.1f}" for k, v in it.items())
-                           for i, it in enumerate(edit["per_iteration_s"]))
-        lines += ["", f"Editing slice ({edit['views']} views × {edit['steps']} steps × {edit['iterations']} iterations, "
-                      f"CCM/ECM/blend on): {edit['total_s']} s in all; stages (s): {stages} ({per_it}). Estimate for "
-                      f"96 views × 15 steps × 2 iterations from the {edit['estimated_from']}: "
-                      f"**{lo:.0f}{'' if round(lo) == round(hi) else f'–{hi:.0f}'} s** "
+                           for i, it in enumerate(slice_["per_iteration_s"]))
+        lines += ["", f"Editing slice{rt} ({slice_['views']} views × {slice_['steps']} steps × "
+                      f"{slice_['iterations']} iterations, CCM/ECM/blend on): {slice_['total_s']} s in all; stages (s): "
+                      f"{stages} ({per_it}). Estimate for 96 views × 15 steps × 2 iterations from the "
+                      f"{slice_['estimated_from']}: **{lo:.0f}{'' if round(lo) == round(hi) else f'–{hi:.0f}'} s** "
                       f"(scaled from the slice, not a measurement)."]
     # Kernel profiles (kernel_profile.py's tables, as the steps printed them).
     for name in ("unet-profile", "fit-profile"):

@@ -1,8 +1,8 @@
 //! The adapter vcedit's GPU path opens, as the run log would name it, with the shader compiler CubeCL
 //! uses on it and the limits the kernels size themselves by.
 //!
-//! `vcedit bench device [--device gpu|auto] [--require-hardware]`: one `RESULT` line with every adapter
-//! wgpu lists and the one opened. `--require-hardware` fails (exit 1) when the opened adapter is a
+//! `vcedit bench device [--device gpu|auto|cuda|wgpu] [--require-hardware]`: one `RESULT` line with every
+//! adapter wgpu lists and the device opened (its runtime: CUDA or wgpu, see `VCEDIT_GPU_RUNTIME`). `--require-hardware` fails (exit 1) when the opened adapter is a
 //! software rasteriser (lavapipe/llvmpipe): a hardware measurement must never silently run on the CPU.
 //! `--overhead` adds a second `RESULT` line: what the host costs around the kernels (see [`overhead`]).
 
@@ -36,6 +36,8 @@ pub fn main(args: &[String]) -> Result<()> {
     let limits = &ctx.limits;
     let opened = serde_json::json!({
         "adapter": ctx.adapter,
+        "runtime": format!("{:?}", ctx.runtime),
+        "passed_over": ctx.passed_over,
         "api": ctx.backend,
         "compiler": ctx.compiler,
         "tensor_cores": ctx.tensor_cores,

@@ -20,6 +20,7 @@
 use std::time::{Duration, Instant};
 
 pub mod attention;
+pub mod check;
 pub mod codec;
 pub mod device;
 pub mod lift;
@@ -31,7 +32,7 @@ pub mod text;
 pub mod unet;
 
 /// The benches, in the order `vcedit bench --help` lists them.
-pub const NAMES: [&str; 9] = [
+pub const NAMES: [&str; 10] = [
     "device",
     "matmul",
     "attention",
@@ -41,6 +42,7 @@ pub const NAMES: [&str; 9] = [
     "render",
     "lpips",
     "lift",
+    "check",
 ];
 
 /// A bench that could not run: a bad argument, a missing file, a GPU error. One line.
@@ -92,6 +94,7 @@ pub fn run(name: &str, args: &[String], reexec: &[String]) -> Result<()> {
         "render" => render::main(args),
         "lpips" => lpips::main(args),
         "lift" => lift::main(args),
+        "check" => check::main(args),
         other => Err(BenchError(format!(
             "unknown bench '{other}' (expected one of {})",
             NAMES.join(", ")

@@ -17,14 +17,14 @@ use crate::scenes::{ball_scene_with_degree, camera};
 use crate::{arg_parsed, arg_value, report, sync, BenchError, Result, Timed};
 
 /// A smooth map per view with values in [0, 1], different per channel and view.
-fn map(grid: &MapGrid, view: usize) -> Vec<f32> {
+pub(crate) fn map(grid: &MapGrid, view: usize) -> Vec<f32> {
     (0..grid.len())
         .map(|i| 0.5 + 0.5 * ((i as f32) * 0.37 + view as f32).sin())
         .collect()
 }
 
 /// `views` cameras around the ball, all at `size`².
-fn cameras(views: usize, size: u32) -> Vec<Camera> {
+pub(crate) fn cameras(views: usize, size: u32) -> Vec<Camera> {
     let base = camera(size);
     (0..views)
         .map(|v| {

@@ -151,3 +151,42 @@ fn gpu_caches_go_to_the_user_cache_folder() {
         kept.display()
     );
 }
+
+/// `--device cuda` where CUDA cannot run (here: no NVIDIA driver, or a build without the runtime) is one
+/// error line naming why, exit code 1, no panic, and no output folder; a bad `VCEDIT_GPU_RUNTIME` is one
+/// line too.
+#[test]
+fn cuda_without_cuda_is_one_line_before_any_output() {
+    if std::path::Path::new("/dev/nvidia0").exists() {
+        println!("SKIP: this machine has an NVIDIA card");
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let out_dir = dir.path().join("demo");
+    let out = Command::new(env!("CARGO_BIN_EXE_vcedit"))
+        .args(["demo", "--device", "cuda", "--out"])
+        .arg(&out_dir)
+        .env("XDG_CACHE_HOME", dir.path().join("cache"))
+        .output()
+        .expect("run vcedit");
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(1), "{stderr}");
+    let last = stderr.lines().last().unwrap_or_default();
+    assert!(last.starts_with("error: CUDA unavailable: "), "{stderr}");
+    assert!(
+        last.contains("NVIDIA driver") || last.contains("built without"),
+        "{stderr}"
+    );
+    assert!(!stderr.contains("panicked"), "{stderr}");
+    assert!(!out_dir.exists(), "the demo made its folder");
+
+    let out = Command::new(env!("CARGO_BIN_EXE_vcedit"))
+        .args(["bench", "device", "--device", "gpu"])
+        .env("VCEDIT_GPU_RUNTIME", "opencl")
+        .output()
+        .expect("run vcedit");
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert_ne!(out.status.code(), Some(0), "{stderr}");
+    assert!(stderr.contains("unknown GPU runtime 'opencl'"), "{stderr}");
+    assert!(!stderr.contains("panicked"), "{stderr}");
+}

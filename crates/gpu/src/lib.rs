@@ -1,9 +1,13 @@
-//! GPU device selection and error handling for vcedit's compute kernels (CubeCL on wgpu).
+//! GPU device selection and error handling for vcedit's compute kernels (CubeCL on wgpu or CUDA).
 //!
-//! - [`DeviceChoice`]: what the user asked for (`cpu`, `gpu`, `auto`; also the `VCEDIT_DEVICE` variable).
-//! - [`open`]: turns a choice into an optional [`GpuContext`] without panicking. `auto` takes a hardware
-//!   adapter (Vulkan, Metal or DX12) when there is one; a software rasteriser such as Mesa's llvmpipe is
-//!   ~100x slower than the CPU path, so it is used only when asked for explicitly (`gpu`) or allowed
+//! - [`DeviceChoice`]: what the user asked for (`cpu`, `gpu`, `auto`, `cuda`, `wgpu`; also the
+//!   `VCEDIT_DEVICE` variable).
+//! - [`open`]: turns a choice into an optional [`GpuContext`] without panicking. The kernels are written
+//!   once in CubeCL and run on one of two runtimes: CUDA (NVIDIA cards, kernels compiled by NVRTC at run
+//!   time, built with the `cuda` feature; see `cuda.rs`) or wgpu (Vulkan, Metal or DX12). `auto` and
+//!   `gpu` take CUDA where it opens and wgpu's best hardware adapter otherwise, saying why CUDA was
+//!   passed over ([`GpuContext::passed_over`]); a software rasteriser such as Mesa's llvmpipe is ~100x
+//!   slower than the CPU path, so it is used only when asked for explicitly (`gpu`, `wgpu`) or allowed
 //!   with `VCEDIT_ALLOW_SOFTWARE_GPU=1`. The backend is pinned so wgpu never silently falls back to GL.
 //! - The shader compiler: SPIR-V on Vulkan adapters with the features cubecl's SPIR-V path needs (Vulkan
 //!   memory model, 16-bit storage; it also brings cooperative matrices, i.e. tensor cores, and native
@@ -28,6 +32,7 @@ use cubecl::ir::{ElemType, FloatKind};
 use cubecl::wgpu::{wgpu, AutoGraphicsApi, RuntimeOptions, WgpuDevice, WgpuRuntime, WgslCompiler};
 use cubecl_runtime::runtime::Runtime;
 
+mod cuda;
 mod memory;
 pub mod prims;
 pub mod reduce;
@@ -94,9 +99,17 @@ impl FromStr for CompilerChoice {
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub enum DeviceChoice {
     Cpu,
+    /// A GPU on the best runtime that opens (CUDA, else wgpu), software adapters included; an error
+    /// without one.
     Gpu,
+    /// A hardware GPU on the best runtime that opens, else the CPU.
     #[default]
     Auto,
+    /// The CUDA runtime only (an error where it cannot open, naming what is missing).
+    Cuda,
+    /// The wgpu runtime only: Vulkan, Metal or DX12, whichever the platform has (`vulkan`, `metal` and
+    /// `dx12` are accepted as its names).
+    Wgpu,
 }
 
 impl FromStr for DeviceChoice {
@@ -107,6 +120,8 @@ impl FromStr for DeviceChoice {
             "cpu" => Ok(Self::Cpu),
             "gpu" => Ok(Self::Gpu),
             "auto" => Ok(Self::Auto),
+            "cuda" => Ok(Self::Cuda),
+            "wgpu" | "vulkan" | "metal" | "dx12" => Ok(Self::Wgpu),
             other => Err(GpuError::BadChoice(other.to_string())),
         }
     }
@@ -118,8 +133,48 @@ impl fmt::Display for DeviceChoice {
             Self::Cpu => "cpu",
             Self::Gpu => "gpu",
             Self::Auto => "auto",
+            Self::Cuda => "cuda",
+            Self::Wgpu => "wgpu",
         })
     }
+}
+
+/// Which runtime `gpu` and `auto` may take (`VCEDIT_GPU_RUNTIME`): both, CUDA first (the default), or
+/// one of them, so that benchmarks, the tests and `tools/gpu-check` run every GPU step on one runtime
+/// without a flag on each command. `--device cuda`/`wgpu` name a runtime themselves and ignore it.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum RuntimeChoice {
+    #[default]
+    Auto,
+    Cuda,
+    Wgpu,
+}
+
+/// Environment variable holding the [`RuntimeChoice`].
+pub const RUNTIME_ENV: &str = "VCEDIT_GPU_RUNTIME";
+
+impl RuntimeChoice {
+    /// The choice in `VCEDIT_GPU_RUNTIME` (`auto` when unset or empty).
+    pub fn from_env() -> Result<RuntimeChoice, GpuError> {
+        match std::env::var(RUNTIME_ENV) {
+            Ok(v) => match v.trim().to_ascii_lowercase().as_str() {
+                "" | "auto" => Ok(Self::Auto),
+                "cuda" => Ok(Self::Cuda),
+                "wgpu" | "vulkan" | "metal" | "dx12" => Ok(Self::Wgpu),
+                other => Err(GpuError::BadRuntime(other.to_string())),
+            },
+            Err(_) => Ok(Self::Auto),
+        }
+    }
+}
+
+/// The CubeCL runtime a [`GpuContext`] launches its kernels on.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum GpuRuntime {
+    /// wgpu: Vulkan (SPIR-V or WGSL), Metal or DX12.
+    Wgpu,
+    /// CUDA: C++ kernels compiled to PTX by NVRTC.
+    Cuda,
 }
 
 impl DeviceChoice {
@@ -143,8 +198,13 @@ pub enum GpuError {
     DeviceLost(String),
     #[error("GPU kernel failed: {0}")]
     Kernel(String),
-    #[error("unknown device '{0}' (expected cpu, gpu or auto)")]
+    #[error("unknown device '{0}' (expected cpu, gpu, auto, cuda or wgpu)")]
     BadChoice(String),
+    #[error("unknown GPU runtime '{0}' in VCEDIT_GPU_RUNTIME (expected auto, cuda or wgpu)")]
+    BadRuntime(String),
+    /// `--device cuda` where CUDA cannot run: the reason names what is missing and how to get it.
+    #[error("CUDA unavailable: {0}")]
+    CudaUnavailable(String),
     #[error("unknown shader compiler '{0}' in VCEDIT_GPU_COMPILER (expected auto, wgsl or spirv)")]
     BadCompiler(String),
     #[error("{COMPILER_ENV}=spirv: this build has no SPIR-V compiler (built without vcedit-gpu's `spirv` feature)")]
@@ -176,17 +236,22 @@ pub struct GpuContext {
     pub client: Client,
     /// Adapter name, e.g. "NVIDIA H100" or "llvmpipe (LLVM 15.0.6, 256 bits)".
     pub adapter: String,
-    /// Graphics API the kernels run through ("Vulkan", "Metal", "Dx12").
+    /// The runtime the kernels launch on.
+    pub runtime: GpuRuntime,
+    /// API the kernels run through ("Vulkan", "Metal", "Dx12", "CUDA").
     pub backend: String,
-    /// The shader compiler serving the device, as CubeCL names its runtime: "wgpu<spirv>" or
-    /// "wgpu<wgsl>".
+    /// The kernel compiler serving the device, as CubeCL names its runtime: "wgpu<spirv>", "wgpu<wgsl>"
+    /// or "cuda".
     pub compiler: String,
-    /// Whether the device multiplies f16 tiles into f32 sums with cooperative matrices (tensor cores),
-    /// which only the SPIR-V path registers.
+    /// Whether the device multiplies f16 tiles into f32 sums with cooperative matrices (tensor cores):
+    /// registered by CUDA (WMMA, sm_70 and newer) and by wgpu's SPIR-V path, never by WGSL.
     pub tensor_cores: bool,
     /// Whether the adapter is a software rasteriser on the CPU.
     pub software: bool,
     pub limits: GpuLimits,
+    /// Why a runtime that `auto`/`gpu` prefers was not taken (e.g. "CUDA: NVRTC not found ..."), for the
+    /// run log; `None` when the first choice opened or was never in question.
+    pub passed_over: Option<String>,
 }
 
 impl fmt::Debug for GpuContext {
@@ -208,12 +273,14 @@ impl GpuContext {
         self.compiler == SPIRV_COMPILER
     }
 
-    /// One line for run logs: "llvmpipe (LLVM 15.0.6, 256 bits) via Vulkan, SPIR-V (software)".
+    /// One line for run logs: "llvmpipe (LLVM 15.0.6, 256 bits) via Vulkan, SPIR-V (software)",
+    /// "NVIDIA H200 via CUDA, C++ (NVRTC) with tensor cores".
     pub fn describe(&self) -> String {
         let compiler = match self.compiler.as_str() {
             SPIRV_COMPILER => "SPIR-V",
             "wgpu<wgsl>" => "WGSL",
             "wgpu<msl>" => "MSL",
+            _ if self.runtime == GpuRuntime::Cuda => "C++ (NVRTC)",
             other => other,
         };
         format!(
@@ -339,12 +406,48 @@ pub fn open(choice: DeviceChoice) -> Result<Option<GpuContext>, GpuError> {
 }
 
 /// Opens the device `choice` names: `Ok(None)` means "use the CPU" (`cpu`, or `auto` without a usable
-/// GPU); `gpu` without any adapter is [`GpuError::NoAdapter`]. `workload` picks the shader compiler
-/// unless `VCEDIT_GPU_COMPILER` names one.
+/// GPU); `gpu` without any adapter is [`GpuError::NoAdapter`], `cuda` where CUDA cannot run
+/// [`GpuError::CudaUnavailable`]. `auto` and `gpu` try CUDA first (a process probes it once), then wgpu.
+/// On wgpu, `workload` picks the shader compiler unless `VCEDIT_GPU_COMPILER` names one; CUDA has one
+/// compiler for every workload.
 pub fn open_for(choice: DeviceChoice, workload: Workload) -> Result<Option<GpuContext>, GpuError> {
-    if choice == DeviceChoice::Cpu {
-        return Ok(None);
+    let open_cuda = || {
+        cuda::open()
+            .map(Some)
+            .map_err(|e| GpuError::CudaUnavailable(e.to_string()))
+    };
+    match (choice, RuntimeChoice::from_env()?) {
+        (DeviceChoice::Cpu, _) => Ok(None),
+        (DeviceChoice::Cuda, _) | (DeviceChoice::Gpu | DeviceChoice::Auto, RuntimeChoice::Cuda) => {
+            open_cuda()
+        }
+        (DeviceChoice::Wgpu, _) => open_wgpu(DeviceChoice::Gpu, workload),
+        (DeviceChoice::Gpu | DeviceChoice::Auto, RuntimeChoice::Wgpu) => {
+            open_wgpu(choice, workload)
+        }
+        (DeviceChoice::Gpu | DeviceChoice::Auto, RuntimeChoice::Auto) => match cuda::open() {
+            Ok(ctx) => Ok(Some(ctx)),
+            Err(why) => {
+                let mut ctx = open_wgpu(choice, workload)?;
+                if let Some(ctx) = &mut ctx {
+                    ctx.passed_over = why.worth_saying();
+                }
+                Ok(ctx)
+            }
+        },
     }
+}
+
+/// Why `auto` passed CUDA over on this machine, where that is worth a line in the run log: an NVIDIA
+/// driver is installed but CUDA could not run (NVRTC or the CUDA headers missing, a failed probe
+/// kernel). `None` on machines without an NVIDIA driver or CUDA device, and in builds without CUDA.
+pub fn cuda_passed_over() -> Option<String> {
+    cuda::open().err().and_then(|why| why.worth_saying())
+}
+
+/// Opens a wgpu adapter for `choice` (`Gpu`: software adapters too; `Auto`: hardware ones unless
+/// allowed).
+fn open_wgpu(choice: DeviceChoice, workload: Workload) -> Result<Option<GpuContext>, GpuError> {
     let compiler = CompilerChoice::from_env()?;
     let adapters = list_adapters();
     let hardware = adapters.iter().find(|a| !a.software);
@@ -383,7 +486,8 @@ fn forces_wgsl(compiler: CompilerChoice, workload: Workload, a: &AdapterEntry) -
 /// compiled every kernel again in each process (~35 s of the first UNet call on an H100; WGSL kernels
 /// are never persisted, SPIR-V ones are with `compilation.cache`). Its `CUBECL_*` variables still apply.
 ///
-/// Kernels persist only in a process whose first device is on SPIR-V (`spirv`): cubecl 0.11.3 keys a
+/// Kernels persist only in a process whose first device is on SPIR-V or CUDA (`spirv`; CUDA keeps its
+/// PTX in a store of its own, per card architecture): cubecl 0.11.3 keys a
 /// persisted kernel by the kernel and the device, not by the compiler, so a WGSL-typed device loads the
 /// SPIR-V kernels an earlier process stored and runs them instead of its own. That made `vcedit fit`
 /// (WGSL under `auto`) run SPIR-V's splatting kernels whenever an edit had run before it: 83-90 s
@@ -467,6 +571,33 @@ fn open_adapter(a: &AdapterEntry, wgsl: bool) -> Result<GpuContext, GpuError> {
         let client = gpu_call(|| Ok(cubecl::Device::Wgpu(device).client()))?;
         (format!("{:?}", setup.backend), client)
     };
+    // A WGSL-typed runtime names itself after the adapter's capabilities ("wgpu<spirv>" on a Vulkan
+    // adapter that could take SPIR-V), not after its compiler.
+    let compiler = if wgsl {
+        "wgpu<wgsl>".to_string()
+    } else {
+        client.name().to_string()
+    };
+    let tensor_cores = compiler == SPIRV_COMPILER && has_f16_tensor_cores(&client);
+    Ok(context_of(
+        client,
+        GpuRuntime::Wgpu,
+        backend,
+        compiler,
+        tensor_cores,
+        a.software,
+    ))
+}
+
+/// The [`GpuContext`] of an opened `client`: its name, limits and the card's free memory.
+fn context_of(
+    client: Client,
+    runtime: GpuRuntime,
+    backend: String,
+    compiler: String,
+    tensor_cores: bool,
+    software: bool,
+) -> GpuContext {
     let props = client.properties();
     let hw = &props.hardware;
     let limits = GpuLimits {
@@ -483,23 +614,17 @@ fn open_adapter(a: &AdapterEntry, wgsl: bool) -> Result<GpuContext, GpuError> {
             .and_then(|card| card.pci_address.as_ref())
             .and_then(|pci| memory::free_bytes(&pci.to_string())),
     };
-    // A WGSL-typed runtime names itself after the adapter's capabilities ("wgpu<spirv>" on a Vulkan
-    // adapter that could take SPIR-V), not after its compiler.
-    let compiler = if wgsl {
-        "wgpu<wgsl>".to_string()
-    } else {
-        client.name().to_string()
-    };
-    let tensor_cores = compiler == SPIRV_COMPILER && has_f16_tensor_cores(&client);
-    Ok(GpuContext {
+    GpuContext {
         adapter: props.identity.name.clone(),
         client,
+        runtime,
         backend,
         compiler,
         tensor_cores,
-        software: a.software,
+        software,
         limits,
-    })
+        passed_over: None,
+    }
 }
 
 /// Whether the device registers a cooperative-matrix shape multiplying f16 tiles into f32 sums.
@@ -577,12 +702,22 @@ mod tests {
         assert_eq!("cpu".parse::<DeviceChoice>().unwrap(), DeviceChoice::Cpu);
         assert_eq!(" GPU ".parse::<DeviceChoice>().unwrap(), DeviceChoice::Gpu);
         assert_eq!("auto".parse::<DeviceChoice>().unwrap(), DeviceChoice::Auto);
+        assert_eq!("CUDA".parse::<DeviceChoice>().unwrap(), DeviceChoice::Cuda);
+        for wgpu in ["wgpu", "vulkan", "Metal", "dx12"] {
+            assert_eq!(wgpu.parse::<DeviceChoice>().unwrap(), DeviceChoice::Wgpu);
+        }
         let e = "tpu".parse::<DeviceChoice>().unwrap_err();
         assert_eq!(
             e.to_string(),
-            "unknown device 'tpu' (expected cpu, gpu or auto)"
+            "unknown device 'tpu' (expected cpu, gpu, auto, cuda or wgpu)"
         );
-        for c in [DeviceChoice::Cpu, DeviceChoice::Gpu, DeviceChoice::Auto] {
+        for c in [
+            DeviceChoice::Cpu,
+            DeviceChoice::Gpu,
+            DeviceChoice::Auto,
+            DeviceChoice::Cuda,
+            DeviceChoice::Wgpu,
+        ] {
             assert_eq!(c.to_string().parse::<DeviceChoice>().unwrap(), c);
         }
     }
@@ -723,9 +858,10 @@ mod tests {
             return;
         };
         let persisting = CubeClRuntimeConfig::get().compilation.cache;
+        // CUDA's compiled kernels live in a store of their own (per card architecture), so they persist.
         assert_eq!(
             persisting,
-            ctx.on_spirv() && persist_kernels(),
+            (ctx.on_spirv() || ctx.runtime == GpuRuntime::Cuda) && persist_kernels(),
             "{}",
             ctx.describe()
         );

@@ -5,7 +5,8 @@ use crate::{open, DeviceChoice, GpuContext, GpuError};
 use std::sync::OnceLock;
 
 /// The test device (any adapter, software ones included), opened once per test binary; `None` after
-/// printing "skipping: no Vulkan device" when there is none.
+/// printing "skipping: no Vulkan device" when there is none. `VCEDIT_GPU_RUNTIME=cuda|wgpu` runs the
+/// tests on one runtime of a machine that has both.
 pub fn context_or_skip() -> Option<GpuContext> {
     static CONTEXT: OnceLock<Result<GpuContext, String>> = OnceLock::new();
     let ctx = CONTEXT.get_or_init(|| match open(DeviceChoice::Gpu) {
@@ -15,6 +16,10 @@ pub fn context_or_skip() -> Option<GpuContext> {
             Ok(ctx)
         }
         Ok(None) | Err(GpuError::NoAdapter) => Err(String::new()),
+        // Asked for by name: a test run that meant to check CUDA must not pass by skipping.
+        Err(e @ (GpuError::CudaUnavailable(_) | GpuError::BadRuntime(_))) => {
+            panic!("{}: {e}", crate::RUNTIME_ENV)
+        }
         Err(e) => Err(format!(" ({e})")),
     });
     match ctx {

@@ -62,8 +62,9 @@ macro_rules! usage {
 /// `--device`: where rendering, fitting and the networks run.
 #[derive(clap::Args, Debug, Clone)]
 pub struct DeviceArg {
-    /// Compute device: cpu, gpu (an error without one) or auto (a hardware GPU when one is found, else
-    /// the CPU). Default: $VCEDIT_DEVICE, else auto.
+    /// Compute device: cpu, gpu (an error without one), auto (a hardware GPU when one is found, else the
+    /// CPU), cuda (NVIDIA's runtime only) or wgpu (Vulkan/Metal/DX12 only; also `vulkan`). gpu and auto
+    /// take CUDA where it runs, else Vulkan/Metal/DX12. Default: $VCEDIT_DEVICE, else auto.
     #[arg(long, value_name = "DEVICE")]
     pub device: Option<DeviceChoice>,
 }
@@ -84,7 +85,12 @@ impl DeviceArg {
         };
         let ctx = gpu::open_for(choice, workload)?;
         match (&ctx, choice) {
-            (Some(ctx), _) => eprintln!("device: {}", ctx.describe()),
+            (Some(ctx), _) => {
+                eprintln!("device: {}", ctx.describe());
+                if let Some(why) = &ctx.passed_over {
+                    eprintln!("        {why}");
+                }
+            }
             (None, DeviceChoice::Auto) => {
                 let software = gpu::list_adapters().into_iter().find(|a| a.software);
                 match software {
@@ -94,6 +100,9 @@ impl DeviceArg {
                         gpu::ALLOW_SOFTWARE_ENV
                     ),
                     None => eprintln!("device: CPU (auto: no GPU found)"),
+                }
+                if let Some(why) = gpu::cuda_passed_over() {
+                    eprintln!("        {why}");
                 }
             }
             (None, _) => eprintln!("device: CPU"),
