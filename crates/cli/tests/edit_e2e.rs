@@ -269,6 +269,41 @@ fn edit_writes_every_output_and_changes_only_the_mask() {
     let html = std::fs::read_to_string(out.join("report.html")).unwrap();
     assert!(html.contains("a red ball") && html.contains("edited.ply"));
 
+    // The work ledger: what the run counted is what the printed plan said, stage by stage.
+    let work = &run["work"];
+    let sum = |key: &str| -> u64 {
+        ["encode", "ccm", "unet", "ecm", "blend", "decode", "fit"]
+            .iter()
+            .map(|stage| {
+                work[stage][key]
+                    .as_u64()
+                    .unwrap_or_else(|| panic!("{stage}.{key}: {work}"))
+            })
+            .sum()
+    };
+    // Per view and iteration: steps 0-3 at progress 1/4 (5 samples: S_u lends T_u its queries and
+    // keys) and 2/4-4/4 (4), CCM's recording at step 1 (the conditional 3): 20, where the batch of six
+    // took 30. 4 views, 2 iterations.
+    assert_eq!(work["unet"]["unet_samples"], 4 * 2 * (5 + 3 * 4), "{work}");
+    assert_eq!(work["ccm"]["unet_samples"], 4 * 2 * 3, "{work}");
+    let planned = format!(
+        "counts: {} UNet samples in {} calls, {} lifting rounds ({} render-backs), {} fit steps, \
+         {} VAE encodes, {} decodes",
+        sum("unet_samples"),
+        sum("unet_calls"),
+        sum("lifting_rounds"),
+        sum("render_backs"),
+        sum("fit_steps"),
+        sum("vae_encodes"),
+        sum("vae_decodes"),
+    );
+    assert!(stderr.contains(&planned), "{planned}\n{stderr}");
+    assert!(sum("map_reads") > 0, "{work}");
+    assert!(
+        html.contains("work done: 160 UNet samples"),
+        "the report's ledger"
+    );
+
     // Everything outside the box is bit-for-bit the input; something inside changed.
     let kept: HashSet<Vec<u32>> = (0..edited.len())
         .map(|i| gaussian_key(&edited, i))

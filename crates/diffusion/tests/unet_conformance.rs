@@ -301,3 +301,77 @@ fn tiny_unet_on_gpu_matches_cpu() {
         }
     }
 }
+
+/// A hook that has seen all it needs after the first `wanted` attention calls.
+struct Observer {
+    wanted: usize,
+    seen: Vec<String>,
+}
+
+impl AttentionHook for Observer {
+    fn qkv(
+        &mut self,
+        call: &AttnCall,
+        q: DeviceTensor,
+        k: DeviceTensor,
+        v: DeviceTensor,
+    ) -> Result<(DeviceTensor, DeviceTensor, DeviceTensor)> {
+        self.seen.push(call.layer.to_string());
+        Ok((q, k, v))
+    }
+
+    fn finished(&self) -> bool {
+        self.seen.len() >= self.wanted
+    }
+}
+
+/// An observed pass ends at the end of the block where its hook has seen all it wants (no later
+/// attention call runs, no prediction); a plain pass with the same hook runs to its end.
+#[test]
+fn an_observed_pass_stops_once_its_hook_is_finished() {
+    let model = load_model("tiny-lcm");
+    let fx = load_fixture("tiny-lcm");
+    let mut all = Observer {
+        wanted: usize::MAX,
+        seen: Vec::new(),
+    };
+    let full = run(&model, &fx, Some(&mut all));
+    let mid = all
+        .seen
+        .iter()
+        .position(|l| l.starts_with("mid_block"))
+        .expect("the tiny UNet's mid block attends");
+    let observed = |wanted: usize| {
+        let mut hook = Observer {
+            wanted,
+            seen: Vec::new(),
+        };
+        let out = model
+            .forward_observed(
+                &fx["sample"],
+                &fx["timesteps"],
+                &fx["encoder_hidden_states"],
+                fx.get("timestep_cond"),
+                &mut hook,
+                &diffusion::device::Device::Cpu,
+            )
+            .unwrap();
+        (out, hook.seen)
+    };
+    // Finished inside the mid block: the pass ends with it, before the up blocks.
+    let (out, seen) = observed(mid + 1);
+    assert!(out.is_none());
+    assert_eq!(seen, all.seen[..seen.len()]);
+    assert!(seen.last().unwrap().starts_with("mid_block"), "{seen:?}");
+    // Never finished: the whole pass and its prediction, as a plain one.
+    let (out, seen) = observed(usize::MAX);
+    assert_eq!(seen, all.seen);
+    assert_eq!(max_abs_diff(&out.unwrap(), &full), 0.0);
+    // A plain pass does not ask.
+    let mut early = Observer {
+        wanted: 1,
+        seen: Vec::new(),
+    };
+    run(&model, &fx, Some(&mut early));
+    assert_eq!(early.seen, all.seen);
+}

@@ -15,6 +15,7 @@ pub mod compute;
 pub mod consistency;
 pub mod eval;
 pub mod fit;
+pub mod ledger;
 pub mod present;
 pub mod run;
 pub mod sampler;

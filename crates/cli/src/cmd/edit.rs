@@ -292,6 +292,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         *bytes += loss.gpu_bytes(job.size, plan.views);
     }
     eprintln!("{}", plan.describe());
+    eprintln!("      counts: {}", plan.work.describe());
     args.memory
         .check(plan.memory_bytes, "--max-views or --size")?;
     args.memory.check_gpu(

@@ -72,6 +72,12 @@ pub trait AttentionHook {
         let _ = call;
         Vec::new()
     }
+
+    /// Whether the hook has seen every call it needs from this pass. Only a pass run for its hook
+    /// alone ([`crate::unet::UNet2DConditionModel::forward_observed`]) asks, between blocks, and stops.
+    fn finished(&self) -> bool {
+        false
+    }
 }
 
 /// A change of one batch row's probabilities that is linear in the maps (Prompt-to-Prompt's refine, word

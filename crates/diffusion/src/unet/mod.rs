@@ -236,9 +236,58 @@ impl UNet2DConditionModel {
         timesteps: &Tensor,
         encoder_hidden_states: &Tensor,
         timestep_cond: Option<&Tensor>,
-        mut hook: Option<&mut (dyn AttentionHook + '_)>,
+        hook: Option<&mut (dyn AttentionHook + '_)>,
         device: &device::Device,
     ) -> candle_core::Result<Tensor> {
+        let out = self.run(
+            sample,
+            timesteps,
+            encoder_hidden_states,
+            timestep_cond,
+            hook,
+            device,
+            false,
+        )?;
+        Ok(out.expect("a pass that may not stop runs to its end"))
+    }
+
+    /// [`Self::forward_on`] for a pass whose hook only observes: it ends after the first block at whose end
+    /// the hook says it has seen all it needs ([`AttentionHook::finished`]), and then returns `None`
+    /// instead of a prediction.
+    pub fn forward_observed(
+        &self,
+        sample: &Tensor,
+        timesteps: &Tensor,
+        encoder_hidden_states: &Tensor,
+        timestep_cond: Option<&Tensor>,
+        hook: &mut (dyn AttentionHook + '_),
+        device: &device::Device,
+    ) -> candle_core::Result<Option<Tensor>> {
+        self.run(
+            sample,
+            timesteps,
+            encoder_hidden_states,
+            timestep_cond,
+            Some(hook),
+            device,
+            true,
+        )
+    }
+
+    #[allow(clippy::too_many_arguments)]
+    fn run(
+        &self,
+        sample: &Tensor,
+        timesteps: &Tensor,
+        encoder_hidden_states: &Tensor,
+        timestep_cond: Option<&Tensor>,
+        mut hook: Option<&mut (dyn AttentionHook + '_)>,
+        device: &device::Device,
+        may_stop: bool,
+    ) -> candle_core::Result<Option<Tensor>> {
+        let finished = |hook: &Option<&mut (dyn AttentionHook + '_)>| {
+            may_stop && hook.as_ref().is_some_and(|h| h.finished())
+        };
         let (batch, _, _, _) = sample.dims4()?;
         let timesteps = match timesteps.dims() {
             [] => timesteps.reshape(1)?.repeat(batch)?,
@@ -279,11 +328,17 @@ impl UNet2DConditionModel {
                 block.forward(&h, &emb, encoder_hidden_states, hook.as_deref_mut())?;
             h = out;
             skips.extend(produced);
+            if finished(&hook) {
+                return Ok(None);
+            }
         }
         h = self
             .mid_block
             .forward(&h, &emb, encoder_hidden_states, hook.as_deref_mut())?;
         for block in &self.up_blocks {
+            if finished(&hook) {
+                return Ok(None);
+            }
             let take = block.layers();
             if skips.len() < take {
                 candle_core::bail!(
@@ -309,6 +364,6 @@ impl UNet2DConditionModel {
             )?;
         }
         let h = self.conv_norm_out.forward_device(&h, true)?;
-        self.conv_out.forward_device(&h)?.to_cpu()
+        Ok(Some(self.conv_out.forward_device(&h)?.to_cpu()?))
     }
 }

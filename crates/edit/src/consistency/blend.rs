@@ -9,6 +9,7 @@ use splat::LiftSession;
 
 use super::lift::make_consistent;
 use super::{MultiView, MultiViewError};
+use crate::ledger::StageWork;
 use crate::sampler::{blend_maps, ViewState};
 
 impl MultiView<'_> {
@@ -18,13 +19,19 @@ impl MultiView<'_> {
         views: &mut [ViewState],
         i: usize,
         lift: &mut LiftSession<'_>,
+        work: &mut StageWork,
     ) -> Result<Vec<Tensor>, MultiViewError> {
         let plan = self.plan;
         let (lh, lw) = plan.latent_size;
         let mut maps = Vec::with_capacity(views.len());
         for view in views.iter() {
+            let store = view.controller.blend_store()?;
+            for (_, m) in &store {
+                work.map_reads += 1;
+                work.map_read_bytes += (m.elem_count() * m.dtype().size_in_bytes()) as u64;
+            }
             maps.push(blend_maps(
-                &view.controller.blend_store()?,
+                &store,
                 plan.blend_size,
                 &plan.alignment,
                 plan.latent_size,
@@ -53,6 +60,8 @@ impl MultiView<'_> {
                     Ok(())
                 },
             )?;
+            work.lifting_rounds += 1;
+            work.render_backs += views.len();
         }
         for (view, m) in views.iter_mut().zip(&maps) {
             plan.blend_with_maps(view, i, m)?;

@@ -15,6 +15,7 @@ use splat::LiftSession;
 
 use super::lift::make_consistent;
 use super::{MultiView, MultiViewError};
+use crate::ledger::StageWork;
 use crate::sampler::ViewState;
 
 impl MultiView<'_> {
@@ -25,18 +26,21 @@ impl MultiView<'_> {
         views: &mut [ViewState],
         i: usize,
         lift: &mut LiftSession<'_>,
+        work: &mut StageWork,
     ) -> Result<f64, MultiViewError> {
         let plan = self.plan;
         let mut recorded = Vec::with_capacity(views.len());
         for batch in views.chunks_mut(self.view_batch.max(1)) {
             let mut batch: Vec<&mut ViewState> = batch.iter_mut().collect();
-            for view in batch.iter_mut() {
-                view.controller.start_recording();
-            }
-            plan.predict_views(self.model, &mut batch, i)?;
-            for view in batch {
-                recorded.push(view.controller.finish_recording());
-            }
+            let (maps, samples_per_view) = plan.record_views(self.model, &mut batch, i)?;
+            work.unet_calls += 1;
+            work.unet_samples += batch.len() * samples_per_view;
+            recorded.extend(maps);
+        }
+        for rec in recorded.iter().flatten() {
+            work.map_reads += 1;
+            work.map_read_bytes +=
+                (rec.maps.elem_count() * rec.maps.dtype().size_in_bytes()) as u64;
         }
         let layers = recorded[0].len();
         if recorded.iter().any(|r| r.len() != layers) {
@@ -79,6 +83,8 @@ impl MultiView<'_> {
                     Ok(())
                 },
             )?;
+            work.lifting_rounds += 1;
+            work.render_backs += views.len();
             for (v, back) in backs.into_iter().enumerate() {
                 let back = back.expect("every view rendered");
                 let maps = &recorded[v][k].maps;

@@ -20,6 +20,7 @@ use splat::{Camera, GaussianScene, Image};
 use super::{MultiView, MultiViewError};
 use crate::compute::candle_err;
 use crate::fit::{check_targets, EditTrainer, ImageLoss, Targets};
+use crate::ledger::StageWork;
 use crate::sampler::{image_to_tensor, NoiseSource, ViewState};
 
 /// Everything ECM is configured with: when it runs and how its fits go.
@@ -239,6 +240,7 @@ impl MultiView<'_> {
         views: &mut [ViewState],
         i: usize,
         noise: &mut dyn NoiseSource,
+        work: &mut StageWork,
     ) -> Result<f64, MultiViewError> {
         let fitter = self.fitter.expect("checked in run");
         let model = self.model;
@@ -248,12 +250,15 @@ impl MultiView<'_> {
         };
         let targets = model.decode_each(&preds(|v| v.pred_t.as_ref()), batch)?;
         let layouts = model.decode_each(&preds(|v| v.pred_m.as_ref()), batch)?;
+        work.vae_decodes += 2 * views.len();
         let seed = self.seed.wrapping_mul(1_000_003).wrapping_add(i as u64 * 2);
         let fitting = std::time::Instant::now();
         let [fit_t, fit_m] = fitter
             .fit_pair(self.scene, self.cameras, [&targets, &layouts], seed)
             .map_err(MultiViewError::Fit)?;
         let fit_seconds = fitting.elapsed().as_secs_f64();
+        let (epochs, _) = self.consistency.ecm.schedule(self.cameras.len());
+        work.fit_steps += 2 * epochs * self.cameras.len();
         let compute = model.compute.splat();
         let render_t = compute
             .render_images(&fit_t, self.cameras, self.background)
@@ -270,6 +275,7 @@ impl MultiView<'_> {
         // One view's pair at a time unless views are batched (a batch of two would change the CPU's bits).
         let encode_batch = if batch > 1 { 2 * batch } else { 1 };
         let latents = model.encode_each(&images, encode_batch, noise)?;
+        work.vae_encodes += images.len();
         for (view, pair) in views.iter_mut().zip(latents.chunks_exact(2)) {
             self.plan
                 .rebase(view, i, pair[0].clone(), pair[1].clone())?;

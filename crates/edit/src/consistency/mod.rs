@@ -28,6 +28,7 @@ use candle_core::Tensor;
 use serde::{Deserialize, Serialize};
 use splat::{Camera, GaussianScene, Image};
 
+use crate::ledger::WorkLedger;
 use crate::sampler::{image_to_tensor, EditModel, EditPlan, NoiseSource, ViewState};
 
 /// Which consistency modules run, and when (sampler step indices, 0-based).
@@ -114,6 +115,8 @@ pub struct MultiViewOutcome {
     /// The last step's blend maps per view `[3, H, W]` (after consistency when enabled).
     pub blend_maps: Vec<Tensor>,
     pub times: StageTimes,
+    /// The work each stage did.
+    pub work: WorkLedger,
 }
 
 #[derive(Debug, thiserror::Error)]
@@ -171,6 +174,8 @@ impl MultiView<'_> {
             return Err(MultiViewError::Input("ECM needs a scene fitter".into()));
         }
         let mut times = StageTimes::default();
+        let mut work = WorkLedger::default();
+        let batches = images.len().div_ceil(self.view_batch.max(1));
         let timed =
             |stage: Stage, t: Instant, times: &mut StageTimes| times.add(stage, t.elapsed());
 
@@ -183,6 +188,7 @@ impl MultiView<'_> {
             .map(image_to_tensor)
             .collect::<candle_core::Result<Vec<_>>>()?;
         let x0s = model.encode_each(&images, self.view_batch, noise)?;
+        work.encode.vae_encodes += images.len();
         // One initial noise for every view (the reference repeats view 0's).
         let init = noise.sample(&shape)?;
         for x0 in x0s {
@@ -197,13 +203,16 @@ impl MultiView<'_> {
             let n = noise.sample(&shape)?;
             if self.consistency.ccm_steps.contains(&i) {
                 let t = Instant::now();
-                times.ccm_lifting += self.cross_attention_consistency(&mut views, i, &mut lift)?;
+                times.ccm_lifting +=
+                    self.cross_attention_consistency(&mut views, i, &mut lift, &mut work.ccm)?;
                 progress(i, Stage::Ccm);
                 timed(Stage::Ccm, t, &mut times);
             }
             let t = Instant::now();
+            work.unet.unet_calls += batches;
             for batch in views.chunks_mut(self.view_batch.max(1)) {
                 let mut batch: Vec<&mut ViewState> = batch.iter_mut().collect();
+                work.unet.unet_samples += batch.len() * batch[0].controller.layout().len();
                 let eps = plan.predict_views(model, &mut batch, i)?;
                 for (view, eps) in batch.into_iter().zip(eps) {
                     view.controller.end_step();
@@ -214,13 +223,13 @@ impl MultiView<'_> {
             timed(Stage::Unet, t, &mut times);
             if self.consistency.ecm.steps.contains(&i) {
                 let t = Instant::now();
-                times.ecm_fits += self.editing_consistency(&mut views, i, noise)?;
+                times.ecm_fits += self.editing_consistency(&mut views, i, noise, &mut work.ecm)?;
                 progress(i, Stage::Ecm);
                 timed(Stage::Ecm, t, &mut times);
             }
             if i > 0 {
                 let t = Instant::now();
-                last_maps = self.local_blend(&mut views, i, &mut lift)?;
+                last_maps = self.local_blend(&mut views, i, &mut lift, &mut work.blend)?;
                 progress(i, Stage::Blend);
                 timed(Stage::Blend, t, &mut times);
             }
@@ -232,9 +241,11 @@ impl MultiView<'_> {
             .collect::<Option<Vec<_>>>()
             .ok_or_else(|| MultiViewError::Input("no step ran".into()))?;
         let mut out = model.decode_each(&preds, self.view_batch)?;
+        work.decode.vae_decodes += preds.len();
         if self.delta_decode {
             let x0s: Vec<&Tensor> = views.iter().map(|v| &v.x0).collect();
             let decoded_sources = model.decode_each(&x0s, self.view_batch)?;
+            work.decode.vae_decodes += x0s.len();
             for ((edited, decoded_source), source) in
                 out.iter_mut().zip(&decoded_sources).zip(sources)
             {
@@ -247,6 +258,7 @@ impl MultiView<'_> {
             views,
             blend_maps: last_maps,
             times,
+            work,
         })
     }
 }

@@ -95,6 +95,7 @@ pub fn run_edit(
         // Edit all views jointly into guidance images.
         let (plan, edited) = run.edit_views(&trainer, &cams, &sources, k, progress)?;
         times.sampler = edited.times;
+        times.work = edited.work;
         state
             .guidance_consistency
             .push(guidance_consistency(&edited.images, &cams, &renders));
@@ -126,6 +127,7 @@ pub fn run_edit(
         fitted?;
         state.shape.push(shape);
         times.fit = t.elapsed().as_secs_f64();
+        times.work.fit.fit_steps += job.fit_steps;
         guidance.push(edited.images);
 
         state.iterations_done = k + 1;

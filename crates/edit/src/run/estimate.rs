@@ -192,6 +192,7 @@ mod tests {
             gpu_free_bytes: None,
             view_batch,
             estimate: None,
+            work: Default::default(),
         }
     }
 

@@ -8,6 +8,7 @@ use splat::{GaussianScene, Image};
 use crate::consistency::{ConsistencySettings, MultiViewError, StageTimes};
 use crate::eval::metrics::ConsistencySummary;
 use crate::fit::{TrainError, TrainSettings};
+use crate::ledger::WorkLedger;
 use crate::sampler::{EditError, EditPrompts, InfEditSettings};
 
 use super::masks::MaskError;
@@ -194,6 +195,9 @@ pub struct IterationTimes {
     pub render: f64,
     pub sampler: StageTimes,
     pub fit: f64,
+    /// The iteration's units of work per stage (absent in checkpoints from before the ledger).
+    #[serde(default)]
+    pub work: WorkLedger,
 }
 
 impl IterationTimes {

@@ -9,6 +9,7 @@ use splat::render::{render, Frame, RenderSettings};
 use splat::{Camera, GaussianScene, Image};
 
 use crate::eval::metrics::{self, MetricsError, WarpSettings};
+use crate::ledger::WorkLedger;
 use crate::present::gif::{write_gif, GifOptions};
 use crate::present::report::{
     self, IterationInfo, MetricsSummary, ReportData, ReportOptions, StageTiming, ViewPair,
@@ -301,6 +302,11 @@ pub fn write_outputs(
     if let Some(e) = &inputs.estimate {
         notes.push(format!("estimated before the run: {}", e.describe()));
     }
+    let mut work = WorkLedger::default();
+    for t in &result.times {
+        work.add(&t.work);
+    }
+    notes.push(format!("work done: {}", work.describe()));
     let data = ReportData {
         title: format!("vcedit: {} → {}", job.prompts.source, job.prompts.target),
         source_prompt: job.prompts.source.clone(),
@@ -366,6 +372,8 @@ pub fn write_outputs(
         shape: &'a [ShapeDecision],
         #[serde(skip_serializing_if = "Option::is_none")]
         estimate: Option<&'a Estimate>,
+        /// Units of work per stage, all iterations together (each iteration's are in `iterations`).
+        work: &'a WorkLedger,
     }
     let run = RunJson {
         vcedit_version: env!("CARGO_PKG_VERSION"),
@@ -382,6 +390,7 @@ pub fn write_outputs(
         iterations: &result.times,
         shape: &result.shape,
         estimate: inputs.estimate.as_ref(),
+        work: &work,
     };
     let p = out.join("run.json");
     files::atomic_write(&p, &serde_json::to_vec_pretty(&run).expect("serialisable"))

@@ -6,6 +6,7 @@ use splat::GaussianScene;
 
 use crate::consistency::EcmParams;
 use crate::fit::LPIPS_CACHE_BYTES;
+use crate::ledger::WorkLedger;
 use crate::sampler::{EditModel, DEFAULT_STORE_MAX_TOKENS};
 
 use super::estimate::Estimate;
@@ -33,6 +34,8 @@ pub struct WorkPlan {
     pub view_batch: usize,
     /// How long the run will take, where it was calibrated ([`super::estimate`]).
     pub estimate: Option<Estimate>,
+    /// The units of work per stage the run will do (its `run.json` counts what it did).
+    pub work: WorkLedger,
 }
 
 impl WorkPlan {
@@ -244,6 +247,7 @@ pub fn work_plan(
         + 48;
     let lifts = job.iterations * (blend * v + ccm * ccm_layers * v);
     let fit_steps = job.iterations * job.fit_steps;
+    let work = planned_work(job, v, view_batch, ccm_layers);
 
     let (w, h) = (job.size.0 as u64, job.size.1 as u64);
     let latent = (latent_size.0 * latent_size.1) as u64;
@@ -302,7 +306,58 @@ pub fn work_plan(
         gpu_free_bytes,
         view_batch,
         estimate: None,
+        work,
     }
+}
+
+/// The units of work of a run of `views` views, `view_batch` per UNet call, whose CCM steps lift
+/// `ccm_layers` layers: what [`crate::consistency::MultiView::run`] and the editing loop count, less the
+/// map reads (their number and size are known only when the UNet runs).
+pub fn planned_work(
+    job: &EditJob,
+    views: usize,
+    view_batch: usize,
+    ccm_layers: usize,
+) -> WorkLedger {
+    let mut w = WorkLedger::default();
+    let joint = job.guidance == GuidanceMode::Joint;
+    let c = &job.consistency;
+    let calls = views.div_ceil(view_batch.max(1));
+    let steps = job
+        .infedit
+        .start_steps()
+        .map_or(0, |start| job.infedit.steps.saturating_sub(start));
+    let samples = |i: usize, recording: bool| job.infedit.unet_samples(i, recording).unwrap_or(0);
+    w.encode.vae_encodes = views;
+    for i in 0..steps {
+        w.unet.unet_calls += calls;
+        w.unet.unet_samples += views * samples(i, false);
+        if joint && c.ccm_steps.contains(&i) {
+            w.ccm.unet_calls += calls;
+            w.ccm.unet_samples += views * samples(i, true);
+            w.ccm.lifting_rounds += ccm_layers;
+            w.ccm.render_backs += ccm_layers * views;
+        }
+        if joint && c.ecm.steps.contains(&i) {
+            let (epochs, _) = c.ecm.schedule(views);
+            w.ecm.fit_steps += 2 * epochs * views;
+            w.ecm.vae_decodes += 2 * views;
+            w.ecm.vae_encodes += 2 * views;
+        }
+        if joint && c.blend_consistency && i > 0 {
+            w.blend.lifting_rounds += 1;
+            w.blend.render_backs += views;
+        }
+    }
+    w.fit.fit_steps = job.fit_steps;
+    let mut total = WorkLedger::default();
+    for k in 0..job.iterations {
+        let mut iteration = w.clone();
+        // The decoded change needs the source latents decoded too.
+        iteration.decode.vae_decodes = views * if job.delta_decode.applies(k) { 2 } else { 1 };
+        total.add(&iteration);
+    }
+    total
 }
 
 const LPIPS_BUDGET: u64 = LPIPS_CACHE_BYTES as u64;

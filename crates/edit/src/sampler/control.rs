@@ -1,7 +1,8 @@
 //! InfEdit's unified attention control, as one [`AttentionHook`] per view.
 //!
 //! The UNet runs the three latent branches as one batch, `[S_u, T_u, M_u, S_c, T_c, M_c]` with classifier-free
-//! guidance (or `[S, T, M]` without). The controller
+//! guidance (or `[S, T, M]` without), less the samples nobody reads ([`BatchLayout`], `batch.rs`): the
+//! controller derives each pass's layout and finds the samples by it. The controller
 //! - rewrites self-attention Q/K/V in every layer and both CFG halves: early steps give all branches the
 //!   source's queries and keys (the target keeps its own values); late steps let the layout branch M query
 //!   with the target's queries into the source's keys/values ("mutual self-attention");
@@ -24,6 +25,7 @@ use diffusion::device::DeviceTensor;
 use diffusion::unet::{edit_maps, AttentionHook, AttnCall, AttnKind, MapEdit};
 
 use super::align::TokenAlignment;
+use super::batch::{BatchLayout, SampleSettings};
 
 /// Which attention maps count as "small" for CCM recording (query length ≤ this); the reference's 32².
 pub const DEFAULT_STORE_MAX_TOKENS: usize = 32 * 32;
@@ -43,6 +45,18 @@ pub struct ControlSettings {
     pub blend_size: (usize, usize),
     /// CCM records/replaces cross-attention layers whose query count is at most this.
     pub store_max_tokens: usize,
+    /// What decides which samples a pass computes.
+    pub samples: SampleSettings,
+}
+
+/// Progress of executed step `step` as the reference defines it: (step + start + 1) / num_steps.
+pub(crate) fn progress_at(step: usize, start_steps: usize, num_steps: usize) -> f64 {
+    (step + start_steps + 1) as f64 / num_steps as f64
+}
+
+/// Whether a pass at `progress` swaps self-attention in its mutual phase (from `self_replace` on).
+pub(crate) fn mutual_at(progress: f64, self_replace: f64) -> bool {
+    progress >= self_replace
 }
 
 /// Cross-attention maps of one layer as recorded for CCM: `[3 branches, heads, h*w, tokens]`.
@@ -68,6 +82,10 @@ pub struct EditController {
     recording: Option<Vec<RecordedMaps>>,
     /// 3D-consistent conditional maps to substitute in the next real pass (CCM).
     consistent: Option<HashMap<String, Tensor>>,
+    /// Small cross-attention calls of the current real pass so far, and of the last whole one: a
+    /// recording pass has seen all it records once it has recorded that many.
+    small_calls: usize,
+    small_calls_per_pass: Option<usize>,
 }
 
 impl EditController {
@@ -85,6 +103,8 @@ impl EditController {
             blend_store: Vec::new(),
             recording: None,
             consistent: None,
+            small_calls: 0,
+            small_calls_per_pass: None,
         }
     }
 
@@ -99,7 +119,11 @@ impl EditController {
 
     /// Progress of the current pass as the reference defines it: (step + start + 1) / num_steps.
     pub fn progress(&self) -> f64 {
-        (self.cur_step + self.settings.start_steps + 1) as f64 / self.settings.num_steps as f64
+        progress_at(
+            self.cur_step,
+            self.settings.start_steps,
+            self.settings.num_steps,
+        )
     }
 
     /// Marks the end of a real UNet pass.
@@ -107,6 +131,7 @@ impl EditController {
         self.cur_step += 1;
         // Consistent maps hold for one step only.
         self.consistent = None;
+        self.small_calls_per_pass = Some(std::mem::take(&mut self.small_calls));
     }
 
     /// The accumulated blend-layer maps: (layer, `[2, heads, h*w, tokens]`), read back to the host.
@@ -143,6 +168,8 @@ impl EditController {
             blend_store: self.blend_store.clone(),
             recording: None,
             consistent: None,
+            small_calls: 0,
+            small_calls_per_pass: self.small_calls_per_pass,
         }
     }
 
@@ -171,16 +198,18 @@ impl EditController {
         edit_maps(target, base, &keep, &take)
     }
 
-    /// Index along the batch axis for the self-attention swap, for one CFG half starting at `o`.
-    fn self_swap_indices(&self, o: u32) -> ([u32; 3], [u32; 3], [u32; 3]) {
-        let (s, t) = (o, o + 1);
-        if self.progress() >= self.settings.self_replace {
-            // Mutual self-attention: M queries with T's queries into S's keys/values.
-            ([s, t, t], [s, t, s], [s, t, s])
-        } else {
-            // Early: every branch uses the source's queries and keys; T keeps its own values.
-            ([s, s, s], [s, s, s], [s, t, s])
-        }
+    /// Whether the self-attention swap is in its mutual phase (from `self_replace` on).
+    fn mutual(&self) -> bool {
+        mutual_at(self.progress(), self.settings.self_replace)
+    }
+
+    /// The samples of this view's next UNet pass (see [`BatchLayout::needed`]).
+    pub fn layout(&self) -> BatchLayout {
+        BatchLayout::needed(
+            &self.settings.samples,
+            self.mutual(),
+            self.recording.is_some(),
+        )
     }
 }
 
@@ -192,17 +221,17 @@ impl AttentionHook for EditController {
         k: DeviceTensor,
         v: DeviceTensor,
     ) -> Result<(DeviceTensor, DeviceTensor, DeviceTensor)> {
-        if call.kind != AttnKind::SelfAttn || (call.batch != 6 && call.batch != 3) {
+        if call.kind == AttnKind::CrossAttn
+            && self.recording.is_none()
+            && call.height * call.width <= self.settings.store_max_tokens
+        {
+            self.small_calls += 1;
+        }
+        let layout = self.layout();
+        if call.kind != AttnKind::SelfAttn || call.batch != layout.len() {
             return Ok((q, k, v));
         }
-        let halves: &[u32] = if call.batch == 6 { &[0, 3] } else { &[0] };
-        let (mut qi, mut ki, mut vi) = (Vec::new(), Vec::new(), Vec::new());
-        for &o in halves {
-            let (a, b, c) = self.self_swap_indices(o);
-            qi.extend(a);
-            ki.extend(b);
-            vi.extend(c);
-        }
+        let [qi, ki, vi] = layout.self_attention_indices(self.mutual());
         Ok((
             q.index_select(&qi, 0)?,
             k.index_select(&ki, 0)?,
@@ -214,7 +243,7 @@ impl AttentionHook for EditController {
     /// (accumulated) and CCM's small layers while recording or substituting. Every other call runs the
     /// fused attention (no probability matrix); its refinement goes to the values ([`Self::map_edits`]).
     fn wants_probs(&self, call: &AttnCall) -> bool {
-        if call.kind != AttnKind::CrossAttn || (call.batch != 6 && call.batch != 3) {
+        if call.kind != AttnKind::CrossAttn || call.batch != self.layout().len() {
             return false;
         }
         let small = call.height * call.width <= self.settings.store_max_tokens;
@@ -233,13 +262,11 @@ impl AttentionHook for EditController {
     /// The target's refinement as a [`MapEdit`] of the conditional target row from the conditional
     /// source row (for the calls whose maps nothing reads).
     fn map_edits(&self, call: &AttnCall) -> Vec<MapEdit> {
-        if call.kind != AttnKind::CrossAttn
-            || (call.batch != 6 && call.batch != 3)
-            || !self.refining()
-        {
+        let layout = self.layout();
+        if call.kind != AttnKind::CrossAttn || call.batch != layout.len() || !self.refining() {
             return Vec::new();
         }
-        let cond_start = if call.batch == 6 { 3 } else { 0 };
+        let cond_start = layout.conditional_start();
         let (keep, take) = self.refinement(call.keys);
         vec![MapEdit {
             row: cond_start + 1,
@@ -249,13 +276,22 @@ impl AttentionHook for EditController {
         }]
     }
 
+    /// A recording pass is finished once it has recorded as many small layers as a whole real pass
+    /// calls (unknown before the first real pass: then it runs to the end).
+    fn finished(&self) -> bool {
+        let recorded = self.recording.as_ref().map(Vec::len);
+        self.settings.samples.skip_unread
+            && matches!((recorded, self.small_calls_per_pass), (Some(r), Some(n)) if n > 0 && r >= n)
+    }
+
     fn probs(&mut self, call: &AttnCall, probs: DeviceTensor) -> Result<DeviceTensor> {
-        if call.kind != AttnKind::CrossAttn || (call.batch != 6 && call.batch != 3) {
+        let layout = self.layout();
+        if call.kind != AttnKind::CrossAttn || call.batch != layout.len() {
             return Ok(probs);
         }
-        // The reference only edits the conditional half; without CFG (batch 3, which the reference does not
+        // The reference only edits the conditional half; without CFG (which the reference does not
         // support correctly) the whole batch is conditional.
-        let cond_start = if call.batch == 6 { 3 } else { 0 };
+        let cond_start = layout.conditional_start();
         let n_q = call.height * call.width;
         let small = n_q <= self.settings.store_max_tokens;
         let mut cond = probs.narrow(0, cond_start, 3)?;
@@ -304,7 +340,7 @@ impl AttentionHook for EditController {
         if cond_start == 0 {
             Ok(cond)
         } else {
-            DeviceTensor::cat(&[&probs.narrow(0, 0, 3)?, &cond], 0)
+            DeviceTensor::cat(&[&probs.narrow(0, 0, cond_start)?, &cond], 0)
         }
     }
 }
@@ -333,6 +369,12 @@ mod tests {
             self_replace: selfr,
             blend_size: (2, 2),
             store_max_tokens: 1024,
+            // The batch of six the tests below build by hand.
+            samples: SampleSettings {
+                cfg: true,
+                guidance_source: 1.0,
+                skip_unread: false,
+            },
         }
     }
 
@@ -452,7 +494,14 @@ mod tests {
         assert!(!c.wants_probs(&call(AttnKind::SelfAttn, 6)));
         let edits = c.map_edits(&large);
         assert_eq!((edits.len(), edits[0].row, edits[0].source), (1, 4, 3));
-        assert_eq!(c.map_edits(&AttnCall { batch: 3, ..large })[0].row, 1);
+        let mut no_cfg = settings(0.5, 0.0);
+        no_cfg.samples.cfg = false;
+        let no_cfg = EditController::new(no_cfg, &al);
+        assert_eq!(no_cfg.map_edits(&AttnCall { batch: 3, ..large })[0].row, 1);
+        assert!(
+            c.map_edits(&AttnCall { batch: 3, ..large }).is_empty(),
+            "not this pass's batch"
+        );
         assert!(c.map_edits(&call(AttnKind::SelfAttn, 6)).is_empty());
         c.end_step();
         c.end_step(); // progress 3/4: refinement over
@@ -549,5 +598,130 @@ mod tests {
         assert!(cond.iter().all(|&v| v == 1.0));
         c.end_step();
         assert!(c.consistent.is_none());
+    }
+
+    #[test]
+    fn a_reduced_batch_is_controlled_as_its_samples_were_in_the_batch_of_six() {
+        let al = alignment(vec![Some(0), Some(2), None], vec![1.0, 1.0, 0.0]);
+        let mut six = EditController::new(settings(1.0, 0.5), &al);
+        let mut reduced = EditController::new(
+            ControlSettings {
+                samples: SampleSettings {
+                    skip_unread: true,
+                    ..settings(1.0, 0.5).samples
+                },
+                ..settings(1.0, 0.5)
+            },
+            &al,
+        );
+        // Early (progress 1/4): [S_u, T_u, S_c, T_c, M_c], rows 0, 1, 3, 4, 5 of the six.
+        assert_eq!(reduced.layout().full_positions(true), [0, 1, 3, 4, 5]);
+        let rows = |t: &Tensor, rows: &[u32]| {
+            let idx = Tensor::new(rows, &Device::Cpu).unwrap();
+            t.index_select(&idx, 0).unwrap()
+        };
+        let flat = |t: DeviceTensor| {
+            t.to_cpu()
+                .unwrap()
+                .flatten_all()
+                .unwrap()
+                .to_vec1::<f32>()
+                .unwrap()
+        };
+        for step in 0..2 {
+            let keep = reduced.layout().full_positions(true);
+            let p = probs();
+            let out_six = six
+                .probs(&call(AttnKind::CrossAttn, 6), p.clone().into())
+                .unwrap();
+            let out_reduced = reduced
+                .probs(
+                    &call(AttnKind::CrossAttn, keep.len()),
+                    rows(&p, &keep).into(),
+                )
+                .unwrap();
+            assert_eq!(
+                flat(out_reduced),
+                flat(rows(&out_six.to_cpu().unwrap(), &keep).into())
+            );
+            let x = Tensor::arange(0f32, 6.0, &Device::Cpu)
+                .unwrap()
+                .reshape((6, 1, 1, 1))
+                .unwrap();
+            let self_call = |batch| call(AttnKind::SelfAttn, batch);
+            let (q6, k6, v6) = six
+                .qkv(
+                    &self_call(6),
+                    x.clone().into(),
+                    x.clone().into(),
+                    x.clone().into(),
+                )
+                .unwrap();
+            let xr: DeviceTensor = rows(&x, &keep).into();
+            let (q, k, v) = reduced
+                .qkv(&self_call(keep.len()), xr.clone(), xr.clone(), xr)
+                .unwrap();
+            for (a, b) in [(q, q6), (k, k6), (v, v6)] {
+                assert_eq!(flat(a), flat(rows(&b.to_cpu().unwrap(), &keep).into()));
+            }
+            six.end_step();
+            reduced.end_step();
+            // Mutual from progress 2/4: [T_u, S_c, T_c, M_c].
+            if step == 0 {
+                assert_eq!(reduced.layout().full_positions(true), [1, 3, 4, 5]);
+            }
+        }
+        let (a, b) = (six.blend_store().unwrap(), reduced.blend_store().unwrap());
+        assert_eq!(
+            a[0].1.flatten_all().unwrap().to_vec1::<f32>().unwrap(),
+            b[0].1.flatten_all().unwrap().to_vec1::<f32>().unwrap()
+        );
+    }
+
+    #[test]
+    fn a_recording_pass_is_finished_after_as_many_small_layers_as_a_real_pass_has() {
+        let al = alignment(vec![Some(0), Some(1), Some(2)], vec![1.0, 1.0, 1.0]);
+        let mut c = EditController::new(
+            ControlSettings {
+                samples: SampleSettings {
+                    skip_unread: true,
+                    ..settings(0.0, 0.0).samples
+                },
+                ..settings(0.0, 0.0)
+            },
+            &al,
+        );
+        let small = call(AttnKind::CrossAttn, 3);
+        let large = AttnCall {
+            height: 64,
+            width: 64,
+            ..small
+        };
+        let x: DeviceTensor = Tensor::zeros((3, 1, 4, 3), DType::F32, &Device::Cpu)
+            .unwrap()
+            .into();
+        let pass = |c: &mut EditController| {
+            for call in [small, large, small] {
+                c.qkv(&call, x.clone(), x.clone(), x.clone()).unwrap();
+                if c.wants_probs(&call) {
+                    c.probs(&call, x.clone()).unwrap();
+                }
+            }
+        };
+        // Before any real pass the number of small layers is unknown: a recording runs to its end.
+        c.start_recording();
+        pass(&mut c);
+        assert!(!c.finished());
+        assert_eq!(c.finish_recording().len(), 2);
+        pass(&mut c);
+        c.end_step();
+        c.start_recording();
+        c.qkv(&small, x.clone(), x.clone(), x.clone()).unwrap();
+        c.probs(&small, x.clone()).unwrap();
+        assert!(!c.finished());
+        c.probs(&small, x.clone()).unwrap();
+        assert!(c.finished(), "both small layers recorded");
+        c.finish_recording();
+        assert!(!c.finished(), "only a recording pass finishes early");
     }
 }

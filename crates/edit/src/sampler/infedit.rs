@@ -16,7 +16,10 @@ use diffusion::scheduler::{LcmScheduler, LcmVariant};
 use diffusion::unet::{AttentionHook, AttnCall, MapEdit};
 
 use super::align::{align_prompts, AlignError, AlignInputs, TokenAlignment};
-use super::control::{ControlSettings, EditController, DEFAULT_STORE_MAX_TOKENS};
+use super::batch::{BatchLayout, Branch, SampleSettings};
+use super::control::{
+    mutual_at, progress_at, ControlSettings, EditController, RecordedMaps, DEFAULT_STORE_MAX_TOKENS,
+};
 use super::local_blend::{apply_local_blend, blend_maps, blend_masks, BlendThresholds};
 use super::model::EditModel;
 use super::noise::NoiseSource;
@@ -63,6 +66,40 @@ impl Default for InfEditSettings {
             denoise_strength: None,
             blend_level: None,
         }
+    }
+}
+
+impl InfEditSettings {
+    /// Steps skipped at the start: those strength truncation leaves out in denoise mode.
+    pub fn start_steps(&self) -> Result<usize, EditError> {
+        let Some(s) = self.denoise_strength else {
+            return Ok(0);
+        };
+        if !(s > 0.0 && s <= 1.0) {
+            return Err(EditError::Settings(format!(
+                "strength {s} must be in (0, 1]"
+            )));
+        }
+        let init = ((self.steps as f64 * s) as usize).min(self.steps);
+        if init == 0 {
+            return Err(EditError::Settings(format!(
+                "strength {s} × {} steps leaves no step to run",
+                self.steps
+            )));
+        }
+        Ok(self.steps - init)
+    }
+
+    /// UNet samples one view computes at executed step `i`: in its real pass, or in CCM's recording
+    /// pass before it (see [`BatchLayout::needed`]).
+    pub fn unet_samples(&self, i: usize, recording: bool) -> Result<usize, EditError> {
+        let progress = progress_at(i, self.start_steps()?, self.steps);
+        let settings = SampleSettings {
+            cfg: self.guidance_target > 1.0,
+            guidance_source: self.guidance_source,
+            skip_unread: true,
+        };
+        Ok(BatchLayout::needed(&settings, mutual_at(progress, self.self_replace), recording).len())
     }
 }
 
@@ -135,6 +172,10 @@ pub struct EditPlan {
     /// Real tokens (with SOT/EOT) of the source prompt.
     pub source_len: usize,
     pub thresholds: BlendThresholds,
+    /// Leave out the UNet work nobody reads: the samples [`BatchLayout`] drops, and the blocks of a CCM
+    /// recording pass after its last recorded layer. `false` does all of it, as the reference does: the
+    /// same results to float rounding, more work (for tests and comparisons).
+    pub skip_unread: bool,
 }
 
 /// Spatial size of the down/up cross-attention layers at UNet level `level`, or with `None` at the
@@ -239,6 +280,7 @@ impl EditPlan {
             hidden.get(2)?,
             hidden.get(3)?,
         );
+        // As `InfEditSettings::unet_samples` decides.
         let cfg = settings.guidance_target > 1.0;
         let embeddings = if cfg {
             Tensor::stack(&[&pos, &neg, &pos, &src, &tgt, &src], 0)?
@@ -263,25 +305,8 @@ impl EditPlan {
         let full: Vec<usize> = sched
             .set_timesteps(settings.steps, Some(settings.original_steps), 1.0)?
             .to_vec();
-        let (start_steps, timesteps) = match settings.denoise_strength {
-            None => (0, full.clone()),
-            Some(s) => {
-                if !(s > 0.0 && s <= 1.0) {
-                    return Err(EditError::Settings(format!(
-                        "strength {s} must be in (0, 1]"
-                    )));
-                }
-                let init = ((settings.steps as f64 * s) as usize).min(settings.steps);
-                if init == 0 {
-                    return Err(EditError::Settings(format!(
-                        "strength {s} × {} steps leaves no step to run",
-                        settings.steps
-                    )));
-                }
-                let start = settings.steps - init;
-                (start, full[start..].to_vec())
-            }
-        };
+        let start_steps = settings.start_steps()?;
+        let timesteps = full[start_steps..].to_vec();
         let sched_alpha = |t: usize| sched.alpha_cumprod(t);
         let mut alpha = Vec::new();
         let mut alpha_prev = Vec::new();
@@ -322,6 +347,7 @@ impl EditPlan {
                 temperature: 0.15,
                 dynamic_me: false,
             },
+            skip_unread: true,
         })
     }
 
@@ -335,6 +361,11 @@ impl EditPlan {
                 self_replace: self.settings.self_replace,
                 blend_size: self.blend_size,
                 store_max_tokens: DEFAULT_STORE_MAX_TOKENS,
+                samples: SampleSettings {
+                    cfg: self.cfg,
+                    guidance_source: self.settings.guidance_source,
+                    skip_unread: self.skip_unread,
+                },
             },
             &self.alignment,
         )
@@ -386,58 +417,113 @@ impl EditPlan {
     }
 
     /// One UNet pass for several views at step `i`: their branch batches stacked into one call (a GPU
-    /// keeps busy where one view's batch of six would leave it idle), each view's controller hooked to
-    /// its own slice of the batch. Per view, the same result as [`Self::predict`].
+    /// keeps busy where one view's batch would leave it idle), each view's controller hooked to
+    /// its own slice of the batch. Per view, the same result as [`Self::predict`]. A view's batch holds
+    /// the samples its controller's [`EditController::layout`] names: the same for views at one step.
     pub fn predict_views(
         &self,
         model: &EditModel,
         views: &mut [&mut ViewState],
         i: usize,
     ) -> candle_core::Result<Vec<[Tensor; 3]>> {
-        let mut inputs = Vec::with_capacity(views.len() * 6);
-        for view in views.iter() {
-            let (zs, zt, zm) = (&view.z_s, &view.z_t, &view.z_m);
-            inputs.extend([zs, zt, zm]);
-            if self.cfg {
-                inputs.extend([zs, zt, zm]);
-            }
-        }
-        let input = Tensor::cat(&inputs, 0)?;
-        let context = if views.len() == 1 {
-            self.embeddings.clone()
-        } else {
-            Tensor::cat(&vec![&self.embeddings; views.len()], 0)?
-        };
-        let t = Tensor::new(&[self.timesteps[i] as f32], &Device::Cpu)?;
+        let (layout, input, context, t) = self.batch_inputs(views, i)?;
         let mut hook = ViewBatch(views.iter_mut().map(|view| &mut view.controller).collect());
         // The reference does not pass LCM's guidance embedding (timestep_cond); classic CFG is done here.
         let out = model.predict(&input, &t, &context, Some(&mut hook))?;
-        let per = if self.cfg { 6 } else { 3 };
+        let per = layout.len();
         (0..views.len())
-            .map(|v| self.guide(&out.narrow(0, v * per, per)?))
+            .map(|v| self.guide(&layout, &out.narrow(0, v * per, per)?))
             .collect()
     }
 
-    /// (ε_S, ε_T, ε_M) of one view from its slice of the UNet output (`[S, T, M]`, or with CFG
-    /// `[S_u, T_u, M_u, S_c, T_c, M_c]`).
-    fn guide(&self, out: &Tensor) -> candle_core::Result<[Tensor; 3]> {
-        if !self.cfg {
-            return Ok([
-                out.get(0)?.unsqueeze(0)?,
-                out.get(1)?.unsqueeze(0)?,
-                out.get(2)?.unsqueeze(0)?,
-            ]);
+    /// CCM's recording pass of several views at step `i` (before the step's real pass): the small
+    /// layers' conditional maps per view (see [`EditController::start_recording`]), and the UNet
+    /// samples per view it took. Changes no state; the pass ends after the last recorded layer unless
+    /// [`Self::skip_unread`] is off.
+    pub fn record_views(
+        &self,
+        model: &EditModel,
+        views: &mut [&mut ViewState],
+        i: usize,
+    ) -> candle_core::Result<(Vec<Vec<RecordedMaps>>, usize)> {
+        for view in views.iter_mut() {
+            view.controller.start_recording();
         }
-        let part = |k: usize| -> candle_core::Result<Tensor> { out.narrow(0, k, 1) };
-        let guide = |u: Tensor, c: Tensor, g: f64| -> candle_core::Result<Tensor> {
-            u.add(&(c - &u)?.affine(g, 0.0)?)
+        let (layout, input, context, t) = self.batch_inputs(views, i)?;
+        let mut hook = ViewBatch(views.iter_mut().map(|view| &mut view.controller).collect());
+        model.observe(&input, &t, &context, &mut hook)?;
+        let maps = views
+            .iter_mut()
+            .map(|view| view.controller.finish_recording())
+            .collect();
+        Ok((maps, layout.len()))
+    }
+
+    /// The batch of one UNet call for `views` at step `i`: its per-view layout (the samples the views'
+    /// controllers name, the same for views at one step), the latents, the text conditioning and the
+    /// timestep.
+    fn batch_inputs(
+        &self,
+        views: &[&mut ViewState],
+        i: usize,
+    ) -> candle_core::Result<(BatchLayout, Tensor, Tensor, Tensor)> {
+        let layout = views
+            .first()
+            .map(|v| v.controller.layout())
+            .ok_or_else(|| candle_core::Error::Msg("no view to predict".into()))?;
+        if views.iter().any(|v| v.controller.layout() != layout) {
+            candle_core::bail!("views batched into one UNet call are at different steps");
+        }
+        let mut inputs = Vec::with_capacity(views.len() * layout.len());
+        for view in views.iter() {
+            inputs.extend(layout.samples().iter().map(|s| match s.branch {
+                Branch::Source => &view.z_s,
+                Branch::Target => &view.z_t,
+                Branch::Layout => &view.z_m,
+            }));
+        }
+        let input = Tensor::cat(&inputs, 0)?;
+        let positions = layout.full_positions(self.cfg);
+        let one_view = if positions.len() == self.embeddings.dim(0)? {
+            self.embeddings.clone()
+        } else {
+            let idx = Tensor::new(positions.as_slice(), &Device::Cpu)?;
+            self.embeddings.index_select(&idx, 0)?
+        };
+        let context = if views.len() == 1 {
+            one_view
+        } else {
+            Tensor::cat(&vec![&one_view; views.len()], 0)?
+        };
+        let t = Tensor::new(&[self.timesteps[i] as f32], &Device::Cpu)?;
+        Ok((layout, input, context, t))
+    }
+
+    /// (ε_S, ε_T, ε_M) of one view from its slice of the UNet output, laid out as `layout`. A branch
+    /// whose unconditional sample was not computed has guidance weight 1 (see [`BatchLayout::needed`]):
+    /// its ε is the conditional prediction.
+    fn guide(&self, layout: &BatchLayout, out: &Tensor) -> candle_core::Result<[Tensor; 3]> {
+        let part = |p: usize| -> candle_core::Result<Tensor> { out.narrow(0, p, 1) };
+        let guide = |b: Branch, g: f64| -> candle_core::Result<Tensor> {
+            let c = part(
+                layout
+                    .position(true, b)
+                    .expect("conditional samples always run"),
+            )?;
+            match layout.position(false, b) {
+                Some(u) => {
+                    let u = part(u)?;
+                    u.add(&(c - &u)?.affine(g, 0.0)?)
+                }
+                None => Ok(c),
+            }
         };
         let gs = self.settings.guidance_source;
         let gt = self.settings.guidance_target;
         Ok([
-            guide(part(0)?, part(3)?, gs)?,
-            guide(part(1)?, part(4)?, gt)?,
-            guide(part(2)?, part(5)?, gs)?,
+            guide(Branch::Source, gs)?,
+            guide(Branch::Target, gt)?,
+            guide(Branch::Layout, gs)?,
         ])
     }
 
@@ -671,6 +757,10 @@ impl AttentionHook for ViewBatch<'_> {
         }
         edits
     }
+
+    fn finished(&self) -> bool {
+        self.0.iter().all(|c| c.finished())
+    }
 }
 
 /// One view's per-step state.
@@ -757,6 +847,33 @@ mod tests {
         .map(String::from);
         assert_eq!(size(&tiny, (16, 16), None), (8, 8));
         assert_eq!(size(&sd, (9, 9), None), (3, 3));
+    }
+
+    #[test]
+    fn the_default_edit_computes_70_unet_samples_per_view_where_the_reference_computes_102() {
+        let s = InfEditSettings::default();
+        let real: Vec<usize> = (0..15).map(|i| s.unet_samples(i, false).unwrap()).collect();
+        // Progress (i + 1) / 15 below self_replace 0.3 for i < 4: S_u still lends T_u its Q/K.
+        assert_eq!(real[..4], [5; 4]);
+        assert_eq!(real[4..], [4; 11]);
+        // CCM's default steps (6 and 13) record with the conditional half only.
+        let recording: usize = [6, 13]
+            .iter()
+            .map(|&i| s.unet_samples(i, true).unwrap())
+            .sum();
+        assert_eq!(real.iter().sum::<usize>() + recording, 70);
+        let source_guided = InfEditSettings {
+            guidance_source: 1.5,
+            ..InfEditSettings::default()
+        };
+        assert_eq!(source_guided.unet_samples(10, false).unwrap(), 6);
+        let denoise = InfEditSettings {
+            denoise_strength: Some(0.5),
+            ..InfEditSettings::default()
+        };
+        // 8 steps skipped: executed step 0 is at progress 9/15, mutual.
+        assert_eq!(denoise.start_steps().unwrap(), 8);
+        assert_eq!(denoise.unet_samples(0, false).unwrap(), 4);
     }
 
     #[test]

@@ -2,6 +2,7 @@
 //! built from. VcEdit's multi-view sampler (`consistency`) drives the same per-view state step by step.
 //!
 //! - `infedit`: the edit plan (text conditioning, alignment, timesteps), the per-view state and the DDCM step;
+//! - `batch`: which UNet samples (branch × guidance half) a pass computes;
 //! - `control`: InfEdit's unified attention control, one attention hook per view;
 //! - `align`: token alignment between the source and target prompts;
 //! - `local_blend`: the local blend, where the edit may change the latents;
@@ -9,6 +10,7 @@
 //! - `noise`: where the random numbers come from.
 
 mod align;
+mod batch;
 mod control;
 mod infedit;
 mod local_blend;
@@ -16,6 +18,7 @@ mod model;
 mod noise;
 
 pub use align::{align_prompts, global_align, AlignError, AlignInputs, TokenAlignment};
+pub use batch::{BatchLayout, Branch, Sample, SampleSettings};
 pub use control::{ControlSettings, EditController, RecordedMaps, DEFAULT_STORE_MAX_TOKENS};
 pub use infedit::{
     edit_image, EditError, EditOutcome, EditPlan, EditPrompts, InfEditSettings, ViewState,

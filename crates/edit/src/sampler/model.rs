@@ -153,6 +153,27 @@ impl EditModel {
         )
     }
 
+    /// A UNet pass run only for what `hook` observes: it may end early (see
+    /// [`diffusion::unet::AttentionHook::finished`]); its prediction, if it got that far, is dropped.
+    pub fn observe(
+        &self,
+        sample: &Tensor,
+        timesteps: &Tensor,
+        context: &Tensor,
+        hook: &mut (dyn AttentionHook + '_),
+    ) -> candle_core::Result<()> {
+        self.unet
+            .forward_observed(
+                sample,
+                timesteps,
+                context,
+                None,
+                hook,
+                self.compute.networks(),
+            )
+            .map(|_| ())
+    }
+
     /// Latent channels of the UNet input (4 for SD; 8-channel InstructPix2Pix UNets take image latents too).
     pub fn latent_channels(&self) -> usize {
         self.codec.latent_channels()
