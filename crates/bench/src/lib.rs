@@ -287,14 +287,14 @@ pub fn network_device(
     let requested = arg_value(args, "--precision");
     let cpu_precision = diffusion::device::CpuPrecision::from_request(requested.as_deref());
     // bf16 names the CPU's precision; on a GPU only f16 and f32 parse.
-    let gpu_precision = match requested.as_deref() {
-        Some(p) if p.trim().eq_ignore_ascii_case("bf16") => None,
-        Some(p) => Some(
-            p.parse::<diffusion::device::Precision>()
-                .map_err(|e| BenchError::new(format!("--precision: {e}")))?,
-        ),
-        None => Some(diffusion::device::Precision::default()),
-    };
+    let gpu_precision =
+        match requested.as_deref() {
+            Some(p) if p.trim().eq_ignore_ascii_case("bf16") => None,
+            Some(p) => Some(p.parse::<diffusion::device::Precision>().map_err(|_| {
+                BenchError::new(format!("--precision: '{p}' is not f16, bf16 or f32"))
+            })?),
+            None => Some(diffusion::device::Precision::default()),
+        };
     match gpu::open(choice)? {
         Some(ctx) => {
             let precision = gpu_precision.ok_or_else(|| {

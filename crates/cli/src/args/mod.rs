@@ -107,7 +107,8 @@ impl DeviceArg {
 pub struct PrecisionArg {
     /// On a GPU: f16 weights (the default; half the memory, f32 arithmetic, relative error ~1e-3) or f32
     /// (the CPU's numbers up to summation order). On the CPU: f32 (the default) or bf16 products with f32
-    /// sums (needs AVX512-BF16; about 2.5x faster UNet, 0.3 % relative L2 on its output). f16 on the CPU
+    /// sums (needs AVX512-BF16; a UNet took 0.65-0.8x the f32 CPU time on a Zen 4, 0.3 % relative L2 on its
+    /// output). f16 on the CPU
     /// means f32 there; bf16 on a GPU is refused.
     #[arg(long, value_name = "f16|bf16|f32", value_parser = parse_precision)]
     pub precision: Option<String>,
