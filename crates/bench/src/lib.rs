@@ -278,7 +278,8 @@ pub fn random_weights<T, E: std::fmt::Display>(
 }
 
 /// Opens the GPU for the networks from `--device` (default `default`) and `--precision` (default f16):
-/// `None` for `cpu`, or for `auto` without a usable GPU.
+/// `None` for `cpu`, or for `auto` without a usable GPU. On the CPU, `--precision` sets how its products
+/// run (`f32`, the default, or `bf16`; see [`diffusion::device::CpuPrecision::from_request`]).
 pub fn network_device(
     args: &[String],
     default: &str,
@@ -286,9 +287,32 @@ pub fn network_device(
     let choice: gpu::DeviceChoice = arg_value(args, "--device")
         .unwrap_or_else(|| default.into())
         .parse()?;
-    let precision: diffusion::device::Precision =
-        arg_parsed(args, "--precision", diffusion::device::Precision::default())?;
-    Ok(gpu::open(choice)?.map(|ctx| diffusion::device::GpuDevice::with_precision(ctx, precision)))
+    let requested = arg_value(args, "--precision");
+    let cpu_precision = diffusion::device::CpuPrecision::from_request(requested.as_deref());
+    // bf16 names the CPU's precision; on a GPU only f16 and f32 parse.
+    let gpu_precision =
+        match requested.as_deref() {
+            Some(p) if p.trim().eq_ignore_ascii_case("bf16") => None,
+            Some(p) => Some(p.parse::<diffusion::device::Precision>().map_err(|_| {
+                BenchError::new(format!("--precision: '{p}' is not f16, bf16 or f32"))
+            })?),
+            None => Some(diffusion::device::Precision::default()),
+        };
+    match gpu::open(choice)? {
+        Some(ctx) => {
+            let precision = gpu_precision.ok_or_else(|| {
+                BenchError::new("--precision bf16 is a CPU precision; a GPU takes f16 or f32")
+            })?;
+            Ok(Some(diffusion::device::GpuDevice::with_precision(
+                ctx, precision,
+            )))
+        }
+        None => {
+            let precision = cpu_precision.map_err(BenchError::new)?;
+            diffusion::device::set_cpu_precision(precision).map_err(BenchError::new)?;
+            Ok(None)
+        }
+    }
 }
 
 /// The GPU `--device` names (default `gpu`) for a bench that runs only there; an error naming the bench
@@ -309,6 +333,13 @@ pub fn sync(ctx: &gpu::GpuContext) -> Result<()> {
 }
 
 /// Largest absolute difference over the largest magnitude of `want` (the GPU path against the CPU).
+/// ‖got − want‖₂ / ‖want‖₂ over all elements.
+pub fn relative_l2(got: &candle_core::Tensor, want: &candle_core::Tensor) -> Result<f32> {
+    let diff = (got - want)?.sqr()?.sum_all()?.to_scalar::<f32>()?;
+    let norm = want.sqr()?.sum_all()?.to_scalar::<f32>()?;
+    Ok((diff / norm.max(f32::MIN_POSITIVE)).sqrt())
+}
+
 pub fn relative_error(got: &candle_core::Tensor, want: &candle_core::Tensor) -> Result<f32> {
     let diff = (got - want)?
         .abs()?

@@ -3,7 +3,7 @@
 //! them), plus the peak memory of loading SD 1.5 weights stored in f16.
 //!
 //! `vcedit bench unet [--batches 1,6] [--runs 2] [--size 64] [--model DIR] [--device cpu|gpu|auto]
-//! [--precision f16|f32] [--hooks none,device,host] [--small] [--skip-load] [--check]`
+//! [--precision f16|f32|bf16] [--hooks none,device,host] [--small] [--skip-load] [--check]`
 //!
 //! `--device gpu` runs the forward on the GPU (`gpu` takes a software adapter such as lavapipe too);
 //! `--small` shrinks the random model's channels to [64, 128, 256, 256] (same blocks, heads and context),
@@ -16,9 +16,11 @@
 //! weights, apart from the warm runs; tools/bench_unet_torch.py --compare parses them).
 //! Thread count: RAYON_NUM_THREADS (candle's matmul and our kernels use the rayon pool).
 //!
-//! `--check` (GPU only) also runs the first batch once on the CPU and reports the GPU output's relative
+//! `--check` on a GPU also runs the first batch once on the CPU and reports the GPU output's relative
 //! error against it (`rel_err`): the end-to-end cost of the GPU path's rounding (f16 operands on tensor
-//! cores, f16 weights), measured on the card itself.
+//! cores, f16 weights), measured on the card itself. On the CPU with bf16 products it runs the first
+//! batch in bf16 and in f32 and reports `rel_err` and `rel_l2` (relative L2) of bf16 against f32.
+//! `--precision` on the CPU: `f32` (default) or `bf16` products (needs AVX512-BF16).
 //!
 //! `--load-rss FILE` (internal): loads an SD 1.5 UNet from FILE and prints the process's peak RSS.
 
@@ -321,8 +323,9 @@ pub fn main(args: &[String], reexec: &[String]) -> Result<()> {
     let on_device = diffusion::device::Device::from(device.clone());
     // Recommended for any inference binary (see its doc comment).
     let threads = candle_core::utils::get_num_threads();
+    let cpu_precision = diffusion::device::cpu_precision();
     let on = device.as_ref().map_or_else(
-        || format!("CPU, {threads} threads"),
+        || format!("CPU, {threads} threads, {}", cpu_precision.describe()),
         |d| format!("{} ({} weights)", d.name(), d.precision()),
     );
     let start = Instant::now();
@@ -386,6 +389,7 @@ pub fn main(args: &[String], reexec: &[String]) -> Result<()> {
                 timed.median().as_secs_f64(),
                 timed.first.as_secs_f64()
             );
+            let mut rel_l2 = None;
             let rel_err = match &device {
                 Some(_)
                     if has_flag(args, "--check") && batch == batches[0] && choice == hooks[0] =>
@@ -396,6 +400,33 @@ pub fn main(args: &[String], reexec: &[String]) -> Result<()> {
                         &run(&diffusion::device::Device::Cpu)?,
                     )?;
                     eprintln!("  batch {batch}: GPU against CPU, relative error {rel:.2e}");
+                    Some(rel)
+                }
+                None if has_flag(args, "--check")
+                    && cpu_precision == diffusion::device::CpuPrecision::Bf16
+                    && batch == batches[0]
+                    && choice == hooks[0] =>
+                {
+                    // bf16 products against f32 ones, same weights and inputs.
+                    let run = |precision| {
+                        diffusion::device::with_cpu_precision(precision, || {
+                            model.forward_on(&sample, &t, &context, None, None, &on_device)
+                        })
+                        .map_err(BenchError::new)?
+                        .map_err(BenchError::from)
+                    };
+                    let (low, full) = (
+                        run(diffusion::device::CpuPrecision::Bf16)?,
+                        run(diffusion::device::CpuPrecision::F32)?,
+                    );
+                    let (rel, l2) = (
+                        crate::relative_error(&low, &full)?,
+                        crate::relative_l2(&low, &full)?,
+                    );
+                    eprintln!(
+                        "  batch {batch}: bf16 against f32, relative L2 {l2:.2e}, largest difference {rel:.2e} of the largest value"
+                    );
+                    rel_l2 = Some(l2);
                     Some(rel)
                 }
                 _ => None,
@@ -417,6 +448,12 @@ pub fn main(args: &[String], reexec: &[String]) -> Result<()> {
             });
             if let Some(rel) = rel_err {
                 fields["rel_err"] = rel.into();
+            }
+            if let Some(l2) = rel_l2 {
+                fields["rel_l2"] = l2.into();
+            }
+            if device.is_none() {
+                fields["precision"] = cpu_precision.name().into();
             }
             if let Some(device) = &device {
                 let estimate = config

@@ -7,7 +7,14 @@ pub mod clip;
 mod kernels;
 /// Where a network runs: the [`Device`](device::Device) seam (CPU or GPU) and its tensors.
 pub mod device {
+    pub use crate::kernels::bf16::{
+        clear_weight_cache as clear_cpu_weight_cache, weight_cache_bytes,
+    };
     pub use crate::kernels::gpu::{ops, GpuDevice, GpuTensor, Precision, UnknownPrecision};
+    pub use crate::kernels::{
+        bf16_products_available, cpu_precision, set_cpu_precision, with_cpu_precision,
+        Bf16Unavailable, CpuPrecision, CpuPrecisionError,
+    };
     pub use crate::kernels::{Device, DeviceTensor, Storage, Unary};
 }
 mod layers;

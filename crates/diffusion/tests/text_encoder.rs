@@ -9,7 +9,7 @@ use diffusion::loader::ModelDir;
 use diffusion::tokenizer::ClipTokenizer;
 
 mod common;
-use common::max_abs_diff;
+use common::{in_bf16, max_abs_diff, relative_l2};
 
 fn repo() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("../..")
@@ -74,6 +74,29 @@ fn tiny_lcm_text_encoder_matches_transformers() {
 #[test]
 fn tiny_ip2p_f16_text_encoder_matches_transformers() {
     check_model("tiny-ip2p");
+}
+
+/// With bf16 products the tiny text encoders' hidden states stay within bf16's rounding of transformers'
+/// f32 ones (relative L2 ≤ 1e-2; above 1e-5, so bf16 products did run).
+#[test]
+fn tiny_text_encoders_with_bf16_products_match_transformers_within_bf16() {
+    let dev = Device::Cpu;
+    for name in ["tiny-lcm", "tiny-ip2p"] {
+        let model_dir = ModelDir::open(repo().join("fixtures/models").join(name)).unwrap();
+        let model = ClipTextModel::load(&model_dir, DType::F32, &dev).unwrap();
+        let reference = candle_core::safetensors::load(
+            repo().join(format!("fixtures/text/encoder-{name}.safetensors")),
+            &dev,
+        )
+        .unwrap();
+        let ids = reference["input_ids"].to_dtype(DType::U32).unwrap();
+        let Some(hidden) = in_bf16(|| model.forward(&ids).unwrap()) else {
+            return;
+        };
+        let rel = relative_l2(&hidden, &reference["last_hidden_state"]);
+        println!("{name}: bf16 last_hidden_state relative L2 {rel:.2e}");
+        assert!(rel <= 1e-2 && rel > 1e-5, "{name}: relative L2 {rel}");
+    }
 }
 
 /// One definition on both devices: the text encoder's layers on the GPU (lavapipe in CI) give the CPU's

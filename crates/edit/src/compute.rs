@@ -42,7 +42,7 @@ impl Compute {
         &self.splat
     }
 
-    /// "CPU" or the adapter and the weights' precision, for logs and run.json.
+    /// "CPU" and its products' precision, or the adapter and the weights' precision, for logs and run.json.
     pub fn describe(&self) -> String {
         self.networks.describe()
     }

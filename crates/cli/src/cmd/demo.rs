@@ -4,7 +4,6 @@ use std::path::PathBuf;
 
 use anyhow::Context;
 
-use edit::compute::Compute;
 use edit::run::{DeltaDecode, KeepShape};
 
 use demo::run::{
@@ -125,7 +124,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     edit::sampler::EditPlan::check_blend_level(&model, job.infedit.blend_level)
         .context("--blend-level")?;
     let gpu = args.device.open_for(gpu::Workload::Splatting)?;
-    let model = model.on(Compute::on(gpu, args.precision.precision));
+    let model = model.on(args.precision.compute(gpu)?);
     eprintln!(
         "demo: \"{}\" → \"{}\", {} Gaussians, {} views at {}², model {}",
         scene.prompts.source,

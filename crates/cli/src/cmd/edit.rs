@@ -4,7 +4,6 @@ use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use anyhow::{bail, Context};
-use edit::compute::Compute;
 use edit::consistency::{ConsistencySettings, EcmParams, EcmScope};
 use edit::fit::{ImageLoss, TrainSettings};
 use edit::run::{
@@ -263,7 +262,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     };
 
     let model_dir = args.model.folder()?;
-    let compute = Compute::on(args.device.open()?, args.precision.precision);
+    let compute = args.precision.compute(args.device.open()?)?;
     let model = EditModel::load(&model_dir, args.model.taesd.as_deref())
         .with_context(|| format!("loading model {}", model_dir.display()))?
         .on(compute.clone());

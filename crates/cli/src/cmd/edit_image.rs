@@ -4,7 +4,6 @@ use std::path::PathBuf;
 use std::time::Instant;
 
 use anyhow::Context;
-use edit::compute::Compute;
 use edit::present::viz;
 use edit::sampler::{
     edit_image, image_to_tensor, tensor_to_images, EditModel, EditPlan, SeededNoise,
@@ -73,7 +72,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     let model_dir = args.model.folder()?;
     let model = EditModel::load(&model_dir, args.model.taesd.as_deref())
         .with_context(|| format!("loading model {}", model_dir.display()))?
-        .on(Compute::on(args.device.open()?, args.precision.precision));
+        .on(args.precision.compute(args.device.open()?)?);
     let load_time = t0.elapsed();
     args.sampler.check_model(&model)?;
     args.prompts.check_words(&model.tokenizer, None)?;

@@ -106,6 +106,9 @@ impl Storage for Tensor {
     }
 
     fn linear(&self, layer: &candle_nn::Linear, residual: Option<&Self>) -> Result<Self> {
+        if let Some(out) = super::bf16::linear(self, layer.weight(), layer.bias(), residual)? {
+            return Ok(out);
+        }
         let out = layer.forward(self)?;
         match residual {
             Some(r) => out + r,

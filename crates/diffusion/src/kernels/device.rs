@@ -45,10 +45,11 @@ impl Device {
         }
     }
 
-    /// "CPU" or the adapter and the weights' precision, for logs and run.json.
+    /// "CPU" and its products' precision, or the adapter and the weights' precision, for logs and
+    /// run.json.
     pub fn describe(&self) -> String {
         match self {
-            Device::Cpu => "CPU".into(),
+            Device::Cpu => format!("CPU, {}", super::cpu_precision().describe()),
             Device::Gpu(gpu) => {
                 format!("{}, {} weights", gpu.context().describe(), gpu.precision())
             }

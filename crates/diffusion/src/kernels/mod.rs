@@ -52,6 +52,7 @@ macro_rules! simd_dispatch {
 
 mod approx;
 mod attention;
+pub mod bf16;
 mod conv;
 mod cpu;
 pub(crate) mod device;
@@ -62,6 +63,10 @@ mod softmax;
 mod vgg;
 
 pub use attention::attention;
+pub use bf16::{
+    bf16_products_available, cpu_precision, set_cpu_precision, with_cpu_precision, Bf16Unavailable,
+    CpuPrecision, CpuPrecisionError,
+};
 pub use conv::conv2d;
 pub use device::{Addend, Device, DeviceTensor, Storage, Unary};
 pub use geglu::geglu;

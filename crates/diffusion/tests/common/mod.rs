@@ -45,6 +45,32 @@ pub fn max_abs_diff(a: &Tensor, b: &Tensor) -> f32 {
         .unwrap()
 }
 
+/// ‖a − b‖₂ / ‖b‖₂.
+pub fn relative_l2(a: &Tensor, b: &Tensor) -> f32 {
+    assert_eq!(a.dims(), b.dims());
+    let sq = |t: &Tensor| {
+        t.sqr()
+            .unwrap()
+            .sum_all()
+            .unwrap()
+            .to_scalar::<f32>()
+            .unwrap()
+    };
+    (sq(&(a - b).unwrap()) / sq(b).max(f32::MIN_POSITIVE)).sqrt()
+}
+
+/// Runs `f` with bf16 products, or returns `None` after one printed line on a CPU without them.
+pub fn in_bf16<R>(f: impl FnOnce() -> R) -> Option<R> {
+    use diffusion::device::{with_cpu_precision, CpuPrecision};
+    match with_cpu_precision(CpuPrecision::Bf16, f) {
+        Ok(r) => Some(r),
+        Err(e) => {
+            eprintln!("skipped: {e}");
+            None
+        }
+    }
+}
+
 /// The test GPU (lavapipe in CI) with f32 weights, or `None` after one printed line when there is no
 /// Vulkan device.
 pub fn gpu_or_skip() -> Option<diffusion::device::GpuDevice> {
