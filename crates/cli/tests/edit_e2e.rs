@@ -170,11 +170,12 @@ fn a_long_run_prints_a_time_estimate_first() {
     let stderr = String::from_utf8_lossy(&o.stderr);
     assert!(o.status.success(), "vcedit edit failed: {stderr}");
     let plan = stderr.find("52 UNet passes").expect("work plan");
-    // The UNet is timed on one view at small latents first, and each probe is said (the run's 8² latents
-    // are the smallest probe here, so they are timed as they are).
+    // The UNet is timed on one view at small latents first, then larger while that stays quick, and
+    // each probe is said (the run's own 16² latents are quick here, so the last probe is the run's size).
     assert!(
         stderr.contains("timing the UNet on one view at 8×8 latents")
-            && stderr.contains("UNet at 8×8: "),
+            && stderr.contains("UNet at 8×8: ")
+            && stderr.contains("UNet at 16×16: "),
         "{stderr}"
     );
     let estimate = stderr.find("time ≈").expect("time estimate");
@@ -193,7 +194,7 @@ fn a_long_run_prints_a_time_estimate_first() {
         "{e}"
     );
     let probe = &e["calibration"]["probe"];
-    assert_eq!(probe["latent"], serde_json::json!([8, 8]), "{e}");
+    assert_eq!(probe["latent"], serde_json::json!([16, 16]), "{e}");
     assert_eq!(probe["scale"].as_f64(), Some(1.0), "{e}");
 
     let skipped = dir.path().join("skipped");

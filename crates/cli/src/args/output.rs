@@ -138,18 +138,43 @@ pub fn fingerprint(settings: &impl Debug) -> String {
 /// Whether `dir` holds a finished run of `command` with the settings `fingerprint`: its manifest is this
 /// run's and every one of `finals` (the files such a run writes last) is there. Such a run need not be
 /// done again. A folder holding another run or foreign files gives the error opening it would.
+/// `settings`: this run's, where the command keeps them ([`open_with_settings`]), so that a refusal
+/// names the ones that differ.
 pub fn finished_run(
     dir: &Path,
     command: &str,
     fingerprint: &str,
+    settings: Option<&serde_json::Value>,
     finals: &[&str],
     inputs: &[&Path],
 ) -> Result<bool> {
     if !finals.iter().all(|f| dir.join(f).is_file()) {
         return Ok(false);
     }
-    let run = RunDir::open(dir, command, fingerprint, RunDirMode::Keep, inputs)?;
+    let run = RunDir::open(dir, command, fingerprint, RunDirMode::Keep, inputs)
+        .map_err(|e| naming_differences(e.into(), dir, settings))?;
     Ok(run.previous() == files::Previous::SameRun)
+}
+
+/// `e` (a refused folder) with the settings in which the folder's run differs from `settings`, where
+/// both are known.
+fn naming_differences(
+    e: anyhow::Error,
+    dir: &Path,
+    settings: Option<&serde_json::Value>,
+) -> anyhow::Error {
+    let previous = std::fs::read(dir.join(SETTINGS_FILE))
+        .ok()
+        .and_then(|b| serde_json::from_slice::<serde_json::Value>(&b).ok());
+    match previous
+        .zip(settings)
+        .map(|(p, s)| settings_differences(&p, s))
+    {
+        Some(diff) if !diff.is_empty() => {
+            anyhow::anyhow!("{e:#} (the settings that differ: {})", diff.join(", "))
+        }
+        _ => e,
+    }
 }
 
 /// The lines a command prints instead of redoing a finished run (see [`finished_run`]).
@@ -212,17 +237,8 @@ pub fn open_with_settings(
     inputs: &[&Path],
 ) -> Result<OutputDir> {
     let file = dir.join(SETTINGS_FILE);
-    let out = OutputDir::open(dir, command, fingerprint, force, inputs).map_err(|e| {
-        let previous = std::fs::read(&file)
-            .ok()
-            .and_then(|b| serde_json::from_slice::<serde_json::Value>(&b).ok());
-        match previous.map(|p| settings_differences(&p, settings)) {
-            Some(diff) if !diff.is_empty() => {
-                anyhow::anyhow!("{e:#} (the settings that differ: {})", diff.join(", "))
-            }
-            _ => e,
-        }
-    })?;
+    let out = OutputDir::open(dir, command, fingerprint, force, inputs)
+        .map_err(|e| naming_differences(e, dir, Some(settings)))?;
     let text = serde_json::to_vec_pretty(settings).expect("JSON values serialise");
     files::atomic_write(&file, &text).map_err(|e| anyhow::anyhow!("{}: {e}", file.display()))?;
     Ok(out)
@@ -334,16 +350,16 @@ mod tests {
         let tmp = tempfile::tempdir().unwrap();
         let dir = tmp.path().join("out");
         let finals = ["run.json"];
-        assert!(!finished_run(&dir, "edit", "a", &finals, &[]).unwrap());
+        assert!(!finished_run(&dir, "edit", "a", None, &finals, &[]).unwrap());
         let out = OutputDir::open(&dir, "edit", "a", false, &[]).unwrap();
         files::atomic_write(&dir.join("iter_0.png"), b"x").unwrap();
         // Interrupted: its last file is missing.
-        assert!(!finished_run(&dir, "edit", "a", &finals, &[]).unwrap());
+        assert!(!finished_run(&dir, "edit", "a", None, &finals, &[]).unwrap());
         files::atomic_write(&dir.join("run.json"), b"{}").unwrap();
         out.finish();
-        assert!(finished_run(&dir, "edit", "a", &finals, &[]).unwrap());
+        assert!(finished_run(&dir, "edit", "a", None, &finals, &[]).unwrap());
         // Other settings: the refusal opening the folder gives.
-        let err = finished_run(&dir, "edit", "b", &finals, &[]).unwrap_err();
+        let err = finished_run(&dir, "edit", "b", None, &finals, &[]).unwrap_err();
         assert!(err.to_string().contains("--force"), "{err}");
     }
 

@@ -139,7 +139,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     };
     if !args.force.force
         && !args.resume
-        && finished_run(&args.out, "demo", &settings_key, finals, &inputs)?
+        && finished_run(&args.out, "demo", &settings_key, None, finals, &inputs)?
     {
         say_finished(&args.out);
         if args.compare {

@@ -277,10 +277,18 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     let mut inputs = files_under(&args.scene, 2);
     inputs.extend(args.views.cameras.iter().flat_map(|c| files_under(c, 2)));
     let input_refs: Vec<&Path> = inputs.iter().map(PathBuf::as_path).collect();
+    let settings = settings_record(&job, &args)?;
     // The same run finished in --out: nothing to do (two days of work are not redone by accident).
     if !args.force.force
         && !args.resume
-        && finished_run(&args.out, "edit", &settings_key, &FINAL_FILES, &input_refs)?
+        && finished_run(
+            &args.out,
+            "edit",
+            &settings_key,
+            Some(&settings),
+            &FINAL_FILES,
+            &input_refs,
+        )?
     {
         say_finished(&args.out);
         println!("edited scene: {}", args.out.join("edited.ply").display());
@@ -325,7 +333,6 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         "--view-batch, --max-views or --size",
     )?;
 
-    let settings = settings_record(&job, &args)?;
     let out_dir = open_with_settings(
         &args.out,
         "edit",
