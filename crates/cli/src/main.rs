@@ -193,6 +193,27 @@ mod tests {
         )
     }
 
+    /// Every command that generates an orbit for a scene without cameras makes the same one, and says so.
+    #[test]
+    fn the_default_orbit_is_one_and_every_command_says_it() {
+        let said = format!("orbit of {} views", args::DEFAULT_ORBIT_VIEWS);
+        let with_orbit: Vec<(String, clap::Command)> = all_commands()
+            .into_iter()
+            .filter(|(_, c)| c.get_arguments().any(|a| a.get_long() == Some("orbit")))
+            .collect();
+        assert!(
+            with_orbit.len() >= 3,
+            "render, metrics and edit have --orbit"
+        );
+        for (name, cmd) in with_orbit {
+            let notes = cmd
+                .get_after_help()
+                .map(|h| h.to_string())
+                .unwrap_or_default();
+            assert!(notes.contains(&said), "{name}: {notes}");
+        }
+    }
+
     /// The README says which options the commands share and that they mean the same everywhere: each
     /// has one help text, value grammar and choice list in every command that has it.
     #[test]

@@ -290,12 +290,16 @@ impl Drop for OutputDir {
             return;
         };
         let dir = run.path().to_path_buf();
+        // The run's settings alone (`open_with_settings`) are not an output.
         let untouched = !self.finished
             && run.previous() == files::Previous::Nothing
-            && run.recorded().is_ok_and(|r| r.is_empty());
+            && run
+                .recorded()
+                .is_ok_and(|r| r.iter().all(|f| f == Path::new(SETTINGS_FILE)));
         drop(run);
         if untouched {
             // Nothing was written: leave the place as it was found.
+            let _ = std::fs::remove_file(dir.join(SETTINGS_FILE));
             let _ = std::fs::remove_file(dir.join(files::MANIFEST_NAME));
             if self.created {
                 let _ = std::fs::remove_dir(&dir);

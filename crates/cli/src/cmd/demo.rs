@@ -228,13 +228,16 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     Ok(())
 }
 
-/// Where a demo's results are, and how to look at the scenes.
+/// Where a demo's results are, and how to look at the scenes (the command relative to the current
+/// folder where it can be, so that it fits a line).
 fn say_where(out: &Path) {
     println!("edited scene: {}", out.join("edited.ply").display());
     println!("report: {}", out.join("report.html").display());
+    let cwd = std::env::current_dir().unwrap_or_default();
+    let short = out.strip_prefix(&cwd).unwrap_or(out);
     println!(
         "compare in 3D: vcedit view {} {}",
-        out.join(SOURCE_SCENE).display(),
-        out.join("edited.ply").display()
+        short.join(SOURCE_SCENE).display(),
+        short.join("edited.ply").display()
     );
 }
