@@ -173,7 +173,7 @@ fn a_long_run_prints_a_time_estimate_first() {
     // The UNet is timed on one view at small latents first, then larger while that stays quick, and
     // each probe is said (the run's own 16² latents are quick here, so the last probe is the run's size).
     assert!(
-        stderr.contains("timing the UNet on one view at 8×8 latents")
+        stderr.contains("UNet, one view, from 8×8 latents up (≤ 30 s), scaled to 16×16 × 1 view:")
             && stderr.contains("UNet at 8×8: ")
             && stderr.contains("UNet at 16×16: "),
         "{stderr}"

@@ -143,9 +143,9 @@ pub fn calibrate(
     let timesteps = Tensor::new(&[499u32], &Device::Cpu)?;
     let sizes = probe_sizes(full, 2usize.pow(levels));
     let (sw, sh) = sizes[0];
+    // Within 80 columns with the plan's indent for the sizes runs have.
     note(&format!(
-        "timing the UNet on one view at {sw}×{sh} latents, then larger while under {UNET_PROBE_BUDGET_SECS:.0} s, \
-         scaled to the run's {}×{} × {} (multiply-adds)…",
+        "UNet, one view, from {sw}×{sh} latents up (≤ {UNET_PROBE_BUDGET_SECS:.0} s), scaled to {}×{} × {}:",
         full.0,
         full.1,
         crate::present::count(view_batch.max(1), "view", "views"),
