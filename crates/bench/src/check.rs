@@ -11,11 +11,11 @@
 //! largest magnitude of the CPU's values) and tolerance; the exit code is 1 when any check fails. The
 //! fits' Adam and L1 + D-SSIM kernels are checked end to end by a fit's held-out PSNR (gpu-check's `fit`
 //! rows).
-//!
-//! Why not the full-width LPIPS with generated weights: at 64² its gradient moved by up to 8.5 % of its
-//! largest component between lavapipe and the CPU (148 of 12288 entries), the value bit for bit equal:
-//! near-zero pre-activations of the generated network flip their ReLU masks on the last bits of a sum,
-//! which says nothing about the kernels (the narrow fixture network agrees to 1e-4, as in the tests).
+
+// Why not the full-width LPIPS with generated weights: at 64² its gradient moved by up to 8.5 % of its
+// largest component between lavapipe and the CPU (148 of 12288 entries), the value bit for bit equal:
+// near-zero pre-activations of the generated network flip their ReLU masks on the last bits of a sum,
+// which says nothing about the kernels (the narrow fixture network agrees to 1e-4, as in the tests).
 
 use std::path::Path;
 

@@ -45,6 +45,30 @@ pub const NAMES: [&str; 10] = [
     "check",
 ];
 
+/// The help of bench `name` (`vcedit bench NAME --help`): its module's documentation, which says what it
+/// measures and lists its options, so the binary carries the text the source documents.
+pub fn help(name: &str) -> Option<String> {
+    let source = match name {
+        "device" => include_str!("device.rs"),
+        "matmul" => include_str!("matmul.rs"),
+        "attention" => include_str!("attention.rs"),
+        "unet" => include_str!("unet.rs"),
+        "codec" => include_str!("codec.rs"),
+        "text" => include_str!("text.rs"),
+        "render" => include_str!("render.rs"),
+        "lpips" => include_str!("lpips.rs"),
+        "lift" => include_str!("lift.rs"),
+        "check" => include_str!("check.rs"),
+        _ => return None,
+    };
+    let lines: Vec<&str> = source
+        .lines()
+        .take_while(|l| l.starts_with("//!"))
+        .map(|l| l.trim_start_matches("//!").strip_prefix(' ').unwrap_or(""))
+        .collect();
+    Some(format!("vcedit bench {name}: {}\n", lines.join("\n")))
+}
+
 /// A bench that could not run: a bad argument, a missing file, a GPU error. One line.
 #[derive(Debug, thiserror::Error)]
 #[error("{0}")]
@@ -356,6 +380,16 @@ mod tests {
 
     fn words(s: &str) -> Vec<String> {
         s.split_whitespace().map(String::from).collect()
+    }
+
+    #[test]
+    fn every_bench_has_a_help_with_its_options() {
+        for name in NAMES {
+            let help = help(name).unwrap();
+            assert!(help.lines().count() > 1, "{name}: {help}");
+        }
+        assert!(help("unet").unwrap().contains("--batches"));
+        assert!(help("nothing").is_none());
     }
 
     #[test]

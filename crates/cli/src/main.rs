@@ -164,6 +164,110 @@ mod tests {
     use super::*;
     use clap::CommandFactory;
 
+    /// Every subcommand (nested ones too) with its path, e.g. "model check".
+    fn all_commands() -> Vec<(String, clap::Command)> {
+        fn walk(prefix: &str, cmd: &clap::Command, out: &mut Vec<(String, clap::Command)>) {
+            for sub in cmd.get_subcommands() {
+                let name = format!("{prefix}{}", sub.get_name()).trim().to_string();
+                out.push((name.clone(), sub.clone()));
+                walk(&format!("{name} "), sub, out);
+            }
+        }
+        let mut out = Vec::new();
+        walk("", &Cli::command(), &mut out);
+        out
+    }
+
+    /// What an option is, as a user sees it: its help line, its value names and its possible values.
+    fn meaning(arg: &clap::Arg) -> String {
+        let values: Vec<String> = arg
+            .get_possible_values()
+            .iter()
+            .map(|v| v.get_name().to_string())
+            .collect();
+        format!(
+            "{:?} {:?} {values:?} {}",
+            arg.get_help().map(|h| h.to_string()),
+            arg.get_value_names(),
+            arg.get_action().takes_values()
+        )
+    }
+
+    /// Every command that generates an orbit for a scene without cameras makes the same one, and says so.
+    #[test]
+    fn the_default_orbit_is_one_and_every_command_says_it() {
+        let said = format!("orbit of {} views", args::DEFAULT_ORBIT_VIEWS);
+        let with_orbit: Vec<(String, clap::Command)> = all_commands()
+            .into_iter()
+            .filter(|(_, c)| c.get_arguments().any(|a| a.get_long() == Some("orbit")))
+            .collect();
+        assert!(
+            with_orbit.len() >= 3,
+            "render, metrics and edit have --orbit"
+        );
+        for (name, cmd) in with_orbit {
+            let notes = cmd
+                .get_after_help()
+                .map(|h| h.to_string())
+                .unwrap_or_default();
+            assert!(notes.contains(&said), "{name}: {notes}");
+        }
+    }
+
+    /// The README says which options the commands share and that they mean the same everywhere: each
+    /// has one help text, value grammar and choice list in every command that has it.
+    #[test]
+    fn the_options_the_readme_calls_shared_mean_the_same_in_every_command() {
+        let readme = std::fs::read_to_string(
+            std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../README.md"),
+        )
+        .unwrap();
+        let claim = "Options shared by the commands mean the same everywhere:";
+        let paragraph = readme
+            .split("\n\n")
+            .find(|p| p.contains(claim))
+            .expect("the README's shared-options paragraph");
+        let mut options: Vec<String> = paragraph
+            .split('`')
+            .skip(1)
+            .step_by(2)
+            .filter(|code| code.starts_with("--"))
+            .map(|code| code.split([' ', '=']).next().unwrap().to_string())
+            .collect();
+        options.dedup();
+        for must in [
+            "--size",
+            "--background",
+            "--orbit",
+            "--max-views",
+            "--device",
+        ] {
+            assert!(
+                options.iter().any(|o| o == must),
+                "{must} not in {options:?}"
+            );
+        }
+        // `--iterations` is one more: render → edit → fit rounds wherever a user sees it.
+        options.push("--iterations".into());
+        let commands = all_commands();
+        for option in &options {
+            let long = option.trim_start_matches("--");
+            let users: Vec<(&str, String)> = commands
+                .iter()
+                .flat_map(|(name, cmd)| {
+                    cmd.get_arguments()
+                        .filter(|a| a.get_long() == Some(long) && !a.is_hide_set())
+                        .map(|a| (name.as_str(), meaning(a)))
+                        .collect::<Vec<_>>()
+                })
+                .collect();
+            assert!(!users.is_empty(), "{option}: no command has it");
+            for (name, m) in &users {
+                assert_eq!(m, &users[0].1, "{option} in {name} against {}", users[0].0);
+            }
+        }
+    }
+
     /// The message clap gives for `vcedit ARGS...`, which must fail to parse.
     fn parse_error(args: &[&str]) -> String {
         let argv = std::iter::once("vcedit").chain(args.iter().copied());

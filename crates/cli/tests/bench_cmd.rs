@@ -189,4 +189,39 @@ fn cuda_without_cuda_is_one_line_before_any_output() {
     assert_ne!(out.status.code(), Some(0), "{stderr}");
     assert!(stderr.contains("unknown GPU runtime 'opencl'"), "{stderr}");
     assert!(!stderr.contains("panicked"), "{stderr}");
+
+/// `vcedit bench NAME --help` prints that bench's own help (what it measures, its options), wherever
+/// `--help` stands; `vcedit bench --help` the list.
+#[test]
+fn each_bench_has_its_own_help() {
+    for args in [
+        &["bench", "unet", "--help"][..],
+        &["bench", "unet", "-h"],
+        &["bench", "unet", "--batches", "1", "--help"],
+    ] {
+        let o = vcedit(args);
+        let stdout = String::from_utf8_lossy(&o.stdout);
+        assert!(
+            o.status.success(),
+            "{args:?}: {}",
+            String::from_utf8_lossy(&o.stderr)
+        );
+        assert!(
+            stdout.starts_with("vcedit bench unet: "),
+            "{args:?}: {stdout}"
+        );
+        assert!(
+            stdout.contains("--batches") && stdout.contains("--hooks"),
+            "{stdout}"
+        );
+        assert!(!stdout.contains("crates/bench/src"), "{stdout}");
+        assert!(results(&o).is_empty(), "nothing is measured: {stdout}");
+    }
+    let o = vcedit(&["bench", "--help"]);
+    let stdout = String::from_utf8_lossy(&o.stdout);
+    assert!(o.status.success());
+    assert!(stdout.contains("vcedit bench NAME --help"), "{stdout}");
+    // No bench named: a usage error.
+    let o = vcedit(&["bench"]);
+    assert_eq!(o.status.code(), Some(2));
 }

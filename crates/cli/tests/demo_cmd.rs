@@ -94,6 +94,34 @@ fn reduced_demo_writes_every_output() {
         stdout.contains(&format!("report: {}", out.join("report.html").display())),
         "{stdout}"
     );
+    // The source scene is there too, so the printed `vcedit view` line compares before and after.
+    // (Relative to the folder the demo ran in, so that it fits a line.)
+    let view_line = "compare in 3D: vcedit view demo-out/source.ply demo-out/edited.ply";
+    assert!(stdout.contains(view_line), "{stdout}");
+    let page = dir.path().join("compare.html");
+    let (code, _, stderr) = vcedit(
+        &[
+            "view",
+            out.join("source.ply").to_str().unwrap(),
+            out.join("edited.ply").to_str().unwrap(),
+            "--out",
+            page.to_str().unwrap(),
+        ],
+        dir.path(),
+    );
+    assert_eq!(code, 0, "{stderr}");
+    assert!(page.is_file());
+    // The same demo again: finished, so nothing is done (and the outputs are named again).
+    let edited = std::fs::read(out.join("edited.ply")).unwrap();
+    let (code, again, stderr) = reduced_demo(dir.path(), &model, &out, &["--steps", "2"]);
+    assert_eq!(code, 0, "{stderr}");
+    assert!(
+        stderr.contains("holds this run already, finished"),
+        "{stderr}"
+    );
+    assert!(!stderr.contains("work:"), "no plan, no work: {stderr}");
+    assert!(again.contains(view_line), "{again}");
+    assert_eq!(std::fs::read(out.join("edited.ply")).unwrap(), edited);
     // The edited scene is a valid scene the other commands accept.
     let (code, inspect, stderr) = vcedit(
         &["inspect", out.join("edited.ply").to_str().unwrap()],

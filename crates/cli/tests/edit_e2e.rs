@@ -170,6 +170,14 @@ fn a_long_run_prints_a_time_estimate_first() {
     let stderr = String::from_utf8_lossy(&o.stderr);
     assert!(o.status.success(), "vcedit edit failed: {stderr}");
     let plan = stderr.find("52 UNet passes").expect("work plan");
+    // The UNet is timed on one view at small latents first, then larger while that stays quick, and
+    // each probe is said (the run's own 16² latents are quick here, so the last probe is the run's size).
+    assert!(
+        stderr.contains("UNet, one view, from 8×8 latents up (≤ 30 s), scaled to 16×16 × 1 view:")
+            && stderr.contains("UNet at 8×8: ")
+            && stderr.contains("UNet at 16×16: "),
+        "{stderr}"
+    );
     let estimate = stderr.find("time ≈").expect("time estimate");
     let first_iteration = stderr.find("iteration 1 done").expect("iteration line");
     assert!(plan < estimate && estimate < first_iteration, "{stderr}");
@@ -185,6 +193,9 @@ fn a_long_run_prints_a_time_estimate_first() {
         e["total"].as_f64().unwrap() >= e["unet"].as_f64().unwrap(),
         "{e}"
     );
+    let probe = &e["calibration"]["probe"];
+    assert_eq!(probe["latent"], serde_json::json!([16, 16]), "{e}");
+    assert_eq!(probe["scale"].as_f64(), Some(1.0), "{e}");
 
     let skipped = dir.path().join("skipped");
     let o = run_edit_with(&scene_path, &skipped, &long, &["--no-estimate"]);
@@ -193,6 +204,127 @@ fn a_long_run_prints_a_time_estimate_first() {
     let run: serde_json::Value =
         serde_json::from_slice(&std::fs::read(skipped.join("run.json")).unwrap()).unwrap();
     assert!(run.get("estimate").is_none());
+}
+
+/// `--steps 4` is shorter than the reference's CCM and ECM periods (7 and 5): both modules still run, at
+/// the reference's places rescaled, and the plan printed before the run says where.
+#[test]
+fn a_short_schedule_keeps_ccm_and_ecm_and_the_plan_says_where() {
+    let dir = tempfile::tempdir().unwrap();
+    let scene_path = dir.path().join("blobs.ply");
+    splat::ply::write_ply(&scene_path, &two_blobs()).unwrap();
+    // The test settings without their own module steps, one iteration.
+    let mut settings: Vec<&str> = Vec::new();
+    let mut args = RUN_SETTINGS.iter();
+    while let Some(&a) = args.next() {
+        match a {
+            "--ccm-steps" | "--ecm-steps" => {
+                args.next();
+            }
+            "--iterations" => {
+                args.next();
+                settings.extend(["--iterations", "1"]);
+            }
+            _ => settings.push(a),
+        }
+    }
+    let out = dir.path().join("out");
+    let o = run_edit_with(&scene_path, &out, &settings, &[]);
+    let stderr = String::from_utf8_lossy(&o.stderr);
+    assert!(o.status.success(), "vcedit edit failed: {stderr}");
+    assert!(
+        stderr.contains(
+            "modules (steps 0-3): CCM at 1, 3 (fewer steps than the reference's period 7"
+        ) && stderr.contains("ECM at 1, 2, 3 (fewer steps than the reference's period 5"),
+        "{stderr}"
+    );
+    // Progress names its units and the iteration's folder.
+    assert!(
+        stderr.contains("iteration 1/1 (iter_0/): editing 4 views (4 steps, 2 CCM, 3 ECM, decode)"),
+        "{stderr}"
+    );
+    let run: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(out.join("run.json")).unwrap()).unwrap();
+    let consistency = &run["settings"]["consistency"];
+    assert_eq!(
+        consistency["ccm_steps"],
+        serde_json::json!([1, 3]),
+        "{consistency}"
+    );
+    assert_eq!(consistency["ecm"]["steps"], serde_json::json!([1, 2, 3]));
+    // Both modules took time.
+    let stage = |name: &str| {
+        run["timings"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .find(|t| t["stage"] == name)
+            .and_then(|t| t["seconds"].as_f64())
+            .unwrap()
+    };
+    assert!(
+        stage("CCM") > 0.0 && stage("ECM") > 0.0,
+        "{}",
+        run["timings"]
+    );
+}
+
+/// The same edit into a folder whose run finished: said, exit 0, no work, outputs untouched; other
+/// settings: refused naming the setting that differs; `--force`: done again.
+#[test]
+fn a_finished_run_is_not_done_again_unless_forced() {
+    let dir = tempfile::tempdir().unwrap();
+    let scene_path = dir.path().join("blobs.ply");
+    splat::ply::write_ply(&scene_path, &two_blobs()).unwrap();
+    let mut settings = RUN_SETTINGS;
+    let at = settings.iter().position(|a| *a == "--iterations").unwrap();
+    settings[at + 1] = "1";
+    let out = dir.path().join("out");
+    let o = run_edit_with(&scene_path, &out, &settings, &[]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let edited = std::fs::read(out.join("edited.ply")).unwrap();
+    let modified = |name: &str| {
+        std::fs::metadata(out.join(name))
+            .unwrap()
+            .modified()
+            .unwrap()
+    };
+    let (report, run) = (modified("report.html"), modified("run.json"));
+
+    let o = run_edit_with(&scene_path, &out, &settings, &[]);
+    let stderr = String::from_utf8_lossy(&o.stderr);
+    assert!(o.status.success(), "{stderr}");
+    assert!(
+        stderr.contains("holds this run already, finished") && stderr.contains("--force"),
+        "{stderr}"
+    );
+    assert!(
+        !stderr.contains("work:") && !stderr.contains("iteration 1"),
+        "work was done: {stderr}"
+    );
+    assert!(String::from_utf8_lossy(&o.stdout).contains("edited scene: "));
+    assert_eq!(std::fs::read(out.join("edited.ply")).unwrap(), edited);
+    assert_eq!(
+        (modified("report.html"), modified("run.json")),
+        (report, run)
+    );
+
+    // Another setting: refused, naming it.
+    let o = run_edit_with(&scene_path, &out, &settings, &["--seed", "7"]);
+    let stderr = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(1), "{stderr}");
+    assert!(
+        stderr.contains("holds the outputs of another run") && stderr.contains("seed: 0 → 7"),
+        "{stderr}"
+    );
+
+    // --force: the run is done again (the same result: it is deterministic).
+    let o = run_edit_with(&scene_path, &out, &settings, &["--force"]);
+    let stderr = String::from_utf8_lossy(&o.stderr);
+    assert!(o.status.success(), "{stderr}");
+    assert!(stderr.contains("iteration 1 done (iter_0/)"), "{stderr}");
+    assert!(modified("run.json") > run);
+    assert_eq!(std::fs::read(out.join("edited.ply")).unwrap(), edited);
 }
 
 #[test]
@@ -268,6 +400,9 @@ fn edit_writes_every_output_and_changes_only_the_mask() {
     }
     let html = std::fs::read_to_string(out.join("report.html")).unwrap();
     assert!(html.contains("a red ball") && html.contains("edited.ply"));
+    // The cameras as chosen (--orbit 6), and the fit's loss said once.
+    assert!(html.contains("an orbit of 6 views"), "cameras not named");
+    assert_eq!(html.matches("LPIPS").count(), 1, "the loss note repeats");
 
     // The work ledger: what the run counted is what the printed plan said, stage by stage.
     let work = &run["work"];

@@ -139,6 +139,19 @@ fn bad_inputs_give_one_clear_line() {
             ],
             "missing.png",
         ),
+        (
+            vec![
+                "--model".into(),
+                model.display().to_string(),
+                "--image".into(),
+                dir.path().display().to_string(),
+                "--source".into(),
+                "a".into(),
+                "--target".into(),
+                "b".into(),
+            ],
+            "is a folder; give one image file (PNG or JPEG)",
+        ),
     ];
     for (mut args, needle) in cases {
         args.insert(0, "edit-image".into());

@@ -167,6 +167,23 @@ fn resolution_downscales_like_the_inria_trainer() {
     let (code, stderr) = fit(&["--resolution", "20"]);
     assert_eq!(code, Some(0), "{stderr}");
     assert!(stderr.contains("held-out views at 20x20"), "{stderr}");
+    // --iterations, the old name of --steps here (rounds in edit and demo): still works, and says so.
+    let renamed = outs.path().join("renamed.ply");
+    let o = vcedit(&[
+        "--data",
+        data,
+        "--out",
+        renamed.to_str().unwrap(),
+        "--iterations",
+        "2",
+    ]);
+    let stderr = String::from_utf8_lossy(&o.stderr);
+    assert!(o.status.success(), "{stderr}");
+    assert!(
+        stderr.contains("warning: fit --iterations is deprecated")
+            && stderr.contains("use --steps 2"),
+        "{stderr}"
+    );
     // With --size it is one or the other.
     let (code, stderr) = fit(&["-r", "2", "--size", "16"]);
     assert_eq!(code, Some(2), "{stderr}");

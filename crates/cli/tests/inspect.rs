@@ -262,10 +262,11 @@ fn prompt_options_share_their_names() {
     assert!(!help.contains("--source <"), "{help}");
 }
 
-/// `--json=FILE` writes the JSON to a file and prints the text; the `=` is required, so a scene named
-/// after `--json` is never taken for the output (`inspect --json a.ply b.ply` would overwrite a.ply).
+/// `--json=FILE` or `--json FILE` (as in `metrics`) writes the JSON to a file and prints the text; the
+/// file must be named *.json, so a scene named after `--json` is never taken for the output
+/// (`inspect --json a.ply b.ply` would overwrite a.ply); `inspect --json scene.ply` prints the JSON.
 #[test]
-fn json_to_a_file_needs_the_equals_sign() {
+fn json_to_a_file_takes_a_json_name_with_or_without_the_equals_sign() {
     let dir = tempfile::tempdir().unwrap();
     let p = dir.path().join("line.ply");
     write_ply(&p, &line_scene(20)).unwrap();
@@ -281,6 +282,22 @@ fn json_to_a_file_needs_the_equals_sign() {
     assert!(String::from_utf8_lossy(&out.stdout).contains("gaussians"));
     let v: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(&stats).unwrap()).unwrap();
+    assert_eq!(v["count"], 20);
+
+    // The metrics spelling, the value apart.
+    let spaced = dir.path().join("spaced.json");
+    let out = vcedit(&[p.as_os_str(), "--json".as_ref(), spaced.as_os_str()]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert!(String::from_utf8_lossy(&out.stdout).contains("gaussians"));
+    assert!(std::fs::read_to_string(&spaced)
+        .unwrap()
+        .contains("\"count\": 20"));
+    // The flag first, the scene after it: JSON on stdout.
+    let v = json(&vcedit(&["--json".as_ref(), p.as_os_str()]));
     assert_eq!(v["count"], 20);
 
     let other = dir.path().join("other.ply");

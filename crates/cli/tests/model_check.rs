@@ -100,6 +100,8 @@ fn tiny_lcm_loads_and_is_summarised() {
         "15 steps (diffusers 0.22) = [999, 939, 879, 819, 759, 699, 639, 579, 519, 459, 399, 339, 279, 219, 159]",
         "OK: all components load",
         "(f32)",
+        // What --size must be, as `edit` checks it (a 4× codec, two UNet downsamplings).
+        "sizes        --size: multiples of 16 (4× codec, 2 UNet downsamplings); trained at 64×64",
     ] {
         assert!(r.stdout.contains(expected), "missing {expected:?} in\n{}", r.stdout);
     }
@@ -262,5 +264,56 @@ fn missing_folder_is_one_clear_error() {
     assert_eq!(
         r.stderr.trim_end(),
         "error: model folder /nonexistent/model does not exist"
+    );
+}
+
+/// A NaN in the weights is named with its place (the element, counted from 0), and a tokenizer folder
+/// with neither form names both (tokenizer.json or vocab.json + merges.txt).
+#[test]
+fn a_nan_and_a_missing_tokenizer_are_named_plainly() {
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path().join("model");
+    copy_dir(&fixture("tiny-lcm"), &dir);
+    // The alphabetically first f32 tensor of the VAE gets a NaN at element 3.
+    let weights = dir.join("vae/diffusion_pytorch_model.safetensors");
+    let mut bytes = fs::read(&weights).unwrap();
+    let header_len = u64::from_le_bytes(bytes[..8].try_into().unwrap()) as usize;
+    let header: serde_json::Value = serde_json::from_slice(&bytes[8..8 + header_len]).unwrap();
+    let (name, start) = header
+        .as_object()
+        .unwrap()
+        .iter()
+        .filter(|(name, t)| *name != "__metadata__" && t["dtype"] == "F32")
+        .map(|(name, t)| {
+            (
+                name.clone(),
+                t["data_offsets"][0].as_u64().unwrap() as usize,
+            )
+        })
+        .min()
+        .unwrap();
+    let at = 8 + header_len + start + 3 * 4;
+    bytes[at..at + 4].copy_from_slice(&f32::NAN.to_le_bytes());
+    fs::write(&weights, &bytes).unwrap();
+    let r = check(&dir);
+    assert_eq!(r.code, 1, "{}", r.stderr);
+    assert!(
+        r.stderr.contains(&format!(
+            "tensor {name} holds a NaN or an infinity (the first at element 3, counting from 0)"
+        )),
+        "{}",
+        r.stderr
+    );
+
+    copy_dir(&fixture("tiny-lcm"), &dir);
+    fs::remove_file(dir.join("tokenizer/vocab.json")).unwrap();
+    fs::remove_file(dir.join("tokenizer/merges.txt")).unwrap();
+    let r = check(&dir);
+    assert_eq!(r.code, 1);
+    assert!(
+        r.stderr
+            .contains("missing tokenizer/tokenizer.json (or vocab.json + merges.txt)"),
+        "{}",
+        r.stderr
     );
 }

@@ -276,7 +276,10 @@ pub fn demo_job(opts: &DemoOptions, scene: &DemoScene, variant: Variant) -> Edit
     }
 }
 
-/// Runs one variant into `out` and scores it.
+/// The procedural scene a demo edits, written into its folder as INRIA PLY.
+pub const SOURCE_SCENE: &str = "source.ply";
+
+/// Runs one variant into `out` (`source.ply`, then what `vcedit edit` writes) and scores it.
 pub fn run_variant(
     opts: &DemoOptions,
     model: &EditModel,
@@ -300,6 +303,10 @@ pub fn run_variant(
         opts.resume,
         progress,
     )?;
+    // The scene edited, beside `edited.ply`: `vcedit view source.ply edited.ply` compares them.
+    let source_path = out.join(SOURCE_SCENE);
+    splat::ply::write_ply(&source_path, &scene.built.scene)
+        .map_err(|e| DemoError::Setup(e.to_string()))?;
     let oracle = Oracle::new(&scene.source, &scene.target, OracleSettings::default())?;
     let cams: Vec<splat::Camera> = result
         .views
@@ -396,8 +403,10 @@ fn oracle_note(final_score: &EditScore, guidance: Option<&EditScore>) -> String 
     let f = score_cell;
     let mut s = format!(
         "Oracle (the procedural world's ground truth) on the final renders: colour fidelity {}, layout \
-         fidelity {}, silhouette IoU against the ideal edit {} (outline {}), changed pixels beyond 2 px \
-         outside the object {} per object pixel, preservation {:.1} dB",
+         fidelity {} (both 0–1, 1 = the ideal edit's colours and pattern), silhouette IoU against the \
+         ideal edit {} (outline {}; 1 = the outline kept and nothing inside lost, target ≥ 0.97), changed \
+         pixels beyond 2 px outside the object {} per object pixel (0 = nothing around it touched), \
+         preservation {:.1} dB (the object's surroundings; the object itself is meant to change)",
         f(final_score.color_fidelity),
         f(final_score.fidelity),
         f(final_score.silhouette_iou),

@@ -366,13 +366,23 @@ fn tokenizer_problems(dir: &Path, folder: &str) -> Vec<Problem> {
         }
         FileState::Absent => {}
     }
-    for name in ["vocab.json", "merges.txt"] {
+    // Neither form: name both, the one-file form first (what current hub folders carry).
+    let pair = ["vocab.json", "merges.txt"];
+    if pair.iter().all(|name| state(name) == FileState::Absent) {
+        problems.push(Problem::Missing(format!(
+            "{folder}/tokenizer.json (or vocab.json + merges.txt)"
+        )));
+        return problems;
+    }
+    for (name, other) in [(pair[0], pair[1]), (pair[1], pair[0])] {
         match state(name) {
             FileState::Present => {}
             state @ (FileState::BrokenLink | FileState::NotAFile) => {
                 problems.extend(state.unusable(format!("{folder}/{name}")))
             }
-            FileState::Absent => problems.push(Problem::Missing(format!("{folder}/{name}"))),
+            FileState::Absent => problems.push(Problem::Missing(format!(
+                "{folder}/{name} (beside {other}; or tokenizer.json instead of both)"
+            ))),
         }
     }
     problems
@@ -429,6 +439,7 @@ fn parse_model_index(value: &serde_json::Value) -> (Option<String>, DeclaredClas
     (class, entries)
 }
 
+#[derive(Clone, Copy, PartialEq, Eq)]
 enum FileState {
     Present,
     /// A symlink whose target is gone (a hub-cache blob deleted).
@@ -901,5 +912,13 @@ mod tests {
             assert!(err.contains(expected), "{expected} not in {err}");
         }
         assert!(!err.contains("tokenizer/vocab.json"), "{err}");
+        assert!(err.contains("or tokenizer.json instead"), "{err}");
+        // Neither form: the one-file form is named too.
+        fs::remove_file(d.join("tokenizer/vocab.json")).unwrap();
+        let err = ModelDir::open(d).unwrap_err().to_string();
+        assert!(
+            err.contains("tokenizer/tokenizer.json (or vocab.json + merges.txt)"),
+            "{err}"
+        );
     }
 }

@@ -70,6 +70,24 @@ pub struct SchedulerReport {
     pub details: String,
 }
 
+/// The image sizes a model takes: what `--size` must be a multiple of, and why.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct SizeNeeds {
+    /// Image pixels per latent pixel (the codec's downscale).
+    pub codec: usize,
+    /// UNet downsamplings (each halves the latents; the up path needs even sizes at each).
+    pub downsamplings: u32,
+    /// The UNet's `sample_size` in image pixels (what it was trained at), where the config says.
+    pub native: Option<usize>,
+}
+
+impl SizeNeeds {
+    /// What every image side must be a multiple of.
+    pub fn multiple(&self) -> usize {
+        self.codec << self.downsamplings
+    }
+}
+
 /// Everything `model check` prints.
 #[derive(Debug, Clone)]
 pub struct ModelReport {
@@ -78,6 +96,7 @@ pub struct ModelReport {
     pub weights: Vec<WeightsReport>,
     pub tokenizer: TokenizerReport,
     pub scheduler: SchedulerReport,
+    pub sizes: SizeNeeds,
     pub loaded: bool,
 }
 
@@ -473,7 +492,8 @@ pub fn check_model(path: &Path, depth: CheckDepth) -> Result<ModelReport, LoadEr
                     problems.push(Problem::Invalid {
                         file: rel(&root, &file),
                         reason: format!(
-                            "tensor {tensor} holds a NaN or an infinity (value {index}); the weights \
+                            "tensor {tensor} holds a NaN or an infinity (the first at element {index}, \
+                             counting from 0); the weights \
                              are damaged or were converted wrongly"
                         ),
                     });
@@ -538,12 +558,35 @@ pub fn check_model(path: &Path, depth: CheckDepth) -> Result<ModelReport, LoadEr
         config_max_length_ignored: config_max,
     };
     let scheduler_report = scheduler_summary(&scheduler);
+    // diffusers' defaults where a config leaves the blocks out: KL (64,), Tiny four stages, UNet four.
+    let codec_blocks = match list_key(&vae.config, "block_out_channels").len() {
+        0 if vae_class == "AutoencoderTiny" => {
+            match list_key(&vae.config, "encoder_block_out_channels").len() {
+                0 => 4,
+                n => n,
+            }
+        }
+        0 => 1,
+        n => n,
+    };
+    let codec = 1usize << (codec_blocks - 1);
+    let unet_blocks = if unet_channels.is_empty() {
+        4
+    } else {
+        unet_channels.len()
+    };
+    let sizes = SizeNeeds {
+        codec,
+        downsamplings: (unet_blocks - 1) as u32,
+        native: usize_key(&unet.config, "sample_size").map(|s| s * codec),
+    };
     Ok(ModelReport {
         root,
         pipeline_class: dir.pipeline_class().map(str::to_owned),
         weights: vec![text.report, unet.report, vae.report],
         tokenizer: tokenizer_report,
         scheduler: scheduler_report,
+        sizes,
         loaded,
     })
 }
@@ -637,6 +680,16 @@ impl fmt::Display for ModelReport {
             f,
             "scheduler    {} - {}",
             self.scheduler.class, self.scheduler.details
+        )?;
+        let z = &self.sizes;
+        writeln!(
+            f,
+            "sizes        --size: multiples of {} ({}× codec, {} UNet downsamplings){}",
+            z.multiple(),
+            z.codec,
+            z.downsamplings,
+            z.native
+                .map_or(String::new(), |n| format!("; trained at {n}×{n}"))
         )?;
         let params = self.total_parameters() as u64;
         writeln!(

@@ -128,6 +128,11 @@ impl Image {
             path: path.to_path_buf(),
             msg,
         };
+        if path.is_dir() {
+            return Err(err(
+                "is a folder; give one image file (PNG or JPEG)".to_string()
+            ));
+        }
         let img = image::open(path).map_err(|e| err(e.to_string()))?;
         let has_alpha = img.color().has_alpha();
         let (w, h) = (img.width(), img.height());

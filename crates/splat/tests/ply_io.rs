@@ -605,6 +605,15 @@ fn malformed_files_give_specific_messages() {
             "has no properties x, opacity",
         ),
         (
+            "a mesh's vertices",
+            header(
+                "element vertex 1\nproperty float x\nproperty float y\nproperty float z\n\
+                 property float nx\nproperty float ny\nproperty float nz\n\
+                 property uchar red\nproperty uchar green\nproperty uchar blue\n",
+            ),
+            "(a mesh or point cloud, not 3D Gaussians: `vcedit fit` makes a 3DGS scene from posed images)",
+        ),
+        (
             "int property",
             header(&vertex_header(1, &names0, "int")),
             "property 'x' has type int; 3DGS properties must be float or double",

@@ -166,14 +166,20 @@ impl PrecisionArg {
 /// writing or rendering for hours.
 pub const MAX_ORBIT_VIEWS: usize = 1000;
 
+/// Views of the orbit generated for a scene without cameras when neither --cameras nor --orbit is given:
+/// the same in every command, so `render` and `metrics` see the views an `edit` edited.
+pub const DEFAULT_ORBIT_VIEWS: usize = 32;
+
 /// Size of generated orbit views when `--size` does not give one.
 pub const DEFAULT_ORBIT_SIZE: (u32, u32) = (512, 512);
 
 /// `--size` for commands whose default is the size of their input views.
 #[derive(clap::Args, Debug, Clone)]
 pub struct SizeArg {
-    /// Image size WxH, or N for NxN (each side 1 to 16384). Views are centre-cropped to its aspect ratio,
-    /// then resampled. Default: the input views' own size; 512x512 for generated orbit views.
+    /// Image size WxH, or N for NxN (each side 1 to 16384); views are centre-cropped to its aspect ratio,
+    /// then resampled.
+    ///
+    /// Default: the input views' own size; 512x512 for generated orbit views.
     #[arg(long, value_name = "WxH", value_parser = parse_size, allow_hyphen_values = true)]
     pub size: Option<(u32, u32)>,
 }
@@ -181,8 +187,11 @@ pub struct SizeArg {
 /// `--size` for the diffusion commands, which work at one resolution.
 #[derive(clap::Args, Debug, Clone)]
 pub struct WorkingSize {
-    /// Working resolution WxH, or N for NxN (multiples of 64 for SD 1.x models). Inputs and renders are
-    /// centre-cropped to its aspect ratio, then resampled.
+    /// Image size WxH, or N for NxN (each side 1 to 16384); views are centre-cropped to its aspect ratio,
+    /// then resampled.
+    ///
+    /// The editing commands work at this one resolution, inputs and renders alike: a multiple of what
+    /// the model needs (64 for SD 1.x, 32 for the demo model; `vcedit model check` prints it).
     #[arg(
         long,
         value_name = "WxH",
@@ -232,7 +241,7 @@ pub struct CameraArgs {
     /// Use N views on an orbit around the scene instead of its own cameras.
     #[arg(long, value_name = "N", value_parser = positive::<usize>, allow_negative_numbers = true)]
     pub orbit: Option<usize>,
-    /// Use at most this many of the views; 0 = all.
+    /// Use at most this many of the views, evenly spaced over them (first and last included); 0 = all.
     #[arg(long, value_name = "N", value_parser = whole::<usize>, allow_negative_numbers = true)]
     pub max_views: Option<usize>,
     /// Allow --orbit above 1000 views.

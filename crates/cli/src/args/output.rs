@@ -16,7 +16,8 @@ use files::{RunDir, RunDirMode};
 #[derive(clap::Args, Debug, Clone)]
 pub struct ForceArg {
     /// Replace the outputs of another vcedit run in --out: the files vcedit wrote there are removed
-    /// first (nothing else). Without it such a folder is refused.
+    /// first (nothing else). Without it such a folder is refused, and a finished edit or demo with the
+    /// same settings is not done again.
     #[arg(long)]
     pub force: bool,
 }
@@ -134,6 +135,115 @@ pub fn fingerprint(settings: &impl Debug) -> String {
     format!("{h:016x}")
 }
 
+/// Whether `dir` holds a finished run of `command` with the settings `fingerprint`: its manifest is this
+/// run's and every one of `finals` (the files such a run writes last) is there. Such a run need not be
+/// done again. A folder holding another run or foreign files gives the error opening it would.
+/// `settings`: this run's, where the command keeps them ([`open_with_settings`]), so that a refusal
+/// names the ones that differ.
+pub fn finished_run(
+    dir: &Path,
+    command: &str,
+    fingerprint: &str,
+    settings: Option<&serde_json::Value>,
+    finals: &[&str],
+    inputs: &[&Path],
+) -> Result<bool> {
+    if !finals.iter().all(|f| dir.join(f).is_file()) {
+        return Ok(false);
+    }
+    let run = RunDir::open(dir, command, fingerprint, RunDirMode::Keep, inputs)
+        .map_err(|e| naming_differences(e.into(), dir, settings))?;
+    Ok(run.previous() == files::Previous::SameRun)
+}
+
+/// `e` (a refused folder) with the settings in which the folder's run differs from `settings`, where
+/// both are known.
+fn naming_differences(
+    e: anyhow::Error,
+    dir: &Path,
+    settings: Option<&serde_json::Value>,
+) -> anyhow::Error {
+    let previous = std::fs::read(dir.join(SETTINGS_FILE))
+        .ok()
+        .and_then(|b| serde_json::from_slice::<serde_json::Value>(&b).ok());
+    match previous
+        .zip(settings)
+        .map(|(p, s)| settings_differences(&p, s))
+    {
+        Some(diff) if !diff.is_empty() => {
+            anyhow::anyhow!("{e:#} (the settings that differ: {})", diff.join(", "))
+        }
+        _ => e,
+    }
+}
+
+/// The lines a command prints instead of redoing a finished run (see [`finished_run`]).
+pub fn say_finished(dir: &Path) {
+    eprintln!(
+        "{}: holds this run already, finished (the same settings and input paths); nothing to do. \
+         --force redoes it.",
+        dir.display()
+    );
+}
+
+/// The file in a run folder that keeps the settings of the run that made it (see [`settings_differences`]).
+pub const SETTINGS_FILE: &str = "settings.json";
+
+/// The settings in which `previous` (the `settings.json` a run left in its folder) differs from
+/// `current`, as `key: old → new` (nested keys joined by dots), for the refusal of a folder holding
+/// another run: a user told only "other settings" cannot tell which one changed.
+pub fn settings_differences(
+    previous: &serde_json::Value,
+    current: &serde_json::Value,
+) -> Vec<String> {
+    fn walk(key: &str, a: &serde_json::Value, b: &serde_json::Value, out: &mut Vec<String>) {
+        use serde_json::Value::Object;
+        match (a, b) {
+            (Object(x), Object(y)) => {
+                let keys: std::collections::BTreeSet<&String> = x.keys().chain(y.keys()).collect();
+                for k in keys {
+                    let null = serde_json::Value::Null;
+                    let sub = if key.is_empty() {
+                        k.clone()
+                    } else {
+                        format!("{key}.{k}")
+                    };
+                    walk(
+                        &sub,
+                        x.get(k).unwrap_or(&null),
+                        y.get(k).unwrap_or(&null),
+                        out,
+                    );
+                }
+            }
+            _ if a != b => out.push(format!("{key}: {a} → {b}")),
+            _ => {}
+        }
+    }
+    let mut out = Vec::new();
+    walk("", previous, current, &mut out);
+    out
+}
+
+/// [`OutputDir::open`] for a command that keeps its settings (`settings`, whose fingerprint is
+/// `fingerprint`) in [`SETTINGS_FILE`]: a folder holding the same command's run with other settings is
+/// refused naming the settings that differ, and the opened folder gets this run's settings.
+pub fn open_with_settings(
+    dir: &Path,
+    command: &str,
+    fingerprint: &str,
+    settings: &serde_json::Value,
+    force: bool,
+    inputs: &[&Path],
+) -> Result<OutputDir> {
+    let file = dir.join(SETTINGS_FILE);
+    let out = OutputDir::open(dir, command, fingerprint, force, inputs)
+        .map_err(|e| naming_differences(e, dir, Some(settings)))?;
+    let text = serde_json::to_vec_pretty(settings).expect("JSON values serialise");
+    files::atomic_write(&file, &text).map_err(|e| anyhow::anyhow!("{}: {e}", file.display()))?;
+    Ok(out)
+}
+
 /// An output folder open for one run; see the module documentation. Call [`OutputDir::finish`] when the
 /// run succeeded; dropped without it after a failure, it removes what it created if nothing was written.
 pub struct OutputDir {
@@ -180,12 +290,16 @@ impl Drop for OutputDir {
             return;
         };
         let dir = run.path().to_path_buf();
+        // The run's settings alone (`open_with_settings`) are not an output.
         let untouched = !self.finished
             && run.previous() == files::Previous::Nothing
-            && run.recorded().is_ok_and(|r| r.is_empty());
+            && run
+                .recorded()
+                .is_ok_and(|r| r.iter().all(|f| f == Path::new(SETTINGS_FILE)));
         drop(run);
         if untouched {
             // Nothing was written: leave the place as it was found.
+            let _ = std::fs::remove_file(dir.join(SETTINGS_FILE));
             let _ = std::fs::remove_file(dir.join(files::MANIFEST_NAME));
             if self.created {
                 let _ = std::fs::remove_dir(&dir);
@@ -233,6 +347,37 @@ mod tests {
         files::atomic_write(&dir.join("view.png"), b"x").unwrap();
         drop(out);
         assert!(dir.join("view.png").exists());
+    }
+
+    #[test]
+    fn only_a_finished_run_of_the_same_settings_counts_as_finished() {
+        let tmp = tempfile::tempdir().unwrap();
+        let dir = tmp.path().join("out");
+        let finals = ["run.json"];
+        assert!(!finished_run(&dir, "edit", "a", None, &finals, &[]).unwrap());
+        let out = OutputDir::open(&dir, "edit", "a", false, &[]).unwrap();
+        files::atomic_write(&dir.join("iter_0.png"), b"x").unwrap();
+        // Interrupted: its last file is missing.
+        assert!(!finished_run(&dir, "edit", "a", None, &finals, &[]).unwrap());
+        files::atomic_write(&dir.join("run.json"), b"{}").unwrap();
+        out.finish();
+        assert!(finished_run(&dir, "edit", "a", None, &finals, &[]).unwrap());
+        // Other settings: the refusal opening the folder gives.
+        let err = finished_run(&dir, "edit", "b", None, &finals, &[]).unwrap_err();
+        assert!(err.to_string().contains("--force"), "{err}");
+    }
+
+    #[test]
+    fn the_settings_that_differ_are_named() {
+        let a =
+            serde_json::json!({"steps": 4, "infedit": {"cross": 0.7, "seed": 0}, "scene": "a.ply"});
+        let b =
+            serde_json::json!({"steps": 6, "infedit": {"cross": 0.7, "seed": 1}, "scene": "a.ply"});
+        assert_eq!(
+            settings_differences(&a, &b),
+            ["infedit.seed: 0 → 1", "steps: 4 → 6"]
+        );
+        assert!(settings_differences(&a, &a).is_empty());
     }
 
     #[test]

@@ -1,6 +1,6 @@
 //! `vcedit demo`: edit a procedural scene with the bundled demo model, no downloads.
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 
 use anyhow::Context;
 
@@ -8,11 +8,13 @@ use edit::run::{DeltaDecode, KeepShape};
 
 use demo::run::{
     demo_job, demo_scene, load_model, reference_rows, reference_table, run_variant, summary, table,
-    variant_dir, DemoOptions, Variant, PAIRS,
+    variant_dir, DemoOptions, Variant, PAIRS, SOURCE_SCENE,
 };
 
 use crate::args::memory::MemoryCheckArg;
-use crate::args::output::{files_under, fingerprint, ForceArg, OutputDir};
+use crate::args::output::{
+    files_under, fingerprint, finished_run, say_finished, ForceArg, OutputDir,
+};
 use crate::args::parse::{positive, whole};
 use crate::args::{DeviceArg, PrecisionArg};
 use crate::progress::Reporter;
@@ -113,6 +115,39 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     opts.delta_decode = args.delta_decode;
     opts.keep_shape = args.keep_shape;
     opts.blend_level = args.blend_level;
+    let settings_key = fingerprint(&(
+        &model_dir,
+        args.pair,
+        args.compare,
+        opts.views,
+        args.iterations,
+        args.fit_steps,
+        args.steps,
+        args.seed,
+        args.delta_decode,
+        args.keep_shape,
+        args.blend_level,
+    ));
+    let model_files = files_under(&model_dir, 3);
+    let inputs: Vec<&std::path::Path> = model_files.iter().map(PathBuf::as_path).collect();
+    // The same demo finished in --out: nothing to do.
+    let finals: &[&str] = if args.compare {
+        &["compare.md", "compare.json"]
+    } else {
+        &["edited.ply", "report.html", "run.json"]
+    };
+    if !args.force.force
+        && !args.resume
+        && finished_run(&args.out, "demo", &settings_key, None, finals, &inputs)?
+    {
+        say_finished(&args.out);
+        if args.compare {
+            println!("table: {}", args.out.join("compare.md").display());
+        } else {
+            say_where(&args.out);
+        }
+        return Ok(());
+    }
     let scene = demo_scene(&opts)?;
     // The demo's networks are tiny (a 128² latent UNet of a few MB); its time goes to lifting, renders
     // and ECM's fits, which ran faster on WGSL (docs/gpu-results.md: on an H100 its SPIR-V run took 71 s
@@ -137,24 +172,10 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     // The same work plan `vcedit edit` prints (memory, and on a GPU the view batch), for the full variant.
     let plan = edit::run::work_plan(&job, &model, &scene.built.scene, scene.cameras.len());
     eprintln!("{}", plan.describe());
+    eprintln!("      {}", job.describe_modules());
     args.memory.check(plan.memory_bytes, "--views")?;
     args.memory
         .check_gpu(plan.gpu_memory_bytes, plan.gpu_free_bytes, "--views")?;
-    let settings_key = fingerprint(&(
-        &model_dir,
-        args.pair,
-        args.compare,
-        opts.views,
-        args.iterations,
-        args.fit_steps,
-        args.steps,
-        args.seed,
-        args.delta_decode,
-        args.keep_shape,
-        args.blend_level,
-    ));
-    let model_files = files_under(&model_dir, 3);
-    let inputs: Vec<&std::path::Path> = model_files.iter().map(PathBuf::as_path).collect();
     let out_dir = OutputDir::open(&args.out, "demo", &settings_key, args.force.force, &inputs)?;
     crate::interrupt::resumable_run_in(&args.out);
     let mut progress = Reporter::new().on_gpu(!model.compute.splat().is_cpu());
@@ -200,9 +221,22 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         progress.finish();
         super::edit::warn_if_unchanged(s.changed_fraction, "the renders inside the editable mask");
         print!("{}", summary(&s));
-        println!("edited scene: {}", args.out.join("edited.ply").display());
-        println!("report: {}", s.report.display());
+        say_where(&args.out);
         out_dir.finish();
     }
     Ok(())
+}
+
+/// Where a demo's results are, and how to look at the scenes (the command relative to the current
+/// folder where it can be, so that it fits a line).
+fn say_where(out: &Path) {
+    println!("edited scene: {}", out.join("edited.ply").display());
+    println!("report: {}", out.join("report.html").display());
+    let cwd = std::env::current_dir().unwrap_or_default();
+    let short = out.strip_prefix(&cwd).unwrap_or(out);
+    println!(
+        "compare in 3D: vcedit view {} {}",
+        short.join(SOURCE_SCENE).display(),
+        short.join("edited.ply").display()
+    );
 }

@@ -13,20 +13,22 @@ use edit::sampler::EditModel;
 
 use crate::args::editing::{ModelArgs, PromptArgs, SamplerArgs};
 use crate::args::memory::MemoryCheckArg;
-use crate::args::output::{files_under, fingerprint, ForceArg, OutputDir};
+use crate::args::output::{
+    files_under, fingerprint, finished_run, open_with_settings, say_finished, ForceArg,
+};
 use crate::args::parse::{finite, positive, whole};
-use crate::args::{BackgroundArg, CameraArgs, DeviceArg, PrecisionArg};
+use crate::args::{BackgroundArg, CameraArgs, DeviceArg, PrecisionArg, DEFAULT_ORBIT_VIEWS};
 use crate::progress::Reporter;
 
-/// Orbit views edited when neither --cameras nor --orbit is given and the scene has no cameras.
-const DEFAULT_ORBIT_VIEWS: usize = 32;
+/// What a finished run leaves in --out (run.json is written last).
+const FINAL_FILES: [&str; 3] = ["edited.ply", "report.html", "run.json"];
 
 /// Edit a 3D Gaussian Splatting scene from a source prompt to a target prompt, consistently across views.
 #[derive(clap::Args, Debug)]
 #[command(
     mut_arg("max_views", |a| a.default_value("96")),
     after_help = "Cameras come from --cameras, else --orbit, else the scene folder (INRIA output with cameras.json), else an \
-orbit of 32 views around the scene; --max-views keeps a seeded sample of them. Renders are over --background (the \
+orbit of 32 views around the scene; --max-views keeps an evenly spaced subset. Renders are over --background (the \
 reference renders over black).
 
 Examples:
@@ -149,8 +151,9 @@ pub struct Args {
     pub resume: bool,
     #[command(flatten)]
     pub memory: MemoryCheckArg,
-    /// Skip the time estimate of a long run (one UNet call, one render and one lifting round timed
-    /// before it starts; runs of 50 UNet passes or more, not resumed ones).
+    /// Skip the time estimate of a long run (UNet calls on one view at small sizes, scaled up, one render
+    /// and one lifting round, timed before it starts: at most about half a minute; runs of 50 UNet
+    /// passes or more, not resumed ones).
     #[arg(long)]
     pub no_estimate: bool,
     /// Stop right after this iteration's checkpoint, as a kill would (tests of --resume).
@@ -196,10 +199,10 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             );
         }
     }
-    let (cameras, source) =
+    let (cameras, camera_source) =
         args.views
             .choose(&scene, scene_cams, Some((w, h)), DEFAULT_ORBIT_VIEWS)?;
-    eprintln!("cameras: {} views from {source}", cameras.len());
+    eprintln!("cameras: {} views from {camera_source}", cameras.len());
 
     let steps = infedit.steps;
     let mut consistency = ConsistencySettings::reference(steps);
@@ -261,45 +264,6 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         view_batch: args.view_batch.map(usize::from),
     };
 
-    let model_dir = args.model.folder()?;
-    let compute = args.precision.compute(args.device.open()?)?;
-    let model = EditModel::load(&model_dir, args.model.taesd.as_deref())
-        .with_context(|| format!("loading model {}", model_dir.display()))?
-        .on(compute.clone());
-    args.sampler.check_model(&model)?;
-    args.prompts
-        .check_words(&model.tokenizer, args.mask_word.as_deref())?;
-    let mut notes = Vec::new();
-    let loss = match &args.lpips {
-        // On the device the fit renders on: a fit step then reads the render back once and returns its
-        // gradient, where a CPU network would cost seconds per step.
-        Some(dir) => {
-            ImageLoss::lpips(diffusion::lpips::Lpips::load(dir)?.on(compute.networks().clone()))
-        }
-        None => {
-            let note =
-                "no --lpips weights: fitting with 10·L1 + 2.5·D-SSIM instead of 10·L1 + 10·LPIPS"
-                    .to_string();
-            eprintln!("note: {note}");
-            notes.push(note);
-            ImageLoss::dssim()
-        }
-    };
-
-    let mut plan = edit::run::work_plan(&job, &model, &scene, cameras.len());
-    if let Some(bytes) = plan.gpu_memory_bytes.as_mut() {
-        *bytes += loss.gpu_bytes(job.size, plan.views);
-    }
-    eprintln!("{}", plan.describe());
-    eprintln!("      counts: {}", plan.work.describe());
-    args.memory
-        .check(plan.memory_bytes, "--max-views or --size")?;
-    args.memory.check_gpu(
-        plan.gpu_memory_bytes,
-        plan.gpu_free_bytes,
-        "--view-batch, --max-views or --size",
-    )?;
-
     // One run per folder: the settings that decide the result (a resumed run has the same), and the
     // inputs, which no write or --force may touch.
     let settings_key = fingerprint(&(
@@ -312,19 +276,87 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     let mut inputs = files_under(&args.scene, 2);
     inputs.extend(args.views.cameras.iter().flat_map(|c| files_under(c, 2)));
     let input_refs: Vec<&Path> = inputs.iter().map(PathBuf::as_path).collect();
-    let out_dir = OutputDir::open(
+    let settings = settings_record(&job, &args)?;
+    // The same run finished in --out: nothing to do (two days of work are not redone by accident).
+    if !args.force.force
+        && !args.resume
+        && finished_run(
+            &args.out,
+            "edit",
+            &settings_key,
+            Some(&settings),
+            &FINAL_FILES,
+            &input_refs,
+        )?
+    {
+        say_finished(&args.out);
+        println!("edited scene: {}", args.out.join("edited.ply").display());
+        println!("report: {}", args.out.join("report.html").display());
+        return Ok(());
+    }
+
+    let model_dir = args.model.folder()?;
+    let compute = args.precision.compute(args.device.open()?)?;
+    let model = EditModel::load(&model_dir, args.model.taesd.as_deref())
+        .with_context(|| format!("loading model {}", model_dir.display()))?
+        .on(compute.clone());
+    args.sampler.check_model(&model)?;
+    args.prompts
+        .check_words(&model.tokenizer, args.mask_word.as_deref())?;
+    let loss = match &args.lpips {
+        // On the device the fit renders on: a fit step then reads the render back once and returns its
+        // gradient, where a CPU network would cost seconds per step.
+        Some(dir) => {
+            ImageLoss::lpips(diffusion::lpips::Lpips::load(dir)?.on(compute.networks().clone()))
+        }
+        None => {
+            // Said here; the report's "fit loss" line says it too (once).
+            eprintln!(
+                "note: no --lpips weights: fitting with 10·L1 + 2.5·D-SSIM instead of 10·L1 + 10·LPIPS"
+            );
+            ImageLoss::dssim()
+        }
+    };
+
+    let mut plan = edit::run::work_plan(&job, &model, &scene, cameras.len());
+    if let Some(bytes) = plan.gpu_memory_bytes.as_mut() {
+        *bytes += loss.gpu_bytes(job.size, plan.views);
+    }
+    eprintln!("{}", plan.describe());
+    eprintln!("      {}", job.describe_modules());
+    eprintln!("      counts: {}", plan.work.describe());
+    args.memory
+        .check(plan.memory_bytes, "--max-views or --size")?;
+    args.memory.check_gpu(
+        plan.gpu_memory_bytes,
+        plan.gpu_free_bytes,
+        "--view-batch, --max-views or --size",
+    )?;
+
+    let out_dir = open_with_settings(
         &args.out,
         "edit",
         &settings_key,
+        &settings,
         args.force.force,
         &input_refs,
     )?;
+    if args.force.force {
+        // Redone: until it finishes, the folder must not read as finished.
+        let last = args.out.join(FINAL_FILES[2]);
+        if files::check_not_inputs(&[last.as_path()], &input_refs).is_ok() {
+            let _ = std::fs::remove_file(&last);
+        }
+    }
     crate::interrupt::resumable_run_in(&args.out);
     if !args.no_estimate && !args.resume && edit::run::worth_calibrating(&plan) {
         // After every check, so a refused run costs nothing; the GPU's kernels compiled here are the run's.
-        eprintln!("      timing one UNet call, one render and one lifting round for an estimate…");
+        eprintln!("      estimating the time (--no-estimate skips it):");
         let camera = &cameras[0];
-        let calibration = edit::run::calibrate(&job, &model, &scene, camera, plan.view_batch)
+        let calibration =
+            edit::run::calibrate(&job, &model, &scene, camera, plan.view_batch, &mut |line| {
+                eprintln!("      {line}")
+            })
             .context("timing the run's unit costs (--no-estimate skips it)")?;
         let estimate = edit::run::Estimate::new(&plan, calibration);
         eprintln!("      {}", estimate.describe());
@@ -334,16 +366,10 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     let mut progress = Reporter::new().on_gpu(!compute.splat().is_cpu());
     let inputs = RunInputs {
         scene: &args.scene.display().to_string(),
-        cameras: &args
-            .views
-            .cameras
-            .as_ref()
-            .map_or("(scene cameras / orbit)".to_string(), |p| {
-                p.display().to_string()
-            }),
+        cameras: &camera_source.to_string(),
         model: &model_dir.display().to_string(),
         loss: loss.describe(),
-        notes,
+        notes: Vec::new(),
         estimate,
     };
     let (_, written) = edit_scene(
@@ -369,6 +395,19 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     println!("report: {}", written.report.display());
     println!("done in {:.1} min", t0.elapsed().as_secs_f64() / 60.0);
     Ok(())
+}
+
+/// What decides a run's result, as kept in its folder (`settings.json`): the job and the inputs' paths.
+fn settings_record(job: &EditJob, args: &Args) -> anyhow::Result<serde_json::Value> {
+    let mut settings = serde_json::to_value(job)?;
+    if let Some(map) = settings.as_object_mut() {
+        map.insert("scene".into(), args.scene.display().to_string().into());
+        let path = |p: &Option<PathBuf>| p.as_ref().map(|p| p.display().to_string());
+        map.insert("cameras".into(), path(&args.views.cameras).into());
+        map.insert("model".into(), format!("{:?}", args.model).into());
+        map.insert("lpips".into(), path(&args.lpips).into());
+    }
+    Ok(settings)
 }
 
 /// Below this fraction of changed pixels (`changed_fraction`) an edit is reported as having changed little.

@@ -33,16 +33,26 @@ pub struct Args {
     /// *.compressed.ply, *.splat, *.spz, *.sog, DIR/meta.json).
     #[arg(long, value_name = "FILE")]
     pub out: PathBuf,
-    /// Optimisation steps (one view per step; --iterations as in the INRIA trainer). The default fits
+    /// Optimisation steps (one view per step; the INRIA trainer's --iterations). The default fits
     /// NeRF-synthetic scenes at 200x200 to ~31-32 dB in under 10 minutes on 2 cores.
     #[arg(
         long,
-        visible_alias = "iterations",
         default_value_t = 5000,
         value_parser = positive::<u64>,
         allow_negative_numbers = true
     )]
     pub steps: u64,
+    /// The old name of --steps, kept for scripts: in `edit` and `demo` --iterations counts
+    /// render → edit → fit rounds, so here it is deprecated and says so.
+    #[arg(
+        long,
+        hide = true,
+        value_name = "N",
+        conflicts_with = "steps",
+        value_parser = positive::<u64>,
+        allow_negative_numbers = true
+    )]
+    pub iterations: Option<u64>,
     #[command(flatten)]
     pub size: SizeArg,
     /// Downscale as the INRIA trainer's -r does: 1, 2, 4 or 8 divide the views' size; any other N
@@ -160,8 +170,25 @@ fn inria_resolution(set: &CameraSet, r: u32) -> Result<(u32, u32)> {
     Ok((w, h))
 }
 
-pub fn run(args: Args) -> Result<()> {
+/// The fit's progress message: the smoothed loss, the last held-out PSNR with the step it was measured
+/// at (evaluations are sparse, so an undated value reads as current), the Gaussian count.
+fn progress_message(loss: Option<f32>, psnr: Option<(u64, f64)>, gaussians: usize) -> String {
+    let loss = loss.map_or(String::new(), |v| format!("loss {v:.4}"));
+    let psnr = psnr.map_or(String::new(), |(step, v)| {
+        format!(" held-out PSNR {v:.2} at step {step}")
+    });
+    format!("{loss}{psnr} N {gaussians}")
+}
+
+pub fn run(mut args: Args) -> Result<()> {
     let started = Instant::now();
+    if let Some(n) = args.iterations {
+        eprintln!(
+            "warning: fit --iterations is deprecated: it means --steps here (the INRIA trainer's name), \
+             while in edit and demo --iterations counts render → edit → fit rounds; use --steps {n}"
+        );
+        args.steps = n;
+    }
     // Everything is checked before the (long) fit: where it writes, what it reads, whether it fits.
     if splat::OutputFormat::for_path(&args.out).is_none() {
         bail!(
@@ -225,7 +252,7 @@ pub fn run(args: Args) -> Result<()> {
     let mut progress = Reporter::new().on_gpu(!device.is_cpu());
     progress.stage("fitting", args.steps);
     let mut smoothed = None::<f32>;
-    let mut last_psnr = None::<f64>;
+    let mut last_psnr = None::<(u64, f64)>;
     let result = fit_on(&dataset, &config, &device, &mut |p| {
         // Exponential moving average of the losses read (every step on the CPU, every
         // `LOSS_READ_EVERY`-th on a GPU), as the INRIA trainer shows.
@@ -233,7 +260,7 @@ pub fn run(args: Args) -> Result<()> {
             smoothed = Some(smoothed.map_or(loss, |s| 0.6 * loss + 0.4 * s));
         }
         if let Some(psnr) = p.test_psnr {
-            last_psnr = Some(psnr);
+            last_psnr = Some((p.step, psnr));
             progress.log(&format!(
                 "step {}: held-out PSNR {psnr:.2} dB, {} Gaussians, {:.0}s",
                 p.step,
@@ -243,9 +270,7 @@ pub fn run(args: Args) -> Result<()> {
         }
         // Redrawn on the steps whose loss a GPU fit reads, so the line shows a fresh value.
         if p.step % LOSS_READ_EVERY == 0 || p.step == p.steps {
-            let psnr = last_psnr.map_or(String::new(), |v| format!(" PSNR {v:.2}"));
-            let loss = smoothed.map_or(String::new(), |v| format!("loss {v:.4}"));
-            progress.set_message(format!("{loss}{psnr} N {}", p.gaussians));
+            progress.set_message(progress_message(smoothed, last_psnr, p.gaussians));
             progress.set_position(p.step);
         }
     })?;
@@ -296,4 +321,18 @@ pub fn run(args: Args) -> Result<()> {
         ),
     }
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_progress_line_dates_its_psnr() {
+        assert_eq!(
+            progress_message(Some(0.01234), Some((200, 24.314)), 900),
+            "loss 0.0123 held-out PSNR 24.31 at step 200 N 900"
+        );
+        assert_eq!(progress_message(None, None, 5), " N 5");
+    }
 }

@@ -6,18 +6,21 @@ use splat::cameras::robust_bounds;
 use splat::GaussianScene;
 use std::path::PathBuf;
 
+use crate::args::output::require_extension;
+
 #[derive(clap::Args)]
 #[command(
     about = "Print statistics of a 3DGS scene (count, SH degree, bounds, opacities, scales, cameras)",
-    after_help = "Examples:\n  vcedit inspect scene.ply\n  vcedit inspect output/garden   # an INRIA trainer output (adds the cameras)\n  vcedit inspect scene.ply --json > stats.json\n  vcedit inspect scene.ply --json=stats.json   # text here, JSON in the file"
+    after_help = "Examples:\n  vcedit inspect scene.ply\n  vcedit inspect output/garden   # an INRIA trainer output (adds the cameras)\n  vcedit inspect scene.ply --json > stats.json\n  vcedit inspect scene.ply --json stats.json   # text here, JSON in the file"
 )]
 pub struct Args {
     /// A scene file (PLY, compressed PLY, .splat, .spz, SOG), a SOG folder, or an INRIA trainer output
     /// folder (point_cloud/iteration_*/point_cloud.ply + cameras.json).
-    pub scene: PathBuf,
-    /// The statistics as JSON: `--json` prints them on stdout instead of the text, `--json=FILE` writes
-    /// them to FILE and prints the text (the `=` is required: the scene is a positional argument).
-    #[arg(long, value_name = "FILE", num_args = 0..=1, require_equals = true, default_missing_value = "-")]
+    #[arg(value_name = "SCENE")]
+    pub scene: Option<PathBuf>,
+    /// The statistics as JSON: `--json` prints them on stdout instead of the text, `--json=FILE` or
+    /// `--json FILE` (a name ending in .json) writes them to FILE and prints the text, as in `metrics`.
+    #[arg(long, value_name = "FILE", num_args = 0..=1, default_missing_value = "-")]
     pub json: Option<PathBuf>,
 }
 
@@ -123,14 +126,37 @@ fn print_text(s: &Stats) {
     }
 }
 
-pub fn run(args: Args) -> Result<()> {
-    let json_file = args.json.as_ref().filter(|p| p.as_os_str() != "-");
-    if let Some(path) = json_file {
-        crate::args::output::output_file(path, &[args.scene.as_path()])?;
+/// The scene and where the JSON goes. `--json FILE` takes a value, so `inspect --json scene.ply` (the
+/// flag before the scene, JSON meant for stdout) reads the scene as that value: it is taken back here.
+/// A JSON file must be named *.json, so that `inspect --json a.ply b.ply` never writes over a scene.
+fn scene_and_json(args: &Args) -> Result<(PathBuf, Option<PathBuf>)> {
+    let (scene, json) = match (&args.scene, &args.json) {
+        (Some(scene), json) => (scene.clone(), json.clone()),
+        (None, Some(json)) if json.as_os_str() != "-" => (json.clone(), Some(PathBuf::from("-"))),
+        (None, _) => {
+            crate::usage!("the scene to inspect is missing: vcedit inspect SCENE [--json [FILE]]")
+        }
+    };
+    if let Some(file) = json.as_ref().filter(|p| p.as_os_str() != "-") {
+        if require_extension(file, "--json", &["json"], "the JSON file").is_err() {
+            crate::usage!(
+                "--json {}: the JSON file must end in .json (`--json` alone prints it)",
+                file.display()
+            );
+        }
     }
-    let (scene, cameras) = splat::open_scene(&args.scene)?;
-    let s = stats(args.scene.clone(), &scene, cameras.map(|c| c.cameras.len()));
-    match (&args.json, json_file) {
+    Ok((scene, json))
+}
+
+pub fn run(args: Args) -> Result<()> {
+    let (scene_path, json) = scene_and_json(&args)?;
+    let json_file = json.as_ref().filter(|p| p.as_os_str() != "-");
+    if let Some(path) = json_file {
+        crate::args::output::output_file(path, &[scene_path.as_path()])?;
+    }
+    let (scene, cameras) = splat::open_scene(&scene_path)?;
+    let s = stats(scene_path.clone(), &scene, cameras.map(|c| c.cameras.len()));
+    match (&json, json_file) {
         (Some(_), None) => println!("{}", serde_json::to_string_pretty(&s)?),
         (_, Some(path)) => {
             print_text(&s);

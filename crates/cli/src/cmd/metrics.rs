@@ -21,20 +21,19 @@ use std::time::Instant;
 use crate::args::memory::MemoryCheckArg;
 use crate::args::output::output_file;
 use crate::args::parse::{finite, positive};
-use crate::args::{BackgroundArg, CameraArgs, CameraSource, DeviceArg, SizeArg};
+use crate::args::{
+    BackgroundArg, CameraArgs, CameraSource, DeviceArg, SizeArg, DEFAULT_ORBIT_VIEWS,
+};
 
 /// `--json` without a file: JSON on stdout.
 const JSON_TO_STDOUT: &str = "-";
-
-/// Views compared when neither --cameras nor --orbit is given and the source scene has no cameras.
-const DEFAULT_ORBIT_VIEWS: usize = 16;
 
 #[derive(clap::Args, Debug)]
 #[command(
     about = "Compare two scenes: cross-view consistency, preservation (PSNR/SSIM), CLIP directional similarity",
     mut_arg("max_views", |a| a.default_value("64")),
     after_help = "Cameras come from --cameras, else --orbit, else the source scene's folder (INRIA cameras.json), else an \
-orbit of 16 views around the source scene; --max-views keeps an evenly spaced subset. Both scenes are rendered from \
+orbit of 32 views around the source scene (as `edit`); --max-views keeps an evenly spaced subset. Both scenes are rendered from \
 the same cameras. --background affects PSNR/SSIM and CLIP, not the cross-view error.
 
 Cross-view error: each view is warped into its nearest cameras with the scene's rendered depth; the mean absolute colour \

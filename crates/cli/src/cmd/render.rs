@@ -8,17 +8,16 @@ use std::time::Instant;
 
 use crate::args::memory::MemoryCheckArg;
 use crate::args::output::{fingerprint, ForceArg, OutputDir};
-use crate::args::{BackgroundArg, CameraArgs, CameraSource, DeviceArg, SizeArg};
+use crate::args::{
+    BackgroundArg, CameraArgs, CameraSource, DeviceArg, SizeArg, DEFAULT_ORBIT_VIEWS,
+};
 use crate::progress::Reporter;
-
-/// Views rendered for a scene that brings no cameras when neither --cameras nor --orbit is given.
-const DEFAULT_ORBIT_VIEWS: usize = 8;
 
 #[derive(clap::Args, Debug)]
 #[command(
     about = "Render a scene to one PNG per view (optionally depth and alpha)",
     after_help = "Cameras come from --cameras, else --orbit, else the scene folder (INRIA output with cameras.json), \
-else an orbit of 8 views around the scene; --max-views keeps an evenly spaced subset. Files are named \
+else an orbit of 32 views around the scene; --max-views keeps an evenly spaced subset. Files are named \
 NNNN_<camera name>.png (+ _depth.png, _alpha.png).
 
 Examples:

@@ -6,6 +6,7 @@
 mod attention;
 mod blocks;
 mod config;
+mod cost;
 mod embeddings;
 mod memory;
 mod transformer;

@@ -43,12 +43,13 @@ pub struct EcmSettings {
 }
 
 impl EcmSettings {
-    /// The reference's ECM for a `steps`-step schedule: after steps where (i+1) % 5 == 0, 6 epochs with the
-    /// rates halved every 2, stretched to at least 576 steps; our safer defaults for what the fits change
-    /// (editable Gaussians only, appearance only).
+    /// The reference's ECM for a `steps`-step schedule: after steps where (i+1) % 5 == 0 (rescaled for
+    /// fewer than 5 steps, [`super::module_steps`]), 6 epochs with the rates halved every 2, stretched to
+    /// at least 576 steps; our safer defaults for what the fits change (editable Gaussians only,
+    /// appearance only).
     pub fn reference(steps: usize) -> Self {
         Self {
-            steps: (0..steps).filter(|i| (i + 1) % 5 == 0).collect(),
+            steps: super::module_steps(steps, super::ECM_PERIOD),
             scope: EcmScope::Masked,
             params: EcmParams::Appearance,
             epochs: 6,

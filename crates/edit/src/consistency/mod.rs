@@ -42,14 +42,69 @@ pub struct ConsistencySettings {
     pub blend_consistency: bool,
 }
 
+/// The reference's CCM period: its code runs CCM after steps where (i+1) % 7 == 0.
+pub const CCM_PERIOD: usize = 7;
+/// The reference's ECM period: (i+1) % 5 == 0.
+pub const ECM_PERIOD: usize = 5;
+/// The schedule length the reference runs (its places for the modules are scaled from it).
+const REFERENCE_STEPS: usize = 15;
+
+/// The steps a module with the reference's `period` runs at in a `steps`-step schedule: every
+/// `period`-th step, as the reference places them. A schedule shorter than the period, where that rule
+/// places none and the module would silently not run, gets it at the reference's places in its own 15
+/// steps scaled to the schedule (step ⌈k·period·steps/15⌉ − 1): CCM at the 7th and 14th fifteenths,
+/// ECM at the 5th, 10th and 15th, rounded up, so the last step keeps its module.
+pub fn module_steps(steps: usize, period: usize) -> Vec<usize> {
+    let periodic: Vec<usize> = (0..steps).filter(|i| (i + 1) % period == 0).collect();
+    if !periodic.is_empty() || steps == 0 {
+        return periodic;
+    }
+    let mut scaled: Vec<usize> = (1..=REFERENCE_STEPS / period)
+        .map(|k| (k * period * steps).div_ceil(REFERENCE_STEPS) - 1)
+        .collect();
+    scaled.dedup();
+    scaled
+}
+
 impl ConsistencySettings {
-    /// The reference schedule: CCM when (i+1) % 7 == 0, ECM when (i+1) % 5 == 0, blend maps every step.
+    /// The reference schedule ([`module_steps`]): CCM when (i+1) % 7 == 0, ECM when (i+1) % 5 == 0
+    /// (rescaled for schedules shorter than those periods), blend maps every step.
     pub fn reference(steps: usize) -> Self {
         Self {
-            ccm_steps: (0..steps).filter(|i| (i + 1) % 7 == 0).collect(),
+            ccm_steps: module_steps(steps, CCM_PERIOD),
             ecm: EcmSettings::reference(steps),
             blend_consistency: true,
         }
+    }
+
+    /// One line saying when each module runs in a `steps`-step schedule, and where a module is off or
+    /// placed by rescaling (not by the reference's period): the plan a user reads before the run.
+    pub fn describe(&self, steps: usize) -> String {
+        let list = |name: &str, at: &[usize], period: usize| {
+            if at.is_empty() {
+                return format!("{name} off");
+            }
+            let rescaled = if steps < period && at == module_steps(steps, period) {
+                format!(" (fewer steps than the reference's period {period}: its places rescaled)")
+            } else {
+                String::new()
+            };
+            let at: Vec<String> = at.iter().map(usize::to_string).collect();
+            format!("{name} at {}{rescaled}", at.join(", "))
+        };
+        let blend = if !self.blend_consistency {
+            "blend maps off"
+        } else if steps > 1 {
+            "blend maps every step after the first"
+        } else {
+            "blend maps never (one step)"
+        };
+        format!(
+            "modules (steps 0-{}): {}; {}; {blend}",
+            steps.saturating_sub(1),
+            list("CCM", &self.ccm_steps, CCM_PERIOD),
+            list("ECM", &self.ecm.steps, ECM_PERIOD)
+        )
     }
 
     /// Per-view guidance: every view edited independently (the inconsistent guidance of peer methods).
@@ -302,5 +357,42 @@ mod tests {
         assert_eq!(c.ccm_steps, vec![6, 13]);
         assert_eq!(c.ecm.steps, vec![4, 9, 14]);
         assert!(c.blend_consistency);
+        // Longer schedules keep the reference's periods.
+        let c = ConsistencySettings::reference(30);
+        assert_eq!(c.ccm_steps, vec![6, 13, 20, 27]);
+        assert_eq!(c.ecm.steps, vec![4, 9, 14, 19, 24, 29]);
+        assert_eq!(
+            ConsistencySettings::reference(15).describe(15),
+            "modules (steps 0-14): CCM at 6, 13; ECM at 4, 9, 14; blend maps every step after the first"
+        );
+    }
+
+    #[test]
+    fn short_schedules_keep_both_modules() {
+        // Fewer steps than a period: the reference's places rescaled, never an empty list.
+        for steps in 1..15 {
+            let c = ConsistencySettings::reference(steps);
+            assert!(
+                !c.ccm_steps.is_empty() && !c.ecm.steps.is_empty(),
+                "{steps}"
+            );
+            assert!(c.ccm_steps.iter().chain(&c.ecm.steps).all(|&i| i < steps));
+        }
+        let c = ConsistencySettings::reference(4);
+        assert_eq!(c.ccm_steps, vec![1, 3]);
+        assert_eq!(c.ecm.steps, vec![1, 2, 3]);
+        assert_eq!(ConsistencySettings::reference(2).ccm_steps, vec![0, 1]);
+        assert_eq!(ConsistencySettings::reference(1).ecm.steps, vec![0]);
+        // 6 steps: ECM by its period (step 4), CCM rescaled.
+        let c = ConsistencySettings::reference(6);
+        assert_eq!(c.ecm.steps, vec![4]);
+        assert_eq!(c.ccm_steps, vec![2, 5]);
+        let line = c.describe(6);
+        assert!(line.contains("CCM at 2, 5 (fewer steps than the reference's period 7"));
+        assert!(line.contains("ECM at 4;"), "{line}");
+        // Switched off, said so.
+        let mut off = ConsistencySettings::reference(4);
+        off.ccm_steps.clear();
+        assert!(off.describe(4).contains("CCM off"));
     }
 }

@@ -368,6 +368,7 @@ impl Page<'_> {
     }
 
     fn settings(&self, settings: &serde_json::Value) -> Markup {
+        let settings = &tidy_numbers(settings);
         html! {
             @if let Some(map) = settings.as_object() {
                 @if !map.is_empty() {
@@ -446,6 +447,12 @@ impl Page<'_> {
                     }
                     @if let Some(s) = it.seconds { " · " (fmt_seconds(s)) }
                     @if let Some(r) = it.geometry_rate.filter(|&r| r < 1.0) { " · shape kept (geometry × " (r) ")" }
+                }
+                @if it.index > 0 && it.source_prompt.is_some() {
+                    p.muted {
+                        "This iteration edits renders of the scene the previous one fitted, which already show \
+                         the edit, so its source prompt is the target prompt."
+                    }
                 }
                 @for (label, list) in [("guidance", &it.guidance), ("render after fit", &it.renders)] {
                     @if !list.is_empty() {
@@ -572,25 +579,36 @@ fn metric_rows(m: &MetricsSummary) -> Vec<(String, String, String)> {
         if let Some(c) = c {
             rows.push((
                 name.to_string(),
-                format!(
-                    "{} · {} dB",
-                    fmt_opt(c.mean_abs_error, 4),
-                    fmt_opt(c.psnr, 2)
-                ),
-                format!(
-                    "{} pairs, {:.0} % co-visible",
-                    c.pairs,
-                    100.0 * c.covisible_fraction
-                ),
+                match c.mean_abs_error {
+                    Some(e) => format!("{e:.4} · {} dB", fmt_opt(c.psnr, 2)),
+                    None => "not measured".to_string(),
+                },
+                if c.mean_abs_error.is_some() {
+                    format!(
+                        "mean colour difference (0–1) where views see the same surface, lower is more \
+                         consistent, the source renders' the floor; {} pairs, {:.0} % co-visible",
+                        c.pairs,
+                        100.0 * c.covisible_fraction
+                    )
+                } else {
+                    format!("no pair of views sees the same surface ({} pairs)", c.pairs)
+                },
             ));
         }
     }
-    for (name, p) in [
+    for (name, p, meaning) in [
         (
             "preservation outside the mask",
             &m.preservation_outside_mask,
+            "source against final renders where the edit may not act: high is kept (≥ 30 dB: barely \
+             changed)",
         ),
-        ("preservation, whole image", &m.preservation_whole),
+        (
+            "preservation, whole image",
+            &m.preservation_whole,
+            "source against final renders over the whole image, the edit included: low when the edit \
+             changes the whole object, as it should",
+        ),
     ] {
         if let Some(p) = p {
             rows.push((
@@ -600,7 +618,11 @@ fn metric_rows(m: &MetricsSummary) -> Vec<(String, String, String)> {
                     fmt_opt(p.psnr, 2),
                     fmt_opt(p.ssim, 4)
                 ),
-                format!("{:.0} % of pixels, {} views", 100.0 * p.fraction, p.views),
+                format!(
+                    "{meaning}; {:.0} % of pixels, {} views",
+                    100.0 * p.fraction,
+                    p.views
+                ),
             ));
         }
     }
@@ -609,7 +631,9 @@ fn metric_rows(m: &MetricsSummary) -> Vec<(String, String, String)> {
             "changed where the edit may act".to_string(),
             format!("{:.1} % of pixels", 100.0 * f),
             format!(
-                "colour moved by more than {} (0–1 scale); inside the mask when there is one",
+                "colour moved by more than {} (0–1 scale); inside the mask when there is one. Near \
+                 100 % is expected when the edit recolours the whole object or region; near 0 means it \
+                 did nothing",
                 crate::eval::metrics::CHANGE_TOLERANCE
             ),
         ));
@@ -628,6 +652,26 @@ fn metric_rows(m: &MetricsSummary) -> Vec<(String, String, String)> {
         rows.push((k.clone(), fmt_opt(Some(*v), 4), String::new()));
     }
     rows
+}
+
+/// `value` with its non-integer numbers at the precision they were set with: settings are f32s, whose
+/// f64 widening reads 0.699999988079071 for 0.7.
+fn tidy_numbers(value: &serde_json::Value) -> serde_json::Value {
+    use serde_json::Value;
+    match value {
+        Value::Number(n) if !(n.is_i64() || n.is_u64()) => n
+            .as_f64()
+            .and_then(|x| format!("{}", x as f32).parse::<f64>().ok())
+            .and_then(serde_json::Number::from_f64)
+            .map_or_else(|| value.clone(), Value::Number),
+        Value::Array(a) => Value::Array(a.iter().map(tidy_numbers).collect()),
+        Value::Object(o) => Value::Object(
+            o.iter()
+                .map(|(k, v)| (k.clone(), tidy_numbers(v)))
+                .collect(),
+        ),
+        other => other.clone(),
+    }
 }
 
 /// The report's HTML for output folder `dir` (which is where the referenced files are looked up). All text
@@ -820,6 +864,66 @@ mod tests {
         assert!(at("Explore in 3D") < at("data-vcedit-viewer"));
         assert!(at("data-vcedit-viewer") < at("Turntable"));
         assert!(!render_html(dir, &data, &ReportOptions::default()).contains("Explore in 3D"));
+    }
+
+    #[test]
+    fn the_report_explains_its_numbers() {
+        let preservation = PreservationReport {
+            psnr: Some(10.91),
+            ssim: Some(0.5),
+            pixels: 100,
+            fraction: 1.0,
+            views: 4,
+        };
+        let data = ReportData {
+            title: "t".into(),
+            settings: serde_json::json!({ "cross": 0.699999988079071f64, "steps": 15 }),
+            iterations: vec![
+                IterationInfo {
+                    index: 0,
+                    source_prompt: Some("a red sphere".into()),
+                    ..Default::default()
+                },
+                IterationInfo {
+                    index: 1,
+                    source_prompt: Some("a blue sphere".into()),
+                    ..Default::default()
+                },
+            ],
+            metrics: MetricsSummary {
+                preservation_whole: Some(preservation),
+                changed_fraction: Some(1.0),
+                final_consistency: Some(ConsistencySummary {
+                    mean_abs_error: None,
+                    psnr: None,
+                    pairs: 0,
+                    covisible_fraction: 0.0,
+                    covisible_pixels: 0,
+                }),
+                ..Default::default()
+            },
+            ..Default::default()
+        };
+        let html = render_html(Path::new("/nonexistent"), &data, &ReportOptions::default());
+        // A low whole-image PSNR and every pixel changed are what a whole-object edit does: said so.
+        assert!(
+            html.contains("low when the edit changes the whole object"),
+            "{html}"
+        );
+        assert!(html.contains("Near 100 % is expected"), "{html}");
+        // Settings read as they were set.
+        assert!(
+            html.contains(">0.7<") && !html.contains("0.699999988"),
+            "{html}"
+        );
+        // The second iteration's source prompt is explained, and a metric not measured is said so.
+        assert!(
+            html.contains("so its source prompt is the target prompt"),
+            "{html}"
+        );
+        assert!(
+            !html.contains("– · – dB") && html.contains("no pair of views sees the same surface")
+        );
     }
 
     #[test]

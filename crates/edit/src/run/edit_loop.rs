@@ -3,9 +3,6 @@
 use std::path::Path;
 use std::time::Instant;
 
-use rand::seq::SliceRandom;
-use rand::SeedableRng;
-use rand_chacha::ChaCha8Rng;
 use splat::render::Frame;
 use splat::render::{ExtraChannels, RenderSettings};
 use splat::{Camera, GaussianScene, Image};
@@ -146,8 +143,9 @@ pub fn run_edit(
             String::new()
         };
         progress.log(&format!(
-            "iteration {} done: {} Gaussians in {}{eta}",
+            "iteration {} done ({}/): {} Gaussians in {}{eta}",
             k + 1,
+            outputs::iteration_dir_name(k),
             trainer.scene().len(),
             about(took),
         ));
@@ -185,7 +183,13 @@ struct Run<'a> {
 impl Run<'_> {
     /// The progress label of a stage of iteration `k`.
     fn stage(&self, k: usize, what: &str) -> String {
-        format!("iteration {}/{}: {what}", k + 1, self.job.iterations)
+        // Counted from 1 for people, the folder from 0: both named, so neither surprises.
+        format!(
+            "iteration {}/{} ({}/): {what}",
+            k + 1,
+            self.job.iterations,
+            outputs::iteration_dir_name(k)
+        )
     }
 
     /// The trainer and run state to start iterating from: the checkpoint in `out` when resuming (with the
@@ -199,7 +203,7 @@ impl Run<'_> {
     ) -> Result<(EditTrainer, Checkpoint, Option<usize>), RunError> {
         let job = self.job;
         let fp = fingerprint(job, scene, cameras);
-        let views = select_views(cameras.len(), job.max_views, job.seed);
+        let views = select_views(cameras.len(), job.max_views);
         let cams: Vec<Camera> = views.iter().map(|&i| cameras[i].clone()).collect();
         let setup = TrainerSetup {
             train: &job.train,
@@ -273,10 +277,14 @@ impl Run<'_> {
         let steps = plan.timesteps.len();
         let calls = |at: &[usize]| at.iter().filter(|&&i| i < steps).count();
         let units = steps + calls(&consistency.ccm_steps) + calls(&consistency.ecm.steps) + 1;
-        progress.stage(
-            &self.stage(k, &format!("editing {} views", cams.len())),
-            units as u64,
+        // The bar's units named, so "6/21" reads as progress through the steps and calls.
+        let what = format!(
+            "editing {} views ({steps} steps, {} CCM, {} ECM, decode)",
+            cams.len(),
+            calls(&consistency.ccm_steps),
+            calls(&consistency.ecm.steps)
         );
+        progress.stage(&self.stage(k, &what), units as u64);
         let mut noise = SeededNoise::new(job.seed_for(k, SeedPurpose::Noise));
         let edited = sampler.run(sources, &mut noise, &mut |_, stage| {
             if matches!(stage, Stage::Unet | Stage::Ccm | Stage::Ecm) {
@@ -417,16 +425,13 @@ fn editable_mask(
     Ok(Some(mask))
 }
 
-/// A seeded sample of `min(n, max)` distinct camera indices, in ascending order.
-fn select_views(n: usize, max: usize, seed: u64) -> Vec<usize> {
-    let mut idx: Vec<usize> = (0..n).collect();
-    if n > max {
-        let mut rng = ChaCha8Rng::seed_from_u64(seed);
-        idx.shuffle(&mut rng);
-        idx.truncate(max);
-        idx.sort_unstable();
-    }
-    idx
+/// `min(n, max)` camera indices evenly spaced over the list (first and last included), in ascending
+/// order: what `--max-views` means in every command. The reference draws a seeded random sample
+/// (`random.sample`, seed 0), which Python's generator alone reproduces; even spacing covers an orbit or
+/// a capture path without the gaps and clusters a random draw leaves, and picks the views `render` and
+/// `metrics` pick for the same `--max-views`.
+fn select_views(n: usize, max: usize) -> Vec<usize> {
+    crate::present::report::subset_indices(n, max.max(1))
 }
 
 /// The INRIA trainer's scene extent: 1.1 × the largest distance of a camera centre from their mean.
@@ -454,12 +459,12 @@ mod tests {
     use super::*;
 
     #[test]
-    fn views_are_a_seeded_sorted_sample() {
-        assert_eq!(select_views(5, 96, 0), vec![0, 1, 2, 3, 4]);
-        let a = select_views(200, 10, 3);
+    fn views_are_evenly_spaced_as_in_every_command() {
+        assert_eq!(select_views(5, 96), vec![0, 1, 2, 3, 4]);
+        assert_eq!(select_views(10, 4), vec![0, 3, 6, 9]);
+        let a = select_views(200, 10);
         assert_eq!(a.len(), 10);
         assert!(a.windows(2).all(|w| w[0] < w[1]));
-        assert_eq!(a, select_views(200, 10, 3));
-        assert_ne!(a, select_views(200, 10, 4));
+        assert_eq!((a[0], a[9]), (0, 199));
     }
 }

@@ -1,9 +1,16 @@
 //! A time estimate before a run: the run's unit costs timed on this machine (one UNet call of the run's
 //! view batch, one render, one CCM lifting round), scaled by the counts of its [`WorkPlan`].
 //!
+//! The UNet is never timed at the run's size: a call of 8 views at 512² can take many minutes on a CPU,
+//! longer than a user waits for an estimate. It is timed on one view at the run's latents halved until
+//! small (8² for SD 1.5 at 512²), then at each doubling while the next probe is expected to fit
+//! [`UNET_PROBE_BUDGET_SECS`], and the largest probe is scaled up by the ratio of multiply-adds
+//! (`UNetConfig::multiply_adds`, which counts self-attention's square growth).
+//!
 //! Rough by design: the codec's encodes and decodes are not counted (on SD 1.5 a few percent of a CPU
 //! run), a fit step is taken as three renders (forward, backward, Adam), and every lifting pass as CCM's
-//! widest (the blend's are narrower). What it is for is telling "minutes" from "days" before a user waits.
+//! widest (the blend's are narrower); a small probe does less work per second than a large call, so
+//! the scaled UNet cost leans high. What it is for is telling "minutes" from "days" before a user waits.
 
 use std::time::Instant;
 
@@ -24,11 +31,29 @@ pub const CALIBRATE_FROM_UNET_CALLS: usize = 50;
 /// Channels of the calibrating lifting round: SD 1.5's CCM maps, 3 branches × 8 heads × 6 prompt tokens.
 const LIFT_CHANNELS: usize = 144;
 
+/// Seconds the UNet probes may take together (the first, smallest one always runs): a larger probe
+/// runs only while the time spent plus its expected time stays within this.
+pub const UNET_PROBE_BUDGET_SECS: f64 = 30.0;
+
+/// The smallest latent side probed (where a size allows it): below it a call is mostly overhead.
+const MIN_PROBE_SIDE: usize = 8;
+
+/// The UNet call that was timed and scaled up.
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize)]
+pub struct UnetProbe {
+    /// Latent width and height of the timed call (one view: 6 branches).
+    pub latent: (usize, usize),
+    pub seconds: f64,
+    /// Multiply-adds of the run's call over the timed one's.
+    pub scale: f64,
+}
+
 /// Seconds of one unit of each kind of work, measured on this machine and device.
 #[derive(Clone, Copy, Debug, PartialEq, serde::Serialize)]
 pub struct Calibration {
-    /// One UNet call of the plan's view batch (6 branches per view), no hook.
+    /// One UNet call of the plan's view batch (6 branches per view), no hook: `probe` scaled up.
     pub unet_call: f64,
+    pub probe: UnetProbe,
     /// One RGB render at the run's size.
     pub render: f64,
     /// One view's lifting round (lift onto the scene and render back) of a CCM-wide map.
@@ -77,15 +102,16 @@ pub fn worth_calibrating(plan: &WorkPlan) -> bool {
     plan.unet_calls >= CALIBRATE_FROM_UNET_CALLS
 }
 
-/// Times the unit costs of `job` on `model`'s device with `scene` seen from `camera` (at the run's size).
-/// On a GPU each unit runs twice and the second is timed: the first compiles the kernels (which the run
-/// then finds compiled).
+/// Times the unit costs of `job` on `model`'s device with `scene` seen from `camera` (at the run's size);
+/// `note` receives a line per step (what is being timed, and what it took). On a GPU each unit runs
+/// twice and the second is timed: the first compiles the kernels (which the run then finds compiled).
 pub fn calibrate(
     job: &EditJob,
     model: &EditModel,
     scene: &GaussianScene,
     camera: &Camera,
     view_batch: usize,
+    note: &mut dyn FnMut(&str),
 ) -> Result<Calibration, RunError> {
     let warm_up = !model.compute.splat().is_cpu();
     let timed = |f: &mut dyn FnMut() -> Result<(), RunError>| -> Result<f64, RunError> {
@@ -98,24 +124,55 @@ pub fn calibrate(
     };
 
     let f = model.downscale();
-    let (w, h) = (job.size.0 as usize / f, job.size.1 as usize / f);
-    let batch = 6 * view_batch.max(1);
-    let sample = Tensor::randn(
-        0f32,
-        1.0,
-        (batch, model.latent_channels(), h, w),
-        &Device::Cpu,
-    )?;
+    let full = (job.size.0 as usize / f, job.size.1 as usize / f);
+    let config = model.unet.config();
+    let levels = config.block_out_channels.len().saturating_sub(1) as u32;
+    let work = |(w, h): (usize, usize), views: usize| {
+        config
+            .multiply_adds(6 * views, h, w, 77)
+            .map(|m| m as f64)
+            .map_err(|e| RunError::Input(e.to_string()))
+    };
+    let full_work = work(full, view_batch.max(1))?;
     let empty = model.tokenizer.encode("");
     let ids = diffusion::clip::ids_tensor(&[empty], &Device::Cpu)?;
-    let context = model.encode_text(&ids)?;
-    let context = context.repeat((batch, 1, 1))?.to_dtype(DType::F32)?;
+    let context = model
+        .encode_text(&ids)?
+        .repeat((6, 1, 1))?
+        .to_dtype(DType::F32)?;
     let timesteps = Tensor::new(&[499u32], &Device::Cpu)?;
-    let unet_call = timed(&mut || {
-        model.predict(&sample, &timesteps, &context, None)?;
-        Ok(())
-    })?;
+    let sizes = probe_sizes(full, 2usize.pow(levels));
+    let (sw, sh) = sizes[0];
+    // Within 80 columns with the plan's indent for the sizes runs have.
+    note(&format!(
+        "UNet, one view, from {sw}×{sh} latents up (≤ {UNET_PROBE_BUDGET_SECS:.0} s), scaled to {}×{} × {}:",
+        full.0,
+        full.1,
+        crate::present::count(view_batch.max(1), "view", "views"),
+    ));
+    let probe = probe_unet(
+        &sizes,
+        &|size| work(size, 1).unwrap_or(f64::NAN),
+        UNET_PROBE_BUDGET_SECS,
+        &mut |(w, h)| {
+            let sample =
+                Tensor::randn(0f32, 1.0, (6, model.latent_channels(), h, w), &Device::Cpu)?;
+            timed(&mut || {
+                model.predict(&sample, &timesteps, &context, None)?;
+                Ok(())
+            })
+        },
+        note,
+    )?;
+    let scale = full_work / work(probe.0, 1)?;
+    let probe = UnetProbe {
+        latent: probe.0,
+        seconds: probe.1,
+        scale,
+    };
+    let unet_call = probe.seconds * scale;
 
+    note("timing one render and one lifting round…");
     let splat = model.compute.splat();
     let settings = RenderSettings {
         background: job.background,
@@ -145,9 +202,66 @@ pub fn calibrate(
     })?;
     Ok(Calibration {
         unet_call,
+        probe,
         render,
         lift,
     })
+}
+
+/// Latent sizes to probe, smallest first: `full` halved while both sides stay multiples of `multiple`
+/// (the UNet's downsamplings need them) and at least [`MIN_PROBE_SIDE`], then doubled back up to `full`.
+fn probe_sizes(full: (usize, usize), multiple: usize) -> Vec<(usize, usize)> {
+    let mut sizes = vec![full];
+    let halvable =
+        |side: usize| side.is_multiple_of(2) && (side / 2).is_multiple_of(multiple.max(1));
+    while let Some(&(w, h)) = sizes.last() {
+        if !(halvable(w) && halvable(h) && w.min(h) / 2 >= MIN_PROBE_SIDE) {
+            break;
+        }
+        sizes.push((w / 2, h / 2));
+    }
+    sizes.reverse();
+    sizes
+}
+
+/// Runs `run` (seconds of one call) on `sizes` in turn, smallest first, while the time spent plus the
+/// next probe's expected time (the last one's scaled by `work`) stays within `budget`; returns the
+/// largest size timed and its seconds.
+fn probe_unet(
+    sizes: &[(usize, usize)],
+    work: &dyn Fn((usize, usize)) -> f64,
+    budget: f64,
+    run: &mut dyn FnMut((usize, usize)) -> Result<f64, RunError>,
+    note: &mut dyn FnMut(&str),
+) -> Result<((usize, usize), f64), RunError> {
+    let mut spent = 0.0;
+    let mut last: Option<((usize, usize), f64)> = None;
+    for &size in sizes {
+        if let Some((prev, secs)) = last {
+            let expected = secs * work(size) / work(prev);
+            if expected.is_nan() || spent + expected > budget {
+                note(&format!(
+                    "  a probe at {}×{} would take about {}: scaling up the {}×{} one",
+                    size.0,
+                    size.1,
+                    unit_cost(expected),
+                    prev.0,
+                    prev.1
+                ));
+                break;
+            }
+        }
+        let secs = run(size)?;
+        spent += secs;
+        note(&format!(
+            "  UNet at {}×{}: {}",
+            size.0,
+            size.1,
+            unit_cost(secs)
+        ));
+        last = Some((size, secs));
+    }
+    Ok(last.expect("probe_sizes returns at least the full size"))
 }
 
 /// A unit cost, to the precision a sub-second call needs.
@@ -200,6 +314,11 @@ mod tests {
     fn the_estimate_scales_the_unit_costs_by_the_counts() {
         let c = Calibration {
             unet_call: 2.0,
+            probe: UnetProbe {
+                latent: (8, 8),
+                seconds: 0.1,
+                scale: 20.0,
+            },
             render: 0.1,
             lift: 0.5,
         };
@@ -225,6 +344,69 @@ mod tests {
         };
         assert!(long.describe().chars().count() <= 74, "{}", long.describe());
         assert_eq!(unit_cost(0.089), "89 ms");
+    }
+
+    #[test]
+    fn probes_start_small_and_stay_multiples_of_the_downsamplings() {
+        // SD 1.5 at 512²: 64² latents, multiples of 8.
+        assert_eq!(
+            probe_sizes((64, 64), 8),
+            [(8, 8), (16, 16), (32, 32), (64, 64)]
+        );
+        // Non-square, and a size whose half is no longer a multiple.
+        assert_eq!(probe_sizes((96, 64), 8), [(24, 16), (48, 32), (96, 64)]);
+        assert_eq!(probe_sizes((40, 40), 8), [(40, 40)]);
+        // Never below the smallest side.
+        assert_eq!(probe_sizes((16, 16), 1), [(8, 8), (16, 16)]);
+    }
+
+    #[test]
+    fn the_unet_probe_stays_within_its_budget_and_never_runs_a_call_too_slow_to_wait_for() {
+        // A machine where a call costs its multiply-adds: quadratic in the pixels, 1 s at 8².
+        let work = |(w, h): (usize, usize)| {
+            let p = (w * h) as f64;
+            p + p * p / 64.0
+        };
+        let secs = |size| work(size) / work((8, 8));
+        let sizes = probe_sizes((64, 64), 8);
+        let mut ran = Vec::new();
+        let mut lines = Vec::new();
+        let (size, seconds) = probe_unet(
+            &sizes,
+            &work,
+            UNET_PROBE_BUDGET_SECS,
+            &mut |size| {
+                ran.push(size);
+                Ok(secs(size))
+            },
+            &mut |line| lines.push(line.to_string()),
+        )
+        .unwrap();
+        // 8² (1 s) and 16² (~10 s) fit the budget; 32² (~130 s) would not, nor the full 64².
+        assert_eq!(ran, [(8, 8), (16, 16)]);
+        assert_eq!(size, (16, 16));
+        let spent: f64 = ran.iter().map(|&s| secs(s)).sum();
+        assert!(spent <= UNET_PROBE_BUDGET_SECS);
+        // Scaled by the work, the probe gives the full call's time.
+        let full = seconds * work((64, 64)) / work(size);
+        assert!((full - secs((64, 64))).abs() < 1e-6 * full);
+        // Every probe and the one skipped are said.
+        assert_eq!(lines.len(), 3, "{lines:?}");
+        assert!(lines[2].contains("32×32") && lines[2].contains("scaling up the 16×16"));
+        // A fast machine times the run's own size.
+        let mut ran = Vec::new();
+        probe_unet(
+            &sizes,
+            &work,
+            UNET_PROBE_BUDGET_SECS,
+            &mut |size| {
+                ran.push(size);
+                Ok(secs(size) / 1000.0)
+            },
+            &mut |_| {},
+        )
+        .unwrap();
+        assert_eq!(ran.last(), Some(&(64, 64)));
     }
 
     #[test]

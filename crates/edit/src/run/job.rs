@@ -239,6 +239,16 @@ pub(super) enum SeedPurpose {
 }
 
 impl EditJob {
+    /// When the consistency modules run, for the plan printed before a run (per-view guidance runs none).
+    pub fn describe_modules(&self) -> String {
+        match self.guidance {
+            GuidanceMode::Joint => self.consistency.describe(self.infedit.steps),
+            GuidanceMode::PerView => {
+                "modules: none (per-view guidance: every view edited on its own)".to_string()
+            }
+        }
+    }
+
     /// The seed of one purpose in one iteration.
     pub(super) fn seed_for(&self, iteration: usize, purpose: SeedPurpose) -> u64 {
         derive_seed(self.seed, iteration, purpose as u64)

@@ -46,16 +46,21 @@ fn metrics_err(e: MetricsError) -> RunError {
     RunError::Input(e.to_string())
 }
 
+/// The folder of iteration `iteration`'s images (counted from 0).
+pub(super) fn iteration_dir_name(iteration: usize) -> String {
+    format!("iter_{iteration}")
+}
+
 /// Path of a guidance image.
 fn guidance_path(out: &Path, iteration: usize, view: usize) -> PathBuf {
-    out.join(format!("iter_{iteration}"))
+    out.join(iteration_dir_name(iteration))
         .join("guidance")
         .join(format!("view_{view:03}.png"))
 }
 
 /// Path of a source render (what the iteration edited).
 fn source_path(out: &Path, iteration: usize, view: usize) -> PathBuf {
-    out.join(format!("iter_{iteration}"))
+    out.join(iteration_dir_name(iteration))
         .join("source")
         .join(format!("view_{view:03}.png"))
 }

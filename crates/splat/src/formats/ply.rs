@@ -473,8 +473,15 @@ impl VertexLayout {
             .map(slot_name)
             .collect();
         if !missing.is_empty() {
+            // Not one Gaussian property: a mesh or a point cloud, which a user may have taken for a scene.
+            let hint = if fields.iter().all(|f| matches!(f.1, Slot::Mean(_))) {
+                " (a mesh or point cloud, not 3D Gaussians: `vcedit fit` makes a 3DGS scene from posed \
+                 images)"
+            } else {
+                ""
+            };
             return Err(Problem::NotGaussians(format!(
-                "the '{}' element has no propert{} {}",
+                "the '{}' element has no propert{} {}{hint}",
                 element.name,
                 if missing.len() == 1 { "y" } else { "ies" },
                 missing.join(", ")
