@@ -13,7 +13,7 @@ use demo::run::{
 };
 
 use crate::args::memory::MemoryCheckArg;
-use crate::args::output::{files_under, fingerprint, ForceArg, OutputDir};
+use crate::args::output::{fingerprint, ForceArg, OutputDir};
 use crate::args::parse::{positive, whole};
 use crate::args::{DeviceArg, PrecisionArg};
 use crate::progress::Reporter;
@@ -85,7 +85,7 @@ pub struct Args {
 pub fn run(args: Args) -> anyhow::Result<()> {
     if args.list {
         for (i, (s, t, _)) in PAIRS.iter().enumerate() {
-            println!("{i}: \"{s}\" → \"{t}\"");
+            crate::out!("{i}: \"{s}\" → \"{t}\"");
         }
         return Ok(());
     }
@@ -154,8 +154,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         args.keep_shape,
         args.blend_level,
     ));
-    let model_files = files_under(&model_dir, 3);
-    let inputs: Vec<&std::path::Path> = model_files.iter().map(PathBuf::as_path).collect();
+    let inputs = [model_dir.as_path()];
     let out_dir = OutputDir::open(&args.out, "demo", &settings_key, args.force.force, &inputs)?;
     crate::interrupt::resumable_run_in(&args.out);
     let mut progress = Reporter::new().on_gpu(!model.compute.splat().is_cpu());
@@ -176,10 +175,10 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         let references = reference_rows(&opts, &model, &scene)?;
         let md = format!("{}\n{}", table(&scores), reference_table(&references));
         for s in &scores {
-            println!("{}", summary(s));
+            crate::out!("{}", summary(s));
         }
         files::atomic_write(&args.out.join("compare.md"), md.as_bytes())?;
-        println!("table: {}", args.out.join("compare.md").display());
+        crate::out!("table: {}", args.out.join("compare.md").display());
         files::atomic_write(
             &args.out.join("compare.json"),
             &serde_json::to_vec_pretty(&serde_json::json!({
@@ -187,7 +186,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
                 "references": references,
             }))?,
         )?;
-        println!("reports: {}", args.out.join("*/report.html").display());
+        crate::out!("reports: {}", args.out.join("*/report.html").display());
         out_dir.finish();
     } else {
         let s = run_variant(
@@ -200,9 +199,9 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         )?;
         progress.finish();
         super::edit::warn_if_unchanged(s.changed_fraction, "the renders inside the editable mask");
-        print!("{}", summary(&s));
-        println!("edited scene: {}", args.out.join("edited.ply").display());
-        println!("report: {}", s.report.display());
+        crate::stdout::write(&summary(&s))?;
+        crate::out!("edited scene: {}", args.out.join("edited.ply").display());
+        crate::out!("report: {}", s.report.display());
         out_dir.finish();
     }
     Ok(())

@@ -14,7 +14,7 @@ use edit::sampler::EditModel;
 
 use crate::args::editing::{ModelArgs, PromptArgs, SamplerArgs};
 use crate::args::memory::MemoryCheckArg;
-use crate::args::output::{files_under, fingerprint, ForceArg, OutputDir};
+use crate::args::output::{fingerprint, ForceArg, OutputDir};
 use crate::args::parse::{finite, positive, whole};
 use crate::args::{BackgroundArg, CameraArgs, DeviceArg, PrecisionArg};
 use crate::progress::Reporter;
@@ -309,8 +309,14 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         &args.model,
         &args.lpips,
     ));
-    let mut inputs = files_under(&args.scene, 2);
-    inputs.extend(args.views.cameras.iter().flat_map(|c| files_under(c, 2)));
+    let mut inputs = splat::formats::scene_sources(&args.scene);
+    inputs.extend(
+        args.views
+            .cameras
+            .iter()
+            .flat_map(|c| splat::cameras::camera_sources(c)),
+    );
+    inputs.push(args.model.model.clone());
     let input_refs: Vec<&Path> = inputs.iter().map(PathBuf::as_path).collect();
     let out_dir = OutputDir::open(
         &args.out,
@@ -365,9 +371,9 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         "the renders"
     };
     warn_if_unchanged(written.metrics.changed_fraction, region);
-    println!("edited scene: {}", written.scene.display());
-    println!("report: {}", written.report.display());
-    println!("done in {:.1} min", t0.elapsed().as_secs_f64() / 60.0);
+    crate::out!("edited scene: {}", written.scene.display());
+    crate::out!("report: {}", written.report.display());
+    crate::out!("done in {:.1} min", t0.elapsed().as_secs_f64() / 60.0);
     Ok(())
 }
 
