@@ -505,3 +505,59 @@ fn convert_names_a_bad_input_once() {
     assert_eq!(line.matches("z.spz").count(), 1, "{line}");
     assert!(!d.join("o.ply").exists());
 }
+
+// --- 9. Same seed, same bytes on the GPU without a usable cache ---------------------------------------
+
+/// With the cache folder unusable (here a file where the folder should be), tuning results cannot be
+/// kept: the convolutions take one fixed path instead of being timed in every run (timing chose
+/// differently from run to run, and the paths differ in their last bits), and the run says once that
+/// the cache is unusable.
+#[test]
+fn a_gpu_edit_without_a_usable_cache_repeats_bit_for_bit() {
+    if gpu::list_adapters().is_empty() {
+        println!("skipping: no Vulkan device");
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let mut img = splat::Image::new(64, 64, 3);
+    for (i, v) in img.data.iter_mut().enumerate() {
+        *v = ((i * 7) % 255) as f32 / 255.0;
+    }
+    img.save_png(&d.join("a.png")).unwrap();
+    std::fs::write(d.join("not-a-folder"), "x").unwrap();
+    let model = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../fixtures/models/tiny-lcm");
+    let mut outputs = Vec::new();
+    for run in 0..3 {
+        let out = format!("o{run}.png");
+        let o = Command::new(env!("CARGO_BIN_EXE_vcedit"))
+            .args([
+                "edit-image",
+                "--model",
+                s(&model),
+                "--image",
+                "a.png",
+                "--source",
+                "a cat",
+                "--target",
+                "a dog",
+                "--out",
+                &out,
+                "--size",
+                "64",
+                "--steps",
+                "2",
+                "--device",
+                "gpu",
+            ])
+            .env("XDG_CACHE_HOME", d.join("not-a-folder"))
+            .current_dir(d)
+            .output()
+            .unwrap();
+        assert_ok(&o);
+        let warnings = stderr(&o).matches("cannot be written").count();
+        assert_eq!(warnings, 1, "{}", stderr(&o));
+        outputs.push(read(&d.join(out)));
+    }
+    assert!(outputs.windows(2).all(|w| w[0] == w[1]), "the runs differ");
+}
