@@ -446,7 +446,7 @@ fi
 # A variant that fails is a row with its exit code; the rest still run.
 full && step fit-ab "${FIT_AB_TIMEOUT:-240}" bash -c 'failed=0; for v in $5; do
     if [ "$v" = auto ]; then set_env=(); else IFS=, read -r -a set_env <<< "$v"; fi
-    env "${set_env[@]}" python3 "$4" --label "$v" -- "$1" fit --data "$2" --out "$3" --background white \
+    env "${set_env[@]}" python3 "$4" --label "$v" -- "$1" fit --data "$2" --out "$3" --force --background white \
       --device gpu $6 || failed=1
   done; exit $failed' _ "$V" "$IN/lego-200" "$WORK/lego-ab.ply" "$HERE/host_profile.py" "$AB_VARIANTS" "$AB_SIZE"
 # The packed vcedit has no built-in demo model (prepare.sh): the checkout's is named.

@@ -13,6 +13,7 @@ mod cmd;
 mod embedded;
 mod interrupt;
 mod progress;
+mod stdout;
 
 #[derive(Parser)]
 #[command(

@@ -95,7 +95,7 @@ fn refuses_the_input_as_output_and_unknown_names() {
     let out = convert(&source, &source);
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(
-        !out.status.success() && err.contains("the output is the input"),
+        !out.status.success() && err.contains("also an input"),
         "{err}"
     );
     let out = convert(&source, &dir.path().join("s.obj"));
@@ -129,7 +129,7 @@ fn refuses_outputs_that_replace_or_mix_with_inputs() {
     let out = convert(&source, &link);
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(
-        !out.status.success() && err.contains("the output is the input"),
+        !out.status.success() && err.contains("also an input"),
         "{err}"
     );
     // A SOG folder written into the input SOG folder.
@@ -150,12 +150,24 @@ fn refuses_outputs_that_replace_or_mix_with_inputs() {
     let out = convert(&source, &other.join("meta.json"));
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(
-        !out.status.success() && err.contains("no SOG scene"),
+        !out.status.success() && err.contains("not a SOG scene"),
         "{err}"
     );
     assert_eq!(std::fs::read(other.join("means_l.webp")).unwrap(), b"mine");
     assert!(!other.join("meta.json").exists());
-    // A previous SOG folder may be replaced, as any output file may.
-    assert!(convert(&source, &sog.join("meta.json")).status.success());
+    // A previous SOG folder is replaced only with --force, as any output file.
+    let out = convert(&source, &sog.join("meta.json"));
+    assert!(!out.status.success(), "replaced without --force");
+    let out = vcedit(&[
+        Path::new("convert"),
+        &source,
+        &sog.join("meta.json"),
+        Path::new("--force"),
+    ]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
     assert_eq!(std::fs::read(&source).unwrap(), before);
 }

@@ -98,6 +98,7 @@ fn tiny_train_then_sample_through_the_cli() {
         "1",
         "--out",
         grid.to_str().unwrap(),
+        "--force",
     ]);
     assert_eq!(code, 1);
     assert!(
@@ -178,7 +179,16 @@ fn demo_model_edits_a_red_sphere_into_a_blue_sphere() {
     // cross-attention for most steps, a looser blend threshold than SD's defaults, and the maps of the
     // level where its words localize.
     let edit = |thresh: &str| {
-        let settings = ["--cross", "0.3", "--thresh-e", thresh, "--blend-level", "1"];
+        // Both runs write the one output: the second replaces the first (--force).
+        let settings = [
+            "--cross",
+            "0.3",
+            "--thresh-e",
+            thresh,
+            "--blend-level",
+            "1",
+            "--force",
+        ];
         edit_image(&settings, &output)
     };
     // An edit that cannot change anything (an empty blend region) ends with a warning naming the knobs.

@@ -477,6 +477,21 @@ fn resume_after_an_interruption_equals_an_uninterrupted_run() {
         "the simulated interruption must stop the run"
     );
     assert!(!part.join("edited.ply").exists());
+    // A damaged checkpoint is named, not resumed from (issue 69): one bit of one value flipped.
+    let saved = part.join("checkpoint/scene_1.ply");
+    let good = std::fs::read(&saved).unwrap();
+    let mut bad = good.clone();
+    let at = bad.len() - 10;
+    bad[at] ^= 1;
+    std::fs::write(&saved, &bad).unwrap();
+    let o = run_edit(&scene_path, &part, &["--resume"]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(1), "{err}");
+    assert!(
+        err.contains("scene_1.ply") && err.contains("damaged"),
+        "{err}"
+    );
+    std::fs::write(&saved, &good).unwrap();
     let o = run_edit(&scene_path, &part, &["--resume"]);
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     assert!(String::from_utf8_lossy(&o.stderr).contains("resuming after iteration 1"));

@@ -77,7 +77,9 @@ fn write_rgba_dataset(dir: &Path, views: usize) {
 fn fits_and_writes_a_readable_ply() {
     let dir = tempfile::tempdir().unwrap();
     write_rgba_dataset(dir.path(), 10);
-    let out = dir.path().join("fitted.ply");
+    // Outside the data folder, which is the input.
+    let outs = tempfile::tempdir().unwrap();
+    let out = outs.path().join("fitted.ply");
     let o = vcedit(&[
         "--data",
         dir.path().to_str().unwrap(),
@@ -152,6 +154,8 @@ fn resolution_downscales_like_the_inria_trainer() {
             out.to_str().unwrap(),
             "--steps",
             "2",
+            // Each run replaces the last one's scene.
+            "--force",
         ];
         args.extend_from_slice(extra);
         let o = vcedit(&args);

@@ -279,7 +279,7 @@ impl ClipTokenizer {
             Vec::new(),
             config,
             None,
-            merges_path,
+            (vocab_path, merges_path),
             TokenizerSource::VocabAndMerges,
         )
     }
@@ -333,7 +333,7 @@ impl ClipTokenizer {
             added,
             config,
             parsed.model.unk_token,
-            path,
+            (path, path),
             TokenizerSource::TokenizerJson,
         )
     }
@@ -344,20 +344,25 @@ impl ClipTokenizer {
         mut added: Vec<AddedToken>,
         config: &TokenizerConfig,
         model_unk: Option<String>,
-        path: &Path,
+        (vocab_path, merges_path): (&Path, &Path),
         source: TokenizerSource,
     ) -> Result<Self, TokenizerError> {
-        let format_err = |message: String| TokenizerError::Format {
-            path: path.to_path_buf(),
+        // Each problem is named in the file it comes from (one file for tokenizer.json).
+        let vocab_err = |message: String| TokenizerError::Format {
+            path: vocab_path.to_path_buf(),
+            message,
+        };
+        let merges_err = |message: String| TokenizerError::Format {
+            path: merges_path.to_path_buf(),
             message,
         };
         // A BPE vocabulary without merges would split every word into single bytes: the file is empty
         // or truncated, and the model would see text it was never trained on.
         if vocab.is_empty() {
-            return Err(format_err("the vocabulary is empty".into()));
+            return Err(vocab_err("the vocabulary is empty".into()));
         }
         if merge_list.is_empty() {
-            return Err(format_err(
+            return Err(merges_err(
                 "there are no BPE merges (empty or truncated merges list)".into(),
             ));
         }
@@ -416,7 +421,7 @@ impl ClipTokenizer {
         let size = vocab.values().copied().max().map_or(0, |m| m as usize + 1);
         // Ids index a table; a vocabulary with huge gaps is malformed (and would exhaust memory).
         if size > 2 * vocab.len() + 1024 {
-            return Err(format_err(format!(
+            return Err(vocab_err(format!(
                 "token ids go up to {} for {} tokens; the vocabulary is malformed",
                 size - 1,
                 vocab.len()
@@ -433,7 +438,7 @@ impl ClipTokenizer {
         for (rank, (a, b)) in merge_list.iter().enumerate() {
             let lookup = |s: &str| {
                 vocab.get(s).copied().ok_or_else(|| {
-                    format_err(format!(
+                    merges_err(format!(
                         "merge \"{a} {b}\" uses {s:?}, which is not in the vocabulary"
                     ))
                 })
@@ -449,7 +454,7 @@ impl ClipTokenizer {
                 .iter()
                 .find(|a| a.content == name)
                 .map(|a| a.id)
-                .ok_or_else(|| format_err(format!("special token {name:?} has no id")))
+                .ok_or_else(|| vocab_err(format!("special token {name:?} has no id")))
         };
         let bos_id = id_of(&bos)?;
         let eos_id = id_of(&eos)?;
@@ -828,7 +833,7 @@ mod tests {
             Vec::new(),
             &TokenizerConfig::default(),
             None,
-            Path::new("test"),
+            (Path::new("test"), Path::new("test")),
             TokenizerSource::VocabAndMerges,
         )
         .unwrap()
@@ -926,5 +931,26 @@ mod tests {
         let ids = t.tokenize("cat<|endoftext|>cat");
         let cat = t.token_to_id("cat</w>").unwrap();
         assert_eq!(ids, vec![cat, t.eos_id(), cat]);
+    }
+
+    /// A problem of vocab.json is named in vocab.json, one of merges.txt in merges.txt (issue 69: a bad
+    /// vocabulary was reported as merges.txt).
+    #[test]
+    fn errors_name_the_file_at_fault() {
+        let dir = tempfile::tempdir().unwrap();
+        let (vocab, merges) = (dir.path().join("vocab.json"), dir.path().join("merges.txt"));
+        std::fs::write(&merges, "#version: 0.2\na b\n").unwrap();
+        // Ids with a gap far beyond the tokens' count.
+        std::fs::write(&vocab, r#"{"a": 0, "b": 1, "ab": 999999}"#).unwrap();
+        let e = ClipTokenizer::from_vocab_merges(&vocab, &merges)
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("vocab.json") && !e.contains("merges.txt"), "{e}");
+        // A merge whose pieces the vocabulary lacks is the merges' problem.
+        std::fs::write(&vocab, r#"{"a": 0, "b": 1}"#).unwrap();
+        let e = ClipTokenizer::from_vocab_merges(&vocab, &merges)
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("merges.txt"), "{e}");
     }
 }

@@ -348,6 +348,39 @@ pub fn run_file_and_assert(
     });
 }
 
+/// The shortest sparse file [`run_sparse_file_and_assert`] makes: 8 times the memory available (2^40
+/// bytes when unknown), so what its header claims cannot fit in memory whatever the bytes per item.
+pub fn sparse_floor() -> u64 {
+    crate::available_memory().map_or(1 << 40, |m| m.saturating_mul(8))
+}
+
+/// Like [`run_file_and_assert`], for the sparse-file case: after each input is written, the file is
+/// extended with a hole to the length `claimed` computes from the input (what its header says the data
+/// takes), when that is longer. Such a file passes every check of counts against the file's size while
+/// holding almost nothing, so a reader must bound what it allocates by the memory available, not by the
+/// file's size. Only claims of at least [`sparse_floor`] get the hole (smaller ones would be read for
+/// real); lengths are capped at 2^44 bytes; a file system that cannot hold one skips the hole.
+pub fn run_sparse_file_and_assert(
+    name: &str,
+    file_name: &str,
+    seeds: &[Vec<u8>],
+    crash_dir: &Path,
+    claimed: impl Fn(&[u8]) -> Option<u64>,
+    mut check: impl FnMut(&Path),
+) {
+    let scratch = Scratch::new(name);
+    let path = scratch.0.join(file_name);
+    run_and_assert(name, seeds, crash_dir, |input| {
+        std::fs::write(&path, input).expect("scratch file");
+        let floor = sparse_floor();
+        if let Some(len) = claimed(input).filter(|&l| l > input.len() as u64 && l >= floor) {
+            let file = std::fs::OpenOptions::new().write(true).open(&path);
+            let _ = file.and_then(|f| f.set_len(len.min(1 << 44)));
+        }
+        check(&path);
+    });
+}
+
 /// Fuzzes a reader of several files in one folder (a COLMAP model, a tokenizer folder): each input
 /// replaces one of the files `names` of `valid_dir` (its first byte picks which) while the others stay
 /// valid; `check` reads the folder. Seeded from the valid files.

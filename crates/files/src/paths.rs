@@ -1,4 +1,5 @@
-//! No output over an input: paths are compared as the files they name, not as strings.
+//! No output over an input, nor inside an input folder: paths are compared as the files and folders
+//! they name, not as strings.
 
 use std::path::{Path, PathBuf};
 
@@ -6,6 +7,8 @@ use std::path::{Path, PathBuf};
 pub enum PathError {
     #[error("{}: this output is also an input ({}); write it somewhere else", output.display(), input.display())]
     OverwritesInput { output: PathBuf, input: PathBuf },
+    #[error("{}: this output lies inside the input folder {}; write it somewhere else", output.display(), input.display())]
+    InsideInput { output: PathBuf, input: PathBuf },
 }
 
 /// The identity of an existing file: its canonical path and, on Unix, its device and inode (which also
@@ -51,26 +54,73 @@ pub fn same_file(a: &Path, b: &Path) -> bool {
     }
 }
 
-/// Refuses when writing any of `outputs` would replace one of `inputs`. Outputs that do not exist yet
-/// cannot be inputs; an output that is a symbolic link to an input is refused too (replacing the link
-/// would be harmless, but a user who pointed it there meant the input).
+/// Refuses when writing any of `outputs` would replace one of `inputs` or put a file inside an input
+/// that is a folder (a dataset, a trainer's output, a SOG folder: everything in it belongs to the input,
+/// at any depth, whether it exists yet or not). Outputs that do not exist yet cannot be inputs; an output
+/// that is a symbolic link to an input (or into an input folder) is refused too (replacing the link would
+/// be harmless, but a user who pointed it there meant the input).
 pub fn check_not_inputs(outputs: &[&Path], inputs: &[&Path]) -> Result<(), PathError> {
-    let inputs: Vec<(&Path, FileId)> = inputs
+    let files: Vec<(&Path, FileId)> = inputs
         .iter()
         .filter_map(|p| FileId::of(p).map(|id| (*p, id)))
         .collect();
+    let folders: Vec<(&Path, PathBuf)> = inputs
+        .iter()
+        .filter(|p| p.is_dir())
+        .filter_map(|p| std::fs::canonicalize(p).ok().map(|c| (*p, c)))
+        .collect();
     for out in outputs {
-        let Some(out_id) = FileId::of(out) else {
-            continue;
-        };
-        if let Some((input, _)) = inputs.iter().find(|(_, id)| id.same(&out_id)) {
-            return Err(PathError::OverwritesInput {
-                output: out.to_path_buf(),
-                input: input.to_path_buf(),
-            });
+        if let Some(out_id) = FileId::of(out) {
+            if let Some((input, _)) = files.iter().find(|(_, id)| id.same(&out_id)) {
+                return Err(PathError::OverwritesInput {
+                    output: out.to_path_buf(),
+                    input: input.to_path_buf(),
+                });
+            }
+        }
+        let places = [location(out), std::fs::canonicalize(out).ok()];
+        for place in places.iter().flatten() {
+            if let Some((input, _)) = folders.iter().find(|(_, f)| place.starts_with(f)) {
+                return Err(PathError::InsideInput {
+                    output: out.to_path_buf(),
+                    input: input.to_path_buf(),
+                });
+            }
         }
     }
     Ok(())
+}
+
+/// Where `path` is (or would be created): its folder resolved through links (the nearest existing
+/// ancestor, then the missing components as written), joined with its name. `None` when no ancestor
+/// resolves.
+pub(crate) fn location(path: &Path) -> Option<PathBuf> {
+    let absolute = if path.is_absolute() {
+        path.to_path_buf()
+    } else {
+        std::env::current_dir().ok()?.join(path)
+    };
+    let name = absolute.file_name()?.to_owned();
+    let mut base = absolute.parent()?.to_path_buf();
+    let mut missing = Vec::new();
+    let resolved = loop {
+        if let Ok(c) = std::fs::canonicalize(&base) {
+            break c;
+        }
+        missing.push(base.components().next_back()?.as_os_str().to_owned());
+        if !base.pop() {
+            return None;
+        }
+    };
+    let mut out = resolved;
+    for part in missing.into_iter().rev() {
+        if part == ".." {
+            out.pop();
+        } else if part != "." {
+            out.push(part);
+        }
+    }
+    Some(out.join(name))
 }
 
 #[cfg(test)]
@@ -120,5 +170,38 @@ mod tests {
             p.push("..");
         }
         p.join(a.strip_prefix("/").unwrap())
+    }
+
+    #[test]
+    fn nothing_goes_inside_an_input_folder() {
+        let dir = tempfile::tempdir().unwrap();
+        let garden = dir.path().join("garden");
+        let ply = garden.join("point_cloud/iteration_7000/point_cloud.ply");
+        std::fs::create_dir_all(ply.parent().unwrap()).unwrap();
+        std::fs::write(&ply, b"ply").unwrap();
+        let inputs: [&Path; 1] = [&garden];
+        for out in [
+            ply.clone(),
+            garden.join("new.json"),
+            garden.join("new/deeper/x.json"),
+            garden.join("point_cloud/../cameras.json"),
+            garden.join("new/../y.json"),
+        ] {
+            let err = check_not_inputs(&[&out], &inputs).unwrap_err().to_string();
+            assert!(err.contains("inside the input folder"), "{err}");
+        }
+        // Beside it is fine; so is a name that only starts like it.
+        assert!(check_not_inputs(&[&dir.path().join("garden.json")], &inputs).is_ok());
+        assert!(check_not_inputs(&[&dir.path().join("garden2/x.json")], &inputs).is_ok());
+        #[cfg(unix)]
+        {
+            // A linked folder leading into the input, and a link to a file in it.
+            std::os::unix::fs::symlink(&garden, dir.path().join("g")).unwrap();
+            let through = dir.path().join("g/stats.json");
+            assert!(check_not_inputs(&[&through], &inputs).is_err());
+            let link = dir.path().join("l.json");
+            std::os::unix::fs::symlink(&ply, &link).unwrap();
+            assert!(check_not_inputs(&[&link], &inputs).is_err());
+        }
     }
 }

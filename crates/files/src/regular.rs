@@ -46,9 +46,13 @@ pub fn open_regular(path: &Path) -> io::Result<File> {
     File::open(path)
 }
 
-/// Reads `path` whole when it is a regular file.
+/// Reads `path` whole when it is a regular file whose size fits in memory (a sparse file can claim
+/// terabytes without taking the space; reading it would fail to allocate and abort).
 pub fn read_regular(path: &Path) -> io::Result<Vec<u8>> {
     check_regular(path)?;
+    let len = std::fs::metadata(path)?.len();
+    crate::check_allocation(len, &format!("its {len} bytes"))
+        .map_err(|msg| io::Error::new(io::ErrorKind::OutOfMemory, msg))?;
     std::fs::read(path)
 }
 
@@ -80,5 +84,20 @@ mod tests {
                 assert!(e.contains("a named pipe"), "{e}");
             }
         }
+    }
+
+    #[test]
+    fn a_sparse_file_larger_than_memory_is_refused_before_reading() {
+        let Some(available) = crate::available_memory() else {
+            return;
+        };
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("sparse.bin");
+        let f = std::fs::File::create(&p).unwrap();
+        if f.set_len(available.saturating_mul(2).max(1 << 36)).is_err() {
+            return; // a file system without sparse files this large
+        }
+        let e = read_regular(&p).unwrap_err().to_string();
+        assert!(e.contains("memory available"), "{e}");
     }
 }

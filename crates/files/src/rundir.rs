@@ -110,7 +110,6 @@ impl RunDir {
         std::fs::create_dir_all(dir).map_err(io_err(dir))?;
         // Before anything is read or removed: another run may be writing here right now.
         let lock = FolderLock::acquire(dir)?;
-        crate::clean_stale_temps(dir).map_err(io_err(dir))?;
         let header = Header {
             command: command.to_string(),
             settings: settings.to_string(),
@@ -146,6 +145,8 @@ impl RunDir {
                 Previous::Nothing
             }
         };
+        // Only now that the folder is ours to write into (a refused folder is never touched).
+        crate::clean_stale_temps(dir).map_err(io_err(dir))?;
         if previous != Previous::SameRun {
             let line = serde_json::to_string(&header).expect("serialisable") + "\n";
             crate::atomic_write(&manifest, line.as_bytes()).map_err(io_err(&manifest))?;
@@ -253,7 +254,11 @@ pub(crate) fn before_write(path: &Path) -> std::io::Result<()> {
     let full = parent.join(name);
     let target = std::fs::canonicalize(&full).unwrap_or(full.clone());
     for (_, inputs) in open.iter() {
-        if inputs.contains(&target) {
+        // An input folder's content belongs to it, at any depth.
+        if inputs
+            .iter()
+            .any(|i| target == *i || (i.is_dir() && target.starts_with(i)))
+        {
             return Err(std::io::Error::other(format!(
                 "refusing to write over the input {}",
                 target.display()
@@ -424,13 +429,16 @@ mod tests {
         let dir = tmp.path().join("photos");
         std::fs::create_dir(&dir).unwrap();
         std::fs::write(dir.join("holiday.jpg"), b"jpg").unwrap();
+        // Named as a killed vcedit run's temporary file: a refused folder is not cleaned either.
+        let temp_like = dir.join(".thesis.tex.vcedit-tmp-4194305-Ab3dE5fG7hJ9");
+        std::fs::write(&temp_like, b"mine").unwrap();
         for mode in [RunDirMode::Keep, RunDirMode::Force] {
             let err = RunDir::open(&dir, "render", "x", mode, &[])
                 .unwrap_err()
                 .to_string();
             assert!(err.contains("not written by vcedit"), "{err}");
         }
-        assert!(dir.join("holiday.jpg").exists());
+        assert!(dir.join("holiday.jpg").exists() && temp_like.exists());
         let file = tmp.path().join("file.ply");
         std::fs::write(&file, b"ply").unwrap();
         let err = RunDir::open(&file, "render", "x", RunDirMode::Keep, &[])

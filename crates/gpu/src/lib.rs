@@ -501,13 +501,13 @@ fn configure_runtime(spirv: bool) -> bool {
     static ONCE: std::sync::Once = std::sync::Once::new();
     static PERSISTING: AtomicBool = AtomicBool::new(false);
     ONCE.call_once(|| {
-        let persist = spirv && persist_kernels();
+        let persist = spirv && tuning_persists();
         let mut config = CubeClRuntimeConfig::default().override_from_env();
         config.environment.path = CacheConfig::Directory(runtime_cache_dir());
         config.compilation.cache = persist;
         // Tuning results are kept per adapter and compiler (vcedit names them so), so they persist on
         // either compiler; `VCEDIT_GPU_CACHE=off` keeps them in memory only.
-        config.autotune.disable_cache = !persist_kernels();
+        config.autotune.disable_cache = !tuning_persists();
         // vcedit's only tuned op is the convolution path, two candidates, which cubecl's tuner never
         // eliminates (it keeps two survivors): by default each runs until its best time stops improving,
         // up to 10 samples after a warm-up. One sample each decides as well where it matters: where the
@@ -525,7 +525,33 @@ fn configure_runtime(spirv: bool) -> bool {
     PERSISTING.load(Ordering::Relaxed)
 }
 
-/// Whether compiled kernels persist between processes: unless `VCEDIT_GPU_CACHE` is `off`, `0` or
+/// Whether what cubecl compiles and tunes persists between processes: `VCEDIT_GPU_CACHE` allows it
+/// ([`persist_kernels`]) and the cache folder can be written (a read-only folder or a file in its place
+/// cannot keep anything; this says so once, on stderr). Where tuning results do not persist, timing
+/// would choose again in every process, and two paths of one operation differ in their last bits: the
+/// callers (the convolution path) then choose by a fixed rule, so the same seed gives the same bytes.
+pub fn tuning_persists() -> bool {
+    static PERSISTS: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
+    *PERSISTS.get_or_init(|| {
+        if !persist_kernels() {
+            return false;
+        }
+        let dir = runtime_cache_dir();
+        match std::fs::create_dir_all(&dir).and_then(|()| files::check_writable_folder(&dir)) {
+            Ok(()) => true,
+            Err(e) => {
+                eprintln!(
+                    "warning: the GPU cache folder {} cannot be written ({e}): compiled kernels and \
+                     tuning results are not kept, and convolutions take one fixed path",
+                    dir.display()
+                );
+                false
+            }
+        }
+    })
+}
+
+/// Whether compiled kernels may persist between processes: unless `VCEDIT_GPU_CACHE` is `off`, `0` or
 /// `false`.
 fn persist_kernels() -> bool {
     !matches!(
@@ -861,7 +887,7 @@ mod tests {
         // CUDA's compiled kernels live in a store of their own (per card architecture), so they persist.
         assert_eq!(
             persisting,
-            (ctx.on_spirv() || ctx.runtime == GpuRuntime::Cuda) && persist_kernels(),
+            (ctx.on_spirv() || ctx.runtime == GpuRuntime::Cuda) && tuning_persists(),
             "{}",
             ctx.describe()
         );

@@ -53,6 +53,89 @@ fn fuzz_ply() {
     });
 }
 
+/// The length a PLY header says its file has: the header plus every element's rows (binary: the
+/// property sizes; ASCII: two bytes a value, the least a value takes). `None` for lists or no header.
+fn ply_claimed_len(bytes: &[u8]) -> Option<u64> {
+    let end = bytes.windows(11).position(|w| w == b"end_header\n")? + 11;
+    let header = std::str::from_utf8(&bytes[..end]).ok()?;
+    let ascii = header.contains("format ascii");
+    let (mut total, mut count, mut row) = (0u64, 0u64, 0u64);
+    for line in header.lines() {
+        let words: Vec<&str> = line.split_whitespace().collect();
+        match words.as_slice() {
+            ["element", _, n] => {
+                total = total.checked_add(count.checked_mul(row)?)?;
+                (count, row) = (n.parse().ok()?, 0);
+            }
+            ["property", "list", ..] => return None,
+            ["property", ty, _] => {
+                row += match *ty {
+                    _ if ascii => 2,
+                    "char" | "uchar" | "int8" | "uint8" => 1,
+                    "short" | "ushort" | "int16" | "uint16" => 2,
+                    "double" | "float64" => 8,
+                    _ => 4,
+                }
+            }
+            _ => {}
+        }
+    }
+    total
+        .checked_add(count.checked_mul(row)?)?
+        .checked_add(end as u64)
+}
+
+/// PLY headers whose counts a sparse file's size matches but no memory holds (issue 69: `inspect`
+/// aborted on the allocation). Seeded with such counts; mutations vary them.
+#[test]
+fn fuzz_ply_sparse() {
+    let huge = |bytes: Vec<u8>, from: &str, to: &str| {
+        String::from_utf8_lossy(&bytes)
+            .replacen(from, to, 1)
+            .into_bytes()
+    };
+    // Past the sparse floor for 68-byte rows (SH degree 0) and for 8-byte ASCII rows.
+    let big = (files::fuzz::sparse_floor() / 40).to_string();
+    let big_ascii = (files::fuzz::sparse_floor() / 4).to_string();
+    let binary = encode_ply(&scene(0, 1)).unwrap();
+    let seeds = vec![
+        huge(binary.clone(), "element vertex 1\n", &format!("element vertex {big}\n")),
+        huge(binary, "element vertex 1\n", "element vertex 4294967295\n"),
+        huge(
+            encode_ply(&scene(3, 1)).unwrap(),
+            "element vertex 1\n",
+            &format!("element vertex {big}\n"),
+        ),
+        format!(
+            "ply\nformat ascii 1.0\nelement vertex {big_ascii}\nproperty float x\nproperty float y\n\
+             property float z\nproperty float opacity\nend_header\n0 0 0 1\n"
+        )
+        .into_bytes(),
+    ];
+    files::fuzz::run_sparse_file_and_assert(
+        "ply-sparse",
+        "scene.ply",
+        &seeds,
+        &crash_dir(),
+        ply_claimed_len,
+        |path| {
+            let _ = splat::read_scene(path);
+        },
+    );
+    // The compressed PLY has the same header; its reader reads the whole file.
+    let compressed = splat::formats::compressed_ply::encode(&scene(0, 300)).unwrap();
+    files::fuzz::run_sparse_file_and_assert(
+        "compressed-ply-sparse",
+        "scene.compressed.ply",
+        &[compressed],
+        &crash_dir(),
+        |b| ply_claimed_len(b).map(|l| l.max(files::fuzz::sparse_floor())),
+        |path| {
+            let _ = splat::read_scene(path);
+        },
+    );
+}
+
 /// Fuzzes a COLMAP model of files `names` written by `write`.
 fn fuzz_colmap(target: &str, names: &[&str], write: fn(&Path, &[camera_files::View])) {
     let valid = tempfile::tempdir().unwrap();

@@ -2,7 +2,7 @@
 
 use std::path::{Path, PathBuf};
 
-use anyhow::{bail, Context};
+use anyhow::Context;
 use diffusion::tokenizer::ClipTokenizer;
 use edit::sampler::{EditModel, EditPlan, EditPrompts, InfEditSettings};
 
@@ -85,7 +85,8 @@ pub fn check_words_in(
         // Punctuation alone ("," in "a, b") has tokens too; a word with none cannot mark anything.
         let found = !ids.is_empty() && prompt_ids.windows(ids.len()).any(|w| w == ids.as_slice());
         if !found {
-            bail!("{option}: '{word}' is not a word of the {which} prompt '{prompt}'");
+            // A value that does not fit another option's value: a usage error (exit code 2).
+            crate::usage!("{option}: '{word}' is not a word of the {which} prompt '{prompt}'");
         }
     }
     Ok(())
@@ -118,7 +119,7 @@ impl PromptArgs {
         )?;
         if let Some(word) = mask_word {
             if word.trim().is_empty() {
-                bail!(
+                crate::usage!(
                     "--mask-word is empty; give a word of the source prompt '{}'",
                     self.source
                 );

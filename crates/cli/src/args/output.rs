@@ -1,30 +1,37 @@
-//! Where commands write, under one policy (the mechanism is the `files` crate):
+//! Where commands write, under one policy (the mechanism is the `files` crate), checked before any work:
 //!
-//! - an output file is never one of the command's inputs, however the paths are spelt ([`output_file`]);
+//! - an output is never one of the command's inputs, nor inside an input folder (a dataset, a trainer's
+//!   output, a SOG folder, a model), however the paths are spelt ([`output_file`], [`OutputDir`]);
+//! - an output file that exists is refused unless `--force` ([`ForceArg`]): files and folders alike,
+//!   finished work is never replaced without a word;
+//! - the output's folder must accept a new file before the work starts (not after a long run);
 //! - an output folder holds the files of one run ([`OutputDir`]): a folder holding another run is refused
-//!   unless `--force` ([`ForceArg`]) clears what vcedit wrote there, and a run that fails before writing
-//!   anything leaves no folder behind;
-//! - temporary files of killed runs in every output folder are removed.
+//!   unless `--force` clears what vcedit wrote there, and a run that fails before writing anything leaves
+//!   no folder behind;
+//! - temporary files of killed vcedit runs are removed from a folder once it is accepted, never from a
+//!   refused one.
 
 use std::fmt::Debug;
-use std::path::{Path, PathBuf};
+use std::path::Path;
 
 use anyhow::{bail, Result};
 use files::{RunDir, RunDirMode};
 
-/// `--force` for commands that write into an output folder.
+/// `--force` for every command that writes outputs.
 #[derive(clap::Args, Debug, Clone)]
 pub struct ForceArg {
-    /// Replace the outputs of another vcedit run in --out: the files vcedit wrote there are removed
-    /// first (nothing else). Without it such a folder is refused, and a finished edit or demo with the
-    /// same settings is not done again.
+    /// Replace earlier outputs: an output file that exists, or the files another vcedit run wrote in an
+    /// output folder (nothing else there). Without it they are refused, and a finished edit or demo with
+    /// the same settings is not done again. Inputs are never replaced.
     #[arg(long)]
     pub force: bool,
 }
 
-/// Prepares the output file `out`: refuses it when it is one of `inputs` (also through `./`, `..`,
-/// symbolic and hard links), then removes temporary files that killed runs left in its folder.
-pub fn output_file(out: &Path, inputs: &[&Path]) -> Result<()> {
+/// Checks the output file `out` before any work: not one of `inputs` nor inside one of them that is a
+/// folder (also through `./`, `..`, symbolic and hard links); not a folder; not an existing file unless
+/// `force`; its folder writable (a missing folder can be made). Then removes temporary files that killed
+/// vcedit runs left in its folder.
+pub fn output_file(out: &Path, inputs: &[&Path], force: bool) -> Result<()> {
     files::check_not_inputs(&[out], inputs)?;
     if out.is_dir() {
         bail!("{}: is a folder; the output must be a file", out.display());
@@ -33,8 +40,48 @@ pub fn output_file(out: &Path, inputs: &[&Path]) -> Result<()> {
     if dir.exists() && !dir.is_dir() {
         bail!("{}: {} is not a folder", out.display(), dir.display());
     }
+    if !force && std::fs::symlink_metadata(out).is_ok() {
+        bail!(
+            "{}: exists; add --force to replace it, or choose another name",
+            out.display()
+        );
+    }
+    files::check_writable_folder(dir).map_err(|e| {
+        anyhow::anyhow!(
+            "{}: cannot write into {}: {e}",
+            out.display(),
+            dir.display()
+        )
+    })?;
     files::clean_stale_temps(dir).map_err(|e| anyhow::anyhow!("{}: {e}", dir.display()))?;
     Ok(())
+}
+
+/// [`output_file`] for a scene written by `splat::write_scene`: a SOG folder output (`DIR/meta.json`)
+/// is the whole folder, accepted only when new, empty, or a SOG scene (by content), and replaced only
+/// with `force` when it holds one.
+pub fn scene_output(out: &Path, inputs: &[&Path], force: bool) -> Result<()> {
+    if splat::OutputFormat::for_path(out) == Some(splat::OutputFormat::SogFolder) {
+        let dir = parent_of(out);
+        files::check_not_inputs(&[dir], inputs)?;
+        splat::formats::check_scene_output(out)?;
+        let holds_scene = std::fs::read_dir(dir).is_ok_and(|mut e| e.next().is_some());
+        if holds_scene && !force {
+            bail!(
+                "{}: holds a SOG scene; add --force to replace it, or choose another folder",
+                dir.display()
+            );
+        }
+        // The new folder is written beside the old one and swapped in.
+        let beside = std::fs::canonicalize(dir)
+            .ok()
+            .and_then(|d| d.parent().map(Path::to_path_buf));
+        if let Some(parent) = beside {
+            files::check_writable_folder(&parent)
+                .map_err(|e| anyhow::anyhow!("{}: cannot write beside it: {e}", dir.display()))?;
+        }
+    }
+    output_file(out, inputs, force)
 }
 
 /// Refuses `out` (the value of `option`) unless its name ends in one of `extensions` (any case).
@@ -57,29 +104,6 @@ pub fn require_extension(out: &Path, option: &str, extensions: &[&str], what: &s
     Ok(())
 }
 
-/// The files under `dir` (down to `depth` levels of folders), as inputs to protect; `dir` itself when
-/// it is a file. A folder a command reads (a dataset, a model) is protected file by file this way.
-pub fn files_under(dir: &Path, depth: usize) -> Vec<PathBuf> {
-    if !dir.is_dir() {
-        return vec![dir.to_path_buf()];
-    }
-    let mut out = Vec::new();
-    let Ok(entries) = std::fs::read_dir(dir) else {
-        return out;
-    };
-    for entry in entries.flatten() {
-        let p = entry.path();
-        if p.is_dir() {
-            if depth > 0 {
-                out.extend(files_under(&p, depth - 1));
-            }
-        } else {
-            out.push(p);
-        }
-    }
-    out
-}
-
 /// Makes sure files can be written into the folder `dir` (creating it if needed), so that a command with
 /// several outputs does not fail on the second after writing the first.
 pub fn probe_folder(dir: &Path) -> Result<()> {
@@ -88,10 +112,8 @@ pub fn probe_folder(dir: &Path) -> Result<()> {
     }
     std::fs::create_dir_all(dir)
         .map_err(|e| anyhow::anyhow!("{}: cannot create the folder: {e}", dir.display()))?;
-    let probe = dir.join(format!(".vcedit-probe-{}", std::process::id()));
-    std::fs::write(&probe, b"")
+    files::check_writable_folder(dir)
         .map_err(|e| anyhow::anyhow!("{}: cannot write into the folder: {e}", dir.display()))?;
-    let _ = std::fs::remove_file(&probe);
     files::clean_stale_temps(dir)?;
     Ok(())
 }
@@ -261,6 +283,8 @@ impl OutputDir {
         force: bool,
         inputs: &[&Path],
     ) -> Result<Self> {
+        // The folder itself must not lie inside an input folder (a dataset, a trainer's output).
+        files::check_not_inputs(&[dir], inputs)?;
         let created = !dir.exists();
         let mode = if force {
             RunDirMode::Force

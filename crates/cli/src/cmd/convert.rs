@@ -1,7 +1,9 @@
 //! `vcedit convert IN OUT`: a scene from any supported format to any other.
 
-use anyhow::{bail, Context, Result};
+use anyhow::{bail, Result};
 use std::path::{Path, PathBuf};
+
+use crate::args::output::scene_output;
 
 #[derive(clap::Args)]
 #[command(
@@ -13,6 +15,8 @@ pub struct Args {
     pub input: PathBuf,
     /// The file to write; its name chooses the format.
     pub output: PathBuf,
+    #[command(flatten)]
+    pub force: crate::args::output::ForceArg,
 }
 
 pub fn run(args: Args) -> Result<()> {
@@ -22,59 +26,18 @@ pub fn run(args: Args) -> Result<()> {
             args.output.display()
         );
     }
-    check_output(&args.input, &args.output)?;
-    let scene = splat::read_scene(&args.input)
-        .with_context(|| format!("cannot convert {}", args.input.display()))?;
-    let report = splat::write_scene(&args.output, &scene)
-        .with_context(|| format!("cannot convert {}", args.input.display()))?;
-    println!(
+    // The output policy: never the input or inside its folder, an existing output only with --force, a
+    // SOG folder only over a SOG scene (by content), the folder writable; all before reading.
+    let sources = splat::formats::scene_sources(&args.input);
+    let inputs: Vec<&Path> = sources.iter().map(PathBuf::as_path).collect();
+    scene_output(&args.output, &inputs, args.force.force)?;
+    // Both errors name their file already.
+    let scene = splat::read_scene(&args.input)?;
+    let report = splat::write_scene(&args.output, &scene)?;
+    crate::out!(
         "{} -> {}: {report}",
         args.input.display(),
         args.output.display()
     );
-    Ok(())
-}
-
-/// Refuses an output that would replace or mix with the input: the same file by any name (a symbolic or
-/// hard link included); a SOG folder written into the input's own folder (or the input folder itself);
-/// a SOG folder written into a folder that holds other files but no SOG scene (someone else's folder:
-/// its `means_l.webp` would be replaced silently).
-fn check_output(input: &Path, output: &Path) -> Result<()> {
-    if input == output || files::same_file(input, output) {
-        bail!(
-            "{}: the output is the input; write to another file",
-            output.display()
-        );
-    }
-    if splat::OutputFormat::for_path(output) != Some(splat::OutputFormat::SogFolder) {
-        return Ok(());
-    }
-    let folder = match output.parent() {
-        Some(p) if !p.as_os_str().is_empty() => p,
-        _ => Path::new("."),
-    };
-    let Ok(folder_real) = folder.canonicalize() else {
-        return Ok(()); // a new folder
-    };
-    if input
-        .canonicalize()
-        .is_ok_and(|input_real| input_real.starts_with(&folder_real))
-    {
-        bail!(
-            "{}: the SOG folder would be written where the input {} lives; write it to a new folder",
-            folder.display(),
-            input.display()
-        );
-    }
-    let holds_files = std::fs::read_dir(folder)
-        .with_context(|| format!("{}: cannot list the folder", folder.display()))?
-        .next()
-        .is_some();
-    if holds_files && !output.exists() {
-        bail!(
-            "{}: the folder holds other files and no SOG scene (meta.json); write the SOG folder to a new or empty folder",
-            folder.display()
-        );
-    }
     Ok(())
 }

@@ -12,9 +12,7 @@ use demo::run::{
 };
 
 use crate::args::memory::MemoryCheckArg;
-use crate::args::output::{
-    files_under, fingerprint, finished_run, say_finished, ForceArg, OutputDir,
-};
+use crate::args::output::{fingerprint, finished_run, say_finished, ForceArg, OutputDir};
 use crate::args::parse::{positive, whole};
 use crate::args::{DeviceArg, PrecisionArg};
 use crate::progress::Reporter;
@@ -86,7 +84,7 @@ pub struct Args {
 pub fn run(args: Args) -> anyhow::Result<()> {
     if args.list {
         for (i, (s, t, _)) in PAIRS.iter().enumerate() {
-            println!("{i}: \"{s}\" → \"{t}\"");
+            crate::out!("{i}: \"{s}\" → \"{t}\"");
         }
         return Ok(());
     }
@@ -128,8 +126,8 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         args.keep_shape,
         args.blend_level,
     ));
-    let model_files = files_under(&model_dir, 3);
-    let inputs: Vec<&std::path::Path> = model_files.iter().map(PathBuf::as_path).collect();
+    // The model folder is an input: nothing inside it is ever written.
+    let inputs = [model_dir.as_path()];
     // The same demo finished in --out: nothing to do.
     let finals: &[&str] = if args.compare {
         &["compare.md", "compare.json"]
@@ -142,9 +140,9 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     {
         say_finished(&args.out);
         if args.compare {
-            println!("table: {}", args.out.join("compare.md").display());
+            crate::out!("table: {}", args.out.join("compare.md").display());
         } else {
-            say_where(&args.out);
+            say_where(&args.out)?;
         }
         return Ok(());
     }
@@ -196,10 +194,10 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         let references = reference_rows(&opts, &model, &scene)?;
         let md = format!("{}\n{}", table(&scores), reference_table(&references));
         for s in &scores {
-            println!("{}", summary(s));
+            crate::out!("{}", summary(s));
         }
         files::atomic_write(&args.out.join("compare.md"), md.as_bytes())?;
-        println!("table: {}", args.out.join("compare.md").display());
+        crate::out!("table: {}", args.out.join("compare.md").display());
         files::atomic_write(
             &args.out.join("compare.json"),
             &serde_json::to_vec_pretty(&serde_json::json!({
@@ -207,7 +205,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
                 "references": references,
             }))?,
         )?;
-        println!("reports: {}", args.out.join("*/report.html").display());
+        crate::out!("reports: {}", args.out.join("*/report.html").display());
         out_dir.finish();
     } else {
         let s = run_variant(
@@ -220,8 +218,8 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         )?;
         progress.finish();
         super::edit::warn_if_unchanged(s.changed_fraction, "the renders inside the editable mask");
-        print!("{}", summary(&s));
-        say_where(&args.out);
+        crate::stdout::write(&summary(&s))?;
+        say_where(&args.out)?;
         out_dir.finish();
     }
     Ok(())
@@ -229,14 +227,15 @@ pub fn run(args: Args) -> anyhow::Result<()> {
 
 /// Where a demo's results are, and how to look at the scenes (the command relative to the current
 /// folder where it can be, so that it fits a line).
-fn say_where(out: &Path) {
-    println!("edited scene: {}", out.join("edited.ply").display());
-    println!("report: {}", out.join("report.html").display());
+fn say_where(out: &Path) -> anyhow::Result<()> {
+    crate::out!("edited scene: {}", out.join("edited.ply").display());
+    crate::out!("report: {}", out.join("report.html").display());
     let cwd = std::env::current_dir().unwrap_or_default();
     let short = out.strip_prefix(&cwd).unwrap_or(out);
-    println!(
+    crate::out!(
         "compare in 3D: vcedit view {} {}",
         short.join(SOURCE_SCENE).display(),
         short.join("edited.ply").display()
     );
+    Ok(())
 }

@@ -8,7 +8,7 @@ use demo::sample::{generate, SampleSettings};
 use demo::train::{train, Event, TrainConfig, TrainOptions};
 use edit::sampler::EditModel;
 
-use crate::args::output::{files_under, output_file, require_extension};
+use crate::args::output::{output_file, require_extension};
 use crate::args::parse::{finite, positive, whole};
 use crate::progress::Reporter;
 
@@ -113,6 +113,8 @@ pub struct SampleArgs {
     /// Output PNG (the prompts go to the same path with extension .txt).
     #[arg(long, value_name = "FILE")]
     pub out: PathBuf,
+    #[command(flatten)]
+    pub force: crate::args::output::ForceArg,
 }
 
 pub fn run(args: Args) -> anyhow::Result<()> {
@@ -192,7 +194,7 @@ fn run_train(args: TrainArgs) -> anyhow::Result<()> {
         })
         .collect::<Vec<_>>()
         .join(" ");
-    println!("{command}");
+    crate::out!("{command}");
     // Threading: candle's own CPU thread pool spin-waits at a barrier after every op; on a busy 2-core
     // machine that made training steps 2-3x slower, so candle runs its elementwise ops on the calling
     // thread while rayon (the fused kernels, GEMMs) uses every core. Both read these variables when
@@ -227,7 +229,7 @@ fn run_train(args: TrainArgs) -> anyhow::Result<()> {
     .with_context(|| format!("training into {}", args.out.display()))?;
     progress.finish();
     let s = &summary.state;
-    println!(
+    crate::out!(
         "done in {:.1} min: codec {} steps, unet {} steps, scaling_factor {:.5}, weights {:.1} MB -> {}",
         started.elapsed().as_secs_f64() / 60.0,
         s.codec_step,
@@ -253,10 +255,9 @@ fn run_sample(args: SampleArgs) -> anyhow::Result<()> {
     // The grid and its prompts file, neither over a file of the model.
     require_extension(&args.out, "--out", &["png"], "the grid")?;
     let txt = args.out.with_extension("txt");
-    let model_files = files_under(&args.model, 3);
-    let inputs: Vec<&std::path::Path> = model_files.iter().map(PathBuf::as_path).collect();
-    output_file(&args.out, &inputs)?;
-    output_file(&txt, &inputs)?;
+    let inputs = [args.model.as_path()];
+    output_file(&args.out, &inputs, args.force.force)?;
+    output_file(&txt, &inputs, args.force.force)?;
     let model = EditModel::load(&args.model, None)
         .with_context(|| format!("loading model {}", args.model.display()))?;
     let t0 = Instant::now();
@@ -292,7 +293,7 @@ fn run_sample(args: SampleArgs) -> anyhow::Result<()> {
     text.push('\n');
     files::atomic_write(&txt, text.as_bytes())
         .with_context(|| format!("writing {}", txt.display()))?;
-    println!(
+    crate::out!(
         "{} images in {:.1} s -> {}",
         tiles.len(),
         t0.elapsed().as_secs_f64(),

@@ -14,7 +14,7 @@ use edit::sampler::EditModel;
 use crate::args::editing::{ModelArgs, PromptArgs, SamplerArgs};
 use crate::args::memory::MemoryCheckArg;
 use crate::args::output::{
-    files_under, fingerprint, finished_run, open_with_settings, say_finished, ForceArg,
+    fingerprint, finished_run, open_with_settings, say_finished, ForceArg,
 };
 use crate::args::parse::{finite, positive, whole};
 use crate::args::{BackgroundArg, CameraArgs, DeviceArg, PrecisionArg, DEFAULT_ORBIT_VIEWS};
@@ -273,8 +273,14 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         &args.model,
         &args.lpips,
     ));
-    let mut inputs = files_under(&args.scene, 2);
-    inputs.extend(args.views.cameras.iter().flat_map(|c| files_under(c, 2)));
+    let mut inputs = splat::formats::scene_sources(&args.scene);
+    inputs.extend(
+        args.views
+            .cameras
+            .iter()
+            .flat_map(|c| splat::cameras::camera_sources(c)),
+    );
+    inputs.push(args.model.model.clone());
     let input_refs: Vec<&Path> = inputs.iter().map(PathBuf::as_path).collect();
     let settings = settings_record(&job, &args)?;
     // The same run finished in --out: nothing to do (two days of work are not redone by accident).
@@ -290,8 +296,8 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         )?
     {
         say_finished(&args.out);
-        println!("edited scene: {}", args.out.join("edited.ply").display());
-        println!("report: {}", args.out.join("report.html").display());
+        crate::out!("edited scene: {}", args.out.join("edited.ply").display());
+        crate::out!("report: {}", args.out.join("report.html").display());
         return Ok(());
     }
 
@@ -391,9 +397,9 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         "the renders"
     };
     warn_if_unchanged(written.metrics.changed_fraction, region);
-    println!("edited scene: {}", written.scene.display());
-    println!("report: {}", written.report.display());
-    println!("done in {:.1} min", t0.elapsed().as_secs_f64() / 60.0);
+    crate::out!("edited scene: {}", written.scene.display());
+    crate::out!("report: {}", written.report.display());
+    crate::out!("done in {:.1} min", t0.elapsed().as_secs_f64() / 60.0);
     Ok(())
 }
 

@@ -12,7 +12,7 @@ use splat::Image;
 
 use crate::args::editing::{ModelArgs, PromptArgs, SamplerArgs};
 use crate::args::memory::MemoryCheckArg;
-use crate::args::output::{output_file, probe_folder, require_extension};
+use crate::args::output::{output_file, probe_folder, require_extension, ForceArg};
 use crate::args::{DeviceArg, PrecisionArg};
 use crate::progress::Reporter;
 
@@ -44,6 +44,8 @@ pub struct Args {
     /// Output PNG.
     #[arg(long, value_name = "FILE")]
     pub out: PathBuf,
+    #[command(flatten)]
+    pub force: ForceArg,
     /// Also write one attention heat map per target word and the local-blend mask into this folder.
     #[arg(long, value_name = "DIR")]
     pub save_attention: Option<PathBuf>,
@@ -62,8 +64,12 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     let (w, h) = args.sampler.size();
     // Every argument is checked before any work, and both outputs before the first is written.
     require_extension(&args.out, "--out", &["png"], "the edited image")?;
-    output_file(&args.out, &[&args.image])?;
+    // The model folders are inputs too: nothing is written inside them.
+    let mut inputs = vec![args.image.as_path(), args.model.model.as_path()];
+    inputs.extend(args.model.taesd.as_deref());
+    output_file(&args.out, &inputs, args.force.force)?;
     if let Some(dir) = &args.save_attention {
+        files::check_not_inputs(&[dir.as_path()], &inputs).context("--save-attention")?;
         probe_folder(dir).context("--save-attention")?;
     }
     let input = Image::load(&args.image)?;
@@ -151,14 +157,14 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         if let Some(mask) = &region {
             viz::mask_image(mask, w, h).save_png(&dir.join("mask.png"))?;
         }
-        println!(
+        crate::out!(
             "attention maps: {} words and the blend mask in {}",
             maps.len(),
             dir.display()
         );
     }
     let steps = plan.timesteps.len();
-    println!(
+    crate::out!(
         "wrote {} ({}x{}, {} steps, {:.2} s/step; model load {:.1} s)",
         args.out.display(),
         w,

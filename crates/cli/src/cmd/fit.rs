@@ -7,7 +7,7 @@ use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use crate::args::memory::MemoryCheckArg;
-use crate::args::output::{files_under, output_file};
+use crate::args::output::{scene_output, ForceArg};
 use crate::args::parse::{positive, whole};
 use crate::args::{BackgroundArg, DeviceArg, SizeArg};
 use crate::progress::Reporter;
@@ -33,6 +33,8 @@ pub struct Args {
     /// *.compressed.ply, *.splat, *.spz, *.sog, DIR/meta.json).
     #[arg(long, value_name = "FILE")]
     pub out: PathBuf,
+    #[command(flatten)]
+    pub force: ForceArg,
     /// Optimisation steps (one view per step; the INRIA trainer's --iterations). The default fits
     /// NeRF-synthetic scenes at 200x200 to ~31-32 dB in under 10 minutes on 2 cores.
     #[arg(
@@ -197,10 +199,10 @@ pub fn run(mut args: Args) -> Result<()> {
         );
     }
     let set = load_cameras(&args.data).context("cannot load the training data")?;
-    let mut inputs: Vec<PathBuf> = files_under(&args.data, 2);
+    let mut inputs: Vec<PathBuf> = splat::cameras::camera_sources(&args.data);
     inputs.extend(set.image_paths.iter().flatten().cloned());
     let input_refs: Vec<&Path> = inputs.iter().map(PathBuf::as_path).collect();
-    output_file(&args.out, &input_refs)?;
+    scene_output(&args.out, &input_refs, args.force.force)?;
     let size = match args.resolution {
         Some(r) => Some(inria_resolution(&set, r)?),
         None => args.size.size,
@@ -281,8 +283,8 @@ pub fn run(mut args: Args) -> Result<()> {
             args.out.display()
         );
     }
-    let report = splat::write_scene(&args.out, &result.scene)
-        .with_context(|| format!("cannot write {}", args.out.display()))?;
+    // The error names the file already.
+    let report = splat::write_scene(&args.out, &result.scene)?;
     if !report.is_lossless() {
         eprintln!("wrote {}: {report}", args.out.display());
     }
@@ -306,14 +308,14 @@ pub fn run(mut args: Args) -> Result<()> {
         }
     );
     match result.test_psnr {
-        Some(p) => println!(
+        Some(p) => crate::out!(
             "held-out PSNR {p:.2} dB over {} views (train {:.2} dB), {} Gaussians -> {}",
             dataset.test.len(),
             result.train_psnr,
             result.scene.len(),
             args.out.display()
         ),
-        None => println!(
+        None => crate::out!(
             "train PSNR {:.2} dB, {} Gaussians -> {}",
             result.train_psnr,
             result.scene.len(),

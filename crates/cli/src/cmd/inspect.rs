@@ -22,6 +22,8 @@ pub struct Args {
     /// `--json FILE` (a name ending in .json) writes them to FILE and prints the text, as in `metrics`.
     #[arg(long, value_name = "FILE", num_args = 0..=1, default_missing_value = "-")]
     pub json: Option<PathBuf>,
+    #[command(flatten)]
+    pub force: crate::args::output::ForceArg,
 }
 
 #[derive(Serialize)]
@@ -90,40 +92,45 @@ fn vec3(v: [f32; 3]) -> String {
     format!("({:.4}, {:.4}, {:.4})", v[0], v[1], v[2])
 }
 
-fn print_text(s: &Stats) {
-    println!("scene        {}", s.path.display());
-    println!(
+fn print_text(s: &Stats) -> Result<()> {
+    crate::out!("scene        {}", s.path.display());
+    crate::out!(
         "gaussians    {}  (SH degree {}, {} coefficients per colour channel)",
         s.count,
         s.sh_degree,
         splat::scene::sh_coeffs(s.sh_degree)
     );
     if let (Some((lo, hi)), Some((rlo, rhi))) = (s.bounds, s.bounds_1_99) {
-        println!("bounds       min {}  max {}", vec3(lo), vec3(hi));
-        println!("  1-99%      min {}  max {}", vec3(rlo), vec3(rhi));
+        crate::out!("bounds       min {}  max {}", vec3(lo), vec3(hi));
+        crate::out!("  1-99%      min {}  max {}", vec3(rlo), vec3(rhi));
     }
-    let line = |label: &str, note: &str, m: &Summary| {
-        println!(
+    let line = |label: &str, note: &str, m: &Summary| -> Result<()> {
+        crate::out!(
             "{label:<12} min {:.4}  median {:.4}  mean {:.4}  max {:.4}   ({note})",
-            m.min, m.median, m.mean, m.max
+            m.min,
+            m.median,
+            m.mean,
+            m.max
         );
         let pct: Vec<String> = m
             .percentiles
             .iter()
             .map(|(p, v)| format!("p{p}: {v:.4}"))
             .collect();
-        println!("             {}", pct.join("  "));
+        crate::out!("             {}", pct.join("  "));
+        Ok(())
     };
     if let Some(m) = &s.opacity {
-        line("opacity", "sigmoid of the stored logit", m);
+        line("opacity", "sigmoid of the stored logit", m)?;
     }
     if let Some(m) = &s.max_scale {
-        line("scale", "exp of the largest stored log-scale", m);
+        line("scale", "exp of the largest stored log-scale", m)?;
     }
     match s.cameras {
-        Some(n) => println!("cameras      {n} (cameras.json)"),
-        None => println!("cameras      none (a bare .ply; renders will use generated orbits)"),
+        Some(n) => crate::out!("cameras      {n} (cameras.json)"),
+        None => crate::out!("cameras      none (a bare .ply; renders will use generated orbits)"),
     }
+    Ok(())
 }
 
 /// The scene and where the JSON goes. `--json FILE` takes a value, so `inspect --json scene.ply` (the
@@ -152,19 +159,21 @@ pub fn run(args: Args) -> Result<()> {
     let (scene_path, json) = scene_and_json(&args)?;
     let json_file = json.as_ref().filter(|p| p.as_os_str() != "-");
     if let Some(path) = json_file {
-        crate::args::output::output_file(path, &[scene_path.as_path()])?;
+        let sources = splat::formats::scene_sources(&scene_path);
+        let inputs: Vec<&std::path::Path> = sources.iter().map(PathBuf::as_path).collect();
+        crate::args::output::output_file(path, &inputs, args.force.force)?;
     }
     let (scene, cameras) = splat::open_scene(&scene_path)?;
     let s = stats(scene_path.clone(), &scene, cameras.map(|c| c.cameras.len()));
     match (&json, json_file) {
-        (Some(_), None) => println!("{}", serde_json::to_string_pretty(&s)?),
+        (Some(_), None) => crate::out!("{}", serde_json::to_string_pretty(&s)?),
         (_, Some(path)) => {
-            print_text(&s);
+            print_text(&s)?;
             files::atomic_write(path, serde_json::to_string_pretty(&s)?.as_bytes())
                 .with_context(|| format!("writing {}", path.display()))?;
             eprintln!("wrote {}", path.display());
         }
-        (None, _) => print_text(&s),
+        (None, _) => print_text(&s)?,
     }
     Ok(())
 }

@@ -88,6 +88,8 @@ pub struct Args {
     /// `--json FILE` writes them to FILE as well as printing the text.
     #[arg(long, value_name = "FILE", num_args = 0..=1, default_missing_value = JSON_TO_STDOUT)]
     pub json: Option<PathBuf>,
+    #[command(flatten)]
+    pub force: crate::args::output::ForceArg,
 }
 
 /// What `--json` writes.
@@ -182,12 +184,17 @@ pub fn run(args: Args) -> Result<()> {
         .as_ref()
         .filter(|p| p.as_os_str() != JSON_TO_STDOUT);
     if let Some(path) = json_file {
-        let inputs: Vec<&std::path::Path> = [&args.source, &args.edited]
-            .into_iter()
-            .chain(args.views.cameras.as_ref())
-            .map(PathBuf::as_path)
-            .collect();
-        output_file(path, &inputs)?;
+        let mut sources = splat::formats::scene_sources(&args.source);
+        sources.extend(splat::formats::scene_sources(&args.edited));
+        sources.extend(
+            args.views
+                .cameras
+                .iter()
+                .flat_map(|c| splat::cameras::camera_sources(c)),
+        );
+        sources.extend(args.clip.iter().cloned());
+        let inputs: Vec<&std::path::Path> = sources.iter().map(PathBuf::as_path).collect();
+        output_file(path, &inputs, args.force.force)?;
     }
     // Load CLIP first: a wrong folder should fail before minutes of rendering.
     let clip = match &args.clip {
@@ -302,7 +309,7 @@ pub fn run(args: Args) -> Result<()> {
     let json_on_stdout = args.json.is_some() && json_file.is_none();
     macro_rules! say {
         ($($t:tt)*) => {
-            if json_on_stdout { eprintln!($($t)*) } else { println!($($t)*) }
+            if json_on_stdout { eprintln!($($t)*) } else { crate::out!($($t)*) }
         };
     }
     say!("source   {}", args.source.display());
@@ -350,7 +357,7 @@ pub fn run(args: Args) -> Result<()> {
                     .with_context(|| format!("writing {}", path.display()))?;
                 eprintln!("wrote {}", path.display());
             }
-            None => println!("{text}"),
+            None => crate::out!("{text}"),
         }
     }
     Ok(())

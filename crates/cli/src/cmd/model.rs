@@ -49,6 +49,6 @@ fn check(args: CheckArgs) -> Result<()> {
     // The library error already names the folder and lists every problem on one line.
     let dir = crate::args::editing::model_folder(&args.dir)?;
     let report = check_model(&dir, depth)?;
-    println!("{report}");
+    crate::out!("{report}");
     Ok(())
 }

@@ -137,9 +137,14 @@ pub fn run(args: Args) -> Result<()> {
         args.alpha,
         &args.background,
     ));
-    let inputs: Vec<&Path> = std::iter::once(args.scene.as_path())
-        .chain(args.views.cameras.as_deref())
-        .collect();
+    let mut sources = splat::formats::scene_sources(&args.scene);
+    sources.extend(
+        args.views
+            .cameras
+            .iter()
+            .flat_map(|c| splat::cameras::camera_sources(c)),
+    );
+    let inputs: Vec<&Path> = sources.iter().map(PathBuf::as_path).collect();
     let out_dir = OutputDir::open(
         &args.out,
         "render",

@@ -6,7 +6,7 @@ use edit::present::viewer::{
 };
 use std::path::{Path, PathBuf};
 
-use crate::args::output::{files_under, output_file};
+use crate::args::output::{output_file, ForceArg};
 
 #[derive(clap::Args, Debug)]
 #[command(
@@ -32,6 +32,8 @@ pub struct Args {
     /// The page to write. Default: <name of SCENE>-view.html in the current folder.
     #[arg(long, value_name = "FILE.html")]
     pub out: Option<PathBuf>,
+    #[command(flatten)]
+    pub force: ForceArg,
     /// Most Gaussians embedded per scene (the most visible are kept).
     #[arg(long, value_name = "N", default_value_t = DEFAULT_CAP, value_parser = parse_cap)]
     pub cap: usize,
@@ -67,9 +69,12 @@ pub fn run(args: Args) -> Result<()> {
     if paths.iter().any(|p| files::same_file(p, &out)) {
         bail!("--out {} is one of the scenes", out.display());
     }
-    let inputs: Vec<PathBuf> = paths.iter().flat_map(|p| files_under(p, 3)).collect();
+    let inputs: Vec<PathBuf> = paths
+        .iter()
+        .flat_map(|p| splat::formats::scene_sources(p))
+        .collect();
     let input_refs: Vec<&Path> = inputs.iter().map(PathBuf::as_path).collect();
-    output_file(&out, &input_refs)?;
+    output_file(&out, &input_refs, args.force.force)?;
 
     let mut scenes = Vec::new();
     let mut cameras = None;
@@ -108,13 +113,13 @@ pub fn run(args: Args) -> Result<()> {
             0 => String::new(),
             d => format!(" with SH degree {d}"),
         };
-        println!(
+        crate::out!(
             "{name}: {} Gaussians, {} embedded{shading} (~{:.1} MB)",
             scene.len(),
             e.count,
             e.page_bytes() as f64 / 1e6
         );
     }
-    println!("{}", out.display());
+    crate::out!("{}", out.display());
     Ok(())
 }

@@ -39,6 +39,11 @@ pub(super) struct Checkpoint {
     pub shape: Vec<ShapeDecision>,
     /// Per-word attention images of iteration 0: (word, file under `attention/`).
     pub attention: Vec<(String, String)>,
+    /// (file name, checksum) of the iteration's scene and trainer state, checked before resuming: a
+    /// damaged file is named instead of failing later on what it decoded to. Empty in checkpoints of
+    /// earlier versions (nothing to check).
+    #[serde(default)]
+    pub checksums: Vec<(String, String)>,
 }
 
 /// Everything a trainer is rebuilt with besides its saved state.
@@ -69,6 +74,7 @@ impl Checkpoint {
             guidance_consistency: vec![],
             shape: vec![],
             attention: vec![],
+            checksums: vec![],
         }
     }
 
@@ -95,8 +101,27 @@ impl Checkpoint {
         }
         let k = meta.iterations_done;
         let dir = checkpoint_dir(out);
+        for (name, want) in &meta.checksums {
+            let file = dir.join(name);
+            let got = checksum(&file).map_err(|e| io_err(&file, e))?;
+            if got != *want {
+                return Err(RunError::Input(format!(
+                    "{}: the checkpoint is damaged (the file does not match its checksum in checkpoint.json); \
+                     it cannot be resumed: run again without --resume, with --force",
+                    file.display()
+                )));
+            }
+        }
         let scene_path = dir.join(format!("scene_{k}.ply"));
-        let saved = splat::ply::read_ply(&scene_path).map_err(|e| io_err(&scene_path, e))?;
+        // Read errors name the file themselves; values are checked as any scene's.
+        let saved = splat::ply::read_ply(&scene_path)
+            .map_err(|e| RunError::Input(format!("cannot resume: {e}")))?;
+        saved.check_values().map_err(|msg| {
+            RunError::Input(format!(
+                "{}: cannot resume: the checkpoint's scene decodes to unusable values: {msg}",
+                scene_path.display()
+            ))
+        })?;
         let trainer = EditTrainer::load(
             &dir.join(format!("trainer_{k}.safetensors")),
             &saved,
@@ -107,14 +132,21 @@ impl Checkpoint {
         Ok((meta, trainer))
     }
 
-    /// Saves this state with the trainer's scene and state, then drops the previous iteration's files.
-    pub fn save(&self, out: &Path, trainer: &EditTrainer) -> Result<(), RunError> {
+    /// Saves this state with the trainer's scene and state (and their checksums), then drops the
+    /// previous iteration's files.
+    pub fn save(&mut self, out: &Path, trainer: &EditTrainer) -> Result<(), RunError> {
         let dir = checkpoint_dir(out);
         let k = self.iterations_done;
         let scene_path = dir.join(format!("scene_{k}.ply"));
         splat::ply::write_ply(&scene_path, trainer.scene()).map_err(|e| io_err(&scene_path, e))?;
         let state_path = dir.join(format!("trainer_{k}.safetensors"));
         trainer.save(&state_path)?;
+        self.checksums.clear();
+        for file in [&scene_path, &state_path] {
+            let sum = checksum(file).map_err(|e| io_err(file, e))?;
+            let name = file.file_name().expect("a file name").to_string_lossy();
+            self.checksums.push((name.into_owned(), sum));
+        }
         let path = meta_path(out);
         let json = serde_json::to_vec_pretty(self).expect("serialisable");
         files::atomic_write(&path, &json).map_err(|e| io_err(&path, e))?;
@@ -125,6 +157,39 @@ impl Checkpoint {
         }
         Ok(())
     }
+}
+
+/// A checksum of a file's bytes (FNV-1a over 64-bit words): catches damage, not tampering.
+fn checksum(path: &Path) -> std::io::Result<String> {
+    use std::io::Read;
+    let mut file = files::open_regular(path)?;
+    let mut h: u64 = 0xcbf2_9ce4_8422_2325;
+    let mut add = |bytes: &[u8]| {
+        for word in bytes.chunks(8) {
+            let mut w = [0u8; 8];
+            w[..word.len()].copy_from_slice(word);
+            h ^= u64::from_le_bytes(w);
+            h = h.wrapping_mul(0x100_0000_01b3);
+        }
+    };
+    // Whole buffers (a multiple of 8 bytes) whatever the reads return, so only the end is padded.
+    let mut buf = vec![0u8; 1 << 20];
+    let (mut filled, mut len) = (0, 0u64);
+    loop {
+        let n = file.read(&mut buf[filled..])?;
+        if n == 0 {
+            break;
+        }
+        filled += n;
+        len += n as u64;
+        if filled == buf.len() {
+            add(&buf);
+            filled = 0;
+        }
+    }
+    add(&buf[..filled]);
+    h ^= len;
+    Ok(format!("{:016x}", h.wrapping_mul(0x100_0000_01b3)))
 }
 
 /// Fingerprint of a run: its settings and input sizes. Cheap, and good enough to catch resuming into a

@@ -167,8 +167,18 @@ pub fn load_cameras(path: &Path) -> Result<CameraSet, CameraError> {
         let dir = path.parent().unwrap_or(Path::new("."));
         return colmap::load_colmap(dir);
     }
-    if file_name.to_ascii_lowercase().ends_with(".json") {
+    let lower = file_name.to_ascii_lowercase();
+    if lower.ends_with(".json") {
         let text = read_text(path)?;
+        // A name that says the format decides it, so errors name the format the user meant (a damaged
+        // transforms.json whose top level became a list is not an INRIA cameras.json); other names go
+        // by content.
+        if lower == "cameras.json" {
+            return inria::parse_inria_cameras(path, &text);
+        }
+        if lower.starts_with("transforms") {
+            return transforms::parse_transforms(path, &text);
+        }
         return match text.trim_start().as_bytes().first() {
             Some(b'[') => inria::parse_inria_cameras(path, &text),
             Some(b'{') => transforms::parse_transforms(path, &text),
@@ -182,6 +192,25 @@ pub fn load_cameras(path: &Path) -> Result<CameraSet, CameraError> {
         path,
         "unknown camera file (expected a COLMAP model, transforms.json or cameras.json)",
     ))
+}
+
+/// What loading cameras from `path` depends on, for the output checks: `path` itself (a folder with
+/// everything in it), and for a COLMAP `cameras.*`/`images.*`/`points3D.*` file the model folder it
+/// is read with. (The images a dataset names are inputs of the commands that read them.)
+pub fn camera_sources(path: &Path) -> Vec<PathBuf> {
+    let mut sources = vec![path.to_path_buf()];
+    let name = path
+        .file_name()
+        .map(|n| n.to_string_lossy().into_owned())
+        .unwrap_or_default();
+    let stem = name.split('.').next().unwrap_or("");
+    if path.is_file() && matches!(stem, "cameras" | "images" | "points3D") {
+        sources.push(match path.parent() {
+            Some(p) if !p.as_os_str().is_empty() => p.to_path_buf(),
+            _ => PathBuf::from("."),
+        });
+    }
+    sources
 }
 
 // ---------------------------------------------------------------------------------------------------------
@@ -510,5 +539,28 @@ mod tests {
             e.contains("x.yaml") && e.contains("unknown camera file"),
             "{e}"
         );
+    }
+
+    /// A file named as one format is read as that format, so its errors name it (issue 69: a
+    /// transforms.json was called an INRIA cameras.json, and the reverse).
+    #[test]
+    fn a_json_named_for_its_format_is_described_as_that_format() {
+        let dir = tempfile::tempdir().unwrap();
+        let transforms = dir.path().join("transforms.json");
+        std::fs::write(&transforms, "[1, 2]").unwrap();
+        let e = load_cameras(&transforms).unwrap_err().to_string();
+        assert!(
+            e.contains("not a valid transforms.json") && !e.contains("INRIA"),
+            "{e}"
+        );
+        let cameras = dir.path().join("cameras.json");
+        std::fs::write(&cameras, r#"{"frames": []}"#).unwrap();
+        let e = load_cameras(&cameras).unwrap_err().to_string();
+        assert!(e.contains("not a valid INRIA cameras.json"), "{e}");
+        // Other names go by content.
+        let other = dir.path().join("poses.json");
+        std::fs::write(&other, "[1, 2]").unwrap();
+        let e = load_cameras(&other).unwrap_err().to_string();
+        assert!(e.contains("INRIA"), "{e}");
     }
 }

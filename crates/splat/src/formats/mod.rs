@@ -236,6 +236,46 @@ pub(crate) fn inria_iteration_ply(dir: &Path) -> Option<PathBuf> {
         .map(|(_, p)| p)
 }
 
+/// The folder a SOG folder output `.../meta.json` is.
+fn sog_folder(meta: &Path) -> &Path {
+    match meta.parent() {
+        Some(p) if !p.as_os_str().is_empty() => p,
+        _ => Path::new("."),
+    }
+}
+
+/// Checks, before any work, that [`write_scene`] may write `path`: for a SOG folder output, that its
+/// folder is new, empty or a SOG scene (decided by content: see [`sog::replaceable_files`]). Whether
+/// the output may replace an existing one is the caller's policy.
+pub fn check_scene_output(path: &Path) -> Result<(), FormatError> {
+    if OutputFormat::for_path(path) == Some(OutputFormat::SogFolder) {
+        let dir = sog_folder(path);
+        if sog::replaceable_files(dir).is_none() {
+            return Err(FormatError::Unwritable {
+                path: path.to_path_buf(),
+                format: OutputFormat::SogFolder.name(),
+                msg: sog::not_a_sog_folder(dir),
+            });
+        }
+    }
+    Ok(())
+}
+
+/// What reading the scene at `path` depends on beyond `path` itself, for the output checks: a SOG
+/// `meta.json` (read by content: a JSON file) depends on its folder, whose textures it names.
+pub fn scene_sources(path: &Path) -> Vec<PathBuf> {
+    let mut sources = vec![path.to_path_buf()];
+    let mut head = [0u8; 64];
+    let json = path.is_file()
+        && files::open_regular(path)
+            .and_then(|mut f| f.read(&mut head))
+            .is_ok_and(|n| head[..n].trim_ascii_start().starts_with(b"{"));
+    if json {
+        sources.push(sog_folder(path).to_path_buf());
+    }
+    sources
+}
+
 /// Writes a scene in the format its name asks for ([`OutputFormat::for_path`]), atomically where the
 /// output is one file. Lossy formats report their largest errors, measured on what was written.
 pub fn write_scene(path: &Path, scene: &GaussianScene) -> Result<WriteReport, FormatError> {
@@ -281,25 +321,7 @@ pub fn write_scene(path: &Path, scene: &GaussianScene) -> Result<WriteReport, Fo
             let bytes = if format == OutputFormat::SogZip {
                 sog::zip_files(&files).map_err(unwritable)?
             } else {
-                let dir = path.parent().unwrap_or(Path::new("."));
-                let dir = if dir.as_os_str().is_empty() {
-                    Path::new(".")
-                } else {
-                    dir
-                };
-                let mut total = 0;
-                for (name, data) in &files {
-                    let file = if name == "meta.json" {
-                        path.to_path_buf()
-                    } else {
-                        dir.join(name)
-                    };
-                    files::atomic_write(&file, data).map_err(|err| FormatError::Write {
-                        path: file.clone(),
-                        err,
-                    })?;
-                    total += data.len() as u64;
-                }
+                let total = sog::write_folder(sog_folder(path), &files).map_err(unwritable)?;
                 return Ok(WriteReport::measured(format, scene, &back, total));
             };
             (bytes, back)

@@ -707,6 +707,15 @@ fn read_ply_inner(path: &Path) -> Result<GaussianScene, Problem> {
         }
     }
 
+    // A count the file's size allows may still be more than memory holds: a sparse file is as long as
+    // its header claims without taking the space. Refused from the header, before allocating.
+    let count = header.elements[vertex_index].count;
+    files::check_allocation(
+        GaussianScene::memory_bytes(count, layout.sh_degree),
+        &format!("its {count} Gaussians"),
+    )
+    .map_err(|msg| Problem::Io(std::io::Error::new(std::io::ErrorKind::OutOfMemory, msg)))?;
+
     match header.format {
         Format::Ascii => read_ascii(&mut reader, &header, vertex_index, &layout),
         Format::BinaryLe | Format::BinaryBe => read_binary(
@@ -1264,5 +1273,37 @@ mod tests {
         let s = GaussianScene::new(2);
         write_ply(&p, &s).unwrap();
         assert_eq!(read_ply(&p).unwrap(), s);
+    }
+
+    /// A header whose count the file's (sparse) size matches, but more Gaussians than memory holds
+    /// (issue 69: this aborted on the allocation).
+    #[test]
+    fn a_sparse_file_as_long_as_its_huge_header_claims_is_refused() {
+        if files::available_memory().is_none() {
+            return;
+        }
+        let dir = tempfile::tempdir().unwrap();
+        let bytes = encode_ply(&scene(0, 1)).unwrap();
+        let header_end = bytes
+            .windows(11)
+            .position(|w| w == b"end_header\n")
+            .unwrap()
+            + 11;
+        let row = (bytes.len() - header_end) as u64;
+        let count: u64 = 1 << 36;
+        let header = String::from_utf8(bytes[..header_end].to_vec())
+            .unwrap()
+            .replace("element vertex 1\n", &format!("element vertex {count}\n"));
+        let p = dir.path().join("huge.ply");
+        std::fs::write(&p, header.as_bytes()).unwrap();
+        let f = std::fs::OpenOptions::new().write(true).open(&p).unwrap();
+        if f.set_len(header.len() as u64 + count * row).is_err() {
+            return; // a file system without sparse files this large
+        }
+        let e = read_ply(&p).unwrap_err().to_string();
+        assert!(
+            e.contains("huge.ply") && e.contains(&count.to_string()) && e.contains("memory"),
+            "{e}"
+        );
     }
 }

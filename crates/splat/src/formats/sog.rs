@@ -344,6 +344,67 @@ pub fn read_folder(meta_path: &Path) -> Result<GaussianScene, String> {
     decode_with(&read_limited(meta_file, "meta.json")?, &open)
 }
 
+/// The files of the SOG folder `dir` that vcedit may replace, decided by content: `None` when the folder
+/// is not a SOG scene (no `meta.json`, one that is not SOG metadata) or holds anything besides
+/// `meta.json` and the textures it names (a subfolder, a link, someone else's file). A missing or empty
+/// folder is `Some` of nothing.
+pub fn replaceable_files(dir: &Path) -> Option<Vec<String>> {
+    let entries = match std::fs::read_dir(dir) {
+        Ok(e) => e,
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Some(Vec::new()),
+        Err(_) => return None,
+    };
+    let mut present = Vec::new();
+    for entry in entries {
+        let entry = entry.ok()?;
+        if !std::fs::symlink_metadata(entry.path()).ok()?.is_file() {
+            return None;
+        }
+        present.push(entry.file_name().to_str()?.to_string());
+    }
+    if present.is_empty() {
+        return Some(present);
+    }
+    let meta_file = files::open_regular(&dir.join("meta.json")).ok()?;
+    let meta: Meta = serde_json::from_slice(&read_limited(meta_file, "meta.json").ok()?).ok()?;
+    let mut listed = vec!["meta.json".to_string()];
+    listed.extend(meta.means.files);
+    listed.extend(meta.scales.files);
+    listed.extend(meta.quats.files);
+    listed.extend(meta.sh0.files);
+    listed.extend(meta.sh_n.into_iter().flat_map(|s| s.files));
+    present
+        .iter()
+        .all(|p| listed.contains(p))
+        .then_some(present)
+}
+
+/// Writes SOG `files` (from [`encode`]) as the folder `dir`, replacing an earlier SOG folder there as a
+/// whole (see [`files::replace_folder`]): readers and a second writer see the old scene or the new one,
+/// never a mix, and a failure leaves the old one. A folder that is not a SOG folder is refused.
+pub fn write_folder(dir: &Path, files: &[(String, Vec<u8>)]) -> Result<u64, String> {
+    if replaceable_files(dir).is_none() {
+        return Err(not_a_sog_folder(dir));
+    }
+    let fill = |tmp: &Path| -> std::io::Result<()> {
+        for (name, data) in files {
+            std::fs::write(tmp.join(name), data)?;
+        }
+        Ok(())
+    };
+    files::replace_folder(dir, fill, |old| replaceable_files(old).unwrap_or_default())
+        .map_err(|e| format!("cannot write the folder {}: {e}", dir.display()))?;
+    Ok(files.iter().map(|(_, d)| d.len() as u64).sum())
+}
+
+/// Why `dir` cannot receive a SOG scene.
+pub fn not_a_sog_folder(dir: &Path) -> String {
+    format!(
+        "{} holds files that are not a SOG scene of meta.json and the textures it names; write the SOG folder to a new or empty folder",
+        dir.display()
+    )
+}
+
 /// Reads SOG bundled in a zip file (`meta.json` at the root or in one folder, textures beside it).
 pub fn read_zip(path: &Path) -> Result<GaussianScene, String> {
     let file = files::open_regular(path).map_err(|e| format!("cannot read: {e}"))?;

@@ -30,7 +30,8 @@ const NAMES: [&str; 6] = [
     "s.splat",
     "s.spz",
     "s.sog",
-    "meta.json",
+    // A SOG folder is a folder of its own: one beside other files is refused.
+    "sog/meta.json",
 ];
 
 /// Writes with `write_scene`, reads back with `read_scene`, and checks the report against what came back.
@@ -660,4 +661,38 @@ fn corrupted_files_never_panic() {
             let _ = spz::decode(&broken);
         }
     }
+}
+
+/// A SOG folder output is written whole, over a SOG scene only (issue 69): a folder of other files, or a
+/// scene with a stranger's file beside it, is refused; a scene is replaced with nothing of it left.
+#[test]
+fn sog_folders_are_replaced_whole_and_only_over_a_scene() {
+    let dir = tempfile::tempdir().unwrap();
+    let sog = dir.path().join("sog");
+    let meta = sog.join("meta.json");
+    write_scene(&meta, &scene(3, 5, 1)).unwrap();
+    let with_sh = std::fs::read_dir(&sog).unwrap().count();
+    // Degree 0 writes fewer textures: the old scene's SH files must go.
+    write_scene(&meta, &scene(0, 5, 2)).unwrap();
+    let now = std::fs::read_dir(&sog).unwrap().count();
+    assert!(now < with_sh, "{now} files after replacing {with_sh}");
+    assert_eq!(read_scene(&meta).unwrap().sh_degree, 0);
+    assert_eq!(
+        std::fs::read_dir(dir.path()).unwrap().count(),
+        1,
+        "nothing beside"
+    );
+    std::fs::write(sog.join("notes.txt"), "mine").unwrap();
+    let e = write_scene(&meta, &scene(0, 5, 3)).unwrap_err().to_string();
+    assert!(e.contains("not a SOG scene"), "{e}");
+    assert!(sog.join("notes.txt").exists());
+    assert!(check_scene_output(&meta).is_err());
+    let site = dir.path().join("site");
+    std::fs::create_dir(&site).unwrap();
+    std::fs::write(site.join("meta.json"), r#"{"title": "my site"}"#).unwrap();
+    assert!(write_scene(&site.join("meta.json"), &scene(0, 5, 3)).is_err());
+    assert_eq!(
+        std::fs::read_to_string(site.join("meta.json")).unwrap(),
+        r#"{"title": "my site"}"#
+    );
 }

@@ -73,6 +73,9 @@ pub fn conv2d(
     }
     let path = match forced_conv_path() {
         Some(path) => path,
+        // Timing without a place to keep its result would choose anew in every process, and the paths'
+        // results differ in their last bits: one fixed path keeps a seed's result the same run to run.
+        None if !gpu::tuning_persists() => UNTUNED_CONV_PATH,
         None => {
             let key = conv_key(x, weight, bias.is_some(), stride, padding);
             // The tensors are cloned (handles only) only for a problem the tuner has not settled.
@@ -101,6 +104,10 @@ pub fn conv2d(
     // Past the cap the convolution runs in blocks of whole images, then of output rows.
     conv2d_blocked(x, weight, bias, stride, padding, addend, transient_cap(x))
 }
+
+/// The path when tuning results cannot persist (see `gpu::tuning_persists`): im2col runs on tensor
+/// cores where a device has them and never declines a problem.
+pub const UNTUNED_CONV_PATH: ConvPath = ConvPath::Im2col;
 
 /// How a convolution that is not pointwise runs on the GPU (pointwise ones are one product each).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
