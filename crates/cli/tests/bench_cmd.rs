@@ -189,6 +189,7 @@ fn cuda_without_cuda_is_one_line_before_any_output() {
     assert_ne!(out.status.code(), Some(0), "{stderr}");
     assert!(stderr.contains("unknown GPU runtime 'opencl'"), "{stderr}");
     assert!(!stderr.contains("panicked"), "{stderr}");
+}
 
 /// `vcedit bench NAME --help` prints that bench's own help (what it measures, its options), wherever
 /// `--help` stands; `vcedit bench --help` the list.
