@@ -71,10 +71,17 @@ pub struct Estimate {
 }
 
 impl Estimate {
-    /// From the plan's counts and the unit costs.
+    /// From the plan's counts and the unit costs. The calibration times a call of `view_batch` views with
+    /// six samples each; a run computes only the samples that are read (`BatchLayout`: 5, 4 or 3 a view
+    /// with default settings), so where the plan counts its samples the UNet's time follows them.
     pub fn new(plan: &WorkPlan, calibration: Calibration) -> Self {
         let calls = plan.unet_calls.div_ceil(plan.view_batch.max(1));
-        let unet = calls as f64 * calibration.unet_call;
+        let samples = plan.work.total().unet_samples;
+        let unet = if samples > 0 {
+            samples as f64 / (6 * plan.view_batch.max(1)) as f64 * calibration.unet_call
+        } else {
+            calls as f64 * calibration.unet_call
+        };
         let splatting = (plan.renders + 3 * plan.fit_steps) as f64 * calibration.render
             + plan.lifts as f64 * calibration.lift;
         Estimate {
@@ -328,6 +335,11 @@ mod tests {
         assert_eq!(e.total, e.unet + e.splatting);
         // A view batch of 8: a call does 8 views' work (272 / 8 = 34 calls).
         assert_eq!(Estimate::new(&plan(272, 8), c).unet, 68.0);
+        // Where the plan counts its samples (4 of the 6 a call was timed with, for each of the 272 view
+        // passes), the UNet's time follows them.
+        let mut counted = plan(272, 1);
+        counted.work.unet.unet_samples = 272 * 4;
+        assert!((Estimate::new(&counted, c).unet - 544.0 * 4.0 / 6.0).abs() < 1e-9);
         assert_eq!(
             e.describe(),
             "time ≈ 12 min (UNet 9 min, splatting 3 min; a UNet call 2.0 s here)"

@@ -46,9 +46,11 @@ impl WorkPlan {
             });
             format!(", GPU memory ≈ {:.1} GB{free}", b as f64 / 1e9)
         });
+        // Up to six samples a view (three branches, with and without the prompt): `BatchLayout` leaves
+        // out those nobody reads.
         let batch = match self.view_batch {
-            1 => "batch 6".to_string(),
-            n => format!("batch 6 per view, {n} views per call"),
+            1 => "≤ 6 samples a view".to_string(),
+            n => format!("≤ 6 samples a view, {n} views per call"),
         };
         use crate::present::count;
         let time = self
