@@ -64,6 +64,9 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     let (w, h) = args.sampler.size();
     // Every argument is checked before any work, and both outputs before the first is written.
     require_extension(&args.out, "--out", &["png"], "the edited image")?;
+    // The image first: `--image DIR --out DIR/o.png` is a folder given for an image, which the output
+    // policy would otherwise report as an output inside an input folder.
+    let input = Image::load(&args.image)?;
     // The model folders are inputs too: nothing is written inside them.
     let mut inputs = vec![args.image.as_path(), args.model.model.as_path()];
     inputs.extend(args.model.taesd.as_deref());
@@ -72,7 +75,6 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         files::check_not_inputs(&[dir.as_path()], &inputs).context("--save-attention")?;
         probe_folder(dir).context("--save-attention")?;
     }
-    let input = Image::load(&args.image)?;
 
     let t0 = Instant::now();
     let model_dir = args.model.folder()?;
