@@ -100,7 +100,14 @@ fn json_outputs_never_go_inside_an_input_folder() {
             if force {
                 args.push("--force");
             }
-            assert_refused(&vcedit_in(d, &args), &["inside the input folder", "garden"]);
+            let o = vcedit_in(d, &args);
+            if target.ends_with(".json") {
+                assert_refused(&o, &["inside the input folder", "garden"]);
+            } else {
+                // A JSON file must be named *.json (a usage error, exit 2), which refuses a scene first.
+                assert_eq!(o.status.code(), Some(2), "{}", stderr(&o));
+                assert!(stderr(&o).contains("must end in .json"), "{}", stderr(&o));
+            }
         }
     }
     assert_eq!(read(&ply), ply_before);

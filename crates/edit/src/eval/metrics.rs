@@ -281,7 +281,12 @@ fn warp_pair(
             }
             s
         })
-        .reduce(PairSums::default, |x, y| PairSums {
+        // Rows are summed in order: rayon's `reduce` pairs partial sums as its threads split the work,
+        // which differs from run to run on a busy machine, and float sums depend on their order (the same
+        // scene scored twice differed in the last bit of its mean error).
+        .collect::<Vec<_>>()
+        .into_iter()
+        .fold(PairSums::default(), |x, y| PairSums {
             opaque: x.opaque + y.opaque,
             covisible: x.covisible + y.covisible,
             abs: x.abs + y.abs,
