@@ -117,15 +117,16 @@ fn json_outputs_never_go_inside_an_input_folder() {
     // A SOG folder, named by its folder or its meta.json.
     assert_ok(&vcedit_in(d, &["convert", s(&ply), "sog/meta.json"]));
     let quats = read(&d.join("sog/quats.webp"));
-    for (scene, target) in [
-        ("sog", "sog/quats.webp"),
-        ("sog/meta.json", "sog/means_l.webp"),
-    ] {
+    let meta = read(&d.join("sog/meta.json"));
+    // (inspect's JSON file must be named *.json: a texture's name is refused before, as a usage error.)
+    for (scene, target) in [("sog", "sog/meta.json"), ("sog/meta.json", "sog/new.json")] {
         let json = format!("--json={target}");
         let o = vcedit_in(d, &["inspect", scene, &json, "--force"]);
         assert_refused(&o, &["inside the input folder"]);
     }
     assert_eq!(read(&d.join("sog/quats.webp")), quats);
+    assert_eq!(read(&d.join("sog/meta.json")), meta);
+    assert!(!d.join("sog/new.json").exists());
 
     // A COLMAP text model given by one of its files: the model's folder is the input.
     let model = d.join("model");

@@ -390,7 +390,9 @@ fn malformed_camera_files_give_specific_messages() {
             "[{\"img_name\": \"a\"}]",
             "not a valid INRIA cameras.json",
         ),
-        ("cameras.json", "   ", "neither a transforms.json"),
+        // Named cameras.json, it is read as INRIA's (not sniffed by content), and said to be broken as such.
+        ("cameras.json", "   ", "not a valid INRIA cameras.json"),
+        ("views.json", "   ", "neither a transforms.json"),
     ];
     for (name, text, want) in json_cases {
         let p = dir.path().join(name);
