@@ -95,10 +95,14 @@ with lzma.open(out, "wb", preset=6) as xz, tarfile.open(fileobj=xz, mode="w") as
     for wheel in sorted(glob.glob(f"{src}/*.whl")):
         with zipfile.ZipFile(wheel) as z:
             for name in z.namelist():
-                # nvidia/cu13/include/... -> cuda/include/...
+                # nvidia/cu13/include/... -> cuda/include/...; CCCL's Thrust and CUB are left out (the kernels
+                # include libcu++'s cuda/ and nv/ only), which keeps the pack within the carried limit.
                 if "/include/" not in name or name.endswith("/"):
                     continue
-                info = tarfile.TarInfo("cuda/include/" + name.split("/include/", 1)[1])
+                rel = name.split("/include/", 1)[1]
+                if rel.startswith(("cccl/thrust/", "cccl/cub/")):
+                    continue
+                info = tarfile.TarInfo("cuda/include/" + rel)
                 data = z.read(name)
                 info.size = len(data)
                 tar.addfile(info, io.BytesIO(data))

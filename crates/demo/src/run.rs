@@ -73,6 +73,9 @@ pub struct DemoOptions {
     /// (see [`demo_infedit_settings`]). For probing other demo models, e.g. one grown with text at
     /// a finer level.
     pub blend_level: Option<usize>,
+    /// Fewest Adam steps of each ECM fit (`vcedit edit --ecm-min-steps`); `None`: the reference's
+    /// (see [`edit::consistency::EcmSettings::reference`]).
+    pub ecm_min_steps: Option<usize>,
 }
 
 impl DemoOptions {
@@ -91,6 +94,7 @@ impl DemoOptions {
             delta_decode: DeltaDecode::Always,
             keep_shape: KeepShape::Auto,
             blend_level: None,
+            ecm_min_steps: None,
         }
     }
 }
@@ -246,6 +250,9 @@ pub fn demo_job(opts: &DemoOptions, scene: &DemoScene, variant: Variant) -> Edit
     let mut infedit = demo_infedit_settings(opts.steps);
     infedit.blend_level = opts.blend_level.or(infedit.blend_level);
     let mut consistency = ConsistencySettings::reference(opts.steps);
+    if let Some(min_steps) = opts.ecm_min_steps {
+        consistency.ecm.min_steps = min_steps;
+    }
     match variant {
         Variant::NoCcm => consistency.ccm_steps.clear(),
         Variant::NoEcm => consistency.ecm.steps.clear(),
@@ -650,5 +657,23 @@ mod tests {
         for v in Variant::ALL {
             assert_eq!(level(&opts, v), Some(0), "{v:?}");
         }
+    }
+
+    #[test]
+    fn a_chosen_ecm_length_replaces_the_references_in_every_variant() {
+        let mut opts = DemoOptions::new(PathBuf::from("model"), PathBuf::from("out"));
+        opts.views = 2;
+        let scene = demo_scene(&opts).unwrap();
+        let ecm = |opts: &DemoOptions, v| demo_job(opts, &scene, v).consistency.ecm;
+        let reference = ecm(&opts, Variant::Full);
+        assert_eq!(reference.min_steps, 576);
+        opts.ecm_min_steps = Some(16);
+        for v in Variant::ALL {
+            let chosen = ecm(&opts, v);
+            assert_eq!(chosen.min_steps, 16, "{v:?}");
+            // 2 views: 8 epochs instead of the 288 that reach 576 steps.
+            assert_eq!(chosen.schedule(2).0, 8, "{v:?}");
+        }
+        assert_eq!(reference.schedule(2).0, 288);
     }
 }

@@ -77,6 +77,11 @@ pub struct Args {
     /// with `demo-model train --config tools/demo-model/text32.json`.
     #[arg(long, value_name = "LEVEL", value_parser = whole::<usize>, allow_negative_numbers = true)]
     pub blend_level: Option<usize>,
+    /// Fewest Adam steps of each ECM fit (as `vcedit edit`; default 576, the reference's 6 epochs ×
+    /// 96 views). With few views ECM's fits are most of the time: a lower value is a quicker, rougher
+    /// run, e.g. a smoke test of a device.
+    #[arg(long, value_name = "N", value_parser = whole::<usize>, allow_negative_numbers = true)]
+    pub ecm_min_steps: Option<usize>,
     #[command(flatten)]
     pub memory: MemoryCheckArg,
 }
@@ -113,6 +118,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     opts.delta_decode = args.delta_decode;
     opts.keep_shape = args.keep_shape;
     opts.blend_level = args.blend_level;
+    opts.ecm_min_steps = args.ecm_min_steps;
     let settings_key = fingerprint(&(
         &model_dir,
         args.pair,
@@ -125,6 +131,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         args.delta_decode,
         args.keep_shape,
         args.blend_level,
+        args.ecm_min_steps,
     ));
     // The model folder is an input: nothing inside it is ever written.
     let inputs = [model_dir.as_path()];

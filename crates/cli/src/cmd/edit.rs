@@ -13,9 +13,7 @@ use edit::sampler::EditModel;
 
 use crate::args::editing::{ModelArgs, PromptArgs, SamplerArgs};
 use crate::args::memory::MemoryCheckArg;
-use crate::args::output::{
-    fingerprint, finished_run, open_with_settings, say_finished, ForceArg,
-};
+use crate::args::output::{fingerprint, finished_run, open_with_settings, say_finished, ForceArg};
 use crate::args::parse::{finite, positive, whole};
 use crate::args::{BackgroundArg, CameraArgs, DeviceArg, PrecisionArg, DEFAULT_ORBIT_VIEWS};
 use crate::progress::Reporter;
