@@ -277,32 +277,121 @@ impl LiftSession<'_> {
             };
             return lift.lift_and_render_back(ctx, cameras, grid, map_of, sink);
         }
-        let native = (grid.height, grid.width);
-        let size = |cam: &Camera| (cam.height as usize, cam.width as usize);
-        let mut acc = LiftAccumulator::new(scene, grid.channels);
-        for (v, cam) in cameras.iter().enumerate() {
-            let map = map_of(v)?;
-            acc.add_view_on_grid(cam, &map, grid);
-        }
-        let lifted = acc.finish();
-        let extra = ExtraChannels {
-            values: &lifted.values,
-            channels: grid.channels,
-        };
-        for (v, cam) in cameras.iter().enumerate() {
-            // Only the pixels the resampling to the grid reads composite the lifted channels.
-            let (h, w) = size(cam);
-            let rows = read_by_resampling(h, grid.height, grid.down);
-            let cols = read_by_resampling(w, grid.width, grid.down);
-            let settings = RenderSettings::default();
-            let out = render_extra_at(scene, cam, &settings, extra, (&rows, &cols));
-            sink(
-                v,
-                resample(&out.extra, size(cam), native, grid.channels, grid.down),
-            )?;
-        }
-        Ok(())
+        let chunk = cpu_channels_per_pass(scene.len(), cameras, grid.channels);
+        cpu_round_in_passes(scene, cameras, grid, chunk, map_of, sink)
     }
+}
+
+/// One lifting round on the CPU in passes of at most `chunk` channels: one pass when they all fit, else
+/// passes over slices of the channels (each channel's result does not depend on the others'), the
+/// grid-sized maps held meanwhile.
+fn cpu_round_in_passes<E>(
+    scene: &GaussianScene,
+    cameras: &[Camera],
+    grid: &MapGrid,
+    chunk: usize,
+    map_of: &mut dyn FnMut(usize) -> Result<Vec<f32>, E>,
+    sink: &mut dyn FnMut(usize, Vec<f32>) -> Result<(), E>,
+) -> Result<(), E> {
+    if chunk >= grid.channels {
+        return cpu_round(scene, cameras, grid, map_of, sink);
+    }
+    let chunk = chunk.max(1);
+    let maps = (0..cameras.len())
+        .map(&mut *map_of)
+        .collect::<Result<Vec<_>, E>>()?;
+    let mut backs = vec![vec![0f32; grid.len()]; cameras.len()];
+    let channels = grid.channels;
+    for first in (0..channels).step_by(chunk) {
+        let width = chunk.min(channels - first);
+        let slice = |map: &[f32]| -> Vec<f32> {
+            map.chunks(channels)
+                .flat_map(|cell| &cell[first..first + width])
+                .copied()
+                .collect()
+        };
+        cpu_round(
+            scene,
+            cameras,
+            &MapGrid {
+                channels: width,
+                ..*grid
+            },
+            &mut |v| Ok(slice(&maps[v])),
+            &mut |v, part| {
+                for (cell, got) in backs[v].chunks_mut(channels).zip(part.chunks(width)) {
+                    cell[first..first + width].copy_from_slice(got);
+                }
+                Ok(())
+            },
+        )?;
+    }
+    for (v, back) in backs.into_iter().enumerate() {
+        sink(v, back)?;
+    }
+    Ok(())
+}
+
+/// Host memory one CPU lifting pass may hold for its per-channel buffers: the per-slot sums over the
+/// Gaussians ([`LiftAccumulator`]) and one view's render-back at full resolution. A round of more
+/// channels (CCM stacks all layers of one map size) is done in passes over slices of its channels.
+pub const CPU_LIFT_PASS_BYTES: u64 = 1 << 30;
+
+/// Host memory a lifting round of `channels` channels holds on the CPU over `gaussians` Gaussians and
+/// views of at most `pixels` pixels (a GPU holds only the grid-sized maps on the host: 0 here).
+pub fn cpu_lift_round_bytes(gaussians: usize, pixels: u64, channels: usize) -> u64 {
+    let per_channel = cpu_lift_channel_bytes(gaussians, pixels);
+    (per_channel * channels as u64).min(CPU_LIFT_PASS_BYTES.max(per_channel))
+}
+
+fn cpu_lift_channel_bytes(gaussians: usize, pixels: u64) -> u64 {
+    4 * (LiftAccumulator::slot_count() as u64 * gaussians as u64 + pixels)
+}
+
+/// Channels one CPU lifting pass takes within [`CPU_LIFT_PASS_BYTES`] (at least one).
+pub fn cpu_channels_per_pass(gaussians: usize, cameras: &[Camera], channels: usize) -> usize {
+    let pixels = cameras
+        .iter()
+        .map(|c| c.width as u64 * c.height as u64)
+        .max()
+        .unwrap_or(0);
+    let per_channel = cpu_lift_channel_bytes(gaussians, pixels);
+    ((CPU_LIFT_PASS_BYTES / per_channel.max(1)) as usize).clamp(1, channels.max(1))
+}
+
+/// One lifting round on the CPU, all of `grid`'s channels in one pass.
+fn cpu_round<E>(
+    scene: &GaussianScene,
+    cameras: &[Camera],
+    grid: &MapGrid,
+    map_of: &mut dyn FnMut(usize) -> Result<Vec<f32>, E>,
+    sink: &mut dyn FnMut(usize, Vec<f32>) -> Result<(), E>,
+) -> Result<(), E> {
+    let native = (grid.height, grid.width);
+    let size = |cam: &Camera| (cam.height as usize, cam.width as usize);
+    let mut acc = LiftAccumulator::new(scene, grid.channels);
+    for (v, cam) in cameras.iter().enumerate() {
+        let map = map_of(v)?;
+        acc.add_view_on_grid(cam, &map, grid);
+    }
+    let lifted = acc.finish();
+    let extra = ExtraChannels {
+        values: &lifted.values,
+        channels: grid.channels,
+    };
+    for (v, cam) in cameras.iter().enumerate() {
+        // Only the pixels the resampling to the grid reads composite the lifted channels.
+        let (h, w) = size(cam);
+        let rows = read_by_resampling(h, grid.height, grid.down);
+        let cols = read_by_resampling(w, grid.width, grid.down);
+        let settings = RenderSettings::default();
+        let out = render_extra_at(scene, cam, &settings, extra, (&rows, &cols));
+        sink(
+            v,
+            resample(&out.extra, size(cam), native, grid.channels, grid.down),
+        )?;
+    }
+    Ok(())
 }
 
 /// The CPU side of [`SplatDevice::render_with_loss`]: the loss of a render and its backward pass (of the
@@ -360,8 +449,94 @@ impl Lifter<'_> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::gpu::tests::{camera, random_scene};
+    use crate::gpu::tests::{camera, random_scene, three_views};
+    use crate::lift::{MapGrid, Resample};
     use ::gpu::testing::context_or_skip;
+
+    /// One round of stacked channels gives each part what its own round gives: CCM lifts the layers of
+    /// one map size together on the strength of it. Bit for bit on the CPU; on a GPU to float rounding
+    /// (its kernels' layouts follow the channel count).
+    #[test]
+    fn a_round_of_stacked_channels_is_its_parts_rounds() {
+        let scene = random_scene(300, 2, 5);
+        let cams = three_views();
+        let grid = |channels| MapGrid {
+            height: 9,
+            width: 10,
+            channels,
+            up: Resample::Bilinear,
+            down: Resample::Bilinear,
+        };
+        // Two parts of 3 and 4 channels per cell; the stacked map is each cell's 3 then its 4.
+        let part = |v: usize, channels: usize, salt: usize| -> Vec<f32> {
+            (0..grid(channels).len())
+                .map(|i| ((i * 7 + v * 5 + salt) % 17) as f32 / 16.0)
+                .collect()
+        };
+        let stacked = |v: usize| -> Vec<f32> {
+            let (a, b) = (part(v, 3, 1), part(v, 4, 2));
+            a.chunks(3)
+                .zip(b.chunks(4))
+                .flat_map(|(x, y)| x.iter().chain(y).copied())
+                .collect()
+        };
+        let round =
+            |session: &mut LiftSession<'_>, channels, map_of: &dyn Fn(usize) -> Vec<f32>| {
+                let mut back = vec![Vec::new(); cams.len()];
+                session
+                    .lift_and_render_back::<GpuError>(
+                        &grid(channels),
+                        &mut |v| Ok(map_of(v)),
+                        &mut |v, m| {
+                            back[v] = m;
+                            Ok(())
+                        },
+                    )
+                    .unwrap();
+                back
+            };
+        let mut devices = vec![SplatDevice::Cpu];
+        devices.extend(context_or_skip().map(SplatDevice::Gpu));
+        for device in devices {
+            let mut session = device.lift_session(&scene, &cams);
+            let whole = round(&mut session, 7, &stacked);
+            let a = round(&mut session, 3, &|v| part(v, 3, 1));
+            let b = round(&mut session, 4, &|v| part(v, 4, 2));
+            // The CPU's passes over slices of the channels (its memory bound): the same again.
+            let mut in_passes_of_two = vec![Vec::new(); cams.len()];
+            cpu_round_in_passes::<GpuError>(
+                &scene,
+                &cams,
+                &grid(7),
+                2,
+                &mut |v| Ok(stacked(v)),
+                &mut |v, m| {
+                    in_passes_of_two[v] = m;
+                    Ok(())
+                },
+            )
+            .unwrap();
+            for v in 0..cams.len() {
+                let split: Vec<f32> = a[v]
+                    .chunks(3)
+                    .zip(b[v].chunks(4))
+                    .flat_map(|(x, y)| x.iter().chain(y).copied())
+                    .collect();
+                assert!(split.iter().any(|&x| x > 0.05), "view {v} sees the maps");
+                if device.is_cpu() {
+                    assert_eq!(whole[v], split, "view {v}");
+                    assert_eq!(in_passes_of_two[v], split, "view {v}, passes of 2 channels");
+                } else {
+                    let worst = whole[v]
+                        .iter()
+                        .zip(&split)
+                        .map(|(x, y)| (x - y).abs())
+                        .fold(0.0f32, f32::max);
+                    assert!(worst < 1e-5, "view {v}: off by {worst}");
+                }
+            }
+        }
+    }
 
     /// The same frame, loss and gradients from either backend (the GPU one only where a device exists).
     #[test]

@@ -31,7 +31,7 @@ pub mod train;
 /// The GPU the device seam runs on (opened with the `gpu` crate) and its error.
 pub use ::gpu::{GpuContext, GpuError};
 pub use cameras::camera::Camera;
-pub use device::{LiftSession, Lifter, SplatDevice};
+pub use device::{cpu_lift_round_bytes, LiftSession, Lifter, SplatDevice};
 /// The INRIA PLY reader and writer, at their historical path.
 pub use formats::ply;
 pub use formats::{

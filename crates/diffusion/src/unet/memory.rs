@@ -117,6 +117,9 @@ impl UNetConfig {
     }
 }
 
+/// A map size `(h, w)` and how many recorded cross-attention layers have it.
+pub type LayerGrid = ((usize, usize), usize);
+
 impl UNetConfig {
     /// Cross-attention layers of a call on `height`×`width` latents whose maps have at most `max_queries`
     /// pixels (those an attention store records, e.g. CCM's): per level, `layers` per cross-attention down
@@ -128,14 +131,30 @@ impl UNetConfig {
         width: usize,
         max_queries: usize,
     ) -> Result<usize, UNetError> {
+        Ok(self
+            .cross_attention_grids(height, width, max_queries)?
+            .iter()
+            .map(|&(_, layers)| layers)
+            .sum())
+    }
+
+    /// [`Self::cross_attention_layers`] by map size: `((h, w), layers)` per level that has any, finest
+    /// first. SD 1.5 at 64² latents with 32² queries at most: 32² (5), 16² (5), 8² (1).
+    pub fn cross_attention_grids(
+        &self,
+        height: usize,
+        width: usize,
+        max_queries: usize,
+    ) -> Result<Vec<LayerGrid>, UNetError> {
         use super::config::BlockKind::CrossAttn;
         let r = self.resolve().map_err(UNetError::Unsupported)?;
         let n = self.block_out_channels.len();
         let (mut h, mut w) = (height, width);
-        let mut layers = 0;
+        let mut grids = Vec::new();
         for l in 0..n {
             if h * w <= max_queries {
                 let depth = r.transformer_layers[l];
+                let mut layers = 0;
                 if r.down[l] == CrossAttn {
                     layers += r.layers[l] * depth;
                 }
@@ -145,11 +164,14 @@ impl UNetConfig {
                 if l + 1 == n {
                     layers += depth;
                 }
+                if layers > 0 {
+                    grids.push(((h, w), layers));
+                }
             }
             h = h.div_ceil(2);
             w = w.div_ceil(2);
         }
-        Ok(layers)
+        Ok(grids)
     }
 }
 
@@ -203,6 +225,10 @@ mod tests {
         assert_eq!(cfg.cross_attention_layers(64, 64, 1).unwrap(), 0);
         // Every layer: 2 + 2 + 2 down, 3 + 3 + 3 up, 1 mid.
         assert_eq!(cfg.cross_attention_layers(64, 64, usize::MAX).unwrap(), 16);
+        assert_eq!(
+            cfg.cross_attention_grids(64, 64, 32 * 32).unwrap(),
+            [((32, 32), 5), ((16, 16), 5), ((8, 8), 1)]
+        );
     }
 
     #[test]

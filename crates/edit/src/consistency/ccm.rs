@@ -4,7 +4,9 @@
 //! maps of the small layers (after InfEdit's refinement). For each layer the maps of the real tokens
 //! (3 branches × heads × L channels) are upsampled to the render resolution, lifted onto the Gaussians over
 //! all views, rendered back, downsampled, clamped to [0, 1] and substituted in that step's real pass
-//! (padding tokens keep the recorded values; no renormalisation over tokens).
+//! (padding tokens keep the recorded values; no renormalisation over tokens). The layers of one map size
+//! share a lifting round, their channels stacked (the reference lifts layer by layer; each channel's
+//! result is the same).
 
 use std::collections::HashMap;
 
@@ -16,7 +18,7 @@ use splat::LiftSession;
 use super::lift::make_consistent;
 use super::{MultiView, MultiViewError};
 use crate::ledger::StageWork;
-use crate::sampler::ViewState;
+use crate::sampler::{RecordedMaps, ViewState};
 
 impl MultiView<'_> {
     /// CCM at step `i`: record, lift, render back, substitute. Returns the seconds from the recorded
@@ -43,7 +45,12 @@ impl MultiView<'_> {
                 (rec.maps.elem_count() * rec.maps.dtype().size_in_bytes()) as u64;
         }
         let layers = recorded[0].len();
-        if recorded.iter().any(|r| r.len() != layers) {
+        if recorded.iter().any(|r| {
+            r.len() != layers
+                || r.iter()
+                    .zip(&recorded[0])
+                    .any(|(a, b)| a.size != b.size || a.maps.dims() != b.maps.dims())
+        }) {
             return Err(MultiViewError::Input(
                 "views recorded different attention layers".into(),
             ));
@@ -51,22 +58,44 @@ impl MultiView<'_> {
         let lifting = std::time::Instant::now();
         let real = plan.alignment.target_len.max(plan.source_len);
         let mut consistent: Vec<HashMap<String, Tensor>> = vec![HashMap::new(); views.len()];
-        for k in 0..layers {
-            let (sh, sw) = recorded[0][k].size;
-            let dims = recorded[0][k].maps.dims4()?; // [3, heads, N, tokens]
-            let (branches, heads, nq, tokens) = dims;
-            let l = real.min(tokens);
-            let channels = branches * heads * l;
-            // Per view: [N, 3*heads*L] interleaved, channel = (branch*heads + head)*L + token.
-            let as_map = |maps: &Tensor| -> candle_core::Result<Vec<f32>> {
-                maps.to_dtype(DType::F32)?
-                    .narrow(3, 0, l)?
-                    .reshape((branches * heads, nq, l))?
-                    .permute((1, 0, 2))?
-                    .flatten_all()?
-                    .to_vec1()
+        // One lifting round per map size, the layers of that size stacked as channels: lifting and
+        // rendering back treat every channel alike and alone, so a stacked round gives each layer what
+        // its own round gave, for one projection, binning and traversal per view instead of one per layer
+        // (SD 1.5: 3 rounds instead of 11).
+        for members in layers_by_size(&recorded[0]) {
+            let (sh, sw) = recorded[0][members[0]].size;
+            // Per member: the maps' [branches, heads, N, tokens] and the real tokens lifted.
+            let mut shapes = Vec::with_capacity(members.len());
+            for &k in &members {
+                let (branches, heads, nq, tokens) = recorded[0][k].maps.dims4()?;
+                shapes.push((branches, heads, nq, tokens, real.min(tokens)));
+            }
+            let nq = shapes[0].2;
+            if shapes.iter().any(|s| s.2 != nq) || nq != sh * sw {
+                return Err(MultiViewError::Input(format!(
+                    "attention maps of {sh}×{sw} with other query counts"
+                )));
+            }
+            let widths: Vec<usize> = shapes.iter().map(|&(b, h, _, _, l)| b * h * l).collect();
+            let channels: usize = widths.iter().sum();
+            // Per view: [N, channels], per pixel the members' channels one after the other, each member's
+            // interleaved as channel = (branch*heads + head)*L + token.
+            let stacked = |v: usize| -> candle_core::Result<Vec<f32>> {
+                let parts = members
+                    .iter()
+                    .zip(&shapes)
+                    .map(|(&k, &(branches, heads, nq, _, l))| {
+                        recorded[v][k]
+                            .maps
+                            .to_dtype(DType::F32)?
+                            .narrow(3, 0, l)?
+                            .reshape((branches * heads, nq, l))?
+                            .permute((1, 0, 2))?
+                            .reshape((nq, branches * heads * l))
+                    })
+                    .collect::<candle_core::Result<Vec<_>>>()?;
+                Tensor::cat(&parts, 1)?.flatten_all()?.to_vec1()
             };
-            let rec = &recorded;
             let mut backs: Vec<Option<Vec<f32>>> = vec![None; views.len()];
             make_consistent(
                 lift,
@@ -77,7 +106,7 @@ impl MultiView<'_> {
                     up: Resample::Bilinear,
                     down: Resample::Bilinear,
                 },
-                &mut |v| as_map(&rec[v][k].maps),
+                &mut |v| stacked(v),
                 &mut |v, back| {
                     backs[v] = Some(back);
                     Ok(())
@@ -87,23 +116,31 @@ impl MultiView<'_> {
             work.render_backs += views.len();
             for (v, back) in backs.into_iter().enumerate() {
                 let back = back.expect("every view rendered");
-                let maps = &recorded[v][k].maps;
-                let lifted =
-                    Tensor::from_vec(back, (nq, branches * heads, l), &candle_core::Device::Cpu)?
+                let back = Tensor::from_vec(back, (nq, channels), &candle_core::Device::Cpu)?;
+                let mut offset = 0;
+                for ((&k, &(branches, heads, nq, tokens, l)), &width) in
+                    members.iter().zip(&shapes).zip(&widths)
+                {
+                    let maps = &recorded[v][k].maps;
+                    let lifted = back
+                        .narrow(1, offset, width)?
+                        .reshape((nq, branches * heads, l))?
                         .permute((1, 0, 2))?
                         .reshape((branches, heads, nq, l))?;
-                let merged = if l < tokens {
-                    Tensor::cat(
-                        &[
-                            &lifted,
-                            &maps.to_dtype(DType::F32)?.narrow(3, l, tokens - l)?,
-                        ],
-                        3,
-                    )?
-                } else {
-                    lifted
-                };
-                consistent[v].insert(recorded[v][k].layer.clone(), merged.clamp(0f32, 1f32)?);
+                    offset += width;
+                    let merged = if l < tokens {
+                        Tensor::cat(
+                            &[
+                                &lifted,
+                                &maps.to_dtype(DType::F32)?.narrow(3, l, tokens - l)?,
+                            ],
+                            3,
+                        )?
+                    } else {
+                        lifted
+                    };
+                    consistent[v].insert(recorded[v][k].layer.clone(), merged.clamp(0f32, 1f32)?);
+                }
             }
         }
         for (view, maps) in views.iter_mut().zip(consistent) {
@@ -111,4 +148,17 @@ impl MultiView<'_> {
         }
         Ok(lifting.elapsed().as_secs_f64())
     }
+}
+
+/// The recorded layers' indices grouped by map size, in the order the sizes first appear (the UNet's:
+/// finest first); within a group in recording order.
+fn layers_by_size(layers: &[RecordedMaps]) -> Vec<Vec<usize>> {
+    let mut groups: Vec<((usize, usize), Vec<usize>)> = Vec::new();
+    for (k, layer) in layers.iter().enumerate() {
+        match groups.iter_mut().find(|(size, _)| *size == layer.size) {
+            Some((_, members)) => members.push(k),
+            None => groups.push((layer.size, vec![k])),
+        }
+    }
+    groups.into_iter().map(|(_, members)| members).collect()
 }

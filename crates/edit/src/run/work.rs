@@ -141,7 +141,8 @@ pub fn gpu_state_bytes(
     };
     let (w, h) = (job.size.0 as u64, job.size.1 as u64);
     let n = scene.len() as u64;
-    let frame = w * h * 4 * (3 + 1 + 1 + 3 * HEADS * 8);
+    let lift_channels = widest_lift_round(job, model) as u64;
+    let frame = w * h * 4 * (3 + 1 + 1 + lift_channels);
     // The views ECM's fit keeps, and those the sampler run's lifting session keeps (CCM, blend maps).
     let splat = model.compute.splat();
     let lifts = job.guidance == GuidanceMode::Joint
@@ -150,10 +151,37 @@ pub fn gpu_state_bytes(
         * splat.kept_views_bytes(scene.len(), views, job.size.0, job.size.1);
     weight_bytes
         + scene_param_bytes(scene) * 10
-        + n * 4 * (3 * HEADS * 8 + 1)
+        + n * 4 * (lift_channels + 1)
         + frame
         + kept_views
         + 100_000_000
+}
+
+/// The recorded layers' map sizes and layer counts (one CCM lifting round each; see
+/// `UNetConfig::cross_attention_grids`): none for a config the UNet cannot resolve.
+fn ccm_grids(job: &EditJob, model: &EditModel) -> Vec<((usize, usize), usize)> {
+    let f = model.downscale();
+    let latent_size = (job.size.1 as usize / f, job.size.0 as usize / f);
+    model
+        .unet
+        .config()
+        .cross_attention_grids(latent_size.0, latent_size.1, DEFAULT_STORE_MAX_TOKENS)
+        .unwrap_or_default()
+}
+
+/// Channels of the run's widest lifting round: CCM's largest map size, all its layers stacked
+/// (3 branches × heads × tokens each; 8 tokens assumed), or the blend maps' few. Kept as small as
+/// the blend maps' when CCM is off.
+fn widest_lift_round(job: &EditJob, model: &EditModel) -> usize {
+    let ccm = job.guidance == GuidanceMode::Joint && !job.consistency.ccm_steps.is_empty();
+    match ccm_grids(job, model)
+        .iter()
+        .map(|&(_, layers)| layers)
+        .max()
+    {
+        Some(layers) if ccm => layers * 3 * HEADS as usize * 8,
+        _ => 3,
+    }
 }
 
 /// Whether the run's ECM fits are appearance-only, and so keep each view's projection
@@ -237,19 +265,21 @@ pub fn work_plan(
     let unet_calls = job.iterations * v * (steps + ccm);
     let f = model.downscale();
     let latent_size = (job.size.1 as usize / f, job.size.0 as usize / f);
-    // The layers CCM lifts: those the attention store records. A config the UNet loaded resolves.
-    let ccm_layers = model
-        .unet
-        .config()
-        .cross_attention_layers(latent_size.0, latent_size.1, DEFAULT_STORE_MAX_TOKENS)
-        .unwrap_or(0);
+    // The layers CCM lifts: those the attention store records, one lifting round per map size. A config
+    // the UNet loaded resolves.
+    let ccm_grids = ccm_grids(job, model);
+    let ccm_layers: usize = ccm_grids.iter().map(|&(_, layers)| layers).sum();
+    let ccm_rounds = ccm_grids.len();
     let renders = job.iterations
-        * (v + ecm * (2 * epochs * v + 2 * v) + blend * v + ccm * ccm_layers * v)
+        * (v + ecm * (2 * epochs * v + 2 * v) + blend * v + ccm * ccm_rounds * v)
         + 2 * v
         + 48;
+    // Lifting passes in units of the calibrated one-layer round: a stacked round does each layer's
+    // channel work, sharing only the projection and traversal, so a layer still counts as one (an
+    // overestimate by what the sharing saves).
     let lifts = job.iterations * (blend * v + ccm * ccm_layers * v);
     let fit_steps = job.iterations * job.fit_steps;
-    let work = planned_work(job, v, view_batch, ccm_layers);
+    let work = planned_work(job, v, view_batch, ccm_rounds);
 
     let (w, h) = (job.size.0 as u64, job.size.1 as u64);
     let latent = (latent_size.0 * latent_size.1) as u64;
@@ -266,7 +296,6 @@ pub fn work_plan(
             0
         };
     let images = v as u64 * w * h * 3 * 4 * 6;
-    let n = scene.len() as u64;
     let params = scene_param_bytes(scene);
     // Editing state (params, grads, 2 moments, anchors) + two ECM copies; splits can grow the scene.
     // Appearance-only ECM fits keep each view's projection, two fits at a time on the CPU (on a GPU
@@ -278,10 +307,12 @@ pub fn work_plan(
         0
     };
     let train = params * 5 * 3 / 2 + params * 4 * 2 + frozen_views;
-    // Lifting: per-thread sums of the widest map (CCM: 3 branches × heads × tokens).
-    let threads = rayon::current_num_threads() as u64;
-    let lift =
-        n * 4 * threads * if ccm > 0 { 3 * heads * 8 } else { 3 } + w * h * 4 * 3 * heads * 8;
+    // Lifting on the CPU: the sums and render-back of its widest round, within splat's per-pass bound.
+    let lift = if splat.is_cpu() {
+        splat::cpu_lift_round_bytes(scene.len(), w * h, widest_lift_round(job, model))
+    } else {
+        0
+    };
     let lpips = LPIPS_BUDGET.min(v as u64 * w * h * 4 * 128);
     let memory_bytes =
         weights + unet + v as u64 * per_view + images + train + lift + lpips + 300_000_000;
@@ -312,14 +343,15 @@ pub fn work_plan(
     }
 }
 
-/// The units of work of a run of `views` views, `view_batch` per UNet call, whose CCM steps lift
-/// `ccm_layers` layers: what [`crate::consistency::MultiView::run`] and the editing loop count, less the
-/// map reads (their number and size are known only when the UNet runs).
+/// The units of work of a run of `views` views, `view_batch` per UNet call, whose CCM steps lift in
+/// `ccm_rounds` rounds (one per map size of the recorded layers): what
+/// [`crate::consistency::MultiView::run`] and the editing loop count, less the map reads (their number and
+/// size are known only when the UNet runs).
 pub fn planned_work(
     job: &EditJob,
     views: usize,
     view_batch: usize,
-    ccm_layers: usize,
+    ccm_rounds: usize,
 ) -> WorkLedger {
     let mut w = WorkLedger::default();
     let joint = job.guidance == GuidanceMode::Joint;
@@ -337,8 +369,8 @@ pub fn planned_work(
         if joint && c.ccm_steps.contains(&i) {
             w.ccm.unet_calls += calls;
             w.ccm.unet_samples += views * samples(i, true);
-            w.ccm.lifting_rounds += ccm_layers;
-            w.ccm.render_backs += ccm_layers * views;
+            w.ccm.lifting_rounds += ccm_rounds;
+            w.ccm.render_backs += ccm_rounds * views;
         }
         if joint && c.ecm.steps.contains(&i) {
             let (epochs, _) = c.ecm.schedule(views);

@@ -337,7 +337,7 @@ fn fit_on_the_gpu_tracks_the_cpu_fit() {
 }
 
 /// Three 40×34 cameras turning around the random scenes' centre, for the lifting tests.
-fn three_views() -> Vec<Camera> {
+pub(crate) fn three_views() -> Vec<Camera> {
     (0..3)
         .map(|k| {
             let a = k as f64 * 0.3;

@@ -195,6 +195,16 @@ enum ViewMap<'m> {
     },
 }
 
+/// `len` zeros written into fresh memory rather than allocated zeroed. The sums are read before they are
+/// first written, and a zeroed allocation's page that is read first maps the shared zero page: each page
+/// then faults twice, the second time copying and flushing the TLB of every core. With hundreds of
+/// channels that was a third of a lifting round's time, in the kernel (perf, 2026-12-07).
+fn written_zeros(len: usize) -> Vec<f32> {
+    let mut v = Vec::with_capacity(len);
+    v.resize(len, 0.0);
+    v
+}
+
 /// `dst += w · src`, elementwise.
 #[inline(always)]
 fn add_to(dst: &mut [f32], src: &[f32], w: f32) {
@@ -218,11 +228,14 @@ impl<'s> LiftAccumulator<'s> {
             scene,
             params: Params::from_scene(scene),
             channels,
-            // More slots than threads balance the interleaved tile sets; each costs N*C floats.
-            slots: (0..2 * rayon::current_num_threads().max(1))
-                .map(|_| Mutex::new(None))
-                .collect(),
+            slots: (0..Self::slot_count()).map(|_| Mutex::new(None)).collect(),
         }
+    }
+
+    /// The partial sums an accumulator keeps, each N*C floats: more slots than threads balance the
+    /// interleaved tile sets.
+    pub fn slot_count() -> usize {
+        2 * rayon::current_num_threads().max(1)
     }
 
     /// Adds one view's map (H*W*C for `cam`).
@@ -297,7 +310,7 @@ impl<'s> LiftAccumulator<'s> {
             let mut tile_sums = TileSums::default();
             let mut guard = slots[slot].lock().unwrap_or_else(|e| e.into_inner());
             let acc = guard.get_or_insert_with(|| Accum {
-                sums: vec![0.0; n * channels],
+                sums: written_zeros(n * channels),
                 counts: vec![0; n],
             });
             for tile in (slot..tiles).step_by(stride) {
