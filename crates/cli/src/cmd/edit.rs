@@ -353,7 +353,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         }
     }
     crate::interrupt::resumable_run_in(&args.out);
-    if !args.no_estimate && !args.resume && edit::run::worth_calibrating(&plan) {
+    if !args.no_estimate && !args.resume && plan.worth_calibrating() {
         // After every check, so a refused run costs nothing; the GPU's kernels compiled here are the run's.
         eprintln!("      estimating the time (--no-estimate skips it):");
         let camera = &cameras[0];
@@ -362,9 +362,8 @@ pub fn run(args: Args) -> anyhow::Result<()> {
                 eprintln!("      {line}")
             })
             .context("timing the run's unit costs (--no-estimate skips it)")?;
-        let estimate = edit::run::Estimate::new(&plan, calibration);
+        let estimate = plan.set_estimate(calibration);
         eprintln!("      {}", estimate.describe());
-        plan.estimate = Some(estimate);
     }
     let estimate = plan.estimate;
     let mut progress = Reporter::new().on_gpu(!compute.splat().is_cpu());

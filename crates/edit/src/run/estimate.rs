@@ -22,7 +22,6 @@ use splat::{Camera, GaussianScene};
 use crate::sampler::EditModel;
 
 use super::job::{EditJob, RunError};
-use super::work::WorkPlan;
 
 /// Plans with fewer UNet calls than this are not calibrated: the calibration would cost a noticeable
 /// share of the run, and a short run shows its pace soon enough.
@@ -70,13 +69,27 @@ pub struct Estimate {
     pub calibration: Calibration,
 }
 
+/// The counts of a run's plan that its estimate scales the unit costs by (`WorkPlan::counts`).
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct PlannedCounts {
+    /// View passes through the UNet (recording passes included) and views per call.
+    pub unet_calls: usize,
+    pub view_batch: usize,
+    /// UNet samples the run computes (0: not counted; then six a view pass).
+    pub unet_samples: usize,
+    pub renders: usize,
+    pub fit_steps: usize,
+    /// Lifting passes, in units of one view's round of a CCM-wide map.
+    pub lifts: usize,
+}
+
 impl Estimate {
     /// From the plan's counts and the unit costs. The calibration times a call of `view_batch` views with
     /// six samples each; a run computes only the samples that are read (`BatchLayout`: 5, 4 or 3 a view
     /// with default settings), so where the plan counts its samples the UNet's time follows them.
-    pub fn new(plan: &WorkPlan, calibration: Calibration) -> Self {
+    pub fn new(plan: &PlannedCounts, calibration: Calibration) -> Self {
         let calls = plan.unet_calls.div_ceil(plan.view_batch.max(1));
-        let samples = plan.work.total().unet_samples;
+        let samples = plan.unet_samples;
         let unet = if samples > 0 {
             samples as f64 / (6 * plan.view_batch.max(1)) as f64 * calibration.unet_call
         } else {
@@ -104,9 +117,9 @@ impl Estimate {
     }
 }
 
-/// Whether `plan` is long enough to be worth calibrating.
-pub fn worth_calibrating(plan: &WorkPlan) -> bool {
-    plan.unet_calls >= CALIBRATE_FROM_UNET_CALLS
+/// Whether a plan of `unet_calls` view passes is long enough to be worth calibrating.
+pub fn worth_calibrating(unet_calls: usize) -> bool {
+    unet_calls >= CALIBRATE_FROM_UNET_CALLS
 }
 
 /// Times the unit costs of `job` on `model`'s device with `scene` seen from `camera` (at the run's size);
@@ -299,21 +312,14 @@ pub(crate) fn about(secs: f64) -> String {
 mod tests {
     use super::*;
 
-    fn plan(unet_calls: usize, view_batch: usize) -> WorkPlan {
-        WorkPlan {
-            views: 8,
-            iterations: 2,
+    fn plan(unet_calls: usize, view_batch: usize) -> PlannedCounts {
+        PlannedCounts {
             unet_calls,
+            view_batch,
+            unet_samples: 0,
             renders: 100,
             fit_steps: 500,
             lifts: 20,
-            ccm_layers: 11,
-            memory_bytes: 0,
-            gpu_memory_bytes: None,
-            gpu_free_bytes: None,
-            view_batch,
-            estimate: None,
-            work: Default::default(),
         }
     }
 
@@ -338,7 +344,7 @@ mod tests {
         // Where the plan counts its samples (4 of the 6 a call was timed with, for each of the 272 view
         // passes), the UNet's time follows them.
         let mut counted = plan(272, 1);
-        counted.work.unet.unet_samples = 272 * 4;
+        counted.unet_samples = 272 * 4;
         assert!((Estimate::new(&counted, c).unet - 544.0 * 4.0 / 6.0).abs() < 1e-9);
         assert_eq!(
             e.describe(),
@@ -423,8 +429,8 @@ mod tests {
 
     #[test]
     fn short_plans_are_not_calibrated() {
-        assert!(!worth_calibrating(&plan(CALIBRATE_FROM_UNET_CALLS - 1, 1)));
-        assert!(worth_calibrating(&plan(CALIBRATE_FROM_UNET_CALLS, 1)));
+        assert!(!worth_calibrating(CALIBRATE_FROM_UNET_CALLS - 1));
+        assert!(worth_calibrating(CALIBRATE_FROM_UNET_CALLS));
     }
 
     #[test]

@@ -27,7 +27,7 @@ mod shape;
 mod work;
 
 pub use edit_loop::{edit_scene, run_edit, scene_extent};
-pub use estimate::{calibrate, worth_calibrating, Calibration, Estimate};
+pub use estimate::{calibrate, Calibration, Estimate, PlannedCounts};
 pub use job::{
     DeltaDecode, EditJob, EditResult, GuidanceMode, IterationTimes, MaskSource, Progress, Quiet,
     RunError,

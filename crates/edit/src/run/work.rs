@@ -9,7 +9,7 @@ use crate::fit::LPIPS_CACHE_BYTES;
 use crate::ledger::WorkLedger;
 use crate::sampler::{EditModel, DEFAULT_STORE_MAX_TOKENS};
 
-use super::estimate::Estimate;
+use super::estimate::{worth_calibrating, Calibration, Estimate, PlannedCounts};
 use super::job::{EditJob, GuidanceMode};
 
 /// The work a run will do and the memory it needs, printed before it starts.
@@ -39,6 +39,30 @@ pub struct WorkPlan {
 }
 
 impl WorkPlan {
+    /// The counts the time estimate scales its unit costs by.
+    pub fn counts(&self) -> PlannedCounts {
+        PlannedCounts {
+            unet_calls: self.unet_calls,
+            view_batch: self.view_batch,
+            unet_samples: self.work.total().unet_samples,
+            renders: self.renders,
+            fit_steps: self.fit_steps,
+            lifts: self.lifts,
+        }
+    }
+
+    /// Whether the run is long enough to be worth timing its unit costs first.
+    pub fn worth_calibrating(&self) -> bool {
+        worth_calibrating(self.unet_calls)
+    }
+
+    /// Sets the run's time estimate from its unit costs measured here ([`super::calibrate`]).
+    pub fn set_estimate(&mut self, calibration: Calibration) -> Estimate {
+        let estimate = Estimate::new(&self.counts(), calibration);
+        self.estimate = Some(estimate);
+        estimate
+    }
+
     pub fn describe(&self) -> String {
         let gpu = self.gpu_memory_bytes.map_or(String::new(), |b| {
             let free = self.gpu_free_bytes.map_or(String::new(), |f| {
