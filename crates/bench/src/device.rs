@@ -4,7 +4,7 @@
 //! `vcedit bench device [--device gpu|auto|cuda|wgpu] [--require-hardware]`: one `RESULT` line with every
 //! adapter wgpu lists and the device opened (its runtime: CUDA or wgpu, see `VCEDIT_GPU_RUNTIME`). `--require-hardware` fails (exit 1) when the opened adapter is a
 //! software rasteriser (lavapipe/llvmpipe): a hardware measurement must never silently run on the CPU.
-//! `--overhead` adds a second `RESULT` line: what the host costs around the kernels (see [`overhead`]).
+//! `--overhead` adds a second `RESULT` line: what the host costs around the kernels (see `overhead`).
 
 use std::time::Instant;
 

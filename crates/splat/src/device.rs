@@ -229,6 +229,7 @@ impl SplatDevice {
             scene,
             cameras,
             gpu: None,
+            pass_channels: None,
         }
     }
 
@@ -251,56 +252,114 @@ pub struct LiftSession<'s> {
     cameras: &'s [Camera],
     /// The uploaded scene and the kept views, made at the first round on a GPU.
     gpu: Option<Box<GpuLiftScene>>,
+    /// Channels per pass when set (tests), instead of what the device's bounds allow.
+    pass_channels: Option<usize>,
 }
 
+/// A view's map on the grid, from its index.
+type MapOf<'a, E> = dyn FnMut(usize) -> Result<Vec<f32>, E> + 'a;
+/// Where a view's rendered-back map goes.
+type MapSink<'a, E> = dyn FnMut(usize, Vec<f32>) -> Result<(), E> + 'a;
+/// One pass of a round: a grid's channels lifted and rendered back.
+type Pass<'a, E> =
+    dyn FnMut(&MapGrid, &mut MapOf<'_, E>, &mut MapSink<'_, E>) -> Result<(), E> + 'a;
+
 impl LiftSession<'_> {
-    /// One round of [`SplatDevice::lift_and_render_back`] over the session's scene and cameras.
+    /// One round of [`SplatDevice::lift_and_render_back`] over the session's scene and cameras. A round
+    /// of more channels than the device's bounds allow in one pass (CCM stacks all layers of one map
+    /// size) runs in passes over slices of its channels, with the same result.
     ///
     /// # Panics
     /// When a map is not `grid.len()` long (a programming error).
     pub fn lift_and_render_back<E: From<GpuError>>(
         &mut self,
         grid: &MapGrid,
-        map_of: &mut dyn FnMut(usize) -> Result<Vec<f32>, E>,
-        sink: &mut dyn FnMut(usize, Vec<f32>) -> Result<(), E>,
+        map_of: &mut MapOf<'_, E>,
+        sink: &mut MapSink<'_, E>,
     ) -> Result<(), E> {
         let (scene, cameras) = (self.scene, self.cameras);
         if cameras.is_empty() || grid.is_empty() {
             return Ok(());
         }
-        if let SplatDevice::Gpu(ctx) = &self.device {
-            let lift = match &mut self.gpu {
-                Some(lift) => lift,
-                None => self.gpu.insert(Box::new(::gpu::gpu_call(|| {
-                    Ok(GpuLiftScene::new(ctx, scene))
-                })?)),
-            };
-            return lift.lift_and_render_back(ctx, cameras, grid, map_of, sink);
+        let chunk = self
+            .pass_channels
+            .unwrap_or_else(|| self.channels_per_pass(grid.channels));
+        let device = &self.device;
+        let kept = &mut self.gpu;
+        in_passes(
+            grid,
+            chunk,
+            cameras.len(),
+            map_of,
+            sink,
+            &mut |grid, map_of, sink| match device {
+                SplatDevice::Cpu => cpu_round(scene, cameras, grid, map_of, sink),
+                SplatDevice::Gpu(ctx) => {
+                    let lift = match kept {
+                        Some(lift) => lift,
+                        None => kept.insert(Box::new(::gpu::gpu_call(|| {
+                            Ok(GpuLiftScene::new(ctx, scene))
+                        })?)),
+                    };
+                    lift.lift_and_render_back(ctx, cameras, grid, map_of, sink)
+                }
+            },
+        )
+    }
+
+    /// Channels one pass takes (at least one): on the CPU within [`CPU_LIFT_PASS_BYTES`]; on a GPU with
+    /// each of its per-channel buffers (the sums over the Gaussians, a view's map or frame at full
+    /// resolution) within the device's largest buffer.
+    fn channels_per_pass(&self, channels: usize) -> usize {
+        let pixels = self
+            .cameras
+            .iter()
+            .map(|c| c.width as u64 * c.height as u64)
+            .max()
+            .unwrap_or(0);
+        let gaussians = self.scene.len();
+        let fit = |budget: u64, per_channel: u64| {
+            ((budget / per_channel.max(1)) as usize).clamp(1, channels.max(1))
+        };
+        match &self.device {
+            SplatDevice::Cpu => fit(
+                CPU_LIFT_PASS_BYTES,
+                cpu_lift_channel_bytes(gaussians, pixels),
+            ),
+            SplatDevice::Gpu(ctx) => fit(
+                ctx.limits.max_buffer_bytes,
+                4 * (gaussians as u64).max(pixels),
+            ),
         }
-        let chunk = cpu_channels_per_pass(scene.len(), cameras, grid.channels);
-        cpu_round_in_passes(scene, cameras, grid, chunk, map_of, sink)
+    }
+
+    /// Runs later rounds in passes of `channels` channels, whatever the bounds allow.
+    #[cfg(test)]
+    fn with_pass_channels(mut self, channels: usize) -> Self {
+        self.pass_channels = Some(channels);
+        self
     }
 }
 
-/// One lifting round on the CPU in passes of at most `chunk` channels: one pass when they all fit, else
-/// passes over slices of the channels (each channel's result does not depend on the others'), the
-/// grid-sized maps held meanwhile.
-fn cpu_round_in_passes<E>(
-    scene: &GaussianScene,
-    cameras: &[Camera],
+/// A round in passes of at most `chunk` channels: one pass when they all fit, else passes over slices
+/// of the channels (each channel's result does not depend on the others'), the grid-sized maps held
+/// meanwhile.
+fn in_passes<E>(
     grid: &MapGrid,
     chunk: usize,
-    map_of: &mut dyn FnMut(usize) -> Result<Vec<f32>, E>,
-    sink: &mut dyn FnMut(usize, Vec<f32>) -> Result<(), E>,
+    views: usize,
+    map_of: &mut MapOf<'_, E>,
+    sink: &mut MapSink<'_, E>,
+    round: &mut Pass<'_, E>,
 ) -> Result<(), E> {
     if chunk >= grid.channels {
-        return cpu_round(scene, cameras, grid, map_of, sink);
+        return round(grid, map_of, sink);
     }
     let chunk = chunk.max(1);
-    let maps = (0..cameras.len())
+    let maps = (0..views)
         .map(&mut *map_of)
         .collect::<Result<Vec<_>, E>>()?;
-    let mut backs = vec![vec![0f32; grid.len()]; cameras.len()];
+    let mut backs = vec![vec![0f32; grid.len()]; views];
     let channels = grid.channels;
     for first in (0..channels).step_by(chunk) {
         let width = chunk.min(channels - first);
@@ -310,9 +369,7 @@ fn cpu_round_in_passes<E>(
                 .copied()
                 .collect()
         };
-        cpu_round(
-            scene,
-            cameras,
+        round(
             &MapGrid {
                 channels: width,
                 ..*grid
@@ -346,17 +403,6 @@ pub fn cpu_lift_round_bytes(gaussians: usize, pixels: u64, channels: usize) -> u
 
 fn cpu_lift_channel_bytes(gaussians: usize, pixels: u64) -> u64 {
     4 * (LiftAccumulator::slot_count() as u64 * gaussians as u64 + pixels)
-}
-
-/// Channels one CPU lifting pass takes within [`CPU_LIFT_PASS_BYTES`] (at least one).
-pub fn cpu_channels_per_pass(gaussians: usize, cameras: &[Camera], channels: usize) -> usize {
-    let pixels = cameras
-        .iter()
-        .map(|c| c.width as u64 * c.height as u64)
-        .max()
-        .unwrap_or(0);
-    let per_channel = cpu_lift_channel_bytes(gaussians, pixels);
-    ((CPU_LIFT_PASS_BYTES / per_channel.max(1)) as usize).clamp(1, channels.max(1))
 }
 
 /// One lifting round on the CPU, all of `grid`'s channels in one pass.
@@ -502,20 +548,9 @@ mod tests {
             let whole = round(&mut session, 7, &stacked);
             let a = round(&mut session, 3, &|v| part(v, 3, 1));
             let b = round(&mut session, 4, &|v| part(v, 4, 2));
-            // The CPU's passes over slices of the channels (its memory bound): the same again.
-            let mut in_passes_of_two = vec![Vec::new(); cams.len()];
-            cpu_round_in_passes::<GpuError>(
-                &scene,
-                &cams,
-                &grid(7),
-                2,
-                &mut |v| Ok(stacked(v)),
-                &mut |v, m| {
-                    in_passes_of_two[v] = m;
-                    Ok(())
-                },
-            )
-            .unwrap();
+            // Passes over slices of the channels (the devices' memory bounds): the same again.
+            let mut in_passes = device.lift_session(&scene, &cams).with_pass_channels(2);
+            let in_passes_of_two = round(&mut in_passes, 7, &stacked);
             for v in 0..cams.len() {
                 let split: Vec<f32> = a[v]
                     .chunks(3)
@@ -527,12 +562,15 @@ mod tests {
                     assert_eq!(whole[v], split, "view {v}");
                     assert_eq!(in_passes_of_two[v], split, "view {v}, passes of 2 channels");
                 } else {
-                    let worst = whole[v]
-                        .iter()
-                        .zip(&split)
-                        .map(|(x, y)| (x - y).abs())
-                        .fold(0.0f32, f32::max);
-                    assert!(worst < 1e-5, "view {v}: off by {worst}");
+                    for (got, what) in [(&whole[v], "stacked"), (&in_passes_of_two[v], "in passes")]
+                    {
+                        let worst = got
+                            .iter()
+                            .zip(&split)
+                            .map(|(x, y)| (x - y).abs())
+                            .fold(0.0f32, f32::max);
+                        assert!(worst < 1e-5, "view {v}, {what}: off by {worst}");
+                    }
                 }
             }
         }

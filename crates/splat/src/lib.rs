@@ -6,7 +6,7 @@
 //! - input/output: [`formats`] (every scene reader and writer; [`read_scene`] and [`open_scene`] the
 //!   entries);
 //! - rendering: [`render`] (CPU: projection → tile binning → rasterisation, each with its backward) and
-//!   [`gpu`] (the CubeCL twins), joined behind [`SplatDevice`], the device seam; [`lift`];
+//!   `gpu` (the CubeCL twins), joined behind [`SplatDevice`], the device seam; [`lift`];
 //! - training: [`train`] (the trainer, optimiser, densification, anchors, losses, checkpoints, the scene
 //!   fit).
 //!

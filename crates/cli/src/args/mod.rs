@@ -39,7 +39,7 @@ use parse::{parse_colour, parse_size, positive, whole};
 
 /// A value the command refuses after parsing: a range one option's parser cannot check alone (it depends
 /// on another option, or on the input). Reported like clap's usage errors, with exit code 2 (see
-/// `main`); raised with [`usage!`].
+/// `main`); raised with [`usage!`](crate::usage).
 #[derive(Debug)]
 pub struct UsageError(pub String);
 

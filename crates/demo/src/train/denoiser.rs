@@ -24,7 +24,7 @@ pub struct LatentSet {
     pub std: Tensor,
     /// Token ids [N, max_positions] (u32).
     pub ids: Tensor,
-    /// Ids of the empty prompt [max_positions] (u32).
+    /// Ids of the empty prompt `[max_positions]` (u32).
     pub empty_ids: Tensor,
     pub scaling_factor: f64,
 }

@@ -4,7 +4,7 @@
 //!
 //! - [`shape`]: [`ShapeKind`] (the object words of the captions) and [`Shape`] (their dimensions).
 //! - [`spec`]: [`SceneSpec`] (what a scene contains, serde), random or caption-driven generation.
-//! - [`caption`]: the caption grammar and [`VOCABULARY`], [`caption()`](caption::caption) and
+//! - [`caption`](mod@caption): the caption grammar and [`VOCABULARY`], [`caption()`](caption::caption) and
 //!   [`parse_caption`].
 //! - [`build`]: spec to Gaussians ([`build_scene`]) with per-Gaussian labels (object, part, colour slot).
 //! - [`dataset`]: random orbit views, rendered samples, deterministic parallel streams, sample grids.

@@ -170,13 +170,13 @@ pub trait Storage: Sized {
     /// [`super::layer_norm`] over the last dimension.
     fn layer_norm(&self, weight: &Tensor, bias: &Tensor, eps: f64) -> Result<Self>;
     fn softmax_last_dim(&self) -> Result<Self>;
-    /// [`super::geglu`] (the last dimension split in value and gate halves).
+    /// `super::geglu` (the last dimension split in value and gate halves).
     fn geglu(&self) -> Result<Self>;
     /// `self × otherᵀ` over the last two dimensions.
     fn matmul_t(&self, other: &Self) -> Result<Self>;
     /// Batched matrix product.
     fn matmul(&self, other: &Self) -> Result<Self>;
-    /// `softmax(q·kᵀ·scale)·v` ([`super::attention`]).
+    /// `softmax(q·kᵀ·scale)·v` (`super::attention`).
     fn attention(q: &Self, k: &Self, v: &Self, scale: f64) -> Result<Self>;
 
     /// [`super::vgg::max_pool2x2`] (NCHW, 2×2, stride 2, floor mode).
@@ -458,7 +458,7 @@ impl DeviceTensor {
         Ok(dispatch!(self, x => Storage::softmax_last_dim(x)))
     }
 
-    /// [`super::geglu`] on the tensor's device.
+    /// `super::geglu` on the tensor's device.
     pub fn geglu(&self) -> Result<DeviceTensor> {
         Ok(dispatch!(self, x => Storage::geglu(x)))
     }
@@ -473,7 +473,7 @@ impl DeviceTensor {
         Ok(dispatch2!(self, other, (a, b) => Storage::matmul(a, b)))
     }
 
-    /// [`super::attention`] on the operands' device (on the GPU, `ops::attention`'s path).
+    /// `super::attention` on the operands' device (on the GPU, `ops::attention`'s path).
     pub fn attention(
         q: &DeviceTensor,
         k: &DeviceTensor,

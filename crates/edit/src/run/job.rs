@@ -130,7 +130,7 @@ pub struct EditJob {
     /// the run can be resumed without it.
     #[serde(skip)]
     pub stop_after_iteration: Option<usize>,
-    /// Views per UNet call; `None` chooses ([`super::work::view_batch`]). How the work is scheduled, not
+    /// Views per UNet call; `None` chooses (`work::view_batch`). How the work is scheduled, not
     /// what it computes: left out of run.json and the fingerprint.
     #[serde(skip)]
     pub view_batch: Option<usize>,

@@ -32,7 +32,7 @@ pub struct WorkPlan {
     pub gpu_free_bytes: Option<u64>,
     /// Views per UNet call.
     pub view_batch: usize,
-    /// How long the run will take, where it was calibrated ([`super::estimate`]).
+    /// How long the run will take, where it was calibrated ([`super::calibrate`]).
     pub estimate: Option<Estimate>,
     /// The units of work per stage the run will do (its `run.json` counts what it did).
     pub work: WorkLedger,

@@ -258,7 +258,7 @@ impl<'s> LiftAccumulator<'s> {
 
     /// Adds one view's map given on `grid` (`grid.len()` values), as [`Self::add_view`] adds it upsampled
     /// to the camera's resolution (`grid.up`), equal to float rounding, without making the upsampled map:
-    /// see [`GridSink`]. Grids finer than [`MAX_GRID_SPAN`] cells per tile side are upsampled.
+    /// see `GridSink`. Grids finer than `MAX_GRID_SPAN` cells per tile side are upsampled.
     ///
     /// # Panics
     /// When the map has the wrong size or `grid.channels` is not the accumulator's (programming errors).

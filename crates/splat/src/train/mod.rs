@@ -122,7 +122,7 @@ impl TrainState {
 pub struct RenderedView<'a> {
     /// dL/d(pixel centre) per Gaussian ([`SceneGrads::means2d`]).
     pub means2d: &'a [[f32; 2]],
-    /// Screen radius per Gaussian in pixels, 0 = not rendered ([`crate::render::RenderOutput::radii`]).
+    /// Screen radius per Gaussian in pixels, 0 = not rendered ([`crate::render::Frame::radii`]).
     pub radii: &'a [u32],
     pub width: u32,
     pub height: u32,

@@ -1169,7 +1169,7 @@ pub fn matmul_scaled(
     gemm(a, b, GemmBias::None, None, &g, out_shape)
 }
 
-/// A linear layer: x [.., in] × weightᵀ (weight [out, in]) + bias [out] (+ `residual`, of the output's
+/// A linear layer: x [.., in] × weightᵀ (weight `[out, in]`) + bias `[out]` (+ `residual`, of the output's
 /// shape, in the same pass as the bias).
 pub fn linear(
     x: &GpuTensor,
