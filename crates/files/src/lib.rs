@@ -36,4 +36,4 @@ pub use paths::{check_not_inputs, same_file, PathError};
 pub use regular::{check_regular, open_regular, read_regular};
 pub use rundir::{Previous, RunDir, RunDirError, RunDirMode, MANIFEST_NAME};
 pub use swap::replace_folder;
-pub use temp::{check_writable_folder, clean_stale_temps};
+pub use temp::{check_writable_folder, clean_stale_temps, is_temporary_name};

@@ -165,6 +165,12 @@ pub fn clean_stale_temps(dir: &Path) -> io::Result<usize> {
     Ok(removed)
 }
 
+/// Whether `name` has the shape of a vcedit temporary name (`.NAME.vcedit-tmp-PID-TOKEN`): a file a
+/// vcedit run is writing or probing with, which another run's check of the same folder passes over.
+pub fn is_temporary_name(name: &str) -> bool {
+    temp_owner(name).is_some()
+}
+
 /// The process id in a temporary name of ours (`.NAME.vcedit-tmp-PID-TOKEN`), if it is one.
 fn temp_owner(name: &str) -> Option<u32> {
     if !name.starts_with('.') {

@@ -347,36 +347,100 @@ pub fn read_folder(meta_path: &Path) -> Result<GaussianScene, String> {
 /// The files of the SOG folder `dir` that vcedit may replace, decided by content: `None` when the folder
 /// is not a SOG scene (no `meta.json`, one that is not SOG metadata) or holds anything besides
 /// `meta.json` and the textures it names (a subfolder, a link, someone else's file). A missing or empty
-/// folder is `Some` of nothing.
+/// folder is `Some` of nothing. Temporary files of vcedit runs (`files::is_temporary_name`) are passed
+/// over: a second run checking the folder at the same time probes it with one.
 pub fn replaceable_files(dir: &Path) -> Option<Vec<String>> {
+    replaceable(dir).map(|listing| listing.scene)
+}
+
+/// A SOG folder's files that vcedit may replace.
+#[derive(Default)]
+struct Listing {
+    /// `meta.json` and the textures it names.
+    scene: Vec<String>,
+    /// Temporary files of vcedit runs, passed over by the checks.
+    temporaries: Vec<String>,
+}
+
+/// [`replaceable_files`] and, apart, the temporary files of vcedit runs it passed over.
+fn replaceable(dir: &Path) -> Option<Listing> {
+    // Another run may swap its folder in while this one is read ([`files::replace_folder`]): the folder
+    // opened is then emptied and removed under another name, and its listing fails or names files that
+    // are gone. The path names the other run's whole folder by then, so it is read again.
+    for _ in 0..4 {
+        if let Ok(files) = read_replaceable(dir) {
+            return files;
+        }
+    }
+    None
+}
+
+/// The folder was swapped out while it was read.
+struct Vanished;
+
+/// One reading of [`replaceable_files`].
+fn read_replaceable(dir: &Path) -> Result<Option<Listing>, Vanished> {
+    use std::io::ErrorKind::NotFound;
+    let gone = |e: &std::io::Error| e.kind() == NotFound;
     let entries = match std::fs::read_dir(dir) {
         Ok(e) => e,
-        Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Some(Vec::new()),
-        Err(_) => return None,
+        Err(e) if gone(&e) => return Ok(Some(Default::default())),
+        Err(_) => return Ok(None),
     };
     let mut present = Vec::new();
+    let mut temporaries = Vec::new();
     for entry in entries {
-        let entry = entry.ok()?;
-        if !std::fs::symlink_metadata(entry.path()).ok()?.is_file() {
-            return None;
+        let entry = match entry {
+            Ok(entry) => entry,
+            Err(e) if gone(&e) => return Err(Vanished),
+            Err(_) => return Ok(None),
+        };
+        match std::fs::symlink_metadata(entry.path()) {
+            Ok(m) if m.is_file() => {}
+            Err(e) if gone(&e) => return Err(Vanished),
+            _ => return Ok(None),
         }
-        present.push(entry.file_name().to_str()?.to_string());
+        let Some(name) = entry.file_name().to_str().map(str::to_string) else {
+            return Ok(None);
+        };
+        // Another vcedit run's probe of the folder (its output checks) or a file it is writing: not
+        // this scene's, and not someone else's either. Left alone, never listed for replacing.
+        if files::is_temporary_name(&name) {
+            temporaries.push(name);
+            continue;
+        }
+        present.push(name);
     }
     if present.is_empty() {
-        return Some(present);
+        return Ok(Some(Listing {
+            scene: present,
+            temporaries,
+        }));
     }
-    let meta_file = files::open_regular(&dir.join("meta.json")).ok()?;
-    let meta: Meta = serde_json::from_slice(&read_limited(meta_file, "meta.json").ok()?).ok()?;
+    let meta_file = match files::open_regular(&dir.join("meta.json")) {
+        Ok(f) => f,
+        Err(e) if gone(&e) => return Err(Vanished),
+        Err(_) => return Ok(None),
+    };
+    let Some(meta) = read_limited(meta_file, "meta.json")
+        .ok()
+        .and_then(|bytes| serde_json::from_slice::<Meta>(&bytes).ok())
+    else {
+        return Ok(None);
+    };
     let mut listed = vec!["meta.json".to_string()];
     listed.extend(meta.means.files);
     listed.extend(meta.scales.files);
     listed.extend(meta.quats.files);
     listed.extend(meta.sh0.files);
     listed.extend(meta.sh_n.into_iter().flat_map(|s| s.files));
-    present
+    Ok(present
         .iter()
         .all(|p| listed.contains(p))
-        .then_some(present)
+        .then_some(Listing {
+            scene: present,
+            temporaries,
+        }))
 }
 
 /// Writes SOG `files` (from [`encode`]) as the folder `dir`, replacing an earlier SOG folder there as a
@@ -392,7 +456,14 @@ pub fn write_folder(dir: &Path, files: &[(String, Vec<u8>)]) -> Result<u64, Stri
         }
         Ok(())
     };
-    files::replace_folder(dir, fill, |old| replaceable_files(old).unwrap_or_default())
+    // The old folder goes whole: its scene, and any probe another run made in it while it was the
+    // output (that run's own clean-up then misses it, as the path names the new folder).
+    let discardable = |old: &Path| {
+        replaceable(old)
+            .map(|listing| [listing.scene, listing.temporaries].concat())
+            .unwrap_or_default()
+    };
+    files::replace_folder(dir, fill, discardable)
         .map_err(|e| format!("cannot write the folder {}: {e}", dir.display()))?;
     Ok(files.iter().map(|(_, d)| d.len() as u64).sum())
 }

@@ -696,3 +696,23 @@ fn sog_folders_are_replaced_whole_and_only_over_a_scene() {
         r#"{"title": "my site"}"#
     );
 }
+
+/// A SOG folder stays replaceable while another vcedit run probes it (its output checks make a
+/// temporary file there): two runs writing one folder at once both pass their checks. Anyone else's file
+/// still makes the folder off limits, even one that looks like a temporary name of another program.
+#[test]
+fn another_runs_probe_in_a_sog_folder_does_not_make_it_foreign() {
+    let dir = tempfile::tempdir().unwrap();
+    let sog = dir.path().join("sog");
+    std::fs::create_dir(&sog).unwrap();
+    write_scene(&sog.join("meta.json"), &scene(0, 20, 1)).unwrap();
+    let textures = sog::replaceable_files(&sog).expect("a SOG folder");
+    std::fs::write(sog.join(".probe.vcedit-tmp-4194305-Ab3dE5fG7hJ9"), b"").unwrap();
+    assert_eq!(sog::replaceable_files(&sog), Some(textures));
+    assert!(check_scene_output(&sog.join("meta.json")).is_ok());
+    for foreign in [".probe.vcedit-tmp-4194305-short", "notes.txt"] {
+        std::fs::write(sog.join(foreign), b"mine").unwrap();
+        assert_eq!(sog::replaceable_files(&sog), None, "{foreign}");
+        std::fs::remove_file(sog.join(foreign)).unwrap();
+    }
+}
