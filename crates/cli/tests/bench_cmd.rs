@@ -1,12 +1,8 @@
 //! `vcedit bench` end to end on the CPU with the tiny fixture pipeline: each model-folder bench prints its
 //! `RESULT` lines (what tools/gpu-check parses), and bad input is one line with a non-zero exit.
 
-use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
-
-fn tiny_lcm() -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join("../../fixtures/models/tiny-lcm")
-}
+use testkit::paths::tiny_lcm;
 
 fn vcedit(args: &[&str]) -> Output {
     Command::new(env!("CARGO_BIN_EXE_vcedit"))

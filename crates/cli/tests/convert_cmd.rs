@@ -3,6 +3,7 @@
 use splat::GaussianScene;
 use std::path::Path;
 use std::process::{Command, Output};
+use testkit::output::stdout_of_success;
 
 fn vcedit(args: &[&Path]) -> Output {
     Command::new(env!("CARGO_BIN_EXE_vcedit"))
@@ -40,15 +41,6 @@ fn spiral() -> GaussianScene {
     }
 }
 
-fn stdout(out: &Output) -> String {
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    String::from_utf8(out.stdout.clone()).unwrap()
-}
-
 #[test]
 fn converts_between_every_format_and_states_the_error() {
     let dir = tempfile::tempdir().unwrap();
@@ -65,7 +57,7 @@ fn converts_between_every_format_and_states_the_error() {
         "e.splat",
     ] {
         let out = dir.path().join(name);
-        let text = stdout(&convert(&previous, &out));
+        let text = stdout_of_success(&convert(&previous, &out));
         assert!(text.contains("300 Gaussians"), "{name}: {text}");
         if name == "d.ply" {
             assert!(text.contains("lossless"), "{text}");
@@ -81,7 +73,7 @@ fn converts_between_every_format_and_states_the_error() {
             assert!(text.contains("SH degree 2"), "{text}");
         }
         // Every other command reads the result too.
-        let inspected = stdout(&vcedit(&[Path::new("inspect"), &out]));
+        let inspected = stdout_of_success(&vcedit(&[Path::new("inspect"), &out]));
         assert!(inspected.contains("300"), "{inspected}");
         previous = out;
     }

@@ -1,7 +1,7 @@
 //! `vcedit demo-model` end to end: a tiny training run and sampling through the binary, and the committed
 //! demo model (`models/demo`) turning a red sphere into a blue one with `vcedit edit-image`.
 
-use std::path::{Path, PathBuf};
+use std::path::Path;
 use std::process::Command;
 
 use demo::world::build::{build_scene, BuildSettings, MAIN};
@@ -9,10 +9,7 @@ use demo::world::dataset::{render_view, ring_views};
 use demo::world::oracle::render_labels;
 use demo::world::{GeneratorSettings, SceneSpec};
 use splat::Image;
-
-fn repo() -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join("../..")
-}
+use testkit::paths::repo;
 
 fn vcedit(args: &[&str]) -> (i32, String, String) {
     let out = Command::new(env!("CARGO_BIN_EXE_vcedit"))

@@ -1,14 +1,11 @@
 //! End to end: `vcedit edit` on the tiny conformance model and a small self-made scene.
 
 use std::collections::HashSet;
-use std::path::{Path, PathBuf};
+use std::path::Path;
 use std::process::Command;
 
 use splat::GaussianScene;
-
-fn fixtures() -> PathBuf {
-    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../fixtures")
-}
+use testkit::paths::fixtures;
 
 /// Two blobs of small Gaussians: one at the origin (to edit), one at x = 1.6 (to keep).
 fn two_blobs() -> GaussianScene {

@@ -2,14 +2,7 @@
 
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
-
-fn root() -> PathBuf {
-    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../..")
-}
-
-fn shared() -> PathBuf {
-    root().join("../shared/assets")
-}
+use testkit::paths::{repo, shared_assets};
 
 fn vcedit(args: &[&str]) -> Output {
     Command::new(env!("CARGO_BIN_EXE_vcedit"))
@@ -20,7 +13,7 @@ fn vcedit(args: &[&str]) -> Output {
 
 /// A lego view when the shared assets are there, else a generated RGBA image.
 fn input_image(dir: &Path) -> PathBuf {
-    let lego = shared().join("lego-200/train/r_0.png");
+    let lego = shared_assets().join("lego-200/train/r_0.png");
     if lego.is_file() {
         return lego;
     }
@@ -37,8 +30,8 @@ fn input_image(dir: &Path) -> PathBuf {
 fn writes_image_attention_and_mask_deterministically() {
     let dir = tempfile::tempdir().unwrap();
     let image = input_image(dir.path());
-    let model = root().join("fixtures/models/tiny-lcm");
-    let taesd = shared().join("taesd");
+    let model = repo().join("fixtures/models/tiny-lcm");
+    let taesd = shared_assets().join("taesd");
     let mut args: Vec<String> = vec![
         "edit-image".into(),
         "--model".into(),
@@ -97,7 +90,7 @@ fn writes_image_attention_and_mask_deterministically() {
 fn bad_inputs_give_one_clear_line() {
     let dir = tempfile::tempdir().unwrap();
     let image = input_image(dir.path());
-    let model = root().join("fixtures/models/tiny-lcm");
+    let model = repo().join("fixtures/models/tiny-lcm");
     let long = "a red sphere ".repeat(40);
     let cases: Vec<(Vec<String>, &str)> = vec![
         (

@@ -5,8 +5,7 @@ use splat::ply::write_ply;
 use splat::GaussianScene;
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
-
-const SH_C0: f32 = 0.282_094_8;
+use testkit::output::stdout_of_success;
 
 fn vcedit(args: &[&std::ffi::OsStr]) -> Output {
     Command::new(env!("CARGO_BIN_EXE_vcedit"))
@@ -18,30 +17,17 @@ fn vcedit(args: &[&std::ffi::OsStr]) -> Output {
 
 /// Opaque Gaussians covering a unit sphere with a smooth texture; `recolour` changes those with x > 0.3.
 fn sphere(recolour: bool) -> GaussianScene {
-    let n = 3000;
-    let mut s = GaussianScene::new(0);
-    let golden = std::f32::consts::PI * (3.0 - 5f32.sqrt());
-    let spacing = (4.0 * std::f32::consts::PI / n as f32).sqrt();
-    for i in 0..n {
-        let y = 1.0 - 2.0 * (i as f32 + 0.5) / n as f32;
-        let r = (1.0 - y * y).sqrt();
-        let t = golden * i as f32;
-        let p = [r * t.cos(), y, r * t.sin()];
-        s.means.extend_from_slice(&p);
-        s.log_scales.extend_from_slice(&[(0.7 * spacing).ln(); 3]);
-        s.quats.extend_from_slice(&[1.0, 0.0, 0.0, 0.0]);
-        s.opacity_logits.push(5.0);
-        let mut c = [
-            0.5 + 0.2 * (1.5 * p[0]).sin(),
-            0.5 + 0.2 * (1.2 * p[1]).cos(),
-            0.5 + 0.15 * (2.0 * p[2]).sin(),
-        ];
+    testkit::scenes::textured_sphere(3000, |p| {
         if recolour && p[0] > 0.3 {
-            c = [0.9, 0.2, 0.1];
+            [0.9, 0.2, 0.1]
+        } else {
+            [
+                0.5 + 0.2 * (1.5 * p[0]).sin(),
+                0.5 + 0.2 * (1.2 * p[1]).cos(),
+                0.5 + 0.15 * (2.0 * p[2]).sin(),
+            ]
         }
-        s.sh.extend(c.iter().map(|v| (v - 0.5) / SH_C0));
-    }
-    s
+    })
 }
 
 fn scenes(dir: &Path) -> (PathBuf, PathBuf) {
@@ -52,21 +38,12 @@ fn scenes(dir: &Path) -> (PathBuf, PathBuf) {
     (a, b)
 }
 
-fn ok(out: &Output) -> String {
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    String::from_utf8(out.stdout.clone()).unwrap()
-}
-
 #[test]
 fn compares_two_scenes_with_a_mask_box() {
     let dir = tempfile::tempdir().unwrap();
     let (a, b) = scenes(dir.path());
     let json = dir.path().join("m.json");
-    let text = ok(&vcedit(&[
+    let text = stdout_of_success(&vcedit(&[
         "--source".as_ref(),
         a.as_os_str(),
         "--edited".as_ref(),
@@ -114,7 +91,7 @@ fn identical_scenes_are_perfectly_preserved() {
     let dir = tempfile::tempdir().unwrap();
     let (a, _) = scenes(dir.path());
     let json = dir.path().join("m.json");
-    ok(&vcedit(&[
+    stdout_of_success(&vcedit(&[
         "--source".as_ref(),
         a.as_os_str(),
         "--edited".as_ref(),
@@ -141,7 +118,7 @@ fn clip_directional_similarity_with_the_tiny_fixture() {
     let (a, b) = scenes(dir.path());
     let clip = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../fixtures/clip/tiny-clip");
     let json = dir.path().join("m.json");
-    let text = ok(&vcedit(&[
+    let text = stdout_of_success(&vcedit(&[
         "--source".as_ref(),
         a.as_os_str(),
         "--edited".as_ref(),
@@ -243,7 +220,7 @@ fn scene_options_by_their_full_names_and_json_on_stdout() {
         "32".as_ref(),
         "--json".as_ref(),
     ]);
-    let stdout = ok(&out);
+    let stdout = stdout_of_success(&out);
     let v: serde_json::Value = serde_json::from_str(&stdout).expect("stdout is the JSON alone");
     assert_eq!(v["views"], 4);
     assert!(v["metrics"]["preservation_whole"]["psnr"].is_number());

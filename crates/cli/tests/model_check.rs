@@ -3,10 +3,7 @@
 use std::fs;
 use std::path::{Path, PathBuf};
 use std::process::Command;
-
-fn repo() -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join("../..")
-}
+use testkit::paths::repo;
 
 fn fixture(name: &str) -> PathBuf {
     repo().join("fixtures/models").join(name)

@@ -9,7 +9,10 @@ use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 
 use splat::ply::write_ply;
-use splat::{GaussianScene, Image};
+use splat::Image;
+use testkit::output::assert_one_clear_error;
+use testkit::paths::tiny_lcm;
+use testkit::scenes::red_ball;
 
 fn vcedit_in(cwd: &Path, args: &[&str]) -> Output {
     Command::new(env!("CARGO_BIN_EXE_vcedit"))
@@ -17,10 +20,6 @@ fn vcedit_in(cwd: &Path, args: &[&str]) -> Output {
         .current_dir(cwd)
         .output()
         .expect("run vcedit")
-}
-
-fn tiny_model() -> PathBuf {
-    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../fixtures/models/tiny-lcm")
 }
 
 /// `vcedit edit-image` on `a.png` with the tiny model at 64x64, 2 steps, plus `extra`.
@@ -55,51 +54,6 @@ fn hash_of(path: &Path) -> u64 {
     let mut h = DefaultHasher::new();
     std::fs::read(path).unwrap().hash(&mut h);
     h.finish()
-}
-
-/// The run failed with `code` and said why in one line starting "error: " (clap's usage errors start so
-/// too) that contains every one of `says`, with no part repeated and no backtrace. Progress lines
-/// (what was loaded) may come before it; nothing comes after it.
-#[track_caller]
-fn assert_one_clear_error(o: &Output, code: i32, says: &[&str]) -> String {
-    let stderr = String::from_utf8_lossy(&o.stderr).into_owned();
-    assert_eq!(o.status.code(), Some(code), "{stderr}");
-    let errors: Vec<&str> = stderr.lines().filter(|l| l.starts_with("error")).collect();
-    assert_eq!(errors.len(), 1, "{stderr}");
-    let line = errors[0].to_string();
-    assert!(line.starts_with("error: "), "{stderr}");
-    for s in says {
-        assert!(line.contains(s), "'{s}' not in: {stderr}");
-    }
-    if code == 1 || !stderr.contains("For more information") {
-        // Our own errors (usage errors too; clap's add a hint line): the last line, each ": "-separated
-        // part said once.
-        assert_eq!(stderr.lines().last(), Some(line.as_str()), "{stderr}");
-        let parts: Vec<&str> = line["error: ".len()..].split(": ").collect();
-        for (i, p) in parts.iter().enumerate() {
-            assert!(
-                p.len() < 12 || !parts[i + 1..].contains(p),
-                "'{p}' repeated in: {stderr}"
-            );
-        }
-    }
-    assert!(!stderr.contains("backtrace"), "{stderr}");
-    line
-}
-
-/// A red ball of 64 Gaussians around the origin.
-fn ball() -> GaussianScene {
-    let mut s = GaussianScene::new(0);
-    for i in 0..64 {
-        let t = i as f32 * 0.7;
-        s.means
-            .extend_from_slice(&[0.3 * t.sin(), 0.3 * (1.3 * t).cos(), 0.3 * (0.7 * t).sin()]);
-        s.log_scales.extend_from_slice(&[-2.0; 3]);
-        s.quats.extend_from_slice(&[1.0, 0.0, 0.0, 0.0]);
-        s.opacity_logits.push(3.0);
-        s.sh.extend_from_slice(&[1.8, -1.8, -1.8]);
-    }
-    s
 }
 
 fn write_png(path: &Path, w: u32, h: u32) {
@@ -185,7 +139,7 @@ fn edit_image_never_writes_over_its_image() {
     let dir = tempfile::tempdir().unwrap();
     write_png(&dir.path().join("a.png"), 64, 64);
     let before = hash_of(&dir.path().join("a.png"));
-    let model = tiny_model();
+    let model = tiny_lcm();
     let mut outs = vec!["a.png".to_string(), "./a.png".to_string()];
     outs.push(s(&dir.path().join("sub/../a.png")).to_string());
     std::fs::create_dir(dir.path().join("sub")).unwrap();
@@ -205,7 +159,7 @@ fn edit_image_never_writes_over_its_image() {
 fn metrics_json_and_view_pages_never_replace_a_scene() {
     let dir = tempfile::tempdir().unwrap();
     let a = dir.path().join("a.ply");
-    write_ply(&a, &ball()).unwrap();
+    write_ply(&a, &red_ball()).unwrap();
     let before = hash_of(&a);
     let o = vcedit_in(
         dir.path(),
@@ -285,7 +239,7 @@ fn an_empty_points3d_says_what_is_used_instead() {
 fn prompt_word_options_name_the_word_and_the_prompt() {
     let dir = tempfile::tempdir().unwrap();
     write_png(&dir.path().join("a.png"), 64, 64);
-    let model = tiny_model();
+    let model = tiny_lcm();
     for (extra, says) in [
         (
             ["--blend-words", "dog"],
@@ -345,8 +299,8 @@ fn edit_args<'a>(scene: &'a str, model: &'a str, out: &'a str, extra: &[&'a str]
 #[test]
 fn edit_refuses_bad_arguments_before_making_its_folder() {
     let dir = tempfile::tempdir().unwrap();
-    write_ply(&dir.path().join("ball.ply"), &ball()).unwrap();
-    let model = tiny_model();
+    write_ply(&dir.path().join("ball.ply"), &red_ball()).unwrap();
+    let model = tiny_lcm();
     let model = s(&model);
     for (extra, says) in [
         (
@@ -382,7 +336,7 @@ fn edit_refuses_bad_arguments_before_making_its_folder() {
 #[test]
 fn a_mask_that_selects_nothing_leaves_no_folder() {
     let dir = tempfile::tempdir().unwrap();
-    write_ply(&dir.path().join("ball.ply"), &ball()).unwrap();
+    write_ply(&dir.path().join("ball.ply"), &red_ball()).unwrap();
     let masks = dir.path().join("masks");
     std::fs::create_dir(&masks).unwrap();
     for i in 0..4 {
@@ -390,7 +344,7 @@ fn a_mask_that_selects_nothing_leaves_no_folder() {
             .save_png(&masks.join(format!("orbit_{i:03}.png")))
             .unwrap();
     }
-    let model = tiny_model();
+    let model = tiny_lcm();
     let o = vcedit_in(
         dir.path(),
         &edit_args("ball.ply", s(&model), "out", &["--mask-dir", "masks"]),
@@ -404,7 +358,7 @@ fn edit_image_checks_the_attention_folder_before_writing_its_image() {
     let dir = tempfile::tempdir().unwrap();
     write_png(&dir.path().join("a.png"), 64, 64);
     // A folder that cannot be made (its parent is a file), even as root.
-    let model = tiny_model();
+    let model = tiny_lcm();
     let o = vcedit_in(
         dir.path(),
         &edit_image_args(
@@ -434,7 +388,7 @@ fn pngs(dir: &Path) -> usize {
 #[test]
 fn render_folders_hold_one_run() {
     let dir = tempfile::tempdir().unwrap();
-    write_ply(&dir.path().join("ball.ply"), &ball()).unwrap();
+    write_ply(&dir.path().join("ball.ply"), &red_ball()).unwrap();
     let render = |orbit: &str, extra: &[&str]| {
         let mut args = vec![
             "render", "ball.ply", "--out", "r", "--size", "16", "--orbit", orbit,
@@ -475,7 +429,7 @@ fn render_folders_hold_one_run() {
     );
 
     // An edit into a render's folder is another run.
-    let model = tiny_model();
+    let model = tiny_lcm();
     let o = vcedit_in(dir.path(), &edit_args("ball.ply", s(&model), "r", &[]));
     assert_one_clear_error(
         &o,
@@ -487,8 +441,8 @@ fn render_folders_hold_one_run() {
 #[test]
 fn an_edit_folder_holds_one_run() {
     let dir = tempfile::tempdir().unwrap();
-    write_ply(&dir.path().join("ball.ply"), &ball()).unwrap();
-    let model = tiny_model();
+    write_ply(&dir.path().join("ball.ply"), &red_ball()).unwrap();
+    let model = tiny_lcm();
     let edit = |extra: &[&str]| {
         let mut extra = extra.to_vec();
         if !extra.contains(&"--iterations") {
@@ -531,7 +485,7 @@ fn an_edit_folder_holds_one_run() {
 #[test]
 fn huge_orbits_are_refused_up_front() {
     let dir = tempfile::tempdir().unwrap();
-    write_ply(&dir.path().join("ball.ply"), &ball()).unwrap();
+    write_ply(&dir.path().join("ball.ply"), &red_ball()).unwrap();
     let o = vcedit_in(
         dir.path(),
         &["render", "ball.ply", "--out", "r", "--orbit", "100000"],
@@ -545,8 +499,8 @@ fn huge_orbits_are_refused_up_front() {
 #[test]
 fn out_of_range_values_are_usage_errors() {
     let dir = tempfile::tempdir().unwrap();
-    write_ply(&dir.path().join("ball.ply"), &ball()).unwrap();
-    let model = tiny_model();
+    write_ply(&dir.path().join("ball.ply"), &red_ball()).unwrap();
+    let model = tiny_lcm();
     let model = s(&model);
     for (extra, says) in [
         (
@@ -674,26 +628,13 @@ fn negative_numbers_are_values_not_flags() {
 /// A copy of the tiny model with `edit` applied to it.
 fn broken_model(dir: &Path, edit: impl FnOnce(&Path)) -> PathBuf {
     let copy = dir.join("model");
-    for entry in walk(&tiny_model()) {
-        let rel = entry.strip_prefix(tiny_model()).unwrap();
+    for entry in testkit::paths::files_under(&tiny_lcm()) {
+        let rel = entry.strip_prefix(tiny_lcm()).unwrap();
         std::fs::create_dir_all(copy.join(rel).parent().unwrap()).unwrap();
         std::fs::copy(&entry, copy.join(rel)).unwrap();
     }
     edit(&copy);
     copy
-}
-
-fn walk(dir: &Path) -> Vec<PathBuf> {
-    let mut out = Vec::new();
-    for e in std::fs::read_dir(dir).unwrap() {
-        let p = e.unwrap().path();
-        if p.is_dir() {
-            out.extend(walk(&p));
-        } else {
-            out.push(p);
-        }
-    }
-    out
 }
 
 fn edit_image_with(dir: &Path, model: &Path) -> Output {
@@ -918,7 +859,7 @@ fn scenes_that_decode_to_garbage_or_are_not_files_are_refused() {
     let dir = tempfile::tempdir().unwrap();
     let cwd = dir.path();
 
-    let mut huge = ball();
+    let mut huge = red_ball();
     huge.log_scales[3 * 5] = 1e30;
     write_ply(&cwd.join("huge.ply"), &huge).unwrap();
     let o = vcedit_in(cwd, &["inspect", "huge.ply"]);
@@ -933,7 +874,7 @@ fn scenes_that_decode_to_garbage_or_are_not_files_are_refused() {
     assert!(!cwd.join("r").exists());
 
     // A PLY with a trailing face element whose list says 0xffffffff indices that are not there.
-    write_ply(&cwd.join("ok.ply"), &ball()).unwrap();
+    write_ply(&cwd.join("ok.ply"), &red_ball()).unwrap();
     let bytes = std::fs::read(cwd.join("ok.ply")).unwrap();
     let end = bytes
         .windows(11)
@@ -963,7 +904,7 @@ fn scenes_that_decode_to_garbage_or_are_not_files_are_refused() {
 fn commands_refuse_runs_that_cannot_fit_in_memory() {
     let dir = tempfile::tempdir().unwrap();
     let cwd = dir.path();
-    write_ply(&cwd.join("a.ply"), &ball()).unwrap();
+    write_ply(&cwd.join("a.ply"), &red_ball()).unwrap();
     let o = vcedit_in(
         cwd,
         &[
@@ -981,7 +922,7 @@ fn commands_refuse_runs_that_cannot_fit_in_memory() {
     assert!(!cwd.join("d").exists());
 
     write_png(&cwd.join("a.png"), 8, 8);
-    let model = tiny_model();
+    let model = tiny_lcm();
     let mut args = edit_image_args(s(&model), "a dog", "out.png", &["--device", "cpu"]);
     let size = args.iter().position(|a| *a == "--size").unwrap();
     args[size + 1] = "16384";

@@ -9,6 +9,7 @@ use std::process::{Command, Output, Stdio};
 
 use splat::ply::write_ply;
 use splat::GaussianScene;
+use testkit::output::{assert_one_clear_error, assert_success, stderr};
 
 fn vcedit_in(cwd: &Path, args: &[&str]) -> Output {
     Command::new(env!("CARGO_BIN_EXE_vcedit"))
@@ -22,41 +23,16 @@ fn s(p: &Path) -> &str {
     p.to_str().unwrap()
 }
 
-fn stderr(o: &Output) -> String {
-    String::from_utf8_lossy(&o.stderr).into_owned()
-}
-
-/// Failed with exit status 1 and one `error:` line (the last) holding every one of `says`.
-#[track_caller]
-fn assert_refused(o: &Output, says: &[&str]) {
-    let err = stderr(o);
-    assert_eq!(o.status.code(), Some(1), "{err}");
-    let errors: Vec<&str> = err.lines().filter(|l| l.starts_with("error")).collect();
-    assert_eq!(errors.len(), 1, "{err}");
-    assert_eq!(err.lines().last(), Some(errors[0]), "{err}");
-    for s in says {
-        assert!(errors[0].contains(s), "'{s}' not in: {err}");
-    }
-}
-
-#[track_caller]
-fn assert_ok(o: &Output) {
-    assert!(o.status.success(), "{}", stderr(o));
-}
-
 /// 64 Gaussians around the origin, coloured by `hue`.
 fn ball(hue: f32) -> GaussianScene {
-    let mut s = GaussianScene::new(0);
-    for i in 0..64 {
-        let t = i as f32 * 0.7;
-        s.means
-            .extend_from_slice(&[0.3 * t.sin(), 0.3 * (1.3 * t).cos(), 0.3 * (0.7 * t).sin()]);
-        s.log_scales.extend_from_slice(&[-2.0; 3]);
-        s.quats.extend_from_slice(&[1.0, 0.0, 0.0, 0.0]);
-        s.opacity_logits.push(3.0);
-        s.sh.extend_from_slice(&[hue, -hue, 0.5 * hue]);
-    }
-    s
+    testkit::scenes::ball([hue, -hue, 0.5 * hue])
+}
+
+/// A temporary folder holding `p.ply`, the ball of hue 1.
+fn folder_with_ball() -> tempfile::TempDir {
+    let dir = tempfile::tempdir().unwrap();
+    write_ply(&dir.path().join("p.ply"), &ball(1.0)).unwrap();
+    dir
 }
 
 fn read(p: &Path) -> Vec<u8> {
@@ -102,7 +78,7 @@ fn json_outputs_never_go_inside_an_input_folder() {
             }
             let o = vcedit_in(d, &args);
             if target.ends_with(".json") {
-                assert_refused(&o, &["inside the input folder", "garden"]);
+                assert_one_clear_error(&o, 1, &["inside the input folder", "garden"]);
             } else {
                 // A JSON file must be named *.json (a usage error, exit 2), which refuses a scene first.
                 assert_eq!(o.status.code(), Some(2), "{}", stderr(&o));
@@ -115,14 +91,14 @@ fn json_outputs_never_go_inside_an_input_folder() {
     assert!(!garden.join("new.json").exists());
 
     // A SOG folder, named by its folder or its meta.json.
-    assert_ok(&vcedit_in(d, &["convert", s(&ply), "sog/meta.json"]));
+    assert_success(&vcedit_in(d, &["convert", s(&ply), "sog/meta.json"]));
     let quats = read(&d.join("sog/quats.webp"));
     let meta = read(&d.join("sog/meta.json"));
     // (inspect's JSON file must be named *.json: a texture's name is refused before, as a usage error.)
     for (scene, target) in [("sog", "sog/meta.json"), ("sog/meta.json", "sog/new.json")] {
         let json = format!("--json={target}");
         let o = vcedit_in(d, &["inspect", scene, &json, "--force"]);
-        assert_refused(&o, &["inside the input folder"]);
+        assert_one_clear_error(&o, 1, &["inside the input folder"]);
     }
     assert_eq!(read(&d.join("sog/quats.webp")), quats);
     assert_eq!(read(&d.join("sog/meta.json")), meta);
@@ -152,7 +128,7 @@ fn json_outputs_never_go_inside_an_input_folder() {
             "--force",
         ],
     );
-    assert_refused(&o, &["inside the input folder", "model"]);
+    assert_one_clear_error(&o, 1, &["inside the input folder", "model"]);
     assert_eq!(read(&model.join("cameras.txt")), colmap_before);
 }
 
@@ -172,7 +148,7 @@ fn output_folders_never_go_inside_an_input_folder() {
             "2",
         ],
     );
-    assert_refused(&o, &["inside the input folder"]);
+    assert_one_clear_error(&o, 1, &["inside the input folder"]);
     assert!(!d.join("garden/renders").exists());
 }
 
@@ -180,9 +156,8 @@ fn output_folders_never_go_inside_an_input_folder() {
 
 #[test]
 fn users_files_named_like_temporaries_survive() {
-    let dir = tempfile::tempdir().unwrap();
+    let dir = folder_with_ball();
     let d = dir.path();
-    write_ply(&d.join("p.ply"), &ball(1.0)).unwrap();
     let docs = d.join("docs");
     std::fs::create_dir(&docs).unwrap();
     // The user's file of issue 69, and one named exactly as a killed vcedit's (a pid not running).
@@ -194,10 +169,10 @@ fn users_files_named_like_temporaries_survive() {
     std::fs::write(docs.join("photo.jpg"), "x").unwrap();
     // A refused folder is not touched at all.
     let o = vcedit_in(d, &["render", "p.ply", "--out", "docs", "--orbit", "2"]);
-    assert_refused(&o, &["not written by vcedit"]);
+    assert_one_clear_error(&o, 1, &["not written by vcedit"]);
     assert!(thesis.exists() && lookalike.exists());
     // A single-file output there removes only what is provably vcedit's.
-    assert_ok(&vcedit_in(d, &["convert", "p.ply", "docs/p.spz"]));
+    assert_success(&vcedit_in(d, &["convert", "p.ply", "docs/p.spz"]));
     assert_eq!(std::fs::read_to_string(&thesis).unwrap(), "important");
     assert!(!lookalike.exists(), "a dead vcedit temporary is cleaned");
 }
@@ -207,9 +182,8 @@ fn users_files_named_like_temporaries_survive() {
 #[cfg(target_os = "linux")]
 #[test]
 fn a_link_planted_at_a_temporary_name_is_never_followed() {
-    let dir = tempfile::tempdir().unwrap();
+    let dir = folder_with_ball();
     let d = dir.path();
-    write_ply(&d.join("p.ply"), &ball(1.0)).unwrap();
     let od = d.join("od");
     std::fs::create_dir(&od).unwrap();
     let victim = d.join("victim.txt");
@@ -223,7 +197,7 @@ fn a_link_planted_at_a_temporary_name_is_never_followed() {
         let link = od.join(format!(".x.ply.vcedit-tmp-{pid}"));
         std::os::unix::fs::symlink(&victim, link).unwrap();
     }
-    assert_ok(&vcedit_in(d, &["convert", "p.ply", "od/x.ply"]));
+    assert_success(&vcedit_in(d, &["convert", "p.ply", "od/x.ply"]));
     assert_eq!(std::fs::read_to_string(&victim).unwrap(), "keep");
     let meta = std::fs::symlink_metadata(od.join("x.ply")).unwrap();
     assert!(meta.is_file(), "od/x.ply is not a plain file");
@@ -234,9 +208,8 @@ fn a_link_planted_at_a_temporary_name_is_never_followed() {
 
 #[test]
 fn a_folder_with_someone_elses_meta_json_is_not_taken_over() {
-    let dir = tempfile::tempdir().unwrap();
+    let dir = folder_with_ball();
     let d = dir.path();
-    write_ply(&d.join("p.ply"), &ball(1.0)).unwrap();
     let site = d.join("site");
     std::fs::create_dir(&site).unwrap();
     std::fs::write(site.join("meta.json"), r#"{"title":"my site"}"#).unwrap();
@@ -246,7 +219,7 @@ fn a_folder_with_someone_elses_meta_json_is_not_taken_over() {
         if force {
             args.push("--force");
         }
-        assert_refused(&vcedit_in(d, &args), &["site", "not a SOG scene"]);
+        assert_one_clear_error(&vcedit_in(d, &args), 1, &["site", "not a SOG scene"]);
     }
     assert_eq!(
         std::fs::read_to_string(site.join("meta.json")).unwrap(),
@@ -257,10 +230,10 @@ fn a_folder_with_someone_elses_meta_json_is_not_taken_over() {
         "mine"
     );
     // A SOG scene with a stranger's file beside it is not replaced either.
-    assert_ok(&vcedit_in(d, &["convert", "p.ply", "sog/meta.json"]));
+    assert_success(&vcedit_in(d, &["convert", "p.ply", "sog/meta.json"]));
     std::fs::write(d.join("sog/notes.txt"), "mine").unwrap();
     let o = vcedit_in(d, &["convert", "p.ply", "sog/meta.json", "--force"]);
-    assert_refused(&o, &["not a SOG scene"]);
+    assert_one_clear_error(&o, 1, &["not a SOG scene"]);
     assert!(d.join("sog/notes.txt").exists());
 }
 
@@ -271,7 +244,7 @@ fn concurrent_sog_writes_leave_one_whole_scene() {
     let scenes = [ball(1.0), ball(-1.0)];
     for (i, scene) in scenes.iter().enumerate() {
         write_ply(&d.join(format!("{i}.ply")), scene).unwrap();
-        assert_ok(&vcedit_in(
+        assert_success(&vcedit_in(
             d,
             &["convert", &format!("{i}.ply"), &format!("ref{i}/meta.json")],
         ));
@@ -305,7 +278,7 @@ fn concurrent_sog_writes_leave_one_whole_scene() {
             .collect();
         for child in children {
             let o = child.wait_with_output().unwrap();
-            assert_ok(&o);
+            assert_success(&o);
         }
         let now = snapshot(&d.join("s"));
         assert!(
@@ -327,9 +300,8 @@ fn concurrent_sog_writes_leave_one_whole_scene() {
 
 #[test]
 fn existing_output_files_are_refused_without_force() {
-    let dir = tempfile::tempdir().unwrap();
+    let dir = folder_with_ball();
     let d = dir.path();
-    write_ply(&d.join("p.ply"), &ball(1.0)).unwrap();
     let keep = |name: &str| {
         let p = d.join(name);
         std::fs::write(&p, "earlier work").unwrap();
@@ -349,7 +321,7 @@ fn existing_output_files_are_refused_without_force() {
     ];
     for (name, args) in &cases {
         let p = keep(name);
-        assert_refused(&vcedit_in(d, args), &[name, "exists", "--force"]);
+        assert_one_clear_error(&vcedit_in(d, args), 1, &[name, "exists", "--force"]);
         assert_eq!(
             std::fs::read_to_string(&p).unwrap(),
             "earlier work",
@@ -357,7 +329,7 @@ fn existing_output_files_are_refused_without_force() {
         );
         let mut forced = args.clone();
         forced.push("--force");
-        assert_ok(&vcedit_in(d, &forced));
+        assert_success(&vcedit_in(d, &forced));
         assert_ne!(
             std::fs::read_to_string(&p).ok().as_deref(),
             Some("earlier work")
@@ -366,7 +338,7 @@ fn existing_output_files_are_refused_without_force() {
     // --force never replaces an input.
     let before = read(&d.join("p.ply"));
     let o = vcedit_in(d, &["convert", "p.ply", "./p.ply", "--force"]);
-    assert_refused(&o, &["also an input"]);
+    assert_one_clear_error(&o, 1, &["also an input"]);
     assert_eq!(read(&d.join("p.ply")), before);
 }
 
@@ -378,9 +350,8 @@ const UNWRITABLE: &str = "/proc/vcedit-no-such-folder";
 #[cfg(target_os = "linux")]
 #[test]
 fn unwritable_outputs_are_refused_before_any_work() {
-    let dir = tempfile::tempdir().unwrap();
+    let dir = folder_with_ball();
     let d = dir.path();
-    write_ply(&d.join("p.ply"), &ball(1.0)).unwrap();
     // fit: refused before its data is even used (no "training ... views" line).
     let lego = d.join("lego");
     std::fs::create_dir(&lego).unwrap();
@@ -406,7 +377,7 @@ fn unwritable_outputs_are_refused_before_any_work() {
         d,
         &["fit", "--data", "lego", "--out", &fit_out, "--steps", "300"],
     );
-    assert_refused(&o, &["f.ply", "cannot write into"]);
+    assert_one_clear_error(&o, 1, &["f.ply", "cannot write into"]);
     assert!(!stderr(&o).contains("training"), "{}", stderr(&o));
     // metrics: before any rendering.
     let json = format!("--json={UNWRITABLE}/m.json");
@@ -416,7 +387,7 @@ fn unwritable_outputs_are_refused_before_any_work() {
             "metrics", "--source", "p.ply", "--edited", "p.ply", "--orbit", "2", &json,
         ],
     );
-    assert_refused(&o, &["m.json", "cannot write into"]);
+    assert_one_clear_error(&o, 1, &["m.json", "cannot write into"]);
     // edit-image: before the model is loaded (a missing model would be named otherwise).
     let img = splat::Image::new(16, 16, 3);
     img.save_png(&d.join("a.png")).unwrap();
@@ -437,7 +408,7 @@ fn unwritable_outputs_are_refused_before_any_work() {
             &out,
         ],
     );
-    assert_refused(&o, &["o.png", "cannot write into"]);
+    assert_one_clear_error(&o, 1, &["o.png", "cannot write into"]);
 }
 
 // --- 7. An unwritable stdout ----------------------------------------------------------------------------
@@ -445,9 +416,8 @@ fn unwritable_outputs_are_refused_before_any_work() {
 #[cfg(target_os = "linux")]
 #[test]
 fn a_full_stdout_is_one_error_line_not_a_panic() {
-    let dir = tempfile::tempdir().unwrap();
+    let dir = folder_with_ball();
     let d = dir.path();
-    write_ply(&d.join("p.ply"), &ball(1.0)).unwrap();
     let model = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../fixtures/models/tiny-lcm");
     let cases: [Vec<&str>; 5] = [
         vec!["inspect", "p.ply"],
@@ -467,7 +437,7 @@ fn a_full_stdout_is_one_error_line_not_a_panic() {
             .stdout(full)
             .output()
             .unwrap();
-        assert_refused(&o, &["cannot write to standard output"]);
+        assert_one_clear_error(&o, 1, &["cannot write to standard output"]);
         assert!(!stderr(&o).contains("panicked"), "{args:?}: {}", stderr(&o));
     }
 }
@@ -496,7 +466,7 @@ fn a_sparse_file_as_long_as_a_huge_header_claims_is_refused() {
         return; // no sparse files this large here
     }
     let o = vcedit_in(d, &["inspect", "huge.ply"]);
-    assert_refused(&o, &["huge.ply", "memory"]);
+    assert_one_clear_error(&o, 1, &["huge.ply", "memory"]);
 }
 
 // --- 10. Messages -------------------------------------------------------------------------------------
@@ -507,7 +477,7 @@ fn convert_names_a_bad_input_once() {
     let d = dir.path();
     std::fs::write(d.join("z.spz"), b"NGSP\x04\x00\x00\x00").unwrap();
     let o = vcedit_in(d, &["convert", "z.spz", "o.ply"]);
-    assert_refused(&o, &["z.spz"]);
+    assert_one_clear_error(&o, 1, &["z.spz"]);
     let err = stderr(&o);
     let line = err.lines().last().unwrap();
     assert_eq!(line.matches("z.spz").count(), 1, "{line}");
@@ -562,7 +532,7 @@ fn a_gpu_edit_without_a_usable_cache_repeats_bit_for_bit() {
             .current_dir(d)
             .output()
             .unwrap();
-        assert_ok(&o);
+        assert_success(&o);
         let warnings = stderr(&o).matches("cannot be written").count();
         assert_eq!(warnings, 1, "{}", stderr(&o));
         outputs.push(read(&d.join(out)));

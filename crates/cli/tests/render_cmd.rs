@@ -1,8 +1,9 @@
 //! `vcedit render` end to end: the real binary on a generated scene with orbit and file cameras.
 
 use splat::ply::write_ply;
-use splat::{GaussianScene, Image};
+use splat::Image;
 use std::process::{Command, Output};
+use testkit::scenes::red_ball;
 
 fn vcedit(args: &[&str]) -> Output {
     Command::new(env!("CARGO_BIN_EXE_vcedit"))
@@ -12,27 +13,11 @@ fn vcedit(args: &[&str]) -> Output {
         .expect("run vcedit")
 }
 
-/// A red Gaussian ball of 64 Gaussians around the origin.
-fn ball_scene() -> GaussianScene {
-    let mut s = GaussianScene::new(0);
-    for i in 0..64 {
-        let t = i as f32 * 0.7;
-        s.means
-            .extend_from_slice(&[0.3 * t.sin(), 0.3 * (1.3 * t).cos(), 0.3 * (0.7 * t).sin()]);
-        s.log_scales.extend_from_slice(&[-2.0; 3]);
-        s.quats.extend_from_slice(&[1.0, 0.0, 0.0, 0.0]);
-        s.opacity_logits.push(3.0);
-        // DC so that colour = 0.5 + 0.282·dc: red 1, green/blue 0.
-        s.sh.extend_from_slice(&[1.8, -1.8, -1.8]);
-    }
-    s
-}
-
 #[test]
 fn renders_an_orbit_with_depth_and_alpha() {
     let dir = tempfile::tempdir().unwrap();
     let ply = dir.path().join("ball.ply");
-    write_ply(&ply, &ball_scene()).unwrap();
+    write_ply(&ply, &red_ball()).unwrap();
     let out = dir.path().join("out");
     let o = vcedit(&[
         ply.to_str().unwrap(),
@@ -72,7 +57,7 @@ fn renders_an_orbit_with_depth_and_alpha() {
 fn renders_from_a_camera_file_and_reports_bad_input() {
     let dir = tempfile::tempdir().unwrap();
     let ply = dir.path().join("ball.ply");
-    write_ply(&ply, &ball_scene()).unwrap();
+    write_ply(&ply, &red_ball()).unwrap();
     // Two Blender-convention cameras on the z axis looking at the origin.
     let transforms = r#"{"camera_angle_x": 0.8, "w": 40, "h": 40, "frames": [
         {"file_path": "a", "transform_matrix": [[1,0,0,0],[0,1,0,0],[0,0,1,3],[0,0,0,1]]},
@@ -136,7 +121,7 @@ fn negative_and_malformed_values_name_the_option() {
 fn device_gpu_without_a_gpu_is_one_error_line() {
     let dir = tempfile::tempdir().unwrap();
     let ply = dir.path().join("ball.ply");
-    write_ply(&ply, &ball_scene()).unwrap();
+    write_ply(&ply, &red_ball()).unwrap();
     let out = dir.path().join("out");
     let run = |device: &str| {
         Command::new(env!("CARGO_BIN_EXE_vcedit"))

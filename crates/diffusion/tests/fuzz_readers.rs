@@ -1,28 +1,17 @@
-//! Fuzzing the model-file readers (see `files::fuzz`): safetensors headers and the CLIP tokenizer
+//! Fuzzing the model-file readers (see `testkit::fuzz`): safetensors headers and the CLIP tokenizer
 //! (vocab.json, merges.txt, tokenizer_config.json), seeded from the tiny test model and hand-made files
 //! and mutated for `VCEDIT_FUZZ_SECONDS` (default 5 s) per target. Any error is fine; a panic fails the
 //! test and the input is saved under target/fuzz-crashes/.
 
-use std::path::{Path, PathBuf};
+use std::path::Path;
 
 use diffusion::loader::read_safetensors_header;
 use diffusion::tokenizer::ClipTokenizer;
+use testkit::paths::tiny_lcm;
 
 // Every input's allocations are measured (an input that makes its reader claim too much fails).
 #[global_allocator]
-static ALLOC: files::fuzz::CountingAlloc = files::fuzz::CountingAlloc;
-
-fn root() -> PathBuf {
-    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../..")
-}
-
-fn crash_dir() -> PathBuf {
-    root().join("target/fuzz-crashes")
-}
-
-fn tiny_model() -> PathBuf {
-    root().join("fixtures/models/tiny-lcm")
-}
+static ALLOC: testkit::fuzz::CountingAlloc = testkit::fuzz::CountingAlloc;
 
 /// A small valid safetensors file: two tensors of different dtypes and a metadata table.
 fn small_safetensors() -> Vec<u8> {
@@ -40,13 +29,13 @@ fn small_safetensors() -> Vec<u8> {
 fn fuzz_safetensors_header() {
     let seeds = vec![
         small_safetensors(),
-        std::fs::read(tiny_model().join("text_encoder/model.safetensors")).unwrap(),
+        std::fs::read(tiny_lcm().join("text_encoder/model.safetensors")).unwrap(),
     ];
-    files::fuzz::run_file_and_assert(
+    testkit::fuzz::run_file_and_assert(
         "safetensors_header",
         "model.safetensors",
         &seeds,
-        &crash_dir(),
+        &testkit::fuzz::crash_dir(),
         |path| {
             let _ = read_safetensors_header(path);
         },
@@ -73,11 +62,11 @@ fn load_and_encode(dir: &Path) {
 
 #[test]
 fn fuzz_tokenizer_files() {
-    files::fuzz::run_file_set_and_assert(
+    testkit::fuzz::run_file_set_and_assert(
         "tokenizer",
-        &tiny_model().join("tokenizer"),
+        &tiny_lcm().join("tokenizer"),
         &["vocab.json", "merges.txt", "tokenizer_config.json"],
-        &crash_dir(),
+        &testkit::fuzz::crash_dir(),
         load_and_encode,
     );
 }
@@ -95,8 +84,8 @@ fn fuzz_model_configs() {
         "text_encoder/config.json",
     ];
     let copy = tempfile::tempdir().unwrap();
-    for entry in walk(&tiny_model()) {
-        let rel = entry.strip_prefix(tiny_model()).unwrap();
+    for entry in testkit::paths::files_under(&tiny_lcm()) {
+        let rel = entry.strip_prefix(tiny_lcm()).unwrap();
         std::fs::create_dir_all(copy.path().join(rel).parent().unwrap()).unwrap();
         std::fs::copy(&entry, copy.path().join(rel)).unwrap();
     }
@@ -105,38 +94,30 @@ fn fuzz_model_configs() {
         .enumerate()
         .map(|(i, name)| {
             let mut seed = vec![i as u8];
-            seed.extend(std::fs::read(tiny_model().join(name)).unwrap());
+            seed.extend(std::fs::read(tiny_lcm().join(name)).unwrap());
             seed
         })
         .collect();
-    files::fuzz::run_and_assert("model-configs", &seeds, &crash_dir(), |input| {
-        let Some((&which, content)) = input.split_first() else {
-            return;
-        };
-        let name = CONFIGS[which as usize % CONFIGS.len()];
-        let path = copy.path().join(name);
-        std::fs::write(&path, content).unwrap();
-        let _ = diffusion::model_check::check_model(
-            copy.path(),
-            diffusion::model_check::CheckDepth::HeadersOnly,
-        );
-        let _ = diffusion::scheduler::Scheduler::from_config_file(
-            &copy.path().join(CONFIGS[1]),
-            diffusion::scheduler::LcmVariant::default(),
-        );
-        std::fs::copy(tiny_model().join(name), &path).unwrap();
-    });
-}
-
-fn walk(dir: &Path) -> Vec<PathBuf> {
-    let mut out = Vec::new();
-    for entry in std::fs::read_dir(dir).unwrap() {
-        let path = entry.unwrap().path();
-        if path.is_dir() {
-            out.extend(walk(&path));
-        } else {
-            out.push(path);
-        }
-    }
-    out
+    testkit::fuzz::run_and_assert(
+        "model-configs",
+        &seeds,
+        &testkit::fuzz::crash_dir(),
+        |input| {
+            let Some((&which, content)) = input.split_first() else {
+                return;
+            };
+            let name = CONFIGS[which as usize % CONFIGS.len()];
+            let path = copy.path().join(name);
+            std::fs::write(&path, content).unwrap();
+            let _ = diffusion::model_check::check_model(
+                copy.path(),
+                diffusion::model_check::CheckDepth::HeadersOnly,
+            );
+            let _ = diffusion::scheduler::Scheduler::from_config_file(
+                &copy.path().join(CONFIGS[1]),
+                diffusion::scheduler::LcmVariant::default(),
+            );
+            std::fs::copy(tiny_lcm().join(name), &path).unwrap();
+        },
+    );
 }

@@ -2,18 +2,14 @@
 //! tools/make_sched_fixtures.py.
 
 use std::collections::HashMap;
-use std::path::{Path, PathBuf};
 
 use candle_core::{Device, Tensor};
 use diffusion::scheduler::{DdimConfig, DdimScheduler, LcmConfig, LcmScheduler, LcmVariant};
 use serde::Deserialize;
+use testkit::paths::repo;
 
 mod common;
 use common::max_abs_diff;
-
-fn repo() -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join("../..")
-}
 
 #[derive(Deserialize)]
 struct Reference {

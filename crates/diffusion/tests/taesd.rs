@@ -1,22 +1,17 @@
 //! TAESD (AutoencoderTiny) against diffusers references made by tools/make_vae_fixtures.py.
 
 use std::collections::HashMap;
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 
-use candle_core::{Device, Tensor};
+use candle_core::Tensor;
 use diffusion::taesd::{AutoencoderTiny, TaesdConfig, TaesdLayout};
+use testkit::paths::{load_tensors, repo};
 
 mod common;
 use common::max_abs_diff;
 
-fn repo() -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join("../..")
-}
-
 fn fixture(name: &str) -> HashMap<String, Tensor> {
-    let path = repo().join("fixtures/vae").join(name);
-    candle_core::safetensors::load(&path, &Device::Cpu)
-        .unwrap_or_else(|e| panic!("{}: {e}", path.display()))
+    load_tensors(&repo().join("fixtures/vae").join(name))
 }
 
 /// Encodes the fixture image and decodes its `decode_in` (or the latents), returning both errors.
@@ -79,13 +74,7 @@ fn unit_range_and_scaled_variants_agree_with_the_plain_api() {
 }
 
 fn real_weights() -> Option<PathBuf> {
-    let dir = repo().join("../shared/assets/taesd");
-    if dir.is_dir() {
-        Some(dir)
-    } else {
-        println!("SKIP: real TAESD weights not found at {}", dir.display());
-        None
-    }
+    testkit::paths::shared_asset("taesd")
 }
 
 /// Real bf16 weights: both sides upcast the same bf16 values to f32 and compute in f32, so the only

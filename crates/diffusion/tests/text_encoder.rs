@@ -1,30 +1,30 @@
 //! The CLIP text encoder against `transformers.CLIPTextModel` outputs recorded by
 //! tools/make_text_fixtures.py for both tiny models (f32 weights, and f16 weights loaded as f32).
 
-use std::path::{Path, PathBuf};
+use std::collections::HashMap;
 
-use candle_core::{DType, Device};
+use candle_core::{DType, Device, Tensor};
 use diffusion::clip::{ids_tensor, ClipTextModel};
 use diffusion::loader::ModelDir;
 use diffusion::tokenizer::ClipTokenizer;
+use testkit::paths::{load_tensors, repo};
 
 mod common;
 use common::{in_bf16, max_abs_diff, relative_l2};
 
-fn repo() -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join("../..")
+/// The tiny model `name` in f32 on the CPU, its recorded outputs, and their input ids.
+fn tiny_model(name: &str) -> (ClipTextModel, HashMap<String, Tensor>, Tensor) {
+    let model_dir = ModelDir::open(repo().join("fixtures/models").join(name)).unwrap();
+    let model = ClipTextModel::load(&model_dir, DType::F32, &Device::Cpu).unwrap();
+    let reference = load_tensors(&repo().join(format!("fixtures/text/encoder-{name}.safetensors")));
+    let ids = reference["input_ids"].to_dtype(DType::U32).unwrap();
+    (model, reference, ids)
 }
 
 fn check_model(name: &str) {
     let dev = Device::Cpu;
+    let (model, reference, ids) = tiny_model(name);
     let model_dir = ModelDir::open(repo().join("fixtures/models").join(name)).unwrap();
-    let model = ClipTextModel::load(&model_dir, DType::F32, &dev).unwrap();
-    let reference = candle_core::safetensors::load(
-        repo().join(format!("fixtures/text/encoder-{name}.safetensors")),
-        &dev,
-    )
-    .unwrap();
-    let ids = reference["input_ids"].to_dtype(DType::U32).unwrap();
 
     // The tokenizer produces the same ids as transformers for the recorded prompts.
     let tokenizer =
@@ -80,16 +80,8 @@ fn tiny_ip2p_f16_text_encoder_matches_transformers() {
 /// f32 ones (relative L2 ≤ 1e-2; above 1e-5, so bf16 products did run).
 #[test]
 fn tiny_text_encoders_with_bf16_products_match_transformers_within_bf16() {
-    let dev = Device::Cpu;
     for name in ["tiny-lcm", "tiny-ip2p"] {
-        let model_dir = ModelDir::open(repo().join("fixtures/models").join(name)).unwrap();
-        let model = ClipTextModel::load(&model_dir, DType::F32, &dev).unwrap();
-        let reference = candle_core::safetensors::load(
-            repo().join(format!("fixtures/text/encoder-{name}.safetensors")),
-            &dev,
-        )
-        .unwrap();
-        let ids = reference["input_ids"].to_dtype(DType::U32).unwrap();
+        let (model, reference, ids) = tiny_model(name);
         let Some(hidden) = in_bf16(|| model.forward(&ids).unwrap()) else {
             return;
         };
@@ -103,17 +95,9 @@ fn tiny_text_encoders_with_bf16_products_match_transformers_within_bf16() {
 /// hidden states to f32 precision (to 1e-2 with f16 weights), with and without clip skip.
 #[test]
 fn tiny_text_encoder_on_gpu_matches_cpu() {
-    let dev = Device::Cpu;
     for (gpu, tolerance) in common::gpus_or_skip() {
         for name in ["tiny-lcm", "tiny-ip2p"] {
-            let model_dir = ModelDir::open(repo().join("fixtures/models").join(name)).unwrap();
-            let model = ClipTextModel::load(&model_dir, DType::F32, &dev).unwrap();
-            let reference = candle_core::safetensors::load(
-                repo().join(format!("fixtures/text/encoder-{name}.safetensors")),
-                &dev,
-            )
-            .unwrap();
-            let ids = reference["input_ids"].to_dtype(DType::U32).unwrap();
+            let (model, _, ids) = tiny_model(name);
             for skip in [0, 1] {
                 let cpu = model.forward_skip(&ids, skip).unwrap();
                 let on_gpu = model

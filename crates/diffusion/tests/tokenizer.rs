@@ -1,9 +1,8 @@
 //! The CLIP tokenizer against ids recorded from `transformers.CLIPTokenizer` (tools/make_text_fixtures.py).
 
-use std::path::{Path, PathBuf};
-
 use diffusion::tokenizer::{ClipTokenizer, TokenizerSource};
 use serde::Deserialize;
+use testkit::paths::repo;
 
 #[derive(Deserialize)]
 struct Record {
@@ -22,10 +21,6 @@ struct Case {
     token_strings: Vec<String>,
     decoded: String,
     decoded_skip_special: String,
-}
-
-fn repo() -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join("../..")
 }
 
 fn record(name: &str) -> Record {

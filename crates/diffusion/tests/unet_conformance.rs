@@ -1,18 +1,14 @@
 //! UNet conformance against diffusers (fixtures from tools/make_unet_fixtures.py) and the hook interface.
 
 use std::collections::{HashMap, HashSet};
-use std::path::PathBuf;
 
-use candle_core::{Device, Result, Tensor};
+use candle_core::{Result, Tensor};
 use diffusion::device::DeviceTensor;
 use diffusion::unet::{AttentionHook, AttnCall, AttnKind, UNet2DConditionModel};
+use testkit::paths::{load_tensors, repo};
 
 mod common;
 use common::{in_bf16, max_abs_diff, relative_l2};
-
-fn repo() -> PathBuf {
-    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../..")
-}
 
 fn load_model(name: &str) -> UNet2DConditionModel {
     let dir = repo().join("fixtures/models").join(name).join("unet");
@@ -24,11 +20,7 @@ fn load_model(name: &str) -> UNet2DConditionModel {
 }
 
 fn load_fixture(name: &str) -> HashMap<String, Tensor> {
-    let path = repo()
-        .join("fixtures/unet")
-        .join(format!("{name}.safetensors"));
-    candle_core::safetensors::load(&path, &Device::Cpu)
-        .unwrap_or_else(|e| panic!("{}: {e}", path.display()))
+    load_tensors(&repo().join(format!("fixtures/unet/{name}.safetensors")))
 }
 
 fn run(

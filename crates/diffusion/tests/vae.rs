@@ -1,22 +1,16 @@
 //! AutoencoderKL against diffusers references made by tools/make_vae_fixtures.py on the tiny models.
 
 use std::collections::HashMap;
-use std::path::{Path, PathBuf};
 
-use candle_core::{Device, Tensor};
+use candle_core::Tensor;
 use diffusion::vae::{Autoencoder, AutoencoderKL};
+use testkit::paths::{load_tensors, repo};
 
 mod common;
 use common::{in_bf16, max_abs_diff, relative_l2};
 
-fn repo() -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join("../..")
-}
-
 fn fixture(name: &str) -> HashMap<String, Tensor> {
-    let path = repo().join("fixtures/vae").join(name);
-    candle_core::safetensors::load(&path, &Device::Cpu)
-        .unwrap_or_else(|e| panic!("{}: {e}", path.display()))
+    load_tensors(&repo().join("fixtures/vae").join(name))
 }
 
 /// Posterior mean/logvar, the sample for diffusers' noise, and decode, all within 1e-4.

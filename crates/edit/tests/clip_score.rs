@@ -8,8 +8,9 @@ use candle_core::{Device, Tensor};
 use edit::eval::clip_score::ClipModel;
 use serde_json::Value;
 use splat::Image;
+use testkit::diff::max_abs_diff;
 
-const TOL: f64 = 1e-4;
+const TOL: f32 = 1e-4;
 
 fn fixtures() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("../../fixtures/clip")
@@ -71,14 +72,6 @@ impl Fixture {
     }
 }
 
-fn max_diff(a: &[f32], b: &[f32]) -> f64 {
-    assert_eq!(a.len(), b.len());
-    a.iter()
-        .zip(b)
-        .map(|(x, y)| (*x as f64 - *y as f64).abs())
-        .fold(0.0, f64::max)
-}
-
 #[test]
 fn preprocessing_matches_clip_image_processor() {
     let f = load();
@@ -86,7 +79,7 @@ fn preprocessing_matches_clip_image_processor() {
         for tag in ["source", "edited"] {
             let got = f.model.preprocess().apply(&f.image(tag, k)).unwrap();
             let want = f.vec_f32(&format!("{tag}_{k}_pixel_values"));
-            let d = max_diff(&got, &want);
+            let d = max_abs_diff(&got, &want);
             assert!(d < TOL, "view {k} {tag}: pixel values differ by {d}");
         }
     }
@@ -102,7 +95,7 @@ fn image_embeddings_match_transformers() {
             .unwrap();
         let from_pixels = f.model.image_features_from_pixels(&pixels).unwrap();
         let want = f.vec_f32(&format!("source_{k}_embeds"));
-        let d = max_diff(&from_pixels[0], &want);
+        let d = max_abs_diff(&from_pixels[0], &want);
         assert!(
             d < TOL,
             "view {k}: embedding from pixel values differs by {d}"
@@ -113,7 +106,7 @@ fn image_embeddings_match_transformers() {
     let got = f.model.image_features(&refs).unwrap();
     for (k, g) in got.iter().enumerate() {
         let want = f.vec_f32(&format!("edited_{k}_embeds"));
-        let d = max_diff(g, &want);
+        let d = max_abs_diff(g, &want);
         assert!(d < TOL, "view {k}: embedding from image differs by {d}");
     }
 }
@@ -132,7 +125,7 @@ fn text_ids_and_embeddings_match_transformers() {
     let got = f.model.text_features(&refs).unwrap();
     let want = f.tensors["text_embeds"].to_vec2::<f32>().unwrap();
     for (k, (g, w)) in got.iter().zip(&want).enumerate() {
-        let d = max_diff(g, w);
+        let d = max_abs_diff(g, w);
         assert!(d < TOL, "prompt {k}: text embedding differs by {d}");
     }
 }
@@ -152,7 +145,7 @@ fn directional_similarity_matches_reference() {
             .directional_similarity(&[&src], &[&edt], s, t)
             .unwrap();
         assert!(
-            (r.directional - want[k]).abs() < TOL,
+            (r.directional - want[k]).abs() < f64::from(TOL),
             "view {k}: {} vs {}",
             r.directional,
             want[k]
@@ -173,7 +166,7 @@ fn directional_similarity_matches_reference() {
         )
         .unwrap();
     assert_eq!(r.per_view.len(), 2);
-    assert!((r.directional - (want[0] + want[2]) / 2.0).abs() < TOL);
+    assert!((r.directional - (want[0] + want[2]) / 2.0).abs() < f64::from(TOL));
     // An unchanged image has no direction: the similarity is 0 (torch's clamped cosine of a zero vector).
     let same = f.image("source", 0);
     let r = f

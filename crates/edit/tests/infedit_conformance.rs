@@ -2,31 +2,14 @@
 //! the same noise, every step's latents and predictions within 1e-4; and the same steps on the GPU against the
 //! CPU (on any Vulkan device; CI runs it on Mesa lavapipe; without one it skips with a line).
 
-use std::path::PathBuf;
-
-use candle_core::{Device, Tensor};
+use candle_core::Tensor;
 use diffusion::device::Precision;
 use edit::compute::Compute;
 use edit::sampler::{
     EditModel, EditPlan, EditPrompts, InfEditSettings, NoiseSource, RecordedNoise, SeededNoise,
 };
-
-fn root() -> PathBuf {
-    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../fixtures")
-}
-
-fn max_abs(a: &Tensor, b: &Tensor) -> f32 {
-    a.sub(b)
-        .unwrap()
-        .abs()
-        .unwrap()
-        .flatten_all()
-        .unwrap()
-        .max(0)
-        .unwrap()
-        .to_scalar::<f32>()
-        .unwrap()
-}
+use testkit::diff::{tensor_max_abs, tensor_max_abs_diff};
+use testkit::paths::{fixture, fixtures, load_tensors};
 
 #[derive(serde::Deserialize)]
 struct Case {
@@ -51,17 +34,14 @@ struct Case {
 
 #[test]
 fn infedit_matches_the_reference_every_step() {
-    let model = EditModel::load(&root().join("models/tiny-lcm"), None).unwrap();
-    let cases: Vec<Case> =
-        serde_json::from_str(&std::fs::read_to_string(root().join("infedit/cases.json")).unwrap())
-            .unwrap();
+    let model = EditModel::load(&fixtures().join("models/tiny-lcm"), None).unwrap();
+    let cases: Vec<Case> = serde_json::from_str(
+        &std::fs::read_to_string(fixtures().join("infedit/cases.json")).unwrap(),
+    )
+    .unwrap();
     assert!(cases.len() >= 5);
     for case in cases {
-        let fx = candle_core::safetensors::load(
-            root().join(format!("infedit/{}.safetensors", case.name)),
-            &Device::Cpu,
-        )
-        .unwrap();
+        let fx = load_tensors(&fixture(&format!("infedit/{}.safetensors", case.name)));
         let prompts = EditPrompts {
             source: case.source.clone(),
             target: case.target.clone(),
@@ -124,7 +104,7 @@ fn infedit_matches_the_reference_every_step() {
             ];
             for (key, t) in ours {
                 let want = &fx[&format!("step{i}_{key}")];
-                let err = max_abs(t, want);
+                let err = tensor_max_abs_diff(t, want);
                 worst = worst.max(err);
                 assert!(
                     err <= 1e-4,
@@ -142,7 +122,7 @@ fn infedit_matches_the_reference_every_step() {
             .unwrap()
             .clamp(0f32, 1f32)
             .unwrap();
-        let err = max_abs(&decoded, &fx["decoded"]);
+        let err = tensor_max_abs_diff(&decoded, &fx["decoded"]);
         // x̂0 at the last step carries float noise of ~1e-5 that the random tiny VAE amplifies; the latents
         // above are the conformance target, this only checks the decode path end to end.
         assert!(
@@ -208,22 +188,15 @@ fn infedit_steps_on_the_gpu_match_the_cpu() {
     let Some(ctx) = gpu::testing::context_or_skip() else {
         return;
     };
-    let cpu = EditModel::load(&root().join("models/tiny-lcm"), None).unwrap();
+    let cpu = EditModel::load(&fixtures().join("models/tiny-lcm"), None).unwrap();
     let want = infedit_trace(&cpu);
     let gpu = cpu.on(Compute::on(Some(ctx), Precision::F32));
     let got = infedit_trace(&gpu);
     assert_eq!(want.len(), got.len());
     let mut worst = [0f32; 2];
     for (k, (a, b)) in want.iter().zip(&got).enumerate() {
-        let scale = a
-            .abs()
-            .unwrap()
-            .max_all()
-            .unwrap()
-            .to_scalar::<f32>()
-            .unwrap()
-            .max(1e-3);
-        let err = max_abs(a, b) / scale;
+        let scale = tensor_max_abs(a).max(1e-3);
+        let err = tensor_max_abs_diff(a, b) / scale;
         // The latents z_s, z_t, z_m are the sampler's state; the x̂0 predictions divide by √ᾱ_t (×15 at
         // t = 999) and the random tiny VAE amplifies further (measured on lavapipe: latents ≤ 6.6e-5,
         // x̂0 and the decoded image ≤ 9.1e-5).
@@ -283,7 +256,7 @@ fn two_view_trace(model: &EditModel, batched: bool) -> Vec<Tensor> {
 
 #[test]
 fn views_batched_into_one_unet_call_match_one_at_a_time() {
-    let load = || EditModel::load(&root().join("models/tiny-lcm"), None).unwrap();
+    let load = || EditModel::load(&fixtures().join("models/tiny-lcm"), None).unwrap();
     let mut models = vec![("CPU".to_string(), load())];
     if let Some(ctx) = gpu::testing::context_or_skip() {
         models.push((
@@ -297,14 +270,8 @@ fn views_batched_into_one_unet_call_match_one_at_a_time() {
             .iter()
             .zip(&both)
             .map(|(a, b)| {
-                let scale = a
-                    .abs()
-                    .unwrap()
-                    .max_all()
-                    .unwrap()
-                    .to_scalar::<f32>()
-                    .unwrap();
-                max_abs(a, b) / scale.max(1e-3)
+                let scale = tensor_max_abs(a);
+                tensor_max_abs_diff(a, b) / scale.max(1e-3)
             })
             .fold(0f32, f32::max);
         eprintln!("{name}: views batched vs one at a time, worst relative difference {worst:e}");

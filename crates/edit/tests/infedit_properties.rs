@@ -8,23 +8,8 @@ use edit::sampler::{
     align_prompts, global_align, AlignInputs, EditModel, EditPlan, EditPrompts, InfEditSettings,
     NoiseSource, SeededNoise,
 };
-
-fn fixtures() -> PathBuf {
-    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../fixtures")
-}
-
-fn max_abs(a: &Tensor, b: &Tensor) -> f32 {
-    a.sub(b)
-        .unwrap()
-        .abs()
-        .unwrap()
-        .flatten_all()
-        .unwrap()
-        .max(0)
-        .unwrap()
-        .to_scalar::<f32>()
-        .unwrap()
-}
+use testkit::diff::tensor_max_abs_diff;
+use testkit::paths::fixtures;
 
 fn test_image(size: usize) -> Tensor {
     let v: Vec<f32> = (0..3 * size * size)
@@ -58,10 +43,10 @@ fn identical_prompts_reproduce_the_source() {
         if i > 0 {
             plan.local_blend(&mut view, i).unwrap();
         }
-        let err = max_abs(view.pred_t.as_ref().unwrap(), &x0);
+        let err = tensor_max_abs_diff(view.pred_t.as_ref().unwrap(), &x0);
         assert!(err < 1e-4, "step {i}: x̂0_T differs from x0 by {err}");
         assert!(
-            max_abs(&view.z_t, &view.z_s) < 1e-4,
+            tensor_max_abs_diff(&view.z_t, &view.z_s) < 1e-4,
             "step {i}: target latents left the source's"
         );
     }
@@ -105,17 +90,13 @@ fn full_cross_replace_stores_the_mapped_source_maps() {
             .collect();
         let idx = Tensor::new(mapper, &candle_core::Device::Cpu).unwrap();
         let mapped = src.index_select(&idx, 2).unwrap();
-        assert!(max_abs(&mapped, &tgt) < 1e-6, "{}", rec.layer);
+        assert!(tensor_max_abs_diff(&mapped, &tgt) < 1e-6, "{}", rec.layer);
     }
 }
 
 fn real_tokenizer() -> Option<ClipTokenizer> {
-    let dir = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../../shared/assets/clip-bpe");
-    if !dir.join("vocab.json").is_file() {
-        eprintln!("skipping: {} not present", dir.display());
-        return None;
-    }
-    Some(ClipTokenizer::from_dir(&dir).unwrap())
+    let vocab = testkit::paths::shared_asset("clip-bpe/vocab.json")?;
+    Some(ClipTokenizer::from_dir(vocab.parent().unwrap()).unwrap())
 }
 
 /// Hidden states that make the similarity pass pick, in each unmatched run, the pair (target t, source s)
@@ -256,8 +237,8 @@ fn trace_difference(a: &[(String, Tensor)], b: &[(String, Tensor)]) -> f32 {
     let mut worst = 0f32;
     for ((name_a, x), (name_b, y)) in a.iter().zip(b) {
         assert_eq!(name_a, name_b);
-        let scale = max_abs(x, &x.zeros_like().unwrap()).max(1e-6);
-        let rel = max_abs(x, y) / scale;
+        let scale = testkit::diff::tensor_max_abs(x).max(1e-6);
+        let rel = tensor_max_abs_diff(x, y) / scale;
         assert!(rel < 1e-4, "{name_a}: relative difference {rel}");
         worst = worst.max(rel);
     }

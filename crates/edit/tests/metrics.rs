@@ -9,28 +9,9 @@ use splat::cameras::orbit_cameras;
 use splat::render::{render, Frame, RenderSettings};
 use splat::{Camera, GaussianScene, Image};
 
-const SH_C0: f32 = 0.282_094_8;
-
-/// A sphere of radius 1 covered by small opaque Gaussians, coloured by `color(position)` (SH degree 0,
-/// so colours do not depend on the view).
+/// A sphere of radius 1 covered by 6000 small opaque Gaussians, coloured by `color(position)`.
 fn textured_sphere(color: impl Fn([f32; 3]) -> [f32; 3]) -> GaussianScene {
-    let n = 6000;
-    let mut s = GaussianScene::new(0);
-    let golden = std::f32::consts::PI * (3.0 - 5f32.sqrt());
-    let spacing = (4.0 * std::f32::consts::PI / n as f32).sqrt();
-    for i in 0..n {
-        let y = 1.0 - 2.0 * (i as f32 + 0.5) / n as f32;
-        let r = (1.0 - y * y).sqrt();
-        let t = golden * i as f32;
-        let p = [r * t.cos(), y, r * t.sin()];
-        s.means.extend_from_slice(&p);
-        s.log_scales.extend_from_slice(&[(0.7 * spacing).ln(); 3]);
-        s.quats.extend_from_slice(&[1.0, 0.0, 0.0, 0.0]);
-        s.opacity_logits.push(5.0);
-        let c = color(p);
-        s.sh.extend(c.iter().map(|v| (v - 0.5) / SH_C0));
-    }
-    s
+    testkit::scenes::textured_sphere(6000, color)
 }
 
 /// A smooth texture. Splatting blends a few overlapping Gaussians per pixel, and which ones are in front

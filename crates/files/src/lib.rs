@@ -17,11 +17,6 @@
 
 mod atomic;
 mod cache;
-// The readers' fuzzer is compiled always (it adds no dependency): behind a feature that only the
-// readers' tests enabled, `cargo build --bin vcedit` (tools/gpu-check) rebuilt every vcedit crate that
-// `cargo test` had just built.
-#[doc(hidden)]
-pub mod fuzz;
 mod memory;
 mod paths;
 mod regular;

@@ -359,25 +359,12 @@ mod tests {
     use super::*;
 
     fn names(dir: &Path) -> Vec<String> {
-        let mut v: Vec<String> = walk(dir)
+        let mut v: Vec<String> = testkit::paths::files_under(dir)
             .into_iter()
             .map(|p| p.strip_prefix(dir).unwrap().display().to_string())
             .collect();
         v.sort();
         v
-    }
-
-    fn walk(dir: &Path) -> Vec<PathBuf> {
-        let mut out = Vec::new();
-        for e in std::fs::read_dir(dir).unwrap() {
-            let p = e.unwrap().path();
-            if p.is_dir() {
-                out.extend(walk(&p));
-            } else {
-                out.push(p);
-            }
-        }
-        out
     }
 
     #[test]

@@ -9,7 +9,7 @@ use camera_files::*;
 use proptest::prelude::*;
 use splat::cameras::{load_cameras, to_working_resolution, CameraSet};
 use splat::Camera;
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 
 fn assert_close(a: &Camera, b: &Camera) {
     assert_eq!((a.width, a.height, &a.name), (b.width, b.height, &b.name));
@@ -170,14 +170,7 @@ fn layouts_are_detected() {
 }
 
 fn lego() -> Option<PathBuf> {
-    let p = Path::new(env!("CARGO_MANIFEST_DIR"))
-        .join("../../../shared/assets/lego-200/transforms_train.json");
-    if p.is_file() {
-        Some(p)
-    } else {
-        eprintln!("skipping: {} not present", p.display());
-        None
-    }
+    testkit::paths::shared_asset("lego-200/transforms_train.json")
 }
 
 #[test]

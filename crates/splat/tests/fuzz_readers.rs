@@ -1,4 +1,4 @@
-//! Fuzzing the scene and camera readers (see `files::fuzz`): PLY (binary and ASCII), compressed PLY,
+//! Fuzzing the scene and camera readers (see `testkit::fuzz`): PLY (binary and ASCII), compressed PLY,
 //! .splat, .spz (versions 2 and 3 gzip, 4 zstd), SOG (zip, and a folder's meta.json and WebP textures),
 //! COLMAP models (.bin and .txt), transforms.json and INRIA cameras.json, each seeded from valid files
 //! and mutated for
@@ -8,7 +8,7 @@
 #[path = "support/camera_files.rs"]
 mod camera_files;
 
-use std::path::{Path, PathBuf};
+use std::path::Path;
 
 use camera_files::{colmap_bin, colmap_txt, inria_json, transforms_json, views};
 use splat::cameras::load_cameras;
@@ -17,11 +17,7 @@ use splat::GaussianScene;
 
 // Every input's allocations are measured (an input that makes its reader claim too much fails).
 #[global_allocator]
-static ALLOC: files::fuzz::CountingAlloc = files::fuzz::CountingAlloc;
-
-fn crash_dir() -> PathBuf {
-    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../target/fuzz-crashes")
-}
+static ALLOC: testkit::fuzz::CountingAlloc = testkit::fuzz::CountingAlloc;
 
 /// A few Gaussians with SH coefficients up to `degree`.
 fn scene(degree: u32, n: usize) -> GaussianScene {
@@ -48,9 +44,15 @@ fn fuzz_ply() {
         encode_ply(&scene(3, 2)).unwrap(),
         ascii.as_bytes().to_vec(),
     ];
-    files::fuzz::run_file_and_assert("ply", "scene.ply", &seeds, &crash_dir(), |path| {
-        let _ = read_ply(path);
-    });
+    testkit::fuzz::run_file_and_assert(
+        "ply",
+        "scene.ply",
+        &seeds,
+        &testkit::fuzz::crash_dir(),
+        |path| {
+            let _ = read_ply(path);
+        },
+    );
 }
 
 /// The length a PLY header says its file has: the header plus every element's rows (binary: the
@@ -95,8 +97,8 @@ fn fuzz_ply_sparse() {
             .into_bytes()
     };
     // Past the sparse floor for 68-byte rows (SH degree 0) and for 8-byte ASCII rows.
-    let big = (files::fuzz::sparse_floor() / 40).to_string();
-    let big_ascii = (files::fuzz::sparse_floor() / 4).to_string();
+    let big = (testkit::fuzz::sparse_floor() / 40).to_string();
+    let big_ascii = (testkit::fuzz::sparse_floor() / 4).to_string();
     let binary = encode_ply(&scene(0, 1)).unwrap();
     let seeds = vec![
         huge(binary.clone(), "element vertex 1\n", &format!("element vertex {big}\n")),
@@ -112,11 +114,11 @@ fn fuzz_ply_sparse() {
         )
         .into_bytes(),
     ];
-    files::fuzz::run_sparse_file_and_assert(
+    testkit::fuzz::run_sparse_file_and_assert(
         "ply-sparse",
         "scene.ply",
         &seeds,
-        &crash_dir(),
+        &testkit::fuzz::crash_dir(),
         ply_claimed_len,
         |path| {
             let _ = splat::read_scene(path);
@@ -124,12 +126,12 @@ fn fuzz_ply_sparse() {
     );
     // The compressed PLY has the same header; its reader reads the whole file.
     let compressed = splat::formats::compressed_ply::encode(&scene(0, 300)).unwrap();
-    files::fuzz::run_sparse_file_and_assert(
+    testkit::fuzz::run_sparse_file_and_assert(
         "compressed-ply-sparse",
         "scene.compressed.ply",
         &[compressed],
-        &crash_dir(),
-        |b| ply_claimed_len(b).map(|l| l.max(files::fuzz::sparse_floor())),
+        &testkit::fuzz::crash_dir(),
+        |b| ply_claimed_len(b).map(|l| l.max(testkit::fuzz::sparse_floor())),
         |path| {
             let _ = splat::read_scene(path);
         },
@@ -140,9 +142,15 @@ fn fuzz_ply_sparse() {
 fn fuzz_colmap(target: &str, names: &[&str], write: fn(&Path, &[camera_files::View])) {
     let valid = tempfile::tempdir().unwrap();
     write(valid.path(), &views());
-    files::fuzz::run_file_set_and_assert(target, valid.path(), names, &crash_dir(), |dir| {
-        let _ = load_cameras(dir);
-    });
+    testkit::fuzz::run_file_set_and_assert(
+        target,
+        valid.path(),
+        names,
+        &testkit::fuzz::crash_dir(),
+        |dir| {
+            let _ = load_cameras(dir);
+        },
+    );
 }
 
 #[test]
@@ -169,7 +177,7 @@ fn fuzz_json(target: &str, name: &str, write: fn(&Path, &[camera_files::View])) 
     let path = dir.path().join(name);
     write(&path, &views());
     let seeds = vec![std::fs::read(&path).unwrap()];
-    files::fuzz::run_file_and_assert(target, name, &seeds, &crash_dir(), |path| {
+    testkit::fuzz::run_file_and_assert(target, name, &seeds, &testkit::fuzz::crash_dir(), |path| {
         let _ = load_cameras(path);
     });
 }
@@ -192,9 +200,15 @@ fn fuzz_format(target: &str, file_name: &str, encode: &dyn Fn(&GaussianScene) ->
         encode(&scene(1, 7)),
         encode(&scene(3, 3)),
     ];
-    files::fuzz::run_file_and_assert(target, file_name, &seeds, &crash_dir(), |path| {
-        let _ = splat::read_scene(path);
-    });
+    testkit::fuzz::run_file_and_assert(
+        target,
+        file_name,
+        &seeds,
+        &testkit::fuzz::crash_dir(),
+        |path| {
+            let _ = splat::read_scene(path);
+        },
+    );
 }
 
 #[test]
@@ -220,9 +234,15 @@ fn fuzz_spz() {
             [scene(0, 12), scene(3, 3)].map(|s| splat::formats::spz::encode(&s, v).unwrap())
         })
         .collect();
-    files::fuzz::run_file_and_assert("spz", "scene.spz", &seeds, &crash_dir(), |path| {
-        let _ = splat::read_scene(path);
-    });
+    testkit::fuzz::run_file_and_assert(
+        "spz",
+        "scene.spz",
+        &seeds,
+        &testkit::fuzz::crash_dir(),
+        |path| {
+            let _ = splat::read_scene(path);
+        },
+    );
 }
 
 #[test]
@@ -241,7 +261,13 @@ fn fuzz_sog_folder() {
         std::fs::write(valid.path().join(name), bytes).unwrap();
     }
     let names: Vec<&str> = files.iter().map(|(n, _)| n.as_str()).collect();
-    files::fuzz::run_file_set_and_assert("sog-folder", valid.path(), &names, &crash_dir(), |dir| {
-        let _ = splat::read_scene(&dir.join("meta.json"));
-    });
+    testkit::fuzz::run_file_set_and_assert(
+        "sog-folder",
+        valid.path(),
+        &names,
+        &testkit::fuzz::crash_dir(),
+        |dir| {
+            let _ = splat::read_scene(&dir.join("meta.json"));
+        },
+    );
 }

@@ -339,15 +339,7 @@ fn written_files_have_the_exact_inria_layout() {
 }
 
 fn shared_scene(name: &str) -> Option<PathBuf> {
-    let p = Path::new(env!("CARGO_MANIFEST_DIR"))
-        .join("../../../shared/assets/scenes")
-        .join(name);
-    if p.is_file() {
-        Some(p)
-    } else {
-        eprintln!("skipping: {} not present", p.display());
-        None
-    }
+    testkit::paths::shared_asset(&format!("scenes/{name}"))
 }
 
 #[test]

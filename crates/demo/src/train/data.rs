@@ -133,16 +133,7 @@ mod tests {
         let mirror = full.flip(&[3]).unwrap();
         for _ in 0..8 {
             let b = set.batch(&[2], 16, &mut rng).unwrap();
-            let max_diff = |other: &Tensor| {
-                (&b - other)
-                    .unwrap()
-                    .abs()
-                    .unwrap()
-                    .max_all()
-                    .unwrap()
-                    .to_scalar::<f32>()
-                    .unwrap()
-            };
+            let max_diff = |other: &Tensor| testkit::diff::tensor_max_abs_diff(&b, other);
             assert!(max_diff(&full) == 0.0 || max_diff(&mirror) == 0.0);
         }
         let crops = set.batch(&[0, 1, 4], 8, &mut rng).unwrap();

@@ -1004,6 +1004,7 @@ fn write_readme(
 mod tests {
     use super::*;
     use candle_core::Device;
+    use testkit::diff::tensor_max_abs_diff as max_abs_diff;
 
     /// Writes `trainer`'s weights (built from `config`) as an exported model folder would hold them.
     fn export(trainer: &denoiser::DenoiserTrainer, config: &TrainConfig, dir: &Path) {
@@ -1045,17 +1046,6 @@ mod tests {
         trainer
             .unet
             .forward(&noisy, &t, &context, None, None)
-            .unwrap()
-    }
-
-    fn max_abs_diff(a: &Tensor, b: &Tensor) -> f32 {
-        (a - b)
-            .unwrap()
-            .abs()
-            .unwrap()
-            .max_all()
-            .unwrap()
-            .to_scalar()
             .unwrap()
     }
 

@@ -320,23 +320,15 @@ mod tests {
         let b = Tensor::new(&[[8u32, 1, 2, 5, 9, 9]], &Device::Cpu).unwrap();
         let ha = m.forward(&a).unwrap();
         let hb = m.forward(&b).unwrap();
-        let early = (ha.narrow(1, 0, 3).unwrap() - hb.narrow(1, 0, 3).unwrap())
-            .unwrap()
-            .abs()
-            .unwrap()
-            .max_all()
-            .unwrap()
-            .to_scalar::<f32>()
-            .unwrap();
+        let early = testkit::diff::tensor_max_abs_diff(
+            &ha.narrow(1, 0, 3).unwrap(),
+            &hb.narrow(1, 0, 3).unwrap(),
+        );
         assert_eq!(early, 0.0);
-        let late = (ha.narrow(1, 3, 1).unwrap() - hb.narrow(1, 3, 1).unwrap())
-            .unwrap()
-            .abs()
-            .unwrap()
-            .max_all()
-            .unwrap()
-            .to_scalar::<f32>()
-            .unwrap();
+        let late = testkit::diff::tensor_max_abs_diff(
+            &ha.narrow(1, 3, 1).unwrap(),
+            &hb.narrow(1, 3, 1).unwrap(),
+        );
         assert!(late > 0.0);
     }
 
@@ -347,14 +339,7 @@ mod tests {
         let h = m.forward(&ids).unwrap();
         let pooled = m.pooled_output(&h, &ids).unwrap();
         let expected = h.get(0).unwrap().get(2).unwrap();
-        let diff = (pooled.get(0).unwrap() - expected)
-            .unwrap()
-            .abs()
-            .unwrap()
-            .max_all()
-            .unwrap()
-            .to_scalar::<f32>()
-            .unwrap();
+        let diff = testkit::diff::tensor_max_abs_diff(&pooled.get(0).unwrap(), &expected);
         assert_eq!(diff, 0.0);
     }
 

@@ -236,14 +236,7 @@ mod tests {
             .unwrap()
             .reshape((b, g * g, 8))
             .unwrap();
-        let diff = (conv - mine)
-            .unwrap()
-            .abs()
-            .unwrap()
-            .max_all()
-            .unwrap()
-            .to_scalar::<f32>()
-            .unwrap();
+        let diff = testkit::diff::tensor_max_abs_diff(&conv, &mine);
         assert!(diff < 1e-5, "{diff}");
     }
 

@@ -30,34 +30,9 @@ pub fn tiny_original_layout(dir: &Path) -> PathBuf {
     dir.to_path_buf()
 }
 
-/// Largest absolute difference of two tensors of the same shape.
-pub fn max_abs_diff(a: &Tensor, b: &Tensor) -> f32 {
-    assert_eq!(a.dims(), b.dims());
-    (a - b)
-        .unwrap()
-        .abs()
-        .unwrap()
-        .flatten_all()
-        .unwrap()
-        .max(0)
-        .unwrap()
-        .to_scalar::<f32>()
-        .unwrap()
-}
-
-/// ‖a − b‖₂ / ‖b‖₂.
-pub fn relative_l2(a: &Tensor, b: &Tensor) -> f32 {
-    assert_eq!(a.dims(), b.dims());
-    let sq = |t: &Tensor| {
-        t.sqr()
-            .unwrap()
-            .sum_all()
-            .unwrap()
-            .to_scalar::<f32>()
-            .unwrap()
-    };
-    (sq(&(a - b).unwrap()) / sq(b).max(f32::MIN_POSITIVE)).sqrt()
-}
+// Each test binary uses a subset.
+#[allow(unused_imports)]
+pub use testkit::diff::{tensor_max_abs_diff as max_abs_diff, tensor_relative_l2 as relative_l2};
 
 /// Runs `f` with bf16 products, or returns `None` after one printed line on a CPU without them.
 pub fn in_bf16<R>(f: impl FnOnce() -> R) -> Option<R> {
@@ -96,14 +71,5 @@ pub fn gpus_or_skip() -> Vec<(diffusion::device::GpuDevice, f32)> {
 
 /// Max abs difference relative to the reference's max abs value.
 pub fn relative_error(got: &Tensor, want: &Tensor) -> f32 {
-    let scale: f32 = want
-        .abs()
-        .unwrap()
-        .flatten_all()
-        .unwrap()
-        .max(0)
-        .unwrap()
-        .to_scalar()
-        .unwrap();
-    max_abs_diff(got, want) / scale.max(1e-6)
+    max_abs_diff(got, want) / testkit::diff::tensor_max_abs(want).max(1e-6)
 }

@@ -20,7 +20,7 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::{Duration, Instant};
 
 /// The system allocator, counting each thread's live bytes and their peak. Install it in a fuzz test
-/// binary with `#[global_allocator] static ALLOC: files::fuzz::CountingAlloc = files::fuzz::CountingAlloc;`.
+/// binary with `#[global_allocator] static ALLOC: testkit::fuzz::CountingAlloc = testkit::fuzz::CountingAlloc;`.
 pub struct CountingAlloc;
 
 thread_local! {
@@ -294,6 +294,12 @@ pub fn run_for(
     summary
 }
 
+/// Where the targets save the inputs that crashed or over-allocated: `target/fuzz-crashes` at the
+/// repository's root, whichever crate's tests run them.
+pub fn crash_dir() -> PathBuf {
+    crate::paths::repo().join("target/fuzz-crashes")
+}
+
 /// [`run_for`] with the [`budget`] from the environment, then a test failure naming the saved inputs if
 /// any panicked.
 pub fn run_and_assert(name: &str, seeds: &[Vec<u8>], crash_dir: &Path, check: impl FnMut(&[u8])) {
@@ -351,7 +357,7 @@ pub fn run_file_and_assert(
 /// The shortest sparse file [`run_sparse_file_and_assert`] makes: 8 times the memory available (2^40
 /// bytes when unknown), so what its header claims cannot fit in memory whatever the bytes per item.
 pub fn sparse_floor() -> u64 {
-    crate::available_memory().map_or(1 << 40, |m| m.saturating_mul(8))
+    files::available_memory().map_or(1 << 40, |m| m.saturating_mul(8))
 }
 
 /// Like [`run_file_and_assert`], for the sparse-file case: after each input is written, the file is
