@@ -4,7 +4,7 @@
 //! of each stays the reference its GPU path is tested against.
 
 use diffusion::device::{Device, GpuDevice, Precision};
-use gpu::{GpuContext, GpuError};
+use gpu::{GpuContext, GpuError, GpuLimits};
 use splat::SplatDevice;
 
 /// The devices of a run: both engines on the CPU, or both on one GPU.
@@ -40,6 +40,32 @@ impl Compute {
     /// Where the splatting engine runs.
     pub fn splat(&self) -> &SplatDevice {
         &self.splat
+    }
+
+    /// Whether the work runs on a GPU (both engines do, or neither).
+    pub fn is_gpu(&self) -> bool {
+        self.networks.is_gpu()
+    }
+
+    /// The GPU's limits (largest buffer, stated and free memory); `None` on the CPU.
+    pub fn gpu_limits(&self) -> Option<&GpuLimits> {
+        self.networks.gpu().map(|gpu| &gpu.context().limits)
+    }
+
+    /// The GPU's free memory when it was opened, where its vendor's interface reports it; `None` on the
+    /// CPU and where unknown.
+    pub fn gpu_free_bytes(&self) -> Option<u64> {
+        self.gpu_limits()
+            .and_then(|limits| limits.free_bytes_at_open)
+    }
+
+    /// Device memory `parameters` network weights take in the GPU's weight precision; `None` on the CPU
+    /// (weights stay on the host there).
+    pub fn gpu_weight_bytes(&self, parameters: u64) -> Option<u64> {
+        self.networks.gpu().map(|gpu| match gpu.precision() {
+            Precision::F16 => parameters * 2,
+            Precision::F32 => parameters * 4,
+        })
     }
 
     /// "CPU" and its products' precision, or the adapter and the weights' precision, for logs and run.json.

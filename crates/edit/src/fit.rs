@@ -10,10 +10,9 @@
 use std::path::Path;
 use std::sync::Arc;
 
-use diffusion::device::{DeviceTensor, GpuTensor};
+use diffusion::device::DeviceTensor;
 use diffusion::lpips::{Lpips, LpipsError, LpipsTarget, TargetCache};
-use gpu::cubecl::server::Handle;
-use gpu::GpuError;
+use gpu::{F32Buffer, GpuError};
 use rand::seq::SliceRandom;
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
@@ -82,7 +81,7 @@ impl ImageLoss {
         match self {
             ImageLoss::Dssim { l1, dssim } => Some(L1DssimWeights::new(*l1, *dssim)),
             ImageLoss::Lpips { net, l1, .. } => {
-                net.device().gpu().map(|_| L1DssimWeights::new(*l1, 0.0))
+                net.device().is_gpu().then(|| L1DssimWeights::new(*l1, 0.0))
             }
         }
     }
@@ -92,7 +91,7 @@ impl ImageLoss {
     /// renderer's buffers, L1 + D-SSIM's included, are in the run's own estimate).
     pub fn gpu_bytes(&self, size: (u32, u32), views: usize) -> u64 {
         match self {
-            ImageLoss::Lpips { net, .. } if net.device().gpu().is_some() => {
+            ImageLoss::Lpips { net, .. } if net.device().is_gpu() => {
                 let (w, h) = (size.0 as usize, size.1 as usize);
                 let targets = net.target_bytes(h, w).saturating_mul(views);
                 (net.activation_bytes(h, w) + targets.min(LPIPS_CACHE_BYTES)) as u64
@@ -237,17 +236,17 @@ impl FitLoss for Targets<'_> {
     /// gradients never leave the device (the value only when asked).
     fn device_term(
         &mut self,
-        rgb: &Handle,
-        grad: Handle,
+        rgb: &F32Buffer,
+        grad: F32Buffer,
         v: usize,
         read_value: bool,
-    ) -> Result<Handle, TrainError> {
+    ) -> Result<F32Buffer, TrainError> {
         let ImageLoss::Lpips { net, lpips: wl, .. } = self.loss else {
             return Ok(grad);
         };
-        let Some(gpu) = net.device().gpu() else {
+        if !net.device().is_gpu() {
             return Ok(grad);
-        };
+        }
         let target = &self.images[v];
         let (w, h) = (target.width as usize, target.height as usize);
         let features = self.lpips_features(net, v)?;
@@ -255,9 +254,8 @@ impl FitLoss for Targets<'_> {
             device: net.device().describe(),
             cause,
         };
-        let on_device = |handle: Handle| {
-            GpuTensor::from_handle(gpu, handle, vec![h * w * 3])
-                .map(DeviceTensor::Gpu)
+        let on_device = |buffer: F32Buffer| {
+            DeviceTensor::from_gpu_buffer(net.device(), buffer, vec![h * w * 3])
                 .map_err(compute_error)
         };
         let out = net.loss_and_grad_on(&on_device(rgb.clone())?, h, w, &features)?;
@@ -266,10 +264,7 @@ impl FitLoss for Targets<'_> {
         if read_value {
             self.device_value = wl * out.per_layer()?.iter().sum::<f32>();
         }
-        match total {
-            DeviceTensor::Gpu(t) => Ok(t.handle().clone()),
-            DeviceTensor::Cpu(_) => unreachable!("GPU operands give a GPU result"),
-        }
+        Ok(total.into_gpu_buffer().map_err(compute_error)?)
     }
 
     fn take_device_value(&mut self) -> f32 {

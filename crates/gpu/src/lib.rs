@@ -25,6 +25,7 @@
 use std::fmt;
 use std::str::FromStr;
 
+pub use buffer::{BufferTooSmall, F32Buffer};
 pub use cubecl;
 use cubecl::client::Client;
 use cubecl::device::{WgpuBackend, WgpuDeviceKind};
@@ -32,6 +33,7 @@ use cubecl::ir::{ElemType, FloatKind};
 use cubecl::wgpu::{wgpu, AutoGraphicsApi, RuntimeOptions, WgpuDevice, WgpuRuntime, WgslCompiler};
 use cubecl_runtime::runtime::Runtime;
 
+mod buffer;
 mod cuda;
 mod memory;
 pub mod prims;
@@ -209,6 +211,9 @@ pub enum GpuError {
     BadCompiler(String),
     #[error("{COMPILER_ENV}=spirv: this build has no SPIR-V compiler (built without vcedit-gpu's `spirv` feature)")]
     SpirvNotBuilt,
+    /// One engine handed another a buffer too small for what it said it held (a bug, not a user error).
+    #[error(transparent)]
+    BufferTooSmall(BufferTooSmall),
 }
 
 /// Hardware limits the kernels size themselves by.

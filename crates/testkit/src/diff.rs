@@ -63,7 +63,7 @@ mod tests {
         let a = [1.0, -2.0, 3.5];
         let b = [1.5, -2.0, 3.0];
         assert_eq!(max_abs_diff(&a, &b), 0.5);
-        let want = (0.5f64 / (1.0 + 4.0 + 9.0)).sqrt() as f32;
+        let want = (0.5f64 / (1.5f64 * 1.5 + 4.0 + 9.0)).sqrt() as f32;
         assert!((relative_l2(&a, &b) - want).abs() < 1e-7);
         let ta = Tensor::new(&a, &Device::Cpu)
             .unwrap()

@@ -86,12 +86,8 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     args.prompts.check_words(&model.tokenizer, None)?;
     let (host, gpu) = edit::run::image_edit_memory(&model, (w, h));
     args.memory.check(host, "--size")?;
-    let free = model
-        .compute
-        .networks()
-        .gpu()
-        .and_then(|g| g.context().limits.free_bytes_at_open);
-    args.memory.check_gpu(gpu, free, "--size")?;
+    args.memory
+        .check_gpu(gpu, model.compute.gpu_free_bytes(), "--size")?;
     let input = input
         .over_background([1.0, 1.0, 1.0])
         .center_crop_to_aspect(w, h)

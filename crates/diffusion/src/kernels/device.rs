@@ -18,6 +18,7 @@ use candle_core::{Result, Tensor};
 use candle_nn::Activation;
 
 use super::gpu::{GpuDevice, GpuTensor};
+use gpu::F32Buffer;
 
 /// Where a network runs.
 #[derive(Debug, Clone, Default)]
@@ -35,6 +36,11 @@ impl Device {
             Device::Cpu => DeviceTensor::Cpu(t.clone()),
             Device::Gpu(device) => DeviceTensor::Gpu(GpuTensor::upload(device, t)?),
         })
+    }
+
+    /// Whether this is a GPU.
+    pub fn is_gpu(&self) -> bool {
+        matches!(self, Device::Gpu(_))
     }
 
     /// The GPU, for callers that manage its memory or weight cache (`None` on the CPU).
@@ -245,6 +251,27 @@ macro_rules! all_on {
 }
 
 impl DeviceTensor {
+    /// An f32 tensor of `shape` over values another engine made on `device`'s GPU (the splatting
+    /// engine's render); an error on the CPU or when the buffer holds another number of values.
+    pub fn from_gpu_buffer(device: &Device, buffer: F32Buffer, shape: Vec<usize>) -> Result<Self> {
+        match device {
+            Device::Gpu(gpu) => Ok(DeviceTensor::Gpu(GpuTensor::from_buffer(
+                gpu, buffer, shape,
+            )?)),
+            Device::Cpu => candle_core::bail!("a GPU buffer handed to networks on the CPU"),
+        }
+    }
+
+    /// The values as a buffer another engine on the same GPU can take; an error for a CPU tensor.
+    pub fn into_gpu_buffer(self) -> Result<F32Buffer> {
+        match self {
+            DeviceTensor::Gpu(t) => t.into_buffer(),
+            DeviceTensor::Cpu(t) => {
+                candle_core::bail!("a CPU tensor {:?} is not a GPU buffer", t.dims())
+            }
+        }
+    }
+
     /// A host tensor (a constant, a map from elsewhere) on this tensor's device.
     pub fn same_device(&self, t: &Tensor) -> Result<DeviceTensor> {
         match self {

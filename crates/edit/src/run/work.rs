@@ -1,6 +1,5 @@
 //! What a run will cost: the work it does and the memory it needs, shown (and checked) before it starts.
 
-use diffusion::device::Precision;
 use serde::Serialize;
 use splat::GaussianScene;
 
@@ -113,7 +112,7 @@ pub fn view_batch(job: &EditJob, model: &EditModel, scene: &GaussianScene, views
     if let Some(n) = job.view_batch {
         return n.max(1);
     }
-    let Some(gpu) = model.compute.networks().gpu() else {
+    let Some(limits) = model.compute.gpu_limits() else {
         return 1;
     };
     let f = model.downscale();
@@ -124,7 +123,6 @@ pub fn view_batch(job: &EditJob, model: &EditModel, scene: &GaussianScene, views
     // their own im2col buffers. A batch must keep it within the device's largest buffer.
     let width = config.block_out_channels.first().copied().unwrap_or(320);
     let largest = 6 * lh * lw * (8 * width).max(8 * 77) * 4;
-    let limits = gpu.context().limits;
     let budget = match (limits.free_bytes_at_open, limits.memory_bytes) {
         (Some(free), _) => free.saturating_sub(gpu_state_bytes(job, model, scene, views)),
         (None, Some(stated)) => stated / 3,
@@ -156,12 +154,8 @@ pub fn gpu_state_bytes(
     scene: &GaussianScene,
     views: usize,
 ) -> u64 {
-    let Some(gpu) = model.compute.networks().gpu() else {
+    let Some(weight_bytes) = model.compute.gpu_weight_bytes(model.parameters) else {
         return 0;
-    };
-    let weight_bytes = match gpu.precision() {
-        Precision::F16 => model.parameters * 2,
-        Precision::F32 => model.parameters * 4,
     };
     let (w, h) = (job.size.0 as u64, job.size.1 as u64);
     let n = scene.len() as u64;
@@ -257,9 +251,10 @@ pub fn image_edit_memory(model: &EditModel, size: (u32, u32)) -> (u64, Option<u6
     let unet = unet_call_bytes(model, 1, ((h / f) as usize, (w / f) as usize));
     // The input, the decoded outputs and the attention maps saved with the image, in f32.
     let images = w * h * 4 * 16;
-    match model.compute.networks().gpu() {
-        Some(_) => (weights + images + 300_000_000, Some(weights + unet)),
-        None => (weights + unet + images + 300_000_000, None),
+    if model.compute.is_gpu() {
+        (weights + images + 300_000_000, Some(weights + unet))
+    } else {
+        (weights + unet + images + 300_000_000, None)
     }
 }
 
@@ -342,14 +337,10 @@ pub fn work_plan(
         weights + unet + v as u64 * per_view + images + train + lift + lpips + 300_000_000;
     // On a GPU: what the run keeps there (`gpu_state_bytes`) plus one hooked UNet call of `view_batch`
     // views (diffusion's documented upper bound, self-attention's score chunks included).
-    let gpu_memory_bytes = model.compute.networks().gpu().map(|_| {
+    let gpu_memory_bytes = model.compute.is_gpu().then(|| {
         gpu_state_bytes(job, model, scene, v) + unet_call_bytes(model, view_batch, latent_size)
     });
-    let gpu_free_bytes = model
-        .compute
-        .networks()
-        .gpu()
-        .and_then(|gpu| gpu.context().limits.free_bytes_at_open);
+    let gpu_free_bytes = model.compute.gpu_free_bytes();
     WorkPlan {
         views: v,
         iterations: job.iterations,
@@ -424,6 +415,7 @@ const LPIPS_BUDGET: u64 = LPIPS_CACHE_BYTES as u64;
 mod tests {
     use super::*;
     use crate::compute::Compute;
+    use diffusion::device::Precision;
 
     fn job() -> EditJob {
         EditJob {
@@ -439,13 +431,12 @@ mod tests {
         let Some(mut ctx) = gpu::testing::context_or_skip() else {
             return;
         };
-        let fixtures = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../fixtures");
-        let cpu = EditModel::load(&fixtures.join("models/tiny-lcm"), None).unwrap();
+        let cpu = EditModel::load(&testkit::paths::tiny_lcm(), None).unwrap();
         let scene = GaussianScene::new(0);
         let job = job();
         let on = |free: Option<u64>, ctx: &mut gpu::GpuContext| {
             ctx.limits.free_bytes_at_open = free;
-            EditModel::load(&fixtures.join("models/tiny-lcm"), None)
+            EditModel::load(&testkit::paths::tiny_lcm(), None)
                 .unwrap()
                 .on(Compute::on(Some(ctx.clone()), Precision::F32))
         };

@@ -260,11 +260,11 @@ impl EditModel {
     /// largest activation within the device's largest buffer.
     fn codec_batch(&self, batch: usize, h: usize, w: usize) -> usize {
         let batch = batch.max(1);
-        let Some(gpu) = self.compute.networks().gpu() else {
+        let Some(limits) = self.compute.gpu_limits() else {
             return batch;
         };
         let per_image = self.codec.largest_activation_bytes(h, w).max(1) as u64;
-        let limit = gpu.context().limits.max_buffer_bytes;
+        let limit = limits.max_buffer_bytes;
         batch.min((limit / per_image).max(1) as usize)
     }
 

@@ -14,6 +14,7 @@ use crate::train::TrainState;
 use crate::Camera;
 use ::gpu::cubecl::server::Handle;
 use ::gpu::prims::upload_u32;
+use ::gpu::F32Buffer;
 
 /// Scene parameters, Adam moments, densification statistics and, when the state has them, the
 /// trainable mask and the anchors, on the device.
@@ -119,7 +120,7 @@ impl DeviceTrainer {
         settings: &RenderSettings,
         weights: L1DssimWeights,
         track_stats: bool,
-        term: impl FnOnce(&Handle, Handle) -> Result<Handle, E>,
+        term: impl FnOnce(&F32Buffer, F32Buffer) -> Result<F32Buffer, E>,
     ) -> Result<GpuLoss, E> {
         let geometry_fixed = adam.geometry_fixed();
         let kept = match self.frozen.as_mut() {
@@ -136,7 +137,10 @@ impl DeviceTrainer {
         };
         let (w, h) = (camera.width as usize, camera.height as usize);
         let loss = l1_dssim_weighted(ctx, &frame.rgb, target, w, h, 3, weights)?;
-        let rgb_grad = term(&frame.rgb, loss.grad.clone())?;
+        let values = w * h * 3;
+        let rgb = F32Buffer::new(frame.rgb.clone(), values).map_err(GpuError::BufferTooSmall)?;
+        let grad = F32Buffer::new(loss.grad.clone(), values).map_err(GpuError::BufferTooSmall)?;
+        let rgb_grad = term(&rgb, grad)?.into_handle();
         let grads = render_backward_device(
             ctx,
             &self.scene,

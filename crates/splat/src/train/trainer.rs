@@ -8,6 +8,7 @@
 //! trainer owns where and how a step runs.
 
 use ::gpu::cubecl::server::Handle;
+use ::gpu::F32Buffer;
 
 use crate::gpu::{DeviceTrainer, GpuContext, GpuError, L1DssimWeights};
 use crate::render::{FrozenGeometry, RenderSettings, SceneGrads};
@@ -28,11 +29,11 @@ pub trait FitLoss {
     /// [`FitLoss::take_device_value`]. The default adds nothing.
     fn device_term(
         &mut self,
-        _rgb: &Handle,
-        grad: Handle,
+        _rgb: &F32Buffer,
+        grad: F32Buffer,
         _v: usize,
         _read_value: bool,
-    ) -> Result<Handle, Self::Error> {
+    ) -> Result<F32Buffer, Self::Error> {
         Ok(grad)
     }
     /// The value of the last [`FitLoss::device_term`] asked to read it (0 when there is no term).

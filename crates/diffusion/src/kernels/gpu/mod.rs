@@ -23,7 +23,7 @@ use candle_core::{DType, Device, Result, Tensor, TensorId};
 use cubecl::client::Client;
 use cubecl::prelude::*;
 use cubecl::server::Handle;
-use gpu::{DeviceChoice, GpuContext, GpuError};
+use gpu::{DeviceChoice, F32Buffer, GpuContext, GpuError};
 
 /// The name tuning results on `context`'s device are kept under: adapter, graphics API and compiler (a
 /// timing on WGSL says nothing of SPIR-V), as one path segment of ASCII letters, digits, '-' and '.'.
@@ -241,22 +241,38 @@ impl GpuTensor {
         }
     }
 
-    /// An f32 tensor of `shape` over a buffer of the device's client that another engine made (the
-    /// splatting engine's render, sharing the [`GpuContext`]); an error when the buffer is too small.
-    pub fn from_handle(device: &GpuDevice, handle: Handle, shape: Vec<usize>) -> Result<GpuTensor> {
-        let needed = shape.iter().product::<usize>() * std::mem::size_of::<f32>();
-        if (handle.size_in_used() as usize) < needed {
+    /// An f32 tensor of `shape` over values another engine made on the same context (the splatting
+    /// engine's render); an error when the buffer holds another number of values.
+    pub fn from_buffer(
+        device: &GpuDevice,
+        buffer: F32Buffer,
+        shape: Vec<usize>,
+    ) -> Result<GpuTensor> {
+        if shape.iter().product::<usize>() != buffer.len() {
             candle_core::bail!(
-                "a {} byte GPU buffer cannot hold a {shape:?} f32 tensor",
-                handle.size_in_used()
+                "a GPU buffer of {} f32 values is not a {shape:?} tensor",
+                buffer.len()
             );
         }
         Ok(GpuTensor {
             device: device.clone(),
-            handle,
+            handle: buffer.into_handle(),
             shape,
             half: false,
         })
+    }
+
+    /// The values as a buffer another engine on the same context can take; an error for packed f16
+    /// storage (weights, never a result handed on).
+    pub fn into_buffer(self) -> Result<F32Buffer> {
+        if self.half {
+            candle_core::bail!(
+                "a packed f16 GPU tensor {:?} is not an f32 buffer",
+                self.shape
+            );
+        }
+        let len = self.shape.iter().product();
+        F32Buffer::new(self.handle, len).map_err(|e| candle_core::Error::Msg(e.to_string()))
     }
 
     /// The buffer (f32, or packed f16 for [`GpuTensor::is_f16`]), for another engine on the same context.
