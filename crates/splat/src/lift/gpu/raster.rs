@@ -9,6 +9,54 @@ use crate::render::gpu::raster::{
 };
 use crate::render::{ALPHA_MAX, ALPHA_MIN, TILE, T_MIN};
 
+/// One Gaussian of a shared-memory batch (its record from `s`: mean, conic, opacity) front to back at
+/// the unit's `ppu` pixels (column x, rows y·ppu.. of the cube's tile), with the CPU's rules: skipped at
+/// a pixel already done, or where σ < 0 or alpha < 1/255; where T would fall below 1e-4 the pixel is
+/// done and the Gaussian does not count; elsewhere it is a hit (unweighted, as in the reference):
+/// `hit[q]` = 1 and T ← T·(1 − alpha). Returns the number of hits. The walk of both lifting kernels;
+/// the raster forward keeps its own inline (it composites at each hit: split into two loops it ran
+/// slower on lavapipe).
+#[cube]
+fn front_to_back(
+    batch: &Shared<[f32]>,
+    s: usize,
+    done: &mut Array<u32>,
+    t: &mut Array<f32>,
+    hit: &mut Array<u32>,
+    #[comptime] ppu: u32,
+) -> u32 {
+    let np = comptime!(ppu as usize);
+    let fx = (CUBE_POS_X * TILE + UNIT_POS_X) as f32 + 0.5;
+    let py0 = CUBE_POS_Y * TILE + UNIT_POS_Y * ppu;
+    let mx = batch[s];
+    let my = batch[s + 1];
+    let ca = batch[s + 2];
+    let cb = batch[s + 3];
+    let cc = batch[s + 4];
+    let o = batch[s + 5];
+    let mut hits = 0u32;
+    #[unroll]
+    for q in 0..np {
+        hit[q] = 0;
+        if done[q] == 0 {
+            let fy = (py0 + q as u32) as f32 + 0.5;
+            let (sigma, vis, _dx, _dy) = falloff(mx, my, ca, cb, cc, fx, fy);
+            let a = f32::min(o * vis, ALPHA_MAX as f32);
+            if sigma >= 0.0 && a >= ALPHA_MIN as f32 {
+                let next = t[q] * (1.0f32 - a);
+                if next < T_MIN as f32 {
+                    done[q] = 1;
+                } else {
+                    hit[q] = 1;
+                    hits += 1;
+                    t[q] = next;
+                }
+            }
+        }
+    }
+    hits
+}
+
 /// Lifting (GaussianEditor's `apply_weights`, as `crate::lift`): the forward walk with T from 1, and at
 /// every hit (an unweighted one) the pixel's C map values are added to the Gaussian's sums and its count
 /// goes up by one. Laid out as the raster forward
@@ -38,7 +86,6 @@ pub fn lift_accumulate(
     let count = tile_end[tile] - start;
     let px = CUBE_POS_X * TILE + UNIT_POS_X;
     let py0 = CUBE_POS_Y * TILE + UNIT_POS_Y * ppu;
-    let fx = px as f32 + 0.5;
 
     let mut pix = Array::<u32>::new(np);
     let mut done = Array::<u32>::new(np);
@@ -76,32 +123,7 @@ pub fn lift_accumulate(
         sync_cube();
         for j in 0..size {
             let s = j as usize * 6;
-            let mx = batch[s];
-            let my = batch[s + 1];
-            let ca = batch[s + 2];
-            let cb = batch[s + 3];
-            let cc = batch[s + 4];
-            let o = batch[s + 5];
-            let mut hits = 0u32;
-            #[unroll]
-            for q in 0..np {
-                hit[q] = 0;
-                if done[q] == 0 {
-                    let fy = (py0 + q as u32) as f32 + 0.5;
-                    let (sigma, vis, _dx, _dy) = falloff(mx, my, ca, cb, cc, fx, fy);
-                    let a = f32::min(o * vis, ALPHA_MAX as f32);
-                    if sigma >= 0.0 && a >= ALPHA_MIN as f32 {
-                        let next = t[q] * (1.0f32 - a);
-                        if next < T_MIN as f32 {
-                            done[q] = 1;
-                        } else {
-                            hit[q] = 1;
-                            hits += 1;
-                            t[q] = next;
-                        }
-                    }
-                }
-            }
+            let hits = front_to_back(&batch, s, &mut done, &mut t, &mut hit, ppu);
             if hits > 0 {
                 let gi = batch_ids[j as usize] as usize;
                 counts[gi].fetch_add(hits);
@@ -185,7 +207,6 @@ pub fn lift_accumulate_grid(
     let count = tile_end[tile] - start;
     let px = CUBE_POS_X * TILE + UNIT_POS_X;
     let py0 = CUBE_POS_Y * TILE + UNIT_POS_Y * ppu;
-    let fx = px as f32 + 0.5;
 
     // Every pixel of the tile reads cells in [base, base + span) on each axis (the host checked `span`).
     let (xbase, _, _, _) = axis_cells(CUBE_POS_X * TILE, width, grid_w, scale_x, bilinear);
@@ -201,6 +222,8 @@ pub fn lift_accumulate_grid(
     let mut ry1 = Array::<u32>::new(np);
     let mut wy0 = Array::<f32>::new(np);
     let mut wy1 = Array::<f32>::new(np);
+    // Per pixel: whether the Gaussian at hand hits it.
+    let mut hit = Array::<u32>::new(np);
     #[unroll]
     for q in 0..np {
         let py = py0 + q as u32;
@@ -264,34 +287,16 @@ pub fn lift_accumulate_grid(
         sync_cube();
         for j in 0..size {
             let s = j as usize * 6;
-            let mx = batch[s];
-            let my = batch[s + 1];
-            let ca = batch[s + 2];
-            let cb = batch[s + 3];
-            let cc = batch[s + 4];
-            let o = batch[s + 5];
-            let mut hits = 0u32;
+            let hits = front_to_back(&batch, s, &mut done, &mut t, &mut hit, ppu);
             #[unroll]
             for r in 0..span {
                 rows[r as usize] = 0.0;
             }
             #[unroll]
             for q in 0..np {
-                if done[q] == 0 {
-                    let fy = (py0 + q as u32) as f32 + 0.5;
-                    let (sigma, vis, _dx, _dy) = falloff(mx, my, ca, cb, cc, fx, fy);
-                    let a = f32::min(o * vis, ALPHA_MAX as f32);
-                    if sigma >= 0.0 && a >= ALPHA_MIN as f32 {
-                        let next = t[q] * (1.0f32 - a);
-                        if next < T_MIN as f32 {
-                            done[q] = 1;
-                        } else {
-                            hits += 1;
-                            t[q] = next;
-                            rows[ry0[q] as usize] += wy0[q];
-                            rows[ry1[q] as usize] += wy1[q];
-                        }
-                    }
+                if hit[q] == 1 {
+                    rows[ry0[q] as usize] += wy0[q];
+                    rows[ry1[q] as usize] += wy1[q];
                 }
             }
             if hits > 0 {
