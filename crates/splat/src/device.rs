@@ -1,20 +1,24 @@
 //! The splatting engine's device seam: where renders, their backward passes and liftings run is decided
 //! here and nowhere else. [`SplatDevice`] is the CPU (the reference implementation in [`crate::render`] and
-//! [`crate::lift`]) or a GPU (the CubeCL kernels in [`crate::gpu`], tested against the CPU on lavapipe);
+//! [`crate::lift`]) or a GPU (the CubeCL kernels in [`crate::render::gpu`] and [`crate::lift::gpu`], tested against the CPU on lavapipe);
 //! both produce the same [`Frame`]s, [`SceneGrads`] and [`Lifted`] values.
 //!
 //! Adding a backend: a variant here, and one arm in each method below (render, render with loss and
 //! backward, lifting); callers are unchanged.
 
-use crate::gpu::{GpuContext, GpuError, GpuLiftAccumulator, GpuLiftScene, GpuScene};
+use crate::lift::gpu::{GpuLiftAccumulator, GpuLiftScene};
 use crate::lift::{read_by_resampling, resample, LiftAccumulator, Lifted, MapGrid};
+use crate::render::gpu::GpuScene;
 use crate::render::{
     render, render_backward, render_backward_appearance, render_extra_at, ExtraChannels, Frame,
     FrozenGeometry, OutputGrads, RenderOutput, RenderSettings, SceneGrads,
 };
+use ::gpu::{GpuContext, GpuError};
 use rayon::prelude::*;
 
-use crate::{Camera, GaussianScene, Image};
+use crate::cameras::Camera;
+use crate::image::Image;
+use crate::scene::GaussianScene;
 
 /// Where the splatting engine runs.
 // One value per run, passed by reference: the GPU variant's size does not matter.
@@ -52,9 +56,12 @@ impl SplatDevice {
     pub fn kept_views_bytes(&self, gaussians: usize, views: usize, width: u32, height: u32) -> u64 {
         let per_view = match self {
             SplatDevice::Cpu => crate::render::FrozenView::memory_bytes_for(gaussians),
-            SplatDevice::Gpu(_) => {
-                crate::gpu::GpuFrozenGeometry::view_bytes(gaussians, 4 * gaussians, width, height)
-            }
+            SplatDevice::Gpu(_) => crate::render::gpu::GpuFrozenGeometry::view_bytes(
+                gaussians,
+                4 * gaussians,
+                width,
+                height,
+            ),
         };
         views
             .saturating_mul(per_view)
@@ -71,7 +78,9 @@ impl SplatDevice {
     ) -> Result<Frame, GpuError> {
         match self {
             SplatDevice::Cpu => Ok(render(scene, camera, settings, extra).into_frame()),
-            SplatDevice::Gpu(ctx) => crate::gpu::render(ctx, scene, camera, settings, extra),
+            SplatDevice::Gpu(ctx) => {
+                crate::render::gpu::render(ctx, scene, camera, settings, extra)
+            }
         }
     }
 
@@ -119,14 +128,14 @@ impl SplatDevice {
                 let extra_dev =
                     extra.map(|e| (::gpu::prims::upload_f32(&ctx.client, e.values), e.channels));
                 for (v, cam) in cameras.iter().enumerate() {
-                    let frame = crate::gpu::render_device(
+                    let frame = crate::render::gpu::render_device(
                         ctx,
                         &dev,
                         cam,
                         settings,
                         extra_dev.as_ref().map(|(h, c)| (h, *c)),
                     )?;
-                    sink(v, crate::gpu::download(ctx, &frame, scene.len())?)?;
+                    sink(v, crate::render::gpu::download(ctx, &frame, scene.len())?)?;
                 }
             }
         }
@@ -164,7 +173,7 @@ impl SplatDevice {
                 Ok(loss_and_backward(scene, camera, settings, out, loss, true))
             }
             SplatDevice::Gpu(ctx) => {
-                crate::gpu::render_with_loss(ctx, scene, camera, settings, loss)
+                crate::render::gpu::render_with_loss(ctx, scene, camera, settings, loss)
             }
         }
     }
@@ -495,8 +504,8 @@ impl Lifter<'_> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::gpu::tests::{camera, random_scene, three_views};
     use crate::lift::{MapGrid, Resample};
+    use crate::render::gpu::tests::{camera, random_scene, three_views};
     use ::gpu::testing::context_or_skip;
 
     /// One round of stacked channels gives each part what its own round gives: CCM lifts the layers of

@@ -7,7 +7,7 @@
 //! It sits below everything that owns such arrays (optimiser, anchors, training state, densification), so
 //! they can all follow the same change without knowing about each other.
 
-use crate::GaussianScene;
+use crate::scene::GaussianScene;
 
 /// One structural change of the Gaussian set: the old Gaussians with `keep` set, in order, followed by
 /// copies of the old Gaussians `appended` (old indices, possibly repeated).

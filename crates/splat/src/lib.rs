@@ -5,10 +5,11 @@
 //! - types: [`scene`] ([`GaussianScene`]), [`cameras`] ([`Camera`] and the camera readers), [`image`];
 //! - input/output: [`formats`] (every scene reader and writer; [`read_scene`] and [`open_scene`] the
 //!   entries);
-//! - rendering: [`render`] (CPU: projection → tile binning → rasterisation, each with its backward) and
-//!   `gpu` (the CubeCL twins), joined behind [`SplatDevice`], the device seam; [`lift`];
-//! - training: [`train`] (the trainer, optimiser, densification, anchors, losses, checkpoints, the scene
-//!   fit).
+//! - rendering: [`render`] (CPU: projection → tile binning → rasterisation, each with its backward; and
+//!   `render::gpu`, the CubeCL twins); [`lift`] (on the CPU and in `lift::gpu`), both joined behind
+//!   [`SplatDevice`], the device seam;
+//! - training, above them: [`train`] (the trainer, optimiser, densification, anchors, losses,
+//!   checkpoints, the scene fit; the device-resident steps in `train::gpu`).
 //!
 //! Conventions used everywhere in this crate (and by every crate above it):
 //! - Cameras are OpenCV cameras: x right, y down, z forward; `world_to_camera` maps world points into that
@@ -20,7 +21,6 @@
 pub mod cameras;
 mod device;
 pub mod formats;
-mod gpu;
 pub mod image;
 mod layout;
 pub mod lift;
@@ -30,7 +30,7 @@ pub mod train;
 
 /// The GPU the device seam runs on (opened with the `gpu` crate) and its error.
 pub use ::gpu::{GpuContext, GpuError};
-pub use cameras::camera::Camera;
+pub use cameras::Camera;
 pub use device::{cpu_lift_round_bytes, LiftSession, Lifter, SplatDevice};
 /// The INRIA PLY reader and writer, at their historical path.
 pub use formats::ply;
@@ -46,8 +46,6 @@ pub use scene::GaussianScene;
 #[cfg(feature = "stages")]
 #[doc(hidden)]
 pub mod stages {
-    pub use crate::gpu::{
-        l1_dssim_weighted, render_backward_device, render_device, DeviceTrainer, GpuOutputGrads,
-        GpuScene,
-    };
+    pub use crate::render::gpu::{render_backward_device, render_device, GpuOutputGrads, GpuScene};
+    pub use crate::train::gpu::{l1_dssim_weighted, DeviceTrainer};
 }

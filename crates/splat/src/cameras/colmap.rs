@@ -10,7 +10,7 @@
 use super::{
     quat_to_matrix, read_bytes, read_text, CameraError, CameraSet, Intrinsics, PointCloud,
 };
-use crate::Camera;
+use crate::cameras::camera::Camera;
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
 

@@ -24,9 +24,9 @@ pub mod inria;
 pub mod orbit;
 pub mod transforms;
 
+pub use camera::Camera;
 pub use orbit::{orbit_cameras, orbit_cameras_with, robust_bounds, OrbitSettings, Up};
 
-use crate::Camera;
 use glam::{DMat3, DQuat, DVec3};
 use std::path::{Path, PathBuf};
 
@@ -398,7 +398,7 @@ pub(crate) fn dimension(v: f64, what: &str) -> Result<u32, String> {
 
 #[cfg(test)]
 pub(crate) mod test_util {
-    use crate::Camera;
+    use super::Camera;
 
     /// Continuous pixel coordinates of a world point, or `None` behind the camera.
     pub fn project(cam: &Camera, p: [f64; 3]) -> Option<[f64; 2]> {

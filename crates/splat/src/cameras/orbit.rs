@@ -13,7 +13,8 @@
 //! wrong, pass the axis explicitly (`Up::PlusY`, `Up::MinusZ`, ... or any vector).
 
 use super::{det, translation_of, unit};
-use crate::{Camera, GaussianScene};
+use crate::cameras::camera::Camera;
+use crate::scene::GaussianScene;
 use glam::DVec3;
 
 /// The world's up direction for orbits.

@@ -287,7 +287,7 @@ mod tests {
     #[test]
     fn size_comes_from_the_image_when_not_given() {
         let dir = tempfile::tempdir().unwrap();
-        crate::Image::new(12, 7, 3)
+        crate::image::Image::new(12, 7, 3)
             .save_png(&dir.path().join("img.png"))
             .unwrap();
         let p = write(

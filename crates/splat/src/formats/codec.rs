@@ -52,7 +52,7 @@ pub(crate) fn largest_component(q: &[f32; 4]) -> usize {
 }
 
 /// Checks that every quaternion can be normalised; lossy writers need a direction.
-pub(crate) fn check_quats(scene: &crate::GaussianScene) -> Result<(), String> {
+pub(crate) fn check_quats(scene: &crate::scene::GaussianScene) -> Result<(), String> {
     for (i, q) in scene.quats.chunks_exact(4).enumerate() {
         let norm2: f32 = q.iter().map(|v| v * v).sum();
         if !norm2.is_normal() {

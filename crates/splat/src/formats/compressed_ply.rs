@@ -18,7 +18,7 @@ use super::codec::{
 };
 use super::ply::{parse_header, Element, Format, PropKind, ScalarType};
 use crate::scene::sh_coeffs;
-use crate::GaussianScene;
+use crate::scene::GaussianScene;
 use std::io::BufReader;
 use std::path::Path;
 

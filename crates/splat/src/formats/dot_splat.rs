@@ -11,7 +11,7 @@
 //! Reading keeps the file's order; readers and writers never depend on it.
 
 use super::codec::{check_quats, logit, to_byte, unit_quat, SH_C0};
-use crate::GaussianScene;
+use crate::scene::GaussianScene;
 
 /// Bytes per Gaussian.
 pub const RECORD_BYTES: usize = 32;

@@ -29,7 +29,7 @@ mod report;
 pub use open::{open_scene, OpenError};
 pub use report::{QuantisationError, WriteReport};
 
-use crate::GaussianScene;
+use crate::scene::GaussianScene;
 use std::io::Read;
 use std::path::{Path, PathBuf};
 

@@ -2,9 +2,9 @@
 //! INRIA trainer output folder (the only source that also has cameras).
 
 use crate::cameras::{inria::load_inria_cameras, CameraError, CameraSet};
+use crate::formats::ply::{read_ply, PlyError};
 use crate::formats::{checked, inria_iteration_ply, read_scene, FormatError};
-use crate::ply::{read_ply, PlyError};
-use crate::GaussianScene;
+use crate::scene::GaussianScene;
 use std::path::Path;
 
 #[derive(Debug, thiserror::Error)]
@@ -40,7 +40,7 @@ pub fn open_scene(path: &Path) -> Result<(GaussianScene, Option<CameraSet>), Ope
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::ply::write_ply;
+    use crate::formats::ply::write_ply;
 
     fn tiny(offset: f32) -> GaussianScene {
         GaussianScene {

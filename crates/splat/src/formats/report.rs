@@ -2,7 +2,7 @@
 
 use super::codec::{sigmoid, unit_quat, SH_C0};
 use super::OutputFormat;
-use crate::GaussianScene;
+use crate::scene::GaussianScene;
 use std::fmt;
 
 /// The largest error of each quantity between a scene and what a reader gets back from the file written.

@@ -19,7 +19,7 @@
 
 use super::codec::{check_quats, largest_component, logit, sigmoid, to_byte, unit_quat};
 use crate::scene::sh_coeffs;
-use crate::GaussianScene;
+use crate::scene::GaussianScene;
 use serde::{Deserialize, Serialize};
 use std::io::{Read, Write};
 use std::path::Path;

@@ -21,7 +21,7 @@
 
 use super::codec::{check_quats, largest_component, logit, sigmoid, size_of, unit_quat, Bytes};
 use crate::scene::sh_coeffs;
-use crate::GaussianScene;
+use crate::scene::GaussianScene;
 use std::io::Read;
 
 pub(crate) const GZIP_MAGIC: [u8; 2] = [0x1f, 0x8b];

@@ -214,7 +214,7 @@ fn reading_goes_by_content_not_name() {
         read_scene(&sog).unwrap(),
         read_scene(&sog.join("meta.json")).unwrap()
     );
-    let (opened, cams) = crate::open_scene(&sog).unwrap();
+    let (opened, cams) = crate::formats::open_scene(&sog).unwrap();
     assert_eq!(opened.len(), 20);
     assert!(cams.is_none());
 }

@@ -10,6 +10,7 @@
 //! buffer owned by a fixed, interleaved set of tiles; the buffers are summed in a fixed order at the end,
 //! so results do not depend on thread scheduling.
 
+pub(crate) mod gpu;
 mod grid;
 
 pub use grid::{resample, MapGrid, Resample};
@@ -17,12 +18,13 @@ pub use grid::{resample, MapGrid, Resample};
 pub(crate) use grid::{axis_taps, read_by_resampling, widest_tile};
 use grid::{tile_cells, Taps};
 
+use crate::cameras::Camera;
 use crate::render::project::{CameraR, Splat};
 use crate::render::raster::{traverse_tile, Sink, Traversal};
 use crate::render::segment::{TileRect, SEG, TILE_PIXELS};
 use crate::render::TILE;
 use crate::render::{project_all, tiles, Params};
-use crate::{Camera, GaussianScene};
+use crate::scene::GaussianScene;
 use rayon::prelude::*;
 use std::sync::Mutex;
 

@@ -9,7 +9,8 @@ use super::cpu::{dispatch, Kernel};
 use super::project::{project_appearance, project_geometry, CameraR, Splat};
 use super::tiles::DepthOrder;
 use super::{raster, Forward, Params, RenderOutput, RenderSettings, PROJECT_CHUNK};
-use crate::{Camera, GaussianScene};
+use crate::cameras::Camera;
+use crate::scene::GaussianScene;
 use rayon::prelude::*;
 
 /// One camera's projection of a scene's geometry (see the module documentation).
@@ -258,7 +259,7 @@ fn geometry_bits(scene: &GaussianScene) -> impl Iterator<Item = u32> + '_ {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::gpu::tests::{camera, random_scene};
+    use crate::render::gpu::tests::{camera, random_scene};
     use crate::render::{render, render_backward, render_backward_appearance, OutputGrads};
 
     fn bits(v: &[f32]) -> Vec<u32> {

@@ -11,6 +11,9 @@
 //! segments. `cpu` picks the AVX2+FMA or portable build of each stage; `simd` holds the hand-written
 //! AVX2 segment kernels. The modules stand in layers: segment → simd → raster, raster_backward.
 //!
+//! `gpu` holds the CubeCL twins of the three stages (with their backward), tested against this CPU
+//! renderer.
+//!
 //! The math is generic over `real::Real` so the gradient tests run the very same code in `f64`; the
 //! public API below is `f32`.
 
@@ -20,6 +23,7 @@
 
 mod cpu;
 mod frozen;
+pub(crate) mod gpu;
 pub(crate) mod project;
 pub(crate) mod raster;
 pub(crate) mod raster_backward;
@@ -33,7 +37,8 @@ pub(crate) mod tiles;
 #[cfg(test)]
 mod gradcheck;
 
-use crate::{Camera, GaussianScene};
+use crate::cameras::Camera;
+use crate::scene::GaussianScene;
 use cpu::{dispatch, Kernel};
 use project::{CameraR, ParamGradsMut, Splat};
 use raster::RasterOut;
@@ -101,9 +106,9 @@ impl Frame {
         pixels * (5 + extra) * 4 + gaussians * 4
     }
 
-    /// The RGB image as an [`crate::Image`].
-    pub fn rgb_image(&self) -> crate::Image {
-        crate::Image::from_data(self.width, self.height, 3, self.rgb.clone())
+    /// The RGB image as an [`crate::image::Image`].
+    pub fn rgb_image(&self) -> crate::image::Image {
+        crate::image::Image::from_data(self.width, self.height, 3, self.rgb.clone())
     }
 }
 

@@ -13,7 +13,7 @@
 use super::real::{c, Real};
 use super::sh;
 use super::Params;
-use crate::Camera;
+use crate::cameras::Camera;
 
 /// Gaussians at or closer than this camera depth are not rendered.
 pub const NEAR_PLANE: f64 = 0.01;

@@ -15,7 +15,7 @@
 
 use crate::layout::{remap_scene, set_scene_sh_degree, Remap};
 use crate::render::SceneGrads;
-use crate::GaussianScene;
+use crate::scene::GaussianScene;
 use serde::{Deserialize, Serialize};
 
 /// GaussianEditor caps every generation weight at this value.

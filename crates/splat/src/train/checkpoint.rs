@@ -6,10 +6,10 @@
 
 use serde::{Deserialize, Serialize};
 
+use crate::scene::GaussianScene;
 use crate::train::anchor::{Anchor, AnchorConfig};
 use crate::train::optim::{Adam, LearningRates, Moments};
 use crate::train::{DensifyStats, TrainState};
-use crate::GaussianScene;
 
 const MAGIC: &[u8] = b"VCEDIT-TRAINSTATE 1\n";
 

@@ -10,9 +10,9 @@
 //! units of the INRIA rasteriser, so `grow_grad2d = 0.0002` means what it means in the trainer.
 
 use crate::layout::Remap;
+use crate::scene::GaussianScene;
 use crate::train::optim::Group;
 use crate::train::{RenderedView, TrainState};
-use crate::GaussianScene;
 use glam::{Mat3, Quat, Vec3};
 use rand::Rng;
 use rand_distr::StandardNormal;

@@ -8,19 +8,21 @@
 pub mod anchor;
 pub mod checkpoint;
 pub mod densify;
+pub(crate) mod gpu;
 pub mod loss;
 pub mod optim;
 pub mod scene_fit;
 mod trainer;
 
-pub use crate::gpu::L1DssimWeights;
+pub use gpu::L1DssimWeights;
 pub use trainer::{FitLoss, StageSeconds, StepKind, StepOutcome, Trainer};
 
+use crate::cameras::Camera;
 use crate::layout::{remap_scene, set_scene_sh_degree, Remap};
 use crate::render::SceneGrads;
+use crate::scene::GaussianScene;
 use crate::train::anchor::Anchor;
 use crate::train::optim::{Adam, LearningRates};
-use crate::{Camera, GaussianScene};
 
 /// A scene being trained. Cloning it gives an independent copy with the same optimiser state (what
 /// VcEdit's mini-GS fits start from).

@@ -15,7 +15,7 @@
 
 use crate::layout::{relayout_sh, Remap};
 use crate::render::SceneGrads;
-use crate::GaussianScene;
+use crate::scene::GaussianScene;
 use rayon::prelude::*;
 
 /// The INRIA trainer's parameter groups.

@@ -3,16 +3,19 @@
 //! `(1 − λ)·L1 + λ·D-SSIM` with Adam, raising the SH degree every `sh_degree_interval` steps and densifying
 //! with [`DefaultStrategy`].
 
+use crate::cameras::Camera;
 use crate::cameras::{crop_window, load_cameras, to_working_resolution, CameraError, PointCloud};
-use crate::gpu::L1DssimWeights;
+use crate::device::SplatDevice;
+use crate::image::Image;
 use crate::image::ImageError;
 use crate::render::{render, RenderSettings};
+use crate::scene::GaussianScene;
 use crate::train::densify::{DefaultStrategy, RefineReport};
+use crate::train::gpu::L1DssimWeights;
 use crate::train::loss::{l1_dssim, psnr, DEFAULT_SSIM_WEIGHT};
 use crate::train::optim::LearningRates;
 use crate::train::{FitLoss, StepKind, StepOutcome, Trainer};
 use crate::train::{RenderedView, TrainState};
-use crate::{Camera, GaussianScene, Image, SplatDevice};
 use rand::seq::SliceRandom;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -579,7 +582,7 @@ struct SceneFitLoss<'a> {
 }
 
 impl FitLoss for SceneFitLoss<'_> {
-    type Error = crate::gpu::GpuError;
+    type Error = ::gpu::GpuError;
 
     fn eval(&mut self, rgb: &[f32], v: usize) -> Result<(f32, Vec<f32>), Self::Error> {
         let view = &self.views[v];
@@ -628,7 +631,7 @@ pub fn fit_on(
     config: &FitConfig,
     device: &SplatDevice,
     progress: &mut dyn FnMut(&FitProgress),
-) -> Result<FitResult, crate::gpu::GpuError> {
+) -> Result<FitResult, ::gpu::GpuError> {
     let mut rng = ChaCha8Rng::seed_from_u64(config.seed);
     let cams: Vec<Camera> = dataset.train.iter().map(|v| v.camera.clone()).collect();
     let (_, extent) = camera_extent(&cams);

@@ -10,10 +10,12 @@
 use ::gpu::cubecl::server::Handle;
 use ::gpu::F32Buffer;
 
-use crate::gpu::{DeviceTrainer, GpuContext, GpuError, L1DssimWeights};
+use crate::cameras::Camera;
+use crate::device::SplatDevice;
 use crate::render::{FrozenGeometry, RenderSettings, SceneGrads};
+use crate::train::gpu::{DeviceTrainer, L1DssimWeights};
 use crate::train::TrainState;
-use crate::{Camera, SplatDevice};
+use ::gpu::{GpuContext, GpuError};
 
 /// The image loss of a fit.
 pub trait FitLoss {
@@ -246,7 +248,7 @@ impl Trainer {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::gpu::tests::{camera, random_scene};
+    use crate::render::gpu::tests::{camera, random_scene};
     use crate::render::render;
     use crate::train::optim::Group;
     use crate::train::optim::LearningRates;

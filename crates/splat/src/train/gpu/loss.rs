@@ -9,13 +9,14 @@
 //! of the partials (the window is its own adjoint) and `l1_dssim_grad` (their column pass, then the
 //! gradient in the image's interleaved layout, plus |pred − target|).
 
-use super::{arg, GpuContext, GpuError};
 use crate::train::loss::{ssim_window, SSIM_C1, SSIM_C2, SSIM_WINDOW};
 use ::gpu::cubecl;
 use ::gpu::cubecl::prelude::*;
 use ::gpu::cubecl::server::Handle;
 use ::gpu::gpu_call;
+use ::gpu::prims::arg;
 use ::gpu::prims::{empty32, grid, read_f32, upload_f32};
+use ::gpu::{GpuContext, GpuError};
 
 /// The horizontal blur pass of the five SSIM inputs (x, y, x², y², xy per channel), read straight
 /// from the interleaved images: 5 planes per channel into `out` (plane `5·ch + k`).

@@ -3,15 +3,17 @@
 //! step count, so both paths share one schedule. A per-Gaussian trainable mask (u32 flags on the device)
 //! skips frozen Gaussians as [`Adam::step`] does: parameters and moments untouched.
 
-use super::{arg, GpuContext, GpuError, GpuScene, GpuSceneGrads};
+use crate::render::gpu::{GpuScene, GpuSceneGrads};
 use crate::train::optim::{Adam, Group};
 use ::gpu::cubecl;
 use ::gpu::cubecl::prelude::*;
 use ::gpu::cubecl::server::Handle;
 use ::gpu::gpu_call;
+use ::gpu::prims::arg;
 #[cfg(test)]
 use ::gpu::prims::zeros32;
 use ::gpu::prims::{empty32, grid, read_f32, upload_f32};
+use ::gpu::{GpuContext, GpuError};
 
 /// One Adam update of an array of `width` values per Gaussian: the first `first` values of each block
 /// use `lr_first`, the rest `lr_rest` (SH: DC and higher coefficients). With `use_mask` set, Gaussians

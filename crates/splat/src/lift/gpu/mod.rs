@@ -5,26 +5,35 @@
 //! [`GpuLiftScene::lift_and_render_back`] is the whole 2D → 3D → 2D round of CCM and blend-map
 //! consistency on the device: only each view's map on its native grid goes up and comes back. A
 //! [`GpuLiftScene`] serves every round of one sampler run (CCM's layers, the blend maps' steps): the scene
-//! is uploaded once and each view's projection and tile lists are made once (`gpu::frozen`), where a
+//! is uploaded once and each view's projection and tile lists are made once (`render::gpu::frozen`), where a
 //! round used to project and bin every view twice, to lift and to render back, each time waiting for
 //! the device to size the tile lists. Resampling to and from the
 //! render resolution, the averages and the renders of the lifted values stay on the device (at 512² a
 //! CCM layer's full-resolution map is 150 MB per view, which used to cross the bus twice and be
 //! resampled on one host thread).
 
-use super::frozen::GpuFrozenGeometry;
-use super::{
-    arg, forward_pixels_per_unit, project_and_bin, raster, rasterise_sparse, Binned, GpuContext,
-    GpuError, GpuScene, TILE,
-};
+mod raster;
+#[cfg(test)]
+mod tests;
+
+use crate::cameras::Camera;
 use crate::lift::{axis_taps, read_by_resampling, widest_tile, Lifted, MapGrid, Resample};
-use crate::render::RenderSettings;
-use crate::{Camera, GaussianScene};
+use crate::render::gpu::project::SPLAT_F;
+use crate::render::gpu::raster::{STAGE_BITS, STAGE_FLOAT};
+use crate::render::gpu::{
+    backward_pixels_per_unit, forward_pixels_per_unit, project_and_bin, rasterise_sparse, Binned,
+    GpuFrozenGeometry, GpuScene,
+};
+use crate::render::{RenderSettings, TILE};
+use crate::scene::GaussianScene;
 use ::gpu::cubecl;
 use ::gpu::cubecl::prelude::*;
 use ::gpu::cubecl::server::Handle;
 use ::gpu::gpu_call;
-use ::gpu::prims::{empty32, grid as grid_of, read_f32, read_u32, upload_f32, upload_u32, zeros32};
+use ::gpu::prims::{
+    arg, empty32, grid as grid_of, read_f32, read_u32, upload_f32, upload_u32, zeros32,
+};
+use ::gpu::{GpuContext, GpuError};
 
 /// Lifts per-view maps (`maps[v]` is H*W*C for `cameras[v]`) onto the Gaussians of `scene`.
 ///
@@ -169,7 +178,7 @@ impl GpuLiftAccumulator {
 /// Gaussian and channel, so the backward's layout (4 on hardware, brush's choice: 4× fewer atomics on
 /// the Gaussians a whole tile shares; 16 on lavapipe) rather than the forward's one pixel per unit.
 fn lift_pixels_per_unit(ctx: &GpuContext) -> u32 {
-    super::backward_pixels_per_unit(ctx)
+    backward_pixels_per_unit(ctx)
 }
 
 /// Adds a view's `map` (H*W*C on the device) to the per-Gaussian `sums` (N*C) and hit `counts` (N), over
@@ -190,11 +199,11 @@ fn accumulate(
         return;
     }
     let num_tiles = (bins.tiles_x * bins.tiles_y) as usize;
-    super::raster::lift_accumulate::launch(
+    raster::lift_accumulate::launch(
         &ctx.client,
         CubeCount::new_2d(bins.tiles_x, bins.tiles_y),
         CubeDim::new_2d(TILE, TILE / ppu),
-        arg(&bins.splats, super::SPLAT_F * n),
+        arg(&bins.splats, SPLAT_F * n),
         arg(&bins.ids, bins.intersections),
         arg(&bins.tile_start, num_tiles),
         arg(&bins.tile_end, num_tiles),
@@ -237,9 +246,9 @@ fn grid_layout(ctx: &GpuContext, grid: &MapGrid, full: (usize, usize)) -> Option
         return None;
     }
     let staging = if asked.as_deref() == Some("float") && ctx.on_spirv() {
-        raster::STAGE_FLOAT
+        STAGE_FLOAT
     } else {
-        raster::STAGE_BITS
+        STAGE_BITS
     };
     GridLayout::new(ctx, grid, full, staging)
 }
@@ -378,7 +387,7 @@ fn accumulate_grid(
         &ctx.client,
         CubeCount::new_2d(bins.tiles_x, bins.tiles_y),
         CubeDim::new_2d(TILE, TILE / layout.ppu),
-        arg(&bins.splats, super::SPLAT_F * n),
+        arg(&bins.splats, SPLAT_F * n),
         arg(&bins.ids, bins.intersections),
         arg(&bins.tile_start, num_tiles),
         arg(&bins.tile_end, num_tiles),
@@ -438,7 +447,7 @@ impl GpuLiftScene {
     }
 
     /// Lifts per-view maps given on `grid` onto the Gaussians and renders them back to that grid, as
-    /// [`crate::SplatDevice::lift_and_render_back`] describes. Only the grid-sized maps cross the bus.
+    /// [`crate::device::SplatDevice::lift_and_render_back`] describes. Only the grid-sized maps cross the bus.
     ///
     /// # Panics
     /// When a map from `map_of` is not `grid.len()` long (a programming error).

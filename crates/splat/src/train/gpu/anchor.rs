@@ -3,13 +3,15 @@
 //! per-term factors uploaded once (they change only at a densification, after which the device trainer
 //! is rebuilt). The loss value itself is not computed: the fits never read it.
 
-use super::{arg, GpuContext, GpuError, GpuScene, GpuSceneGrads};
+use crate::render::gpu::{GpuScene, GpuSceneGrads};
 use crate::train::anchor::Anchor;
 use ::gpu::cubecl;
 use ::gpu::cubecl::prelude::*;
 use ::gpu::cubecl::server::Handle;
 use ::gpu::gpu_call;
+use ::gpu::prims::arg;
 use ::gpu::prims::{grid, upload_f32};
+use ::gpu::{GpuContext, GpuError};
 
 /// Adds `coef·w·(params − anchor)` into `grads` for an array of `width` values per Gaussian; the first
 /// `first` values of each block use `coef_first`, the rest `coef_rest` (SH: DC and higher coefficients,

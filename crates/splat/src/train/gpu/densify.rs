@@ -1,15 +1,18 @@
 //! Densification statistics on the device: [`crate::train::DensifyStats::add`] for a frame whose
 //! gradients are still on the device (one kernel; read back with [`GpuDensifyStats::download`]).
 
-use super::{arg, GpuContext, GpuError, GpuFrame, GpuSceneGrads, GRAD_F, INFO_U};
+use crate::render::gpu::project::{GRAD_F, INFO_U};
+use crate::render::gpu::{GpuFrame, GpuSceneGrads};
 use crate::train::DensifyStats;
 use ::gpu::cubecl;
 use ::gpu::cubecl::prelude::*;
 use ::gpu::cubecl::server::Handle;
 use ::gpu::gpu_call;
+use ::gpu::prims::arg;
 #[cfg(test)]
 use ::gpu::prims::zeros32;
 use ::gpu::prims::{grid, read_f32, upload_f32};
+use ::gpu::{GpuContext, GpuError};
 
 #[cube(launch)]
 fn densify_stats_add(

@@ -3,18 +3,30 @@
 //! reference copy: structural changes (densification, opacity resets, SH degree changes) run there after
 //! [`DeviceTrainer::download_into`], and the trainer is rebuilt from it afterwards.
 
-use super::frozen::{render_kept, GpuFrozenGeometry};
-use super::{
-    l1_dssim_weighted, render_backward_device, render_device, GpuAdam, GpuAnchor, GpuContext,
-    GpuDensifyStats, GpuError, GpuLoss, GpuOutputGrads, GpuScene, L1DssimWeights,
+mod anchor;
+mod densify;
+mod loss;
+mod optim;
+#[cfg(test)]
+mod tests;
+
+pub use anchor::GpuAnchor;
+pub use densify::GpuDensifyStats;
+#[cfg(test)]
+pub use loss::l1_dssim;
+pub use loss::{l1_dssim_weighted, GpuLoss, L1DssimWeights};
+pub use optim::GpuAdam;
+
+use crate::cameras::Camera;
+use crate::render::gpu::{
+    render_backward_device, render_device, render_kept, GpuFrozenGeometry, GpuOutputGrads, GpuScene,
 };
 use crate::render::RenderSettings;
 use crate::train::optim::Adam;
 use crate::train::TrainState;
-use crate::Camera;
 use ::gpu::cubecl::server::Handle;
 use ::gpu::prims::upload_u32;
-use ::gpu::F32Buffer;
+use ::gpu::{F32Buffer, GpuContext, GpuError};
 
 /// Scene parameters, Adam moments, densification statistics and, when the state has them, the
 /// trainable mask and the anchors, on the device.

@@ -3,10 +3,7 @@
 //!
 //! Stages, each one kernel per op:
 //! 1. `project`: projection + SH colour per Gaussian (depth keys and covered tile counts included);
-//! 2. binning: a stable radix sort of the drawable Gaussians by depth, an exclusive scan of their tile
-//!    counts in that order, one (tile, Gaussian) pair per covered tile, a stable radix sort of the pairs
-//!    by tile and the per-tile ranges: every tile list comes out sorted by depth, ties by index, as on
-//!    the CPU;
+//! 2. `tiles`: binning, every tile list sorted by depth, ties by index, as on the CPU;
 //! 3. `raster`: compositing of RGB, alpha, depth and extra channels, one cube per tile walking the
 //!    tile's list in shared-memory batches, each unit owning a few pixels (`forward_pixels_per_unit`).
 //!
@@ -14,42 +11,30 @@
 //!
 //! [`GpuScene`] keeps the parameters on the device; [`render_device`] / [`render_backward_device`] work on
 //! device buffers only (one 4-byte read: the number of tile intersections), and [`render`] /
-//! [`render_backward`] are host-side conveniences with the CPU renderer's types.
+//! [`render_backward`] are host-side conveniences with the CPU renderer's types. Lifting
+//! (`lift::gpu`) and the device-resident trainer (`train::gpu`) build on these stages.
 
-mod anchor;
-mod densify;
 mod frozen;
-mod lift;
-mod loss;
-mod optim;
 pub(crate) mod project;
 pub(crate) mod raster;
 pub(crate) mod sh;
-mod train;
+#[cfg(test)]
+pub(crate) mod tests;
+mod tiles;
 
+use crate::cameras::Camera;
 #[cfg(test)]
 use crate::render::OutputGrads;
 use crate::render::{ExtraChannels, Frame, RenderSettings, SceneGrads, TILE};
-use crate::{Camera, GaussianScene};
+use crate::scene::GaussianScene;
 use ::gpu::cubecl::prelude::*;
 use ::gpu::cubecl::server::Handle;
 use ::gpu::gpu_call;
-use ::gpu::prims::{
-    arg, empty32, exclusive_scan, grid, read_f32, read_u32, sort_pairs, upload_f32, zeros32,
-};
-pub use ::gpu::{GpuContext, GpuError};
-pub use anchor::GpuAnchor;
-pub use densify::GpuDensifyStats;
+use ::gpu::prims::{arg, empty32, grid, read_f32, read_u32, upload_f32, zeros32};
+use ::gpu::{GpuContext, GpuError};
+pub(crate) use frozen::render_kept;
 pub use frozen::GpuFrozenGeometry;
-#[cfg(test)]
-pub use lift::lift;
-pub use lift::{GpuLiftAccumulator, GpuLiftScene};
-#[cfg(test)]
-pub use loss::l1_dssim;
-pub use loss::{l1_dssim_weighted, GpuLoss, L1DssimWeights};
-pub use optim::GpuAdam;
 use project::{CAM_F, GRAD_F, INFO_U, SPLAT_F};
-pub use train::DeviceTrainer;
 
 /// Scene parameters on the device (layouts of [`GaussianScene`]).
 pub struct GpuScene {
@@ -117,7 +102,7 @@ pub struct GpuFrame {
     /// Number of (tile, Gaussian) pairs.
     pub intersections: usize,
     splats: Handle,
-    info: Handle,
+    pub(crate) info: Handle,
     ids: Handle,
     tile_start: Handle,
     t_final: Handle,
@@ -164,21 +149,21 @@ pub fn render_device(
 /// Projected and binned Gaussians of one view (stages 1 and 2).
 #[derive(Clone)]
 pub(crate) struct Binned {
-    width: u32,
-    height: u32,
-    splats: Handle,
-    info: Handle,
-    ids: Handle,
-    tile_start: Handle,
-    tile_end: Handle,
-    intersections: usize,
-    cam: Handle,
-    tiles_x: u32,
-    tiles_y: u32,
+    pub(crate) width: u32,
+    pub(crate) height: u32,
+    pub(crate) splats: Handle,
+    pub(crate) info: Handle,
+    pub(crate) ids: Handle,
+    pub(crate) tile_start: Handle,
+    pub(crate) tile_end: Handle,
+    pub(crate) intersections: usize,
+    pub(crate) cam: Handle,
+    pub(crate) tiles_x: u32,
+    pub(crate) tiles_y: u32,
 }
 
 /// With `keep_faint`, Gaussians below 1/255 opacity are binned too (see `project::project_forward`).
-fn project_and_bin(
+pub(crate) fn project_and_bin(
     ctx: &GpuContext,
     scene: &GpuScene,
     camera: &Camera,
@@ -217,7 +202,8 @@ fn project_and_bin(
     }
 
     // 2. Binning.
-    let (ids, tile_start, tile_end, intersections) = bin(ctx, &info, n, tiles_x, num_tiles.max(1))?;
+    let (ids, tile_start, tile_end, intersections) =
+        tiles::bin(ctx, &info, n, tiles_x, num_tiles.max(1))?;
     Ok(Binned {
         width: camera.width,
         height: camera.height,
@@ -248,7 +234,7 @@ fn render_device_inner(
 }
 
 /// Stage 3 on a view's projected and binned `n` Gaussians; `geometry_grads` goes to the frame.
-fn rasterise(
+pub(crate) fn rasterise(
     ctx: &GpuContext,
     n: usize,
     binned: Binned,
@@ -263,7 +249,7 @@ fn rasterise(
 /// [`rasterise`], compositing the extra channels only at the pixels whose row and column `needed`
 /// flags (one u32 per row, one per column: 1 or 0); zero at the others.
 #[allow(clippy::too_many_arguments)]
-fn rasterise_sparse(
+pub(crate) fn rasterise_sparse(
     ctx: &GpuContext,
     n: usize,
     binned: Binned,
@@ -361,79 +347,6 @@ fn rasterise_sparse(
     }
 }
 
-/// Tile lists: (ids, start, end, number of pairs).
-fn bin(
-    ctx: &GpuContext,
-    info: &Handle,
-    n: usize,
-    tiles_x: u32,
-    num_tiles: usize,
-) -> Result<(Handle, Handle, Handle, usize), GpuError> {
-    let c = &ctx.client;
-    let tile_start = zeros32(c, num_tiles);
-    let tile_end = zeros32(c, num_tiles);
-    if n == 0 {
-        return Ok((empty32(c, 1), tile_start, tile_end, 0));
-    }
-    let (count, dim) = grid(n);
-    let keys = empty32(c, n);
-    let vals = empty32(c, n);
-    raster::depth_keys::launch(
-        c,
-        count.clone(),
-        dim,
-        arg(info, INFO_U * n),
-        n as u32,
-        arg(&keys, n),
-        arg(&vals, n),
-    );
-    let (_, order) = sort_pairs(c, keys, vals, n, 32);
-    let counts = empty32(c, n);
-    raster::gather_info::launch(
-        c,
-        count.clone(),
-        dim,
-        arg(&order, n),
-        arg(info, INFO_U * n),
-        n as u32,
-        6,
-        arg(&counts, n),
-    );
-    let (offsets, total) = exclusive_scan(c, &counts, n);
-    // The one read of the forward pass: the pair count sizes the next buffers.
-    let m = read_u32(c, &total, 1)?[0] as usize;
-    if m == 0 {
-        return Ok((empty32(c, 1), tile_start, tile_end, 0));
-    }
-    let tile_keys = empty32(c, m);
-    let ids = empty32(c, m);
-    raster::emit_pairs::launch(
-        c,
-        count,
-        dim,
-        arg(&order, n),
-        arg(info, INFO_U * n),
-        arg(&offsets, n),
-        n as u32,
-        tiles_x,
-        arg(&tile_keys, m),
-        arg(&ids, m),
-    );
-    let tile_bits = u32::BITS - (num_tiles as u32 - 1).leading_zeros();
-    let (tile_keys, ids) = sort_pairs(c, tile_keys, ids, m, tile_bits);
-    let (count, dim) = grid(m);
-    raster::tile_ranges::launch(
-        c,
-        count,
-        dim,
-        arg(&tile_keys, m),
-        m as u32,
-        arg(&tile_start, num_tiles),
-        arg(&tile_end, num_tiles),
-    );
-    Ok((ids, tile_start, tile_end, m))
-}
-
 /// Gradients of the loss with respect to a device frame's outputs (device buffers, same layouts).
 pub struct GpuOutputGrads<'a> {
     pub rgb: &'a Handle,
@@ -462,7 +375,7 @@ pub struct GpuSceneGrads {
 /// the 16-pixel kernel with more than 32 (colours and alpha wrong too; Mesa 25 is exact, as 4 is on
 /// both; `the_render_back_is_right_where_the_grid_reads_it`). On Mesa 25 the 4-pixel kernel costs
 /// 5–10 % of a 144-channel render.
-fn forward_pixels_per_unit(ctx: &GpuContext, channels: usize) -> u32 {
+pub(crate) fn forward_pixels_per_unit(ctx: &GpuContext, channels: usize) -> u32 {
     match (ctx.software, channels) {
         (false, _) => 1,
         (true, 0..=16) => 16,
@@ -474,7 +387,7 @@ fn forward_pixels_per_unit(ctx: &GpuContext, channels: usize) -> u32 {
 /// summed over them before the atomics. Hardware: 4 (brush's choice: 64 units per tile, 4x fewer
 /// atomics). Software: 16, measured fastest on lavapipe (125k Gaussians at 512²: ppu 1 / 2 / 4 / 8 / 16
 /// took 3.6 / 1.9 / 1.2 / 0.78 / 0.61 s).
-fn backward_pixels_per_unit(ctx: &GpuContext) -> u32 {
+pub(crate) fn backward_pixels_per_unit(ctx: &GpuContext) -> u32 {
     if ctx.software {
         16
     } else {
@@ -875,6 +788,3 @@ pub(crate) fn read_grads(
         means2d: splat.chunks(GRAD_F).map(|s| [s[0], s[1]]).collect(),
     })
 }
-
-#[cfg(test)]
-pub(crate) mod tests;

@@ -10,7 +10,7 @@
 //! buffers: a wait for the device at every step). Renders and gradients are the full pass's, up to
 //! the order in which the backward's atomics add (the tests compare them).
 //!
-//! The caller keeps the geometry as it was ([`crate::gpu::DeviceTrainer`] forgets the views before a
+//! The caller keeps the geometry as it was (the device-resident trainer forgets the views before a
 //! step whose geometry rates are not 0); a view is made again when its camera changes.
 
 use super::project::{self, CAM_F, INFO_U, SPLAT_F};
@@ -18,8 +18,8 @@ use super::{
     arg, forward_pixels_per_unit, project_and_bin, rasterise, Binned, GpuContext, GpuError,
     GpuFrame, GpuScene,
 };
+use crate::cameras::Camera;
 use crate::render::{RenderSettings, TILE};
-use crate::Camera;
 use ::gpu::gpu_call;
 use ::gpu::prims::grid;
 
@@ -183,27 +183,11 @@ pub(crate) fn render_kept(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::gpu::tests::{camera, random_scene};
-    use crate::gpu::{
-        read_grads, render_backward_device, render_device, DeviceTrainer, GpuOutputGrads,
-        L1DssimWeights,
-    };
-    use crate::train::optim::{Group, LearningRates};
-    use crate::train::TrainState;
-    use crate::GaussianScene;
+    use crate::render::gpu::tests::{bits, camera, max_rel, random_scene};
+    use crate::render::gpu::{read_grads, render_backward_device, render_device, GpuOutputGrads};
+    use crate::scene::GaussianScene;
     use ::gpu::prims::{read_f32, upload_f32};
     use ::gpu::testing::context_or_skip;
-
-    fn bits(v: &[f32]) -> Vec<u32> {
-        v.iter().map(|x| x.to_bits()).collect()
-    }
-
-    /// Largest |a − b| over the largest |b|.
-    fn max_rel(a: &[f32], b: &[f32]) -> f32 {
-        assert_eq!(a.len(), b.len());
-        let scale = b.iter().fold(0f32, |m, v| m.max(v.abs())).max(1e-30);
-        a.iter().zip(b).fold(0f32, |m, (x, y)| m.max((x - y).abs())) / scale
-    }
 
     /// Moves the opacities and colours as a fit would, with one opacity far below 1/255 and one NaN.
     fn move_appearance(scene: &mut GaussianScene, round: usize) {
@@ -349,91 +333,5 @@ mod tests {
         let smaller = GpuScene::upload(&ctx, &random_scene(100, 1, 6));
         frozen.view(&ctx, &smaller, &a, 0).unwrap().unwrap();
         assert!(frozen.bytes() < one_view, "the old scene's views forgotten");
-    }
-
-    /// A resident appearance fit over two views ends where the full passes end (up to the backward's
-    /// float sums), its geometry untouched; a step with a position rate forgets the kept views.
-    #[test]
-    fn resident_fit_with_kept_views_matches_the_full_fit() {
-        let Some(ctx) = context_or_skip() else {
-            return;
-        };
-        let scene = random_scene(400, 2, 9);
-        let cams = [camera(48, 40), camera(40, 48)];
-        let settings = RenderSettings::default();
-        let targets: Vec<_> = cams
-            .iter()
-            .map(|c| {
-                let npix = (c.width * c.height) as usize;
-                let t: Vec<f32> = (0..3 * npix).map(|i| (i % 7) as f32 / 7.0).collect();
-                upload_f32(&ctx.client, &t)
-            })
-            .collect();
-        let fit = |freeze: bool| {
-            let mut state = TrainState::new(scene.clone(), LearningRates::inria(1000), 2.0);
-            for g in [Group::Means, Group::LogScales, Group::Quats] {
-                state.adam.group_lr_scale[g.index()] = 0.0;
-            }
-            let mut trainer = DeviceTrainer::upload(&ctx, &state);
-            if freeze {
-                trainer.freeze_geometry();
-            }
-            for step in 0..12 {
-                let v = step % 2;
-                trainer
-                    .step_weighted(
-                        &ctx,
-                        &mut state.adam,
-                        &cams[v],
-                        v,
-                        &targets[v],
-                        &settings,
-                        L1DssimWeights::blend(0.2),
-                        false,
-                        |_, g| Ok::<_, GpuError>(g),
-                    )
-                    .unwrap();
-            }
-            let kept = trainer.frozen_bytes();
-            trainer.download_into(&ctx, &mut state).unwrap();
-            (state, trainer, kept)
-        };
-        let (full, _, none) = fit(false);
-        let (frozen, mut trainer, kept) = fit(true);
-        assert_eq!(none, 0);
-        assert!(kept > 0, "both views kept");
-        assert_eq!(bits(&full.scene.means), bits(&frozen.scene.means));
-        assert_eq!(bits(&scene.means), bits(&frozen.scene.means));
-        assert_eq!(bits(&scene.quats), bits(&frozen.scene.quats));
-        for (name, got, want, start) in [
-            (
-                "opacity",
-                &frozen.scene.opacity_logits,
-                &full.scene.opacity_logits,
-                &scene.opacity_logits,
-            ),
-            ("sh", &frozen.scene.sh, &full.scene.sh, &scene.sh),
-        ] {
-            assert_ne!(bits(want), bits(start), "{name}: the fit moved nothing");
-            let e = max_rel(got, want);
-            assert!(e <= 1e-5, "{name} differs by {e:e}");
-        }
-        // A step that moves the means forgets the views.
-        let mut state = frozen;
-        state.adam.group_lr_scale[Group::Means.index()] = 1.0;
-        trainer
-            .step_weighted(
-                &ctx,
-                &mut state.adam,
-                &cams[0],
-                0,
-                &targets[0],
-                &settings,
-                L1DssimWeights::blend(0.2),
-                false,
-                |_, g| Ok::<_, GpuError>(g),
-            )
-            .unwrap();
-        assert_eq!(trainer.frozen_bytes(), 0);
     }
 }
