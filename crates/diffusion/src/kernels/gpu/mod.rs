@@ -23,7 +23,7 @@ mod matmul;
 mod norm;
 pub mod ops;
 mod precision;
-mod storage;
+pub(crate) mod storage;
 #[cfg(test)]
 pub(crate) mod testing;
 mod vgg;
