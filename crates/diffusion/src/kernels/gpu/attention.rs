@@ -7,7 +7,7 @@ use candle_core::Result;
 use cubecl::prelude::*;
 
 use self::kernel::ATTENTION_QUERIES;
-use super::launch::{forced_by_env, to_u32, transient_cap, Meta};
+use super::launch::{forced_by_env, to_u32, transient_cap};
 use super::layout::{cat, narrow};
 use super::matmul::{half_operands, matmul, matmul_path, matmul_scaled, MatmulPath};
 use super::norm::softmax_scaled;
@@ -25,22 +25,20 @@ mod kernel {
     /// q_len, d], k [batch, k_len, d], v [batch, k_len, dv]. A cube handles `ATTENTION_QUERIES` query rows of
     /// one batch entry (one unit per row); key/value tiles of `ATTENTION_KEYS` rows go through shared memory
     /// and each unit keeps a running max, running sum and output accumulator (online softmax).
-    /// `meta = [q_len, k_len]`.
     #[cube(launch_unchecked)]
     pub fn flash_attention(
         q: &[f32],
         k: &[f32],
         v: &[f32],
         out: &mut [f32],
-        meta: &[u32],
+        q_len: u32,
+        k_len: u32,
         scale: f32,
         #[comptime] d: u32,
         #[comptime] dv: u32,
     ) {
         let tile = comptime!(ATTENTION_KEYS);
         let queries = comptime!(ATTENTION_QUERIES);
-        let q_len = meta[0];
-        let k_len = meta[1];
         let batch = CUBE_POS_Y;
         let row = CUBE_POS_X * queries + UNIT_POS_X;
         let valid = row < q_len;
@@ -343,7 +341,6 @@ pub fn attention(q: &GpuTensor, k: &GpuTensor, v: &GpuTensor, scale: f64) -> Res
     let mut shape = q.dims().to_vec();
     *shape.last_mut().expect("rank >= 2") = dv;
     let out = q.empty_like_device(shape);
-    let meta = Meta::new(q, &[q_len, k_len])?;
     let blocks = q_len.div_ceil(ATTENTION_QUERIES as usize);
     // SAFETY: rows past q_len and keys past k_len are masked in the kernel.
     unsafe {
@@ -355,7 +352,8 @@ pub fn attention(q: &GpuTensor, k: &GpuTensor, v: &GpuTensor, scale: f64) -> Res
             k.arg(),
             v.arg(),
             out.arg(),
-            meta.arg(),
+            to_u32(q_len, "query rows")?,
+            to_u32(k_len, "key rows")?,
             scale as f32,
             d as u32,
             dv as u32,

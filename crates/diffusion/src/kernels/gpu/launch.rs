@@ -88,7 +88,17 @@ pub(super) fn to_u32(v: usize, what: &str) -> Result<u32> {
     u32::try_from(v).map_err(|_| candle_core::Error::msg(format!("gpu: {what} {v} exceeds u32")))
 }
 
-/// Uploads a small u32 parameter block.
+/// Shape values as u32 kernel arguments (the typed form of a [`Meta`] block of fixed length).
+pub(super) fn u32_args<const N: usize>(values: [usize; N]) -> Result<[u32; N]> {
+    let mut args = [0; N];
+    for (arg, value) in args.iter_mut().zip(values) {
+        *arg = to_u32(value, "shape value")?;
+    }
+    Ok(args)
+}
+
+/// Uploads a small u32 parameter block (shapes and index tables whose length varies: strides of a
+/// walk, an index list); fixed sets of sizes are plain kernel arguments ([`u32_args`]).
 pub(super) struct Meta(Handle, usize);
 
 impl Meta {

@@ -5,7 +5,7 @@ use candle_core::Result;
 use cubecl::prelude::*;
 
 use self::kernel::{GROUP_NORM_CHUNK, REDUCE_UNITS};
-use super::launch::{grid, to_u32, Meta, GRID_LIMIT};
+use super::launch::{grid, to_u32, u32_args, GRID_LIMIT};
 use super::GpuTensor;
 
 /// The kernels of this family (their host launchers follow the module).
@@ -87,8 +87,8 @@ mod kernel {
     }
 
     /// Group norm (+ optional SiLU) of x [batch, channels, spatial]: one cube of `units` units (a power of
-    /// two) per (batch, group), two passes (mean, then the mean squared deviation) for accuracy.
-    /// `meta = [channels, spatial, groups, cubes]`.
+    /// two) per (batch, group) of the `cubes`, two passes (mean, then the mean squared deviation) for
+    /// accuracy.
     #[cube(launch_unchecked)]
     #[allow(clippy::too_many_arguments)]
     pub fn group_norm(
@@ -96,17 +96,17 @@ mod kernel {
         weight: &[f32],
         bias: &[f32],
         out: &mut [f32],
-        meta: &[u32],
+        channels: u32,
+        spatial: u32,
+        groups: u32,
+        cubes: u32,
         eps: f32,
         #[comptime] silu: bool,
         #[comptime] units: u32,
     ) {
-        let channels = meta[0];
-        let spatial = meta[1];
-        let groups = meta[2];
         // Cubes past the last group (the 2D launch rounds up) redo the last one without writing.
-        let valid = cube_index() < meta[3];
-        let cube = u32::min(cube_index(), meta[3] - 1);
+        let valid = cube_index() < cubes;
+        let cube = u32::min(cube_index(), cubes - 1);
         let per_group = channels / groups;
         let len = per_group * spatial;
         let group = cube % groups;
@@ -137,14 +137,15 @@ mod kernel {
     pub const GROUP_NORM_CHUNK: u32 = 4096;
 
     /// Where a cube of the split group norm works: its chunk is part `part` of channel `local` of group
-    /// `bg` (batch · groups + group); `meta = [channels, spatial, groups, parts]`. Returns (bg, local, first
-    /// element, length).
+    /// `bg` (batch · groups + group), each channel `spatial` elements in `parts` chunks. Returns (bg,
+    /// local, first element, length).
     #[cube]
-    fn group_norm_chunk(meta: &[u32]) -> (u32, u32, u32, u32) {
-        let channels = meta[0];
-        let spatial = meta[1];
-        let groups = meta[2];
-        let parts = meta[3];
+    fn group_norm_chunk(
+        channels: u32,
+        spatial: u32,
+        groups: u32,
+        parts: u32,
+    ) -> (u32, u32, u32, u32) {
         let bg = CUBE_POS_Y;
         let local = CUBE_POS_X / parts;
         let part = CUBE_POS_X % parts;
@@ -165,9 +166,16 @@ mod kernel {
     /// card idle): each cube writes its chunk's mean and sum of squared deviations (two passes over a chunk
     /// that stays in cache) to `partials[2·(bg·chunks + chunk)]`. Grid: (chunks of a group, batch · groups).
     #[cube(launch_unchecked)]
-    pub fn group_norm_partials(x: &[f32], partials: &mut [f32], meta: &[u32]) {
+    pub fn group_norm_partials(
+        x: &[f32],
+        partials: &mut [f32],
+        channels: u32,
+        spatial: u32,
+        groups: u32,
+        parts: u32,
+    ) {
         let units = comptime!(REDUCE_UNITS);
-        let (bg, _, base, len) = group_norm_chunk(meta);
+        let (bg, _, base, len) = group_norm_chunk(channels, spatial, groups, parts);
         let mean = segment_mean(x, base, len, units);
         let mut sq = 0.0f32;
         let mut i = UNIT_POS;
@@ -187,7 +195,7 @@ mod kernel {
     /// Second pass of the split group norm: each cube combines its group's chunk statistics (the mean of
     /// the means weighted by their counts, then the deviations' sums plus each chunk's count times its
     /// squared offset from that mean: exact, and as stable as the two-pass form) and normalises its own
-    /// chunk (+ optional SiLU). Same grid and `meta` as [`group_norm_partials`].
+    /// chunk (+ optional SiLU). Same grid and sizes as [`group_norm_partials`].
     #[cube(launch_unchecked)]
     pub fn group_norm_apply(
         x: &[f32],
@@ -195,17 +203,17 @@ mod kernel {
         weight: &[f32],
         bias: &[f32],
         out: &mut [f32],
-        meta: &[u32],
+        channels: u32,
+        spatial: u32,
+        groups: u32,
+        parts: u32,
         eps: f32,
         #[comptime] silu: bool,
     ) {
         let units = comptime!(REDUCE_UNITS);
-        let (bg, local, base, len) = group_norm_chunk(meta);
-        let spatial = meta[1];
-        let groups = meta[2];
-        let parts = meta[3];
+        let (bg, local, base, len) = group_norm_chunk(channels, spatial, groups, parts);
         let chunks = CUBE_COUNT_X;
-        let per_group = meta[0] / groups;
+        let per_group = channels / groups;
         let total = f32::cast_from(per_group * spatial);
         let first = bg * chunks;
         let mut weighted = 0.0f32;
@@ -230,21 +238,21 @@ mod kernel {
         normalise_span(x, out, base, len, affine, true, silu, units);
     }
 
-    /// Layer norm over the last dimension, one cube of `units` units (a power of two) per row;
-    /// `meta = [width, rows]`.
+    /// Layer norm over the last dimension (`width`), one cube of `units` units (a power of two) per row of
+    /// the `rows`.
     #[cube(launch_unchecked)]
     pub fn layer_norm(
         x: &[f32],
         weight: &[f32],
         bias: &[f32],
         out: &mut [f32],
-        meta: &[u32],
+        width: u32,
+        rows: u32,
         eps: f32,
         #[comptime] units: u32,
     ) {
-        let width = meta[0];
-        let valid = cube_index() < meta[1];
-        let base = u32::min(cube_index(), meta[1] - 1) * width;
+        let valid = cube_index() < rows;
+        let base = u32::min(cube_index(), rows - 1) * width;
         let mean = segment_mean(x, base, width, units);
         let inv = segment_inv_std(x, base, width, mean, eps, units);
         let mut i = UNIT_POS;
@@ -258,7 +266,7 @@ mod kernel {
     }
 
     /// Softmax of `scale · x` over the last dimension, one cube of `units` units (a power of two) per row;
-    /// `meta = [width, rows]`. The scale is applied here so attention's scores need no pass of their own to
+    /// `width` wide, `rows` of them. The scale is applied here so attention's scores need no pass of their own to
     /// be scaled. `F`: f32, or f16 where the probabilities only feed an f16-operand product (attention's
     /// `P V`): the narrowing pass before that product was a fifth of an SD 1.5 UNet's kernel time on an H200
     /// (docs/gpu-results.md, 2026-11-27).
@@ -266,13 +274,13 @@ mod kernel {
     pub fn softmax_rows<F: Float>(
         x: &[f32],
         out: &mut [F],
-        meta: &[u32],
+        width: u32,
+        rows: u32,
         scale: f32,
         #[comptime] units: u32,
     ) {
-        let width = meta[0];
-        let valid = cube_index() < meta[1];
-        let base = u32::min(cube_index(), meta[1] - 1) * width;
+        let valid = cube_index() < rows;
+        let base = u32::min(cube_index(), rows - 1) * width;
         // −∞ stand-in: finite for WGSL; exp(it − any score) = 0. Built at run time so it is a runtime value.
         let mut floor = 0.0f32;
         floor -= 3.0e38f32;
@@ -356,7 +364,7 @@ fn group_norm_on(
             to_u32(dims[0] * groups, "groups")?,
             1,
         );
-        let meta = Meta::new(x, &[channels, spatial, groups, parts])?;
+        let sizes = u32_args([channels, spatial, groups, parts])?;
         let partials = x.empty_like_device(vec![dims[0] * groups * chunks * 2]);
         // SAFETY: cube (chunk, group) reads its chunk of x and writes its two partials, then reads its
         // group's partials and writes its chunk of out; chunks tile each channel (the last one shorter).
@@ -367,7 +375,10 @@ fn group_norm_on(
                 CubeDim::new_1d(REDUCE_UNITS),
                 x.arg(),
                 partials.arg(),
-                meta.arg(),
+                sizes[0],
+                sizes[1],
+                sizes[2],
+                sizes[3],
             );
             kernel::group_norm_apply::launch_unchecked(
                 x.client(),
@@ -378,7 +389,10 @@ fn group_norm_on(
                 weight.arg(),
                 bias.arg(),
                 out.arg(),
-                meta.arg(),
+                sizes[0],
+                sizes[1],
+                sizes[2],
+                sizes[3],
                 eps as f32,
                 silu,
             )
@@ -386,7 +400,7 @@ fn group_norm_on(
         return Ok(out);
     }
     let cubes = dims[0] * groups;
-    let meta = Meta::new(x, &[channels, spatial, groups, cubes])?;
+    let sizes = u32_args([channels, spatial, groups, cubes])?;
     let units = row_units((channels / groups) * spatial);
     // SAFETY: one cube per (batch, group) reads/writes that group's channels only.
     unsafe {
@@ -398,7 +412,10 @@ fn group_norm_on(
             weight.arg(),
             bias.arg(),
             out.arg(),
-            meta.arg(),
+            sizes[0],
+            sizes[1],
+            sizes[2],
+            sizes[3],
             eps as f32,
             silu,
             units,
@@ -427,7 +444,7 @@ pub fn layer_norm(
         );
     }
     let rows = x.elem_count() / width;
-    let meta = Meta::new(x, &[width, rows])?;
+    let sizes = u32_args([width, rows])?;
     let out = x.empty_like_device(x.dims().to_vec());
     let units = row_units(width);
     // SAFETY: one cube per row.
@@ -440,7 +457,8 @@ pub fn layer_norm(
             weight.arg(),
             bias.arg(),
             out.arg(),
-            meta.arg(),
+            sizes[0],
+            sizes[1],
             eps as f32,
             units,
         )
@@ -469,7 +487,7 @@ pub(super) fn softmax_scaled(x: &GpuTensor, scale: f32, half: bool) -> Result<Gp
         candle_core::bail!("gpu softmax: empty last dimension in {:?}", x.dims());
     }
     let rows = x.elem_count() / width;
-    let meta = Meta::new(x, &[width, rows])?;
+    let sizes = u32_args([width, rows])?;
     let units = row_units(width);
     let (count, dim) = (grid(rows), CubeDim::new_1d(units));
     let shape = x.dims().to_vec();
@@ -483,7 +501,8 @@ pub(super) fn softmax_scaled(x: &GpuTensor, scale: f32, half: bool) -> Result<Gp
                 dim,
                 x.arg(),
                 out.half_arg(),
-                meta.arg(),
+                sizes[0],
+                sizes[1],
                 scale,
                 units,
             );
@@ -496,7 +515,8 @@ pub(super) fn softmax_scaled(x: &GpuTensor, scale: f32, half: bool) -> Result<Gp
                 dim,
                 x.arg(),
                 out.arg(),
-                meta.arg(),
+                sizes[0],
+                sizes[1],
                 scale,
                 units,
             );

@@ -4,7 +4,7 @@
 
 use candle_core::Result;
 
-use super::launch::{launch_per_element, Meta};
+use super::launch::{launch_per_element, u32_args};
 use super::GpuTensor;
 
 /// The kernels of this family (their host launchers follow the module).
@@ -13,34 +13,36 @@ mod kernel {
 
     use super::super::launch::linear_pos;
 
-    /// 2×2 max-pool, stride 2, floor mode, over NCHW planes: `meta = [h, w, out h, out w]`; one unit per
-    /// output value.
+    /// 2×2 max-pool, stride 2, floor mode, over NCHW planes `h`×`w` into `oh`×`ow`; one unit per output
+    /// value.
     #[cube(launch_unchecked)]
-    pub fn max_pool2x2(x: &[f32], out: &mut [f32], meta: &[u32]) {
+    pub fn max_pool2x2(x: &[f32], out: &mut [f32], h: u32, w: u32, oh: u32, ow: u32) {
         let i = linear_pos();
         if (i as usize) < out.len() {
-            let w = meta[1];
-            let oh = meta[2];
-            let ow = meta[3];
             let plane = i / (oh * ow);
             let rest = i % (oh * ow);
-            let base = plane * meta[0] * w + 2 * (rest / ow) * w + 2 * (rest % ow);
+            let base = plane * h * w + 2 * (rest / ow) * w + 2 * (rest % ow);
             let top = f32::max(x[base as usize], x[(base + 1) as usize]);
             let bottom = f32::max(x[(base + w) as usize], x[(base + w + 1) as usize]);
             out[i as usize] = f32::max(top, bottom);
         }
     }
 
-    /// The input gradient of [`max_pool2x2`] (same `meta`): one unit per input value, which receives its
+    /// The input gradient of [`max_pool2x2`] (same sizes): one unit per input value, which receives its
     /// window's pooled gradient when it is the window's first maximum (row-major order, as torch), else 0.
     #[cube(launch_unchecked)]
-    pub fn max_pool2x2_backward(x: &[f32], grad: &[f32], out: &mut [f32], meta: &[u32]) {
+    #[allow(clippy::too_many_arguments)]
+    pub fn max_pool2x2_backward(
+        x: &[f32],
+        grad: &[f32],
+        out: &mut [f32],
+        h: u32,
+        w: u32,
+        oh: u32,
+        ow: u32,
+    ) {
         let i = linear_pos();
         if (i as usize) < out.len() {
-            let h = meta[0];
-            let w = meta[1];
-            let oh = meta[2];
-            let ow = meta[3];
             let plane = i / (h * w);
             let rest = i % (h * w);
             let y = rest / w;
@@ -84,14 +86,19 @@ mod kernel {
         f32::sqrt(sum)
     }
 
-    /// `f / (‖f‖ + eps)` over the channels of each pixel of NCHW maps: `meta = [channels, h·w, n·h·w]`; one
-    /// unit per pixel (neighbouring units read neighbouring values of each channel plane).
+    /// `f / (‖f‖ + eps)` over the `channels` of each of the `pixels` pixels of NCHW maps (`hw` = h·w);
+    /// one unit per pixel (neighbouring units read neighbouring values of each channel plane).
     #[cube(launch_unchecked)]
-    pub fn normalize_channels(x: &[f32], out: &mut [f32], meta: &[u32], eps: f32) {
+    pub fn normalize_channels(
+        x: &[f32],
+        out: &mut [f32],
+        channels: u32,
+        hw: u32,
+        pixels: u32,
+        eps: f32,
+    ) {
         let i = linear_pos();
-        let channels = meta[0];
-        let hw = meta[1];
-        if i < meta[2] {
+        if i < pixels {
             let base = (i / hw) * channels * hw + i % hw;
             let denom = channel_norm(x, base, channels, hw) + eps;
             for ch in 0..channels {
@@ -103,7 +110,8 @@ mod kernel {
 
     /// The LPIPS distance of one tap per pixel, `Σ_c lin_c (f_c/(‖f‖+eps) − t_c)²`, into `map`, and with
     /// `with_grad` the gradient of its spatial mean (`inv_area` = 1/(h·w)) with respect to `f` into `grad`
-    /// (see `kernels::vgg::lpips_distance`). `meta = [channels, h·w, n·h·w]`; one unit per pixel.
+    /// (see `kernels::vgg::lpips_distance`), over `channels`, `hw` = h·w and `pixels` = n·h·w; one unit
+    /// per pixel.
     #[cube(launch_unchecked)]
     pub fn lpips_distance(
         f: &[f32],
@@ -111,15 +119,15 @@ mod kernel {
         lin: &[f32],
         map: &mut [f32],
         grad: &mut [f32],
-        meta: &[u32],
+        channels: u32,
+        hw: u32,
+        pixels: u32,
         eps: f32,
         inv_area: f32,
         #[comptime] with_grad: bool,
     ) {
         let i = linear_pos();
-        let channels = meta[0];
-        let hw = meta[1];
-        if i < meta[2] {
+        if i < pixels {
             let base = (i / hw) * channels * hw + i % hw;
             let norm = channel_norm(f, base, channels, hw);
             let denom = norm + eps;
@@ -161,7 +169,7 @@ fn nchw(x: &GpuTensor, op: &str) -> Result<(usize, usize, usize, usize)> {
 /// 2×2 max-pool, stride 2, floor mode (`kernels::vgg::max_pool2x2`).
 pub fn max_pool2x2(x: &GpuTensor) -> Result<GpuTensor> {
     let (n, c, h, w) = nchw(x, "max_pool2x2")?;
-    let meta = Meta::new(x, &[h, w, h / 2, w / 2])?;
+    let sizes = u32_args([h, w, h / 2, w / 2])?;
     let out = x.empty_like_device(vec![n, c, h / 2, w / 2]);
     // SAFETY: every output window lies inside its input plane (floor mode); bound-checked against out.
     unsafe {
@@ -171,7 +179,10 @@ pub fn max_pool2x2(x: &GpuTensor) -> Result<GpuTensor> {
             out.elem_count(),
             x.arg(),
             out.arg(),
-            meta.arg(),
+            sizes[0],
+            sizes[1],
+            sizes[2],
+            sizes[3],
         )
     };
     Ok(out)
@@ -187,7 +198,7 @@ pub fn max_pool2x2_backward(x: &GpuTensor, grad: &GpuTensor) -> Result<GpuTensor
             x.dims()
         );
     }
-    let meta = Meta::new(x, &[h, w, h / 2, w / 2])?;
+    let sizes = u32_args([h, w, h / 2, w / 2])?;
     let out = x.empty_like_device(x.dims().to_vec());
     // SAFETY: one unit per input value; windows and pooled indices are inside x and grad.
     unsafe {
@@ -198,7 +209,10 @@ pub fn max_pool2x2_backward(x: &GpuTensor, grad: &GpuTensor) -> Result<GpuTensor
             x.arg(),
             grad.arg(),
             out.arg(),
-            meta.arg(),
+            sizes[0],
+            sizes[1],
+            sizes[2],
+            sizes[3],
         )
     };
     Ok(out)
@@ -208,7 +222,7 @@ pub fn max_pool2x2_backward(x: &GpuTensor, grad: &GpuTensor) -> Result<GpuTensor
 pub fn normalize_channels(x: &GpuTensor, eps: f32) -> Result<GpuTensor> {
     let (n, c, h, w) = nchw(x, "normalize_channels")?;
     let pixels = n * h * w;
-    let meta = Meta::new(x, &[c, h * w, pixels])?;
+    let sizes = u32_args([c, h * w, pixels])?;
     let out = x.empty_like_device(x.dims().to_vec());
     // SAFETY: one unit per pixel, reading and writing that pixel's channels.
     unsafe {
@@ -218,7 +232,9 @@ pub fn normalize_channels(x: &GpuTensor, eps: f32) -> Result<GpuTensor> {
             pixels,
             x.arg(),
             out.arg(),
-            meta.arg(),
+            sizes[0],
+            sizes[1],
+            sizes[2],
             eps,
         )
     };
@@ -244,7 +260,7 @@ pub fn lpips_distance(
         );
     }
     let pixels = n * h * w;
-    let meta = Meta::new(f, &[c, h * w, pixels])?;
+    let sizes = u32_args([c, h * w, pixels])?;
     let map = f.empty_like_device(vec![n, 1, h, w]);
     // Without the gradient the kernel writes no `grad`; a one-value buffer stands in.
     let grad = f.empty_like_device(if with_grad {
@@ -263,7 +279,9 @@ pub fn lpips_distance(
             lin.arg(),
             map.arg(),
             grad.arg(),
-            meta.arg(),
+            sizes[0],
+            sizes[1],
+            sizes[2],
             eps,
             1.0 / (h * w).max(1) as f32,
             with_grad,
