@@ -18,16 +18,8 @@ pub(super) fn unary(x: &Tensor, op: Unary) -> Result<Tensor> {
     }
 }
 
-/// [`super::conv2d`] of `x` plus `addend`.
-pub(super) fn conv2d(
-    x: &Tensor,
-    weight: &Tensor,
-    bias: Option<&Tensor>,
-    stride: usize,
-    padding: usize,
-    addend: Addend<'_, Tensor>,
-) -> Result<Tensor> {
-    let out = super::conv2d(x, weight, bias, stride, padding)?;
+/// A convolution's output `out` plus its `addend`.
+pub(super) fn plus(out: Tensor, addend: Addend<'_, Tensor>) -> Result<Tensor> {
     match addend {
         Addend::None => Ok(out),
         Addend::Residual(r) => out + r,

@@ -295,11 +295,24 @@ seam_ops! {
             padding: usize,
             addend: Addend<'_, Self>,
         ) -> Result<Self>
-            => cpu on_cpu::conv2d(self, weight, bias, stride, padding, addend),
-               gpu on_gpu::conv2d(self, weight, bias, stride, padding, addend);
+            => cpu on_cpu::plus(super::conv2d(self, weight, bias, stride, padding)?, addend),
+               gpu ops::conv2d(
+                   self,
+                   &self.matrix_constant(weight)?,
+                   self.optional_constant(bias)?.as_ref(),
+                   stride,
+                   padding,
+                   addend,
+               );
         /// `x·weightᵀ + bias` (candle-nn `Linear`), plus `residual` (of the output's shape).
         special fn linear(&self, layer: &candle_nn::Linear, residual: Option<&Self>) -> Result<Self>
-            => cpu on_cpu::linear(self, layer, residual), gpu on_gpu::linear(self, layer, residual);
+            => cpu on_cpu::linear(self, layer, residual),
+               gpu ops::linear(
+                   self,
+                   &self.matrix_constant(layer.weight())?,
+                   self.optional_constant(layer.bias())?.as_ref(),
+                   residual,
+               );
         /// [`super::group_norm`], SiLU fused when `silu`.
         unary fn group_norm(
             &self,

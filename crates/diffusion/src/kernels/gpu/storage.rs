@@ -6,7 +6,7 @@ use candle_core::{Result, Tensor};
 use candle_nn::Activation;
 
 use super::{ops, GpuTensor};
-use crate::kernels::device::{Addend, Unary};
+use crate::kernels::device::Unary;
 
 impl GpuTensor {
     /// A weight (or any CPU constant) on this tensor's device, in f32.
@@ -14,8 +14,13 @@ impl GpuTensor {
         self.device().cached(t)
     }
 
+    /// [`GpuTensor::constant`] of a bias that may be absent.
+    pub(crate) fn optional_constant(&self, t: Option<&Tensor>) -> Result<Option<GpuTensor>> {
+        t.map(|t| self.constant(t)).transpose()
+    }
+
     /// The weight of a matrix product on this tensor's device, in the device's precision.
-    fn matrix_constant(&self, t: &Tensor) -> Result<GpuTensor> {
+    pub(crate) fn matrix_constant(&self, t: &Tensor) -> Result<GpuTensor> {
         self.device().cached_matrix(t)
     }
 }
@@ -49,39 +54,4 @@ pub(crate) fn activation(x: &GpuTensor, act: Activation) -> Result<GpuTensor> {
         Activation::Mish => Ok(ops::mish(x)),
         other => candle_core::bail!("activation {other:?} has no GPU kernel"),
     }
-}
-
-/// [`ops::conv2d`] of `x` with the cached weight and bias, plus `addend`.
-pub(crate) fn conv2d(
-    x: &GpuTensor,
-    weight: &Tensor,
-    bias: Option<&Tensor>,
-    stride: usize,
-    padding: usize,
-    addend: Addend<'_, GpuTensor>,
-) -> Result<GpuTensor> {
-    let bias = bias.map(|b| x.constant(b)).transpose()?;
-    ops::conv2d(
-        x,
-        &x.matrix_constant(weight)?,
-        bias.as_ref(),
-        stride,
-        padding,
-        addend,
-    )
-}
-
-/// [`ops::linear`] of `x` with the layer's cached weight and bias, plus `residual`.
-pub(crate) fn linear(
-    x: &GpuTensor,
-    layer: &candle_nn::Linear,
-    residual: Option<&GpuTensor>,
-) -> Result<GpuTensor> {
-    let bias = layer.bias().map(|b| x.constant(b)).transpose()?;
-    ops::linear(
-        x,
-        &x.matrix_constant(layer.weight())?,
-        bias.as_ref(),
-        residual,
-    )
 }

@@ -31,7 +31,6 @@ mod kernel {
     /// The input gradient of [`max_pool2x2`] (same sizes): one unit per input value, which receives its
     /// window's pooled gradient when it is the window's first maximum (row-major order, as torch), else 0.
     #[cube(launch_unchecked)]
-    #[allow(clippy::too_many_arguments)]
     pub fn max_pool2x2_backward(
         x: &[f32],
         grad: &[f32],
