@@ -337,7 +337,7 @@ seam_ops! {
         /// [`super::softmax_last_dim`].
         unary fn softmax_last_dim(&self)
             => cpu super::softmax_last_dim(self), gpu ops::softmax_last_dim(self);
-        /// [`super::geglu`] (the last dimension split in value and gate halves).
+        /// `super::geglu` (the last dimension split in value and gate halves).
         unary fn geglu(&self) => cpu super::geglu(self), gpu ops::geglu(self);
         /// `self × otherᵀ` over the last two dimensions (candle `a.matmul(&b.t()?)`).
         binary fn matmul_t(&self, other: &Self)
@@ -345,7 +345,7 @@ seam_ops! {
         /// Batched matrix product (candle `matmul`).
         binary fn matmul(&self, other: &Self)
             => cpu Tensor::matmul(self, other), gpu ops::matmul(self, other);
-        /// `softmax(q·kᵀ·scale)·v` ([`super::attention`]; on the GPU, [`ops::attention`]'s path).
+        /// `softmax(q·kᵀ·scale)·v` (`super::attention`; on the GPU, [`ops::attention`]'s path).
         special fn attention(q: &Self, k: &Self, v: &Self, scale: f64) -> Result<Self>
             => cpu super::attention(q, k, v, scale), gpu ops::attention(q, k, v, scale);
     }
