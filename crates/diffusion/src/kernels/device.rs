@@ -1,23 +1,31 @@
 //! The diffusion engine's device seam: where a network runs is decided here and nowhere else.
 //!
 //! - [`Device`]: the CPU or an opened GPU; the networks' entry points take `&Device`.
-//! - [`Storage`]: every op a network needs, declared once; one implementation per backend — candle tensors
-//!   on the CPU (`kernels/cpu.rs`: each op is the very candle call or `kernels` function the networks
-//!   made before, so CPU results and speed are unchanged) and CubeCL tensors on the GPU
-//!   (`kernels/gpu/storage.rs`, one kernel per op, tested against the CPU on lavapipe).
-//! - [`DeviceTensor`]: the activation a forward passes from layer to layer, one variant per backend; each of
-//!   its ops only dispatches to the variant's [`Storage`].
+//! - [`Storage`]: every op a network needs, declared once in one list ([`seam_ops!`]) with its one-line
+//!   body per backend — candle tensors on the CPU (each op the very candle call or `kernels` function
+//!   the networks made before, so CPU results and speed are unchanged; longer bodies in
+//!   `kernels/cpu.rs`) and CubeCL tensors on the GPU (one kernel per op in [`ops`], tested against
+//!   the CPU on lavapipe; longer bodies in `kernels/gpu/storage.rs`). A feature's own ops extend it
+//!   beside their CPU bodies (LPIPS's VGG ops: `kernels::vgg::VggStorage`).
+//! - [`DeviceTensor`]: the activation a forward passes from layer to layer, one variant per backend; each
+//!   op of the lists gets its method, which dispatches to the variant's backend.
 //!
-//! Adding a backend: implement [`Storage`] for its tensor type, add a variant to [`Device`] and
-//! [`DeviceTensor`], and one arm to the `dispatch!`/`dispatch2!` macros below. Network code is unchanged.
+//! Adding an op: one line in a list (its signature and the body on each backend), its CPU body where it
+//! is more than a candle call, its GPU kernel and launcher in the family's file of `kernels/gpu/`
+//! (tested there against the CPU). docs/layout.md walks through an example.
+//!
+//! Adding a backend: one more `impl` in [`seam_ops!`], a variant of [`Device`] and [`DeviceTensor`], and
+//! one arm of the `dispatch!`/`dispatch2!` macros below. Network code is unchanged.
 //!
 //! Weights stay CPU candle tensors in the network structs; a backend fetches its device copy when an op
 //! uses one (the GPU keeps them in [`GpuDevice::cached`]). One network definition thus runs anywhere.
 
-use candle_core::{Result, Tensor};
+use candle_core::{Module, Result, Tensor, D};
 use candle_nn::Activation;
 
-use super::gpu::{GpuDevice, GpuTensor};
+use super::cpu as on_cpu;
+use super::gpu::storage as on_gpu;
+use super::gpu::{ops, GpuDevice, GpuTensor};
 use gpu::F32Buffer;
 
 /// Where a network runs.
@@ -120,87 +128,233 @@ impl<T> Clone for Addend<'_, T> {
 }
 impl<T> Copy for Addend<'_, T> {}
 
-/// The ops of a network, declared once, implemented once per backend. Shapes are validated by each
-/// implementation; operands of the binary ops are on the same device (the dispatch checks that).
-pub trait Storage: Sized {
-    fn dims(&self) -> &[usize];
-    /// The values as a CPU tensor (a read-back from a device).
-    fn to_cpu(&self) -> Result<Tensor>;
+/// Declares ops of the seam once: a trait with one method per op, its implementation for each backend
+/// (the CPU's [`Tensor`], the GPU's [`GpuTensor`]) from the op's one-line body per backend, and the
+/// [`DeviceTensor`] method that dispatches to them. Used here for the core [`Storage`] and beside a
+/// feature's own ops for its extension trait (`kernels::vgg::VggStorage`).
+///
+/// Each op reads `KIND fn NAME(PARAMETERS) [-> RETURN] => cpu EXPRESSION, gpu EXPRESSION;`, the
+/// expressions the op's body on each backend (`self` the backend's tensor). KIND is one of
+/// - `unary`: `self` is the only device tensor; returns `Result<Self>`; the forward runs the op on
+///   `self`'s backend;
+/// - `binary`: the parameter after `self` is a second device tensor (`other: &Self`); the forward fails
+///   when the two are on different devices;
+/// - `special`: any signature, RETURN written out; its [`DeviceTensor`] method is written by hand.
+///
+/// A new backend is one more `impl` in this macro (and a variant of [`Device`], [`DeviceTensor`] and the
+/// `dispatch!` macros); the lists of ops are unchanged.
+macro_rules! seam_ops {
+    (
+        $(#[$trait_meta:meta])*
+        $vis:vis trait $Trait:ident $(: $Super:ident)? {
+            $(
+                $(#[$meta:meta])*
+                $kind:ident fn $name:ident $params:tt $(-> $ret:ty)?
+                    => cpu $cpu:expr, gpu $gpu:expr;
+            )*
+        }
+    ) => {
+        $(#[$trait_meta])*
+        $vis trait $Trait: Sized $(+ $Super)? {
+            $($crate::kernels::device::seam_op!(
+                @decl $kind, $(#[$meta])* $name $params $(-> $ret)?
+            );)*
+        }
 
-    /// Same-shape sum.
-    fn add(&self, other: &Self) -> Result<Self>;
-    fn broadcast_add(&self, other: &Self) -> Result<Self>;
-    fn broadcast_mul(&self, other: &Self) -> Result<Self>;
-    /// `self + t` with broadcasting, `t` a host tensor used once (masks and other per-call constants; not
-    /// cached on a device).
-    fn broadcast_add_host(&self, t: &Tensor) -> Result<Self>;
-    /// `self · mul + add`.
-    fn affine(&self, mul: f64, add: f64) -> Result<Self>;
-    fn unary(&self, op: Unary) -> Result<Self>;
-    /// A candle-nn activation (the ones diffusers configs name).
-    fn activation(&self, act: Activation) -> Result<Self>;
+        impl $Trait for candle_core::Tensor {
+            $($crate::kernels::device::seam_op!(@body $kind, $name $params $(-> $ret)?, $cpu);)*
+        }
 
-    fn reshape(&self, shape: &[usize]) -> Result<Self>;
-    /// Permuted and made contiguous.
-    fn permute_contiguous(&self, dims: &[usize]) -> Result<Self>;
-    fn narrow(&self, dim: usize, start: usize, len: usize) -> Result<Self>;
-    /// `narrow(dim, start, len)`, permuted and made contiguous, in one copy.
-    fn narrow_permute(&self, dim: usize, start: usize, len: usize, dims: &[usize]) -> Result<Self>;
-    /// The slices of `dim` at `indices`, in that order.
-    fn index_select(&self, indices: &[u32], dim: usize) -> Result<Self>;
-    /// One zero row at the bottom and one zero column at the right.
-    fn pad_bottom_right_with_zeros(&self) -> Result<Self>;
-    fn upsample_nearest2d(&self, out_h: usize, out_w: usize) -> Result<Self>;
-    fn cat(parts: &[&Self], dim: usize) -> Result<Self>;
+        impl $Trait for $crate::kernels::gpu::GpuTensor {
+            $($crate::kernels::device::seam_op!(@body $kind, $name $params $(-> $ret)?, $gpu);)*
+        }
 
-    /// [`super::conv2d`] (NCHW, OIHW weights), plus `addend`.
-    fn conv2d(
-        &self,
-        weight: &Tensor,
-        bias: Option<&Tensor>,
-        stride: usize,
-        padding: usize,
-        addend: Addend<'_, Self>,
-    ) -> Result<Self>;
-    /// `x·weightᵀ + bias` (candle-nn `Linear`), plus `residual` (of the output's shape).
-    fn linear(&self, layer: &candle_nn::Linear, residual: Option<&Self>) -> Result<Self>;
-    /// [`super::group_norm`], SiLU fused when `silu`.
-    fn group_norm(
-        &self,
-        weight: &Tensor,
-        bias: &Tensor,
-        groups: usize,
-        eps: f64,
-        silu: bool,
-    ) -> Result<Self>;
-    /// [`super::layer_norm`] over the last dimension.
-    fn layer_norm(&self, weight: &Tensor, bias: &Tensor, eps: f64) -> Result<Self>;
-    fn softmax_last_dim(&self) -> Result<Self>;
-    /// `super::geglu` (the last dimension split in value and gate halves).
-    fn geglu(&self) -> Result<Self>;
-    /// `self × otherᵀ` over the last two dimensions.
-    fn matmul_t(&self, other: &Self) -> Result<Self>;
-    /// Batched matrix product.
-    fn matmul(&self, other: &Self) -> Result<Self>;
-    /// `softmax(q·kᵀ·scale)·v` (`super::attention`).
-    fn attention(q: &Self, k: &Self, v: &Self, scale: f64) -> Result<Self>;
+        impl $crate::kernels::device::DeviceTensor {
+            $($crate::kernels::device::seam_op!(
+                @forward $Trait, $kind, $(#[$meta])* $name $params
+            );)*
+        }
+    };
+}
+pub(crate) use seam_ops;
 
-    /// [`super::vgg::max_pool2x2`] (NCHW, 2×2, stride 2, floor mode).
-    fn max_pool2x2(&self) -> Result<Self>;
-    /// [`super::vgg::max_pool2x2_backward`]; `self` is the pool's input.
-    fn max_pool2x2_backward(&self, grad: &Self) -> Result<Self>;
-    /// [`super::vgg::relu_backward`]; `self` is the ReLU's output.
-    fn relu_backward(&self, grad: &Self) -> Result<Self>;
-    /// [`super::vgg::normalize_channels`].
-    fn normalize_channels(&self, eps: f32) -> Result<Self>;
-    /// [`super::vgg::lpips_distance`]; `self` holds the features, `lin` the tap's channel weights.
-    fn lpips_distance(
-        &self,
-        target: &Self,
-        lin: &Tensor,
-        eps: f32,
-        with_grad: bool,
-    ) -> Result<(Self, Option<Self>)>;
+/// One op of [`seam_ops!`]: its trait method (`@decl`), a backend's body (`@body`), its
+/// [`DeviceTensor`] forward (`@forward`).
+macro_rules! seam_op {
+    (@decl special, $(#[$meta:meta])* $name:ident $params:tt -> $ret:ty) => {
+        $(#[$meta])*
+        fn $name $params -> $ret;
+    };
+    (@decl $kind:ident, $(#[$meta:meta])* $name:ident $params:tt) => {
+        $(#[$meta])*
+        fn $name $params -> candle_core::Result<Self>;
+    };
+    (@body special, $name:ident $params:tt -> $ret:ty, $body:expr) => {
+        fn $name $params -> $ret {
+            $body
+        }
+    };
+    (@body $kind:ident, $name:ident $params:tt, $body:expr) => {
+        fn $name $params -> candle_core::Result<Self> {
+            $body
+        }
+    };
+    (@forward $Trait:ident, unary, $(#[$meta:meta])* $name:ident
+        (&$s:ident $(, $a:ident: $t:ty)* $(,)?)) => {
+        $(#[$meta])*
+        pub fn $name(
+            &self
+            $(, $a: $t)*
+        ) -> candle_core::Result<$crate::kernels::device::DeviceTensor> {
+            Ok($crate::kernels::device::dispatch!(self, x => $Trait::$name(x $(, $a)*)))
+        }
+    };
+    (@forward $Trait:ident, binary, $(#[$meta:meta])* $name:ident
+        (&$s:ident, $other:ident: &Self $(, $a:ident: $t:ty)* $(,)?)) => {
+        $(#[$meta])*
+        pub fn $name(
+            &self,
+            $other: &$crate::kernels::device::DeviceTensor
+            $(, $a: $t)*
+        ) -> candle_core::Result<$crate::kernels::device::DeviceTensor> {
+            Ok($crate::kernels::device::dispatch2!(
+                self, $other, (x, y) => $Trait::$name(x, y $(, $a)*)
+            ))
+        }
+    };
+    (@forward $Trait:ident, special, $($signature:tt)*) => {};
+}
+pub(crate) use seam_op;
+
+seam_ops! {
+    /// The ops of a network, each declared once, here, with its body on each backend: on the CPU the
+    /// candle call or `kernels` function the networks made before the seam existed (so CPU results and
+    /// speed are those of plain candle code), on the GPU its CubeCL op ([`ops`], tested against
+    /// the CPU on lavapipe). Shapes are validated by each backend; operands of the binary ops are on
+    /// the same device (the dispatch checks that).
+    pub trait Storage {
+        special fn dims(&self) -> &[usize] => cpu Tensor::dims(self), gpu GpuTensor::dims(self);
+        /// The values as a CPU tensor (a read-back from a device).
+        special fn to_cpu(&self) -> Result<Tensor>
+            => cpu Ok(self.clone()), gpu GpuTensor::to_cpu(self);
+
+        // ------------------------------------------------------------------------------ elementwise
+        /// Same-shape sum (candle `a + b`).
+        binary fn add(&self, other: &Self)
+            => cpu self + other, gpu on_gpu::same_shape_add(self, other);
+        binary fn broadcast_add(&self, other: &Self)
+            => cpu Tensor::broadcast_add(self, other), gpu ops::add(self, other);
+        binary fn broadcast_mul(&self, other: &Self)
+            => cpu Tensor::broadcast_mul(self, other), gpu ops::mul(self, other);
+        /// `self + t` with broadcasting, `t` a CPU tensor used for this call only (not cached on a
+        /// device: masks and other per-call constants).
+        unary fn broadcast_add_tensor(&self, t: &Tensor)
+            => cpu Tensor::broadcast_add(self, t),
+               gpu ops::add(self, &GpuTensor::upload(self.device(), t)?);
+        /// `self · mul + add` (candle `affine`; candle's scalar `*`, `/`, `+`, `-` are this affine too).
+        unary fn affine(&self, mul: f64, add: f64)
+            => cpu Tensor::affine(self, mul, add),
+               gpu Ok(ops::affine(self, mul as f32, add as f32));
+        /// One of the activations with a kernel of their own.
+        unary fn unary(&self, op: Unary)
+            => cpu on_cpu::unary(self, op), gpu Ok(on_gpu::unary(self, op));
+        /// A candle-nn activation (the ones diffusers configs name).
+        unary fn activation(&self, act: Activation)
+            => cpu act.forward(self), gpu on_gpu::activation(self, act);
+
+        // ------------------------------------------------------------------------ shape and copies
+        unary fn reshape(&self, shape: &[usize])
+            => cpu Tensor::reshape(self, shape), gpu GpuTensor::reshape(self, shape);
+        /// Permuted and made contiguous.
+        unary fn permute_contiguous(&self, dims: &[usize])
+            => cpu self.permute(dims)?.contiguous(), gpu ops::permute(self, dims);
+        /// `narrow(dim, start, len)` (a view on the CPU, a copy on the GPU).
+        unary fn narrow(&self, dim: usize, start: usize, len: usize)
+            => cpu Tensor::narrow(self, dim, start, len), gpu ops::narrow(self, dim, start, len);
+        /// `narrow(dim, start, len)` permuted by `dims` and made contiguous, in one copy (a part of a
+        /// fused projection taken out head-major).
+        unary fn narrow_permute(&self, dim: usize, start: usize, len: usize, dims: &[usize])
+            => cpu Tensor::narrow(self, dim, start, len)?.permute(dims)?.contiguous(),
+               gpu ops::narrow_permute(self, dim, start, len, dims);
+        /// The slices of `dim` at `indices`, in that order (candle `index_select`).
+        unary fn index_select(&self, indices: &[u32], dim: usize)
+            => cpu Tensor::index_select(self, &Tensor::new(indices, self.device())?, dim),
+               gpu ops::index_select(self, indices, dim);
+        /// One zero row at the bottom and one zero column at the right (diffusers' `Downsample2D`
+        /// with padding 0).
+        unary fn pad_bottom_right_with_zeros(&self)
+            => cpu self.pad_with_zeros(D::Minus1, 0, 1)?.pad_with_zeros(D::Minus2, 0, 1),
+               gpu ops::pad_bottom_right(self, 1, 1);
+        unary fn upsample_nearest2d(&self, out_h: usize, out_w: usize)
+            => cpu Tensor::upsample_nearest2d(self, out_h, out_w),
+               gpu ops::upsample_nearest2d(self, out_h, out_w);
+        special fn cat(parts: &[&Self], dim: usize) -> Result<Self>
+            => cpu Tensor::cat(parts, dim), gpu ops::cat(parts, dim);
+
+        // ---------------------------------------------------------------------- the `kernels` ops
+        /// [`super::conv2d`] (NCHW, OIHW weights), plus `addend`.
+        special fn conv2d(
+            &self,
+            weight: &Tensor,
+            bias: Option<&Tensor>,
+            stride: usize,
+            padding: usize,
+            addend: Addend<'_, Self>,
+        ) -> Result<Self>
+            => cpu on_cpu::plus(super::conv2d(self, weight, bias, stride, padding)?, addend),
+               gpu ops::conv2d(
+                   self,
+                   &self.matrix_constant(weight)?,
+                   self.optional_constant(bias)?.as_ref(),
+                   stride,
+                   padding,
+                   addend,
+               );
+        /// `x·weightᵀ + bias` (candle-nn `Linear`), plus `residual` (of the output's shape).
+        special fn linear(&self, layer: &candle_nn::Linear, residual: Option<&Self>) -> Result<Self>
+            => cpu on_cpu::linear(self, layer, residual),
+               gpu ops::linear(
+                   self,
+                   &self.matrix_constant(layer.weight())?,
+                   self.optional_constant(layer.bias())?.as_ref(),
+                   residual,
+               );
+        /// [`super::group_norm`], SiLU fused when `silu`.
+        unary fn group_norm(
+            &self,
+            weight: &Tensor,
+            bias: &Tensor,
+            groups: usize,
+            eps: f64,
+            silu: bool,
+        ) => cpu super::group_norm(self, weight, bias, groups, eps, silu),
+             gpu ops::group_norm(
+                 self,
+                 &self.constant(weight)?,
+                 &self.constant(bias)?,
+                 groups,
+                 eps,
+                 silu,
+             );
+        /// [`super::layer_norm`] over the last dimension.
+        unary fn layer_norm(&self, weight: &Tensor, bias: &Tensor, eps: f64)
+            => cpu super::layer_norm(self, weight, bias, eps),
+               gpu ops::layer_norm(self, &self.constant(weight)?, &self.constant(bias)?, eps);
+        /// [`super::softmax_last_dim`].
+        unary fn softmax_last_dim(&self)
+            => cpu super::softmax_last_dim(self), gpu ops::softmax_last_dim(self);
+        /// `super::geglu` (the last dimension split in value and gate halves).
+        unary fn geglu(&self) => cpu super::geglu(self), gpu ops::geglu(self);
+        /// `self × otherᵀ` over the last two dimensions (candle `a.matmul(&b.t()?)`).
+        binary fn matmul_t(&self, other: &Self)
+            => cpu self.matmul(&other.t()?), gpu ops::matmul_scaled(self, other, true, 1.0);
+        /// Batched matrix product (candle `matmul`).
+        binary fn matmul(&self, other: &Self)
+            => cpu Tensor::matmul(self, other), gpu ops::matmul(self, other);
+        /// `softmax(q·kᵀ·scale)·v` (`super::attention`; on the GPU, [`ops::attention`]'s path).
+        special fn attention(q: &Self, k: &Self, v: &Self, scale: f64) -> Result<Self>
+            => cpu super::attention(q, k, v, scale), gpu ops::attention(q, k, v, scale);
+    }
 }
 
 /// A tensor on one of the backends.
@@ -220,22 +374,34 @@ impl From<Tensor> for DeviceTensor {
 macro_rules! dispatch {
     ($x:expr, $t:ident => $op:expr) => {
         match $x {
-            DeviceTensor::Cpu($t) => DeviceTensor::Cpu($op?),
-            DeviceTensor::Gpu($t) => DeviceTensor::Gpu($op?),
+            $crate::kernels::device::DeviceTensor::Cpu($t) => {
+                $crate::kernels::device::DeviceTensor::Cpu($op?)
+            }
+            $crate::kernels::device::DeviceTensor::Gpu($t) => {
+                $crate::kernels::device::DeviceTensor::Gpu($op?)
+            }
         }
     };
 }
+pub(crate) use dispatch;
 
 /// `$op` on the common backend of `$a` and `$b`; an error when they differ.
 macro_rules! dispatch2 {
     ($a:expr, $b:expr, ($x:ident, $y:ident) => $op:expr) => {
         match ($a, $b) {
-            (DeviceTensor::Cpu($x), DeviceTensor::Cpu($y)) => DeviceTensor::Cpu($op?),
-            (DeviceTensor::Gpu($x), DeviceTensor::Gpu($y)) => DeviceTensor::Gpu($op?),
+            (
+                $crate::kernels::device::DeviceTensor::Cpu($x),
+                $crate::kernels::device::DeviceTensor::Cpu($y),
+            ) => $crate::kernels::device::DeviceTensor::Cpu($op?),
+            (
+                $crate::kernels::device::DeviceTensor::Gpu($x),
+                $crate::kernels::device::DeviceTensor::Gpu($y),
+            ) => $crate::kernels::device::DeviceTensor::Gpu($op?),
             _ => candle_core::bail!("operands on different devices (CPU and GPU)"),
         }
     };
 }
+pub(crate) use dispatch2;
 
 /// The operands of `parts` if all are on the backend `$variant`.
 macro_rules! all_on {
@@ -303,30 +469,6 @@ impl DeviceTensor {
 
     // ------------------------------------------------------------------------------- elementwise
 
-    /// Same-shape sum (candle `a + b`).
-    pub fn add(&self, other: &DeviceTensor) -> Result<DeviceTensor> {
-        Ok(dispatch2!(self, other, (a, b) => Storage::add(a, b)))
-    }
-
-    pub fn broadcast_add(&self, other: &DeviceTensor) -> Result<DeviceTensor> {
-        Ok(dispatch2!(self, other, (a, b) => Storage::broadcast_add(a, b)))
-    }
-
-    pub fn broadcast_mul(&self, other: &DeviceTensor) -> Result<DeviceTensor> {
-        Ok(dispatch2!(self, other, (a, b) => Storage::broadcast_mul(a, b)))
-    }
-
-    /// `self + t` with broadcasting, `t` a CPU tensor used for this call only (not cached: masks and other
-    /// per-call constants).
-    pub fn broadcast_add_tensor(&self, t: &Tensor) -> Result<DeviceTensor> {
-        Ok(dispatch!(self, x => Storage::broadcast_add_host(x, t)))
-    }
-
-    /// `self · mul + add` (candle `affine`; candle's scalar `*`, `/`, `+`, `-` are this affine too).
-    pub fn affine(&self, mul: f64, add: f64) -> Result<DeviceTensor> {
-        Ok(dispatch!(self, x => Storage::affine(x, mul, add)))
-    }
-
     /// `self · s` (candle `t * s`).
     pub fn mul_scalar(&self, s: f64) -> Result<DeviceTensor> {
         self.affine(s, 0.0)
@@ -347,10 +489,6 @@ impl DeviceTensor {
         self.affine(1.0, -s)
     }
 
-    pub fn unary(&self, op: Unary) -> Result<DeviceTensor> {
-        Ok(dispatch!(self, x => Storage::unary(x, op)))
-    }
-
     pub fn relu(&self) -> Result<DeviceTensor> {
         self.unary(Unary::Relu)
     }
@@ -359,53 +497,7 @@ impl DeviceTensor {
         self.unary(Unary::Tanh)
     }
 
-    /// A candle-nn activation (the ones diffusers configs name).
-    pub fn activation(&self, act: Activation) -> Result<DeviceTensor> {
-        Ok(dispatch!(self, x => Storage::activation(x, act)))
-    }
-
     // ---------------------------------------------------------------------------- shape and copies
-
-    pub fn reshape(&self, shape: &[usize]) -> Result<DeviceTensor> {
-        Ok(dispatch!(self, x => Storage::reshape(x, shape)))
-    }
-
-    /// Permuted and made contiguous.
-    pub fn permute_contiguous(&self, dims: &[usize]) -> Result<DeviceTensor> {
-        Ok(dispatch!(self, x => Storage::permute_contiguous(x, dims)))
-    }
-
-    /// `narrow(dim, start, len)` (a view on the CPU, a copy on the GPU).
-    pub fn narrow(&self, dim: usize, start: usize, len: usize) -> Result<DeviceTensor> {
-        Ok(dispatch!(self, x => Storage::narrow(x, dim, start, len)))
-    }
-
-    /// `narrow(dim, start, len)` permuted by `dims` and made contiguous, in one copy (a part of a fused
-    /// projection taken out head-major).
-    pub fn narrow_permute(
-        &self,
-        dim: usize,
-        start: usize,
-        len: usize,
-        dims: &[usize],
-    ) -> Result<DeviceTensor> {
-        Ok(dispatch!(self, x => Storage::narrow_permute(x, dim, start, len, dims)))
-    }
-
-    /// The slices of `dim` at `indices`, in that order (candle `index_select`).
-    pub fn index_select(&self, indices: &[u32], dim: usize) -> Result<DeviceTensor> {
-        Ok(dispatch!(self, x => Storage::index_select(x, indices, dim)))
-    }
-
-    /// One zero row at the bottom and one zero column at the right (diffusers' `Downsample2D` with
-    /// padding 0).
-    pub fn pad_bottom_right_with_zeros(&self) -> Result<DeviceTensor> {
-        Ok(dispatch!(self, x => Storage::pad_bottom_right_with_zeros(x)))
-    }
-
-    pub fn upsample_nearest2d(&self, out_h: usize, out_w: usize) -> Result<DeviceTensor> {
-        Ok(dispatch!(self, x => Storage::upsample_nearest2d(x, out_h, out_w)))
-    }
 
     pub fn cat(parts: &[&DeviceTensor], dim: usize) -> Result<DeviceTensor> {
         if let Some(cpu) = all_on!(parts, DeviceTensor::Cpu) {
@@ -463,43 +555,6 @@ impl DeviceTensor {
         Ok(dispatch2!(self, residual, (x, r) => Storage::linear(x, layer, Some(r))))
     }
 
-    /// [`super::group_norm`] on the tensor's device.
-    pub fn group_norm(
-        &self,
-        weight: &Tensor,
-        bias: &Tensor,
-        groups: usize,
-        eps: f64,
-        silu: bool,
-    ) -> Result<DeviceTensor> {
-        Ok(dispatch!(self, x => Storage::group_norm(x, weight, bias, groups, eps, silu)))
-    }
-
-    /// [`super::layer_norm`] on the tensor's device.
-    pub fn layer_norm(&self, weight: &Tensor, bias: &Tensor, eps: f64) -> Result<DeviceTensor> {
-        Ok(dispatch!(self, x => Storage::layer_norm(x, weight, bias, eps)))
-    }
-
-    /// [`super::softmax_last_dim`] on the tensor's device.
-    pub fn softmax_last_dim(&self) -> Result<DeviceTensor> {
-        Ok(dispatch!(self, x => Storage::softmax_last_dim(x)))
-    }
-
-    /// `super::geglu` on the tensor's device.
-    pub fn geglu(&self) -> Result<DeviceTensor> {
-        Ok(dispatch!(self, x => Storage::geglu(x)))
-    }
-
-    /// `self × otherᵀ` over the last two dimensions (candle `a.matmul(&b.t()?)`).
-    pub fn matmul_t(&self, other: &DeviceTensor) -> Result<DeviceTensor> {
-        Ok(dispatch2!(self, other, (a, b) => Storage::matmul_t(a, b)))
-    }
-
-    /// Batched matrix product (candle `matmul`).
-    pub fn matmul(&self, other: &DeviceTensor) -> Result<DeviceTensor> {
-        Ok(dispatch2!(self, other, (a, b) => Storage::matmul(a, b)))
-    }
-
     /// `super::attention` on the operands' device (on the GPU, `ops::attention`'s path).
     pub fn attention(
         q: &DeviceTensor,
@@ -519,48 +574,6 @@ impl DeviceTensor {
     }
 
     // --------------------------------------------------------------- VGG feature-loss ops (LPIPS)
-
-    /// 2×2 max-pool, stride 2, floor mode ([`super::vgg::max_pool2x2`]).
-    pub fn max_pool2x2(&self) -> Result<DeviceTensor> {
-        Ok(dispatch!(self, x => Storage::max_pool2x2(x)))
-    }
-
-    /// The input gradient of [`DeviceTensor::max_pool2x2`]; `self` is the pool's input.
-    pub fn max_pool2x2_backward(&self, grad: &DeviceTensor) -> Result<DeviceTensor> {
-        Ok(dispatch2!(self, grad, (x, g) => Storage::max_pool2x2_backward(x, g)))
-    }
-
-    /// A ReLU's input gradient; `self` is the ReLU's output.
-    pub fn relu_backward(&self, grad: &DeviceTensor) -> Result<DeviceTensor> {
-        Ok(dispatch2!(self, grad, (out, g) => Storage::relu_backward(out, g)))
-    }
-
-    /// `f / (‖f‖ + eps)` over the channels of each pixel ([`super::vgg::normalize_channels`]).
-    pub fn normalize_channels(&self, eps: f32) -> Result<DeviceTensor> {
-        Ok(dispatch!(self, x => Storage::normalize_channels(x, eps)))
-    }
-
-    /// The LPIPS distance of one tap per pixel, [N, 1, H, W], and with `with_grad` the gradient of its
-    /// spatial mean with respect to `self` ([`super::vgg::lpips_distance`]).
-    pub fn lpips_distance(
-        &self,
-        target: &DeviceTensor,
-        lin: &Tensor,
-        eps: f32,
-        with_grad: bool,
-    ) -> Result<(DeviceTensor, Option<DeviceTensor>)> {
-        Ok(match (self, target) {
-            (DeviceTensor::Cpu(f), DeviceTensor::Cpu(t)) => {
-                let (map, grad) = Storage::lpips_distance(f, t, lin, eps, with_grad)?;
-                (DeviceTensor::Cpu(map), grad.map(DeviceTensor::Cpu))
-            }
-            (DeviceTensor::Gpu(f), DeviceTensor::Gpu(t)) => {
-                let (map, grad) = Storage::lpips_distance(f, t, lin, eps, with_grad)?;
-                (DeviceTensor::Gpu(map), grad.map(DeviceTensor::Gpu))
-            }
-            _ => candle_core::bail!("lpips_distance: operands on different devices"),
-        })
-    }
 }
 
 #[cfg(test)]

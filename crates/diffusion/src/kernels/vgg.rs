@@ -1,13 +1,70 @@
 //! The ops of a frozen VGG feature network used as a loss (LPIPS, [`crate::lpips`]) beyond convolution:
 //! the 2×2 max-pool and its backward, the ReLU backward, unit normalisation over channels and the LPIPS
 //! distance of one tap with its gradient. All take NCHW f32 tensors on the CPU; the GPU twins are in
-//! `gpu::ops` (one kernel each).
+//! `gpu/vgg.rs` (one kernel each). [`VggStorage`] declares them at the device seam, an extension of the
+//! core [`Storage`] that only LPIPS uses.
 //!
 //! The loss only needs the gradient with respect to the image, never the weights', so these are plain
 //! functions (no candle autograd): the network keeps its activations and calls the backward ops itself.
 
 use candle_core::{Result, Tensor};
 use rayon::prelude::*;
+
+use super::device::{seam_ops, DeviceTensor, Storage};
+use super::gpu::ops;
+
+seam_ops! {
+    /// The VGG feature-loss ops of LPIPS ([`crate::lpips`]) on each backend: an extension of the core
+    /// [`Storage`], declared beside their CPU bodies (their kernels are in `kernels/gpu/vgg.rs`).
+    pub(crate) trait VggStorage: Storage {
+        /// 2×2 max-pool, stride 2, floor mode, of NCHW maps ([`max_pool2x2`]).
+        unary fn max_pool2x2(&self) => cpu max_pool2x2(self), gpu ops::max_pool2x2(self);
+        /// The input gradient of [`DeviceTensor::max_pool2x2`] ([`max_pool2x2_backward`]); `self` is
+        /// the pool's input.
+        binary fn max_pool2x2_backward(&self, grad: &Self)
+            => cpu max_pool2x2_backward(self, grad), gpu ops::max_pool2x2_backward(self, grad);
+        /// A ReLU's input gradient ([`relu_backward`]); `self` is the ReLU's output.
+        binary fn relu_backward(&self, grad: &Self)
+            => cpu relu_backward(self, grad), gpu ops::relu_backward(self, grad);
+        /// `f / (‖f‖ + eps)` over the channels of each pixel ([`normalize_channels`]).
+        unary fn normalize_channels(&self, eps: f32)
+            => cpu normalize_channels(self, eps), gpu ops::normalize_channels(self, eps);
+        /// [`lpips_distance`]; `self` holds the features, `lin` the tap's channel weights.
+        special fn lpips_distance(
+            &self,
+            target: &Self,
+            lin: &Tensor,
+            eps: f32,
+            with_grad: bool,
+        ) -> Result<(Self, Option<Self>)>
+            => cpu lpips_distance(self, target, lin, eps, with_grad),
+               gpu ops::lpips_distance(self, target, &self.constant(lin)?, eps, with_grad);
+    }
+}
+
+impl DeviceTensor {
+    /// The LPIPS distance of one tap per pixel, [N, 1, H, W], and with `with_grad` the gradient of its
+    /// spatial mean with respect to `self` ([`lpips_distance`]).
+    pub fn lpips_distance(
+        &self,
+        target: &DeviceTensor,
+        lin: &Tensor,
+        eps: f32,
+        with_grad: bool,
+    ) -> Result<(DeviceTensor, Option<DeviceTensor>)> {
+        Ok(match (self, target) {
+            (DeviceTensor::Cpu(f), DeviceTensor::Cpu(t)) => {
+                let (map, grad) = VggStorage::lpips_distance(f, t, lin, eps, with_grad)?;
+                (DeviceTensor::Cpu(map), grad.map(DeviceTensor::Cpu))
+            }
+            (DeviceTensor::Gpu(f), DeviceTensor::Gpu(t)) => {
+                let (map, grad) = VggStorage::lpips_distance(f, t, lin, eps, with_grad)?;
+                (DeviceTensor::Gpu(map), grad.map(DeviceTensor::Gpu))
+            }
+            _ => candle_core::bail!("lpips_distance: operands on different devices"),
+        })
+    }
+}
 
 /// The contiguous values of an f32 CPU tensor (a copy; the tests' reader).
 #[cfg(test)]

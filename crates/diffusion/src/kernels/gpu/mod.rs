@@ -2,6 +2,11 @@
 //! lavapipe in CI), a device-resident f32 tensor ([`GpuTensor`]) and one host function per op
 //! ([`ops`]), each the GPU twin of a CPU function of `kernels`.
 //!
+//! The ops are grouped by family, each family's file holding its `#[cube]` kernels and their launchers
+//! side by side: `elementwise`, `layout` (copies), `matmul`, `conv`, `norm` (row reductions),
+//! `attention` and `vgg` (LPIPS's feature-loss ops); `launch` has what they share (grids, the `meta`
+//! block, the 1-D launch).
+//!
 //! A [`GpuDevice`] wraps the [`gpu::GpuContext`] of crates/gpu, so the splatting engine and the diffusion
 //! networks share one adapter and one CubeCL client. Weights live in the network as candle CPU tensors;
 //! the first GPU use of a weight uploads it into the device's cache, keyed by the tensor's id, so a model
@@ -9,10 +14,19 @@
 //! are cached in the device's [`Precision`] (f16 by default, packed two per u32 word); everything else
 //! is f32.
 
-mod cube;
+mod attention;
+mod conv;
+mod elementwise;
+mod launch;
+mod layout;
+mod matmul;
+mod norm;
 pub mod ops;
 mod precision;
-mod storage;
+pub(crate) mod storage;
+#[cfg(test)]
+pub(crate) mod testing;
+mod vgg;
 
 pub use precision::{Precision, UnknownPrecision};
 
@@ -401,40 +415,5 @@ impl GpuTensor {
     pub(crate) fn word_arg(&self) -> BufferArg {
         // SAFETY: the handle holds exactly storage_words() words (see from_slice, upload_f16, empty_like).
         unsafe { BufferArg::from_raw_parts(self.handle.clone(), self.storage_words()) }
-    }
-}
-
-#[cfg(test)]
-pub(crate) mod testing {
-    use std::sync::OnceLock;
-
-    use candle_core::Tensor;
-
-    use super::{GpuDevice, Precision};
-
-    /// The tests' relative error: the largest absolute difference over the largest magnitude of `want`
-    /// (floored at 1e-6). Shapes must agree.
-    pub fn relative_error(got: &Tensor, want: &Tensor) -> f32 {
-        assert_eq!(got.dims(), want.dims(), "shapes differ");
-        let max_abs = |t: &Tensor| -> f32 {
-            t.abs()
-                .and_then(|t| t.flatten_all())
-                .and_then(|t| t.max(0))
-                .and_then(|t| t.to_scalar())
-                .expect("f32 tensor")
-        };
-        let diff = max_abs(&(got - want).expect("same shape"));
-        diff / max_abs(want).max(1e-6)
-    }
-
-    /// The test GPU (lavapipe in CI) shared by the tests of this binary, or `None` after the one line
-    /// `gpu::testing::context_or_skip` prints when there is no Vulkan device.
-    pub fn device_or_skip() -> Option<GpuDevice> {
-        static DEVICE: OnceLock<GpuDevice> = OnceLock::new();
-        if let Some(device) = DEVICE.get() {
-            return Some(device.clone());
-        }
-        let device = GpuDevice::with_precision(gpu::testing::context_or_skip()?, Precision::F32);
-        Some(DEVICE.get_or_init(|| device).clone())
     }
 }

@@ -8,13 +8,81 @@ use std::sync::{Arc, Mutex, OnceLock};
 use candle_core::Result;
 use cubecl::prelude::*;
 
-use super::super::cube;
-use super::super::{GpuDevice, GpuTensor};
-use super::{
-    add, cat, contiguous_strides, forced_by_env, gemm, half_operands, permute, transient_cap,
-    widen_f16, Gemm, GemmBias, MatmulPath, Meta, ELEMENTWISE_UNITS, GRID_LIMIT,
+use super::elementwise::add;
+use super::launch::{
+    contiguous_strides, forced_by_env, transient_cap, Meta, ELEMENTWISE_UNITS, GRID_LIMIT,
 };
+use super::layout::{cat, permute};
+use super::matmul::{gemm, half_operands, matmul_path, widen_f16, Gemm, GemmBias, MatmulPath};
+use super::{GpuDevice, GpuTensor};
 use crate::kernels::device::Addend;
+
+/// The kernels of this family (their host launchers follow the module).
+mod kernel {
+    use cubecl::prelude::*;
+
+    /// im2col of one convolution over a block of its output: images `n0..n0 + images` of x [batch, cin, h, w]
+    /// and output rows `oy0..oy0 + oh` → cols [images, cin·kh·kw, oh·ow] (zero padding).
+    /// `meta = [cin, h, w, kh, kw, stride, padding, oh, ow, oy0, n0, images]`. `F`: f32, or f16 where the
+    /// product that reads the columns takes f16 operands (written at once, so no narrowing pass follows).
+    ///
+    /// The launch is 3D: cubes along x walk the output pixels, y the input channels, z the images, each
+    /// striding by its grid's size, so any size fits the grid limits. A unit takes one output pixel of one
+    /// channel and writes its kh·kw taps (column rows `c·kh·kw..`), so it divides once (the pixel's row and
+    /// column) for all of them, where decomposing each column element's linear index took eight divisions:
+    /// on the H200 those had made im2col 13 % of the SD 1.5 UNet's kernel time.
+    #[cube(launch_unchecked)]
+    pub fn im2col<F: Float>(x: &[f32], cols: &mut [F], meta: &[u32]) {
+        let cin = meta[0];
+        let h = meta[1];
+        let w = meta[2];
+        let kh = meta[3];
+        let kw = meta[4];
+        let stride = meta[5];
+        let pad = meta[6];
+        let oh = meta[7];
+        let ow = meta[8];
+        let oy0 = meta[9];
+        let n0 = meta[10];
+        let images = meta[11];
+        let pixels = oh * ow;
+        let taps = kh * kw;
+        let pixel_step = CUBE_COUNT_X * CUBE_DIM_X;
+        let mut image = CUBE_POS_Z;
+        while image < images {
+            let mut c = CUBE_POS_Y;
+            while c < cin {
+                let plane = ((image + n0) * cin + c) * h * w;
+                let first_row = (image * cin + c) * taps * pixels;
+                let mut p = CUBE_POS_X * CUBE_DIM_X + UNIT_POS_X;
+                while p < pixels {
+                    let oy = p / ow;
+                    let ox = p - oy * ow;
+                    // Padded coordinates stay unsigned: compare against [pad, pad + size).
+                    let y0 = (oy + oy0) * stride;
+                    let x0 = ox * stride;
+                    let mut at = first_row + p;
+                    for ky in 0..kh {
+                        let py = y0 + ky;
+                        let row_inside = py >= pad && py < pad + h;
+                        for kx in 0..kw {
+                            let px = x0 + kx;
+                            let mut v = 0.0f32;
+                            if row_inside && px >= pad && px < pad + w {
+                                v = x[(plane + (py - pad) * w + px - pad) as usize];
+                            }
+                            cols[at as usize] = F::cast_from(v);
+                            at += pixels;
+                        }
+                    }
+                    p += pixel_step;
+                }
+                c += CUBE_COUNT_Y;
+            }
+            image += CUBE_COUNT_Z;
+        }
+    }
+}
 
 /// 2D convolution of x [batch, cin, h, w] with weight [cout, cin, kh, kw]: a pointwise one as one product
 /// (the image is its own im2col matrix), others on the path [`tuned_conv_path`] picks (im2col +
@@ -191,7 +259,7 @@ fn conv_key(
         padding,
         f16_weights: weight.is_f16(),
         bias,
-        matmul: super::matmul_path(x.device()),
+        matmul: matmul_path(x.device()),
     }
 }
 
@@ -553,7 +621,7 @@ pub(super) fn im2col_on_grid(
     let cols = unsafe {
         if half {
             let cols = x.empty_half_like(shape);
-            cube::im2col::launch_unchecked::<half::f16>(
+            kernel::im2col::launch_unchecked::<half::f16>(
                 x.client(),
                 count,
                 units,
@@ -564,7 +632,7 @@ pub(super) fn im2col_on_grid(
             cols
         } else {
             let cols = x.empty_like_device(shape);
-            cube::im2col::launch_unchecked::<f32>(
+            kernel::im2col::launch_unchecked::<f32>(
                 x.client(),
                 count,
                 units,
@@ -576,4 +644,245 @@ pub(super) fn im2col_on_grid(
         }
     };
     Ok(cols)
+}
+
+#[cfg(test)]
+mod tests {
+    //! The convolution paths and im2col against the CPU.
+
+    use candle_core::Tensor;
+
+    use super::*;
+    use crate::kernels::gpu::testing::*;
+
+    /// im2col's f16 columns (what an f16-operand product reads) are exactly its f32 columns rounded: one
+    /// kernel, only the store narrows. Elementwise, so it also runs on Mesa 25's SPIR-V path (f16, no
+    /// workgroup memory); skipped where the device has no native f16.
+    #[test]
+    fn f16_im2col_is_the_f32_columns_rounded() {
+        let Some(dev) = device_or_skip() else {
+            return;
+        };
+        let f16 = cubecl::ir::ElemType::Float(cubecl::ir::FloatKind::F16);
+        if !dev.client().properties().supports_type(f16) {
+            eprintln!("skipped: {} has no native f16", dev.context().describe());
+            return;
+        }
+        // Output rows 1..3 of the second image, stride 2 and padding 1: a 7×6 input gives 4×3 outputs.
+        let x = up(&dev, &randn(&[2, 3, 7, 6]));
+        let window = ConvWindow {
+            kh: 3,
+            kw: 3,
+            stride: 2,
+            padding: 1,
+            n0: 1,
+            images: 1,
+            oy0: 1,
+            rows: 2,
+            ow: 3,
+        };
+        let (full, half) = (
+            im2col(&x, &window, false).unwrap(),
+            im2col(&x, &window, true).unwrap(),
+        );
+        assert!(half.is_f16() && !full.is_f16());
+        assert_eq!(half.dims(), [1, 27, 6]);
+        let values = |t: Tensor| t.flatten_all().unwrap().to_vec1::<f32>().unwrap();
+        let want = full
+            .to_cpu()
+            .unwrap()
+            .to_dtype(candle_core::DType::F16)
+            .unwrap()
+            .to_dtype(candle_core::DType::F32)
+            .unwrap();
+        assert_eq!(values(half.to_cpu().unwrap()), values(want));
+    }
+
+    #[test]
+    fn im2col_strides_past_a_small_grid() {
+        let Some(dev) = device_or_skip() else {
+            return;
+        };
+        // Images 1..3 of three, 2 channels, 3×3 taps: 360 output pixels (two cubes of 256) in the first
+        // window, 5×4 from rows 1.. at stride 2 in the second. Grids of 1 and 2 cubes per dimension make
+        // units walk several pixels, channels and images.
+        let (cin, h, w) = (2, 20, 18);
+        let cpu = randn(&[3, cin, h, w]);
+        let x = up(&dev, &cpu);
+        let values = cpu.flatten_all().unwrap().to_vec1::<f32>().unwrap();
+        for (stride, padding, oy0, rows, ow) in [(1, 1, 0, 20, 18), (2, 1, 1, 5, 4)] {
+            let window = ConvWindow {
+                kh: 3,
+                kw: 3,
+                stride,
+                padding,
+                n0: 1,
+                images: 2,
+                oy0,
+                rows,
+                ow,
+            };
+            // The columns by their definition: image n0 + i, channel c, tap (ky, kx), output pixel p.
+            let mut want = Vec::new();
+            for image in 1..3 {
+                for r in 0..cin * 9 {
+                    let (c, ky, kx) = (r / 9, r / 3 % 3, r % 3);
+                    for p in 0..rows * ow {
+                        let y = ((oy0 + p / ow) * stride + ky) as isize - padding as isize;
+                        let x = (p % ow * stride + kx) as isize - padding as isize;
+                        let inside = (0..h as isize).contains(&y) && (0..w as isize).contains(&x);
+                        want.push(if inside {
+                            values[((image * cin + c) * h + y as usize) * w + x as usize]
+                        } else {
+                            0.0
+                        });
+                    }
+                }
+            }
+            // Every result stays alive, so no run can land in a buffer an earlier one filled.
+            let mut kept = Vec::new();
+            for limit in [1, 2, GRID_LIMIT] {
+                let got = im2col_on_grid(&x, &window, false, limit).unwrap();
+                assert_eq!(got.dims(), [2, cin * 9, rows * ow]);
+                let got_values = got.to_cpu().unwrap().flatten_all().unwrap();
+                let got_values = got_values.to_vec1::<f32>().unwrap();
+                assert!(got_values == want, "stride {stride}, grid limit {limit}");
+                kept.push(got);
+            }
+        }
+    }
+
+    #[test]
+    fn conv2d_matches_cpu() {
+        let Some(dev) = device_or_skip() else {
+            return;
+        };
+        on_both_engines(|| conv2d_matches_cpu_on(&dev, &[ConvPath::Im2col, ConvPath::Direct]));
+    }
+
+    /// The direct kernel alone (no product, no workgroup memory: it runs on Mesa 25's SPIR-V path too).
+    #[test]
+    fn direct_conv2d_matches_cpu() {
+        let Some(dev) = device_or_skip() else {
+            return;
+        };
+        conv2d_matches_cpu_on(&dev, &[ConvPath::Direct]);
+    }
+
+    /// Without a forced path a convolution takes the tuner's: the first call (the tuning round's output plus
+    /// the addend in a pass of its own) and the next (the settled path, the addend fused where that is
+    /// im2col) both agree with the CPU, and the problem is among the settled ones after the first.
+    #[test]
+    fn tuned_conv2d_matches_cpu() {
+        let Some(dev) = device_or_skip() else {
+            return;
+        };
+        if let Some(path) = forced_conv_path() {
+            eprintln!("skipped: VCEDIT_GPU_CONV forces {path}");
+            return;
+        }
+        // A shape no other test takes, so that this test's first call is the one that settles it.
+        let (n, cin, cout, h, w) = (2, 12, 20, 11, 13);
+        let x = randn(&[n, cin, h, w]);
+        let weight = randn(&[cout, cin, 3, 3]);
+        let bias = randn(&[cout]);
+        let residual = randn(&[n, cout, h, w]);
+        let plain = crate::kernels::conv2d(&x, &weight, Some(&bias), 1, 1).unwrap();
+        let want = (&plain + &residual).unwrap();
+        let (gx, gw, gb, gr) = (
+            up(&dev, &x),
+            up(&dev, &weight),
+            up(&dev, &bias),
+            up(&dev, &residual),
+        );
+        let described = "x 2x12x11x13 w 20x12x3x3 s1 p1 +bias";
+        for call in ["first", "second"] {
+            let got = conv2d(&gx, &gw, Some(&gb), 1, 1, Addend::Residual(&gr)).unwrap();
+            check(&format!("tuned conv2d, {call} call"), &got, &want);
+            let settled = tuned_conv_paths();
+            assert!(
+                settled.iter().any(|(key, _)| key.starts_with(described)),
+                "{described} not among the settled problems {settled:?}"
+            );
+        }
+    }
+
+    /// Convolutions on each of `paths` against the CPU's; im2col's blocks too where `paths` has it.
+    /// Pointwise convolutions are products on every path, so they are left out where im2col is.
+    fn conv2d_matches_cpu_on(dev: &GpuDevice, paths: &[ConvPath]) {
+        let dev = dev.clone();
+        let im2col = paths.contains(&ConvPath::Im2col);
+        // (batch, cin, cout, h, w, kernel, stride, padding, bias)
+        for (n, cin, cout, h, w, k, stride, padding, with_bias) in [
+            (1, 3, 5, 9, 7, 3, 1, 1, true),
+            (2, 4, 6, 9, 8, 3, 2, 1, false),
+            (2, 5, 3, 6, 6, 1, 1, 0, true),
+            (1, 2, 4, 5, 7, 3, 2, 0, true),
+            // Output channels and rows past the small cases' (the product's tiles and im2col's bands).
+            (2, 3, 11, 12, 10, 3, 1, 1, true),
+            // Channels the direct kernel reads and writes as vectors of four (above: one at a time).
+            (2, 8, 12, 7, 9, 3, 1, 1, true),
+            (1, 8, 8, 9, 9, 3, 2, 1, false),
+        ] {
+            if k == 1 && !im2col {
+                continue;
+            }
+            let x = randn(&[n, cin, h, w]);
+            let weight = randn(&[cout, cin, k, k]);
+            let bias = with_bias.then(|| randn(&[cout]));
+            let plain =
+                crate::kernels::conv2d(&x, &weight, bias.as_ref(), stride, padding).unwrap();
+            let gbias = bias.as_ref().map(|b| up(&dev, b));
+            let (oh, ow) = (plain.dims()[2], plain.dims()[3]);
+            // What the convolution adds in its finishing pass: nothing, a skip connection, a time embedding.
+            let residual = randn(&[n, cout, oh, ow]);
+            let per_channel = randn(&[n, cout]);
+            let (g_residual, g_per_channel) = (up(&dev, &residual), up(&dev, &per_channel));
+            let addends = [
+                ("", Addend::None, plain.clone()),
+                (
+                    " + residual",
+                    Addend::Residual(&g_residual),
+                    (&plain + &residual).unwrap(),
+                ),
+                (
+                    " + per channel",
+                    Addend::PerChannel(&g_per_channel),
+                    plain
+                        .broadcast_add(&per_channel.reshape((n, cout, 1, 1)).unwrap())
+                        .unwrap(),
+                ),
+            ];
+            let (gx, gw) = (up(&dev, &x), up(&dev, &weight));
+            for (what, addend, want) in &addends {
+                for &path in paths {
+                    let got = with_conv_path(path, || {
+                        conv2d(&gx, &gw, gbias.as_ref(), stride, padding, *addend)
+                    })
+                    .unwrap();
+                    check(
+                        &format!("conv2d ({path}) c{cin}→{cout} k{k} s{stride} p{padding}{what}"),
+                        &got,
+                        want,
+                    );
+                }
+                if !im2col {
+                    continue;
+                }
+                // Blocked: one image per block, then bands of one and of three output rows (the last band
+                // shorter where the rows do not divide).
+                let per_row = cin * k * k * ow * 4;
+                for cap in [per_row * oh, per_row, 3 * per_row] {
+                    let got =
+                        conv2d_blocked(&gx, &gw, gbias.as_ref(), stride, padding, *addend, cap)
+                            .unwrap();
+                    check(
+                        &format!("conv2d k{k} s{stride} p{padding}{what}, im2col cap {cap}"),
+                        &got,
+                        want,
+                    );
+                }
+            }
+        }
+    }
 }
