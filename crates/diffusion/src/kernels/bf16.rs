@@ -305,16 +305,7 @@ mod tests {
                 eprintln!("skipped: no AVX512-BF16 on this CPU");
                 return;
             };
-            assert_eq!(got.dims(), want.dims());
-            let sq = |t: &Tensor| {
-                t.sqr()
-                    .unwrap()
-                    .sum_all()
-                    .unwrap()
-                    .to_scalar::<f32>()
-                    .unwrap()
-            };
-            let rel = (sq(&(&got - &want).unwrap()) / sq(&want)).sqrt();
+            let rel = testkit::diff::tensor_relative_l2(&got, &want);
             assert!(rel <= 5e-3 && rel > 1e-6, "relative L2 {rel}");
         }
     }

@@ -134,20 +134,7 @@ fn rows_per_task(row_len: usize) -> usize {
 pub(crate) mod test_support {
     use candle_core::{Device, Tensor, Var};
 
-    pub fn max_diff(a: &Tensor, b: &Tensor) -> f32 {
-        max_abs(&(a - b).unwrap())
-    }
-
-    pub fn max_abs(a: &Tensor) -> f32 {
-        a.abs()
-            .unwrap()
-            .flatten_all()
-            .unwrap()
-            .max(0)
-            .unwrap()
-            .to_scalar()
-            .unwrap()
-    }
+    pub use testkit::diff::{tensor_max_abs as max_abs, tensor_max_abs_diff as max_diff};
 
     pub fn var(shape: &[usize], mean: f32, std: f32) -> Var {
         Var::randn(mean, std, shape, &Device::Cpu).unwrap()

@@ -13,16 +13,7 @@ pub use crate::kernels::device::Addend;
 /// The tests' relative error: the largest absolute difference over the largest magnitude of `want`
 /// (floored at 1e-6). Shapes must agree.
 pub fn relative_error(got: &Tensor, want: &Tensor) -> f32 {
-    assert_eq!(got.dims(), want.dims(), "shapes differ");
-    let max_abs = |t: &Tensor| -> f32 {
-        t.abs()
-            .and_then(|t| t.flatten_all())
-            .and_then(|t| t.max(0))
-            .and_then(|t| t.to_scalar())
-            .expect("f32 tensor")
-    };
-    let diff = max_abs(&(got - want).expect("same shape"));
-    diff / max_abs(want).max(1e-6)
+    testkit::diff::tensor_max_abs_diff(got, want) / testkit::diff::tensor_max_abs(want).max(1e-6)
 }
 
 /// The test GPU (lavapipe in CI) shared by the tests of this binary, or `None` after the one line
