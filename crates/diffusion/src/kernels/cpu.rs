@@ -4,7 +4,7 @@
 
 use candle_core::{Module, Result, Tensor};
 
-use super::device::{Addend, Unary};
+use super::op_args::{Addend, Unary};
 
 /// [`Unary`] `op` of `x`.
 pub(super) fn unary(x: &Tensor, op: Unary) -> Result<Tensor> {

@@ -28,6 +28,8 @@ use super::gpu::storage as on_gpu;
 use super::gpu::{ops, GpuDevice, GpuTensor};
 use gpu::F32Buffer;
 
+pub use super::op_args::{Addend, Unary};
+
 /// Where a network runs.
 #[derive(Debug, Clone, Default)]
 pub enum Device {
@@ -76,57 +78,6 @@ impl From<Option<GpuDevice>> for Device {
         gpu.map_or(Device::Cpu, Device::Gpu)
     }
 }
-
-/// The activation functions with a kernel of their own (beside candle-nn's [`Activation`]s).
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum Unary {
-    Relu,
-    Silu,
-    Tanh,
-    /// Exact (erf) GELU.
-    GeluErf,
-    /// tanh-approximated GELU.
-    GeluTanh,
-    /// `x·σ(1.702·x)` (CLIP ViT-L).
-    QuickGelu,
-}
-
-/// What a convolution adds to its output besides its bias. A backend may add it in the pass that adds
-/// the bias (the GPU does: one pass over the output instead of two).
-#[derive(Debug)]
-pub enum Addend<'a, T> {
-    None,
-    /// [batch, out channels, h, w]: a skip connection.
-    Residual(&'a T),
-    /// [batch, out channels]: one value per image and channel (a ResNet's time embedding).
-    PerChannel(&'a T),
-}
-
-impl<'a, T> Addend<'a, T> {
-    /// The added tensor, if any.
-    fn term(self) -> Option<&'a T> {
-        match self {
-            Addend::None => None,
-            Addend::Residual(t) | Addend::PerChannel(t) => Some(t),
-        }
-    }
-
-    /// The same kind of addend with `u` as its tensor (a backend's own tensor for the dispatched one).
-    fn with<U>(self, u: &U) -> Addend<'_, U> {
-        match self {
-            Addend::None => Addend::None,
-            Addend::Residual(_) => Addend::Residual(u),
-            Addend::PerChannel(_) => Addend::PerChannel(u),
-        }
-    }
-}
-
-impl<T> Clone for Addend<'_, T> {
-    fn clone(&self) -> Self {
-        *self
-    }
-}
-impl<T> Copy for Addend<'_, T> {}
 
 /// Declares ops of the seam once: a trait with one method per op, its implementation for each backend
 /// (the CPU's [`Tensor`], the GPU's [`GpuTensor`]) from the op's one-line body per backend, and the

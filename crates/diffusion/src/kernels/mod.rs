@@ -59,6 +59,7 @@ pub(crate) mod device;
 mod geglu;
 pub mod gpu;
 mod norm;
+mod op_args;
 mod softmax;
 mod vgg;
 

@@ -15,7 +15,7 @@ use super::launch::{
 use super::layout::{cat, permute};
 use super::matmul::{gemm, half_operands, matmul_path, widen_f16, Gemm, GemmBias, MatmulPath};
 use super::{GpuDevice, GpuTensor};
-use crate::kernels::device::Addend;
+use crate::kernels::op_args::Addend;
 
 /// The kernels of this family (their host launchers follow the module).
 mod kernel {

@@ -6,7 +6,7 @@ use candle_core::{Result, Tensor};
 use candle_nn::Activation;
 
 use super::{ops, GpuTensor};
-use crate::kernels::device::Unary;
+use crate::kernels::op_args::Unary;
 
 impl GpuTensor {
     /// A weight (or any CPU constant) on this tensor's device, in f32.

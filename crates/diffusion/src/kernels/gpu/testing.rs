@@ -8,7 +8,7 @@ pub use candle_core::{Device, Tensor};
 
 use super::matmul::with_own_matmul;
 pub use super::{GpuDevice, GpuTensor, Precision};
-pub use crate::kernels::device::Addend;
+pub use crate::kernels::op_args::Addend;
 
 /// The tests' relative error: the largest absolute difference over the largest magnitude of `want`
 /// (floored at 1e-6). Shapes must agree.
