@@ -62,10 +62,9 @@ impl Compute {
     /// Device memory `parameters` network weights take in the GPU's weight precision; `None` on the CPU
     /// (weights stay on the host there).
     pub fn gpu_weight_bytes(&self, parameters: u64) -> Option<u64> {
-        self.networks.gpu().map(|gpu| match gpu.precision() {
-            Precision::F16 => parameters * 2,
-            Precision::F32 => parameters * 4,
-        })
+        self.networks
+            .gpu()
+            .map(|gpu| parameters * gpu.precision().weight_bytes_per_element() as u64)
     }
 
     /// "CPU" and its products' precision, or the adapter and the weights' precision, for logs and run.json.

@@ -48,6 +48,13 @@ pub fn tensor_relative_l2(a: &Tensor, b: &Tensor) -> f32 {
     relative_l2(&values(a), &values(b))
 }
 
+/// The largest absolute difference relative to `want`'s largest magnitude (floored at 1e-6): the GPU
+/// tests' measure against the CPU.
+#[track_caller]
+pub fn tensor_relative_error(got: &Tensor, want: &Tensor) -> f32 {
+    tensor_max_abs_diff(got, want) / tensor_max_abs(want).max(1e-6)
+}
+
 /// The largest absolute value of a tensor (0 for an empty one).
 pub fn tensor_max_abs(t: &Tensor) -> f32 {
     values(t).iter().fold(0.0, |m, v| m.max(v.abs()))

@@ -32,7 +32,10 @@ pub fn tiny_original_layout(dir: &Path) -> PathBuf {
 
 // Each test binary uses a subset.
 #[allow(unused_imports)]
-pub use testkit::diff::{tensor_max_abs_diff as max_abs_diff, tensor_relative_l2 as relative_l2};
+pub use testkit::diff::{
+    tensor_max_abs_diff as max_abs_diff, tensor_relative_error as relative_error,
+    tensor_relative_l2 as relative_l2,
+};
 
 /// Runs `f` with bf16 products, or returns `None` after one printed line on a CPU without them.
 pub fn in_bf16<R>(f: impl FnOnce() -> R) -> Option<R> {
@@ -67,9 +70,4 @@ pub fn gpus_or_skip() -> Vec<(diffusion::device::GpuDevice, f32)> {
             (device, tolerance)
         })
         .collect()
-}
-
-/// Max abs difference relative to the reference's max abs value.
-pub fn relative_error(got: &Tensor, want: &Tensor) -> f32 {
-    max_abs_diff(got, want) / testkit::diff::tensor_max_abs(want).max(1e-6)
 }

@@ -9,12 +9,7 @@ pub use candle_core::{Device, Tensor};
 use super::matmul::with_own_matmul;
 pub use super::{GpuDevice, GpuTensor, Precision};
 pub use crate::kernels::op_args::Addend;
-
-/// The tests' relative error: the largest absolute difference over the largest magnitude of `want`
-/// (floored at 1e-6). Shapes must agree.
-pub fn relative_error(got: &Tensor, want: &Tensor) -> f32 {
-    testkit::diff::tensor_max_abs_diff(got, want) / testkit::diff::tensor_max_abs(want).max(1e-6)
-}
+pub use testkit::diff::tensor_relative_error as relative_error;
 
 /// The test GPU (lavapipe in CI) shared by the tests of this binary, or `None` after the one line
 /// `gpu::testing::context_or_skip` prints when there is no Vulkan device.
