@@ -80,8 +80,9 @@ fn full_cross_replace_stores_the_mapped_source_maps() {
     assert!(!recorded.is_empty());
     for rec in &recorded {
         // [3 branches, heads, N, tokens]: the target's maps after control = source maps through the mapper.
-        let src = rec.maps.i(0).unwrap();
-        let tgt = rec.maps.i(1).unwrap();
+        let maps = rec.maps.to_cpu().unwrap();
+        let src = maps.i(0).unwrap();
+        let tgt = maps.i(1).unwrap();
         let mapper: Vec<u32> = plan
             .alignment
             .mapper
@@ -206,7 +207,10 @@ fn sample_trace(
             // Substitute them (scaled, as CCM substitutes other maps) so the replacing pass is traced too.
             let mut maps = std::collections::HashMap::new();
             for rec in recorded {
-                trace.push((format!("step {i} recorded {}", rec.layer), rec.maps.clone()));
+                trace.push((
+                    format!("step {i} recorded {}", rec.layer),
+                    rec.maps.to_cpu().unwrap(),
+                ));
                 maps.insert(rec.layer, rec.maps.affine(0.9, 0.0).unwrap());
             }
             view.controller.set_consistent_maps(maps);

@@ -60,6 +60,34 @@ impl F32Buffer {
     }
 }
 
+/// f32 values on the host or in a buffer on the GPU both engines share: what one engine hands the other
+/// when its data may live on either side (the networks' attention maps to the lifting, the render-backs
+/// back), so nothing already on the device is read back to be uploaded again.
+#[derive(Clone, Debug)]
+pub enum F32Values {
+    Host(Vec<f32>),
+    Device(F32Buffer),
+}
+
+impl F32Values {
+    /// How many values.
+    pub fn len(&self) -> usize {
+        match self {
+            F32Values::Host(values) => values.len(),
+            F32Values::Device(buffer) => buffer.len(),
+        }
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+
+    /// Whether the values are in a device buffer.
+    pub fn is_on_device(&self) -> bool {
+        matches!(self, F32Values::Device(_))
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -25,7 +25,7 @@
 use std::fmt;
 use std::str::FromStr;
 
-pub use buffer::{BufferTooSmall, F32Buffer};
+pub use buffer::{BufferTooSmall, F32Buffer, F32Values};
 pub use cubecl;
 use cubecl::client::Client;
 use cubecl::device::{WgpuBackend, WgpuDeviceKind};
@@ -214,6 +214,10 @@ pub enum GpuError {
     /// One engine handed another a buffer too small for what it said it held (a bug, not a user error).
     #[error(transparent)]
     BufferTooSmall(BufferTooSmall),
+    /// Values in a GPU buffer handed to work on the CPU (both engines run on one device: a bug, not a
+    /// user error).
+    #[error("values in a GPU buffer handed to {0} on the CPU")]
+    BufferOnCpu(&'static str),
 }
 
 /// Hardware limits the kernels size themselves by.

@@ -13,7 +13,8 @@ use crate::render::{
     render, render_backward, render_backward_appearance, render_extra_at, ExtraChannels, Frame,
     FrozenGeometry, OutputGrads, RenderOutput, RenderSettings, SceneGrads,
 };
-use ::gpu::{GpuContext, GpuError};
+use ::gpu::prims::read_f32;
+use ::gpu::{gpu_call, F32Buffer, F32Values, GpuContext, GpuError};
 use rayon::prelude::*;
 
 use crate::cameras::Camera;
@@ -207,9 +208,10 @@ impl SplatDevice {
     /// on `grid` (row-major, channels interleaved); every map is resampled to its camera's resolution
     /// (`grid.up`) and lifted onto the Gaussians over all views ([`crate::lift`]); the lifted values are
     /// rendered back from every camera as extra channels (alpha-composited over 0), resampled to the grid
-    /// (`grid.down`) and handed to `sink(v, map)`. On a GPU only the grid-sized maps cross the bus.
-    /// One round of a [`LiftSession`]: callers with several rounds over the same scene and cameras
-    /// keep one.
+    /// (`grid.down`) and handed to `sink(v, map)`. On a GPU only the grid-sized maps cross the bus, and
+    /// none with [`LiftSession::lift_values_and_render_back`] (maps already on the device, results kept
+    /// there). One round of a [`LiftSession`]: callers with several rounds over the same scene and
+    /// cameras keep one.
     ///
     /// # Panics
     /// When a map is not `grid.len()` long (a programming error).
@@ -265,22 +267,44 @@ pub struct LiftSession<'s> {
     pass_channels: Option<usize>,
 }
 
-/// A view's map on the grid, from its index.
-type MapOf<'a, E> = dyn FnMut(usize) -> Result<Vec<f32>, E> + 'a;
-/// Where a view's rendered-back map goes.
-type MapSink<'a, E> = dyn FnMut(usize, Vec<f32>) -> Result<(), E> + 'a;
+/// A view's map on the grid, from its index: on the host, or in a buffer of the session's GPU.
+type MapOf<'a, E> = dyn FnMut(usize) -> Result<F32Values, E> + 'a;
+/// Where a view's rendered-back map goes: on the host on the CPU, in a device buffer on a GPU.
+type MapSink<'a, E> = dyn FnMut(usize, F32Values) -> Result<(), E> + 'a;
 /// One pass of a round: a grid's channels lifted and rendered back.
 type Pass<'a, E> =
     dyn FnMut(&MapGrid, &mut MapOf<'_, E>, &mut MapSink<'_, E>) -> Result<(), E> + 'a;
 
 impl LiftSession<'_> {
-    /// One round of [`SplatDevice::lift_and_render_back`] over the session's scene and cameras. A round
-    /// of more channels than the device's bounds allow in one pass (CCM stacks all layers of one map
-    /// size) runs in passes over slices of its channels, with the same result.
+    /// One round of [`SplatDevice::lift_and_render_back`] over the session's scene and cameras, the maps
+    /// on the host both ways. A round of more channels than the device's bounds allow in one pass (CCM
+    /// stacks all layers of one map size) runs in passes over slices of its channels, with the same
+    /// result.
     ///
     /// # Panics
     /// When a map is not `grid.len()` long (a programming error).
     pub fn lift_and_render_back<E: From<GpuError>>(
+        &mut self,
+        grid: &MapGrid,
+        map_of: &mut dyn FnMut(usize) -> Result<Vec<f32>, E>,
+        sink: &mut dyn FnMut(usize, Vec<f32>) -> Result<(), E>,
+    ) -> Result<(), E> {
+        let device = self.device.clone();
+        self.lift_values_and_render_back(
+            grid,
+            &mut |v| Ok(F32Values::Host(map_of(v)?)),
+            &mut |v, back| sink(v, device.values_on_host(back)?),
+        )
+    }
+
+    /// [`Self::lift_and_render_back`] with each map where it is: on a GPU a map in a device buffer (the
+    /// networks' attention maps on the same GPU) is lifted from there and the maps rendered back stay
+    /// on the device ([`F32Values::Device`]), so a round reads nothing back; on the CPU every map is on
+    /// the host ([`F32Values::Host`]; a device buffer there is an error).
+    ///
+    /// # Panics
+    /// When a map is not `grid.len()` long (a programming error).
+    pub fn lift_values_and_render_back<E: From<GpuError>>(
         &mut self,
         grid: &MapGrid,
         map_of: &mut MapOf<'_, E>,
@@ -296,6 +320,7 @@ impl LiftSession<'_> {
         let device = &self.device;
         let kept = &mut self.gpu;
         in_passes(
+            device,
             grid,
             chunk,
             cameras.len(),
@@ -352,8 +377,9 @@ impl LiftSession<'_> {
 
 /// A round in passes of at most `chunk` channels: one pass when they all fit, else passes over slices
 /// of the channels (each channel's result does not depend on the others'), the grid-sized maps held
-/// meanwhile.
-fn in_passes<E>(
+/// meanwhile where they are (a device's maps sliced on the device).
+fn in_passes<E: From<GpuError>>(
+    device: &SplatDevice,
     grid: &MapGrid,
     chunk: usize,
     views: usize,
@@ -368,27 +394,31 @@ fn in_passes<E>(
     let maps = (0..views)
         .map(&mut *map_of)
         .collect::<Result<Vec<_>, E>>()?;
-    let mut backs = vec![vec![0f32; grid.len()]; views];
-    let channels = grid.channels;
+    let mut backs = (0..views)
+        .map(|_| device.zeroed_values(grid.len()))
+        .collect::<Result<Vec<_>, GpuError>>()?;
+    let (channels, cells) = (grid.channels, grid.height * grid.width);
     for first in (0..channels).step_by(chunk) {
         let width = chunk.min(channels - first);
-        let slice = |map: &[f32]| -> Vec<f32> {
-            map.chunks(channels)
-                .flat_map(|cell| &cell[first..first + width])
-                .copied()
-                .collect()
+        let part = ChannelSlice {
+            cells,
+            width,
+            from: (channels, first),
+            to: (width, 0),
         };
         round(
             &MapGrid {
                 channels: width,
                 ..*grid
             },
-            &mut |v| Ok(slice(&maps[v])),
-            &mut |v, part| {
-                for (cell, got) in backs[v].chunks_mut(channels).zip(part.chunks(width)) {
-                    cell[first..first + width].copy_from_slice(got);
-                }
-                Ok(())
+            &mut |v| Ok(device.slice_channels(&maps[v], part)?),
+            &mut |v, back| {
+                let place = ChannelSlice {
+                    from: (width, 0),
+                    to: (channels, first),
+                    ..part
+                };
+                Ok(device.copy_channels(&back, &mut backs[v], place)?)
             },
         )?;
     }
@@ -396,6 +426,92 @@ fn in_passes<E>(
         sink(v, back)?;
     }
     Ok(())
+}
+
+/// `width` channels of each of `cells` cells copied from one interleaved map to another: from channel
+/// `from.1` of a map of `from.0` channels per cell to channel `to.1` of one of `to.0`.
+#[derive(Clone, Copy, Debug)]
+pub(crate) struct ChannelSlice {
+    pub cells: usize,
+    pub width: usize,
+    pub from: (usize, usize),
+    pub to: (usize, usize),
+}
+
+impl SplatDevice {
+    /// `len` zeros where this device keeps maps: on the host on the CPU, in a device buffer on a GPU.
+    fn zeroed_values(&self, len: usize) -> Result<F32Values, GpuError> {
+        match self {
+            SplatDevice::Cpu => Ok(F32Values::Host(vec![0.0; len])),
+            SplatDevice::Gpu(ctx) => gpu_call(|| {
+                let zeros = ::gpu::prims::zeros32(&ctx.client, len);
+                F32Buffer::new(zeros, len)
+                    .map(F32Values::Device)
+                    .map_err(GpuError::BufferTooSmall)
+            }),
+        }
+    }
+
+    /// The slice `part` of `src` as a map of its own, where `src` is.
+    fn slice_channels(&self, src: &F32Values, part: ChannelSlice) -> Result<F32Values, GpuError> {
+        let len = part.cells * part.to.0;
+        let mut out = match (src, self) {
+            (F32Values::Host(_), _) => F32Values::Host(vec![0.0; len]),
+            (F32Values::Device(_), device) => device.zeroed_values(len)?,
+        };
+        self.copy_channels(src, &mut out, part)?;
+        Ok(out)
+    }
+
+    /// Copies the slice `part` of `src` into `dst`, on the device when both are there (a host `src`
+    /// is uploaded to reach a device `dst`, a device `src` read back to reach a host one).
+    fn copy_channels(
+        &self,
+        src: &F32Values,
+        dst: &mut F32Values,
+        part: ChannelSlice,
+    ) -> Result<(), GpuError> {
+        match (src, &mut *dst, self) {
+            (F32Values::Host(src), F32Values::Host(dst), _) => {
+                let ChannelSlice {
+                    width, from, to, ..
+                } = part;
+                for (s, d) in src.chunks(from.0).zip(dst.chunks_mut(to.0)) {
+                    d[to.1..to.1 + width].copy_from_slice(&s[from.1..from.1 + width]);
+                }
+                Ok(())
+            }
+            (F32Values::Device(src), F32Values::Device(dst), SplatDevice::Gpu(ctx)) => {
+                gpu_call(|| {
+                    crate::lift::gpu::copy_channels(ctx, src.handle(), dst.handle(), part);
+                    Ok(())
+                })
+            }
+            (F32Values::Host(host), F32Values::Device(_), SplatDevice::Gpu(ctx)) => {
+                let uploaded = gpu_call(|| {
+                    F32Buffer::new(::gpu::prims::upload_f32(&ctx.client, host), host.len())
+                        .map_err(GpuError::BufferTooSmall)
+                })?;
+                self.copy_channels(&F32Values::Device(uploaded), dst, part)
+            }
+            (F32Values::Device(_), F32Values::Host(_), _) => {
+                let host = F32Values::Host(self.values_on_host(src.clone())?);
+                self.copy_channels(&host, dst, part)
+            }
+            (_, _, SplatDevice::Cpu) => Err(GpuError::BufferOnCpu("lifting")),
+        }
+    }
+
+    /// `values` on the host: read back from this device's GPU when they are in a device buffer.
+    pub fn values_on_host(&self, values: F32Values) -> Result<Vec<f32>, GpuError> {
+        match (values, self) {
+            (F32Values::Host(values), _) => Ok(values),
+            (F32Values::Device(buffer), SplatDevice::Gpu(ctx)) => {
+                read_f32(&ctx.client, buffer.handle(), buffer.len())
+            }
+            (F32Values::Device(_), SplatDevice::Cpu) => Err(GpuError::BufferOnCpu("lifting")),
+        }
+    }
 }
 
 /// Host memory one CPU lifting pass may hold for its per-channel buffers: the per-slot sums over the
@@ -415,18 +531,18 @@ fn cpu_lift_channel_bytes(gaussians: usize, pixels: u64) -> u64 {
 }
 
 /// One lifting round on the CPU, all of `grid`'s channels in one pass.
-fn cpu_round<E>(
+fn cpu_round<E: From<GpuError>>(
     scene: &GaussianScene,
     cameras: &[Camera],
     grid: &MapGrid,
-    map_of: &mut dyn FnMut(usize) -> Result<Vec<f32>, E>,
-    sink: &mut dyn FnMut(usize, Vec<f32>) -> Result<(), E>,
+    map_of: &mut MapOf<'_, E>,
+    sink: &mut MapSink<'_, E>,
 ) -> Result<(), E> {
     let native = (grid.height, grid.width);
     let size = |cam: &Camera| (cam.height as usize, cam.width as usize);
     let mut acc = LiftAccumulator::new(scene, grid.channels);
     for (v, cam) in cameras.iter().enumerate() {
-        let map = map_of(v)?;
+        let map = SplatDevice::Cpu.values_on_host(map_of(v)?)?;
         acc.add_view_on_grid(cam, &map, grid);
     }
     let lifted = acc.finish();
@@ -443,7 +559,13 @@ fn cpu_round<E>(
         let out = render_extra_at(scene, cam, &settings, extra, (&rows, &cols));
         sink(
             v,
-            resample(&out.extra, size(cam), native, grid.channels, grid.down),
+            F32Values::Host(resample(
+                &out.extra,
+                size(cam),
+                native,
+                grid.channels,
+                grid.down,
+            )),
         )?;
     }
     Ok(())
@@ -560,6 +682,38 @@ mod tests {
             // Passes over slices of the channels (the devices' memory bounds): the same again.
             let mut in_passes = device.lift_session(&scene, &cams).with_pass_channels(2);
             let in_passes_of_two = round(&mut in_passes, 7, &stacked);
+            // The maps given in device buffers (CCM's maps on a GPU): lifted where they are, the
+            // passes' slices cut on the device, the same values back.
+            if let SplatDevice::Gpu(ctx) = &device {
+                let upload = |map: Vec<f32>| {
+                    let len = map.len();
+                    F32Buffer::new(::gpu::prims::upload_f32(&ctx.client, &map), len).unwrap()
+                };
+                for (session, host) in [(&mut session, &whole), (&mut in_passes, &in_passes_of_two)]
+                {
+                    let mut back = vec![Vec::new(); cams.len()];
+                    session
+                        .lift_values_and_render_back::<GpuError>(
+                            &grid(7),
+                            &mut |v| Ok(F32Values::Device(upload(stacked(v)))),
+                            &mut |v, m| {
+                                assert!(m.is_on_device(), "rendered back on the device");
+                                back[v] = device.values_on_host(m)?;
+                                Ok(())
+                            },
+                        )
+                        .unwrap();
+                    // Equal to float rounding: the sums over the Gaussians are atomic adds, in
+                    // no fixed order.
+                    let worst = back
+                        .iter()
+                        .flatten()
+                        .zip(host.iter().flatten())
+                        .map(|(x, y)| (x - y).abs())
+                        .fold(0.0f32, f32::max);
+                    assert!(worst < 1e-5, "device maps off by {worst}");
+                }
+            }
             for v in 0..cams.len() {
                 let split: Vec<f32> = a[v]
                     .chunks(3)

@@ -26,7 +26,7 @@ use candle_nn::Activation;
 use super::cpu as on_cpu;
 use super::gpu::storage as on_gpu;
 use super::gpu::{ops, GpuDevice, GpuTensor};
-use gpu::F32Buffer;
+use gpu::{F32Buffer, F32Values};
 
 pub use super::op_args::{Addend, Unary};
 
@@ -206,6 +206,9 @@ seam_ops! {
         unary fn affine(&self, mul: f64, add: f64)
             => cpu Tensor::affine(self, mul, add),
                gpu Ok(ops::affine(self, mul as f32, add as f32));
+        /// The values clamped to `[min, max]` (candle `clamp`).
+        unary fn clamp(&self, min: f32, max: f32)
+            => cpu Tensor::clamp(self, min, max), gpu Ok(ops::clamp(self, min, max));
         /// One of the activations with a kernel of their own.
         unary fn unary(&self, op: Unary)
             => cpu on_cpu::unary(self, op), gpu Ok(on_gpu::unary(self, op));
@@ -386,6 +389,42 @@ impl DeviceTensor {
             DeviceTensor::Cpu(t) => {
                 candle_core::bail!("a CPU tensor {:?} is not a GPU buffer", t.dims())
             }
+        }
+    }
+
+    /// The values in f32 where they are, for another engine: a GPU tensor's buffer as it is (no copy),
+    /// a CPU tensor's values on the host.
+    pub fn into_f32_values(self) -> Result<F32Values> {
+        match self {
+            DeviceTensor::Gpu(t) => Ok(F32Values::Device(t.into_buffer()?)),
+            DeviceTensor::Cpu(t) => Ok(F32Values::Host(
+                t.to_dtype(candle_core::DType::F32)?
+                    .flatten_all()?
+                    .to_vec1()?,
+            )),
+        }
+    }
+
+    /// An f32 tensor of `shape` on `device` over values another engine handed back: a device buffer
+    /// taken as it is (on the GPU; an error on the CPU), host values wrapped or uploaded.
+    pub fn from_f32_values(device: &Device, values: F32Values, shape: Vec<usize>) -> Result<Self> {
+        match values {
+            F32Values::Device(buffer) => Self::from_gpu_buffer(device, buffer, shape),
+            F32Values::Host(values) => {
+                device.tensor(&Tensor::from_vec(values, shape, &candle_core::Device::Cpu)?)
+            }
+        }
+    }
+
+    /// The tensor in f32 (CPU tensors of other dtypes converted; GPU activations are f32 already, a
+    /// packed f16 weight is an error).
+    pub fn to_f32(&self) -> Result<DeviceTensor> {
+        match self {
+            DeviceTensor::Cpu(t) => Ok(DeviceTensor::Cpu(t.to_dtype(candle_core::DType::F32)?)),
+            DeviceTensor::Gpu(t) if t.is_f16() => {
+                candle_core::bail!("a packed f16 GPU tensor {:?} is not f32", t.dims())
+            }
+            DeviceTensor::Gpu(_) => Ok(self.clone()),
         }
     }
 

@@ -6,16 +6,16 @@
 //! all views, rendered back, downsampled, clamped to [0, 1] and substituted in that step's real pass
 //! (padding tokens keep the recorded values; no renormalisation over tokens). The layers of one map size
 //! share a lifting round, their channels stacked (the reference lifts layer by layer; each channel's
-//! result is the same).
+//! result is the same). On a GPU the maps never leave it: the stacking, the lifting and the split back
+//! into layers all run there.
 
 use std::collections::HashMap;
 
-use candle_core::{DType, Tensor};
-
+use diffusion::device::DeviceTensor;
+use gpu::F32Values;
 use splat::lift::{MapGrid, Resample};
 use splat::LiftSession;
 
-use super::lift::make_consistent;
 use super::{MultiView, MultiViewError};
 use crate::ledger::StageWork;
 use crate::sampler::{RecordedMaps, ViewState};
@@ -39,11 +39,6 @@ impl MultiView<'_> {
             work.unet_samples += batch.len() * samples_per_view;
             recorded.extend(maps);
         }
-        for rec in recorded.iter().flatten() {
-            work.map_reads += 1;
-            work.map_read_bytes +=
-                (rec.maps.elem_count() * rec.maps.dtype().size_in_bytes()) as u64;
-        }
         let layers = recorded[0].len();
         if recorded.iter().any(|r| {
             r.len() != layers
@@ -57,11 +52,13 @@ impl MultiView<'_> {
         }
         let lifting = std::time::Instant::now();
         let real = plan.alignment.target_len.max(plan.source_len);
-        let mut consistent: Vec<HashMap<String, Tensor>> = vec![HashMap::new(); views.len()];
+        let networks = self.model.compute.networks();
+        let mut consistent: Vec<HashMap<String, DeviceTensor>> = vec![HashMap::new(); views.len()];
         // One lifting round per map size, the layers of that size stacked as channels: lifting and
         // rendering back treat every channel alike and alone, so a stacked round gives each layer what
         // its own round gave, for one projection, binning and traversal per view instead of one per layer
-        // (SD 1.5: 3 rounds instead of 11).
+        // (SD 1.5: 3 rounds instead of 11). The maps stay where the UNet made them: on a GPU they are
+        // stacked, lifted, rendered back and split there, and nothing is read back.
         for members in layers_by_size(&recorded[0]) {
             let (sh, sw) = recorded[0][members[0]].size;
             // Per member: the maps' [branches, heads, N, tokens] and the real tokens lifted.
@@ -80,25 +77,21 @@ impl MultiView<'_> {
             let channels: usize = widths.iter().sum();
             // Per view: [N, channels], per pixel the members' channels one after the other, each member's
             // interleaved as channel = (branch*heads + head)*L + token.
-            let stacked = |v: usize| -> candle_core::Result<Vec<f32>> {
+            let stacked = |v: usize| -> candle_core::Result<F32Values> {
                 let parts = members
                     .iter()
                     .zip(&shapes)
                     .map(|(&k, &(branches, heads, nq, _, l))| {
                         recorded[v][k]
                             .maps
-                            .to_dtype(DType::F32)?
-                            .narrow(3, 0, l)?
-                            .reshape((branches * heads, nq, l))?
-                            .permute((1, 0, 2))?
-                            .reshape((nq, branches * heads * l))
+                            .narrow_permute(3, 0, l, &[2, 0, 1, 3])?
+                            .reshape(&[nq, branches * heads * l])
                     })
                     .collect::<candle_core::Result<Vec<_>>>()?;
-                Tensor::cat(&parts, 1)?.flatten_all()?.to_vec1()
+                DeviceTensor::cat(&parts.iter().collect::<Vec<_>>(), 1)?.into_f32_values()
             };
-            let mut backs: Vec<Option<Vec<f32>>> = vec![None; views.len()];
-            make_consistent(
-                lift,
+            let mut read = StageWork::default();
+            lift.lift_values_and_render_back::<MultiViewError>(
                 &MapGrid {
                     height: sh,
                     width: sw,
@@ -106,42 +99,42 @@ impl MultiView<'_> {
                     up: Resample::Bilinear,
                     down: Resample::Bilinear,
                 },
-                &mut |v| stacked(v),
+                &mut |v| {
+                    let values = stacked(v)?;
+                    if !values.is_on_device() {
+                        read.map_reads += 1;
+                        read.map_read_bytes += 4 * values.len() as u64;
+                    }
+                    Ok(values)
+                },
                 &mut |v, back| {
-                    backs[v] = Some(back);
+                    let back = DeviceTensor::from_f32_values(networks, back, vec![nq, channels])?;
+                    let mut offset = 0;
+                    for ((&k, &(branches, heads, nq, tokens, l)), &width) in
+                        members.iter().zip(&shapes).zip(&widths)
+                    {
+                        let maps = &recorded[v][k].maps;
+                        let lifted = back
+                            .narrow(1, offset, width)?
+                            .reshape(&[nq, branches * heads, l])?
+                            .permute_contiguous(&[1, 0, 2])?
+                            .reshape(&[branches, heads, nq, l])?;
+                        offset += width;
+                        let merged = if l < tokens {
+                            let unlifted = maps.to_f32()?.narrow(3, l, tokens - l)?;
+                            DeviceTensor::cat(&[&lifted, &unlifted], 3)?
+                        } else {
+                            lifted
+                        };
+                        consistent[v].insert(recorded[v][k].layer.clone(), merged.clamp(0.0, 1.0)?);
+                    }
                     Ok(())
                 },
             )?;
+            work.map_reads += read.map_reads;
+            work.map_read_bytes += read.map_read_bytes;
             work.lifting_rounds += 1;
             work.render_backs += views.len();
-            for (v, back) in backs.into_iter().enumerate() {
-                let back = back.expect("every view rendered");
-                let back = Tensor::from_vec(back, (nq, channels), &candle_core::Device::Cpu)?;
-                let mut offset = 0;
-                for ((&k, &(branches, heads, nq, tokens, l)), &width) in
-                    members.iter().zip(&shapes).zip(&widths)
-                {
-                    let maps = &recorded[v][k].maps;
-                    let lifted = back
-                        .narrow(1, offset, width)?
-                        .reshape((nq, branches * heads, l))?
-                        .permute((1, 0, 2))?
-                        .reshape((branches, heads, nq, l))?;
-                    offset += width;
-                    let merged = if l < tokens {
-                        Tensor::cat(
-                            &[
-                                &lifted,
-                                &maps.to_dtype(DType::F32)?.narrow(3, l, tokens - l)?,
-                            ],
-                            3,
-                        )?
-                    } else {
-                        lifted
-                    };
-                    consistent[v].insert(recorded[v][k].layer.clone(), merged.clamp(0f32, 1f32)?);
-                }
-            }
         }
         for (view, maps) in views.iter_mut().zip(consistent) {
             view.controller.set_consistent_maps(maps);

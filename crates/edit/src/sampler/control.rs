@@ -14,13 +14,13 @@
 //!
 //! The step counter is explicit: the sampler calls [`EditController::end_step`] after each real UNet pass.
 //!
-//! Everything runs where the UNet runs (the hook's tensors are [`DeviceTensor`]s): the swaps, the refinement
-//! and the blend accumulation never leave the GPU. Only CCM's recorded maps (the small layers) are read
-//! back, since they are lifted onto the scene; the blend store is read when the blend needs it.
+//! Everything runs where the UNet runs (the hook's tensors are [`DeviceTensor`]s): the swaps, the refinement,
+//! the blend accumulation and CCM's recorded and substituted maps never leave the GPU (the lifting takes
+//! the maps from there); the blend store is read when the blend needs it.
 
 use std::collections::HashMap;
 
-use candle_core::{DType, Result, Tensor};
+use candle_core::{Result, Tensor};
 use diffusion::device::DeviceTensor;
 use diffusion::unet::{edit_maps, AttentionHook, AttnCall, AttnKind, MapEdit};
 
@@ -59,12 +59,13 @@ pub(crate) fn mutual_at(progress: f64, self_replace: f64) -> bool {
     progress >= self_replace
 }
 
-/// Cross-attention maps of one layer as recorded for CCM: `[3 branches, heads, h*w, tokens]`.
+/// Cross-attention maps of one layer as recorded for CCM: `[3 branches, heads, h*w, tokens]`, on the
+/// UNet's device (CCM lifts them from there).
 #[derive(Clone, Debug)]
 pub struct RecordedMaps {
     pub layer: String,
     pub size: (usize, usize),
-    pub maps: Tensor,
+    pub maps: DeviceTensor,
 }
 
 /// The attention controller of one view.
@@ -80,8 +81,8 @@ pub struct EditController {
     blend_store: Vec<(String, DeviceTensor)>,
     /// True during CCM's recording pass: nothing is accumulated, maps are recorded instead.
     recording: Option<Vec<RecordedMaps>>,
-    /// 3D-consistent conditional maps to substitute in the next real pass (CCM).
-    consistent: Option<HashMap<String, Tensor>>,
+    /// 3D-consistent conditional maps to substitute in the next real pass (CCM), on the UNet's device.
+    consistent: Option<HashMap<String, DeviceTensor>>,
     /// Small cross-attention calls of the current real pass so far, and of the last whole one: a
     /// recording pass has seen all it records once it has recorded that many.
     small_calls: usize,
@@ -153,8 +154,9 @@ impl EditController {
         self.recording.take().unwrap_or_default()
     }
 
-    /// Sets the 3D-consistent conditional maps (`[3, heads, h*w, tokens]` per layer) for the next real pass.
-    pub fn set_consistent_maps(&mut self, maps: HashMap<String, Tensor>) {
+    /// Sets the 3D-consistent conditional maps (`[3, heads, h*w, tokens]` per layer, f32 on the UNet's
+    /// device) for the next real pass.
+    pub fn set_consistent_maps(&mut self, maps: HashMap<String, DeviceTensor>) {
         self.consistent = Some(maps);
     }
 
@@ -297,7 +299,7 @@ impl AttentionHook for EditController {
         let mut cond = probs.narrow(0, cond_start, 3)?;
         if small {
             if let Some(maps) = self.consistent.as_ref().and_then(|m| m.get(call.layer)) {
-                cond = cond.same_device(&maps.to_dtype(DType::F32)?)?;
+                cond = maps.clone();
             }
         }
         // Each branch keeps its batch axis ([1, heads, h*w, tokens]) so the parts concatenate back.
@@ -319,7 +321,7 @@ impl AttentionHook for EditController {
                 rec.push(RecordedMaps {
                     layer: call.layer.to_string(),
                     size: (call.height, call.width),
-                    maps: cond.to_cpu()?,
+                    maps: cond.clone(),
                 });
             }
         } else if (call.height, call.width) == self.settings.blend_size
@@ -348,7 +350,7 @@ impl AttentionHook for EditController {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use candle_core::{Device, IndexOp};
+    use candle_core::{DType, Device, IndexOp};
 
     fn alignment(mapper: Vec<Option<usize>>, alphas: Vec<f32>) -> TokenAlignment {
         let n = mapper.len();
@@ -516,7 +518,9 @@ mod tests {
         let mut maps = HashMap::new();
         maps.insert(
             mid.layer.to_string(),
-            Tensor::zeros((3, 1, 4, 2), DType::F32, &Device::Cpu).unwrap(),
+            Tensor::zeros((3, 1, 4, 2), DType::F32, &Device::Cpu)
+                .unwrap()
+                .into(),
         );
         c.set_consistent_maps(maps);
         assert!(c.wants_probs(&mid), "CCM substitutes its maps");
@@ -581,7 +585,7 @@ mod tests {
         // Replace with constant maps: the conditional half becomes them (cross_replace 0 → no refine).
         let ones = Tensor::ones((3, 1, 4, 3), DType::F32, &Device::Cpu).unwrap();
         let mut m = HashMap::new();
-        m.insert(call(AttnKind::CrossAttn, 6).layer.to_string(), ones);
+        m.insert(call(AttnKind::CrossAttn, 6).layer.to_string(), ones.into());
         c.set_consistent_maps(m);
         let out = c
             .probs(&call(AttnKind::CrossAttn, 6), p.into())

@@ -31,6 +31,8 @@ pub(super) mod kernel {
         pub const GELU_TANH: u32 = 9;
         /// The constant `a` (x is not read).
         pub const FILL: u32 = 10;
+        /// `min(max(x, a), b)`, candle's `clamp` (the same two comparisons, so the same values).
+        pub const CLAMP: u32 = 11;
     }
 
     /// Binary op codes of [`binary`].
@@ -69,6 +71,8 @@ pub(super) mod kernel {
         } else if comptime!(op == unary_op::GELU_TANH) {
             // 0.5·x·(1 + tanh(√(2/π)·(x + 0.044715·x³)))
             0.5f32 * x * (1.0f32 + f32::tanh(0.7978846f32 * (x + 0.044715f32 * x * x * x)))
+        } else if comptime!(op == unary_op::CLAMP) {
+            f32::min(f32::max(x, a), b)
         } else {
             // softplus = ln(1 + eˣ), computed as max(x, 0) + ln(1 + e^-|x|) so large x does not overflow.
             let softplus = f32::max(x, 0.0f32) + f32::ln(1.0f32 + f32::exp(-f32::abs(x)));
@@ -178,6 +182,10 @@ pub fn exp(x: &GpuTensor) -> GpuTensor {
 }
 pub fn mish(x: &GpuTensor) -> GpuTensor {
     unary(x, unary_op::MISH, 0.0, 0.0)
+}
+/// `x` clamped to `[min, max]`.
+pub fn clamp(x: &GpuTensor, min: f32, max: f32) -> GpuTensor {
+    unary(x, unary_op::CLAMP, min, max)
 }
 /// A tensor of `shape` filled with `value`, on `like`'s device.
 pub fn full(like: &GpuTensor, shape: Vec<usize>, value: f32) -> GpuTensor {
@@ -347,6 +355,11 @@ mod tests {
             &((&x / 3.0).unwrap().tanh().unwrap() * 3.0).unwrap(),
         );
         check("exp", &exp(&g), &x.exp().unwrap());
+        check(
+            "clamp",
+            &clamp(&g, -1.0, 2.0),
+            &x.clamp(-1f32, 2f32).unwrap(),
+        );
         let quick = (&x * candle_nn::ops::sigmoid(&(&x * 1.702).unwrap()).unwrap()).unwrap();
         check("quick gelu", &quick_gelu(&g), &quick);
         check("gelu tanh", &gelu_tanh(&g), &x.gelu().unwrap());

@@ -33,7 +33,7 @@ use ::gpu::gpu_call;
 use ::gpu::prims::{
     arg, empty32, grid as grid_of, read_f32, read_u32, upload_f32, upload_u32, zeros32,
 };
-use ::gpu::{GpuContext, GpuError};
+use ::gpu::{F32Buffer, F32Values, GpuContext, GpuError};
 
 /// Lifts per-view maps (`maps[v]` is H*W*C for `cameras[v]`) onto the Gaussians of `scene`.
 ///
@@ -447,7 +447,8 @@ impl GpuLiftScene {
     }
 
     /// Lifts per-view maps given on `grid` onto the Gaussians and renders them back to that grid, as
-    /// [`crate::device::SplatDevice::lift_and_render_back`] describes. Only the grid-sized maps cross the bus.
+    /// [`crate::device::SplatDevice::lift_and_render_back`] describes. The maps rendered back stay on the
+    /// device; of the maps lifted, only those given on the host cross the bus.
     ///
     /// # Panics
     /// When a map from `map_of` is not `grid.len()` long (a programming error).
@@ -456,8 +457,8 @@ impl GpuLiftScene {
         ctx: &GpuContext,
         cameras: &[Camera],
         grid: &MapGrid,
-        map_of: &mut dyn FnMut(usize) -> Result<Vec<f32>, E>,
-        sink: &mut dyn FnMut(usize, Vec<f32>) -> Result<(), E>,
+        map_of: &mut dyn FnMut(usize) -> Result<F32Values, E>,
+        sink: &mut dyn FnMut(usize, F32Values) -> Result<(), E>,
     ) -> Result<(), E> {
         let c = &ctx.client;
         let (n, channels) = (self.scene.len, grid.channels);
@@ -473,7 +474,10 @@ impl GpuLiftScene {
             let bins = self.bins(ctx, cam, v)?;
             let full = (cam.height as usize, cam.width as usize);
             gpu_call(|| {
-                let small = upload_f32(c, &map);
+                let small = match &map {
+                    F32Values::Host(map) => upload_f32(c, map),
+                    F32Values::Device(buffer) => buffer.handle().clone(),
+                };
                 match grid_layout(ctx, grid, full) {
                     Some(layout) => {
                         accumulate_grid(ctx, n, &bins, &small, grid, layout, &sums, &counts)
@@ -527,7 +531,9 @@ impl GpuLiftScene {
                 );
                 let small =
                     resample_on_device(ctx, &frame.extra, full, native, channels, grid.down);
-                read_f32(c, &small, grid.len())
+                F32Buffer::new(small, grid.len())
+                    .map(F32Values::Device)
+                    .map_err(GpuError::BufferTooSmall)
             })?;
             sink(v, back)?;
         }
@@ -540,6 +546,56 @@ impl GpuLiftScene {
 fn sparse_back() -> bool {
     static ON: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
     *ON.get_or_init(|| std::env::var("VCEDIT_GPU_SPARSE_BACK").map_or(true, |v| v.trim() != "off"))
+}
+
+/// [`crate::device::ChannelSlice`] `part` of `src` copied into `dst` on the device (a round's channels
+/// split into passes and put back together).
+pub(crate) fn copy_channels(
+    ctx: &GpuContext,
+    src: &Handle,
+    dst: &Handle,
+    part: crate::device::ChannelSlice,
+) {
+    let len = part.cells * part.width;
+    if len == 0 {
+        return;
+    }
+    let (count, dim) = grid_of(len);
+    copy_channel_slice::launch(
+        &ctx.client,
+        count,
+        dim,
+        arg(src, part.cells * part.from.0),
+        arg(dst, part.cells * part.to.0),
+        part.from.0 as u32,
+        part.from.1 as u32,
+        part.to.0 as u32,
+        part.to.1 as u32,
+        part.width as u32,
+        len as u32,
+    );
+}
+
+/// One value of [`copy_channels`] per unit.
+#[cube(launch)]
+#[allow(clippy::too_many_arguments)]
+fn copy_channel_slice(
+    src: &[f32],
+    dst: &mut [f32],
+    src_channels: u32,
+    src_first: u32,
+    dst_channels: u32,
+    dst_first: u32,
+    width: u32,
+    len: u32,
+) {
+    let i = ABSOLUTE_POS as u32;
+    if i < len {
+        let cell = i / width;
+        let j = i % width;
+        dst[(cell * dst_channels + dst_first + j) as usize] =
+            src[(cell * src_channels + src_first + j) as usize];
+    }
 }
 
 /// [`crate::lift::resample`] on the device: `src` (h*w*C) to a new (out_h*out_w*C) buffer; `src`

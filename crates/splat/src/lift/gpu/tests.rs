@@ -317,9 +317,9 @@ fn lifting_sessions_keep_views_across_rounds() {
                     &ctx,
                     &cams,
                     g,
-                    &mut |v| Ok(maps(g, v)),
+                    &mut |v| Ok(F32Values::Host(maps(g, v))),
                     &mut |v, m| {
-                        back[v] = m;
+                        back[v] = device.values_on_host(m)?;
                         Ok(())
                     },
                 )
