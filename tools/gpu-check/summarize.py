@@ -115,6 +115,29 @@ def paper_estimate(run):
             "ecm_steps": ecm_steps, "estimate_96_views_15_steps_2_iterations_s": [total(1), total(r)]}
 
 
+# The work ledger's units per stage (run.json's `work`, summed over iterations), the ones a stage's time
+# is read against: UNet samples, lifting rounds, fit steps, codec passes, and on a GPU the kernel launches
+# and device reads.
+WORK_UNITS = ("unet_samples", "lifting_rounds", "render_backs", "fit_steps", "vae_encodes", "vae_decodes",
+              "launches", "device_reads", "device_read_bytes")
+
+
+def work_per_stage(run):
+    work = run.get("work") or {}
+    return {stage: {k: v for k, v in units.items() if k in WORK_UNITS and v}
+            for stage, units in work.items() if isinstance(units, dict) and any(units.values())}
+
+
+def describe_work(work):
+    parts = []
+    for stage, units in work.items():
+        named = ", ".join(f"{v} {k.replace('_', ' ')}" for k, v in units.items() if k != "device_read_bytes")
+        if "device_read_bytes" in units:
+            named += f" ({units['device_read_bytes'] / 1e6:.1f} MB read)"
+        parts.append(f"{stage}: {named}")
+    return "; ".join(parts)
+
+
 # The runtimes a core step runs on (run.sh's `on_runtimes`): wgpu under the step's own name, CUDA as
 # NAME-cuda; the label goes into the row's name.
 RUNTIME_STEPS = (("", ""), ("-cuda", ", CUDA"))
@@ -334,6 +357,7 @@ def main():
                 "total_s": steps.get(name, {}).get("seconds"),
                 "gaussians": run.get("gaussians_before")}
         edit.update(paper_estimate(run))
+        edit["work"] = work_per_stage(run)
         return edit
     edit, edit_cuda = edit_slice("edit"), edit_slice("edit-cuda")
     torch_present = "torch-info" in steps
@@ -400,6 +424,8 @@ def main():
                       f"{stages} ({per_it}). Estimate for 96 views × 15 steps × 2 iterations from the "
                       f"{slice_['estimated_from']}: **{lo:.0f}{'' if round(lo) == round(hi) else f'–{hi:.0f}'} s** "
                       f"(scaled from the slice, not a measurement)."]
+        if slice_.get("work"):
+            lines += ["", f"Work of the slice{rt} (its ledger, all iterations): {describe_work(slice_['work'])}."]
     # Kernel profiles (kernel_profile.py's tables, as the steps printed them).
     for name in ("unet-profile", "fit-profile"):
         path = os.path.join(a.work, f"{name}.out")

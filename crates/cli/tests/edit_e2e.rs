@@ -559,6 +559,17 @@ fn gpu_and_cpu_edits_agree(extra: &[&str]) {
         }
         let run: serde_json::Value =
             serde_json::from_slice(&std::fs::read(out.join("run.json")).unwrap()).unwrap();
+        // The ledger counts what each stage asked of the device: on the GPU every stage launches
+        // kernels and the fit reads its loss; on the CPU nothing.
+        let work = &run["work"];
+        let launches = |stage: &str| work[stage]["launches"].as_u64().unwrap();
+        for stage in ["encode", "ccm", "unet", "ecm", "decode", "fit"] {
+            assert_eq!(
+                launches(stage) > 0,
+                device == "gpu",
+                "{device} {stage}: {work}"
+            );
+        }
         let m = &run["metrics"];
         (
             m["preservation_whole"]["psnr"].as_f64().unwrap(),

@@ -1,7 +1,9 @@
 //! The work ledger: units of work per stage of an edit (UNet samples, lifting rounds, fit steps, codec
 //! passes, reads from the networks' device), counted as a run does them and planned before it starts,
-//! so a stage's time can be read per unit of work on any machine.
+//! so a stage's time can be read per unit of work on any machine; on a GPU also the kernel launches and
+//! device reads each stage made.
 
+use gpu::traffic::DeviceTraffic;
 use serde::{Deserialize, Serialize};
 
 /// Units of work of one stage.
@@ -23,6 +25,12 @@ pub struct StageWork {
     /// on the CPU; a copy on a GPU).
     pub map_reads: usize,
     pub map_read_bytes: u64,
+    /// On a GPU, everything the stage asked of the device: kernels launched, and reads of device
+    /// buffers back to the host (the map reads among them) with their bytes. 0 on the CPU, and not
+    /// planned (the plan counts the units of work above; these say what each unit costs a card).
+    pub launches: u64,
+    pub device_reads: u64,
+    pub device_read_bytes: u64,
 }
 
 impl StageWork {
@@ -36,6 +44,16 @@ impl StageWork {
         self.vae_decodes += o.vae_decodes;
         self.map_reads += o.map_reads;
         self.map_read_bytes += o.map_read_bytes;
+        self.launches += o.launches;
+        self.device_reads += o.device_reads;
+        self.device_read_bytes += o.device_read_bytes;
+    }
+
+    /// Adds what the device was asked while the stage ran.
+    pub fn add_traffic(&mut self, t: DeviceTraffic) {
+        self.launches += t.launches;
+        self.device_reads += t.reads;
+        self.device_read_bytes += t.read_bytes;
     }
 }
 
@@ -114,6 +132,14 @@ impl WorkLedger {
                 t.map_read_bytes as f64 / 1e6
             );
         }
+        if t.launches > 0 || t.device_reads > 0 {
+            line += &format!(
+                "; on the device {} kernel launches, {} reads ({:.1} MB)",
+                t.launches,
+                t.device_reads,
+                t.device_read_bytes as f64 / 1e6
+            );
+        }
         line
     }
 }
@@ -136,6 +162,26 @@ mod tests {
         assert_eq!(a.total().fit_steps, 7);
         assert!(
             a.describe().starts_with("16 UNet samples"),
+            "{}",
+            a.describe()
+        );
+        assert!(
+            !a.describe().contains("on the device"),
+            "nothing on a device"
+        );
+        a.ecm.add_traffic(DeviceTraffic {
+            launches: 40,
+            reads: 2,
+            read_bytes: 3_000_000,
+        });
+        a.decode.add_traffic(DeviceTraffic {
+            launches: 2,
+            ..Default::default()
+        });
+        assert_eq!(a.total().launches, 42);
+        assert!(
+            a.describe()
+                .ends_with("; on the device 42 kernel launches, 2 reads (3.0 MB)"),
             "{}",
             a.describe()
         );

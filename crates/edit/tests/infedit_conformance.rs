@@ -330,6 +330,7 @@ fn ccm_on_the_gpu_reads_no_maps_and_matches_the_cpu() {
     );
     assert!(w.map_reads > 0, "the CPU lifts host maps: {w:?}");
     assert_eq!((g.map_reads, g.map_read_bytes), (0, 0), "{g:?}");
+    assert!(g.launches > 0, "the ledger counts CCM's kernels: {g:?}");
     for (v, (a, b)) in want.images.iter().zip(&got.images).enumerate() {
         let worst = a
             .data

@@ -39,6 +39,7 @@ mod memory;
 pub mod prims;
 pub mod reduce;
 pub mod testing;
+pub mod traffic;
 
 /// Environment variable holding the default device choice.
 pub const DEVICE_ENV: &str = "VCEDIT_DEVICE";

@@ -5,8 +5,6 @@
 //! no barriers (barriers cost ~10x on software Vulkan), stability for free, and enough units for a GPU
 //! once the arrays are large (the chunk length grows with the array so the unit count stays ~16k).
 
-use std::sync::atomic::{AtomicU64, Ordering};
-
 use cubecl::client::Client;
 use cubecl::prelude::*;
 use cubecl::server::Handle;
@@ -60,28 +58,19 @@ pub fn upload_u32(client: &Client, v: &[u32]) -> Handle {
     client.create_from_slice(u32::as_bytes(v))
 }
 
-/// Reads through [`read_f32`] / [`read_u32`] in this process, and the nanoseconds the host spent in them.
-static READS: AtomicU64 = AtomicU64::new(0);
-static READ_NANOS: AtomicU64 = AtomicU64::new(0);
-
-/// How many reads [`read_f32`] / [`read_u32`] made in this process so far, and how long the host waited
-/// in them (a read waits for all work queued before it, so this is the time the host stood still while
-/// the device caught up; the difference over a span of work says whether it is bound by the device or by
-/// the host's launching).
+/// How many reads [`read_f32`] / [`read_u32`] / [`read_raw`] made in this process so far, and how long
+/// the host waited in them (a read waits for all work queued before it, so this is the time the host
+/// stood still while the device caught up; the difference over a span of work says whether it is bound
+/// by the device or by the host's launching). Their bytes: [`crate::traffic::DeviceTraffic`].
 pub fn read_waits() -> (u64, std::time::Duration) {
-    (
-        READS.load(Ordering::Relaxed),
-        std::time::Duration::from_nanos(READ_NANOS.load(Ordering::Relaxed)),
-    )
+    crate::traffic::read_waits()
 }
 
-/// Runs the read `f`, counted in [`read_waits`].
-fn counted<T>(f: impl FnOnce() -> T) -> T {
-    let start = std::time::Instant::now();
-    let out = f();
-    READS.fetch_add(1, Ordering::Relaxed);
-    READ_NANOS.fetch_add(start.elapsed().as_nanos() as u64, Ordering::Relaxed);
-    out
+/// The bytes of `h`'s buffer, read back (counted in [`read_waits`] and the process's
+/// [`crate::traffic::DeviceTraffic`]): the read every engine's read-back goes through.
+pub fn read_raw(client: &Client, h: &Handle) -> Result<cubecl::bytes::Bytes, GpuError> {
+    let bytes = h.size_in_used() as usize;
+    crate::traffic::counted_read(bytes, || client.read_one(h.clone())).map_err(server_error)
 }
 
 /// Reads `n` f32 values back (this waits for the work that writes them).
@@ -89,7 +78,7 @@ pub fn read_f32(client: &Client, h: &Handle, n: usize) -> Result<Vec<f32>, GpuEr
     if n == 0 {
         return Ok(vec![]);
     }
-    let bytes = counted(|| client.read_one(h.clone())).map_err(server_error)?;
+    let bytes = read_raw(client, h)?;
     Ok(f32::from_bytes(&bytes)[..n].to_vec())
 }
 
@@ -98,7 +87,7 @@ pub fn read_u32(client: &Client, h: &Handle, n: usize) -> Result<Vec<u32>, GpuEr
     if n == 0 {
         return Ok(vec![]);
     }
-    let bytes = counted(|| client.read_one(h.clone())).map_err(server_error)?;
+    let bytes = read_raw(client, h)?;
     Ok(u32::from_bytes(&bytes)[..n].to_vec())
 }
 

@@ -25,10 +25,11 @@ pub use splat::lift::{MapGrid, Resample};
 use std::time::{Duration, Instant};
 
 use candle_core::Tensor;
+use gpu::traffic::DeviceTraffic;
 use serde::{Deserialize, Serialize};
 use splat::{Camera, GaussianScene, Image};
 
-use crate::ledger::WorkLedger;
+use crate::ledger::{StageWork, WorkLedger};
 use crate::sampler::{image_to_tensor, EditModel, EditPlan, NoiseSource, ViewState};
 
 /// Which consistency modules run, and when (sampler step indices, 0-based).
@@ -161,6 +162,34 @@ impl StageTimes {
     }
 }
 
+/// Where a stage started: the clock, and the device's counts ([`DeviceTraffic`]).
+#[derive(Clone, Copy)]
+struct StageStart {
+    time: Instant,
+    traffic: DeviceTraffic,
+}
+
+impl StageStart {
+    fn now() -> Self {
+        Self {
+            time: Instant::now(),
+            traffic: DeviceTraffic::now(),
+        }
+    }
+}
+
+/// The ledger's entry of `stage`.
+fn stage_work(work: &mut WorkLedger, stage: Stage) -> &mut StageWork {
+    match stage {
+        Stage::Encode => &mut work.encode,
+        Stage::Ccm => &mut work.ccm,
+        Stage::Unet => &mut work.unet,
+        Stage::Ecm => &mut work.ecm,
+        Stage::Blend => &mut work.blend,
+        Stage::Decode => &mut work.decode,
+    }
+}
+
 /// Result of a multi-view edit.
 pub struct MultiViewOutcome {
     /// Edited images (the guidance), one per view, RGB in [0, 1].
@@ -231,10 +260,13 @@ impl MultiView<'_> {
         let mut times = StageTimes::default();
         let mut work = WorkLedger::default();
         let batches = images.len().div_ceil(self.view_batch.max(1));
-        let timed =
-            |stage: Stage, t: Instant, times: &mut StageTimes| times.add(stage, t.elapsed());
+        // A stage's wall time, and on a GPU its launches and reads, from its start to now.
+        let timed = |stage: Stage, t: StageStart, times: &mut StageTimes, work: &mut WorkLedger| {
+            times.add(stage, t.time.elapsed());
+            stage_work(work, stage).add_traffic(DeviceTraffic::now().since(t.traffic));
+        };
 
-        let t = Instant::now();
+        let t = StageStart::now();
         let mut views = Vec::with_capacity(images.len());
         let shape = plan.latent_shape();
         let sources = images;
@@ -249,7 +281,7 @@ impl MultiView<'_> {
         for x0 in x0s {
             views.push(plan.initial_state(x0, &init)?);
         }
-        timed(Stage::Encode, t, &mut times);
+        timed(Stage::Encode, t, &mut times, &mut work);
 
         let mut last_maps = Vec::new();
         // CCM's layers and the blend maps' steps lift over the same scene and cameras.
@@ -257,13 +289,13 @@ impl MultiView<'_> {
         for i in 0..plan.timesteps.len() {
             let n = noise.sample(&shape)?;
             if self.consistency.ccm_steps.contains(&i) {
-                let t = Instant::now();
+                let t = StageStart::now();
                 times.ccm_lifting +=
                     self.cross_attention_consistency(&mut views, i, &mut lift, &mut work.ccm)?;
                 progress(i, Stage::Ccm);
-                timed(Stage::Ccm, t, &mut times);
+                timed(Stage::Ccm, t, &mut times, &mut work);
             }
-            let t = Instant::now();
+            let t = StageStart::now();
             work.unet.unet_calls += batches;
             for batch in views.chunks_mut(self.view_batch.max(1)) {
                 let mut batch: Vec<&mut ViewState> = batch.iter_mut().collect();
@@ -275,21 +307,21 @@ impl MultiView<'_> {
                 }
             }
             progress(i, Stage::Unet);
-            timed(Stage::Unet, t, &mut times);
+            timed(Stage::Unet, t, &mut times, &mut work);
             if self.consistency.ecm.steps.contains(&i) {
-                let t = Instant::now();
+                let t = StageStart::now();
                 times.ecm_fits += self.editing_consistency(&mut views, i, noise, &mut work.ecm)?;
                 progress(i, Stage::Ecm);
-                timed(Stage::Ecm, t, &mut times);
+                timed(Stage::Ecm, t, &mut times, &mut work);
             }
             if i > 0 {
-                let t = Instant::now();
+                let t = StageStart::now();
                 last_maps = self.local_blend(&mut views, i, &mut lift, &mut work.blend)?;
                 progress(i, Stage::Blend);
-                timed(Stage::Blend, t, &mut times);
+                timed(Stage::Blend, t, &mut times, &mut work);
             }
         }
-        let t = Instant::now();
+        let t = StageStart::now();
         let preds = views
             .iter()
             .map(|view| view.pred_t.as_ref())
@@ -307,7 +339,7 @@ impl MultiView<'_> {
                 add_decoded_change(edited, decoded_source, source);
             }
         }
-        timed(Stage::Decode, t, &mut times);
+        timed(Stage::Decode, t, &mut times, &mut work);
         Ok(MultiViewOutcome {
             images: out,
             views,

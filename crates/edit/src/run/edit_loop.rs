@@ -3,6 +3,7 @@
 use std::path::Path;
 use std::time::Instant;
 
+use gpu::traffic::DeviceTraffic;
 use splat::render::Frame;
 use splat::render::{ExtraChannels, RenderSettings};
 use splat::{Camera, GaussianScene, Image};
@@ -105,6 +106,7 @@ pub fn run_edit(
 
         // Fit the scene to the guidance, its geometry kept where the guidance keeps the footprint.
         let t = Instant::now();
+        let traffic = DeviceTraffic::now();
         let shape = run.shape_decision(&trainer, &cams, &sources, &edited.images)?;
         if job.keep_shape != KeepShape::Never {
             progress.log(&shape.describe());
@@ -125,6 +127,10 @@ pub fn run_edit(
         state.shape.push(shape);
         times.fit = t.elapsed().as_secs_f64();
         times.work.fit.fit_steps += job.fit_steps;
+        times
+            .work
+            .fit
+            .add_traffic(DeviceTraffic::now().since(traffic));
         guidance.push(edited.images);
 
         state.iterations_done = k + 1;

@@ -318,11 +318,9 @@ impl GpuTensor {
 
     /// Reads the tensor back (waits for the kernels that write it; their errors surface here).
     pub fn to_cpu(&self) -> Result<Tensor> {
-        let bytes = self
-            .client()
-            .read_one(self.handle.clone())
-            // Classified (out of memory, lost device) and cut to its informative line.
-            .map_err(|e| candle_core::Error::msg(gpu::server_error(e).to_string()))?;
+        // Classified (out of memory, lost device) and cut to its informative line; counted.
+        let bytes = gpu::prims::read_raw(self.client(), &self.handle)
+            .map_err(|e| candle_core::Error::msg(e.to_string()))?;
         let n = self.elem_count();
         if self.half {
             let data = precision::unpack_f16(u32::from_bytes(&bytes), n);
