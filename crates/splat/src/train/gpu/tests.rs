@@ -141,12 +141,7 @@ fn densify_stats_on_the_device_match_the_cpu() {
             &settings,
             None,
             &frame,
-            &GpuOutputGrads {
-                rgb: &grad,
-                alpha: None,
-                depth: None,
-                extra: None,
-            },
+            &GpuOutputGrads::rgb_only(&grad),
         )
         .unwrap();
         on_device.add(&ctx, &frame, &g, 2).unwrap();
