@@ -20,18 +20,13 @@ use diffusion::device::ops::{self, AttentionPath};
 use diffusion::device::{DeviceTensor, GpuDevice, GpuTensor, Precision};
 
 use crate::{
-    arg_parsed, arg_value, relative_error, report, required_gpu, secs, sync, BenchError, Result,
+    arg_parsed, arg_value, parse_sizes, relative_error, report, required_gpu, BenchError, Launches,
+    Result,
 };
 
 /// `ENTRIESxQUERIESxKEYSxHEAD_DIM`.
 fn parse_shape(s: &str) -> Result<[usize; 4]> {
-    let dims: Vec<usize> = s.split('x').filter_map(|v| v.parse().ok()).collect();
-    match dims[..] {
-        [b, q, k, d] if b > 0 && q > 0 && k > 0 && d > 0 => Ok([b, q, k, d]),
-        _ => Err(BenchError::new(format!(
-            "--shapes: '{s}' is not ENTRIESxQUERIESxKEYSxHEAD_DIM (e.g. 48x4096x4096x40)"
-        ))),
-    }
+    parse_sizes(s, "ENTRIESxQUERIESxKEYSxHEAD_DIM (e.g. 48x4096x4096x40)")
 }
 
 fn parse_path(s: &str) -> Result<AttentionPath> {
@@ -93,37 +88,25 @@ pub fn main(args: &[String]) -> Result<()> {
             let got = attend()?.to_cpu()?;
             let first = start.elapsed();
             let rel_err = relative_error(&first_entry(&got)?, &want)?;
-            let mut best = f64::INFINITY;
-            for _ in 0..runs.max(1) {
-                let start = Instant::now();
-                for _ in 0..repeat {
-                    std::hint::black_box(attend()?);
-                }
-                sync(&context)?;
-                best = best.min(start.elapsed().as_secs_f64() / repeat as f64);
-            }
+            let timed = Launches::measure(&context, first, runs, repeat, attend)?;
             // Two products of entries × queries × keys × dim multiply-adds each.
-            let tflops = 4.0 * (entries * queries * keys * dim) as f64 / best / 1e12;
+            let flops = 4.0 * (entries * queries * keys * dim) as f64;
             eprintln!(
-                "  {entries}x{queries}x{keys}x{dim} {path}: {:.3} ms, {tflops:.2} TFLOP/s (first call \
-                 {:.1} ms), relative error {rel_err:.1e}",
-                best * 1e3,
-                first.as_secs_f64() * 1e3
+                "  {entries}x{queries}x{keys}x{dim} {path}: {}, relative error {rel_err:.1e}",
+                timed.summary(flops)
             );
-            report(serde_json::json!({
-                "bench": "attention",
-                "path": path.to_string(),
-                "matmul_path": matmul_path.to_string(),
-                "entries": entries, "queries": queries, "keys": keys, "dim": dim,
-                "best_s": (best * 1e9).round() / 1e9,
-                "ms": (best * 1e6).round() / 1e3,
-                "tflops": (tflops * 1e3).round() / 1e3,
-                "first_s": secs(first),
-                "repeat": repeat,
-                "device": device.name(),
-                "compiler": context.compiler,
-                "rel_err": rel_err,
-            }));
+            report(timed.json(
+                flops,
+                serde_json::json!({
+                    "bench": "attention",
+                    "path": path.to_string(),
+                    "matmul_path": matmul_path.to_string(),
+                    "entries": entries, "queries": queries, "keys": keys, "dim": dim,
+                    "device": device.name(),
+                    "compiler": context.compiler,
+                    "rel_err": rel_err,
+                }),
+            ));
         }
     }
     Ok(())

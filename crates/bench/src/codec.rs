@@ -14,7 +14,9 @@ use candle_core::{Device, Tensor};
 use diffusion::taesd::{AutoencoderTiny, TaesdConfig};
 use diffusion::vae::{Autoencoder, AutoencoderKL, AutoencoderKLConfig};
 
-use crate::{arg_parsed, arg_value, network_device, random_weights, report, Result, Timed};
+use crate::{
+    arg_parsed, arg_value, network_device, networks_on, random_weights, report, Result, Timed,
+};
 
 /// The codec folder of `dir`: its `vae/` when it is a pipeline, else `dir` itself.
 fn codec_dir(dir: &Path) -> PathBuf {
@@ -39,10 +41,7 @@ pub fn main(args: &[String]) -> Result<()> {
     let gpu = network_device(args, "cpu")?;
     let gpu = gpu.as_ref();
     let device = diffusion::device::Device::from(gpu.cloned());
-    let on = gpu.map_or_else(
-        || format!("CPU, {} threads", rayon::current_num_threads()),
-        |g| format!("{} ({} weights)", g.name(), g.precision()),
-    );
+    let on = networks_on(gpu);
     let codecs: Vec<(String, Autoencoder)> = match arg_value(args, "--model") {
         Some(dir) => {
             let dir = codec_dir(Path::new(&dir));

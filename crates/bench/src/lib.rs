@@ -230,6 +230,79 @@ impl Timed {
     }
 }
 
+/// A GPU launch timed as the device sees it: the first call (kernel compilation), and the best of the
+/// warm runs, each `repeat` launches with one wait for the device, in seconds per launch.
+#[derive(Clone, Debug)]
+pub struct Launches {
+    pub first: Duration,
+    pub best: f64,
+    pub repeat: usize,
+}
+
+impl Launches {
+    /// Times `runs` warm runs of `launch` (`first`: the caller's timed first call).
+    pub fn measure<T>(
+        context: &gpu::GpuContext,
+        first: Duration,
+        runs: usize,
+        repeat: usize,
+        launch: impl Fn() -> candle_core::Result<T>,
+    ) -> Result<Launches> {
+        let mut best = f64::INFINITY;
+        for _ in 0..runs.max(1) {
+            let start = Instant::now();
+            for _ in 0..repeat {
+                std::hint::black_box(launch()?);
+            }
+            sync(context)?;
+            best = best.min(start.elapsed().as_secs_f64() / repeat as f64);
+        }
+        Ok(Launches {
+            first,
+            best,
+            repeat,
+        })
+    }
+
+    /// TFLOP/s at `flops` floating-point operations per launch.
+    pub fn tflops(&self, flops: f64) -> f64 {
+        flops / self.best / 1e12
+    }
+
+    /// "1.234 ms, 5.67 TFLOP/s (first call 89.0 ms)" at `flops` per launch, for the bench's log.
+    pub fn summary(&self, flops: f64) -> String {
+        format!(
+            "{:.3} ms, {:.2} TFLOP/s (first call {:.1} ms)",
+            self.best * 1e3,
+            self.tflops(flops),
+            self.first.as_secs_f64() * 1e3
+        )
+    }
+
+    /// `best_s`, `ms`, `tflops` (at `flops` per launch), `first_s` and `repeat` as JSON fields, merged
+    /// into `fields`.
+    pub fn json(&self, flops: f64, mut fields: serde_json::Value) -> serde_json::Value {
+        let map = fields.as_object_mut().expect("report fields are an object");
+        map.insert("best_s".into(), ((self.best * 1e9).round() / 1e9).into());
+        map.insert("ms".into(), ((self.best * 1e6).round() / 1e3).into());
+        let tflops = (self.tflops(flops) * 1e3).round() / 1e3;
+        map.insert("tflops".into(), tflops.into());
+        map.insert("first_s".into(), secs(self.first).into());
+        map.insert("repeat".into(), self.repeat.into());
+        fields
+    }
+}
+
+/// Sizes written `AxBx..`: `N` positive whole numbers; `form` says which for the error (e.g.
+/// `MxKxN (e.g. 4096x320x1280)`).
+pub fn parse_sizes<const N: usize>(s: &str, form: &str) -> Result<[usize; N]> {
+    let dims: Vec<usize> = s.split('x').filter_map(|v| v.parse().ok()).collect();
+    match <[usize; N]>::try_from(dims) {
+        Ok(dims) if dims.iter().all(|&d| d > 0) => Ok(dims),
+        _ => Err(BenchError::new(format!("--shapes: '{s}' is not {form}"))),
+    }
+}
+
 /// Seconds rounded to microseconds (JSON stays readable).
 pub fn secs(d: Duration) -> f64 {
     (d.as_secs_f64() * 1e6).round() / 1e6
@@ -336,6 +409,15 @@ pub fn network_device(
             diffusion::device::set_cpu_precision(precision).map_err(BenchError::new)?;
             Ok(None)
         }
+    }
+}
+
+/// Where the networks run, for a bench's first line: the GPU and its weights' precision, or the CPU's
+/// thread count.
+pub fn networks_on(gpu: Option<&diffusion::device::GpuDevice>) -> String {
+    match gpu {
+        Some(g) => format!("{} ({} weights)", g.name(), g.precision()),
+        None => format!("CPU, {} threads", rayon::current_num_threads()),
     }
 }
 

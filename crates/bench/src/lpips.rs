@@ -6,7 +6,7 @@
 
 use diffusion::lpips::{Lpips, VGG16_WIDTHS};
 
-use crate::{arg_list, arg_parsed, network_device, report, Result, Timed};
+use crate::{arg_list, arg_parsed, network_device, networks_on, report, Result, Timed};
 
 /// A smooth test image, different per `phase`.
 fn image(h: usize, w: usize, phase: f32) -> Vec<f32> {
@@ -21,10 +21,7 @@ pub fn main(args: &[String]) -> Result<()> {
     let gpu = network_device(args, "cpu")?;
     // The network keeps f32 weights on a GPU whatever `--precision` says (`Lpips::on`).
     let net = Lpips::synthetic(VGG16_WIDTHS, 0).on(diffusion::device::Device::from(gpu));
-    let on = match net.device().gpu() {
-        Some(g) => format!("{} ({} weights)", g.name(), g.precision()),
-        None => format!("CPU, {} threads", rayon::current_num_threads()),
-    };
+    let on = networks_on(net.device().gpu());
     eprintln!("lpips bench: VGG16 full width, generated weights, {on}");
     for s in sizes {
         let (render, target_image) = (image(s, s, 0.0), image(s, s, 1.0));

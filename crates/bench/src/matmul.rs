@@ -27,8 +27,8 @@ use candle_core::{Device, Tensor};
 use diffusion::device::{ops, GpuDevice, GpuTensor, Precision};
 
 use crate::{
-    arg_list, arg_parsed, arg_value, relative_error, report, required_gpu, secs, sync, BenchError,
-    Result,
+    arg_list, arg_parsed, arg_value, parse_sizes, relative_error, report, required_gpu, BenchError,
+    Launches, Result,
 };
 
 /// One product launch (its result stays on the device).
@@ -36,13 +36,8 @@ type Product<'a> = dyn Fn() -> candle_core::Result<GpuTensor> + 'a;
 
 /// `MxKxN`.
 fn parse_shape(s: &str) -> Result<(usize, usize, usize)> {
-    let dims: Vec<usize> = s.split('x').filter_map(|v| v.parse().ok()).collect();
-    match dims[..] {
-        [m, k, n] if m > 0 && k > 0 && n > 0 => Ok((m, k, n)),
-        _ => Err(BenchError::new(format!(
-            "--shapes: '{s}' is not MxKxN (e.g. 4096x320x1280)"
-        ))),
-    }
+    let [m, k, n] = parse_sizes(s, "MxKxN (e.g. 4096x320x1280)")?;
+    Ok((m, k, n))
 }
 
 pub fn main(args: &[String]) -> Result<()> {
@@ -140,16 +135,8 @@ pub fn main(args: &[String]) -> Result<()> {
                     let tiled = ops::last_product_tiled();
                     let tiling_name = tiling.map(|t| t.to_string());
                     let rel_err = relative_error(&got, &want)?;
-                    let mut best = f64::INFINITY;
-                    for _ in 0..runs.max(1) {
-                        let start = Instant::now();
-                        for _ in 0..repeat {
-                            std::hint::black_box(product()?);
-                        }
-                        sync(&context)?;
-                        best = best.min(start.elapsed().as_secs_f64() / repeat as f64);
-                    }
-                    let tflops = 2.0 * (m * k * n) as f64 / best / 1e12;
+                    let timed = Launches::measure(&context, first, runs, repeat, product)?;
+                    let flops = 2.0 * (m * k * n) as f64;
                     let on_tiling = match (tiling, tiled) {
                         (None, _) => String::new(),
                         (Some(t), _) if t.is_default() => ", the routine's own tiling".into(),
@@ -157,30 +144,27 @@ pub fn main(args: &[String]) -> Result<()> {
                         (Some(t), false) => format!(", tiling {t} not taken"),
                     };
                     eprintln!(
-                        "  {what} {m}x{k}x{n} ({path}, {route}{on_tiling}): {:.3} ms, {tflops:.2} \
-                         TFLOP/s (first call {:.1} ms), relative error {rel_err:.1e}",
-                        best * 1e3,
-                        first.as_secs_f64() * 1e3
+                        "  {what} {m}x{k}x{n} ({path}, {route}{on_tiling}): {}, relative error \
+                         {rel_err:.1e}",
+                        timed.summary(flops)
                     );
-                    report(serde_json::json!({
-                        "bench": "matmul",
-                        "what": what,
-                        "precision": precision.to_string(),
-                        "m": m, "k": k, "n": n,
-                        "best_s": (best * 1e9).round() / 1e9,
-                        "ms": (best * 1e6).round() / 1e3,
-                        "tflops": (tflops * 1e3).round() / 1e3,
-                        "first_s": secs(first),
-                        "repeat": repeat,
-                        "device": device.name(),
-                        "compiler": context.compiler,
-                        "path": path.to_string(),
-                        "routine": routine,
-                        "route": route,
-                        "tiling": tiling_name,
-                        "tiled": tiled,
-                        "rel_err": rel_err,
-                    }));
+                    report(timed.json(
+                        flops,
+                        serde_json::json!({
+                            "bench": "matmul",
+                            "what": what,
+                            "precision": precision.to_string(),
+                            "m": m, "k": k, "n": n,
+                            "device": device.name(),
+                            "compiler": context.compiler,
+                            "path": path.to_string(),
+                            "routine": routine,
+                            "route": route,
+                            "tiling": tiling_name,
+                            "tiled": tiled,
+                            "rel_err": rel_err,
+                        }),
+                    ));
                 }
             }
         }

@@ -35,12 +35,7 @@ fn bench(label: &str, scene: &GaussianScene, cam: &Camera, runs: usize, stages: 
     let grad: Vec<f32> = (0..3 * npix)
         .map(|i| ((i % 7) as f32 - 3.0) * 0.01)
         .collect();
-    let grads = OutputGrads {
-        rgb: &grad,
-        alpha: None,
-        depth: None,
-        extra: None,
-    };
+    let grads = OutputGrads::rgb_only(&grad);
     // Warm-up (page faults, thread pool).
     let out = render(scene, cam, &settings, None);
     let _ = render_backward(scene, cam, &settings, None, &out, &grads);
@@ -330,12 +325,7 @@ fn measure_cpu(scene: &GaussianScene, case: &Case, runs: usize, stages: [bool; 4
     let settings = RenderSettings::default();
     let npix = (cam.width * cam.height) as usize;
     let grad = pattern_grad(npix);
-    let grads = OutputGrads {
-        rgb: &grad,
-        alpha: None,
-        depth: None,
-        extra: None,
-    };
+    let grads = OutputGrads::rgb_only(&grad);
     let mut out = Timings::default();
     let mut fwd = vec![];
     let mut bwd = vec![];
@@ -378,12 +368,7 @@ fn measure_cpu(scene: &GaussianScene, case: &Case, runs: usize, stages: [bool; 4
                 &settings,
                 None,
                 &frame,
-                &OutputGrads {
-                    rgb: &loss.grad,
-                    alpha: None,
-                    depth: None,
-                    extra: None,
-                },
+                &OutputGrads::rgb_only(&loss.grad),
             );
             state.step(&g);
             state
@@ -411,12 +396,7 @@ fn measure_cpu(scene: &GaussianScene, case: &Case, runs: usize, stages: [bool; 4
                 &cam,
                 &settings,
                 &frame,
-                &OutputGrads {
-                    rgb: &loss.grad,
-                    alpha: None,
-                    depth: None,
-                    extra: None,
-                },
+                &OutputGrads::rgb_only(&loss.grad),
             );
             state.step(&g);
             steps.push(t.elapsed());
@@ -480,12 +460,7 @@ fn measure_gpu(
     if stages[0] || stages[1] {
         let dev = GpuScene::upload(ctx, scene);
         let grad = gpu::prims::upload_f32(&ctx.client, &pattern_grad(npix));
-        let grads = GpuOutputGrads {
-            rgb: &grad,
-            alpha: None,
-            depth: None,
-            extra: None,
-        };
+        let grads = GpuOutputGrads::rgb_only(&grad);
         // Warm-up: kernel compilation, timed apart.
         let t = Instant::now();
         let frame = render_device(ctx, &dev, &cam, &settings, None)?;

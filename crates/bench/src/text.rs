@@ -15,7 +15,8 @@ use diffusion::loader::{Component, ModelDir};
 use diffusion::tokenizer::ClipTokenizer;
 
 use crate::{
-    arg_list, arg_parsed, arg_value, network_device, random_weights, report, Result, Timed,
+    arg_list, arg_parsed, arg_value, network_device, networks_on, random_weights, report, Result,
+    Timed,
 };
 
 const PROMPT: &str = "a highly detailed photograph of a red fox sitting in a snowy forest at dawn, soft golden light";
@@ -60,10 +61,7 @@ pub fn main(args: &[String]) -> Result<()> {
     let gpu = network_device(args, "cpu")?;
     let gpu = gpu.as_ref();
     let device = diffusion::device::Device::from(gpu.cloned());
-    let on = gpu.map_or_else(
-        || format!("CPU, {} threads", rayon::current_num_threads()),
-        |g| format!("{} ({} weights)", g.name(), g.precision()),
-    );
+    let on = networks_on(gpu);
     let (tokenizer, model, which) = match arg_value(args, "--model") {
         Some(dir) => {
             let model_dir =

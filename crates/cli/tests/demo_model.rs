@@ -59,11 +59,9 @@ fn tiny_train_then_sample_through_the_cli() {
     assert_eq!(code, 0, "{stderr}");
 
     let grid = dir.path().join("grid.png");
-    let (code, _, stderr) = vcedit(&[
-        "demo-model",
-        "sample",
-        "--model",
-        out_s,
+    let sample =
+        |args: &[&str]| vcedit(&[&["demo-model", "sample", "--model", out_s][..], args].concat());
+    let (code, _, stderr) = sample(&[
         "--prompt",
         "a red sphere",
         "--prompt",
@@ -84,11 +82,7 @@ fn tiny_train_then_sample_through_the_cli() {
 
     // A prompt outside the text encoder's reach is a one-line error, not a panic.
     let long = "red ".repeat(100);
-    let (code, _, stderr) = vcedit(&[
-        "demo-model",
-        "sample",
-        "--model",
-        out_s,
+    let (code, _, stderr) = sample(&[
         "--prompt",
         &long,
         "--steps",

@@ -7,12 +7,21 @@ use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 use testkit::output::stdout_of_success;
 
-fn vcedit(args: &[&std::ffi::OsStr]) -> Output {
+fn vcedit(args: &[&str]) -> Output {
     Command::new(env!("CARGO_BIN_EXE_vcedit"))
         .arg("metrics")
         .args(args)
         .output()
         .expect("run vcedit")
+}
+
+/// `vcedit metrics --source SOURCE --edited EDITED` and the other `args`.
+fn metrics(source: &Path, edited: &Path, args: &[&str]) -> Output {
+    vcedit(&[&["--source", s(source), "--edited", s(edited)][..], args].concat())
+}
+
+fn s(p: &Path) -> &str {
+    p.to_str().expect("a UTF-8 path")
 }
 
 /// Opaque Gaussians covering a unit sphere with a smooth texture; `recolour` changes those with x > 0.3.
@@ -43,20 +52,20 @@ fn compares_two_scenes_with_a_mask_box() {
     let dir = tempfile::tempdir().unwrap();
     let (a, b) = scenes(dir.path());
     let json = dir.path().join("m.json");
-    let text = stdout_of_success(&vcedit(&[
-        "--source".as_ref(),
-        a.as_os_str(),
-        "--edited".as_ref(),
-        b.as_os_str(),
-        "--orbit".as_ref(),
-        "8".as_ref(),
-        "--size".as_ref(),
-        "64".as_ref(),
-        "--mask-box".as_ref(),
-        "0.3,-2,-2,2,2,2".as_ref(),
-        "--json".as_ref(),
-        json.as_os_str(),
-    ]));
+    let text = stdout_of_success(&metrics(
+        &a,
+        &b,
+        &[
+            "--orbit",
+            "8",
+            "--size",
+            "64",
+            "--mask-box",
+            "0.3,-2,-2,2,2,2",
+            "--json",
+            s(&json),
+        ],
+    ));
     assert!(text.contains("cross-view error, source renders"), "{text}");
     assert!(text.contains("preservation, outside the mask"), "{text}");
     let v: serde_json::Value =
@@ -91,18 +100,11 @@ fn identical_scenes_are_perfectly_preserved() {
     let dir = tempfile::tempdir().unwrap();
     let (a, _) = scenes(dir.path());
     let json = dir.path().join("m.json");
-    stdout_of_success(&vcedit(&[
-        "--source".as_ref(),
-        a.as_os_str(),
-        "--edited".as_ref(),
-        a.as_os_str(),
-        "--orbit".as_ref(),
-        "4".as_ref(),
-        "--size".as_ref(),
-        "48".as_ref(),
-        "--json".as_ref(),
-        json.as_os_str(),
-    ]));
+    stdout_of_success(&metrics(
+        &a,
+        &a,
+        &["--orbit", "4", "--size", "48", "--json", s(&json)],
+    ));
     let v: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
     let m = &v["metrics"];
@@ -118,24 +120,24 @@ fn clip_directional_similarity_with_the_tiny_fixture() {
     let (a, b) = scenes(dir.path());
     let clip = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../fixtures/clip/tiny-clip");
     let json = dir.path().join("m.json");
-    let text = stdout_of_success(&vcedit(&[
-        "--source".as_ref(),
-        a.as_os_str(),
-        "--edited".as_ref(),
-        b.as_os_str(),
-        "--orbit".as_ref(),
-        "3".as_ref(),
-        "--size".as_ref(),
-        "40".as_ref(),
-        "--clip".as_ref(),
-        clip.as_os_str(),
-        "--source-prompt".as_ref(),
-        "a photo of a man".as_ref(),
-        "--target-prompt".as_ref(),
-        "a red cat".as_ref(),
-        "--json".as_ref(),
-        json.as_os_str(),
-    ]));
+    let text = stdout_of_success(&metrics(
+        &a,
+        &b,
+        &[
+            "--orbit",
+            "3",
+            "--size",
+            "40",
+            "--clip",
+            s(&clip),
+            "--source-prompt",
+            "a photo of a man",
+            "--target-prompt",
+            "a red cat",
+            "--json",
+            s(&json),
+        ],
+    ));
     assert!(text.contains("CLIP directional similarity"), "{text}");
     let v: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
@@ -151,55 +153,34 @@ fn bad_inputs_fail_with_one_clear_line() {
     let dir = tempfile::tempdir().unwrap();
     let (a, _) = scenes(dir.path());
     let missing = dir.path().join("nope.ply");
-    let out = vcedit(&[
-        "--source".as_ref(),
-        a.as_os_str(),
-        "--edited".as_ref(),
-        missing.as_os_str(),
-        "--orbit".as_ref(),
-        "4".as_ref(),
-    ]);
+    let out = metrics(&a, &missing, &["--orbit", "4"]);
     assert_eq!(out.status.code(), Some(1));
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(err.contains("nope.ply"), "{err}");
 
     // CLIP without prompts is a usage error.
-    let out = vcedit(&[
-        "--source".as_ref(),
-        a.as_os_str(),
-        "--edited".as_ref(),
-        a.as_os_str(),
-        "--clip".as_ref(),
-        dir.path().as_os_str(),
-    ]);
+    let out = metrics(&a, &a, &["--clip", s(dir.path())]);
     assert_eq!(out.status.code(), Some(2));
 
     // A folder that is not a CLIP model is reported before any rendering.
-    let out = vcedit(&[
-        "--source".as_ref(),
-        a.as_os_str(),
-        "--edited".as_ref(),
-        a.as_os_str(),
-        "--clip".as_ref(),
-        dir.path().as_os_str(),
-        "--source-prompt".as_ref(),
-        "x".as_ref(),
-        "--target-prompt".as_ref(),
-        "y".as_ref(),
-    ]);
+    let out = metrics(
+        &a,
+        &a,
+        &[
+            "--clip",
+            s(dir.path()),
+            "--source-prompt",
+            "x",
+            "--target-prompt",
+            "y",
+        ],
+    );
     assert_eq!(out.status.code(), Some(1));
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(err.contains("CLIP") && err.contains("config.json"), "{err}");
     assert!(!err.contains("rendering"), "{err}");
 
-    let out = vcedit(&[
-        "--source".as_ref(),
-        a.as_os_str(),
-        "--edited".as_ref(),
-        a.as_os_str(),
-        "--mask-box".as_ref(),
-        "1,2,3".as_ref(),
-    ]);
+    let out = metrics(&a, &a, &["--mask-box", "1,2,3"]);
     assert_eq!(out.status.code(), Some(2));
 }
 
@@ -210,15 +191,15 @@ fn scene_options_by_their_full_names_and_json_on_stdout() {
     let dir = tempfile::tempdir().unwrap();
     let (a, b) = scenes(dir.path());
     let out = vcedit(&[
-        "--source-scene".as_ref(),
-        a.as_os_str(),
-        "--edited-scene".as_ref(),
-        b.as_os_str(),
-        "--orbit".as_ref(),
-        "4".as_ref(),
-        "--size".as_ref(),
-        "32".as_ref(),
-        "--json".as_ref(),
+        "--source-scene",
+        s(&a),
+        "--edited-scene",
+        s(&b),
+        "--orbit",
+        "4",
+        "--size",
+        "32",
+        "--json",
     ]);
     let stdout = stdout_of_success(&out);
     let v: serde_json::Value = serde_json::from_str(&stdout).expect("stdout is the JSON alone");

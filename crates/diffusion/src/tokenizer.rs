@@ -136,7 +136,8 @@ struct TokenizerConfig {
     added_tokens_decoder: HashMap<String, AddedTokenSpec>,
 }
 
-#[derive(Deserialize)]
+/// An added token as both files describe it (tokenizer.json gives its id beside it, the config as its key).
+#[derive(Deserialize, Clone)]
 struct AddedTokenSpec {
     content: String,
     #[serde(default)]
@@ -145,14 +146,22 @@ struct AddedTokenSpec {
     special: bool,
 }
 
+impl AddedTokenSpec {
+    fn with_id(self, id: u32) -> AddedToken {
+        AddedToken {
+            content: self.content,
+            id,
+            normalized: self.normalized,
+            special: self.special,
+        }
+    }
+}
+
 #[derive(Deserialize)]
 struct TokenizerJsonAdded {
     id: u32,
-    content: String,
-    #[serde(default)]
-    normalized: bool,
-    #[serde(default)]
-    special: bool,
+    #[serde(flatten)]
+    spec: AddedTokenSpec,
 }
 
 #[derive(Deserialize)]
@@ -320,12 +329,7 @@ impl ClipTokenizer {
         let added = parsed
             .added_tokens
             .into_iter()
-            .map(|t| AddedToken {
-                content: t.content,
-                id: t.id,
-                normalized: t.normalized,
-                special: t.special,
-            })
+            .map(|t| t.spec.with_id(t.id))
             .collect();
         Self::build(
             parsed.model.vocab,
@@ -380,12 +384,7 @@ impl ClipTokenizer {
         decoder_specs.sort_by_key(|(id, _)| *id);
         for (id, spec) in decoder_specs {
             if !added.iter().any(|a| a.content == spec.content) {
-                added.push(AddedToken {
-                    content: spec.content.clone(),
-                    id,
-                    normalized: spec.normalized,
-                    special: spec.special,
-                });
+                added.push(spec.clone().with_id(id));
                 next_id = next_id.max(id + 1);
             }
         }

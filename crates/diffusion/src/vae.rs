@@ -207,6 +207,26 @@ impl AutoencoderKLConfig {
     }
 }
 
+/// A block's `count` resnets (weights under `vb_block`'s `resnets.{j}`): the first from `in_ch` to
+/// `out_ch` channels, the others `out_ch` to `out_ch`.
+fn resnet_stack(
+    cfg: &AutoencoderKLConfig,
+    count: usize,
+    in_ch: usize,
+    out_ch: usize,
+    vb_block: &VarBuilder,
+) -> candle_core::Result<Vec<ResnetBlock2D>> {
+    (0..count)
+        .map(|j| {
+            let cin = if j == 0 { in_ch } else { out_ch };
+            ResnetBlock2D::load(
+                &cfg.resnet(cin, out_ch),
+                vb_block.pp(format!("resnets.{j}")),
+            )
+        })
+        .collect()
+}
+
 /// `UNetMidBlock2D` without time embedding: resnet, single-head self-attention (optional), resnet.
 #[derive(Debug, Clone)]
 struct MidBlock {
@@ -283,15 +303,7 @@ impl VaeEncoder {
         let mut in_ch = chans[0];
         for (i, &out_ch) in chans.iter().enumerate() {
             let vb_block = vb.pp(format!("down_blocks.{i}"));
-            let resnets = (0..cfg.layers_per_block)
-                .map(|j| {
-                    let cin = if j == 0 { in_ch } else { out_ch };
-                    ResnetBlock2D::load(
-                        &cfg.resnet(cin, out_ch),
-                        vb_block.pp(format!("resnets.{j}")),
-                    )
-                })
-                .collect::<candle_core::Result<Vec<_>>>()?;
+            let resnets = resnet_stack(cfg, cfg.layers_per_block, in_ch, out_ch, &vb_block)?;
             let downsample = if i + 1 < chans.len() {
                 Some(Downsample2D::load(
                     out_ch,
@@ -365,15 +377,7 @@ impl VaeDecoder {
         let mut in_ch = top;
         for (i, &out_ch) in reversed.iter().enumerate() {
             let vb_block = vb.pp(format!("up_blocks.{i}"));
-            let resnets = (0..=cfg.layers_per_block)
-                .map(|j| {
-                    let cin = if j == 0 { in_ch } else { out_ch };
-                    ResnetBlock2D::load(
-                        &cfg.resnet(cin, out_ch),
-                        vb_block.pp(format!("resnets.{j}")),
-                    )
-                })
-                .collect::<candle_core::Result<Vec<_>>>()?;
+            let resnets = resnet_stack(cfg, cfg.layers_per_block + 1, in_ch, out_ch, &vb_block)?;
             let upsample = if i + 1 < reversed.len() {
                 Some(Upsample2D::load(
                     out_ch,

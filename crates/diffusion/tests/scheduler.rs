@@ -249,6 +249,7 @@ fn add_noise_matches_diffusers() {
     let s = LcmScheduler::new(config, LcmVariant::Current).unwrap();
     for &t in &fx.reference.add_noise_timesteps {
         let got = s
+            .noise_schedule()
             .add_noise(
                 &fx.tensors["add_noise/x0"],
                 &fx.tensors["add_noise/noise"],

@@ -90,13 +90,7 @@ fn infedit_matches_the_reference_every_step() {
         let mut view = plan.initial_state(x0, &init).unwrap();
         let mut worst = 0f32;
         for i in 0..plan.timesteps.len() {
-            let eps = plan.predict(&model, &mut view, i).unwrap();
-            view.controller.end_step();
-            let n = noise.sample(&plan.latent_shape()).unwrap();
-            plan.update(&mut view, i, &eps, &n).unwrap();
-            if i > 0 {
-                plan.local_blend(&mut view, i).unwrap();
-            }
+            plan.step(&model, &mut view, i, &mut noise).unwrap();
             let ours = [
                 ("z_s", &view.z_s),
                 ("z_t", &view.z_t),
@@ -166,13 +160,7 @@ fn infedit_trace(model: &EditModel) -> Vec<Tensor> {
     let mut view = plan.initial_state(x0, &init).unwrap();
     let mut trace = Vec::new();
     for i in 0..plan.timesteps.len() {
-        let eps = plan.predict(model, &mut view, i).unwrap();
-        view.controller.end_step();
-        let n = noise.sample(&plan.latent_shape()).unwrap();
-        plan.update(&mut view, i, &eps, &n).unwrap();
-        if i > 0 {
-            plan.local_blend(&mut view, i).unwrap();
-        }
+        plan.step(model, &mut view, i, &mut noise).unwrap();
         trace.extend([
             view.z_s.clone(),
             view.z_t.clone(),

@@ -36,13 +36,7 @@ fn identical_prompts_reproduce_the_source() {
     let init = noise.sample(&plan.latent_shape()).unwrap();
     let mut view = plan.initial_state(x0.clone(), &init).unwrap();
     for i in 0..plan.timesteps.len() {
-        let eps = plan.predict(&model, &mut view, i).unwrap();
-        view.controller.end_step();
-        let n = noise.sample(&plan.latent_shape()).unwrap();
-        plan.update(&mut view, i, &eps, &n).unwrap();
-        if i > 0 {
-            plan.local_blend(&mut view, i).unwrap();
-        }
+        plan.step(&model, &mut view, i, &mut noise).unwrap();
         let err = tensor_max_abs_diff(view.pred_t.as_ref().unwrap(), &x0);
         assert!(err < 1e-4, "step {i}: x̂0_T differs from x0 by {err}");
         assert!(

@@ -32,6 +32,18 @@ impl GaussianScene {
         }
     }
 
+    /// An empty scene with the given SH degree and room for `n` Gaussians (a reader that knows its count).
+    pub fn with_capacity(sh_degree: u32, n: usize) -> Self {
+        Self {
+            sh_degree,
+            means: Vec::with_capacity(3 * n),
+            log_scales: Vec::with_capacity(3 * n),
+            quats: Vec::with_capacity(4 * n),
+            opacity_logits: Vec::with_capacity(n),
+            sh: Vec::with_capacity(3 * sh_coeffs(sh_degree) * n),
+        }
+    }
+
     pub fn len(&self) -> usize {
         self.opacity_logits.len()
     }

@@ -257,16 +257,6 @@ impl DdimScheduler {
             pred_original_sample: x0,
         })
     }
-
-    /// √ᾱ_t·x0 + √(1−ᾱ_t)·noise.
-    pub fn add_noise(
-        &self,
-        original: &Tensor,
-        noise: &Tensor,
-        t: usize,
-    ) -> Result<Tensor, SchedulerError> {
-        self.schedule.add_noise(original, noise, t)
-    }
 }
 
 #[cfg(test)]
@@ -304,7 +294,7 @@ mod tests {
         let x0 = Tensor::new(&[0.3f32, -0.2, 0.7], &dev).unwrap();
         let eps = Tensor::new(&[1.0f32, -0.5, 0.1], &dev).unwrap();
         let t = s.timesteps()[0];
-        let xt = s.add_noise(&x0, &eps, t).unwrap();
+        let xt = s.noise_schedule().add_noise(&x0, &eps, t).unwrap();
         let out = s.step(&eps, t, &xt, 0.0, false, None).unwrap();
         let got = out.pred_original_sample.to_vec1::<f32>().unwrap();
         for (g, e) in got.iter().zip([0.3f32, -0.2, 0.7]) {
@@ -312,6 +302,7 @@ mod tests {
         }
         // The next sample is the same x0 noised to the previous timestep with the same noise.
         let expected = s
+            .noise_schedule()
             .add_noise(&x0, &eps, t - 100)
             .unwrap()
             .to_vec1::<f32>()

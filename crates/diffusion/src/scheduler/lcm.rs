@@ -343,16 +343,6 @@ impl LcmScheduler {
         Some(hits.next().unwrap_or(first))
     }
 
-    /// √ᾱ_t·x0 + √(1−ᾱ_t)·noise.
-    pub fn add_noise(
-        &self,
-        original: &Tensor,
-        noise: &Tensor,
-        t: usize,
-    ) -> Result<Tensor, SchedulerError> {
-        self.schedule.add_noise(original, noise, t)
-    }
-
     fn timestep_at(&self, step_index: usize) -> Result<usize, SchedulerError> {
         self.timesteps.get(step_index).copied().ok_or_else(|| {
             SchedulerError::Usage(format!(

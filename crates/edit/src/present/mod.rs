@@ -6,6 +6,25 @@ pub mod report;
 pub mod viewer;
 pub mod viz;
 
+use maud::{html, Markup, PreEscaped, DOCTYPE};
+
+/// A standalone HTML page: its title, its style sheet and its body.
+fn html_page(title: &str, css: &str, body: Markup) -> String {
+    html! {
+        (DOCTYPE)
+        html lang="en" {
+            head {
+                meta charset="utf-8";
+                meta name="viewport" content="width=device-width, initial-scale=1";
+                title { (title) }
+                style { (PreEscaped(css)) }
+            }
+            body { (body) }
+        }
+    }
+    .into_string()
+}
+
 /// "1 view", "2 views": a count with its noun in the right number.
 pub fn count(n: usize, singular: &str, plural: &str) -> String {
     format!("{n} {}", if n == 1 { singular } else { plural })

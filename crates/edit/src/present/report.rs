@@ -15,7 +15,7 @@ use std::collections::BTreeMap;
 use std::fmt::Write as _;
 use std::path::{Component, Path, PathBuf};
 
-use maud::{html, Markup, PreEscaped, DOCTYPE};
+use maud::{html, Markup, PreEscaped};
 use serde::{Deserialize, Serialize};
 
 use crate::eval::clip_score::ClipDirectionalReport;
@@ -703,34 +703,26 @@ fn page_html(
     } else {
         &data.title
     };
-    html! {
-        (DOCTYPE)
-        html lang="en" {
-            head {
-                meta charset="utf-8";
-                meta name="viewport" content="width=device-width, initial-scale=1";
-                title { (title) }
-                style { (PreEscaped(CSS)) }
+    super::html_page(
+        title,
+        CSS,
+        html! {
+            (page.header(data, title))
+            @if let Some(v) = viewer {
+                h2 { "Explore in 3D" }
+                (v)
             }
-            body {
-                (page.header(data, title))
-                @if let Some(v) = viewer {
-                    h2 { "Explore in 3D" }
-                    (v)
-                }
-                (page.turntable(&data.turntable))
-                (page.before_after(&data.views))
-                (page.metrics(&data.metrics, &data.runs))
-                (page.iterations(&data.iterations))
-                (page.attention(&data.attention, &data.masks))
-                (page.timings(&data.timings))
-                (page.settings(&data.settings))
-                p.muted { "Written by vcedit " (env!("CARGO_PKG_VERSION")) "." }
-                script { (PreEscaped(BROKEN_IMAGE_CHECK)) }
-            }
-        }
-    }
-    .into_string()
+            (page.turntable(&data.turntable))
+            (page.before_after(&data.views))
+            (page.metrics(&data.metrics, &data.runs))
+            (page.iterations(&data.iterations))
+            (page.attention(&data.attention, &data.masks))
+            (page.timings(&data.timings))
+            (page.settings(&data.settings))
+            p.muted { "Written by vcedit " (env!("CARGO_PKG_VERSION")) "." }
+            script { (PreEscaped(BROKEN_IMAGE_CHECK)) }
+        },
+    )
 }
 
 /// Writes `dir/report.html` atomically and returns its path.

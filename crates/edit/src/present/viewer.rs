@@ -16,7 +16,7 @@
 
 use std::path::Path;
 
-use maud::{html, Markup, PreEscaped, DOCTYPE};
+use maud::{html, Markup, PreEscaped};
 use serde::Serialize;
 use splat::cameras::orbit::{focus_point, look_at};
 use splat::cameras::{orbit_cameras, robust_bounds, OrbitSettings};
@@ -538,22 +538,15 @@ pub fn viewer_page(
 }
 
 fn page(title: &str, viewer: Markup) -> String {
-    html! {
-        (DOCTYPE)
-        html lang="en" {
-            head {
-                meta charset="utf-8";
-                meta name="viewport" content="width=device-width, initial-scale=1";
-                title { (title) }
-                style { (PreEscaped("body{margin:0;padding:20px 28px;font:15px/1.45 system-ui,sans-serif;color:#1d2327;background:#fbfbfa}h1{font-size:20px;margin:0 0 10px}")) }
-            }
-            body {
-                h1 { (title) }
-                (viewer)
-            }
-        }
-    }
-    .into_string()
+    let css = "body{margin:0;padding:20px 28px;font:15px/1.45 system-ui,sans-serif;color:#1d2327;background:#fbfbfa}h1{font-size:20px;margin:0 0 10px}";
+    super::html_page(
+        title,
+        css,
+        html! {
+            h1 { (title) }
+            (viewer)
+        },
+    )
 }
 
 /// Writes [`viewer_page`] to `path` atomically; returns what it embeds of each scene.

@@ -112,15 +112,8 @@ pub fn word_maps(
     if store.is_empty() {
         return Ok(Vec::new());
     }
-    let all = Tensor::cat(
-        &store
-            .iter()
-            .map(|(_, t)| t.to_dtype(DType::F32))
-            .collect::<Result<Vec<_>>>()?,
-        1,
-    )?;
     // [hw, tokens] of the layout branch.
-    let mean = all.mean(1)?.get(1)?;
+    let mean = crate::sampler::mean_over_layers_and_heads(store)?.get(1)?;
     let tokens = mean.dim(1)?;
     let mut maps = Vec::new();
     for (word, pos) in words_of(target_tokens) {

@@ -624,6 +624,27 @@ impl EditPlan {
         view.controller.cur_step() + self.start_steps + 1 == self.num_steps
     }
 
+    /// Step `i` of one view's edit, in the reference's order: the UNet's predictions, the controller's
+    /// step end, the update with the next noise tensor, and from the second step on the local blend (whose
+    /// maps it returns).
+    pub fn step(
+        &self,
+        model: &EditModel,
+        view: &mut ViewState,
+        i: usize,
+        noise: &mut dyn NoiseSource,
+    ) -> candle_core::Result<Option<Tensor>> {
+        let eps = self.predict(model, view, i)?;
+        view.controller.end_step();
+        let n = noise.sample(&self.latent_shape())?;
+        self.update(view, i, &eps, &n)?;
+        if i > 0 {
+            Ok(Some(self.local_blend(view, i)?))
+        } else {
+            Ok(None)
+        }
+    }
+
     /// The local blend of step `i` from the view's own attention store (InfEdit's single-image path).
     pub fn local_blend(&self, view: &mut ViewState, i: usize) -> candle_core::Result<Tensor> {
         let maps = blend_maps(
@@ -799,17 +820,12 @@ pub fn edit_image(
     on_step: &mut dyn FnMut(usize),
 ) -> candle_core::Result<EditOutcome> {
     let x0 = model.encode(image, noise)?;
-    let shape = plan.latent_shape();
-    let init = noise.sample(&shape)?;
+    let init = noise.sample(&plan.latent_shape())?;
     let mut view = plan.initial_state(x0, &init)?;
     let mut last_maps = None;
     for i in 0..plan.timesteps.len() {
-        let eps = plan.predict(model, &mut view, i)?;
-        view.controller.end_step();
-        let n = noise.sample(&shape)?;
-        plan.update(&mut view, i, &eps, &n)?;
-        if i > 0 {
-            last_maps = Some(plan.local_blend(&mut view, i)?);
+        if let Some(maps) = plan.step(model, &mut view, i, noise)? {
+            last_maps = Some(maps);
         }
         on_step(i);
     }

@@ -53,6 +53,16 @@ fn indicators(al: &TokenAlignment, tokens: usize, device: &Device) -> Result<[Te
     Ok([fit(&al.alpha_e)?, fit(&m_only)?, fit(&me)?])
 }
 
+/// The stored cross-attention maps (each [2, heads, h·w, tokens]) averaged over layers and heads:
+/// [2, h·w, tokens], in f32.
+pub(crate) fn mean_over_layers_and_heads(store: &[(String, Tensor)]) -> Result<Tensor> {
+    let maps = store
+        .iter()
+        .map(|(_, t)| t.to_dtype(DType::F32))
+        .collect::<Result<Vec<_>>>()?;
+    Tensor::cat(&maps, 1)?.mean(1)
+}
+
 /// The blend maps `[3, H, W]` (e, m, me) at latent size `(H, W)` from a blend store
 /// (`[2, heads, h*w, tokens]` per layer, all layers of the same h×w), each divided by (its max + `eps`).
 /// The reference uses eps = 0 for InfEdit's masks and 1e-6 when it makes the maps consistent (VcEdit).
@@ -69,14 +79,7 @@ pub fn blend_maps(
         return Tensor::zeros((3, lh, lw), DType::F32, &device);
     }
     // Average over layers and heads: [2, h*w, tokens].
-    let all = Tensor::cat(
-        &store
-            .iter()
-            .map(|(_, t)| t.to_dtype(DType::F32))
-            .collect::<Result<Vec<_>>>()?,
-        1,
-    )?;
-    let mean = all.mean(1)?;
+    let mean = mean_over_layers_and_heads(store)?;
     let tokens = mean.dim(D::Minus1)?;
     let [ind_e, ind_m, ind_me] = indicators(alignment, tokens, &device)?;
     // Word tokens of the target: 1 .. len−1 (SOT and EOT excluded).

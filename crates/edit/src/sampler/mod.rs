@@ -27,4 +27,4 @@ pub use local_blend::BlendThresholds;
 pub use model::{image_to_tensor, tensor_to_images, EditModel, ModelError};
 pub use noise::{NoiseSource, RecordedNoise, SeededNoise};
 
-pub(crate) use local_blend::blend_maps;
+pub(crate) use local_blend::{blend_maps, mean_over_layers_and_heads};

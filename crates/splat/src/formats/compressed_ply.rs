@@ -258,14 +258,7 @@ pub fn decode(bytes: &[u8]) -> Result<GaussianScene, String> {
 
     let n = n as usize;
     let k = sh_coeffs(sh_degree);
-    let mut scene = GaussianScene {
-        sh_degree,
-        means: Vec::with_capacity(3 * n),
-        log_scales: Vec::with_capacity(3 * n),
-        quats: Vec::with_capacity(4 * n),
-        opacity_logits: Vec::with_capacity(n),
-        sh: Vec::with_capacity(3 * k * n),
-    };
+    let mut scene = GaussianScene::with_capacity(sh_degree, n);
     for (c, chunk_bytes) in chunks.chunks_exact(chunk_row).enumerate() {
         let b: Vec<f32> = box_cols.iter().map(|&o| f32_at(chunk_bytes, o)).collect();
         let colour: Option<Vec<f32>> = colour_cols

@@ -223,14 +223,7 @@ fn decode_with(
         }
     };
     let k = sh_coeffs(sh_degree);
-    let mut scene = GaussianScene {
-        sh_degree,
-        means: Vec::with_capacity(3 * n),
-        log_scales: Vec::with_capacity(3 * n),
-        quats: Vec::with_capacity(4 * n),
-        opacity_logits: Vec::with_capacity(n),
-        sh: Vec::with_capacity(3 * k * n),
-    };
+    let mut scene = GaussianScene::with_capacity(sh_degree, n);
     let code = |book: &[f32], i: u8, what: &str, g: usize| -> Result<f32, String> {
         book.get(usize::from(i)).copied().ok_or_else(|| {
             format!(

@@ -287,26 +287,20 @@ fn reads_a_compressed_ply_built_from_the_specification() {
     // Two Gaussians in one chunk, with the per-chunk colour box and an SH degree 1 element.
     let mut bytes =
         b"ply\nformat binary_little_endian 1.0\ncomment made by hand\nelement chunk 1\n".to_vec();
-    let chunk_props = [
-        "min_x",
-        "min_y",
-        "min_z",
-        "max_x",
-        "max_y",
-        "max_z",
-        "min_scale_x",
-        "min_scale_y",
-        "min_scale_z",
-        "max_scale_x",
-        "max_scale_y",
-        "max_scale_z",
-        "min_r",
-        "min_g",
-        "min_b",
-        "max_r",
-        "max_g",
-        "max_b",
-    ];
+    // The chunk element's 18 floats: the position box, the scale box (min_x, .., max_z, min_scale_x,
+    // .., max_scale_z), then the colour box (min_r, .., max_b).
+    let mut chunk_props = Vec::new();
+    for (what, axes) in [
+        ("", ["x", "y", "z"]),
+        ("scale_", ["x", "y", "z"]),
+        ("", ["r", "g", "b"]),
+    ] {
+        for bound in ["min", "max"] {
+            for axis in axes {
+                chunk_props.push(format!("{bound}_{what}{axis}"));
+            }
+        }
+    }
     for p in chunk_props {
         bytes.extend_from_slice(format!("property float {p}\n").as_bytes());
     }

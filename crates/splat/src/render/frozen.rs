@@ -299,12 +299,7 @@ mod tests {
                 assert_eq!(full.radii, kept.radii);
                 assert_eq!(full.state.bins.ids, kept.state.bins.ids);
                 let grad: Vec<f32> = full.rgb.iter().map(|v| v - 0.4).collect();
-                let out_grads = OutputGrads {
-                    rgb: &grad,
-                    alpha: None,
-                    depth: None,
-                    extra: None,
-                };
+                let out_grads = OutputGrads::rgb_only(&grad);
                 let g = render_backward(&scene, &cam, &settings, None, &full, &out_grads);
                 let a = render_backward_appearance(&scene, &cam, &settings, &kept, &out_grads);
                 assert!(g.opacity_logits.iter().any(|v| *v != 0.0));

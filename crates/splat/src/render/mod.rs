@@ -149,6 +149,18 @@ pub struct OutputGrads<'a> {
     pub extra: Option<&'a [f32]>,
 }
 
+impl<'a> OutputGrads<'a> {
+    /// Gradients of the colour alone (a loss on the image only).
+    pub fn rgb_only(rgb: &'a [f32]) -> Self {
+        Self {
+            rgb,
+            alpha: None,
+            depth: None,
+            extra: None,
+        }
+    }
+}
+
 /// Gradients with respect to the scene parameters (same layouts as [`GaussianScene`]).
 #[derive(Clone, Debug, Default)]
 pub struct SceneGrads {
@@ -769,12 +781,7 @@ mod tests {
             &settings,
             None,
             &out,
-            &OutputGrads {
-                rgb: &vec![1.0; 20 * 7 * 3],
-                alpha: None,
-                depth: None,
-                extra: None,
-            },
+            &OutputGrads::rgb_only(&vec![1.0; 20 * 7 * 3]),
         );
         assert!(g.means.is_empty() && g.means2d.is_empty());
     }
@@ -859,12 +866,7 @@ mod tests {
             channels: 2,
         };
         let rgb_grad = vec![0.7; 24 * 20 * 3];
-        let grads = OutputGrads {
-            rgb: &rgb_grad,
-            alpha: None,
-            depth: None,
-            extra: None,
-        };
+        let grads = OutputGrads::rgb_only(&rgb_grad);
         let with = render(&s, &cam, &settings, Some(extra));
         assert_eq!(with.extra.len(), 24 * 20 * 2);
         let g_with = render_backward(&s, &cam, &settings, Some(extra), &with, &grads);

@@ -289,6 +289,10 @@ mod tests {
             .iter()
             .map(|c| render(&target_scene, c, &settings, None).rgb.clone())
             .collect();
+        let cpu_trainer = |loss: &L1| {
+            let targets = targets.iter().map(|t| t.as_slice());
+            Trainer::new(&SplatDevice::Cpu, loss, targets, settings.background)
+        };
         let fit = |freeze: bool| {
             let mut state = TrainState::new(scene.clone(), LearningRates::inria(100), 1.0);
             state.trainable = Some((0..scene.len()).map(|i| i % 2 == 0).collect());
@@ -296,12 +300,7 @@ mod tests {
                 state.adam.group_lr_scale[g.index()] = 0.0;
             }
             let mut loss = L1(&targets);
-            let mut trainer = Trainer::new(
-                &SplatDevice::Cpu,
-                &loss,
-                targets.iter().map(|t| t.as_slice()),
-                settings.background,
-            );
+            let mut trainer = cpu_trainer(&loss);
             if freeze {
                 trainer.freeze_geometry();
             }
@@ -341,12 +340,7 @@ mod tests {
         // With a position rate the frozen trainer runs the full pass.
         let mut state = TrainState::new(scene.clone(), LearningRates::inria(100), 1.0);
         let mut loss = L1(&targets);
-        let mut trainer = Trainer::new(
-            &SplatDevice::Cpu,
-            &loss,
-            targets.iter().map(|t| t.as_slice()),
-            settings.background,
-        );
+        let mut trainer = cpu_trainer(&loss);
         trainer.freeze_geometry();
         let kind = StepKind::Ordinary {
             track_stats: false,

@@ -21,6 +21,29 @@ mod kernel {
     pub const ATTENTION_QUERIES: u32 = 32;
     pub const ATTENTION_KEYS: u32 = 16;
 
+    /// Rows `key0..key0 + ATTENTION_KEYS` of one batch entry's keys or values (`src` rows of `width`, the
+    /// entry's first at `first_row`) into `tile`, zeros past `k_len`; the cube's units share the loads.
+    #[cube]
+    fn load_key_tile(
+        src: &[f32],
+        tile: &mut Shared<[f32]>,
+        first_row: u32,
+        key0: u32,
+        k_len: u32,
+        #[comptime] width: u32,
+    ) {
+        let mut e = UNIT_POS_X;
+        while e < comptime!(ATTENTION_KEYS) * width {
+            let key = key0 + e / width;
+            tile[e as usize] = if key < k_len {
+                src[((first_row + key0) * width + e) as usize]
+            } else {
+                0.0f32
+            };
+            e += comptime!(ATTENTION_QUERIES);
+        }
+    }
+
     /// Memory-efficient attention `softmax(q kᵀ · scale) v` that never stores the probabilities: q [batch,
     /// q_len, d], k [batch, k_len, d], v [batch, k_len, dv]. A cube handles `ATTENTION_QUERIES` query rows of
     /// one batch entry (one unit per row); key/value tiles of `ATTENTION_KEYS` rows go through shared memory
@@ -69,26 +92,8 @@ mod kernel {
         for t in 0..tiles {
             let key0 = t * tile;
             // Cooperative loads of the key and value tiles (zeros past k_len).
-            let mut e = UNIT_POS_X;
-            while e < tile * d {
-                let key = key0 + e / d;
-                sk[e as usize] = if key < k_len {
-                    k[((batch * k_len + key0) * d + e) as usize]
-                } else {
-                    0.0f32
-                };
-                e += queries;
-            }
-            e = UNIT_POS_X;
-            while e < tile * dv {
-                let key = key0 + e / dv;
-                sv[e as usize] = if key < k_len {
-                    v[((batch * k_len + key0) * dv + e) as usize]
-                } else {
-                    0.0f32
-                };
-                e += queries;
-            }
+            load_key_tile(k, &mut sk, batch * k_len, key0, k_len, d);
+            load_key_tile(v, &mut sv, batch * k_len, key0, k_len, dv);
             sync_cube();
             let mut tile_max = floor;
             #[unroll]

@@ -125,15 +125,7 @@ pub fn conv2d(
     }
     if kh == 1 && kw == 1 && stride == 1 && padding == 0 {
         // A pointwise convolution: the image [cin, h·w] is its own im2col matrix.
-        let g = Gemm {
-            batch: n,
-            m: cout,
-            n: h * w,
-            k: cin,
-            a_strides: [0, cin, 1],
-            b_strides: [cin * h * w, h * w, 1],
-            alpha: 1.0,
-        };
+        let g = Gemm::shared_weight(n, cout, h * w, cin);
         let product = |bias: GemmBias, residual: Option<&GpuTensor>| {
             gemm(weight, x, bias, residual, &g, vec![n, cout, h * w])
         };
@@ -482,15 +474,7 @@ pub(super) fn conv2d_blocked(
             ow,
         };
         let cols = im2col(x, &window, half)?;
-        let g = Gemm {
-            batch: images,
-            m: cout,
-            n: rows * ow,
-            k: depth,
-            a_strides: [0, depth, 1],
-            b_strides: [depth * rows * ow, rows * ow, 1],
-            alpha: 1.0,
-        };
+        let g = Gemm::shared_weight(images, cout, rows * ow, depth);
         gemm(
             weight,
             &cols,

@@ -262,6 +262,22 @@ pub(super) struct Gemm {
     pub(super) alpha: f32,
 }
 
+impl Gemm {
+    /// One weight `A` [m, k] against each of `batch` contiguous matrices `B[b]` [k, n] (a convolution:
+    /// the filters against each image's columns).
+    pub(super) fn shared_weight(batch: usize, m: usize, n: usize, k: usize) -> Self {
+        Gemm {
+            batch,
+            m,
+            n,
+            k,
+            a_strides: [0, k, 1],
+            b_strides: [k * n, n, 1],
+            alpha: 1.0,
+        }
+    }
+}
+
 /// Bias of a product: none, one per output column (linear), one per output row (convolution), one per
 /// output row of each matrix of the batch ([batch·m]: a convolution's bias with a time embedding folded in).
 #[derive(Clone, Copy)]

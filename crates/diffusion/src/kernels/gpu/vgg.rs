@@ -13,10 +13,11 @@ mod kernel {
 
     use super::super::launch::linear_pos;
 
-    /// 2×2 max-pool, stride 2, floor mode, over NCHW planes `h`×`w` into `oh`×`ow`; one unit per output
+    /// 2×2 max-pool, stride 2, floor mode, over NCHW planes `h`×`w` into `h/2`×`w/2`; one unit per output
     /// value.
     #[cube(launch_unchecked)]
-    pub fn max_pool2x2(x: &[f32], out: &mut [f32], h: u32, w: u32, oh: u32, ow: u32) {
+    pub fn max_pool2x2(x: &[f32], out: &mut [f32], h: u32, w: u32) {
+        let (oh, ow) = (h / 2, w / 2);
         let i = linear_pos();
         if (i as usize) < out.len() {
             let plane = i / (oh * ow);
@@ -31,15 +32,8 @@ mod kernel {
     /// The input gradient of [`max_pool2x2`] (same sizes): one unit per input value, which receives its
     /// window's pooled gradient when it is the window's first maximum (row-major order, as torch), else 0.
     #[cube(launch_unchecked)]
-    pub fn max_pool2x2_backward(
-        x: &[f32],
-        grad: &[f32],
-        out: &mut [f32],
-        h: u32,
-        w: u32,
-        oh: u32,
-        ow: u32,
-    ) {
+    pub fn max_pool2x2_backward(x: &[f32], grad: &[f32], out: &mut [f32], h: u32, w: u32) {
+        let (oh, ow) = (h / 2, w / 2);
         let i = linear_pos();
         if (i as usize) < out.len() {
             let plane = i / (h * w);
@@ -168,7 +162,7 @@ fn nchw(x: &GpuTensor, op: &str) -> Result<(usize, usize, usize, usize)> {
 /// 2×2 max-pool, stride 2, floor mode (`kernels::vgg::max_pool2x2`).
 pub fn max_pool2x2(x: &GpuTensor) -> Result<GpuTensor> {
     let (n, c, h, w) = nchw(x, "max_pool2x2")?;
-    let sizes = u32_args([h, w, h / 2, w / 2])?;
+    let sizes = u32_args([h, w])?;
     let out = x.empty_like_device(vec![n, c, h / 2, w / 2]);
     // SAFETY: every output window lies inside its input plane (floor mode); bound-checked against out.
     unsafe {
@@ -180,8 +174,6 @@ pub fn max_pool2x2(x: &GpuTensor) -> Result<GpuTensor> {
             out.arg(),
             sizes[0],
             sizes[1],
-            sizes[2],
-            sizes[3],
         )
     };
     Ok(out)
@@ -197,7 +189,7 @@ pub fn max_pool2x2_backward(x: &GpuTensor, grad: &GpuTensor) -> Result<GpuTensor
             x.dims()
         );
     }
-    let sizes = u32_args([h, w, h / 2, w / 2])?;
+    let sizes = u32_args([h, w])?;
     let out = x.empty_like_device(x.dims().to_vec());
     // SAFETY: one unit per input value; windows and pooled indices are inside x and grad.
     unsafe {
@@ -210,8 +202,6 @@ pub fn max_pool2x2_backward(x: &GpuTensor, grad: &GpuTensor) -> Result<GpuTensor
             out.arg(),
             sizes[0],
             sizes[1],
-            sizes[2],
-            sizes[3],
         )
     };
     Ok(out)

@@ -5,7 +5,8 @@ use ::gpu::cubecl;
 use cubecl::prelude::*;
 
 use crate::render::gpu::raster::{
-    add_to_bits, cube_busy, falloff, load_batch, MIN_BATCH, STAGE_BITS, STAGE_FLOAT,
+    add_to_bits, cube_busy, falloff, load_batch, tile_range, unit_pixels, MIN_BATCH, STAGE_BITS,
+    STAGE_FLOAT,
 };
 use crate::render::{ALPHA_MAX, ALPHA_MIN, TILE, T_MIN};
 
@@ -26,8 +27,8 @@ fn front_to_back(
     #[comptime] ppu: u32,
 ) -> u32 {
     let np = comptime!(ppu as usize);
-    let fx = (CUBE_POS_X * TILE + UNIT_POS_X) as f32 + 0.5;
-    let py0 = CUBE_POS_Y * TILE + UNIT_POS_Y * ppu;
+    let (px, py0) = unit_pixels(ppu);
+    let fx = px as f32 + 0.5;
     let mx = batch[s];
     let my = batch[s + 1];
     let ca = batch[s + 2];
@@ -81,11 +82,8 @@ pub fn lift_accumulate(
     let units = comptime!(TILE * TILE / ppu);
     let np = comptime!(ppu as usize);
     let c = channels as usize;
-    let tile = (CUBE_POS_Y * tiles_x + CUBE_POS_X) as usize;
-    let start = tile_start[tile];
-    let count = tile_end[tile] - start;
-    let px = CUBE_POS_X * TILE + UNIT_POS_X;
-    let py0 = CUBE_POS_Y * TILE + UNIT_POS_Y * ppu;
+    let (start, count) = tile_range(tile_start, tile_end, tiles_x);
+    let (px, py0) = unit_pixels(ppu);
 
     let mut pix = Array::<u32>::new(np);
     let mut done = Array::<u32>::new(np);
@@ -202,11 +200,8 @@ pub fn lift_accumulate_grid(
     let np = comptime!(ppu as usize);
     let cells = comptime!(span * span);
     let c = channels as usize;
-    let tile = (CUBE_POS_Y * tiles_x + CUBE_POS_X) as usize;
-    let start = tile_start[tile];
-    let count = tile_end[tile] - start;
-    let px = CUBE_POS_X * TILE + UNIT_POS_X;
-    let py0 = CUBE_POS_Y * TILE + UNIT_POS_Y * ppu;
+    let (start, count) = tile_range(tile_start, tile_end, tiles_x);
+    let (px, py0) = unit_pixels(ppu);
 
     // Every pixel of the tile reads cells in [base, base + span) on each axis (the host checked `span`).
     let (xbase, _, _, _) = axis_cells(CUBE_POS_X * TILE, width, grid_w, scale_x, bilinear);

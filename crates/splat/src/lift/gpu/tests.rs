@@ -4,10 +4,51 @@
 
 use super::*;
 use crate::cameras::orbit::look_at;
+use crate::lift::{MapGrid, Resample};
 use crate::render::gpu::raster::{STAGE_BITS, STAGE_FLOAT};
 use crate::render::gpu::tests::{random_scene, rel_err, three_views};
 use crate::render::{self, ExtraChannels};
 use ::gpu::testing::context_or_skip;
+
+/// A grid of `channels`-channel maps, resampled both ways with `mode`.
+fn map_grid(height: usize, width: usize, channels: usize, mode: Resample) -> MapGrid {
+    MapGrid {
+        height,
+        width,
+        channels,
+        up: mode,
+        down: mode,
+    }
+}
+
+/// One map of `len` values per view, a pattern that differs between views, less `offset`.
+fn patterned_maps(views: usize, len: usize, offset: f32) -> Vec<Vec<f32>> {
+    (0..views)
+        .map(|k| {
+            (0..len)
+                .map(|i| ((i * 7 + k * 3) % 11) as f32 / 10.0 - offset)
+                .collect()
+        })
+        .collect()
+}
+
+/// The maps a lifting round renders back, one per view: `round` reads each view's map from `maps`.
+fn rendered_back(
+    views: usize,
+    maps: impl Fn(usize) -> Vec<f32>,
+    round: impl FnOnce(
+        &mut dyn FnMut(usize) -> Result<Vec<f32>, GpuError>,
+        &mut dyn FnMut(usize, Vec<f32>) -> Result<(), GpuError>,
+    ) -> Result<(), GpuError>,
+) -> Vec<Vec<f32>> {
+    let mut back = vec![Vec::new(); views];
+    round(&mut |v| Ok(maps(v)), &mut |v, m| {
+        back[v] = m;
+        Ok(())
+    })
+    .unwrap();
+    back
+}
 
 /// GPU lifting against `crate::lift::lift` on a constructed scene with three views.
 #[test]
@@ -18,13 +59,7 @@ fn lifting_matches_the_cpu() {
     let scene = random_scene(300, 0, 5);
     let channels = 3;
     let cams = three_views();
-    let maps: Vec<Vec<f32>> = (0..3)
-        .map(|k| {
-            (0..40 * 34 * channels)
-                .map(|i| ((i * 7 + k * 3) % 11) as f32 / 10.0)
-                .collect()
-        })
-        .collect();
+    let maps = patterned_maps(3, 40 * 34 * channels, 0.0);
     let refs: Vec<&[f32]> = maps.iter().map(|m| &m[..]).collect();
     let want = crate::lift::lift(&scene, &cams, &refs, channels);
     let got = super::lift(&ctx, &scene, &cams, &refs, channels).unwrap();
@@ -55,7 +90,6 @@ fn lifting_matches_the_cpu() {
 /// compiler has.
 #[test]
 fn lifting_through_the_grid_matches_lifting_per_pixel() {
-    use crate::lift::{MapGrid, Resample};
     let Some(ctx) = context_or_skip() else {
         return;
     };
@@ -72,25 +106,13 @@ fn lifting_through_the_grid_matches_lifting_per_pixel() {
             .collect();
         for (gh, gw) in [(9, 10), (16, 16), (5, 3)] {
             for mode in [Resample::Bilinear, Resample::Nearest] {
-                let grid = MapGrid {
-                    height: gh,
-                    width: gw,
-                    channels: 7,
-                    up: mode,
-                    down: mode,
-                };
+                let grid = map_grid(gh, gw, 7, mode);
                 if super::grid_span(h as usize, gh, mode).is_none()
                     || super::grid_span(w as usize, gw, mode).is_none()
                 {
                     continue;
                 }
-                let maps: Vec<Vec<f32>> = (0..cams.len())
-                    .map(|k| {
-                        (0..grid.len())
-                            .map(|i| ((i * 7 + k * 3) % 11) as f32 / 10.0 - 0.3)
-                            .collect()
-                    })
-                    .collect();
+                let maps = patterned_maps(cams.len(), grid.len(), 0.3);
                 let want = super::lift_on_grid(&ctx, &scene, &cams, &maps, &grid, None).unwrap();
                 assert!(want.counts.iter().filter(|&&c| c > 0.0).count() > 50);
                 let scale = want.values.iter().fold(0f32, |m, v| m.max(v.abs()));
@@ -120,7 +142,7 @@ fn lifting_through_the_grid_matches_lifting_per_pixel() {
 /// The resampling kernel against `crate::lift::resample`: up and down, integer and odd ratios, both modes.
 #[test]
 fn resampling_on_the_device_matches_the_cpu() {
-    use crate::lift::{resample, Resample};
+    use crate::lift::resample;
     let Some(ctx) = context_or_skip() else {
         return;
     };
@@ -155,42 +177,20 @@ fn resampling_on_the_device_matches_the_cpu() {
 #[test]
 fn lifting_and_rendering_back_matches_the_cpu() {
     use crate::device::SplatDevice;
-    use crate::lift::{MapGrid, Resample};
     let Some(ctx) = context_or_skip() else {
         return;
     };
     let scene = random_scene(300, 0, 5);
     let cams = three_views();
     for mode in [Resample::Bilinear, Resample::Nearest] {
-        let grid = MapGrid {
-            height: 9,
-            width: 10,
-            channels: 5,
-            up: mode,
-            down: mode,
-        };
-        let maps: Vec<Vec<f32>> = (0..3)
-            .map(|k| {
-                (0..grid.len())
-                    .map(|i| ((i * 7 + k * 3) % 11) as f32 / 10.0)
-                    .collect()
-            })
-            .collect();
-        let round = |device: &SplatDevice| -> Vec<Vec<f32>> {
-            let mut back = vec![Vec::new(); cams.len()];
-            device
-                .lift_and_render_back::<GpuError>(
-                    &scene,
-                    &cams,
-                    &grid,
-                    &mut |v| Ok(maps[v].clone()),
-                    &mut |v, m| {
-                        back[v] = m;
-                        Ok(())
-                    },
-                )
-                .unwrap();
-            back
+        let grid = map_grid(9, 10, 5, mode);
+        let maps = patterned_maps(3, grid.len(), 0.0);
+        let round = |device: &SplatDevice| {
+            rendered_back(
+                cams.len(),
+                |v| maps[v].clone(),
+                |map_of, sink| device.lift_and_render_back(&scene, &cams, &grid, map_of, sink),
+            )
         };
         let want = round(&SplatDevice::Cpu);
         let got = round(&SplatDevice::Gpu(ctx.clone()));
@@ -209,7 +209,6 @@ fn lifting_and_rendering_back_matches_the_cpu() {
 /// sparse render-back leaves the channels zero.
 #[test]
 fn the_render_back_is_right_where_the_grid_reads_it() {
-    use crate::lift::{MapGrid, Resample};
     let Some(ctx) = context_or_skip() else {
         return;
     };
@@ -234,13 +233,7 @@ fn the_render_back_is_right_where_the_grid_reads_it() {
     let cpu = render::render(&scene, &cam, &RenderSettings::default(), Some(extra)).frame;
     assert!(cpu.extra.iter().filter(|&&v| v > 0.1).count() > cpu.extra.len() / 4);
     for mode in [Resample::Bilinear, Resample::Nearest] {
-        let grid = MapGrid {
-            height: 16,
-            width: 12,
-            channels,
-            up: mode,
-            down: mode,
-        };
+        let grid = map_grid(16, 12, channels, mode);
         for sparse in [false, true] {
             let image = render_back_pixels(&ctx, &scene, &cam, &values, &grid, sparse).unwrap();
             let rows = crate::lift::read_by_resampling(size as usize, grid.height, mode);
@@ -279,7 +272,6 @@ fn the_render_back_is_right_where_the_grid_reads_it() {
 #[test]
 fn lifting_sessions_keep_views_across_rounds() {
     use crate::device::SplatDevice;
-    use crate::lift::{MapGrid, Resample};
     let Some(ctx) = context_or_skip() else {
         return;
     };
@@ -290,58 +282,38 @@ fn lifting_sessions_keep_views_across_rounds() {
         (6, 6, 2, Resample::Nearest),
         (9, 10, 1, Resample::Bilinear),
     ]
-    .map(|(height, width, channels, mode)| MapGrid {
-        height,
-        width,
-        channels,
-        up: mode,
-        down: mode,
-    });
+    .map(|(height, width, channels, mode)| map_grid(height, width, channels, mode));
     let maps = |grid: &MapGrid, v: usize| -> Vec<f32> {
         (0..grid.len())
             .map(|i| ((i * 5 + v * 7 + grid.channels) % 13) as f32 / 12.0)
             .collect()
-    };
-    let round = |grid: &MapGrid, run: &mut dyn FnMut(&MapGrid, &mut Vec<Vec<f32>>)| {
-        let mut back = vec![Vec::new(); cams.len()];
-        run(grid, &mut back);
-        back
     };
     let mut session = GpuLiftScene::new(&ctx, &scene);
     let mut starved = GpuLiftScene::with_budget(&ctx, &scene, 0);
     let device = SplatDevice::Gpu(ctx.clone());
     for grid in &grids {
         let via = |lift: &mut GpuLiftScene| {
-            round(grid, &mut |g, back| {
-                lift.lift_and_render_back::<GpuError>(
-                    &ctx,
-                    &cams,
-                    g,
-                    &mut |v| Ok(F32Values::Host(maps(g, v))),
-                    &mut |v, m| {
-                        back[v] = device.values_on_host(m)?;
-                        Ok(())
-                    },
-                )
-                .unwrap()
-            })
+            rendered_back(
+                cams.len(),
+                |v| maps(grid, v),
+                |map_of, sink| {
+                    lift.lift_and_render_back(
+                        &ctx,
+                        &cams,
+                        grid,
+                        &mut |v| Ok(F32Values::Host(map_of(v)?)),
+                        &mut |v, m| sink(v, device.values_on_host(m)?),
+                    )
+                },
+            )
         };
         let kept = via(&mut session);
         let refused = via(&mut starved);
-        let fresh = round(grid, &mut |g, back| {
-            device
-                .lift_and_render_back::<GpuError>(
-                    &scene,
-                    &cams,
-                    g,
-                    &mut |v| Ok(maps(g, v)),
-                    &mut |v, m| {
-                        back[v] = m;
-                        Ok(())
-                    },
-                )
-                .unwrap()
-        });
+        let fresh = rendered_back(
+            cams.len(),
+            |v| maps(grid, v),
+            |map_of, sink| device.lift_and_render_back(&scene, &cams, grid, map_of, sink),
+        );
         for v in 0..cams.len() {
             assert!(fresh[v].iter().any(|&x| x > 0.05), "view {v} sees the maps");
             for other in [&kept[v], &refused[v]] {

@@ -253,12 +253,7 @@ mod tests {
                     &ctx.client,
                     &rgb.iter().map(|v| v - 0.4).collect::<Vec<_>>(),
                 );
-                let out = GpuOutputGrads {
-                    rgb: &grad,
-                    alpha: None,
-                    depth: None,
-                    extra: None,
-                };
+                let out = GpuOutputGrads::rgb_only(&grad);
                 let n = scene.len();
                 let g = render_backward_device(&ctx, &dev, &settings, None, &full, &out).unwrap();
                 let g = read_grads(&ctx, &g, n, degree, None).unwrap();

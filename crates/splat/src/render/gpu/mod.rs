@@ -355,6 +355,18 @@ pub struct GpuOutputGrads<'a> {
     pub extra: Option<&'a Handle>,
 }
 
+impl<'a> GpuOutputGrads<'a> {
+    /// Gradients of the colour alone (a loss on the image only).
+    pub fn rgb_only(rgb: &'a Handle) -> Self {
+        Self {
+            rgb,
+            alpha: None,
+            depth: None,
+            extra: None,
+        }
+    }
+}
+
 /// Parameter gradients on the device (layouts of [`SceneGrads`]); `splat` holds the per-Gaussian screen
 /// gradients (mean x, y first: the densification statistics read them).
 pub struct GpuSceneGrads {
@@ -752,12 +764,7 @@ pub fn render_with_loss<L>(
         settings,
         None,
         &frame,
-        &GpuOutputGrads {
-            rgb: &grad,
-            alpha: None,
-            depth: None,
-            extra: None,
-        },
+        &GpuOutputGrads::rgb_only(&grad),
     )?;
     let info = read_u32(c, &frame.info, INFO_U * n)?;
     let grads = read_grads(ctx, &g, n, scene.sh_degree, None)?;

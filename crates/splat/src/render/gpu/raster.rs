@@ -32,6 +32,30 @@ pub(crate) fn falloff(
     (sigma, (-sigma).exp(), dx, dy)
 }
 
+/// The cube's tile: its index in the tile lists, `tiles_x` tiles per row of the image.
+#[cube]
+pub(crate) fn cube_tile(tiles_x: u32) -> usize {
+    (CUBE_POS_Y * tiles_x + CUBE_POS_X) as usize
+}
+
+/// The cube's tile's entries of the depth-sorted list: (first entry, entry count).
+#[cube]
+pub(crate) fn tile_range(tile_start: &[u32], tile_end: &[u32], tiles_x: u32) -> (u32, u32) {
+    let tile = cube_tile(tiles_x);
+    let start = tile_start[tile];
+    (start, tile_end[tile] - start)
+}
+
+/// The unit's pixels in a tile kernel: column `px` and rows `py0..py0 + ppu` of the image (unit (x, y)
+/// of the cube owns column x, rows y·ppu.. of the tile). Returns (px, py0).
+#[cube]
+pub(crate) fn unit_pixels(#[comptime] ppu: u32) -> (u32, u32) {
+    (
+        CUBE_POS_X * TILE + UNIT_POS_X,
+        CUBE_POS_Y * TILE + UNIT_POS_Y * ppu,
+    )
+}
+
 /// Loads the tile list entries `first..first + size` into shared memory: ids into `batch_ids`, the first
 /// `fields` floats of each splat record into `batch` (`fields` per entry). Each unit loads every
 /// `units`-th entry.
@@ -133,11 +157,8 @@ pub fn raster_forward(
     let units = comptime!(TILE * TILE / ppu);
     let np = comptime!(ppu as usize);
     let c = channels as usize;
-    let tile = (CUBE_POS_Y * tiles_x + CUBE_POS_X) as usize;
-    let start = tile_start[tile];
-    let count = tile_end[tile] - start;
-    let px = CUBE_POS_X * TILE + UNIT_POS_X;
-    let py0 = CUBE_POS_Y * TILE + UNIT_POS_Y * ppu;
+    let (start, count) = tile_range(tile_start, tile_end, tiles_x);
+    let (px, py0) = unit_pixels(ppu);
     let fx = px as f32 + 0.5;
 
     // Whether each pixel composites the extra channels.
@@ -301,10 +322,8 @@ pub fn raster_backward(
     let units = comptime!(TILE * TILE / ppu);
     let np = comptime!(ppu as usize);
     let c = channels as usize;
-    let tile = (CUBE_POS_Y * tiles_x + CUBE_POS_X) as usize;
-    let start = tile_start[tile];
-    let px = CUBE_POS_X * TILE + UNIT_POS_X;
-    let py0 = CUBE_POS_Y * TILE + UNIT_POS_Y * ppu;
+    let start = tile_start[cube_tile(tiles_x)];
+    let (px, py0) = unit_pixels(ppu);
     let fx = px as f32 + 0.5;
 
     // Per-pixel state: index, contributor count, T, output gradients and what lies behind.

@@ -159,12 +159,7 @@ impl DeviceTrainer {
             settings,
             None,
             &frame,
-            &GpuOutputGrads {
-                rgb: &rgb_grad,
-                alpha: None,
-                depth: None,
-                extra: None,
-            },
+            &GpuOutputGrads::rgb_only(&rgb_grad),
         )?;
         if let Some(anchor) = &self.anchor {
             anchor.add_grad(ctx, &self.scene, &grads)?;

@@ -112,22 +112,10 @@ impl GpuAdam {
         Ok(())
     }
 
-    /// One step of every parameter (no trainable mask) with `adam`'s rates and hyper-parameters;
-    /// advances `adam`'s step count as [`Adam::step`] does.
-    #[cfg(test)]
-    pub fn step(
-        &mut self,
-        ctx: &GpuContext,
-        adam: &mut Adam,
-        scene: &GpuScene,
-        grads: &GpuSceneGrads,
-    ) -> Result<(), GpuError> {
-        self.step_masked(ctx, adam, scene, grads, None)
-    }
-
-    /// [`GpuAdam::step`] with a per-Gaussian `trainable` mask (u32 flags, N): as [`Adam::step`] with a
-    /// mask, frozen Gaussians keep their parameters and moments in the groups the mask hooks, rotations
-    /// included only when `adam.mask_rotation`.
+    /// One step of every parameter with `adam`'s rates and hyper-parameters; advances `adam`'s step count
+    /// as [`Adam::step`] does. With a per-Gaussian `trainable` mask (u32 flags, N), as [`Adam::step`]
+    /// with a mask: frozen Gaussians keep their parameters and moments in the groups the mask hooks,
+    /// rotations included only when `adam.mask_rotation`.
     pub fn step_masked(
         &mut self,
         ctx: &GpuContext,

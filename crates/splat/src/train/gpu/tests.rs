@@ -80,6 +80,44 @@ fn fit_on_the_gpu_tracks_the_cpu_fit() {
     }
 }
 
+/// Three Adam steps with `grads` from `scene`, on the CPU with `adam` and on the device with a copy of it,
+/// both with the trainable flags of `mask` (host and device copies) where given. Returns the CPU's
+/// scene and Adam, then the device's scene and Adam (its moments read back).
+fn three_adam_steps(
+    ctx: &GpuContext,
+    scene: &GaussianScene,
+    grads: &SceneGrads,
+    adam: Adam,
+    mask: Option<(&[bool], &Handle)>,
+) -> (GaussianScene, Adam, GaussianScene, Adam) {
+    let (mut cpu_scene, mut cpu, mut rates) = (scene.clone(), adam.clone(), adam);
+    let dev = GpuScene::upload(ctx, scene);
+    let mut gpu_adam = GpuAdam::new(ctx, &dev);
+    let dev_grads = upload_grads(ctx, grads);
+    for _ in 0..3 {
+        cpu.step(&mut cpu_scene, grads, mask.map(|m| m.0));
+        gpu_adam
+            .step_masked(ctx, &mut rates, &dev, &dev_grads, mask.map(|m| m.1))
+            .unwrap();
+    }
+    gpu_adam.download_into(ctx, &mut rates).unwrap();
+    (cpu_scene, cpu, dev.download(ctx).unwrap(), rates)
+}
+
+/// The parameter groups of `got` and `want` side by side, by name.
+fn parameters<'a>(
+    got: &'a GaussianScene,
+    want: &'a GaussianScene,
+) -> [(&'static str, &'a [f32], &'a [f32]); 5] {
+    [
+        ("means", &got.means, &want.means),
+        ("log_scales", &got.log_scales, &want.log_scales),
+        ("quats", &got.quats, &want.quats),
+        ("opacity", &got.opacity_logits, &want.opacity_logits),
+        ("sh", &got.sh, &want.sh),
+    ]
+}
+
 /// Three device Adam steps land where `Adam::step` does.
 #[test]
 fn adam_on_the_device_matches_the_cpu() {
@@ -88,31 +126,14 @@ fn adam_on_the_device_matches_the_cpu() {
     };
     let scene = random_scene(60, 2, 9);
     let grads = wave_grads(&scene);
-    let mut cpu_scene = scene.clone();
-    let mut cpu = Adam::new(&scene, LearningRates::inria(100), 2.0);
-    let dev = GpuScene::upload(&ctx, &scene);
-    let mut gpu_adam = GpuAdam::new(&ctx, &dev);
-    let mut gpu_rates = Adam::new(&scene, LearningRates::inria(100), 2.0);
-    let dev_grads = upload_grads(&ctx, &grads);
-    for _ in 0..3 {
-        cpu.step(&mut cpu_scene, &grads, None);
-        gpu_adam
-            .step(&ctx, &mut gpu_rates, &dev, &dev_grads)
-            .unwrap();
-    }
-    let got = dev.download(&ctx).unwrap();
-    for (name, g, w) in [
-        ("means", &got.means, &cpu_scene.means),
-        ("log_scales", &got.log_scales, &cpu_scene.log_scales),
-        ("quats", &got.quats, &cpu_scene.quats),
-        ("opacity", &got.opacity_logits, &cpu_scene.opacity_logits),
-        ("sh", &got.sh, &cpu_scene.sh),
-    ] {
+    let adam = Adam::new(&scene, LearningRates::inria(100), 2.0);
+    let (cpu_scene, cpu, got, rates) = three_adam_steps(&ctx, &scene, &grads, adam, None);
+    for (name, g, w) in parameters(&got, &cpu_scene) {
         let e = rel_err(g, w);
         assert!(e < 1e-6, "{name}: relative error {e}");
     }
     assert_ne!(got.means, scene.means);
-    assert_eq!(gpu_rates.steps(), cpu.steps());
+    assert_eq!(rates.steps(), cpu.steps());
 }
 
 /// Densification statistics accumulated on the device over two views equal `DensifyStats::add` fed with
@@ -141,12 +162,7 @@ fn densify_stats_on_the_device_match_the_cpu() {
             &settings,
             None,
             &frame,
-            &GpuOutputGrads {
-                rgb: &grad,
-                alpha: None,
-                depth: None,
-                extra: None,
-            },
+            &GpuOutputGrads::rgb_only(&grad),
         )
         .unwrap();
         on_device.add(&ctx, &frame, &g, 2).unwrap();
@@ -306,31 +322,16 @@ fn masked_adam_on_the_device_matches_the_cpu() {
     let flags: Vec<u32> = mask.iter().map(|&t| u32::from(t)).collect();
     let dev_mask = ::gpu::prims::upload_u32(&ctx.client, &flags);
     for mask_rotation in [false, true] {
-        let mut cpu_scene = scene.clone();
-        let mut cpu = Adam::new(&scene, LearningRates::gaussian_editor(100), 1.5);
-        cpu.mask_rotation = mask_rotation;
-        let mut rates = cpu.clone();
-        let dev = GpuScene::upload(&ctx, &scene);
-        let mut gpu_adam = GpuAdam::new(&ctx, &dev);
-        let dev_grads = upload_grads(&ctx, &grads);
-        for _ in 0..3 {
-            cpu.step(&mut cpu_scene, &grads, Some(&mask));
-            gpu_adam
-                .step_masked(&ctx, &mut rates, &dev, &dev_grads, Some(&dev_mask))
-                .unwrap();
-        }
-        let got = dev.download(&ctx).unwrap();
-        gpu_adam.download_into(&ctx, &mut rates).unwrap();
-        for (name, g, w) in [
-            ("means", &got.means, &cpu_scene.means),
-            ("log_scales", &got.log_scales, &cpu_scene.log_scales),
-            ("quats", &got.quats, &cpu_scene.quats),
-            ("opacity", &got.opacity_logits, &cpu_scene.opacity_logits),
-            ("sh", &got.sh, &cpu_scene.sh),
+        let mut adam = Adam::new(&scene, LearningRates::gaussian_editor(100), 1.5);
+        adam.mask_rotation = mask_rotation;
+        let (cpu_scene, cpu, got, rates) =
+            three_adam_steps(&ctx, &scene, &grads, adam, Some((&mask[..], &dev_mask)));
+        let moments: [(&str, &[f32], &[f32]); 3] = [
             ("means m", &rates.means.m, &cpu.means.m),
             ("quats v", &rates.quats.v, &cpu.quats.v),
             ("sh m", &rates.sh.m, &cpu.sh.m),
-        ] {
+        ];
+        for (name, g, w) in parameters(&got, &cpu_scene).into_iter().chain(moments) {
             let e = rel_err(g, w);
             assert!(
                 e < 1e-6,
