@@ -7,8 +7,10 @@
 //!   (runtime feature detection); elsewhere every product stays f32.
 //! - [`PackedPairs`]: a matrix in the microkernel's layout: bf16 pairs along the summed dimension k
 //!   (`vdpbf16ps` multiplies two adjacent k values per f32 lane), in panels of [`MR`] lines (the
-//!   broadcast operand) or [`NR`] lines (the vector operand). Weights are packed once and kept
-//!   ([`packed_weight`]); activations are rounded and packed per call.
+//!   broadcast operand) or [`NR`] lines (the vector operand). A model loaded while bf16 is on keeps
+//!   only its weights' pairs (`kernels::ProductWeight`); an f32 model run in bf16 (tests, paired checks)
+//!   has each weight packed once and cached beside it ([`packed_weight`]); activations are rounded and
+//!   packed per call.
 //! - [`gemm`]: `C (+)= A·B` over packed operands, tiled for the caches and parallel over output tiles.
 //!
 //! Only the products' operands are rounded to bf16 (nearest even, as the hardware conversion does). Sums,
@@ -155,26 +157,28 @@ pub(crate) fn bf16_active() -> bool {
 
 /// `x·weightᵀ + bias (+ residual)` as a bf16 product, for x [.., in], weight [out, in], bias [out] and
 /// residual of the output's shape; `None` when the products are f32 now or an operand does not suit (not
-/// f32 on the CPU, tracking gradients, a non-contiguous weight), so the caller runs its f32 path.
+/// f32 on the CPU, tracking gradients, a weight that cannot be packed), so the caller runs its f32 path.
 pub(crate) fn linear(
     x: &Tensor,
-    weight: &Tensor,
+    weight: &super::ProductWeight,
     bias: Option<&Tensor>,
     residual: Option<&Tensor>,
 ) -> candle_core::Result<Option<Tensor>> {
-    let mut operands = vec![x, weight];
+    let mut operands = vec![x];
     operands.extend(bias);
     operands.extend(residual);
     if !bf16_active()
         || !super::cpu_f32(&operands)
         || super::needs_grad(&operands)
-        || !weight.is_contiguous()
-        || weight.rank() != 2
+        || weight.dims().len() != 2
         || x.rank() < 2
     {
         return Ok(None);
     }
-    let (out_dim, in_dim) = weight.dims2()?;
+    let Some(w) = weight.packed(NR)? else {
+        return Ok(None);
+    };
+    let (out_dim, in_dim) = (weight.dims()[0], weight.dims()[1]);
     if x.dim(candle_core::D::Minus1)? != in_dim {
         candle_core::bail!(
             "linear: input {:?} does not fit weight {:?}",
@@ -202,7 +206,6 @@ pub(crate) fn linear(
         out.par_chunks_mut(out_dim)
             .for_each(|row| row.iter_mut().zip(&b).for_each(|(o, b)| *o += b));
     }
-    let w = packed_weight(weight, NR)?;
     let xs = x.flatten_all()?.to_vec1::<f32>()?;
     let a = PackedPairs::pack(&xs, rows, in_dim, in_dim, 1, MR);
     gemm(
@@ -292,9 +295,10 @@ mod tests {
         let w = Tensor::randn(0f32, 0.2, (33, 70), &dev).unwrap();
         let b = Tensor::randn(0f32, 1.0, 33, &dev).unwrap();
         let r = Tensor::randn(0f32, 1.0, (2, 45, 33), &dev).unwrap();
+        let w = super::super::ProductWeight::from(w);
         assert!(linear(&x, &w, Some(&b), None).unwrap().is_none());
         let want = x
-            .broadcast_matmul(&w.t().unwrap())
+            .broadcast_matmul(&w.tensor().unwrap().t().unwrap())
             .unwrap()
             .broadcast_add(&b)
             .unwrap();
