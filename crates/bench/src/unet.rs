@@ -20,7 +20,8 @@
 //! error against it (`rel_err`): the end-to-end cost of the GPU path's rounding (f16 operands on tensor
 //! cores, f16 weights), measured on the card itself. On the CPU with bf16 products it runs the first
 //! batch in bf16 and in f32 and reports `rel_err` and `rel_l2` (relative L2) of bf16 against f32.
-//! `--precision` on the CPU: `f32` (default) or `bf16` products (needs AVX512-BF16).
+//! `--precision` on the CPU: `bf16` products (the default where the CPU has AVX512-BF16; the model then
+//! keeps only its weights' bf16 pairs, except under `--check`) or `f32` (the default elsewhere).
 //!
 //! `--load-rss FILE` (internal): loads an SD 1.5 UNet from FILE and prints the process's peak RSS.
 
