@@ -376,7 +376,8 @@ pub fn random_weights<T, E: std::fmt::Display>(
 
 /// Opens the GPU for the networks from `--device` (default `default`) and `--precision` (default f16):
 /// `None` for `cpu`, or for `auto` without a usable GPU. On the CPU, `--precision` sets how its products
-/// run (`f32`, the default, or `bf16`; see [`diffusion::device::CpuPrecision::from_request`]).
+/// run (`bf16`, the default where the CPU has AVX512-BF16, or `f32`; see
+/// [`diffusion::device::CpuPrecision::from_request`]).
 pub fn network_device(
     args: &[String],
     default: &str,

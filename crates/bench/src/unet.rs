@@ -20,7 +20,8 @@
 //! error against it (`rel_err`): the end-to-end cost of the GPU path's rounding (f16 operands on tensor
 //! cores, f16 weights), measured on the card itself. On the CPU with bf16 products it runs the first
 //! batch in bf16 and in f32 and reports `rel_err` and `rel_l2` (relative L2) of bf16 against f32.
-//! `--precision` on the CPU: `f32` (default) or `bf16` products (needs AVX512-BF16).
+//! `--precision` on the CPU: `bf16` products (the default where the CPU has AVX512-BF16; the model then
+//! keeps only its weights' bf16 pairs, except under `--check`) or `f32` (the default elsewhere).
 //!
 //! `--load-rss FILE` (internal): loads an SD 1.5 UNet from FILE and prints the process's peak RSS.
 
@@ -80,9 +81,10 @@ fn small_config() -> UNetConfig {
 }
 
 /// Hands out deterministic pseudo-random weights (uniform, variance 1/fan_in; norm weights near 1) by name,
-/// as plain tensors so the inference path runs, and remembers them (for saving in f16).
+/// as plain tensors so the inference path runs, and remembers them when `made` is given (for saving in
+/// f16; otherwise the model holds the only copy, as a loaded model does).
 struct RandomWeights {
-    made: Mutex<HashMap<String, Tensor>>,
+    made: Option<Mutex<HashMap<String, Tensor>>>,
 }
 
 impl SimpleBackend for RandomWeights {
@@ -118,10 +120,9 @@ impl SimpleBackend for RandomWeights {
             })
             .collect();
         let t = Tensor::from_vec(data, shape, dev)?.to_dtype(dtype)?;
-        self.made
-            .lock()
-            .unwrap()
-            .insert(name.to_string(), t.clone());
+        if let Some(made) = &self.made {
+            made.lock().unwrap().insert(name.to_string(), t.clone());
+        }
         Ok(t)
     }
 
@@ -205,9 +206,13 @@ impl AttentionHook for InfEditShaped {
 }
 
 /// Builds the SD 1.5 UNet with random weights; also returns the weights by name.
-fn random_model(config: &UNetConfig) -> Result<(UNet2DConditionModel, HashMap<String, Tensor>)> {
+/// The UNet of `config` with [`RandomWeights`], and its weights by name when `keep_weights`.
+fn random_model(
+    config: &UNetConfig,
+    keep_weights: bool,
+) -> Result<(UNet2DConditionModel, HashMap<String, Tensor>)> {
     let backend = std::sync::Arc::new(RandomWeights {
-        made: Mutex::new(HashMap::new()),
+        made: keep_weights.then(|| Mutex::new(HashMap::new())),
     });
     let vb = VarBuilder::from_backend(
         Box::new(SharedBackend(backend.clone())),
@@ -215,7 +220,11 @@ fn random_model(config: &UNetConfig) -> Result<(UNet2DConditionModel, HashMap<St
         Device::Cpu,
     );
     let model = UNet2DConditionModel::load(config, vb)?;
-    let weights = std::mem::take(&mut *backend.made.lock().expect("weights lock"));
+    let weights = backend
+        .made
+        .as_ref()
+        .map(|made| std::mem::take(&mut *made.lock().expect("weights lock")))
+        .unwrap_or_default();
     Ok((model, weights))
 }
 
@@ -329,18 +338,27 @@ pub fn main(args: &[String], reexec: &[String]) -> Result<()> {
         |d| format!("{} ({} weights)", d.name(), d.precision()),
     );
     let start = Instant::now();
-    let (model, weights, which) = match &model_dir {
-        Some(dir) => (folder_model(Path::new(dir))?, None, dir.clone()),
-        None => {
-            let config = if small { small_config() } else { config() };
-            let (model, weights) = random_model(&config)?;
-            let which = if small { "small SD 1.5" } else { "SD 1.5" };
-            (
-                model,
-                Some(weights),
-                format!("{which} config, random weights"),
-            )
-        }
+    // Under bf16 products a model keeps only its weights' bf16 pairs, except for --check, which
+    // compares against f32 products over the f32 weights (so those are kept, and packed beside them).
+    let check_bf16 = device.is_none()
+        && has_flag(args, "--check")
+        && cpu_precision == diffusion::device::CpuPrecision::Bf16;
+    let load = || -> Result<(UNet2DConditionModel, bool, String)> {
+        Ok(match &model_dir {
+            Some(dir) => (folder_model(Path::new(dir))?, false, dir.clone()),
+            None => {
+                let config = if small { small_config() } else { config() };
+                let (model, _) = random_model(&config, false)?;
+                let which = if small { "small SD 1.5" } else { "SD 1.5" };
+                (model, true, format!("{which} config, random weights"))
+            }
+        })
+    };
+    let (model, random, which) = if check_bf16 {
+        diffusion::device::with_cpu_precision(diffusion::device::CpuPrecision::F32, load)
+            .map_err(BenchError::new)??
+    } else {
+        load()?
     };
     let config = model.config().clone();
     eprintln!(
@@ -487,15 +505,14 @@ pub fn main(args: &[String], reexec: &[String]) -> Result<()> {
     }
     drop(model);
 
-    let Some(weights) = weights else {
-        return Ok(());
-    };
-    if small || device.is_some() || has_flag(args, "--skip-load") {
+    if !random || small || device.is_some() || has_flag(args, "--skip-load") {
         return Ok(());
     }
     // Peak memory of loading SD 1.5 stored in f16, measured in a fresh process.
     let path = std::env::temp_dir().join("vcedit-bench-sd15-unet-f16.safetensors");
     if !path.exists() {
+        // The same weights again (they are made from their names), this time kept to be saved.
+        let (_, weights) = random_model(&config, true)?;
         let half = weights
             .iter()
             .map(|(k, v)| Ok((k.clone(), v.to_dtype(DType::F16)?)))

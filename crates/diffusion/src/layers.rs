@@ -6,18 +6,41 @@
 //! differentiable one per call, so the same blocks serve inference and training.
 
 use candle_core::{Module, Result, Tensor};
-use candle_nn::{Linear, VarBuilder};
+use candle_nn::VarBuilder;
 
 use crate::kernels;
-use crate::kernels::{Addend, DeviceTensor, Unary};
+pub use crate::kernels::Linear;
+use crate::kernels::{Addend, DeviceTensor, ProductWeight, Unary};
 
-/// Loads a `nn.Linear` (`weight` [out, in], optional `bias` [out]) under `vb`.
+/// Loads a `nn.Linear` (`weight` [out, in], optional `bias` [out]) under `vb`; its weight is kept as
+/// bf16 pairs only when the CPU's products run in bf16 ([`ProductWeight`]).
 pub fn linear(in_dim: usize, out_dim: usize, bias: bool, vb: VarBuilder) -> Result<Linear> {
-    if bias {
-        candle_nn::linear(in_dim, out_dim, vb)
+    let weight = linear_weight(in_dim, out_dim, &vb)?;
+    let bias = if bias {
+        // candle-nn's initialisation, for models trained from scratch (a VarMap).
+        let bound = 1.0 / (in_dim as f64).sqrt();
+        Some(vb.get_with_hints(
+            out_dim,
+            "bias",
+            candle_nn::Init::Uniform {
+                lo: -bound,
+                up: bound,
+            },
+        )?)
     } else {
-        candle_nn::linear_no_bias(in_dim, out_dim, vb)
-    }
+        None
+    };
+    Linear::new(weight, bias)
+}
+
+/// The f32 `weight` [out, in] of a `nn.Linear` under `vb` (for layers that stack several before
+/// keeping them).
+pub fn linear_weight(in_dim: usize, out_dim: usize, vb: &VarBuilder) -> Result<Tensor> {
+    vb.get_with_hints(
+        (out_dim, in_dim),
+        "weight",
+        candle_nn::init::DEFAULT_KAIMING_NORMAL,
+    )
 }
 
 /// Loads a square `nn.Conv2d` with bias (`weight` [out, in, k, k], `bias` [out]) under `vb`.
@@ -35,21 +58,27 @@ pub fn conv2d(
 /// A square-kernel `nn.Conv2d` (no dilation, no groups) with keys `weight` and optional `bias`.
 #[derive(Debug, Clone)]
 pub struct Conv2d {
-    weight: Tensor,
+    weight: ProductWeight,
     bias: Option<Tensor>,
     stride: usize,
     padding: usize,
 }
 
 impl Conv2d {
-    /// `weight` [out, in, k, k], `bias` [out].
-    pub fn new(weight: Tensor, bias: Option<Tensor>, stride: usize, padding: usize) -> Self {
-        Self {
-            weight,
+    /// `weight` [out, in, k, k] (kept as bf16 pairs only when the CPU's products run in bf16),
+    /// `bias` [out].
+    pub fn new(
+        weight: Tensor,
+        bias: Option<Tensor>,
+        stride: usize,
+        padding: usize,
+    ) -> Result<Self> {
+        Ok(Self {
+            weight: ProductWeight::conv(weight)?,
             bias,
             stride,
             padding,
-        }
+        })
     }
 
     /// Loads `weight` (and `bias` when `bias` is true) under `vb`.
@@ -80,7 +109,7 @@ impl Conv2d {
         } else {
             None
         };
-        Ok(Self::new(weight, bias, stride, padding))
+        Self::new(weight, bias, stride, padding)
     }
 }
 

@@ -560,7 +560,9 @@ impl Lpips {
                 } else {
                     kept(&acts, acts.len() - 1)
                 };
-                let out = src.conv2d(&layer.weight, Some(&layer.bias), 1, 1)?.relu()?;
+                let out = src
+                    .conv2d(&layer.weight.clone().into(), Some(&layer.bias), 1, 1)?
+                    .relu()?;
                 if !keep_all && j > 0 {
                     // Within a stage only the last output is a tap.
                     *acts.last_mut().expect("a previous conv") = None;
@@ -738,10 +740,12 @@ impl Lpips {
             }
             for conv in (first..=tap).rev() {
                 let layer = &self.convs[conv];
-                grad =
-                    kept(&acts, conv)
-                        .relu_backward(&grad)?
-                        .conv2d(&layer.adjoint, None, 1, 1)?;
+                grad = kept(&acts, conv).relu_backward(&grad)?.conv2d(
+                    &layer.adjoint.clone().into(),
+                    None,
+                    1,
+                    1,
+                )?;
             }
             acts.truncate(first);
             upstream = Some(grad);

@@ -205,15 +205,19 @@ fn tiny_ip2p_from_f16_matches_diffusers() {
 
 /// With bf16 products (on a CPU with AVX512-BF16) the tiny UNets' noise predictions stay within bf16's
 /// rounding of diffusers' f32 ones: relative L2 ≤ 1e-2 (PyTorch's own bf16 SD 1.5 UNet: 1.2 % against
-/// its f32), and above 1e-5, so bf16 products did run. The f32 path afterwards is unchanged.
+/// its f32), and above 1e-5, so bf16 products did run. A model loaded under bf16 products keeps only its
+/// weights' bf16 pairs and gives the very same output. The f32 path afterwards is unchanged.
 #[test]
 fn tiny_unets_with_bf16_products_match_diffusers_within_bf16() {
     for name in ["tiny-lcm", "tiny-ip2p"] {
         let model = load_model(name);
         let fx = load_fixture(name);
-        let Some(out) = in_bf16(|| run(&model, &fx, None)) else {
+        let Some((out, stored_once)) =
+            in_bf16(|| (run(&model, &fx, None), run(&load_model(name), &fx, None)))
+        else {
             return;
         };
+        assert_eq!(max_abs_diff(&out, &stored_once), 0.0, "{name}: stored once");
         let rel = relative_l2(&out, &fx["noise_pred"]);
         println!("{name}: bf16 noise_pred relative L2 {rel:.2e}");
         assert!(rel <= 1e-2 && rel > 1e-5, "{name}: relative L2 {rel}");

@@ -61,21 +61,36 @@ fn tiny_ip2p_vae_f16_weights_match_diffusers() {
 /// A folder holding only diffusers' `fp16` variant file loads the same model.
 /// With bf16 products the tiny VAE's posterior mean and decode stay within bf16's rounding of diffusers'
 /// f32 values (relative L2 ≤ 2e-2: the decoder's many convolutions reach 1.3e-2 on tiny-lcm; above 1e-5,
-/// so bf16 products did run).
+/// so bf16 products did run). A model loaded under bf16 products keeps only its weights' bf16 pairs and
+/// gives the very same values.
 #[test]
 fn tiny_vae_with_bf16_products_matches_diffusers_within_bf16() {
     for model in ["tiny-lcm", "tiny-ip2p"] {
-        let vae =
-            AutoencoderKL::load(&repo().join("fixtures/models").join(model).join("vae")).unwrap();
+        let load = || {
+            AutoencoderKL::load(&repo().join("fixtures/models").join(model).join("vae")).unwrap()
+        };
+        let vae = load();
         let refs = fixture(&format!("kl-{model}.safetensors"));
-        let Some((mean, decoded)) = in_bf16(|| {
+        let outputs = |vae: &AutoencoderKL| {
             (
                 vae.encode(&refs["image"]).unwrap().mean,
                 vae.decode(&refs["latents"]).unwrap(),
             )
-        }) else {
+        };
+        let Some(((mean, decoded), stored_once)) = in_bf16(|| (outputs(&vae), outputs(&load())))
+        else {
             return;
         };
+        assert_eq!(
+            max_abs_diff(&mean, &stored_once.0),
+            0.0,
+            "{model}: stored once"
+        );
+        assert_eq!(
+            max_abs_diff(&decoded, &stored_once.1),
+            0.0,
+            "{model}: stored once"
+        );
         for (what, got, want) in [
             ("mean", &mean, &refs["mean"]),
             ("decode", &decoded, &refs["decoded"]),

@@ -115,10 +115,10 @@ impl DeviceArg {
 #[derive(clap::Args, Debug, Clone)]
 pub struct PrecisionArg {
     /// On a GPU: f16 weights (the default; half the memory, f32 arithmetic, relative error ~1e-3) or f32
-    /// (the CPU's numbers up to summation order). On the CPU: f32 (the default) or bf16 products with f32
-    /// sums (needs AVX512-BF16; a UNet took 0.65-0.8x the f32 CPU time on a Zen 4, 0.3 % relative L2 on its
-    /// output). f16 on the CPU
-    /// means f32 there; bf16 on a GPU is refused.
+    /// (the CPU's numbers up to summation order). On the CPU: bf16 products with f32 sums, weights held
+    /// once in bf16 (the default where the CPU has AVX512-BF16; a UNet took 0.65-0.8x the f32 CPU time on
+    /// a Zen 4, 0.3 % relative L2 on its output), else f32 (the default elsewhere, and on request). f16 on
+    /// the CPU means f32 there; bf16 on a GPU is refused.
     #[arg(long, value_name = "f16|bf16|f32", value_parser = parse_precision)]
     pub precision: Option<String>,
 }
@@ -134,8 +134,8 @@ fn parse_precision(s: &str) -> std::result::Result<String, String> {
 
 impl PrecisionArg {
     /// Where the networks and the splatting engine run: the GPU `gpu` opened (its weights' precision from
-    /// `--precision`) or, for `None`, the CPU, whose products' precision this sets for the process (and
-    /// logs, when bf16).
+    /// `--precision`) or, for `None`, the CPU, whose products' precision this sets for the process and
+    /// logs.
     pub fn compute(&self, gpu: Option<GpuContext>) -> Result<edit::compute::Compute> {
         let requested = self.precision.as_deref();
         match gpu {
@@ -152,10 +152,12 @@ impl PrecisionArg {
             None => {
                 let precision = diffusion::device::CpuPrecision::from_request(requested)?;
                 diffusion::device::set_cpu_precision(precision)?;
-                // The f32 default logs nothing (as before bf16 products existed).
-                if precision == diffusion::device::CpuPrecision::Bf16 {
-                    eprintln!("CPU products: {}", precision.describe());
-                }
+                let why = match (precision, requested) {
+                    (diffusion::device::CpuPrecision::Bf16, _) => "",
+                    (_, Some(_)) => " (--precision)",
+                    (_, None) => " (this CPU has no AVX512-BF16)",
+                };
+                eprintln!("CPU products: {}{why}", precision.describe());
                 Ok(edit::compute::Compute::cpu())
             }
         }

@@ -4,11 +4,11 @@
 //! Keys under the layer: `layer_norm1`, `self_attn.{q,k,v,out}_proj`, `layer_norm2`, `mlp.fc1`, `mlp.fc2`.
 
 use candle_core::{Result, Tensor};
-use candle_nn::{linear, Linear, VarBuilder};
+use candle_nn::VarBuilder;
 use serde::Deserialize;
 
 use crate::kernels::{DeviceTensor, Unary};
-use crate::layers::LayerNorm;
+use crate::layers::{linear, LayerNorm, Linear};
 
 /// `hidden_act` of a CLIP config.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize)]
@@ -59,10 +59,10 @@ impl SelfAttention {
     fn load(vb: VarBuilder, c: &EncoderLayerConfig) -> Result<Self> {
         let d = c.hidden_size;
         Ok(Self {
-            q_proj: linear(d, d, vb.pp("q_proj"))?,
-            k_proj: linear(d, d, vb.pp("k_proj"))?,
-            v_proj: linear(d, d, vb.pp("v_proj"))?,
-            out_proj: linear(d, d, vb.pp("out_proj"))?,
+            q_proj: linear(d, d, true, vb.pp("q_proj"))?,
+            k_proj: linear(d, d, true, vb.pp("k_proj"))?,
+            v_proj: linear(d, d, true, vb.pp("v_proj"))?,
+            out_proj: linear(d, d, true, vb.pp("out_proj"))?,
             heads: c.num_attention_heads,
             head_dim: d / c.num_attention_heads,
         })
@@ -117,8 +117,18 @@ impl EncoderLayer {
             layer_norm1: LayerNorm::load(c.hidden_size, eps, vb.pp("layer_norm1"))?,
             self_attn: SelfAttention::load(vb.pp("self_attn"), c)?,
             layer_norm2: LayerNorm::load(c.hidden_size, eps, vb.pp("layer_norm2"))?,
-            fc1: linear(c.hidden_size, c.intermediate_size, vb.pp("mlp").pp("fc1"))?,
-            fc2: linear(c.intermediate_size, c.hidden_size, vb.pp("mlp").pp("fc2"))?,
+            fc1: linear(
+                c.hidden_size,
+                c.intermediate_size,
+                true,
+                vb.pp("mlp").pp("fc1"),
+            )?,
+            fc2: linear(
+                c.intermediate_size,
+                c.hidden_size,
+                true,
+                vb.pp("mlp").pp("fc2"),
+            )?,
             act: c.hidden_act,
         })
     }

@@ -7,8 +7,10 @@
 //!   (runtime feature detection); elsewhere every product stays f32.
 //! - [`PackedPairs`]: a matrix in the microkernel's layout: bf16 pairs along the summed dimension k
 //!   (`vdpbf16ps` multiplies two adjacent k values per f32 lane), in panels of [`MR`] lines (the
-//!   broadcast operand) or [`NR`] lines (the vector operand). Weights are packed once and kept
-//!   ([`packed_weight`]); activations are rounded and packed per call.
+//!   broadcast operand) or [`NR`] lines (the vector operand). A model loaded while bf16 is on keeps
+//!   only its weights' pairs (`kernels::ProductWeight`); an f32 model run in bf16 (tests, paired checks)
+//!   has each weight packed once and cached beside it ([`packed_weight`]); activations are rounded and
+//!   packed per call.
 //! - [`gemm`]: `C (+)= A·B` over packed operands, tiled for the caches and parallel over output tiles.
 //!
 //! Only the products' operands are rounded to bf16 (nearest even, as the hardware conversion does). Sums,
@@ -40,15 +42,16 @@ pub enum CpuPrecision {
 }
 
 impl CpuPrecision {
-    /// The CPU's precision for a `--precision` value: `bf16` (an error where the CPU lacks the
-    /// instructions); `f32`, none, or `f16` (the GPU's half precision, which the CPU does not have): f32.
+    /// The CPU's precision for a `--precision` value: none means bf16 where the CPU has the instructions
+    /// ([`bf16_products_available`]), else f32; `bf16` is an error where the CPU lacks them; `f32`, or
+    /// `f16` (the GPU's half precision, which the CPU does not have), is f32.
     ///
-    /// f32 stays the default until the demo's scores and the command-line tests have been checked with
-    /// bf16 products (the networks' conformance in bf16 is tested); then none would mean bf16 where
-    /// [`bf16_products_available`].
+    /// bf16 became the default after the demo's shape scores and `--compare` table came out the same
+    /// within their seed-to-seed noise in both precisions (docs/performance.md).
     pub fn from_request(requested: Option<&str>) -> Result<Self, CpuPrecisionError> {
         let requested = requested.map(|s| s.trim().to_ascii_lowercase());
         match requested.as_deref() {
+            None if bf16_products_available() => Ok(CpuPrecision::Bf16),
             None | Some("f16" | "fp16") => Ok(CpuPrecision::F32),
             Some("f32" | "fp32") => Ok(CpuPrecision::F32),
             Some("bf16") if bf16_products_available() => Ok(CpuPrecision::Bf16),
@@ -65,7 +68,7 @@ impl CpuPrecision {
         }
     }
 
-    /// What the CPU's products run on, for the run log: "CPU: AVX512-BF16 products" or "CPU: f32 products".
+    /// What the CPU's products run on, for the run log: "bf16 products (AVX512-BF16)" or "f32 products".
     pub fn describe(self) -> &'static str {
         match self {
             CpuPrecision::F32 => "f32 products",
@@ -97,7 +100,8 @@ pub enum CpuPrecisionError {
 const F32_CODE: u8 = 0;
 const BF16_CODE: u8 = 1;
 
-/// The process-wide choice (f32 until a program asks for more).
+/// The process-wide choice (f32 until a program asks for more: the command line's default is bf16 where
+/// the CPU has it, a library's f32).
 static PROCESS_PRECISION: AtomicU8 = AtomicU8::new(F32_CODE);
 
 thread_local! {
@@ -155,26 +159,28 @@ pub(crate) fn bf16_active() -> bool {
 
 /// `x·weightᵀ + bias (+ residual)` as a bf16 product, for x [.., in], weight [out, in], bias [out] and
 /// residual of the output's shape; `None` when the products are f32 now or an operand does not suit (not
-/// f32 on the CPU, tracking gradients, a non-contiguous weight), so the caller runs its f32 path.
+/// f32 on the CPU, tracking gradients, a weight that cannot be packed), so the caller runs its f32 path.
 pub(crate) fn linear(
     x: &Tensor,
-    weight: &Tensor,
+    weight: &super::ProductWeight,
     bias: Option<&Tensor>,
     residual: Option<&Tensor>,
 ) -> candle_core::Result<Option<Tensor>> {
-    let mut operands = vec![x, weight];
+    let mut operands = vec![x];
     operands.extend(bias);
     operands.extend(residual);
     if !bf16_active()
         || !super::cpu_f32(&operands)
         || super::needs_grad(&operands)
-        || !weight.is_contiguous()
-        || weight.rank() != 2
+        || weight.dims().len() != 2
         || x.rank() < 2
     {
         return Ok(None);
     }
-    let (out_dim, in_dim) = weight.dims2()?;
+    let Some(w) = weight.packed(NR)? else {
+        return Ok(None);
+    };
+    let (out_dim, in_dim) = (weight.dims()[0], weight.dims()[1]);
     if x.dim(candle_core::D::Minus1)? != in_dim {
         candle_core::bail!(
             "linear: input {:?} does not fit weight {:?}",
@@ -202,7 +208,6 @@ pub(crate) fn linear(
         out.par_chunks_mut(out_dim)
             .for_each(|row| row.iter_mut().zip(&b).for_each(|(o, b)| *o += b));
     }
-    let w = packed_weight(weight, NR)?;
     let xs = x.flatten_all()?.to_vec1::<f32>()?;
     let a = PackedPairs::pack(&xs, rows, in_dim, in_dim, 1, MR);
     gemm(
@@ -292,9 +297,10 @@ mod tests {
         let w = Tensor::randn(0f32, 0.2, (33, 70), &dev).unwrap();
         let b = Tensor::randn(0f32, 1.0, 33, &dev).unwrap();
         let r = Tensor::randn(0f32, 1.0, (2, 45, 33), &dev).unwrap();
+        let w = super::super::ProductWeight::from(w);
         assert!(linear(&x, &w, Some(&b), None).unwrap().is_none());
         let want = x
-            .broadcast_matmul(&w.t().unwrap())
+            .broadcast_matmul(&w.tensor().unwrap().t().unwrap())
             .unwrap()
             .broadcast_add(&b)
             .unwrap();
@@ -308,6 +314,32 @@ mod tests {
             let rel = testkit::diff::tensor_relative_l2(&got, &want);
             assert!(rel <= 5e-3 && rel > 1e-6, "relative L2 {rel}");
         }
+    }
+
+    /// No `--precision` means bf16 where the instructions exist and f32 elsewhere; f32 and f16 mean f32;
+    /// bf16 without the instructions is refused.
+    #[test]
+    fn the_default_is_bf16_only_where_the_cpu_has_it() {
+        let available = bf16_products_available();
+        let default = if available {
+            CpuPrecision::Bf16
+        } else {
+            CpuPrecision::F32
+        };
+        assert_eq!(CpuPrecision::from_request(None), Ok(default));
+        for f32_name in ["f32", "FP32", "f16"] {
+            assert_eq!(
+                CpuPrecision::from_request(Some(f32_name)),
+                Ok(CpuPrecision::F32)
+            );
+        }
+        let bf16 = CpuPrecision::from_request(Some("bf16"));
+        if available {
+            assert_eq!(bf16, Ok(CpuPrecision::Bf16));
+        } else {
+            assert_eq!(bf16, Err(CpuPrecisionError::Unavailable(Bf16Unavailable)));
+        }
+        assert!(CpuPrecision::from_request(Some("int8")).is_err());
     }
 
     #[test]

@@ -10,10 +10,11 @@
 //! - [`BatchedConv2d`] (training, with a backward pass): one image per rayon task with single-threaded
 //!   GEMMs, which suits training batches of small images far better than one parallel GEMM per image.
 
-use candle_core::{CpuStorage, CustomOp2, CustomOp3, Layout, Result, Shape, Tensor};
+use candle_core::{CpuStorage, CustomOp1, CustomOp2, CustomOp3, Layout, Result, Shape, Tensor};
 use rayon::prelude::*;
 
 use super::bf16::{self, PackedPairs};
+use super::ProductWeight;
 use super::{cpu_f32, f32_slices, needs_grad, split_grads, Grads3};
 
 /// im2col band size in f32 elements (~32 MB): large enough for efficient GEMMs, small enough that a
@@ -24,28 +25,42 @@ const BAND_ELEMS: usize = 8 << 20;
 ///
 /// The training kernel needs a bias; a differentiated conv without one runs candle's own op, as do other
 /// dtypes and devices.
+///
+/// The weight is an f32 tensor (`tensor.into()`) or bf16 pairs only (a model loaded for bf16 products),
+/// which run without ever making the f32 weight unless the products are f32 now.
 pub fn conv2d(
     x: &Tensor,
-    weight: &Tensor,
+    weight: &ProductWeight,
     bias: Option<&Tensor>,
     stride: usize,
     padding: usize,
 ) -> Result<Tensor> {
-    let mut operands = vec![x, weight];
+    let mut operands = vec![x];
     operands.extend(bias);
-    if x.rank() == 4 && cpu_f32(&operands) {
-        if !needs_grad(&operands) {
-            // bf16 products use the weight packed once (a contiguous weight keeps its id across calls).
-            let packed_weight = if bf16::bf16_active() && weight.is_contiguous() {
-                Some(bf16::packed_weight(weight, bf16::MR)?)
-            } else {
-                None
-            };
+    if x.rank() == 4 && weight.dims().len() == 4 && cpu_f32(&operands) && !needs_grad(&operands) {
+        // bf16 products use the weight packed once (kept packed, or packed on first use and cached).
+        if let Some(packed) = weight.packed(bf16::MR)? {
             let op = BandedConv2d {
                 stride,
                 padding,
                 bias: bias.map(|b| b.to_vec1::<f32>()).transpose()?,
-                packed_weight,
+                packed_weight: Some(PackedConvWeight {
+                    pairs: packed,
+                    shape: Shape::from(weight.dims()),
+                }),
+            };
+            return x.contiguous()?.apply_op1_no_bwd(&op);
+        }
+    }
+    let weight = weight.tensor()?;
+    operands.push(&weight);
+    if x.rank() == 4 && cpu_f32(&operands) {
+        if !needs_grad(&operands) {
+            let op = BandedConv2d {
+                stride,
+                padding,
+                bias: bias.map(|b| b.to_vec1::<f32>()).transpose()?,
+                packed_weight: None,
             };
             return x.contiguous()?.apply_op2_no_bwd(&weight.contiguous()?, &op);
         }
@@ -57,7 +72,7 @@ pub fn conv2d(
             );
         }
     }
-    let y = x.conv2d(weight, padding, stride, 1, 1)?;
+    let y = x.conv2d(&weight, padding, stride, 1, 1)?;
     match bias {
         Some(b) => y.broadcast_add(&b.reshape((1, (), 1, 1))?),
         None => Ok(y),
@@ -453,8 +468,14 @@ struct BandedConv2d {
     stride: usize,
     padding: usize,
     bias: Option<Vec<f32>>,
-    /// The weight as bf16 pairs ([`bf16::MR`] panels) when the products run in bf16.
-    packed_weight: Option<std::sync::Arc<PackedPairs>>,
+    /// The weight as bf16 pairs when the products run in bf16 (the op then takes the input alone).
+    packed_weight: Option<PackedConvWeight>,
+}
+
+/// A convolution's weight as bf16 pairs ([`bf16::MR`] panels) and its shape [out, in, k, k].
+struct PackedConvWeight {
+    pairs: std::sync::Arc<PackedPairs>,
+    shape: Shape,
 }
 
 impl BandedConv2d {
@@ -536,6 +557,20 @@ impl BandedConv2d {
     }
 }
 
+impl CustomOp1 for BandedConv2d {
+    fn name(&self) -> &'static str {
+        "banded-conv2d-bf16"
+    }
+
+    fn cpu_fwd(&self, xs: &CpuStorage, xl: &Layout) -> Result<(CpuStorage, Shape)> {
+        let Some(weight) = &self.packed_weight else {
+            candle_core::bail!("banded-conv2d-bf16: no packed weight");
+        };
+        let [xs] = f32_slices([(xs, xl)], CustomOp1::name(self))?;
+        self.forward(xs, xl.shape(), &weight.shape, None)
+    }
+}
+
 impl CustomOp2 for BandedConv2d {
     fn name(&self) -> &'static str {
         "banded-conv2d"
@@ -548,10 +583,23 @@ impl CustomOp2 for BandedConv2d {
         ws: &CpuStorage,
         wl: &Layout,
     ) -> Result<(CpuStorage, Shape)> {
-        let name = self.name();
-        let [xs, ws] = f32_slices([(xs, xl), (ws, wl)], name)?;
-        let g = ConvGeometry::new(xl.shape(), wl.shape(), self.stride, self.padding)?;
-        let batch = xl.shape().dims()[0];
+        let [xs, ws] = f32_slices([(xs, xl), (ws, wl)], CustomOp2::name(self))?;
+        self.forward(xs, xl.shape(), wl.shape(), Some(ws))
+    }
+}
+
+impl BandedConv2d {
+    /// The convolution of `xs` (contiguous, `x_shape`) by the packed weight, or else by the f32 weight
+    /// `ws` of `w_shape`.
+    fn forward(
+        &self,
+        xs: &[f32],
+        x_shape: &Shape,
+        w_shape: &Shape,
+        ws: Option<&[f32]>,
+    ) -> Result<(CpuStorage, Shape)> {
+        let g = ConvGeometry::new(x_shape, w_shape, self.stride, self.padding)?;
+        let batch = x_shape.dims()[0];
         let (c_out, k_rows, out_plane, out_w) = (g.c_out, g.k_rows(), g.out_plane(), g.out_w);
 
         // Pre-fill with the bias so the GEMM accumulates onto it.
@@ -567,13 +615,17 @@ impl CustomOp2 for BandedConv2d {
                 .enumerate()
                 .for_each(|(i, plane)| plane.fill(bias[i % c_out]));
         }
-        if let Some(packed) = &self.packed_weight {
-            self.bf16_products(&g, xs, batch, packed, &mut out);
-            return Ok((
-                CpuStorage::F32(out),
-                Shape::from((batch, c_out, g.out_h, out_w)),
-            ));
-        }
+        let ws = match (&self.packed_weight, ws) {
+            (Some(packed), _) => {
+                self.bf16_products(&g, xs, batch, &packed.pairs, &mut out);
+                return Ok((
+                    CpuStorage::F32(out),
+                    Shape::from((batch, c_out, g.out_h, out_w)),
+                ));
+            }
+            (None, Some(ws)) => ws,
+            (None, None) => candle_core::bail!("banded-conv2d: no weight"),
+        };
         let parallelism = gemm::Parallelism::Rayon(rayon::current_num_threads().max(1));
         let band_rows = (BAND_ELEMS / (k_rows * out_w).max(1)).clamp(1, g.out_h);
         let mut col = if g.pointwise() {
@@ -648,7 +700,7 @@ mod tests {
             let x = Tensor::randn(0f32, 1.0, (b, ci, h, w), &dev).unwrap();
             let wt = Tensor::randn(0f32, 1.0, (co, ci, k, k), &dev).unwrap();
             let bt = bias.then(|| Tensor::randn(0f32, 1.0, co, &dev).unwrap());
-            let fast = conv2d(&x, &wt, bt.as_ref(), s, p).unwrap();
+            let fast = conv2d(&x, &wt.clone().into(), bt.as_ref(), s, p).unwrap();
             let want = reference(&x, &wt, bt.as_ref(), s, p);
             assert_eq!(fast.dims(), want.dims());
             let d = max_diff(&fast, &want);
@@ -675,7 +727,7 @@ mod tests {
             let wt = Tensor::randn(0f32, 1.0, (co, ci, k, k), &dev).unwrap();
             let bt = bias.then(|| Tensor::randn(0f32, 1.0, co, &dev).unwrap());
             let Ok(fast) = with_cpu_precision(CpuPrecision::Bf16, || {
-                conv2d(&x, &wt, bt.as_ref(), s, p).unwrap()
+                conv2d(&x, &wt.clone().into(), bt.as_ref(), s, p).unwrap()
             }) else {
                 eprintln!("skipped: no AVX512-BF16 on this CPU");
                 return;
@@ -693,7 +745,7 @@ mod tests {
         let w = Var::randn(0f32, 1.0, (2, 3, 3, 3), &dev).unwrap();
         let x = Tensor::randn(0f32, 1.0, (1, 3, 5, 5), &dev).unwrap();
         let trained = with_cpu_precision(CpuPrecision::Bf16, || {
-            conv2d(&x, w.as_tensor(), None, 1, 1).unwrap()
+            conv2d(&x, &w.as_tensor().clone().into(), None, 1, 1).unwrap()
         });
         if let Ok(trained) = trained {
             assert!(max_diff(&trained, &reference(&x, w.as_tensor(), None, 1, 1)) < 1e-4);
@@ -709,7 +761,7 @@ mod tests {
         let x = Tensor::randn(0f32, 1.0, (1, ci, h, w), &dev).unwrap();
         let wt = Tensor::randn(0f32, 0.1, (2, ci, 3, 3), &dev).unwrap();
         let d = max_diff(
-            &conv2d(&x, &wt, None, 1, 1).unwrap(),
+            &conv2d(&x, &wt.clone().into(), None, 1, 1).unwrap(),
             &reference(&x, &wt, None, 1, 1),
         );
         assert!(d < 1e-4, "{d}");
@@ -734,7 +786,7 @@ mod tests {
             ];
             check_gradients(
                 &vars,
-                |t| conv2d(&t[0], &t[1], Some(&t[2]), s, p).unwrap(),
+                |t| conv2d(&t[0], &t[1].clone().into(), Some(&t[2]), s, p).unwrap(),
                 |t| {
                     // candle's conv backward mis-sizes the input gradient when a strided conv leaves
                     // trailing rows/columns unused; the reference crops them away (their gradient is 0).
@@ -754,7 +806,7 @@ mod tests {
         let dev = Device::Cpu;
         let w = Var::randn(0f32, 1.0, (2, 3, 3, 3), &dev).unwrap();
         let x = Tensor::randn(0f32, 1.0, (1, 3, 5, 5), &dev).unwrap();
-        let grads = conv2d(&x, w.as_tensor(), None, 1, 1)
+        let grads = conv2d(&x, &w.as_tensor().clone().into(), None, 1, 1)
             .unwrap()
             .sum_all()
             .unwrap()

@@ -30,16 +30,17 @@ pub(super) fn plus(out: Tensor, addend: Addend<'_, Tensor>) -> Result<Tensor> {
     }
 }
 
-/// The linear `layer` of `x` plus `residual`: bf16 products where they are on, else candle-nn's.
+/// The linear `layer` of `x` plus `residual`: bf16 products where they are on, else candle-nn's (over
+/// the f32 weight, unpacked once where only bf16 pairs were kept).
 pub(super) fn linear(
     x: &Tensor,
-    layer: &candle_nn::Linear,
+    layer: &super::Linear,
     residual: Option<&Tensor>,
 ) -> Result<Tensor> {
     if let Some(out) = super::bf16::linear(x, layer.weight(), layer.bias(), residual)? {
         return Ok(out);
     }
-    let out = layer.forward(x)?;
+    let out = candle_nn::Linear::new(layer.weight().tensor()?, layer.bias().cloned()).forward(x)?;
     match residual {
         Some(r) => out + r,
         None => Ok(out),

@@ -17,8 +17,10 @@
 //! Adding a backend: one more `impl` in [`seam_ops!`], a variant of [`Device`] and [`DeviceTensor`], and
 //! one arm of the `dispatch!`/`dispatch2!` macros below. Network code is unchanged.
 //!
-//! Weights stay CPU candle tensors in the network structs; a backend fetches its device copy when an op
-//! uses one (the GPU keeps them in [`GpuDevice::cached`]). One network definition thus runs anywhere.
+//! Weights stay on the host in the network structs (products' weights as [`ProductWeight`]s: f32
+//! tensors, or bf16 pairs only for a model loaded for bf16 products on the CPU); a backend fetches its
+//! device copy when an op uses one (the GPU keeps them in [`GpuDevice::cached`]). One network
+//! definition thus runs anywhere.
 
 use candle_core::{Module, Result, Tensor, D};
 use candle_nn::Activation;
@@ -29,6 +31,7 @@ use super::gpu::{ops, GpuDevice, GpuTensor};
 use gpu::{F32Buffer, F32Values};
 
 pub use super::op_args::{Addend, Unary};
+use super::{Linear, ProductWeight};
 
 /// Where a network runs.
 #[derive(Debug, Clone, Default)]
@@ -249,7 +252,7 @@ seam_ops! {
         /// [`super::conv2d`] (NCHW, OIHW weights), plus `addend`.
         special fn conv2d(
             &self,
-            weight: &Tensor,
+            weight: &ProductWeight,
             bias: Option<&Tensor>,
             stride: usize,
             padding: usize,
@@ -258,18 +261,18 @@ seam_ops! {
             => cpu on_cpu::plus(super::conv2d(self, weight, bias, stride, padding)?, addend),
                gpu ops::conv2d(
                    self,
-                   &self.matrix_constant(weight)?,
+                   &self.matrix_constant(&weight.tensor()?)?,
                    self.optional_constant(bias)?.as_ref(),
                    stride,
                    padding,
                    addend,
                );
-        /// `x·weightᵀ + bias` (candle-nn `Linear`), plus `residual` (of the output's shape).
-        special fn linear(&self, layer: &candle_nn::Linear, residual: Option<&Self>) -> Result<Self>
+        /// `x·weightᵀ + bias` ([`Linear`]), plus `residual` (of the output's shape).
+        special fn linear(&self, layer: &Linear, residual: Option<&Self>) -> Result<Self>
             => cpu on_cpu::linear(self, layer, residual),
                gpu ops::linear(
                    self,
-                   &self.matrix_constant(layer.weight())?,
+                   &self.matrix_constant(&layer.weight().tensor()?)?,
                    self.optional_constant(layer.bias())?.as_ref(),
                    residual,
                );
@@ -501,10 +504,10 @@ impl DeviceTensor {
 
     // ------------------------------------------------------------------------ the `kernels` ops
 
-    /// [`super::conv2d`] on the tensor's device.
+    /// [`super::conv2d`] on the tensor's device (a plain tensor converts with `.into()`).
     pub fn conv2d(
         &self,
-        weight: &Tensor,
+        weight: &ProductWeight,
         bias: Option<&Tensor>,
         stride: usize,
         padding: usize,
@@ -515,7 +518,7 @@ impl DeviceTensor {
     /// [`Self::conv2d`] plus `addend` (on the same device).
     pub fn conv2d_add(
         &self,
-        weight: &Tensor,
+        weight: &ProductWeight,
         bias: Option<&Tensor>,
         stride: usize,
         padding: usize,
@@ -530,18 +533,14 @@ impl DeviceTensor {
             Storage::conv2d(x, weight, bias, stride, padding, addend.with(t))))
     }
 
-    /// A linear layer `x·weightᵀ + bias` (candle-nn `Linear`).
-    pub fn linear(&self, layer: &candle_nn::Linear) -> Result<DeviceTensor> {
+    /// A linear layer `x·weightᵀ + bias`.
+    pub fn linear(&self, layer: &Linear) -> Result<DeviceTensor> {
         Ok(dispatch!(self, x => Storage::linear(x, layer, None)))
     }
 
     /// [`Self::linear`] plus `residual` (of the output's shape, on the same device): a skip connection
     /// added in the bias's pass.
-    pub fn linear_add(
-        &self,
-        layer: &candle_nn::Linear,
-        residual: &DeviceTensor,
-    ) -> Result<DeviceTensor> {
+    pub fn linear_add(&self, layer: &Linear, residual: &DeviceTensor) -> Result<DeviceTensor> {
         Ok(dispatch2!(self, residual, (x, r) => Storage::linear(x, layer, Some(r))))
     }
 
@@ -578,11 +577,11 @@ mod tests {
         let x = Tensor::randn(0f32, 1.0, (2, 3, 4, 5), &candle_core::Device::Cpu).unwrap();
         let w = Tensor::randn(0f32, 1.0, (6, 3, 3, 3), &candle_core::Device::Cpu).unwrap();
         let got = DeviceTensor::Cpu(x.clone())
-            .conv2d(&w, None, 1, 1)
+            .conv2d(&w.clone().into(), None, 1, 1)
             .unwrap()
             .to_cpu()
             .unwrap();
-        let want = super::super::conv2d(&x, &w, None, 1, 1).unwrap();
+        let want = super::super::conv2d(&x, &w.into(), None, 1, 1).unwrap();
         assert_eq!(
             got.flatten_all().unwrap().to_vec1::<f32>().unwrap(),
             want.flatten_all().unwrap().to_vec1::<f32>().unwrap()

@@ -60,6 +60,7 @@ mod geglu;
 pub mod gpu;
 mod norm;
 mod op_args;
+mod product_weight;
 mod softmax;
 mod vgg;
 
@@ -72,6 +73,7 @@ pub use conv::conv2d;
 pub use device::{Addend, Device, DeviceTensor, Storage, Unary};
 pub use geglu::geglu;
 pub use norm::{group_norm, layer_norm};
+pub use product_weight::{Linear, ProductWeight};
 pub use softmax::softmax_last_dim;
 
 /// True when the computation must stay differentiable: any of the given tensors is a variable or was

@@ -7,10 +7,10 @@
 //! that the fused kernel still runs.
 
 use candle_core::{Device, Result, Tensor};
-use candle_nn::{Linear, VarBuilder};
+use candle_nn::VarBuilder;
 
 use crate::kernels::DeviceTensor;
-use crate::layers::linear;
+use crate::layers::{linear, linear_weight, Linear};
 
 /// Self-attention (keys from the image tokens) or cross-attention (keys from the text embedding).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -310,18 +310,21 @@ impl Attention {
     ) -> Result<Self> {
         let inner = heads * head_dim;
         let kv_dim = context_dim.unwrap_or(query_dim);
-        let to_q = linear(query_dim, inner, false, vb.pp("to_q"))?;
-        let to_k = linear(kv_dim, inner, false, vb.pp("to_k"))?;
-        let to_v = linear(kv_dim, inner, false, vb.pp("to_v"))?;
+        // The f32 weights first: stacked ones are kept (bf16 pairs only, under bf16 products) once
+        // stacked.
+        let to_q = linear_weight(query_dim, inner, &vb.pp("to_q"))?;
+        let to_k = linear_weight(kv_dim, inner, &vb.pp("to_k"))?;
+        let to_v = linear_weight(kv_dim, inner, &vb.pp("to_v"))?;
         // Trainable weights (variables) stay separate: a stacked copy would not see the optimiser's
         // updates.
-        let projections = if to_q.weight().is_variable() {
-            Projections::Separate { to_q, to_k, to_v }
+        let projections = if to_q.is_variable() {
+            Projections::Separate {
+                to_q: Linear::new(to_q, None)?,
+                to_k: Linear::new(to_k, None)?,
+                to_v: Linear::new(to_v, None)?,
+            }
         } else {
-            let stack = |layers: &[&Linear]| -> Result<Linear> {
-                let weights: Vec<&Tensor> = layers.iter().map(|l| l.weight()).collect();
-                Ok(Linear::new(Tensor::cat(&weights, 0)?, None))
-            };
+            let stack = |weights: &[&Tensor]| Linear::new(Tensor::cat(weights, 0)?, None);
             match context_dim {
                 None => Projections::Stacked {
                     to_q: None,
@@ -329,7 +332,7 @@ impl Attention {
                 },
                 Some(_) => Projections::Stacked {
                     stacked: stack(&[&to_k, &to_v])?,
-                    to_q: Some(to_q),
+                    to_q: Some(Linear::new(to_q, None)?),
                 },
             }
         };

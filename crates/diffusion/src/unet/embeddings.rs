@@ -1,9 +1,9 @@
 //! Timestep embeddings: diffusers' `get_timestep_embedding` and `TimestepEmbedding`.
 
 use candle_core::{Module, Result, Tensor};
-use candle_nn::{Linear, VarBuilder};
+use candle_nn::VarBuilder;
 
-use crate::layers::linear;
+use crate::layers::{linear, Linear};
 
 /// Sinusoidal embedding of `timesteps` ([batch], any float dtype) with `dim` channels, as diffusers'
 /// `get_timestep_embedding(t, dim, flip_sin_to_cos, downscale_freq_shift, scale=1, max_period=10000)`.

@@ -1,11 +1,11 @@
 //! diffusers `Transformer2DModel` (continuous input) and `BasicTransformerBlock`.
 
 use candle_core::Result;
-use candle_nn::{Linear, VarBuilder};
+use candle_nn::VarBuilder;
 
 use super::attention::{Attention, AttentionHook};
 use crate::kernels::{Addend, DeviceTensor};
-use crate::layers::{conv2d, linear, Conv2d, GroupNorm, LayerNorm};
+use crate::layers::{conv2d, linear, Conv2d, GroupNorm, LayerNorm, Linear};
 
 /// diffusers `GEGLU` + output linear (`ff.net.0.proj`, `ff.net.2`): `W2 (h ⊙ gelu(g))` with `[h, g] = W1 x`.
 #[derive(Debug, Clone)]

@@ -42,7 +42,6 @@ pub fn to_bf16_bits(x: f32) -> u16 {
 }
 
 /// The f32 value of bf16 bits.
-#[cfg(test)]
 #[inline(always)]
 pub fn from_bf16_bits(b: u16) -> f32 {
     f32::from_bits((b as u32) << 16)
@@ -169,6 +168,29 @@ impl PackedPairs {
     /// Bytes held.
     pub fn bytes(&self) -> usize {
         self.data.len() * 4
+    }
+
+    /// Lines of panels `width` wide ([`MR`] or [`NR`]).
+    pub fn width(&self) -> usize {
+        self.width
+    }
+
+    /// The matrix back in f32, `[lines, k]` row-major: the bf16 values exactly (for an f32 product over
+    /// weights that are kept only packed).
+    pub fn unpack(&self) -> Vec<f32> {
+        let (k, width) = (self.k, self.width);
+        let mut out = vec![0f32; self.lines * k];
+        out.par_chunks_mut(k.max(1))
+            .enumerate()
+            .for_each(|(line, row)| {
+                let panel = self.panel(line / width);
+                let lane = line % width;
+                for (j, v) in row.iter_mut().enumerate() {
+                    let word = panel[(j / 2) * width + lane];
+                    *v = from_bf16_bits((word >> (16 * (j % 2))) as u16);
+                }
+            });
+        out
     }
 }
 
@@ -594,6 +616,18 @@ mod tests {
         });
         assert_eq!(stored.data, made.data);
         assert_eq!((made.lines, made.k), (lines, k));
+    }
+
+    /// Unpacking gives back each value rounded to bf16, for both panel widths, odd k and partial panels.
+    #[test]
+    fn unpacking_gives_the_rounded_matrix() {
+        let (lines, k) = (37, 11);
+        let m = values(lines * k, 7);
+        let rounded: Vec<f32> = m.iter().map(|&x| from_bf16_bits(to_bf16_bits(x))).collect();
+        for width in [MR, NR] {
+            let packed = PackedPairs::pack(&m, lines, k, k, 1, width);
+            assert_eq!(packed.unpack(), rounded, "width {width}");
+        }
     }
 
     #[test]

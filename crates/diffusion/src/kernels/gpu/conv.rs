@@ -771,7 +771,7 @@ mod tests {
         let weight = randn(&[cout, cin, 3, 3]);
         let bias = randn(&[cout]);
         let residual = randn(&[n, cout, h, w]);
-        let plain = crate::kernels::conv2d(&x, &weight, Some(&bias), 1, 1).unwrap();
+        let plain = crate::kernels::conv2d(&x, &weight.clone().into(), Some(&bias), 1, 1).unwrap();
         let want = (&plain + &residual).unwrap();
         let (gx, gw, gb, gr) = (
             up(&dev, &x),
@@ -815,7 +815,8 @@ mod tests {
             let weight = randn(&[cout, cin, k, k]);
             let bias = with_bias.then(|| randn(&[cout]));
             let plain =
-                crate::kernels::conv2d(&x, &weight, bias.as_ref(), stride, padding).unwrap();
+                crate::kernels::conv2d(&x, &weight.clone().into(), bias.as_ref(), stride, padding)
+                    .unwrap();
             let gbias = bias.as_ref().map(|b| up(&dev, b));
             let (oh, ow) = (plain.dims()[2], plain.dims()[3]);
             // What the convolution adds in its finishing pass: nothing, a skip connection, a time embedding.

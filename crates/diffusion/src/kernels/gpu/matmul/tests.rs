@@ -151,7 +151,14 @@ fn f16_weights_match_cpu_on(dev: &GpuDevice) {
     let weight = randn(&[6, 5, 3, 3]);
     let gw = half_dev.cached_matrix(&weight).unwrap();
     let want = |w: &Tensor| {
-        crate::kernels::conv2d(&x, w, Some(&bias.narrow(0, 0, 6).unwrap()), 1, 1).unwrap()
+        crate::kernels::conv2d(
+            &x,
+            &w.clone().into(),
+            Some(&bias.narrow(0, 0, 6).unwrap()),
+            1,
+            1,
+        )
+        .unwrap()
     };
     // im2col's product unpacks the weights as it reads them; the direct kernel reads an f32 copy.
     for path in [ConvPath::Im2col, ConvPath::Direct] {
@@ -230,7 +237,8 @@ fn f16_operands_match_cpu() {
         })
         .unwrap();
         let want =
-            crate::kernels::conv2d(&rounded_f16(&xi), &rounded_f16(&conv_w), None, 1, 1).unwrap();
+            crate::kernels::conv2d(&rounded_f16(&xi), &rounded_f16(&conv_w).into(), None, 1, 1)
+                .unwrap();
         check_within("f16-operand conv2d", &got, &want, 1e-5);
         // Attention as products: the softmax writes its probabilities as f16 for the second product.
         let (q, k, v) = (
