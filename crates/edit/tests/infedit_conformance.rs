@@ -10,7 +10,7 @@ use edit::consistency::{ConsistencySettings, MultiView, MultiViewOutcome};
 use edit::sampler::{
     EditModel, EditPlan, EditPrompts, InfEditSettings, NoiseSource, RecordedNoise, SeededNoise,
 };
-use testkit::diff::{tensor_max_abs, tensor_max_abs_diff};
+use testkit::diff::{max_abs_diff, tensor_max_abs, tensor_max_abs_diff};
 use testkit::paths::{fixture, fixtures, load_tensors};
 
 #[derive(serde::Deserialize)]
@@ -320,12 +320,7 @@ fn ccm_on_the_gpu_reads_no_maps_and_matches_the_cpu() {
     assert_eq!((g.map_reads, g.map_read_bytes), (0, 0), "{g:?}");
     assert!(g.launches > 0, "the ledger counts CCM's kernels: {g:?}");
     for (v, (a, b)) in want.images.iter().zip(&got.images).enumerate() {
-        let worst = a
-            .data
-            .iter()
-            .zip(&b.data)
-            .map(|(x, y)| (x - y).abs())
-            .fold(0f32, f32::max);
+        let worst = max_abs_diff(&a.data, &b.data);
         eprintln!("CCM GPU vs CPU, view {v}: largest difference {worst:e}");
         // Decoded images in [0, 1]; the GPU's sums run in another order (the InfEdit trace's x̂0 and
         // decoded images differ by up to ~1e-4 relative on lavapipe).
