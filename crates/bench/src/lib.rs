@@ -414,11 +414,15 @@ pub fn network_device(
 }
 
 /// Where the networks run, for a bench's first line: the GPU and its weights' precision, or the CPU's
-/// thread count.
+/// thread count and how its products run (bf16 or f32).
 pub fn networks_on(gpu: Option<&diffusion::device::GpuDevice>) -> String {
     match gpu {
         Some(g) => format!("{} ({} weights)", g.name(), g.precision()),
-        None => format!("CPU, {} threads", rayon::current_num_threads()),
+        None => format!(
+            "CPU, {} threads, {}",
+            rayon::current_num_threads(),
+            diffusion::device::cpu_precision().describe()
+        ),
     }
 }
 

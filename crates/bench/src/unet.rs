@@ -40,8 +40,8 @@ use diffusion::unet::{
 };
 
 use crate::{
-    arg_list, arg_parsed, arg_value, cpu_seconds, has_flag, network_device, peak_rss_mb, report,
-    status_mb, BenchError, Result, Timed,
+    arg_list, arg_parsed, arg_value, cpu_seconds, has_flag, network_device, networks_on,
+    peak_rss_mb, report, status_mb, BenchError, Result, Timed,
 };
 
 type CandleResult<T> = candle_core::Result<T>;
@@ -330,13 +330,9 @@ pub fn main(args: &[String], reexec: &[String]) -> Result<()> {
     let model_dir = arg_value(args, "--model");
     let device = network_device(args, "cpu")?;
     let on_device = diffusion::device::Device::from(device.clone());
-    // Recommended for any inference binary (see its doc comment).
     let threads = candle_core::utils::get_num_threads();
     let cpu_precision = diffusion::device::cpu_precision();
-    let on = device.as_ref().map_or_else(
-        || format!("CPU, {threads} threads, {}", cpu_precision.describe()),
-        |d| format!("{} ({} weights)", d.name(), d.precision()),
-    );
+    let on = networks_on(device.as_ref());
     let start = Instant::now();
     // Under bf16 products a model keeps only its weights' bf16 pairs, except for --check, which
     // compares against f32 products over the f32 weights (so those are kept, and packed beside them).

@@ -68,8 +68,14 @@ impl SelfAttention {
         })
     }
 
-    /// x [B, S, D]; `mask` [S, S] is added to the scores (−∞ hides a position).
-    fn forward(&self, x: &DeviceTensor, mask: Option<&Tensor>) -> Result<DeviceTensor> {
+    /// x [B, S, D] → `residual` + attention output; `mask` [S, S] is added to the scores (−∞ hides a
+    /// position). The residual is added by the output projection's product (no pass of its own).
+    fn forward(
+        &self,
+        x: &DeviceTensor,
+        mask: Option<&Tensor>,
+        residual: &DeviceTensor,
+    ) -> Result<DeviceTensor> {
         let &[b, s, d] = x.dims() else {
             candle_core::bail!(
                 "CLIP attention expects [batch, seq, dim], got {:?}",
@@ -95,7 +101,7 @@ impl SelfAttention {
             .matmul(&v)?
             .permute_contiguous(&[0, 2, 1, 3])?
             .reshape(&[b, s, d])?;
-        out.linear(&self.out_proj)
+        out.linear_add(&self.out_proj, residual)
     }
 }
 
@@ -140,12 +146,10 @@ impl EncoderLayer {
 
     /// [`Self::forward`] on the input's device.
     pub fn forward_device(&self, x: &DeviceTensor, mask: Option<&Tensor>) -> Result<DeviceTensor> {
-        let h = self
+        let x = self
             .self_attn
-            .forward(&self.layer_norm1.forward_device(x)?, mask)?;
-        let x = x.add(&h)?;
+            .forward(&self.layer_norm1.forward_device(x)?, mask, x)?;
         let h = self.layer_norm2.forward_device(&x)?.linear(&self.fc1)?;
-        let h = self.act.apply(&h)?.linear(&self.fc2)?;
-        x.add(&h)
+        self.act.apply(&h)?.linear_add(&self.fc2, &x)
     }
 }

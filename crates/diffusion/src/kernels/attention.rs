@@ -3,6 +3,7 @@
 use candle_core::{CpuStorage, Layout, Result, Shape, Tensor, D};
 use rayon::prelude::*;
 
+use super::bf16::{self, Output, PackedPairs, MR, NR};
 use super::softmax::{softmax_in_place, softmax_last_dim};
 use super::{cpu_f32, f32_slices, needs_grad};
 
@@ -18,7 +19,9 @@ const FUSED_BLOCK_ELEMENTS: usize = 1 << 18;
 ///
 /// Inference on CPU/f32 runs a fused kernel: per (batch·head, block of queries) one GEMM for the scores,
 /// an in-place softmax and one GEMM for the output, in parallel, never materialising the full
-/// q_len × k_len map (1 GB per head batch at 64×64 latents). Other dtypes/devices split the work into
+/// q_len × k_len map (1 GB per head batch at 64×64 latents). When the CPU's products run in bf16
+/// ([`super::bf16`]) both GEMMs take bf16 operands with f32 sums, as PyTorch's bf16 attention does; the
+/// softmax stays f32. Other dtypes/devices split the work into
 /// query chunks of at most ~128 MB of scores; the differentiable path runs the whole product through
 /// [`softmax_last_dim`] (which has a backward pass).
 pub fn attention(q: &Tensor, k: &Tensor, v: &Tensor, scale: f64) -> Result<Tensor> {
@@ -104,7 +107,13 @@ impl candle_core::CustomOp3 for FusedAttention {
         if out.is_empty() || k_len == 0 {
             return Ok((CpuStorage::F32(out), Shape::from(out_dims)));
         }
-        let block = (FUSED_BLOCK_ELEMENTS / k_len).clamp(8, q_len.max(8));
+        // Read on the calling thread: the precision may be set for this thread only.
+        let bf16 = bf16::bf16_active();
+        let mut block = (FUSED_BLOCK_ELEMENTS / k_len).clamp(8, q_len.max(8));
+        if bf16 {
+            // Whole MR-row panels of queries (a partial panel computes padding rows).
+            block = (block / MR).max(1) * MR;
+        }
         let scale = self.scale;
         out.par_chunks_mut(q_len * dv)
             .enumerate()
@@ -112,6 +121,15 @@ impl candle_core::CustomOp3 for FusedAttention {
                 let qh = &q[head * q_len * d..(head + 1) * q_len * d];
                 let kh = &k[head * k_len * d..(head + 1) * k_len * d];
                 let vh = &v[head * k_len * dv..(head + 1) * k_len * dv];
+                // With bf16 products a head's keys and values are rounded and packed once, for all its
+                // query blocks: keys as the score product's columns, values (read down their columns)
+                // as the output product's.
+                let packed = bf16.then(|| {
+                    (
+                        PackedPairs::pack(kh, k_len, d, d, 1, NR),
+                        PackedPairs::pack(vh, dv, k_len, 1, dv, NR),
+                    )
+                });
                 out_head
                     .par_chunks_mut(block * dv)
                     .enumerate()
@@ -121,18 +139,26 @@ impl candle_core::CustomOp3 for FusedAttention {
                         SCORES.with(|cell| {
                             let mut scores = cell.borrow_mut();
                             scores.resize(rows * k_len, 0.0);
-                            attention_block(
-                                q_block,
-                                kh,
-                                vh,
-                                &mut scores,
-                                out_block,
+                            let shape = BlockShape {
                                 rows,
                                 k_len,
                                 d,
                                 dv,
                                 scale,
-                            );
+                            };
+                            match &packed {
+                                Some((k, v)) => attention_block_bf16(
+                                    q_block,
+                                    k,
+                                    v,
+                                    &mut scores,
+                                    out_block,
+                                    shape,
+                                ),
+                                None => {
+                                    attention_block(q_block, kh, vh, &mut scores, out_block, shape)
+                                }
+                            }
                         });
                     });
             });
@@ -145,6 +171,17 @@ thread_local! {
     static SCORES: std::cell::RefCell<Vec<f32>> = const { std::cell::RefCell::new(Vec::new()) };
 }
 
+/// The sizes of one query block: `rows` queries of length `d` against `k_len` keys, values of length
+/// `dv`, scores scaled by `scale`.
+#[derive(Clone, Copy)]
+struct BlockShape {
+    rows: usize,
+    k_len: usize,
+    d: usize,
+    dv: usize,
+    scale: f32,
+}
+
 /// One query block: scores = scale · q kᵀ, row softmax in place, out = scores v.
 fn attention_block(
     q: &[f32],
@@ -152,12 +189,15 @@ fn attention_block(
     v: &[f32],
     scores: &mut [f32],
     out: &mut [f32],
-    rows: usize,
-    k_len: usize,
-    d: usize,
-    dv: usize,
-    scale: f32,
+    shape: BlockShape,
 ) {
+    let BlockShape {
+        rows,
+        k_len,
+        d,
+        dv,
+        scale,
+    } = shape;
     // SAFETY: every matrix is a row-major slice of exactly the stated size (checked by the caller's
     // shape logic); kᵀ is read through swapped strides.
     unsafe {
@@ -212,6 +252,44 @@ fn attention_block(
     }
 }
 
+/// [`attention_block`] with bf16 products (f32 sums), as PyTorch's bf16 attention: the block's queries
+/// and its probabilities are rounded to bf16 for the products; the softmax runs in f32. `k` holds the
+/// head's keys packed as [`NR`] panels, `v` its values transposed (dv lines of `k_len`).
+fn attention_block_bf16(
+    q: &[f32],
+    k: &PackedPairs,
+    v: &PackedPairs,
+    scores: &mut [f32],
+    out: &mut [f32],
+    shape: BlockShape,
+) {
+    let BlockShape {
+        rows,
+        k_len,
+        d,
+        dv,
+        scale,
+    } = shape;
+    let q = PackedPairs::pack(q, rows, d, d, 1, MR);
+    bf16::gemm(&q, k, whole_rows(scores, rows, k_len), false);
+    for row in scores.chunks_exact_mut(k_len) {
+        row.iter_mut().for_each(|s| *s *= scale);
+        softmax_in_place(row);
+    }
+    let probs = PackedPairs::pack(scores, rows, k_len, k_len, 1, MR);
+    bf16::gemm(&probs, v, whole_rows(out, rows, dv), false);
+}
+
+/// `data` as a product's output of `rows` × `cols`, rows back to back.
+fn whole_rows(data: &mut [f32], rows: usize, cols: usize) -> Output<'_> {
+    Output {
+        data,
+        rows,
+        cols,
+        row_stride: cols,
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::super::test_support::max_diff;
@@ -250,6 +328,42 @@ mod tests {
             let got = attention(&q, &k, &v, 0.7).unwrap();
             let want = reference(&q, &k, &v, 0.7);
             assert!(max_diff(&got, &want) < 1e-5, "{q_len}x{k_len}x{d}x{dv}");
+        }
+    }
+
+    /// With bf16 products the fused kernel stays within bf16 rounding of the f32 reference, for shapes
+    /// that leave partial query panels, key panels and value panels (and SD's 40-wide heads).
+    #[test]
+    fn fused_attention_with_bf16_products_is_within_bf16_rounding() {
+        use crate::kernels::{with_cpu_precision, CpuPrecision};
+        let dev = Device::Cpu;
+        for (q_len, k_len, d, dv) in [
+            (37, 77, 8, 8),
+            (300, 1000, 5, 3),
+            (1, 1, 4, 4),
+            (130, 64, 40, 40),
+        ] {
+            let q = Tensor::randn(0f32, 1.0, (2, 3, q_len, d), &dev).unwrap();
+            let k = Tensor::randn(0f32, 1.0, (2, 3, k_len, d), &dev).unwrap();
+            let v = Tensor::randn(0f32, 1.0, (2, 3, k_len, dv), &dev).unwrap();
+            let Ok(got) = with_cpu_precision(CpuPrecision::Bf16, || attention(&q, &k, &v, 0.7))
+            else {
+                eprintln!("skipped: no AVX512-BF16 on this CPU");
+                return;
+            };
+            let got = got.unwrap();
+            let want = reference(&q, &k, &v, 0.7);
+            let rel = testkit::diff::tensor_relative_l2(&got, &want);
+            // bf16 keeps 8 bits of mantissa: ~0.4 % per rounded operand.
+            assert!(
+                rel > 0.0 && rel < 1e-2,
+                "{q_len}x{k_len}x{d}x{dv}: relative L2 {rel}"
+            );
+            let f32_out = attention(&q, &k, &v, 0.7).unwrap();
+            assert!(
+                max_diff(&f32_out, &want) < 1e-5,
+                "f32 stays f32 outside the precision scope"
+            );
         }
     }
 

@@ -6,8 +6,12 @@ use candle_core::{Module, Result, Tensor};
 
 use super::op_args::{Addend, Unary};
 
-/// [`Unary`] `op` of `x`.
+/// [`Unary`] `op` of `x`: one fused pass for inference with bf16 products where [`super::activation`]
+/// has a kernel.
 pub(super) fn unary(x: &Tensor, op: Unary) -> Result<Tensor> {
+    if let Some(out) = super::activation::fused(x, op)? {
+        return Ok(out);
+    }
     match op {
         Unary::Relu => x.relu(),
         Unary::Silu => x.silu(),

@@ -50,6 +50,7 @@ macro_rules! simd_dispatch {
     };
 }
 
+mod activation;
 mod approx;
 mod attention;
 pub mod bf16;

@@ -222,6 +222,16 @@ fn pack_panel(
                 *d = pair(a, 0.0);
             }
         }
+    } else if k_stride == 1 && full_pairs >= 16 && bf16_products_available() {
+        // Each line's k values are contiguous (a row-major left operand, attention probabilities).
+        let lines: Vec<&[f32]> = (0..count)
+            .map(|i| &src[(first + i) * line_stride..][..k])
+            .collect();
+        // SAFETY: the CPU has the instructions (checked just above).
+        #[cfg(target_arch = "x86_64")]
+        unsafe {
+            pack_lines_avx512(&lines, panel, width)
+        };
     } else {
         for i in 0..count {
             let line = &src[(first + i) * line_stride..];
@@ -231,6 +241,51 @@ fn pack_panel(
             if odd {
                 panel[full_pairs * width + i] = pair(line[2 * full_pairs * k_stride], 0.0);
             }
+        }
+    }
+}
+
+/// Up to `width` contiguous lines of k values as one panel's pairs, `panel[q·width + i] =
+/// pair(lines[i][2q], lines[i][2q + 1])`: 32 values of each line converted at a time by the hardware
+/// (the same rounding as [`pair`]) and written pair row by pair row, so the stores run through the
+/// panel in order; the tails in scalar code.
+///
+/// # Safety
+/// The CPU has AVX512-F/BW/VL/BF16.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f,avx512bw,avx512vl,avx512bf16")]
+unsafe fn pack_lines_avx512(lines: &[&[f32]], panel: &mut [u32], width: usize) {
+    use std::arch::x86_64::*;
+    let Some(k) = lines.first().map(|l| l.len()) else {
+        return;
+    };
+    let full_pairs = k / 2;
+    let chunks = full_pairs / 16;
+    let mut words = [[0u32; 16]; NR];
+    for c in 0..chunks {
+        for (line, words) in lines.iter().zip(words.iter_mut()) {
+            // SAFETY: the 32 values from 32·c lie inside the line (c < full_pairs / 16).
+            unsafe {
+                let lo = _mm512_loadu_ps(line.as_ptr().add(32 * c));
+                let hi = _mm512_loadu_ps(line.as_ptr().add(32 * c + 16));
+                let pairs: __m512i =
+                    std::mem::transmute::<__m512bh, __m512i>(_mm512_cvtne2ps_pbh(hi, lo));
+                _mm512_storeu_si512(words.as_mut_ptr() as *mut _, pairs);
+            }
+        }
+        for j in 0..16 {
+            let row = &mut panel[(16 * c + j) * width..][..lines.len()];
+            for (dst, words) in row.iter_mut().zip(&words) {
+                *dst = words[j];
+            }
+        }
+    }
+    for (i, line) in lines.iter().enumerate() {
+        for q in 16 * chunks..full_pairs {
+            panel[q * width + i] = pair(line[2 * q], line[2 * q + 1]);
+        }
+        if k % 2 == 1 {
+            panel[full_pairs * width + i] = pair(line[2 * full_pairs], 0.0);
         }
     }
 }
@@ -618,15 +673,18 @@ mod tests {
         assert_eq!((made.lines, made.k), (lines, k));
     }
 
-    /// Unpacking gives back each value rounded to bf16, for both panel widths, odd k and partial panels.
+    /// Unpacking gives back each value rounded to bf16, for both panel widths, odd k and partial panels,
+    /// with lines short enough for the scalar packing and long enough for the vector one (two chunks of
+    /// 32 values, a scalar tail and an odd last value).
     #[test]
     fn unpacking_gives_the_rounded_matrix() {
-        let (lines, k) = (37, 11);
-        let m = values(lines * k, 7);
-        let rounded: Vec<f32> = m.iter().map(|&x| from_bf16_bits(to_bf16_bits(x))).collect();
-        for width in [MR, NR] {
-            let packed = PackedPairs::pack(&m, lines, k, k, 1, width);
-            assert_eq!(packed.unpack(), rounded, "width {width}");
+        for (lines, k) in [(37, 11), (29, 75)] {
+            let m = values(lines * k, 7);
+            let rounded: Vec<f32> = m.iter().map(|&x| from_bf16_bits(to_bf16_bits(x))).collect();
+            for width in [MR, NR] {
+                let packed = PackedPairs::pack(&m, lines, k, k, 1, width);
+                assert_eq!(packed.unpack(), rounded, "{lines}x{k}, width {width}");
+            }
         }
     }
 
