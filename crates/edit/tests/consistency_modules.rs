@@ -182,9 +182,9 @@ fn blend_map_consistency_makes_masks_agree() {
     );
 }
 
-/// ECM's two fits side by side (on the CPU) give what they give one after the other, bit for bit.
-#[test]
-fn ecm_fit_pair_matches_fits_in_turn() {
+/// ECM's pair of fits: the textured blob, its cameras at 32², and two sets of targets (its renders with
+/// red and blue moved two ways).
+fn ecm_pair_case() -> (GaussianScene, Vec<Camera>, [Vec<Image>; 2]) {
     let scene = textured_blob();
     let cams = cameras(32);
     let renders: Vec<Image> = cams
@@ -201,7 +201,26 @@ fn ecm_fit_pair_matches_fits_in_turn() {
         }
         out
     };
-    let (a, b) = (shifted(0.3), shifted(-0.2));
+    let targets = [shifted(0.3), shifted(-0.2)];
+    (scene, cams, targets)
+}
+
+/// Every parameter of `s`, one array after the other.
+fn parameters(s: &GaussianScene) -> Vec<f32> {
+    s.means
+        .iter()
+        .chain(&s.log_scales)
+        .chain(&s.quats)
+        .chain(&s.opacity_logits)
+        .chain(&s.sh)
+        .copied()
+        .collect()
+}
+
+/// ECM's two fits side by side (on the CPU) give what they give one after the other, bit for bit.
+#[test]
+fn ecm_fit_pair_matches_fits_in_turn() {
+    let (scene, cams, [a, b]) = ecm_pair_case();
     for params in [EcmParams::Appearance, EcmParams::All] {
         let ecm = EcmSettings {
             params,
@@ -216,16 +235,8 @@ fn ecm_fit_pair_matches_fits_in_turn() {
             fitter.fit(&scene, &cams, &a, 11).unwrap(),
             fitter.fit(&scene, &cams, &b, 12).unwrap(),
         ];
-        let bits = |s: &GaussianScene| -> Vec<u32> {
-            s.means
-                .iter()
-                .chain(&s.log_scales)
-                .chain(&s.quats)
-                .chain(&s.opacity_logits)
-                .chain(&s.sh)
-                .map(|v| v.to_bits())
-                .collect()
-        };
+        let bits =
+            |s: &GaussianScene| -> Vec<u32> { parameters(s).iter().map(|v| v.to_bits()).collect() };
         assert_ne!(
             bits(&pair[0]),
             bits(&pair[1]),
@@ -246,33 +257,7 @@ fn ecm_fit_pair_on_the_gpu_matches_fits_in_turn() {
     let Some(ctx) = gpu::testing::context_or_skip() else {
         return;
     };
-    let scene = textured_blob();
-    let cams = cameras(32);
-    let renders: Vec<Image> = cams
-        .iter()
-        .map(|c| render(&scene, c, &RenderSettings::default(), None).rgb_image())
-        .collect();
-    let shifted = |d: f32| -> Vec<Image> {
-        let mut out = renders.clone();
-        for img in &mut out {
-            for p in img.data.chunks_exact_mut(3) {
-                p[0] = (p[0] + d).clamp(0.0, 1.0);
-                p[2] = (p[2] - d).clamp(0.0, 1.0);
-            }
-        }
-        out
-    };
-    let (a, b) = (shifted(0.3), shifted(-0.2));
-    let values = |s: &GaussianScene| -> Vec<f32> {
-        s.means
-            .iter()
-            .chain(&s.log_scales)
-            .chain(&s.quats)
-            .chain(&s.opacity_logits)
-            .chain(&s.sh)
-            .copied()
-            .collect()
-    };
+    let (scene, cams, [a, b]) = ecm_pair_case();
     // Half the Gaussians editable, as ECM's default scope.
     let mask: Vec<bool> = (0..scene.len()).map(|i| i % 3 != 0).collect();
     for params in [EcmParams::Appearance, EcmParams::All] {
@@ -313,8 +298,8 @@ fn ecm_fit_pair_on_the_gpu_matches_fits_in_turn() {
             "{paired:?} against {one_by_one:?}"
         );
         for (k, (got, want)) in pair.iter().zip(&in_turn).enumerate() {
-            let (got, want) = (values(got), values(want));
-            let moved = max_abs_diff(&want, &values(&scene));
+            let (got, want) = (parameters(got), parameters(want));
+            let moved = max_abs_diff(&want, &parameters(&scene));
             let worst = max_abs_diff(&got, &want);
             eprintln!("{params:?} fit {k}: moved by {moved:e}, paired off by {worst:e}");
             assert!(moved > 0.1, "{params:?} fit {k}: the fit must move");
