@@ -232,6 +232,10 @@ impl FitLoss for Targets<'_> {
         self.loss.device_weights()
     }
 
+    fn has_device_term(&self) -> bool {
+        matches!(self.loss, ImageLoss::Lpips { net, .. } if net.device().is_gpu())
+    }
+
     /// λ·LPIPS of the render on the GPU the network shares with the renderer: the render and the
     /// gradients never leave the device (the value only when asked).
     fn device_term(

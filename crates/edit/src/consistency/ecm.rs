@@ -12,8 +12,8 @@ use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use serde::{Deserialize, Serialize};
 use splat::train::optim::Group;
-use splat::train::StepKind;
 use splat::train::TrainState;
+use splat::train::{PairTrainer, StepKind};
 use splat::SplatDevice;
 use splat::{Camera, GaussianScene, Image};
 
@@ -158,6 +158,94 @@ impl<'a> EcmFitter<'a> {
     }
 }
 
+impl EcmFitter<'_> {
+    /// A fit's starting state: a deep copy of the editing state with `scene` (same optimiser moments
+    /// and current rates: the reference's deep-copied optimizer), no densification, no anchor loss,
+    /// and with [`EcmParams::Appearance`] the geometry rates 0.
+    fn start_state(&self, scene: &GaussianScene) -> Result<TrainState, String> {
+        if scene.len() != self.base.len() {
+            return Err("ECM scene differs from the editing state".into());
+        }
+        let mut state = self.base.clone();
+        state.scene.clone_from(scene);
+        state.anchor = None;
+        if self.settings.scope == EcmScope::All {
+            state.trainable = None;
+        }
+        if self.settings.params == EcmParams::Appearance {
+            for g in [Group::Means, Group::LogScales, Group::Quats] {
+                state.adam.group_lr_scale[g.index()] = 0.0;
+            }
+        }
+        Ok(state)
+    }
+
+    /// Runs a fit's schedule: per epoch the rates (StepLR(step_size = 2 epochs, γ = 0.5), stretched
+    /// with the epochs) and a view order drawn from each of `rngs` (one per fit), then `step` with each
+    /// fit's view at each position of the orders.
+    fn run_schedule<const FITS: usize>(
+        &self,
+        state: &mut TrainState,
+        views: usize,
+        rngs: &mut [ChaCha8Rng; FITS],
+        mut step: impl FnMut(&mut TrainState, [usize; FITS]) -> Result<(), String>,
+    ) -> Result<(), String> {
+        let base_scale = state.adam.lr_scale;
+        let (epochs, halve_every) = self.settings.schedule(views);
+        for epoch in 0..epochs {
+            state.adam.lr_scale = base_scale * 0.5f32.powi((epoch / halve_every) as i32);
+            let orders = rngs.each_mut().map(|rng| {
+                let mut order: Vec<usize> = (0..views).collect();
+                order.shuffle(rng);
+                order
+            });
+            for k in 0..views {
+                step(state, orders.each_ref().map(|order| order[k]))?;
+            }
+        }
+        Ok(())
+    }
+
+    /// Both fits stepped together on a GPU ([`PairTrainer`]: one launch sequence per step for the two,
+    /// the views' kept projections shared), each with its own seed's view orders: the same fits as in
+    /// turn, up to the order of the backward's atomic sums. `None` where they cannot: on the CPU, with
+    /// [`EcmParams::All`] (every step projects and bins each fit's geometry anew; those fits stay in
+    /// turn), with LPIPS on the GPU (a device term per image), or views of different sizes.
+    fn fit_together(
+        &self,
+        scene: &GaussianScene,
+        cameras: &[Camera],
+        images: [&[Image]; 2],
+        seed: u64,
+    ) -> Result<Option<[GaussianScene; 2]>, String> {
+        if self.device.is_cpu() || self.settings.params != EcmParams::Appearance {
+            return Ok(None);
+        }
+        for set in images {
+            check_targets(cameras, set).map_err(|e| e.to_string())?;
+        }
+        let mut state = self.start_state(scene)?;
+        let loss = Targets::new(self.loss, images[0]);
+        let targets = images.map(|set| set.iter().map(|t| t.data.as_slice()));
+        let Some(mut pair) = PairTrainer::new(
+            self.device,
+            &loss,
+            targets,
+            cameras,
+            self.background,
+            &state,
+        ) else {
+            return Ok(None);
+        };
+        let mut rngs = [seed, seed + 1].map(ChaCha8Rng::seed_from_u64);
+        self.run_schedule(&mut state, cameras.len(), &mut rngs, |state, [a, b]| {
+            pair.step(&mut state.adam, [&cameras[a], &cameras[b]], [a, b])
+                .map_err(|e| e.to_string())
+        })?;
+        pair.finish().map(Some).map_err(|e| e.to_string())
+    }
+}
+
 impl SceneFitter for EcmFitter<'_> {
     fn fit(
         &self,
@@ -167,24 +255,10 @@ impl SceneFitter for EcmFitter<'_> {
         seed: u64,
     ) -> Result<GaussianScene, String> {
         check_targets(cameras, images).map_err(|e| e.to_string())?;
-        if scene.len() != self.base.len() {
-            return Err("ECM scene differs from the editing state".into());
-        }
-        // A deep copy of the editing state: same optimiser moments and current rates (the reference's
-        // deep-copied optimizer), no densification, no anchor loss.
-        let mut state = self.base.clone();
-        state.scene.clone_from(scene);
-        state.anchor = None;
-        if self.settings.scope == EcmScope::All {
-            state.trainable = None;
-        }
-        let mut rng = ChaCha8Rng::seed_from_u64(seed);
+        let mut state = self.start_state(scene)?;
         let mut targets = Targets::new(self.loss, images);
         let mut trainer = targets.trainer(self.device, self.background);
         if self.settings.params == EcmParams::Appearance {
-            for g in [Group::Means, Group::LogScales, Group::Quats] {
-                state.adam.group_lr_scale[g.index()] = 0.0;
-            }
             // Each view's projection is then the same at every step: kept, and no geometry gradients
             // (the copy's geometry moments are thrown away with it).
             trainer.freeze_geometry();
@@ -194,19 +268,13 @@ impl SceneFitter for EcmFitter<'_> {
             track_stats: false,
             read_loss: false,
         };
-        let base_scale = state.adam.lr_scale;
-        let (epochs, halve_every) = self.settings.schedule(cameras.len());
-        for epoch in 0..epochs {
-            // StepLR(step_size = 2 epochs, γ = 0.5), stretched with the epochs.
-            state.adam.lr_scale = base_scale * 0.5f32.powi((epoch / halve_every) as i32);
-            let mut order: Vec<usize> = (0..cameras.len()).collect();
-            order.shuffle(&mut rng);
-            for v in order {
-                trainer
-                    .step(&mut state, &cameras[v], v, &mut targets, kind)
-                    .map_err(|e| e.to_string())?;
-            }
-        }
+        let mut rngs = [ChaCha8Rng::seed_from_u64(seed)];
+        self.run_schedule(&mut state, cameras.len(), &mut rngs, |state, [v]| {
+            trainer
+                .step(state, &cameras[v], v, &mut targets, kind)
+                .map(drop)
+                .map_err(|e| e.to_string())
+        })?;
         trainer.sync(&mut state).map_err(|e| e.to_string())?;
         Ok(state.scene)
     }
@@ -214,7 +282,9 @@ impl SceneFitter for EcmFitter<'_> {
     /// On the CPU the target and layout fits run side by side: a step's parallel loops are short at
     /// editing sizes, so one fit alone leaves cores idle between them (two fits take ~17 % less wall
     /// time on 2 cores, docs/performance.md). The results are the same: no result of a fit depends on the threads' timing. On
-    /// a GPU the two fits would only queue on the one device and double its memory: one after the other.
+    /// a GPU the appearance fits step together, one launch sequence for both ([`Self::fit_together`]);
+    /// fits that cannot run one after the other (side by side they would only queue on the one device
+    /// and double its memory).
     fn fit_pair(
         &self,
         scene: &GaussianScene,
@@ -223,7 +293,10 @@ impl SceneFitter for EcmFitter<'_> {
         seed: u64,
     ) -> Result<[GaussianScene; 2], String> {
         if !self.device.is_cpu() {
-            return fit_in_turn(self, scene, cameras, images, seed);
+            return match self.fit_together(scene, cameras, images, seed)? {
+                Some(pair) => Ok(pair),
+                None => fit_in_turn(self, scene, cameras, images, seed),
+            };
         }
         let (a, b) = rayon::join(
             || self.fit(scene, cameras, images[0], seed),

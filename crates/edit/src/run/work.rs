@@ -145,9 +145,10 @@ const HEADS: u64 = 8;
 
 /// GPU memory a run keeps besides one UNet call's activations: the networks' weights (f16 or f32 copies
 /// in the device cache), the fit's device state (scene, gradients, two Adam moments, anchor snapshot)
-/// and the one ECM fit alive at a time, one lifting's sums and one frame with CCM's channels, the views
-/// ECM's fit and the lifting session keep (`views` of them at most), plus 100 MB of pools and small
-/// buffers. 0 on the CPU.
+/// and ECM's fits (one alive at a time, or both where its appearance fits step together: a second copy
+/// and each step's splat records of both), one lifting's sums and one frame with CCM's channels, the
+/// views ECM's fits (shared by a pair) and the lifting session keep (`views` of them at most), plus 100
+/// MB of pools and small buffers. 0 on the CPU.
 pub fn gpu_state_bytes(
     job: &EditJob,
     model: &EditModel,
@@ -167,8 +168,15 @@ pub fn gpu_state_bytes(
         && (!job.consistency.ccm_steps.is_empty() || job.consistency.blend_consistency);
     let kept_views = (u64::from(ecm_keeps_views(job)) + u64::from(lifts))
         * splat.kept_views_bytes(scene.len(), views, job.size.0, job.size.1);
+    // The second copy of an appearance pair (`PairTrainer`): its parameters, gradients and moments.
+    let ecm_pair = if ecm_keeps_views(job) {
+        scene_param_bytes(scene) * 5
+    } else {
+        0
+    };
     weight_bytes
         + scene_param_bytes(scene) * 10
+        + ecm_pair
         + n * 4 * (lift_channels + 1)
         + frame
         + kept_views

@@ -15,7 +15,7 @@ pub mod scene_fit;
 mod trainer;
 
 pub use gpu::L1DssimWeights;
-pub use trainer::{FitLoss, StageSeconds, StepKind, StepOutcome, Trainer};
+pub use trainer::{FitLoss, PairTrainer, StageSeconds, StepKind, StepOutcome, Trainer};
 
 use crate::cameras::Camera;
 use crate::layout::{remap_scene, set_scene_sh_degree, Remap};

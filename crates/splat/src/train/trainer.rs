@@ -13,7 +13,9 @@ use ::gpu::F32Buffer;
 use crate::cameras::Camera;
 use crate::device::SplatDevice;
 use crate::render::{FrozenGeometry, RenderSettings, SceneGrads};
-use crate::train::gpu::{DeviceTrainer, L1DssimWeights};
+use crate::scene::GaussianScene;
+use crate::train::gpu::{DevicePair, DeviceTrainer, L1DssimWeights};
+use crate::train::optim::Adam;
 use crate::train::TrainState;
 use ::gpu::{GpuContext, GpuError};
 
@@ -41,6 +43,11 @@ pub trait FitLoss {
     /// The value of the last [`FitLoss::device_term`] asked to read it (0 when there is no term).
     fn take_device_value(&mut self) -> f32 {
         0.0
+    }
+    /// Whether [`FitLoss::device_term`] adds a term (then two fits do not step together:
+    /// [`PairTrainer`]). The default adds none.
+    fn has_device_term(&self) -> bool {
+        false
     }
 }
 
@@ -242,6 +249,81 @@ impl Trainer {
             }
         }
         Ok(())
+    }
+}
+
+/// Two fits of copies of one state that keep its geometry, stepped together on a GPU: both fits' step
+/// in one launch sequence, their views' kept projections shared (`train::gpu::pair`). ECM's target and
+/// layout fits with their appearance alone. Each fit ends as the same fit alone through [`Trainer`]
+/// would, up to the order in which the backward's atomics add.
+pub struct PairTrainer {
+    ctx: GpuContext,
+    weights: L1DssimWeights,
+    targets: [Vec<Handle>; 2],
+    settings: RenderSettings,
+    pair: DevicePair,
+}
+
+impl PairTrainer {
+    /// Fits of two copies of `state` to `targets[0]` and `targets[1]` (one H*W*3 image per view of
+    /// `cameras` each) over `background` with `loss`; `None` where they cannot step together: no GPU,
+    /// a loss the device does not evaluate alone (host only, or with a device term), geometry rates
+    /// above 0, anchors, or views of different sizes.
+    pub fn new<'t, T: IntoIterator<Item = &'t [f32]>>(
+        device: &SplatDevice,
+        loss: &impl FitLoss,
+        targets: [T; 2],
+        cameras: &[Camera],
+        background: [f32; 3],
+        state: &TrainState,
+    ) -> Option<Self> {
+        let ctx = device.gpu()?;
+        let weights = loss.device_weights()?;
+        let one_size = cameras
+            .windows(2)
+            .all(|w| (w[0].width, w[0].height) == (w[1].width, w[1].height));
+        let kept = state.adam.geometry_fixed() && state.anchor.is_none();
+        if loss.has_device_term() || !one_size || !kept {
+            return None;
+        }
+        let targets = targets.map(|set| {
+            set.into_iter()
+                .map(|t| ::gpu::prims::upload_f32(&ctx.client, t))
+                .collect::<Vec<_>>()
+        });
+        Some(Self {
+            ctx: ctx.clone(),
+            weights,
+            targets,
+            settings: RenderSettings { background },
+            pair: DevicePair::upload(ctx, state),
+        })
+    }
+
+    /// One step of each fit: the first on view `views[0]` seen from `cameras[0]`, the second on
+    /// `views[1]` from `cameras[1]`. `adam` gives both fits' rates (its geometry rates stay 0) and
+    /// counts the step.
+    pub fn step(
+        &mut self,
+        adam: &mut Adam,
+        cameras: [&Camera; 2],
+        views: [usize; 2],
+    ) -> Result<(), GpuError> {
+        let targets = [&self.targets[0][views[0]], &self.targets[1][views[1]]];
+        self.pair.step(
+            &self.ctx,
+            adam,
+            cameras,
+            views,
+            targets,
+            &self.settings,
+            self.weights,
+        )
+    }
+
+    /// The two fitted scenes.
+    pub fn finish(self) -> Result<[GaussianScene; 2], GpuError> {
+        self.pair.download(&self.ctx)
     }
 }
 

@@ -15,13 +15,13 @@
 
 use super::project::{self, CAM_F, INFO_U, SPLAT_F};
 use super::{
-    arg, forward_pixels_per_unit, project_and_bin, rasterise, Binned, GpuContext, GpuError,
-    GpuFrame, GpuScene,
+    arg, forward_pixels_per_unit, project_and_bin, rasterise, rasterise_images, Binned, GpuContext,
+    GpuError, GpuFrame, GpuScene, PairImage,
 };
 use crate::cameras::Camera;
 use crate::render::{RenderSettings, TILE};
 use ::gpu::gpu_call;
-use ::gpu::prims::grid;
+use ::gpu::prims::{empty32, grid};
 
 /// One view's slot.
 enum Slot {
@@ -180,6 +180,65 @@ pub(crate) fn render_kept(
     })
 }
 
+/// Renders two fits of one scene in one launch sequence (ECM's target and layout fits): `scene` holds
+/// both fits' Gaussians (the first fit's `0..n`, the second's `n..2n`), whose geometry is the same and
+/// kept; image 0 is the first fit seen from `bins[0]`'s view, image 1 the second from `bins[1]`'s (the
+/// same size; the views may be one). The kept views are only read, so one [`GpuFrozenGeometry`]
+/// serves both fits. Each image is [`render_kept`]'s of its fit, bit for bit, and the frame's backward
+/// ([`super::render_backward_device`]) gives both fits' opacity and SH gradients (2n records).
+pub(crate) fn render_kept_pair(
+    ctx: &GpuContext,
+    scene: &GpuScene,
+    bins: [&Binned; 2],
+    settings: &RenderSettings,
+) -> Result<GpuFrame, GpuError> {
+    let [a, b] = bins;
+    assert!(
+        scene.len.is_multiple_of(2) && (a.width, a.height) == (b.width, b.height),
+        "a pair renders two halves of a scene into two images of one size"
+    );
+    let ppu = forward_pixels_per_unit(ctx, 0);
+    gpu_call(|| {
+        let (all, n) = (scene.len, scene.len / 2);
+        let c = &ctx.client;
+        let splats = empty32(c, SPLAT_F * all);
+        let info = empty32(c, INFO_U * all);
+        if n > 0 {
+            let (count, dim) = grid(all);
+            project::project_appearance_pair::launch(
+                c,
+                count,
+                dim,
+                arg(&scene.means, 3 * all),
+                arg(&scene.opacity_logits, all),
+                arg(
+                    &scene.sh,
+                    3 * crate::scene::sh_coeffs(scene.sh_degree) * all,
+                ),
+                arg(&a.cam, CAM_F),
+                arg(&a.splats, SPLAT_F * n),
+                arg(&a.info, INFO_U * n),
+                arg(&b.cam, CAM_F),
+                arg(&b.splats, SPLAT_F * n),
+                arg(&b.info, INFO_U * n),
+                n as u32,
+                arg(&splats, SPLAT_F * all),
+                arg(&info, INFO_U * all),
+                scene.sh_degree,
+            );
+        }
+        let first = Binned {
+            splats,
+            info,
+            ..a.clone()
+        };
+        let second = Some(PairImage::of(b, n));
+        Ok(rasterise_images(
+            ctx, all, first, second, settings, None, ppu, false, None,
+        ))
+    })
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -328,5 +387,148 @@ mod tests {
         let smaller = GpuScene::upload(&ctx, &random_scene(100, 1, 6));
         frozen.view(&ctx, &smaller, &a, 0).unwrap().unwrap();
         assert!(frozen.bytes() < one_view, "the old scene's views forgotten");
+    }
+
+    /// Two halves of one scene (two fits' appearance on one geometry) render in one launch as each
+    /// half alone from its own kept view, bit for bit, also when both images are of one view; the loss of
+    /// both images is each image's loss, bit for bit; and the pair's backward gives each half its own
+    /// frame's opacity and SH gradients (up to the atomics' order), the geometry's as 0.
+    #[test]
+    fn a_pair_renders_and_differentiates_as_each_half_alone() {
+        use crate::train::gpu::{l1_dssim_images, l1_dssim_weighted, L1DssimWeights};
+        let Some(ctx) = context_or_skip() else {
+            return;
+        };
+        let settings = RenderSettings {
+            background: [0.2, 0.5, 0.9],
+        };
+        let degree = 2;
+        let mut halves = [random_scene(500, degree, 31), random_scene(500, degree, 31)];
+        move_appearance(&mut halves[0], 1);
+        move_appearance(&mut halves[1], 2);
+        let n = halves[0].len();
+        let mut both = halves[0].clone();
+        both.means.extend_from_slice(&halves[1].means);
+        both.log_scales.extend_from_slice(&halves[1].log_scales);
+        both.quats.extend_from_slice(&halves[1].quats);
+        both.opacity_logits
+            .extend_from_slice(&halves[1].opacity_logits);
+        both.sh.extend_from_slice(&halves[1].sh);
+        let dev_both = GpuScene::upload(&ctx, &both);
+        let first_half = GpuScene {
+            len: n,
+            sh_degree: degree,
+            means: dev_both.means.clone(),
+            log_scales: dev_both.log_scales.clone(),
+            quats: dev_both.quats.clone(),
+            opacity_logits: dev_both.opacity_logits.clone(),
+            sh: dev_both.sh.clone(),
+        };
+        let dev_halves = halves.each_ref().map(|h| GpuScene::upload(&ctx, h));
+        let (w, h) = (64, 48);
+        let cams = [
+            camera(w, h),
+            crate::cameras::orbit::look_at(
+                "u".into(),
+                [1.2, 0.3, -2.6],
+                [0.0, 0.0, 1.0],
+                [0.0, -1.0, 0.0],
+                w,
+                h,
+                0.8 * w as f64,
+            ),
+        ];
+        let npix = (w * h) as usize;
+        let targets: Vec<_> = (0..2)
+            .map(|k| {
+                let t: Vec<f32> = (0..3 * npix).map(|i| ((i + k) % 7) as f32 / 7.0).collect();
+                upload_f32(&ctx.client, &t)
+            })
+            .collect();
+        let weights = L1DssimWeights::new(10.0, 2.5);
+        let read = |hd: &_, len| read_f32(&ctx.client, hd, len).unwrap();
+        let mut shared = GpuFrozenGeometry::default();
+        let mut own = [GpuFrozenGeometry::default(), GpuFrozenGeometry::default()];
+        for views in [[0, 1], [1, 1], [1, 0]] {
+            let bins = views.map(|v| {
+                let kept = shared.view(&ctx, &first_half, &cams[v], v).unwrap();
+                kept.unwrap().clone()
+            });
+            let pair = render_kept_pair(&ctx, &dev_both, [&bins[0], &bins[1]], &settings).unwrap();
+            let pair_loss = l1_dssim_images(
+                &ctx,
+                &pair.rgb,
+                &[&targets[0], &targets[1]],
+                64,
+                48,
+                3,
+                weights,
+            )
+            .unwrap();
+            let g = render_backward_device(
+                &ctx,
+                &dev_both,
+                &settings,
+                None,
+                &pair,
+                &GpuOutputGrads::rgb_only(&pair_loss.grad),
+            )
+            .unwrap();
+            let g = read_grads(&ctx, &g, 2 * n, degree, None).unwrap();
+            let (rgb, alpha) = (read(&pair.rgb, 6 * npix), read(&pair.alpha, 2 * npix));
+            let grad = read(&pair_loss.grad, 6 * npix);
+            for k in 0..2 {
+                let what = format!("views {views:?}, half {k}");
+                let v = views[k];
+                let mine = own[k].view(&ctx, &dev_halves[k], &cams[v], v).unwrap();
+                let alone = render_kept(&ctx, &dev_halves[k], mine.unwrap(), &settings).unwrap();
+                let image = k * 3 * npix..(k + 1) * 3 * npix;
+                assert_eq!(
+                    bits(&rgb[image.clone()]),
+                    bits(&read(&alone.rgb, 3 * npix)),
+                    "{what}"
+                );
+                assert_eq!(
+                    bits(&alpha[k * npix..(k + 1) * npix]),
+                    bits(&read(&alone.alpha, npix)),
+                    "{what}"
+                );
+                let loss =
+                    l1_dssim_weighted(&ctx, &alone.rgb, &targets[k], 64, 48, 3, weights).unwrap();
+                assert_eq!(
+                    bits(&grad[image]),
+                    bits(&read(&loss.grad, 3 * npix)),
+                    "{what}"
+                );
+                let a = render_backward_device(
+                    &ctx,
+                    &dev_halves[k],
+                    &settings,
+                    None,
+                    &alone,
+                    &GpuOutputGrads::rgb_only(&loss.grad),
+                )
+                .unwrap();
+                let a = read_grads(&ctx, &a, n, degree, None).unwrap();
+                let k_of = |v: &[f32], per: usize| v[k * per * n..(k + 1) * per * n].to_vec();
+                let sh_per = 3 * crate::scene::sh_coeffs(degree);
+                assert!(a.opacity_logits.iter().any(|v| *v != 0.0), "{what}");
+                for (name, got, want) in [
+                    ("opacity", k_of(&g.opacity_logits, 1), &a.opacity_logits),
+                    ("sh", k_of(&g.sh, sh_per), &a.sh),
+                ] {
+                    let e = max_rel(&got, want);
+                    assert!(e <= 1e-5, "{what}: {name} differs by {e:e}");
+                }
+            }
+            assert!(
+                g.means
+                    .iter()
+                    .chain(&g.log_scales)
+                    .chain(&g.quats)
+                    .all(|v| *v == 0.0),
+                "views {views:?}: geometry gradients"
+            );
+        }
     }
 }

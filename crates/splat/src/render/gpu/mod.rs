@@ -32,8 +32,8 @@ use ::gpu::cubecl::server::Handle;
 use ::gpu::gpu_call;
 use ::gpu::prims::{arg, empty32, grid, read_f32, read_u32, upload_f32, zeros32};
 use ::gpu::{GpuContext, GpuError};
-pub(crate) use frozen::render_kept;
 pub use frozen::GpuFrozenGeometry;
+pub(crate) use frozen::{render_kept, render_kept_pair};
 use project::{CAM_F, GRAD_F, INFO_U, SPLAT_F};
 
 /// Scene parameters on the device (layouts of [`GaussianScene`]).
@@ -113,6 +113,51 @@ pub struct GpuFrame {
     /// Whether the backward computes the geometry's gradients: false for a frame rendered from a kept
     /// geometry ([`frozen`]), whose backward gives the opacity and SH gradients alone.
     geometry_grads: bool,
+    /// 1, or 2 for a pair of fits' images ([`render_kept_pair`]): image 1's pixels follow image 0's in
+    /// every per-pixel buffer, its Gaussians' records (`splats`, `info`) follow image 0's `pair.offset`.
+    images: u32,
+    pair: PairImage,
+}
+
+/// The second image of a frame: its view's tile lists and camera, and where its Gaussians' records
+/// start (image 0's own again, offset 0, in a one-image frame).
+#[derive(Clone)]
+pub(crate) struct PairImage {
+    ids: Handle,
+    tile_start: Handle,
+    tile_end: Handle,
+    intersections: usize,
+    cam: Handle,
+    offset: u32,
+}
+
+impl PairImage {
+    /// Image 1 of a pair: `binned`'s lists, its Gaussians `offset` records after image 0's.
+    pub(crate) fn of(binned: &Binned, offset: usize) -> Self {
+        Self {
+            ids: binned.ids.clone(),
+            tile_start: binned.tile_start.clone(),
+            tile_end: binned.tile_end.clone(),
+            intersections: binned.intersections,
+            cam: binned.cam.clone(),
+            offset: offset as u32,
+        }
+    }
+}
+
+impl GpuFrame {
+    /// Tile intersections of all its images.
+    fn all_intersections(&self) -> usize {
+        match self.images {
+            1 => self.intersections,
+            _ => self.intersections + self.pair.intersections,
+        }
+    }
+
+    /// The pixels of all its images.
+    fn all_pixels(&self) -> usize {
+        self.images as usize * (self.width * self.height) as usize
+    }
 }
 
 /// Camera values in the kernels' layout, computed as `CameraR::<f32>` does (f64, then rounded).
@@ -259,6 +304,33 @@ pub(crate) fn rasterise_sparse(
     geometry_grads: bool,
     needed: Option<(&Handle, &Handle)>,
 ) -> GpuFrame {
+    rasterise_images(
+        ctx,
+        n,
+        binned,
+        None,
+        settings,
+        extra,
+        ppu,
+        geometry_grads,
+        needed,
+    )
+}
+
+/// [`rasterise_sparse`] of one image, or of two of the same size in one launch (`second`: image 1's
+/// lists, its Gaussians' records after image 0's in `binned`'s `splats`, `n` records in all).
+#[allow(clippy::too_many_arguments)]
+pub(crate) fn rasterise_images(
+    ctx: &GpuContext,
+    n: usize,
+    binned: Binned,
+    second: Option<PairImage>,
+    settings: &RenderSettings,
+    extra: Option<(&Handle, usize)>,
+    ppu: u32,
+    geometry_grads: bool,
+    needed: Option<(&Handle, &Handle)>,
+) -> GpuFrame {
     assert!(
         ppu.is_power_of_two() && ppu <= TILE,
         "pixels per unit must be a power of two ≤ {TILE}"
@@ -277,7 +349,22 @@ pub(crate) fn rasterise_sparse(
         tiles_x,
         tiles_y,
     } = binned;
-    let npix = (width * height) as usize;
+    // A pair's second half is differentiated through its camera's colours only (`project_backward`).
+    assert!(
+        second.is_none() || !geometry_grads,
+        "a pair of images renders kept geometry only"
+    );
+    let images = if second.is_some() { 2 } else { 1 };
+    let pair = second.unwrap_or_else(|| PairImage {
+        ids: ids.clone(),
+        tile_start: tile_start.clone(),
+        tile_end: tile_end.clone(),
+        intersections,
+        cam: cam.clone(),
+        offset: 0,
+    });
+    // Every per-pixel buffer holds all the images.
+    let npix = images as usize * (width * height) as usize;
     let num_tiles = (tiles_x * tiles_y) as usize;
 
     // 3. Rasterisation.
@@ -293,12 +380,16 @@ pub(crate) fn rasterise_sparse(
         let bg = settings.background;
         raster::raster_forward::launch(
             c,
-            CubeCount::new_2d(tiles_x, tiles_y),
+            CubeCount::new_3d(tiles_x, tiles_y, images),
             CubeDim::new_2d(TILE, TILE / ppu),
             arg(&splats, SPLAT_F * n),
             arg(&ids, intersections),
             arg(&tile_start, num_tiles),
             arg(&tile_end, num_tiles),
+            arg(&pair.ids, pair.intersections),
+            arg(&pair.tile_start, num_tiles),
+            arg(&pair.tile_end, num_tiles),
+            pair.offset,
             arg(&extra_vals, channels * n),
             arg(
                 needed.map_or(&extra_vals, |f| f.0),
@@ -344,6 +435,8 @@ pub(crate) fn rasterise_sparse(
         tiles_x,
         tiles_y,
         geometry_grads,
+        images,
+        pair,
     }
 }
 
@@ -532,7 +625,7 @@ fn render_backward_device_with(
     gpu_call(|| {
         let c = &ctx.client;
         let n = scene.len;
-        let npix = (frame.width * frame.height) as usize;
+        let npix = frame.all_pixels();
         let k = crate::scene::sh_coeffs(scene.sh_degree);
         let num_tiles = (frame.tiles_x * frame.tiles_y) as usize;
         let splat = zeros32(c, GRAD_F * n);
@@ -541,7 +634,7 @@ fn render_backward_device_with(
             _ => 0,
         };
         let g_extra = (channels > 0).then(|| zeros32(c, channels * n));
-        if npix > 0 && frame.intersections > 0 {
+        if npix > 0 && frame.all_intersections() > 0 {
             let zeros_pix =
                 (grads.alpha.is_none() || grads.depth.is_none()).then(|| zeros32(c, npix));
             let v_alpha = grads.alpha.or(zeros_pix.as_ref()).unwrap();
@@ -551,13 +644,17 @@ fn render_backward_device_with(
             let v_extra = grads.extra.filter(|_| channels > 0).unwrap_or(&dummy);
             let behind = empty32(c, channels * npix);
             let bg = settings.background;
+            let pair = &frame.pair;
             raster::raster_backward::launch(
                 c,
-                CubeCount::new_2d(frame.tiles_x, frame.tiles_y),
+                CubeCount::new_3d(frame.tiles_x, frame.tiles_y, frame.images),
                 CubeDim::new_2d(TILE, TILE / ppu),
                 arg(&frame.splats, SPLAT_F * n),
                 arg(&frame.ids, frame.intersections),
                 arg(&frame.tile_start, num_tiles),
+                arg(&pair.ids, pair.intersections),
+                arg(&pair.tile_start, num_tiles),
+                pair.offset,
                 arg(extra_vals, channels * n),
                 frame.width,
                 frame.height,
@@ -591,6 +688,11 @@ fn render_backward_device_with(
         };
         if n > 0 {
             let (count, dim) = grid(n);
+            // The second image's Gaussians, from `half` on, are seen from its camera.
+            let half = match frame.images {
+                1 => n as u32,
+                _ => frame.pair.offset,
+            };
             project::project_backward::launch(
                 c,
                 count,
@@ -600,6 +702,8 @@ fn render_backward_device_with(
                 arg(&scene.quats, 4 * n),
                 arg(&scene.sh, 3 * k * n),
                 arg(&frame.cam, CAM_F),
+                arg(&frame.pair.cam, CAM_F),
+                half,
                 n as u32,
                 arg(&frame.splats, SPLAT_F * n),
                 arg(&frame.info, INFO_U * n),

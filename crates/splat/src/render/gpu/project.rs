@@ -196,9 +196,15 @@ pub fn geometry(means: &[f32], log_scales: &[f32], quats: &[f32], cam: &[f32], i
 /// Unit direction camera centre → mean, and the length divided by (1 for a zero vector).
 #[cube]
 fn view_dir(means: &[f32], cam: &[f32], i: usize) -> (f32, f32, f32, f32) {
-    let dx = means[3 * i] - cam[16];
-    let dy = means[3 * i + 1] - cam[17];
-    let dz = means[3 * i + 2] - cam[18];
+    view_dir_from(means, cam[16], cam[17], cam[18], i)
+}
+
+/// [`view_dir`] from the camera centre (cx, cy, cz).
+#[cube]
+fn view_dir_from(means: &[f32], cx: f32, cy: f32, cz: f32, i: usize) -> (f32, f32, f32, f32) {
+    let dx = means[3 * i] - cx;
+    let dy = means[3 * i + 1] - cy;
+    let dz = means[3 * i + 2] - cz;
     let n = (dx * dx + dy * dy + dz * dz).sqrt();
     let pos = n > 0.0;
     let len = select(pos, n, 1.0f32);
@@ -347,6 +353,69 @@ pub fn project_appearance(
     }
 }
 
+/// [`project_appearance`] for a pair of fits of one scene (a launch for both): Gaussians `0..n` are the
+/// first fit's, `n..2n` the second's (parameters in `means`, `opacity_logits`, `sh`); each half takes
+/// its kept view's geometry (`kept_splats`/`kept_info` from `cam`, the `_b` ones from `cam_b`, both
+/// made by [`project_forward`] with `keep_faint` for `n` Gaussians) and its own opacity and colour,
+/// written to `splats` and `info` (2n records; the kept views stay as they are, so both halves may
+/// share one). The values are those [`project_appearance`] writes, bit for bit.
+#[cube(launch)]
+pub fn project_appearance_pair(
+    means: &[f32],
+    opacity_logits: &[f32],
+    sh: &[f32],
+    cam: &[f32],
+    kept_splats: &[f32],
+    kept_info: &[u32],
+    cam_b: &[f32],
+    kept_splats_b: &[f32],
+    kept_info_b: &[u32],
+    n: u32,
+    splats: &mut [f32],
+    info: &mut [u32],
+    #[comptime] degree: u32,
+) {
+    let i = ABSOLUTE_POS;
+    let half = n as usize;
+    if i < 2 * half {
+        let second = i >= half;
+        let j = i % half;
+        if second {
+            copy_record(kept_splats_b, kept_info_b, j, splats, info, i);
+        } else {
+            copy_record(kept_splats, kept_info, j, splats, info, i);
+        }
+        if info[i * 8] > 0 {
+            let opacity = opacity_of(opacity_logits, i);
+            if second {
+                write_appearance(means, sh, cam_b, i, opacity, splats, info, degree);
+            } else {
+                write_appearance(means, sh, cam, i, opacity, splats, info, degree);
+            }
+        }
+    }
+}
+
+/// Copies record `from` of a view's splats and info to record `to`.
+#[cube]
+fn copy_record(
+    kept_splats: &[f32],
+    kept_info: &[u32],
+    from: usize,
+    splats: &mut [f32],
+    info: &mut [u32],
+    to: usize,
+) {
+    #[unroll]
+    for k in 0..10usize {
+        splats[to * 10 + k] = kept_splats[from * 10 + k];
+    }
+    #[unroll]
+    for k in 0..8usize {
+        info[to * 8 + k] = kept_info[from * 8 + k];
+    }
+}
+
 #[cube]
 fn clamp_tile(v: f32, hi: u32) -> u32 {
     f32::min(f32::max(v, 0.0), hi as f32) as u32
@@ -354,7 +423,8 @@ fn clamp_tile(v: f32, hi: u32) -> u32 {
 
 /// Stage (a) backward: parameter gradients from the splat gradients (overwrites every output). Without
 /// `geometry`, the opacity and SH gradients alone (the means', scales' and rotations' are written as 0):
-/// the backward of a view whose geometry is kept.
+/// the backward of a view whose geometry is kept. Gaussians from `half` on are seen from `cam_b` (the
+/// second fit of a pair, [`project_appearance_pair`]; kept geometry only), the others from `cam`.
 #[cube(launch)]
 pub fn project_backward(
     means: &[f32],
@@ -362,6 +432,8 @@ pub fn project_backward(
     quats: &[f32],
     sh: &[f32],
     cam: &[f32],
+    cam_b: &[f32],
+    half: u32,
     n: u32,
     splats: &[f32],
     info: &[u32],
@@ -393,12 +465,19 @@ pub fn project_backward(
         }
         // A radius above 0 means the geometry was drawable (`g.ok` included).
         if info[i * 8] > 0 {
+            // The second fit's half of a pair (kept geometry only) is seen from `cam_b`.
+            let mut second = false;
+            if comptime!(!with_geometry) {
+                second = i >= half as usize;
+            }
             project_backward_one(
                 means,
                 log_scales,
                 quats,
                 sh,
                 cam,
+                cam_b,
+                second,
                 splats,
                 info,
                 grads,
@@ -422,6 +501,8 @@ fn project_backward_one(
     quats: &[f32],
     sh: &[f32],
     cam: &[f32],
+    cam_b: &[f32],
+    second: bool,
     splats: &[f32],
     info: &[u32],
     grads: &[f32],
@@ -454,7 +535,12 @@ fn project_backward_one(
     let mut vm1 = 0.0f32;
     let mut vm2 = 0.0f32;
     if v_col[0] != 0.0 || v_col[1] != 0.0 || v_col[2] != 0.0 {
-        let (dx, dy, dz, len) = view_dir(means, cam, i);
+        let mut centre = Array::<f32>::new(3usize);
+        #[unroll]
+        for a in 0..3usize {
+            centre[a] = select(second, cam_b[16 + a], cam[16 + a]);
+        }
+        let (dx, dy, dz, len) = view_dir_from(means, centre[0], centre[1], centre[2], i);
         let basis = sh_basis(dx, dy, dz, degree);
         let mut v_basis = Array::<f32>::new(16usize);
         #[unroll]

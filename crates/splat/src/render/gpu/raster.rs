@@ -46,6 +46,24 @@ pub(crate) fn tile_range(tile_start: &[u32], tile_end: &[u32], tiles_x: u32) -> 
     (start, tile_end[tile] - start)
 }
 
+/// [`tile_range`] of the cube's image (`CUBE_POS_Z`): image 0's lists, or image 1's (`*_b`) in a pair.
+#[cube]
+fn image_tile_range(
+    tile_start: &[u32],
+    tile_end: &[u32],
+    tile_start_b: &[u32],
+    tile_end_b: &[u32],
+    tiles_x: u32,
+) -> (u32, u32) {
+    let tile = cube_tile(tiles_x);
+    let second = CUBE_POS_Z != 0;
+    let start = select(second, tile_start_b[tile], tile_start[tile]);
+    (
+        start,
+        select(second, tile_end_b[tile], tile_end[tile]) - start,
+    )
+}
+
 /// The unit's pixels in a tile kernel: column `px` and rows `py0..py0 + ppu` of the image (unit (x, y)
 /// of the cube owns column x, rows y·ppu.. of the tile). Returns (px, py0).
 #[cube]
@@ -70,9 +88,29 @@ pub(crate) fn load_batch(
     #[comptime] fields: u32,
     #[comptime] units: u32,
 ) {
+    load_batch_of(
+        splats, ids, first, size, batch, batch_ids, 0u32, fields, units,
+    );
+}
+
+/// [`load_batch`] for an image of a pair: its list's ids are `offset` below its Gaussians' records in
+/// `splats` (the second image's Gaussians follow the first's), and `batch_ids` gets the records' ids.
+#[cube]
+#[allow(clippy::too_many_arguments)]
+fn load_batch_of(
+    splats: &[f32],
+    ids: &[u32],
+    first: u32,
+    size: u32,
+    batch: &mut Shared<[f32]>,
+    batch_ids: &mut Shared<[u32]>,
+    offset: u32,
+    #[comptime] fields: u32,
+    #[comptime] units: u32,
+) {
     let mut e = UNIT_POS;
     while e < size {
-        let gi = ids[(first + e) as usize];
+        let gi = ids[(first + e) as usize] + offset;
         batch_ids[e as usize] = gi;
         let src = gi as usize * 10;
         let dst = (e * fields) as usize;
@@ -81,6 +119,32 @@ pub(crate) fn load_batch(
             batch[dst + f as usize] = splats[src + f as usize];
         }
         e += units;
+    }
+}
+
+/// [`load_batch_of`] from the cube's image's list (`CUBE_POS_Z`: `ids`, or `ids_b` in a pair), the
+/// second image's Gaussians `offset` records after the first's.
+#[cube]
+#[allow(clippy::too_many_arguments)]
+fn load_image_batch(
+    splats: &[f32],
+    ids: &[u32],
+    ids_b: &[u32],
+    first: u32,
+    size: u32,
+    batch: &mut Shared<[f32]>,
+    batch_ids: &mut Shared<[u32]>,
+    offset: u32,
+    #[comptime] units: u32,
+) {
+    if CUBE_POS_Z == 0 {
+        load_batch_of(
+            splats, ids, first, size, batch, batch_ids, 0u32, 10u32, units,
+        );
+    } else {
+        load_batch_of(
+            splats, ids_b, first, size, batch, batch_ids, offset, 10u32, units,
+        );
     }
 }
 
@@ -129,12 +193,21 @@ pub(crate) const STAGE_BITS: u32 = 2;
 /// With `sparse`, the extra channels are composited only at the pixels whose row and column are flagged
 /// in `needed_rows` / `needed_cols` (lifting's render-back reads a few pixels per grid cell) and are zero
 /// elsewhere; without it those two arrays are not read.
+///
+/// A launch renders one image, or two of the same size (a pair of fits, `CUBE_POS_Z` the image): image 1
+/// walks its own lists (`ids_b`, `tile_start_b`, `tile_end_b`; image 0's again for one image) whose ids
+/// are `gauss_offset` below its Gaussians' records in `splats`, and its pixels follow image 0's in every
+/// output.
 #[cube(launch)]
 pub fn raster_forward(
     splats: &[f32],
     ids: &[u32],
     tile_start: &[u32],
     tile_end: &[u32],
+    ids_b: &[u32],
+    tile_start_b: &[u32],
+    tile_end_b: &[u32],
+    gauss_offset: u32,
     extra_vals: &[f32],
     needed_rows: &[u32],
     needed_cols: &[u32],
@@ -157,7 +230,9 @@ pub fn raster_forward(
     let units = comptime!(TILE * TILE / ppu);
     let np = comptime!(ppu as usize);
     let c = channels as usize;
-    let (start, count) = tile_range(tile_start, tile_end, tiles_x);
+    let (start, count) = image_tile_range(tile_start, tile_end, tile_start_b, tile_end_b, tiles_x);
+    let offset = CUBE_POS_Z * gauss_offset;
+    let pix_offset = CUBE_POS_Z * width * height;
     let (px, py0) = unit_pixels(ppu);
     let fx = px as f32 + 0.5;
 
@@ -185,7 +260,7 @@ pub fn raster_forward(
         n_last[q] = 0;
         wants[q] = 1;
         if px < width && py < height {
-            let p = py * width + px;
+            let p = pix_offset + py * width + px;
             pix[q] = p;
             done[q] = 0;
             if comptime!(sparse) {
@@ -205,14 +280,15 @@ pub fn raster_forward(
     let mut lo = 0u32;
     while lo < count {
         let size = u32::min(batch_len, count - lo);
-        load_batch(
+        load_image_batch(
             splats,
             ids,
+            ids_b,
             start + lo,
             size,
             &mut batch,
             &mut batch_ids,
-            10u32,
+            offset,
             units,
         );
         sync_cube();
@@ -293,11 +369,17 @@ pub fn raster_forward(
 /// atomics are relaxed, and plane sums did not help: one unit still waits ten times); a shared atomic
 /// only orders the cube's own memory. Per pixel the arithmetic is that of the CPU backward, in the
 /// same order.
+///
+/// Two images in one launch as in [`raster_forward`] (`CUBE_POS_Z`, `ids_b`, `tile_start_b`,
+/// `gauss_offset`; every per-pixel buffer holds image 1 after image 0).
 #[cube(launch)]
 pub fn raster_backward(
     splats: &[f32],
     ids: &[u32],
     tile_start: &[u32],
+    ids_b: &[u32],
+    tile_start_b: &[u32],
+    gauss_offset: u32,
     extra_vals: &[f32],
     width: u32,
     height: u32,
@@ -322,7 +404,10 @@ pub fn raster_backward(
     let units = comptime!(TILE * TILE / ppu);
     let np = comptime!(ppu as usize);
     let c = channels as usize;
-    let start = tile_start[cube_tile(tiles_x)];
+    let tile = cube_tile(tiles_x);
+    let start = select(CUBE_POS_Z != 0, tile_start_b[tile], tile_start[tile]);
+    let offset = CUBE_POS_Z * gauss_offset;
+    let pix_offset = CUBE_POS_Z * width * height;
     let (px, py0) = unit_pixels(ppu);
     let fx = px as f32 + 0.5;
 
@@ -365,7 +450,7 @@ pub fn raster_backward(
         bb[q] = 0.0;
         bd[q] = 0.0;
         if px < width && py < height {
-            let p = py * width + px;
+            let p = pix_offset + py * width + px;
             let pu = p as usize;
             pix[q] = p;
             n_last[q] = last[pu];
@@ -407,14 +492,15 @@ pub fn raster_backward(
         let size = hi - lo;
         // The previous batch is consumed (and a staged one added to `grads`) before it is overwritten.
         sync_cube();
-        load_batch(
+        load_image_batch(
             splats,
             ids,
+            ids_b,
             start + lo,
             size,
             &mut batch,
             &mut batch_ids,
-            10u32,
+            offset,
             units,
         );
         if comptime!(staging != STAGE_NONE) {

@@ -20,19 +20,27 @@ use ::gpu::{GpuContext, GpuError};
 
 /// The horizontal blur pass of the five SSIM inputs (x, y, x², y², xy per channel), read straight
 /// from the interleaved images: 5 planes per channel into `out` (plane `5·ch + k`).
+///
+/// Over `images` images (1, or 2 for a pair of fits): image 1's `pred` and planes follow image 0's, its
+/// target is `target_b`.
 #[cube(launch)]
 fn ssim_rows(
     pred: &[f32],
     target: &[f32],
+    target_b: &[f32],
     taps: &[f32],
     width: u32,
     height: u32,
     channels: u32,
+    images: u32,
     out: &mut [f32],
 ) {
-    let i = ABSOLUTE_POS as u32;
+    let all = ABSOLUTE_POS as u32;
     let n = width * height;
-    if i < n * channels {
+    let total = n * channels;
+    if all < total * images {
+        let img = all / total;
+        let i = all % total;
         let ch = i / n;
         let p = i % n;
         let x = p % width;
@@ -48,15 +56,15 @@ fn ssim_rows(
         for xi in lo..hi + 1 {
             let tap = taps[(xi + r - x) as usize];
             let e = ((row + xi) * channels + ch) as usize;
-            let a = pred[e];
-            let b = target[e];
+            let a = pred[(img * total) as usize + e];
+            let b = target_of(target, target_b, img, e);
             sx += tap * a;
             sy += tap * b;
             sxx += tap * (a * a);
             syy += tap * (b * b);
             sxy += tap * (a * b);
         }
-        let base = (ch * 5 * n + p) as usize;
+        let base = (img * 5 * total + ch * 5 * n + p) as usize;
         let nu = n as usize;
         out[base] = sx;
         out[base + nu] = sy;
@@ -64,6 +72,12 @@ fn ssim_rows(
         out[base + 3 * nu] = syy;
         out[base + 4 * nu] = sxy;
     }
+}
+
+/// Element `e` of image `img`'s target: `target`'s, or `target_b`'s for image 1 of a pair.
+#[cube]
+fn target_of(target: &[f32], target_b: &[f32], img: u32, e: usize) -> f32 {
+    select(img != 0, target_b[e], target[e])
 }
 
 /// The vertical pass of the zero-padded blur at (x, y) of the plane starting at `base`.
@@ -108,6 +122,7 @@ fn blur_rows(src: &[f32], taps: &[f32], width: u32, height: u32, planes: u32, ou
 /// The vertical blur pass of the row-blurred SSIM inputs (5 planes per channel) finishes the local
 /// statistics μx, μy, E[x²], E[y²], E[xy]; from them the SSIM map and the scaled partial derivatives
 /// with respect to μx, E[x²], E[xy] (3 planes per channel).
+/// Over `images` images as [`ssim_rows`].
 #[cube(launch)]
 fn ssim_terms(
     rows: &[f32],
@@ -115,18 +130,22 @@ fn ssim_terms(
     width: u32,
     height: u32,
     channels: u32,
+    images: u32,
     scale: f32,
     ssim_map: &mut [f32],
     partials: &mut [f32],
 ) {
-    let i = ABSOLUTE_POS;
+    let all = ABSOLUTE_POS;
     let n = (width * height) as usize;
-    if i < n * channels as usize {
+    let total = n * channels as usize;
+    if all < total * images as usize {
+        let img = all / total;
+        let i = all % total;
         let ch = i / n;
         let p = i % n;
         let x = p as u32 % width;
         let y = p as u32 / width;
-        let b = (ch * 5 * n) as u32;
+        let b = (img * 5 * total + ch * 5 * n) as u32;
         let nu = n as u32;
         let mx = column_blur(rows, taps, b, x, y, width, height);
         let my = column_blur(rows, taps, b + nu, x, y, width, height);
@@ -141,49 +160,55 @@ fn ssim_terms(
         let d = sxx + syy + c2;
         let cd = cc * d;
         let s = a * bb / cd;
-        ssim_map[i] = s;
-        let o = ch * 3 * n;
+        ssim_map[all] = s;
+        let o = img * 3 * total + ch * 3 * n;
         partials[o + p] = scale * (2.0f32 * my * (bb - a) / cd - 2.0f32 * mx * s * (d - cc) / cd);
         partials[o + n + p] = -scale * s / d;
         partials[o + 2 * n + p] = scale * 2.0f32 * a / cd;
     }
 }
 
+/// Over `images` images as [`ssim_rows`].
 #[cube(launch)]
 fn l1_dssim_grad(
     pred: &[f32],
     target: &[f32],
+    target_b: &[f32],
     partial_rows: &[f32],
     taps: &[f32],
     width: u32,
     height: u32,
     channels: u32,
+    images: u32,
     w_l1: f32,
     w_ssim: f32,
     grad: &mut [f32],
     abs_diff: &mut [f32],
 ) {
-    let i = ABSOLUTE_POS;
+    let all = ABSOLUTE_POS;
     let n = (width * height) as usize;
     let total = n * channels as usize;
-    if i < total {
+    if all < total * images as usize {
+        let img = all / total;
+        let i = all % total;
         let p = i / channels as usize;
         let ch = i % channels as usize;
         let px = p as u32 % width;
         let py = p as u32 / width;
-        let x = pred[i];
-        let d = x - target[i];
+        let x = pred[all];
+        let y = target_of(target, target_b, img as u32, i);
+        let d = x - y;
         let step = 1.0f32 / total as f32;
         let g_l1 = select(d > 0.0, step, select(d < 0.0, -step, 0.0f32));
         // The vertical pass of the partials' blur (the window is its own adjoint).
-        let o = (ch * 3 * n) as u32;
+        let o = (img * 3 * total + ch * 3 * n) as u32;
         let nu = n as u32;
         let b0 = column_blur(partial_rows, taps, o, px, py, width, height);
         let b1 = column_blur(partial_rows, taps, o + nu, px, py, width, height);
         let b2 = column_blur(partial_rows, taps, o + 2 * nu, px, py, width, height);
-        let g_ssim = b0 + 2.0f32 * x * b1 + target[i] * b2;
-        grad[i] = w_l1 * g_l1 - w_ssim * g_ssim;
-        abs_diff[i] = f32::abs(d);
+        let g_ssim = b0 + 2.0f32 * x * b1 + y * b2;
+        grad[all] = w_l1 * g_l1 - w_ssim * g_ssim;
+        abs_diff[all] = f32::abs(d);
     }
 }
 
@@ -312,79 +337,107 @@ pub fn l1_dssim_weighted(
     channels: usize,
     weights: L1DssimWeights,
 ) -> Result<GpuLoss, GpuError> {
+    l1_dssim_images(ctx, pred, &[target], width, height, channels, weights)
+}
+
+/// [`l1_dssim_weighted`] of one image or of two in one launch per kernel (a pair of fits): `pred`
+/// holds the images one after the other, `targets` one target each. The gradient holds each image's
+/// own (as [`l1_dssim_weighted`] of that image alone gives, bit for bit), and the value is the mean of
+/// the images' losses.
+pub fn l1_dssim_images(
+    ctx: &GpuContext,
+    pred: &Handle,
+    targets: &[&Handle],
+    width: usize,
+    height: usize,
+    channels: usize,
+    weights: L1DssimWeights,
+) -> Result<GpuLoss, GpuError> {
+    assert!(
+        matches!(targets.len(), 1 | 2),
+        "one image or a pair of images"
+    );
     let c = &ctx.client;
     let npix = width * height;
     let total = npix * channels;
+    let images = targets.len();
+    let all = images * total;
+    let (target, target_b) = (targets[0], targets[images - 1]);
     gpu_call(|| {
         let taps = upload_f32(c, &ssim_window().map(|v| v as f32));
-        let grad = empty32(c, total);
-        let abs_diff = empty32(c, total);
-        let ssim_map = empty32(c, total);
+        let grad = empty32(c, all);
+        let abs_diff = empty32(c, all);
+        let ssim_map = empty32(c, all);
         if total > 0 {
-            let (count, dim) = grid(total);
+            let (count, dim) = grid(all);
             let (w, h) = (width as u32, height as u32);
-            let rows = empty32(c, 5 * total);
+            let rows = empty32(c, 5 * all);
             ssim_rows::launch(
                 c,
                 count.clone(),
                 dim,
-                arg(pred, total),
+                arg(pred, all),
                 arg(target, total),
+                arg(target_b, total),
                 arg(&taps, SSIM_WINDOW),
                 w,
                 h,
                 channels as u32,
-                arg(&rows, 5 * total),
+                images as u32,
+                arg(&rows, 5 * all),
             );
-            let partials = empty32(c, 3 * total);
+            let partials = empty32(c, 3 * all);
             ssim_terms::launch(
                 c,
                 count.clone(),
                 dim,
-                arg(&rows, 5 * total),
+                arg(&rows, 5 * all),
                 arg(&taps, SSIM_WINDOW),
                 w,
                 h,
                 channels as u32,
+                images as u32,
                 1.0 / total as f32,
-                arg(&ssim_map, total),
-                arg(&partials, 3 * total),
+                arg(&ssim_map, all),
+                arg(&partials, 3 * all),
             );
-            let partial_rows = empty32(c, 3 * total);
-            let (count3, dim3) = grid(3 * total);
+            let partial_rows = empty32(c, 3 * all);
+            let (count3, dim3) = grid(3 * all);
             blur_rows::launch(
                 c,
                 count3,
                 dim3,
-                arg(&partials, 3 * total),
+                arg(&partials, 3 * all),
                 arg(&taps, SSIM_WINDOW),
                 w,
                 h,
-                3 * channels as u32,
-                arg(&partial_rows, 3 * total),
+                (3 * channels * images) as u32,
+                arg(&partial_rows, 3 * all),
             );
             l1_dssim_grad::launch(
                 c,
                 count,
                 dim,
-                arg(pred, total),
+                arg(pred, all),
                 arg(target, total),
-                arg(&partial_rows, 3 * total),
+                arg(target_b, total),
+                arg(&partial_rows, 3 * all),
                 arg(&taps, SSIM_WINDOW),
                 w,
                 h,
                 channels as u32,
+                images as u32,
                 weights.l1 as f32,
                 weights.dssim as f32,
-                arg(&grad, total),
-                arg(&abs_diff, total),
+                arg(&grad, all),
+                arg(&abs_diff, all),
             );
         }
         Ok(GpuLoss {
             grad,
             abs_diff,
             ssim_map,
-            len: total,
+            len: all,
             weights,
         })
     })

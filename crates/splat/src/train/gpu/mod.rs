@@ -7,6 +7,7 @@ mod anchor;
 mod densify;
 mod loss;
 mod optim;
+mod pair;
 #[cfg(test)]
 mod tests;
 
@@ -14,8 +15,9 @@ pub use anchor::GpuAnchor;
 pub use densify::GpuDensifyStats;
 #[cfg(test)]
 pub use loss::l1_dssim;
-pub use loss::{l1_dssim_weighted, GpuLoss, L1DssimWeights};
+pub use loss::{l1_dssim_images, l1_dssim_weighted, GpuLoss, L1DssimWeights};
 pub use optim::GpuAdam;
+pub use pair::DevicePair;
 
 use crate::cameras::Camera;
 use crate::render::gpu::{

@@ -6,7 +6,7 @@ use super::*;
 use crate::cameras::orbit::look_at;
 use crate::render::gpu::project::GRAD_F;
 use crate::render::gpu::tests::{bits, camera, max_rel, random_scene, rel_err};
-use crate::render::gpu::{download, read_grads, GpuSceneGrads};
+use crate::render::gpu::{download, read_grads, GpuFrozenGeometry, GpuSceneGrads};
 use crate::render::{self, SceneGrads};
 use crate::scene::GaussianScene;
 use crate::train::optim::{Group, LearningRates};
@@ -443,4 +443,123 @@ fn resident_fit_with_kept_views_matches_the_full_fit() {
         )
         .unwrap();
     assert_eq!(trainer.frozen_bytes(), 0);
+}
+
+/// Two resident appearance fits stepped together ([`DevicePair`]: both fits' steps in one launch
+/// sequence, the kept views shared) end where each fit alone ends ([`DeviceTrainer`] with kept views),
+/// up to the backward's float sums: each with its own view order and targets, a trainable mask, the
+/// geometry untouched; and the pair keeps each view once.
+#[test]
+fn a_pair_of_resident_fits_matches_the_fits_in_turn() {
+    let Some(ctx) = context_or_skip() else {
+        return;
+    };
+    let scene = random_scene(400, 2, 9);
+    let cams = [
+        camera(48, 40),
+        look_at(
+            "u".into(),
+            [0.9, 0.2, -2.8],
+            [0.0, 0.0, 1.0],
+            [0.0, -1.0, 0.0],
+            48,
+            40,
+            40.0,
+        ),
+        look_at(
+            "w".into(),
+            [-0.7, -0.4, -2.9],
+            [0.0, 0.0, 1.0],
+            [0.0, -1.0, 0.0],
+            48,
+            40,
+            45.0,
+        ),
+    ];
+    let npix = 48 * 40;
+    let targets: Vec<Vec<Handle>> = (0..2)
+        .map(|fit| {
+            (0..cams.len())
+                .map(|v| {
+                    let t: Vec<f32> = (0..3 * npix)
+                        .map(|i| ((i * (fit + 2) + v) % 7) as f32 / 7.0)
+                        .collect();
+                    upload_f32(&ctx.client, &t)
+                })
+                .collect()
+        })
+        .collect();
+    let mut start = TrainState::new(scene.clone(), LearningRates::inria(1000), 2.0);
+    start.trainable = Some((0..scene.len()).map(|i| i % 3 != 0).collect());
+    for g in [Group::Means, Group::LogScales, Group::Quats] {
+        start.adam.group_lr_scale[g.index()] = 0.0;
+    }
+    let settings = RenderSettings::default();
+    let weights = L1DssimWeights::new(10.0, 2.5);
+    // Each fit's own view order: the second visits the views in another order (and twice the same).
+    let orders = [[0, 1, 2, 1, 0, 2, 2, 1, 0], [2, 2, 0, 1, 0, 1, 0, 2, 1]];
+    let mut alone = Vec::new();
+    for fit in 0..2 {
+        let mut state = start.clone();
+        let mut trainer = DeviceTrainer::upload(&ctx, &state);
+        trainer.freeze_geometry();
+        for &v in &orders[fit] {
+            trainer
+                .step_weighted(
+                    &ctx,
+                    &mut state.adam,
+                    &cams[v],
+                    v,
+                    &targets[fit][v],
+                    &settings,
+                    weights,
+                    false,
+                    |_, g| Ok::<_, GpuError>(g),
+                )
+                .unwrap();
+        }
+        trainer.download_into(&ctx, &mut state).unwrap();
+        alone.push(state.scene);
+    }
+    let mut state = start.clone();
+    let mut pair = DevicePair::upload(&ctx, &state);
+    for k in 0..orders[0].len() {
+        let views = [orders[0][k], orders[1][k]];
+        pair.step(
+            &ctx,
+            &mut state.adam,
+            views.map(|v| &cams[v]),
+            views,
+            [&targets[0][views[0]], &targets[1][views[1]]],
+            &settings,
+            weights,
+        )
+        .unwrap();
+    }
+    assert_eq!(state.adam.steps, start.adam.steps + orders[0].len() as u64);
+    let one_view = GpuFrozenGeometry::view_bytes(scene.len(), 0, 48, 40);
+    assert!(
+        pair.kept_bytes() >= 3 * one_view && pair.kept_bytes() < 6 * one_view,
+        "each view kept once: {} bytes",
+        pair.kept_bytes()
+    );
+    let together = pair.download(&ctx).unwrap();
+    for (fit, (got, want)) in together.iter().zip(&alone).enumerate() {
+        assert_eq!(bits(&got.means), bits(&scene.means), "fit {fit}");
+        assert_eq!(bits(&got.quats), bits(&scene.quats), "fit {fit}");
+        assert_eq!(bits(&got.log_scales), bits(&scene.log_scales), "fit {fit}");
+        for (name, got, want, start) in [
+            (
+                "opacity",
+                &got.opacity_logits,
+                &want.opacity_logits,
+                &scene.opacity_logits,
+            ),
+            ("sh", &got.sh, &want.sh, &scene.sh),
+        ] {
+            assert_ne!(bits(want), bits(start), "fit {fit} {name}: nothing moved");
+            let e = max_rel(got, want);
+            assert!(e <= 1e-5, "fit {fit} {name} differs by {e:e}");
+        }
+    }
 }
