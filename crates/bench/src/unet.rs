@@ -36,7 +36,7 @@ use candle_nn::VarBuilder;
 use diffusion::device::DeviceTensor;
 use diffusion::loader::{Component, ModelDir};
 use diffusion::unet::{
-    AttentionHook, AttnCall, AttnKind, MapEdit, UNet2DConditionModel, UNetConfig,
+    AttentionHook, AttnCall, AttnKind, MapEdit, Qkv, UNet2DConditionModel, UNetConfig,
 };
 
 use crate::{
@@ -154,25 +154,14 @@ impl InfEditShaped {
 }
 
 impl AttentionHook for InfEditShaped {
-    fn qkv(
-        &mut self,
-        call: &AttnCall,
-        q: DeviceTensor,
-        k: DeviceTensor,
-        v: DeviceTensor,
-    ) -> CandleResult<(DeviceTensor, DeviceTensor, DeviceTensor)> {
+    fn qkv(&mut self, call: &AttnCall, qkv: Qkv) -> CandleResult<Qkv> {
         if call.kind != AttnKind::SelfAttn || !call.batch.is_multiple_of(6) {
-            return Ok((q, k, v));
+            return Ok(qkv);
         }
-        let (q, k, v) = (self.route(q)?, self.route(k)?, self.route(v)?);
         let idx: Vec<u32> = (0..call.batch as u32)
             .map(|b| b - b % 3 + u32::from(b % 3 == 1))
             .collect();
-        Ok((
-            q.index_select(&idx, 0)?,
-            k.index_select(&idx, 0)?,
-            v.index_select(&idx, 0)?,
-        ))
+        qkv.try_map(|t| self.route(t)?.index_select(&idx, 0))
     }
 
     /// Like InfEdit's controller while it refines: the maps of the blend-sized (16²) and smaller layers

@@ -6,24 +6,16 @@
 //!
 //! cargo run --release -p vcedit-demo --example geometry_rates -- RUN_DIR [PAIR]
 
-use std::path::{Path, PathBuf};
+mod support;
+
+use std::path::PathBuf;
 
 use demo::run::{demo_scene, DemoOptions};
 use demo::world::{Oracle, OracleSettings};
-use edit::fit::{EditTrainer, ImageLoss, TrainSettings};
+use edit::fit::{ImageLoss, TrainSettings};
 use splat::cameras::to_working_resolution;
 use splat::{Camera, Image, SplatDevice};
-
-fn guidance(dir: &Path) -> Result<Vec<Image>, Box<dyn std::error::Error>> {
-    let mut paths: Vec<PathBuf> = std::fs::read_dir(dir)?
-        .map(|e| e.map(|e| e.path()))
-        .collect::<Result<_, _>>()?;
-    paths.sort();
-    Ok(paths
-        .iter()
-        .map(|p| Image::load(p))
-        .collect::<Result<_, _>>()?)
-}
+use support::{edit_trainer, guidance};
 
 fn main() -> Result<(), Box<dyn std::error::Error>> {
     let args: Vec<String> = std::env::args().skip(1).collect();
@@ -36,7 +28,6 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         guidance(&run.join("iter_0/guidance"))?,
         guidance(&run.join("iter_1/guidance"))?,
     ];
-    let extent = edit::run::scene_extent(&scene.cameras);
     let scaled = |f: u32| -> Vec<Camera> {
         scene
             .cameras
@@ -54,17 +45,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         ("fit at 2x resolution", 1.0, 1.0, true, 2),
     ];
     for (name, rate, opacity, densify, factor) in variants {
-        let mut settings = TrainSettings::new(600);
-        if !densify {
-            settings.strategy.densify_from = u64::MAX;
-        }
-        let mut trainer = EditTrainer::new(
-            &scene.built.scene,
-            Some(scene.mask.clone()),
-            settings,
-            extent,
-            scene.source.background,
-        );
+        let mut trainer = edit_trainer(&scene, TrainSettings::new(600), densify);
         trainer.set_geometry_rate(rate);
         trainer.state.adam.group_lr_scale[splat::train::optim::Group::Opacity.index()] = opacity;
         let cams = scaled(factor);

@@ -5,14 +5,17 @@
 //!
 //! cargo run --release -p vcedit-demo --example shape_study -- MODEL_DIR [RUN_DIR or ""] [PAIR]
 
+mod support;
+
 use std::path::PathBuf;
 
 use demo::run::{codec_round_trip, demo_scene, load_model, DemoOptions};
 use demo::world::{Oracle, OracleSettings};
-use edit::fit::{EditTrainer, ImageLoss, TrainSettings};
+use edit::fit::{ImageLoss, TrainSettings};
 use edit::sampler::SeededNoise;
 use splat::render::{render, RenderSettings};
 use splat::{Camera, GaussianScene, Image};
+use support::{edit_trainer, guidance};
 
 fn main() -> Result<(), Box<dyn std::error::Error>> {
     diffusion::runtime::tune_allocator();
@@ -67,7 +70,6 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         })
         .collect();
     score("source + (codec(ideal) - codec(source))", &cancelled)?;
-    let extent = edit::run::scene_extent(&scene.cameras);
     let fit = |name: &str,
                targets: &[Image],
                steps: usize,
@@ -76,16 +78,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
      -> Result<(), Box<dyn std::error::Error>> {
         let mut settings = TrainSettings::new(600);
         settings.anchor = anchor;
-        if !densify {
-            settings.strategy.densify_from = u64::MAX;
-        }
-        let mut trainer = EditTrainer::new(
-            &scene.built.scene,
-            Some(scene.mask.clone()),
-            settings,
-            extent,
-            scene.source.background,
-        );
+        let mut trainer = edit_trainer(&scene, settings, densify);
         trainer.fit(
             &scene.cameras,
             targets,
@@ -114,14 +107,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             if !dir.is_dir() {
                 break;
             }
-            let mut paths: Vec<PathBuf> = std::fs::read_dir(&dir)?
-                .map(|e| e.map(|e| e.path()))
-                .collect::<Result<_, _>>()?;
-            paths.sort();
-            let images: Vec<Image> = paths
-                .iter()
-                .map(|p| Image::load(p))
-                .collect::<Result<_, _>>()?;
+            let images = guidance(&dir)?;
             if images.len() != scene.cameras.len() {
                 println!("iteration {k}: {} guidance images, skipped", images.len());
                 continue;

@@ -4,7 +4,7 @@ use std::collections::{HashMap, HashSet};
 
 use candle_core::{Result, Tensor};
 use diffusion::device::DeviceTensor;
-use diffusion::unet::{AttentionHook, AttnCall, AttnKind, UNet2DConditionModel};
+use diffusion::unet::{AttentionHook, AttnCall, AttnKind, Qkv, UNet2DConditionModel};
 use testkit::paths::{load_tensors, repo};
 
 mod common;
@@ -56,19 +56,13 @@ struct Capture {
 }
 
 impl AttentionHook for Capture {
-    fn qkv(
-        &mut self,
-        call: &AttnCall,
-        q: DeviceTensor,
-        k: DeviceTensor,
-        v: DeviceTensor,
-    ) -> Result<(DeviceTensor, DeviceTensor, DeviceTensor)> {
+    fn qkv(&mut self, call: &AttnCall, qkv: Qkv) -> Result<Qkv> {
         self.calls
             .push((call.layer.to_string(), call.kind, call.height, call.width));
-        assert_eq!(q.dims()[0], call.batch);
-        assert_eq!(q.dims()[1], call.heads);
-        assert_eq!(q.dims()[2], call.height * call.width);
-        Ok((q, k, v))
+        assert_eq!(qkv.q.dims()[0], call.batch);
+        assert_eq!(qkv.q.dims()[1], call.heads);
+        assert_eq!(qkv.q.dims()[2], call.height * call.width);
+        Ok(qkv)
     }
     fn wants_probs(&self, call: &AttnCall) -> bool {
         self.wanted.contains(call.layer)
@@ -98,20 +92,18 @@ impl AttentionHook for ReplaceMaps {
 struct SwapLastKv;
 
 impl AttentionHook for SwapLastKv {
-    fn qkv(
-        &mut self,
-        call: &AttnCall,
-        q: DeviceTensor,
-        k: DeviceTensor,
-        v: DeviceTensor,
-    ) -> Result<(DeviceTensor, DeviceTensor, DeviceTensor)> {
+    fn qkv(&mut self, call: &AttnCall, qkv: Qkv) -> Result<Qkv> {
         if call.kind != AttnKind::SelfAttn {
-            return Ok((q, k, v));
+            return Ok(qkv);
         }
         let swap = |t: &DeviceTensor| -> Result<DeviceTensor> {
             DeviceTensor::cat(&[&t.narrow(0, 0, call.batch - 1)?, &t.narrow(0, 0, 1)?], 0)
         };
-        Ok((q, swap(&k)?, swap(&v)?))
+        Ok(Qkv {
+            k: swap(&qkv.k)?,
+            v: swap(&qkv.v)?,
+            ..qkv
+        })
     }
     fn wants_probs(&self, _call: &AttnCall) -> bool {
         false
@@ -324,15 +316,9 @@ struct Observer {
 }
 
 impl AttentionHook for Observer {
-    fn qkv(
-        &mut self,
-        call: &AttnCall,
-        q: DeviceTensor,
-        k: DeviceTensor,
-        v: DeviceTensor,
-    ) -> Result<(DeviceTensor, DeviceTensor, DeviceTensor)> {
+    fn qkv(&mut self, call: &AttnCall, qkv: Qkv) -> Result<Qkv> {
         self.seen.push(call.layer.to_string());
-        Ok((q, k, v))
+        Ok(qkv)
     }
 
     fn finished(&self) -> bool {

@@ -86,14 +86,7 @@ fn random_scene_matches_autograd() {
     let t = Tensors::load(&fixture_dir().join(info["file"].as_str().unwrap()));
     let cam: Camera = camera_from_json(&info["camera"]);
     let channels = info["channels"].as_u64().unwrap() as usize;
-    let scene = GaussianScene {
-        sh_degree: info["sh_degree"].as_u64().unwrap() as u32,
-        means: t.f32("scene.means"),
-        log_scales: t.f32("scene.log_scales"),
-        quats: t.f32("scene.quats"),
-        opacity_logits: t.f32("scene.opacity_logits"),
-        sh: t.f32("scene.sh"),
-    };
+    let scene = t.scene(info["sh_degree"].as_u64().unwrap() as u32);
     let extra_values = t.f32("scene.extra");
     let extra = ExtraChannels {
         values: &extra_values,

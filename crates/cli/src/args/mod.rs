@@ -9,6 +9,7 @@
 //! | [`CameraArgs`]    | `--cameras`, `--orbit`, `--max-views`     | render, metrics, edit                |
 //! | [`DeviceArg`]     | `--device`                                | render, fit, edit, edit-image, demo, metrics |
 //! | [`PrecisionArg`]  | `--precision` (network weights on a GPU)  | edit, edit-image, demo               |
+//! | [`ComputeArgs`]   | `--device` and `--precision` together      | edit, edit-image, demo               |
 //! | [`editing`]       | model, prompts, InfEdit sampler knobs     | edit, edit-image                     |
 //! | [`output::ForceArg`] | `--force`                              | render, edit, demo                   |
 //! | [`memory::MemoryCheckArg`] | `--ignore-memory-check`          | edit, fit                            |
@@ -70,13 +71,8 @@ pub struct DeviceArg {
 }
 
 impl DeviceArg {
-    /// Opens the chosen device for the networks and says in the log which one runs: `None` means the
-    /// CPU.
-    pub fn open(&self) -> Result<Option<GpuContext>> {
-        self.open_for(gpu::Workload::Networks)
-    }
-
-    /// [`DeviceArg::open`] for a command that runs `workload` (it picks the shader compiler).
+    /// Opens the chosen device for a command that runs `workload` (it picks the shader compiler) and
+    /// says in the log which one runs: `None` means the CPU.
     pub fn open_for(&self, workload: gpu::Workload) -> Result<Option<GpuContext>> {
         let choice = match self.device {
             Some(c) => c,
@@ -161,6 +157,28 @@ impl PrecisionArg {
                 Ok(edit::compute::Compute::cpu())
             }
         }
+    }
+}
+
+/// `--device` and `--precision`, for the commands that run the networks: where they and the splatting
+/// engine run, and in what precision.
+#[derive(clap::Args, Debug, Clone)]
+pub struct ComputeArgs {
+    #[command(flatten)]
+    pub device: DeviceArg,
+    #[command(flatten)]
+    pub precision: PrecisionArg,
+}
+
+impl ComputeArgs {
+    /// Opens the chosen device for the networks, with the chosen precision ([`PrecisionArg::compute`]).
+    pub fn open(&self) -> Result<edit::compute::Compute> {
+        self.open_for(gpu::Workload::Networks)
+    }
+
+    /// [`ComputeArgs::open`] for a command that runs `workload` (it picks the shader compiler).
+    pub fn open_for(&self, workload: gpu::Workload) -> Result<edit::compute::Compute> {
+        self.precision.compute(self.device.open_for(workload)?)
     }
 }
 

@@ -14,7 +14,7 @@ use demo::run::{
 use crate::args::memory::MemoryCheckArg;
 use crate::args::output::{fingerprint, finished_run, say_finished, ForceArg, OutputDir};
 use crate::args::parse::{positive, whole};
-use crate::args::{DeviceArg, PrecisionArg};
+use crate::args::ComputeArgs;
 use crate::progress::Reporter;
 
 /// Run the whole pipeline on a built-in procedural scene with the self-made demo model.
@@ -31,9 +31,7 @@ pub struct Args {
     #[command(flatten)]
     pub force: ForceArg,
     #[command(flatten)]
-    pub device: DeviceArg,
-    #[command(flatten)]
-    pub precision: PrecisionArg,
+    pub compute: ComputeArgs,
     /// Which built-in edit to run (0-based; see --list).
     #[arg(long, default_value_t = 0, value_parser = whole::<usize>, allow_negative_numbers = true)]
     pub pair: usize,
@@ -163,8 +161,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     // is refused here, before any folder is made.
     edit::sampler::EditPlan::check_blend_level(&model, job.infedit.blend_level)
         .context("--blend-level")?;
-    let gpu = args.device.open_for(gpu::Workload::Splatting)?;
-    let model = model.on(args.precision.compute(gpu)?);
+    let model = model.on(args.compute.open_for(gpu::Workload::Splatting)?);
     eprintln!(
         "demo: \"{}\" → \"{}\", {} Gaussians, {} views at {}², model {}",
         scene.prompts.source,

@@ -15,7 +15,7 @@ use crate::args::editing::{ModelArgs, PromptArgs, SamplerArgs};
 use crate::args::memory::MemoryCheckArg;
 use crate::args::output::{fingerprint, finished_run, open_with_settings, say_finished, ForceArg};
 use crate::args::parse::{finite, positive, whole};
-use crate::args::{BackgroundArg, CameraArgs, DeviceArg, PrecisionArg, DEFAULT_ORBIT_VIEWS};
+use crate::args::{BackgroundArg, CameraArgs, ComputeArgs, DEFAULT_ORBIT_VIEWS};
 use crate::progress::Reporter;
 
 /// What a finished run leaves in --out (run.json is written last).
@@ -58,9 +58,7 @@ pub struct Args {
     #[command(flatten)]
     pub force: ForceArg,
     #[command(flatten)]
-    pub device: DeviceArg,
-    #[command(flatten)]
-    pub precision: PrecisionArg,
+    pub compute: ComputeArgs,
     #[command(flatten)]
     pub sampler: SamplerArgs,
     /// Render → edit → fit iterations.
@@ -300,7 +298,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     }
 
     let model_dir = args.model.folder()?;
-    let compute = args.precision.compute(args.device.open()?)?;
+    let compute = args.compute.open()?;
     let model = EditModel::load(&model_dir, args.model.taesd.as_deref())
         .with_context(|| format!("loading model {}", model_dir.display()))?
         .on(compute.clone());

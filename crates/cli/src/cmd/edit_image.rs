@@ -13,7 +13,7 @@ use splat::Image;
 use crate::args::editing::{ModelArgs, PromptArgs, SamplerArgs};
 use crate::args::memory::MemoryCheckArg;
 use crate::args::output::{output_file, probe_folder, require_extension, ForceArg};
-use crate::args::{DeviceArg, PrecisionArg};
+use crate::args::ComputeArgs;
 use crate::progress::Reporter;
 
 /// Below this fraction of the image, the last step's blend region counts as empty (nothing could change).
@@ -50,9 +50,7 @@ pub struct Args {
     #[arg(long, value_name = "DIR")]
     pub save_attention: Option<PathBuf>,
     #[command(flatten)]
-    pub device: DeviceArg,
-    #[command(flatten)]
-    pub precision: PrecisionArg,
+    pub compute: ComputeArgs,
     #[command(flatten)]
     pub sampler: SamplerArgs,
     #[command(flatten)]
@@ -80,7 +78,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     let model_dir = args.model.folder()?;
     let model = EditModel::load(&model_dir, args.model.taesd.as_deref())
         .with_context(|| format!("loading model {}", model_dir.display()))?
-        .on(args.precision.compute(args.device.open()?)?);
+        .on(args.compute.open()?);
     let load_time = t0.elapsed();
     args.sampler.check_model(&model)?;
     args.prompts.check_words(&model.tokenizer, None)?;

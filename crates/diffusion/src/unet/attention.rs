@@ -35,22 +35,36 @@ pub struct AttnCall<'a> {
     pub keys: usize,
 }
 
+/// The queries, keys and values of one attention call, each [batch, heads, tokens, head_dim]: the
+/// queries have `height * width` tokens, the keys and values [`AttnCall::keys`].
+#[derive(Debug, Clone)]
+pub struct Qkv {
+    pub q: DeviceTensor,
+    pub k: DeviceTensor,
+    pub v: DeviceTensor,
+}
+
+impl Qkv {
+    /// The queries, keys and values each through `f`.
+    pub fn try_map(self, mut f: impl FnMut(DeviceTensor) -> Result<DeviceTensor>) -> Result<Self> {
+        Ok(Self {
+            q: f(self.q)?,
+            k: f(self.k)?,
+            v: f(self.v)?,
+        })
+    }
+}
+
 /// Observes and rewrites attention inside the UNet. All methods have pass-through defaults.
 ///
 /// The tensors live where the UNet runs ([`DeviceTensor`]: a candle tensor on the CPU, a buffer on the
 /// GPU), so a hook that only rearranges or mixes them (InfEdit's controller) costs no transfers; a hook
 /// that must read values on the host calls [`DeviceTensor::to_cpu`] itself, for just what it reads.
 pub trait AttentionHook {
-    /// May replace Q, K, V (each [batch, heads, tokens, head_dim]) before the scores are computed.
-    fn qkv(
-        &mut self,
-        call: &AttnCall,
-        q: DeviceTensor,
-        k: DeviceTensor,
-        v: DeviceTensor,
-    ) -> Result<(DeviceTensor, DeviceTensor, DeviceTensor)> {
+    /// May replace the queries, keys and values before the scores are computed.
+    fn qkv(&mut self, call: &AttnCall, qkv: Qkv) -> Result<Qkv> {
         let _ = call;
-        Ok((q, k, v))
+        Ok(qkv)
     }
 
     /// Whether [`AttentionHook::probs`] must see this call's probabilities. When false the memory-bounded
@@ -425,7 +439,7 @@ impl Attention {
                     heads: self.heads,
                     keys: k.dims()[2],
                 };
-                let (q, k, v) = hook.qkv(&call, q, k, v)?;
+                let Qkv { q, k, v } = hook.qkv(&call, Qkv { q, k, v })?;
                 if hook.wants_probs(&call) {
                     let scores = q.matmul_t(&k)?.mul_scalar(scale)?;
                     let probs = hook.probs(&call, scores.softmax_last_dim()?)?;

@@ -16,7 +16,7 @@ use std::path::{Path, PathBuf};
 use candle_core::{DType, Tensor};
 use candle_nn::VarBuilder;
 
-pub use attention::{edit_maps, AttentionHook, AttnCall, AttnKind, MapEdit};
+pub use attention::{edit_maps, AttentionHook, AttnCall, AttnKind, MapEdit, Qkv};
 use blocks::{BlockAttention, DownBlock, MidBlock, ResnetShared, UpBlock};
 use config::ResolvedBlocks;
 pub use config::{BlockKind, PerBlock, UNetConfig};

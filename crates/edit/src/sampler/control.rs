@@ -22,7 +22,7 @@ use std::collections::HashMap;
 
 use candle_core::{Result, Tensor};
 use diffusion::device::DeviceTensor;
-use diffusion::unet::{edit_maps, AttentionHook, AttnCall, AttnKind, MapEdit};
+use diffusion::unet::{edit_maps, AttentionHook, AttnCall, AttnKind, MapEdit, Qkv};
 
 use super::align::TokenAlignment;
 use super::batch::{BatchLayout, SampleSettings};
@@ -216,13 +216,7 @@ impl EditController {
 }
 
 impl AttentionHook for EditController {
-    fn qkv(
-        &mut self,
-        call: &AttnCall,
-        q: DeviceTensor,
-        k: DeviceTensor,
-        v: DeviceTensor,
-    ) -> Result<(DeviceTensor, DeviceTensor, DeviceTensor)> {
+    fn qkv(&mut self, call: &AttnCall, qkv: Qkv) -> Result<Qkv> {
         if call.kind == AttnKind::CrossAttn
             && self.recording.is_none()
             && call.height * call.width <= self.settings.store_max_tokens
@@ -231,14 +225,14 @@ impl AttentionHook for EditController {
         }
         let layout = self.layout();
         if call.kind != AttnKind::SelfAttn || call.batch != layout.len() {
-            return Ok((q, k, v));
+            return Ok(qkv);
         }
         let [qi, ki, vi] = layout.self_attention_indices(self.mutual());
-        Ok((
-            q.index_select(&qi, 0)?,
-            k.index_select(&ki, 0)?,
-            v.index_select(&vi, 0)?,
-        ))
+        Ok(Qkv {
+            q: qkv.q.index_select(&qi, 0)?,
+            k: qkv.k.index_select(&ki, 0)?,
+            v: qkv.v.index_select(&vi, 0)?,
+        })
     }
 
     /// Only the cross-attention calls whose maps [`Self::probs`] reads or replaces: the blend layers
@@ -392,6 +386,40 @@ mod tests {
         }
     }
 
+    /// A controller whose passes compute only the samples that are read (`skip_unread`).
+    fn skipping_unread(settings: ControlSettings, al: &TokenAlignment) -> EditController {
+        EditController::new(
+            ControlSettings {
+                samples: SampleSettings {
+                    skip_unread: true,
+                    ..settings.samples
+                },
+                ..settings
+            },
+            al,
+        )
+    }
+
+    /// The values of `t`, read back and flattened.
+    fn values(t: &DeviceTensor) -> Vec<f32> {
+        t.to_cpu()
+            .unwrap()
+            .flatten_all()
+            .unwrap()
+            .to_vec1::<f32>()
+            .unwrap()
+    }
+
+    /// `x` as the queries, the keys and the values.
+    fn all_three(x: impl Into<DeviceTensor>) -> Qkv {
+        let x = x.into();
+        Qkv {
+            q: x.clone(),
+            k: x.clone(),
+            v: x,
+        }
+    }
+
     /// [6, 1, 4, 3] probabilities whose value encodes (batch, query, token).
     fn probs() -> Tensor {
         let v: Vec<f32> = (0..6 * 4 * 3).map(|i| i as f32).collect();
@@ -534,38 +562,20 @@ mod tests {
             .unwrap()
             .reshape((6, 1, 1, 1))
             .unwrap();
-        let flat = |t: &DeviceTensor| {
-            t.to_cpu()
-                .unwrap()
-                .flatten_all()
-                .unwrap()
-                .to_vec1::<f32>()
-                .unwrap()
-        };
         // progress 1/4 < 0.5: early.
-        let (q, k, v) = c
-            .qkv(
-                &call(AttnKind::SelfAttn, 6),
-                x.clone().into(),
-                x.clone().into(),
-                x.clone().into(),
-            )
+        let Qkv { q, k, v } = c
+            .qkv(&call(AttnKind::SelfAttn, 6), all_three(x.clone()))
             .unwrap();
-        assert_eq!(flat(&q), vec![0., 0., 0., 3., 3., 3.]);
-        assert_eq!(flat(&k), vec![0., 0., 0., 3., 3., 3.]);
-        assert_eq!(flat(&v), vec![0., 1., 0., 3., 4., 3.]);
+        assert_eq!(values(&q), vec![0., 0., 0., 3., 3., 3.]);
+        assert_eq!(values(&k), vec![0., 0., 0., 3., 3., 3.]);
+        assert_eq!(values(&v), vec![0., 1., 0., 3., 4., 3.]);
         c.end_step(); // progress 2/4 >= 0.5: mutual.
-        let (q, k, v) = c
-            .qkv(
-                &call(AttnKind::SelfAttn, 6),
-                x.clone().into(),
-                x.clone().into(),
-                x.clone().into(),
-            )
+        let Qkv { q, k, v } = c
+            .qkv(&call(AttnKind::SelfAttn, 6), all_three(x.clone()))
             .unwrap();
-        assert_eq!(flat(&q), vec![0., 1., 1., 3., 4., 4.]);
-        assert_eq!(flat(&k), vec![0., 1., 0., 3., 4., 3.]);
-        assert_eq!(flat(&v), vec![0., 1., 0., 3., 4., 3.]);
+        assert_eq!(values(&q), vec![0., 1., 1., 3., 4., 4.]);
+        assert_eq!(values(&k), vec![0., 1., 0., 3., 4., 3.]);
+        assert_eq!(values(&v), vec![0., 1., 0., 3., 4., 3.]);
     }
 
     #[test]
@@ -608,29 +618,12 @@ mod tests {
     fn a_reduced_batch_is_controlled_as_its_samples_were_in_the_batch_of_six() {
         let al = alignment(vec![Some(0), Some(2), None], vec![1.0, 1.0, 0.0]);
         let mut six = EditController::new(settings(1.0, 0.5), &al);
-        let mut reduced = EditController::new(
-            ControlSettings {
-                samples: SampleSettings {
-                    skip_unread: true,
-                    ..settings(1.0, 0.5).samples
-                },
-                ..settings(1.0, 0.5)
-            },
-            &al,
-        );
+        let mut reduced = skipping_unread(settings(1.0, 0.5), &al);
         // Early (progress 1/4): [S_u, T_u, S_c, T_c, M_c], rows 0, 1, 3, 4, 5 of the six.
         assert_eq!(reduced.layout().full_positions(true), [0, 1, 3, 4, 5]);
         let rows = |t: &Tensor, rows: &[u32]| {
             let idx = Tensor::new(rows, &Device::Cpu).unwrap();
             t.index_select(&idx, 0).unwrap()
-        };
-        let flat = |t: DeviceTensor| {
-            t.to_cpu()
-                .unwrap()
-                .flatten_all()
-                .unwrap()
-                .to_vec1::<f32>()
-                .unwrap()
         };
         for step in 0..2 {
             let keep = reduced.layout().full_positions(true);
@@ -645,28 +638,23 @@ mod tests {
                 )
                 .unwrap();
             assert_eq!(
-                flat(out_reduced),
-                flat(rows(&out_six.to_cpu().unwrap(), &keep).into())
+                values(&out_reduced),
+                values(&rows(&out_six.to_cpu().unwrap(), &keep).into())
             );
             let x = Tensor::arange(0f32, 6.0, &Device::Cpu)
                 .unwrap()
                 .reshape((6, 1, 1, 1))
                 .unwrap();
             let self_call = |batch| call(AttnKind::SelfAttn, batch);
-            let (q6, k6, v6) = six
-                .qkv(
-                    &self_call(6),
-                    x.clone().into(),
-                    x.clone().into(),
-                    x.clone().into(),
-                )
+            let six_qkv = six.qkv(&self_call(6), all_three(x.clone())).unwrap();
+            let Qkv { q, k, v } = reduced
+                .qkv(&self_call(keep.len()), all_three(rows(&x, &keep)))
                 .unwrap();
-            let xr: DeviceTensor = rows(&x, &keep).into();
-            let (q, k, v) = reduced
-                .qkv(&self_call(keep.len()), xr.clone(), xr.clone(), xr)
-                .unwrap();
-            for (a, b) in [(q, q6), (k, k6), (v, v6)] {
-                assert_eq!(flat(a), flat(rows(&b.to_cpu().unwrap(), &keep).into()));
+            for (a, b) in [(q, six_qkv.q), (k, six_qkv.k), (v, six_qkv.v)] {
+                assert_eq!(
+                    values(&a),
+                    values(&rows(&b.to_cpu().unwrap(), &keep).into())
+                );
             }
             six.end_step();
             reduced.end_step();
@@ -685,16 +673,7 @@ mod tests {
     #[test]
     fn a_recording_pass_is_finished_after_as_many_small_layers_as_a_real_pass_has() {
         let al = alignment(vec![Some(0), Some(1), Some(2)], vec![1.0, 1.0, 1.0]);
-        let mut c = EditController::new(
-            ControlSettings {
-                samples: SampleSettings {
-                    skip_unread: true,
-                    ..settings(0.0, 0.0).samples
-                },
-                ..settings(0.0, 0.0)
-            },
-            &al,
-        );
+        let mut c = skipping_unread(settings(0.0, 0.0), &al);
         let small = call(AttnKind::CrossAttn, 3);
         let large = AttnCall {
             height: 64,
@@ -706,7 +685,7 @@ mod tests {
             .into();
         let pass = |c: &mut EditController| {
             for call in [small, large, small] {
-                c.qkv(&call, x.clone(), x.clone(), x.clone()).unwrap();
+                c.qkv(&call, all_three(x.clone())).unwrap();
                 if c.wants_probs(&call) {
                     c.probs(&call, x.clone()).unwrap();
                 }
@@ -720,7 +699,7 @@ mod tests {
         pass(&mut c);
         c.end_step();
         c.start_recording();
-        c.qkv(&small, x.clone(), x.clone(), x.clone()).unwrap();
+        c.qkv(&small, all_three(x.clone())).unwrap();
         c.probs(&small, x.clone()).unwrap();
         assert!(!c.finished());
         c.probs(&small, x.clone()).unwrap();

@@ -13,7 +13,7 @@
 use candle_core::{Device, Tensor};
 use diffusion::device::DeviceTensor;
 use diffusion::scheduler::{LcmScheduler, LcmVariant};
-use diffusion::unet::{AttentionHook, AttnCall, MapEdit};
+use diffusion::unet::{AttentionHook, AttnCall, MapEdit, Qkv};
 
 use super::align::{align_prompts, AlignError, AlignInputs, TokenAlignment};
 use super::batch::{BatchLayout, Branch, SampleSettings};
@@ -732,18 +732,12 @@ impl ViewBatch<'_> {
 }
 
 impl AttentionHook for ViewBatch<'_> {
-    fn qkv(
-        &mut self,
-        call: &AttnCall,
-        q: DeviceTensor,
-        k: DeviceTensor,
-        v: DeviceTensor,
-    ) -> candle_core::Result<(DeviceTensor, DeviceTensor, DeviceTensor)> {
-        let [q, k, v] = self.per_view(call, [q, k, v], |c, call, [q, k, v]| {
-            let (q, k, v) = c.qkv(call, q, k, v)?;
+    fn qkv(&mut self, call: &AttnCall, qkv: Qkv) -> candle_core::Result<Qkv> {
+        let [q, k, v] = self.per_view(call, [qkv.q, qkv.k, qkv.v], |c, call, [q, k, v]| {
+            let Qkv { q, k, v } = c.qkv(call, Qkv { q, k, v })?;
             Ok([q, k, v])
         })?;
-        Ok((q, k, v))
+        Ok(Qkv { q, k, v })
     }
 
     fn wants_probs(&self, call: &AttnCall) -> bool {

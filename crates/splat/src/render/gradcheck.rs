@@ -492,14 +492,7 @@ fn simd_and_portable_kernels_agree() {
     let t =
         reference::Tensors::load(&reference::fixture_dir().join(info["file"].as_str().unwrap()));
     let cam = reference::camera_from_json(&info["camera"]);
-    let scene = GaussianScene {
-        sh_degree: 3,
-        means: t.f32("scene.means"),
-        log_scales: t.f32("scene.log_scales"),
-        quats: t.f32("scene.quats"),
-        opacity_logits: t.f32("scene.opacity_logits"),
-        sh: t.f32("scene.sh"),
-    };
+    let scene = t.scene(3);
     let values = t.f32("scene.extra");
     let extra = ExtraChannels {
         values: &values,

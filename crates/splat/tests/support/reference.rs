@@ -2,7 +2,7 @@
 //! tools/make_render_fixtures.py): a tiny safetensors reader and the camera JSON format.
 //! Shared by the unit tests (via `#[path]`) and the integration tests.
 
-use super::Camera;
+use super::{Camera, GaussianScene};
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
 
@@ -37,6 +37,18 @@ impl Tensors {
         Self {
             header,
             data: bytes[8 + n..].to_vec(),
+        }
+    }
+
+    /// The fixture's scene (its `scene.*` tensors), with SH degree `sh_degree`.
+    pub fn scene(&self, sh_degree: u32) -> GaussianScene {
+        GaussianScene {
+            sh_degree,
+            means: self.f32("scene.means"),
+            log_scales: self.f32("scene.log_scales"),
+            quats: self.f32("scene.quats"),
+            opacity_logits: self.f32("scene.opacity_logits"),
+            sh: self.f32("scene.sh"),
         }
     }
 
