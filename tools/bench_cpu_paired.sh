@@ -6,10 +6,11 @@
 # and a Python with torch, diffusers and transformers.
 #
 #   tools/bench_cpu_paired.sh [--rounds 3] [--threads 2] [--size 512] [--python PY] [--out FILE] [--only unet,codec,text]
+#                             [--precisions bf16,f32]
 set -euo pipefail
 here="$(cd "$(dirname "$0")" && pwd)"
 repo="$here/.."
-rounds=3 threads=2 size=512 python=python3 out=bench-cpu-paired.log only=unet,codec,text
+rounds=3 threads=2 size=512 python=python3 out=bench-cpu-paired.log only=unet,codec,text precisions=bf16,f32
 while [ $# -gt 0 ]; do
   case "$1" in
     --rounds) rounds=$2; shift 2 ;;
@@ -18,6 +19,7 @@ while [ $# -gt 0 ]; do
     --python) python=$2; shift 2 ;;
     --out) out=$2; shift 2 ;;
     --only) only=$2; shift 2 ;;
+    --precisions) precisions=$2; shift 2 ;;
     *) echo "bench_cpu_paired: unknown argument $1" >&2; exit 2 ;;
   esac
 done
@@ -32,7 +34,7 @@ run() {
 }
 for round in $(seq 1 "$rounds"); do
   echo "round $round of $rounds (load $(cut -d' ' -f1 /proc/loadavg))" >&2
-  for precision in bf16 f32; do
+  for precision in ${precisions//,/ }; do
     case ",$only," in *,unet,*)
       run "$round" "$precision" "$vcedit" bench unet --device cpu --precision "$precision" --batches 1,6 --runs 1 --skip-load
       run "$round" "$precision" "$python" "$here/bench_unet_torch.py" --batches 1,6 --runs 1 --threads "$threads" --dtypes "$precision" ;;

@@ -3,6 +3,7 @@
 use candle_core::{CpuStorage, Layout, Result, Shape, Tensor, D};
 use rayon::prelude::*;
 
+use super::approx;
 use super::bf16::{self, Output, PackedPairs, MR, NR};
 use super::softmax::{softmax_in_place, softmax_last_dim};
 use super::{cpu_f32, f32_slices, needs_grad};
@@ -111,8 +112,8 @@ impl candle_core::CustomOp3 for FusedAttention {
         let bf16 = bf16::bf16_active();
         let mut block = (FUSED_BLOCK_ELEMENTS / k_len).clamp(8, q_len.max(8));
         if bf16 {
-            // Whole MR-row panels of queries (a partial panel computes padding rows).
-            block = (block / MR).max(1) * MR;
+            // Whole NR-line panels of queries (a partial panel computes padding lines).
+            block = (block / NR).max(1) * NR;
         }
         let scale = self.scale;
         out.par_chunks_mut(q_len * dv)
@@ -122,12 +123,12 @@ impl candle_core::CustomOp3 for FusedAttention {
                 let kh = &k[head * k_len * d..(head + 1) * k_len * d];
                 let vh = &v[head * k_len * dv..(head + 1) * k_len * dv];
                 // With bf16 products a head's keys and values are rounded and packed once, for all its
-                // query blocks: keys as the score product's columns, values (read down their columns)
-                // as the output product's.
+                // query blocks, as the left operands of the transposed products (see
+                // `attention_block_bf16`): keys by rows, values read down their columns.
                 let packed = bf16.then(|| {
                     (
-                        PackedPairs::pack(kh, k_len, d, d, 1, NR),
-                        PackedPairs::pack(vh, dv, k_len, 1, dv, NR),
+                        PackedPairs::pack(kh, k_len, d, d, 1, MR),
+                        PackedPairs::pack(vh, dv, k_len, 1, dv, MR),
                     )
                 });
                 out_head
@@ -254,12 +255,18 @@ fn attention_block(
 
 /// [`attention_block`] with bf16 products (f32 sums), as PyTorch's bf16 attention: the block's queries
 /// and its probabilities are rounded to bf16 for the products; the softmax runs in f32. `k` holds the
-/// head's keys packed as [`NR`] panels, `v` its values transposed (dv lines of `k_len`).
+/// head's keys packed as [`MR`] panels, `v` its values transposed (dv lines of `k_len`), also [`MR`].
+///
+/// Both products are computed transposed — scoresᵀ = K·Qᵀ, then outᵀ = Vᵀ·Pᵀ — so that the probabilities
+/// are the second product's right operand, whose pairs (two keys of one query) are two rows of
+/// scoresᵀ: they pack with contiguous vector conversions, where packing them as a left operand would
+/// scatter every pair (that packing cost as much as the products at SD's 40-wide heads). The softmax
+/// then runs down scoresᵀ's columns, vectorised across the queries.
 fn attention_block_bf16(
     q: &[f32],
     k: &PackedPairs,
     v: &PackedPairs,
-    scores: &mut [f32],
+    scores_t: &mut [f32],
     out: &mut [f32],
     shape: BlockShape,
 ) {
@@ -270,15 +277,82 @@ fn attention_block_bf16(
         dv,
         scale,
     } = shape;
-    let q = PackedPairs::pack(q, rows, d, d, 1, MR);
-    bf16::gemm(&q, k, whole_rows(scores, rows, k_len), false);
-    for row in scores.chunks_exact_mut(k_len) {
-        row.iter_mut().for_each(|s| *s *= scale);
-        softmax_in_place(row);
-    }
-    let probs = PackedPairs::pack(scores, rows, k_len, k_len, 1, MR);
-    bf16::gemm(&probs, v, whole_rows(out, rows, dv), false);
+    let q = PackedPairs::pack(q, rows, d, d, 1, NR);
+    bf16::gemm(k, &q, whole_rows(scores_t, k_len, rows), false);
+    softmax_columns(scores_t, rows, scale);
+    let probs = PackedPairs::pack(scores_t, rows, k_len, 1, rows, NR);
+    OUT_T.with(|cell| {
+        let mut out_t = cell.borrow_mut();
+        out_t.resize(dv * rows, 0.0);
+        bf16::gemm(v, &probs, whole_rows(&mut out_t, dv, rows), false);
+        for (i, out_row) in out.chunks_exact_mut(dv).enumerate() {
+            for (c, o) in out_row.iter_mut().enumerate() {
+                *o = out_t[c * rows + i];
+            }
+        }
+    });
 }
+
+thread_local! {
+    /// Per-thread transposed output block of the bf16 attention (reused across calls).
+    static OUT_T: std::cell::RefCell<Vec<f32>> = const { std::cell::RefCell::new(Vec::new()) };
+}
+
+/// Softmax of `scale ·` each column of the row-major matrix `s` with `cols` columns (scores of one query
+/// per column, one key per row).
+fn softmax_columns(s: &mut [f32], cols: usize, scale: f32) {
+    let mut max = vec![f32::NEG_INFINITY; cols];
+    let mut sum = vec![0f32; cols];
+    column_max(s, &mut max);
+    exp_columns(s, &max, &mut sum, scale);
+    for x in sum.iter_mut() {
+        *x = 1.0 / *x;
+    }
+    scale_columns(s, &sum);
+}
+
+#[inline(always)]
+fn column_max_kernel(s: &[f32], max: &mut [f32]) {
+    for row in s.chunks_exact(max.len()) {
+        for (m, &x) in max.iter_mut().zip(row) {
+            *m = if x > *m { x } else { *m };
+        }
+    }
+}
+
+#[inline(always)]
+fn exp_columns_kernel(s: &mut [f32], max: &[f32], sum: &mut [f32], scale: f32) {
+    for row in s.chunks_exact_mut(max.len()) {
+        for ((x, &m), t) in row.iter_mut().zip(max).zip(sum.iter_mut()) {
+            *x = approx::exp(scale * (*x - m));
+            *t += *x;
+        }
+    }
+}
+
+#[inline(always)]
+fn scale_columns_kernel(s: &mut [f32], factor: &[f32]) {
+    for row in s.chunks_exact_mut(factor.len()) {
+        for (x, &f) in row.iter_mut().zip(factor) {
+            *x *= f;
+        }
+    }
+}
+
+simd_dispatch!(
+    /// Each column's largest value.
+    fn column_max(s: &[f32], max: &mut [f32]) => column_max_kernel
+);
+
+simd_dispatch!(
+    /// `exp(scale · (x − column max))` in place, summed per column.
+    fn exp_columns(s: &mut [f32], max: &[f32], sum: &mut [f32], scale: f32) => exp_columns_kernel
+);
+
+simd_dispatch!(
+    /// Each column times its factor.
+    fn scale_columns(s: &mut [f32], factor: &[f32]) => scale_columns_kernel
+);
 
 /// `data` as a product's output of `rows` × `cols`, rows back to back.
 fn whole_rows(data: &mut [f32], rows: usize, cols: usize) -> Output<'_> {
