@@ -7,7 +7,7 @@
 //! backward, lifting); callers are unchanged.
 
 use crate::lift::gpu::{GpuLiftAccumulator, GpuLiftScene};
-use crate::lift::{read_by_resampling, resample, LiftAccumulator, Lifted, MapGrid};
+use crate::lift::{read_by_resampling, resample, ChannelSlice, LiftAccumulator, Lifted, MapGrid};
 use crate::render::gpu::GpuScene;
 use crate::render::{
     render, render_backward, render_backward_appearance, render_extra_at, ExtraChannels, Frame,
@@ -426,16 +426,6 @@ fn in_passes<E: From<GpuError>>(
         sink(v, back)?;
     }
     Ok(())
-}
-
-/// `width` channels of each of `cells` cells copied from one interleaved map to another: from channel
-/// `from.1` of a map of `from.0` channels per cell to channel `to.1` of one of `to.0`.
-#[derive(Clone, Copy, Debug)]
-pub(crate) struct ChannelSlice {
-    pub cells: usize,
-    pub width: usize,
-    pub from: (usize, usize),
-    pub to: (usize, usize),
 }
 
 impl SplatDevice {

@@ -270,16 +270,11 @@ fn attention_block_bf16(
     out: &mut [f32],
     shape: BlockShape,
 ) {
-    let BlockShape {
-        rows,
-        k_len,
-        d,
-        dv,
-        scale,
-    } = shape;
+    let BlockShape { rows, k_len, .. } = shape;
+    let (d, dv) = (shape.d, shape.dv);
     let q = PackedPairs::pack(q, rows, d, d, 1, NR);
     bf16::gemm(k, &q, whole_rows(scores_t, k_len, rows), false);
-    softmax_columns(scores_t, rows, scale);
+    softmax_columns(scores_t, rows, shape.scale);
     let probs = PackedPairs::pack(scores_t, rows, k_len, 1, rows, NR);
     OUT_T.with(|cell| {
         let mut out_t = cell.borrow_mut();

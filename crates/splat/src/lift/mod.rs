@@ -435,6 +435,16 @@ impl<'s> LiftAccumulator<'s> {
     }
 }
 
+/// `width` channels of each of `cells` cells copied from one interleaved map to another: from channel
+/// `from.1` of a map of `from.0` channels per cell to channel `to.1` of one of `to.0`.
+#[derive(Clone, Copy, Debug)]
+pub(crate) struct ChannelSlice {
+    pub cells: usize,
+    pub width: usize,
+    pub from: (usize, usize),
+    pub to: (usize, usize),
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

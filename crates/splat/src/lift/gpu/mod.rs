@@ -548,13 +548,13 @@ fn sparse_back() -> bool {
     *ON.get_or_init(|| std::env::var("VCEDIT_GPU_SPARSE_BACK").map_or(true, |v| v.trim() != "off"))
 }
 
-/// [`crate::device::ChannelSlice`] `part` of `src` copied into `dst` on the device (a round's channels
+/// [`super::ChannelSlice`] `part` of `src` copied into `dst` on the device (a round's channels
 /// split into passes and put back together).
 pub(crate) fn copy_channels(
     ctx: &GpuContext,
     src: &Handle,
     dst: &Handle,
-    part: crate::device::ChannelSlice,
+    part: super::ChannelSlice,
 ) {
     let len = part.cells * part.width;
     if len == 0 {

@@ -121,14 +121,8 @@ impl DevicePair {
         let frame = render_kept_pair(ctx, &self.scene, [&a, &b], settings)?;
         let (w, h) = (cameras[0].width as usize, cameras[0].height as usize);
         let loss = l1_dssim_images(ctx, &frame.rgb, &targets, w, h, 3, weights)?;
-        let grads = render_backward_device(
-            ctx,
-            &self.scene,
-            settings,
-            None,
-            &frame,
-            &GpuOutputGrads::rgb_only(&loss.grad),
-        )?;
+        let out_grads = GpuOutputGrads::rgb_only(&loss.grad);
+        let grads = render_backward_device(ctx, &self.scene, settings, None, &frame, &out_grads)?;
         self.adam
             .step_masked(ctx, adam, &self.scene, &grads, self.trainable.as_ref())
     }
