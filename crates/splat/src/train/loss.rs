@@ -423,6 +423,8 @@ fn ssim_plane<R: Real>(
     sum
 }
 
+/// [`ssim_generic_to`] with the target's statistics made here (the tests' entry, in f64 too).
+#[cfg(test)]
 fn ssim_generic<R: Real>(
     pred: &[R],
     target: &[R],
