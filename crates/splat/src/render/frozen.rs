@@ -2,8 +2,9 @@
 //! keep the means, scales and rotations (`EcmParams::Appearance`, hundreds of steps over the same views),
 //! so each camera's projected geometry and depth order are the same at every step: [`FrozenView`] keeps
 //! them for one camera, [`FrozenGeometry`] one per view of a fit. A render from them is the same, bit for
-//! bit, as [`super::render`]; only the opacity-dependent extents, the colours and the tile lists (from the
-//! kept depth order, without sorting) are made again.
+//! bit, as [`super::render`]; only the opacity-dependent extents, the colours and the tile lists are made
+//! again, the lists by dropping the Gaussians too faint to draw from the kept lists of all those on
+//! screen (no sorting, no scattering).
 
 use super::cpu::{dispatch, Kernel};
 use super::project::{project_appearance, project_geometry, CameraR, Splat};
@@ -54,7 +55,7 @@ impl FrozenView {
                     cov_diag,
                 })
             });
-        let order = DepthOrder::new(&shapes);
+        let order = DepthOrder::new(&shapes, tx, ty);
         Self {
             camera: camera.clone(),
             shapes,
@@ -67,7 +68,14 @@ impl FrozenView {
         &self.camera
     }
 
-    /// Bytes a view of `gaussians` Gaussians holds (the depth order counts every Gaussian on screen).
+    /// Bytes this view holds.
+    pub fn bytes(&self) -> usize {
+        self.shapes.len() * (std::mem::size_of::<Splat<f32>>() + std::mem::size_of::<[f32; 2]>())
+            + self.order.bytes()
+    }
+
+    /// Bytes a view of `gaussians` Gaussians is assumed to hold before it is made (the tile lists of
+    /// every Gaussian on screen: 4 tiles each assumed).
     pub fn memory_bytes_for(gaussians: usize) -> usize {
         gaussians
             * (std::mem::size_of::<Splat<f32>>()
@@ -101,8 +109,7 @@ impl FrozenView {
                     chunk,
                 })
             });
-        let (tx, ty) = cam.tiles();
-        let bins = self.order.bin(&splats, tx, ty);
+        let bins = self.order.bin(&splats);
         let raster = raster::rasterize(
             &splats,
             &bins,
@@ -231,15 +238,15 @@ impl FrozenGeometry {
         }
         let kept = matches!(&self.views[v], Some(view) if view.camera == *camera);
         if !kept {
-            if self.views[v].take().is_some() {
-                self.bytes -= FrozenView::memory_bytes_for(scene.len());
+            if let Some(old) = self.views[v].take() {
+                self.bytes -= old.bytes();
             }
-            let need = FrozenView::memory_bytes_for(scene.len());
-            if self.bytes + need > self.budget {
+            if self.bytes + FrozenView::memory_bytes_for(scene.len()) > self.budget {
                 return None;
             }
-            self.views[v] = Some(FrozenView::new(scene, camera));
-            self.bytes += need;
+            let view = FrozenView::new(scene, camera);
+            self.bytes += view.bytes();
+            self.views[v] = Some(view);
         }
         self.views[v].as_ref()
     }

@@ -21,7 +21,7 @@
 // like the formulas they implement.
 #![allow(clippy::neg_cmp_op_on_partial_ord, clippy::needless_range_loop)]
 
-mod cpu;
+pub(crate) mod cpu;
 mod frozen;
 pub(crate) mod gpu;
 pub(crate) mod project;

@@ -62,15 +62,16 @@ impl Entry {
     }
 }
 
-/// Every splat that is on screen (whatever its opacity), in the depth order of [`bin`]: where only
-/// opacities change between renders (fits with frozen geometry), [`DepthOrder::bin`] skips the sort.
+/// The tile lists of every splat that is on screen, whatever its opacity: where only opacities change
+/// between renders (fits with frozen geometry), [`DepthOrder::bin`] makes [`bin`]'s lists from them by
+/// dropping the splats that are not drawable, without sorting or scattering again.
 #[derive(Clone, Default)]
 pub struct DepthOrder {
-    entries: Vec<Entry>,
+    lists: TileBins,
 }
 
 impl DepthOrder {
-    pub fn new<R: Real>(splats: &[Splat<R>]) -> Self {
+    pub fn new<R: Real>(splats: &[Splat<R>], tiles_x: u32, tiles_y: u32) -> Self {
         let mut entries: Vec<Entry> = splats
             .par_iter()
             .enumerate()
@@ -78,23 +79,47 @@ impl DepthOrder {
             .map(|(i, s)| Entry::of(i, s))
             .collect();
         entries.par_sort_unstable_by_key(|e| (e.key, e.index));
-        DepthOrder { entries }
+        DepthOrder {
+            lists: scatter(&entries, tiles_x, tiles_y),
+        }
     }
 
-    /// [`bin`] of `splats`, which must have the geometry this order was made from: the drawable entries
-    /// keep their order (the sort key is unique), so the result is the same.
-    pub fn bin<R: Real>(&self, splats: &[Splat<R>], tiles_x: u32, tiles_y: u32) -> TileBins {
-        let entries: Vec<Entry> = self
-            .entries
-            .par_iter()
-            .filter(|e| splats[e.index as usize].is_drawable())
-            .copied()
-            .collect();
-        scatter(&entries, tiles_x, tiles_y)
+    /// [`bin`] of `splats`, which must have the geometry (and tile counts) this order was made from: each
+    /// tile's list keeps its drawable splats in order, which is what [`bin`] lists (the depth sort's key
+    /// is unique).
+    pub fn bin<R: Real>(&self, splats: &[Splat<R>]) -> TileBins {
+        let all = &self.lists;
+        let drawable: Vec<bool> = splats.iter().map(Splat::is_drawable).collect();
+        if all.ids.iter().all(|&g| drawable[g as usize]) {
+            return all.clone();
+        }
+        let mut offsets = Vec::with_capacity(all.offsets.len());
+        let mut ids = Vec::with_capacity(all.ids.len());
+        offsets.push(0);
+        for t in 0..all.num_tiles() {
+            ids.extend(
+                all.list(t)
+                    .iter()
+                    .copied()
+                    .filter(|&g| drawable[g as usize]),
+            );
+            offsets.push(ids.len() as u32);
+        }
+        TileBins {
+            tiles_x: all.tiles_x,
+            tiles_y: all.tiles_y,
+            offsets,
+            ids,
+        }
     }
 
-    /// Bytes per Gaussian on screen.
-    pub const ENTRY_BYTES: usize = std::mem::size_of::<Entry>();
+    /// Bytes the kept lists take.
+    pub fn bytes(&self) -> usize {
+        (self.lists.ids.len() + self.lists.offsets.len()) * std::mem::size_of::<u32>()
+    }
+
+    /// Bytes per Gaussian on screen assumed before the lists exist: 4 tiles each.
+    pub const ENTRY_BYTES: usize = 4 * std::mem::size_of::<u32>();
 }
 
 /// Appends the depth-sorted `entries` to the lists of the tiles they cover.

@@ -9,6 +9,7 @@
 //! separably per channel, 'same' output with zero padding (conv2d with padding 5), C1 = 0.01², C2 = 0.03²,
 //! averaged over every pixel and channel.
 
+use crate::render::cpu::{dispatch, Kernel};
 use crate::render::real::{c, Real};
 use rayon::prelude::*;
 
@@ -102,10 +103,88 @@ pub fn psnr_from_mse(mse: f64) -> f64 {
 /// # Panics
 /// When the slices are not `width*height*channels` long (a programming error).
 pub fn ssim(pred: &[f32], target: &[f32], width: usize, height: usize, channels: usize) -> Loss {
-    let (value, grad) = ssim_generic(pred, target, width, height, channels);
+    ssim_to(pred, &SsimTarget::new(target, width, height, channels))
+}
+
+/// [`ssim`] against a target whose statistics are already computed: the same value and gradient, bit for
+/// bit, without blurring the target again (a fit compares hundreds of renders with each target).
+///
+/// # Panics
+/// When `pred` is not the target's `width*height*channels` long (a programming error).
+pub fn ssim_to(pred: &[f32], target: &SsimTarget) -> Loss {
+    let (value, grad) = ssim_generic_to(pred, target);
     Loss {
         value: value as f32,
         grad,
+    }
+}
+
+/// The target's side of SSIM for one image: per channel its plane, the plane's local means (μy) and the
+/// local means of its square (E[y²]). They depend on the target alone, so a fit computes them once per
+/// target image instead of at every step.
+#[derive(Clone, Debug)]
+pub struct SsimTarget<R = f32> {
+    width: usize,
+    height: usize,
+    channels: usize,
+    /// Per channel: y, μy and E[y²], each `width*height`.
+    planes: Vec<[Vec<R>; 3]>,
+}
+
+impl<R: Real> SsimTarget<R> {
+    /// The statistics of `target` (`width*height*channels`, channels interleaved).
+    ///
+    /// # Panics
+    /// When `target` is not `width*height*channels` long (a programming error).
+    pub fn new(target: &[R], width: usize, height: usize, channels: usize) -> Self {
+        let n = width * height;
+        assert_eq!(target.len(), n * channels, "ssim: target size");
+        let taps = gaussian_taps::<R>();
+        let planes = (0..channels)
+            .into_par_iter()
+            .map(|ch| {
+                let y: Vec<R> = target.iter().skip(ch).step_by(channels).copied().collect();
+                let yy: Vec<R> = y.iter().map(|&v| v * v).collect();
+                let mut tmp = vec![R::ZERO; n];
+                let mut mu = vec![R::ZERO; n];
+                let mut e_yy = vec![R::ZERO; n];
+                dispatch(Blur {
+                    src: &y,
+                    width,
+                    height,
+                    taps: &taps,
+                    tmp: &mut tmp,
+                    out: &mut mu,
+                });
+                dispatch(Blur {
+                    src: &yy,
+                    width,
+                    height,
+                    taps: &taps,
+                    tmp: &mut tmp,
+                    out: &mut e_yy,
+                });
+                [y, mu, e_yy]
+            })
+            .collect();
+        Self {
+            width,
+            height,
+            channels,
+            planes,
+        }
+    }
+}
+
+impl SsimTarget<f32> {
+    /// Bytes the statistics of one `width x height` image with `channels` channels take.
+    pub fn bytes_for(width: usize, height: usize, channels: usize) -> usize {
+        3 * width * height * channels * std::mem::size_of::<f32>()
+    }
+
+    /// The image's width, height and channels.
+    pub fn shape(&self) -> (usize, usize, usize) {
+        (self.width, self.height, self.channels)
     }
 }
 
@@ -163,6 +242,7 @@ fn gaussian_taps<R: Real>() -> [R; SSIM_WINDOW] {
 
 /// 'Same'-size separable blur with zero padding: `out = g ⊛ g ⊛ src` for one `width x height` plane.
 /// The window is symmetric, so this is also its own adjoint (used by the backward pass).
+#[inline(always)]
 fn blur<R: Real>(
     src: &[R],
     width: usize,
@@ -172,7 +252,7 @@ fn blur<R: Real>(
     out: &mut [R],
 ) {
     let r = SSIM_WINDOW / 2;
-    // Horizontal pass into tmp; the interior runs the full window without bounds checks.
+    // Horizontal pass into tmp.
     let w = *taps;
     for y in 0..height {
         let row = &src[y * width..(y + 1) * width];
@@ -190,12 +270,16 @@ fn blur<R: Real>(
             for (x, d) in dst.iter_mut().enumerate().take(r) {
                 *d = edge(x);
             }
-            for (d, win) in dst[r..width - r].iter_mut().zip(row.windows(SSIM_WINDOW)) {
-                let mut acc = R::ZERO;
-                for k in 0..SSIM_WINDOW {
-                    acc += w[k] * win[k];
+            // The interior runs the full window. Tap by tap over the whole row, so each output adds its
+            // taps in the same order as a per-pixel loop would (the same bits) while the loop over
+            // pixels vectorises.
+            let m = width - 2 * r;
+            let mid = &mut dst[r..width - r];
+            mid.fill(R::ZERO);
+            for (k, &wk) in w.iter().enumerate() {
+                for (d, &v) in mid.iter_mut().zip(&row[k..k + m]) {
+                    *d += wk * v;
                 }
-                *d = acc;
             }
             for (x, d) in dst.iter_mut().enumerate().skip(width - r) {
                 *d = edge(x);
@@ -222,17 +306,71 @@ fn blur<R: Real>(
     }
 }
 
-/// SSIM of one channel plane: returns the sum of the SSIM map and writes d(sum)/d(pred) · `scale` into
-/// `grad`.
+/// [`blur`] compiled for AVX2 as well (plain multiplies and adds: the same bits either way).
+struct Blur<'a, R> {
+    src: &'a [R],
+    width: usize,
+    height: usize,
+    taps: &'a [R; SSIM_WINDOW],
+    tmp: &'a mut [R],
+    out: &'a mut [R],
+}
+
+impl<R: Real> Kernel for Blur<'_, R> {
+    type Output = ();
+
+    #[inline(always)]
+    fn run<const SIMD: bool>(self) {
+        blur(
+            self.src,
+            self.width,
+            self.height,
+            self.taps,
+            self.tmp,
+            self.out,
+        )
+    }
+}
+
+/// SSIM of one channel plane `x` against its target's plane `t` ([`SsimTarget`]: y, μy, E[y²]): the sum
+/// of the SSIM map, with d(sum)/d(x) · `scale` written into `grad` (compiled for AVX2 as well; no fused
+/// multiply-adds, so the bits are the same either way).
+struct SsimPlane<'a, R> {
+    x: &'a [R],
+    t: &'a [Vec<R>; 3],
+    width: usize,
+    height: usize,
+    scale: R,
+    grad: &'a mut [R],
+}
+
+impl<R: Real> Kernel for SsimPlane<'_, R> {
+    type Output = f64;
+
+    #[inline(always)]
+    fn run<const SIMD: bool>(self) -> f64 {
+        ssim_plane(
+            self.x,
+            self.t,
+            self.width,
+            self.height,
+            self.scale,
+            self.grad,
+        )
+    }
+}
+
+#[inline(always)]
 fn ssim_plane<R: Real>(
     x: &[R],
-    y: &[R],
+    t: &[Vec<R>; 3],
     width: usize,
     height: usize,
     scale: R,
     grad: &mut [R],
 ) -> f64 {
     let n = width * height;
+    let [y, mu_y, e_yy] = t;
     let taps = gaussian_taps::<R>();
     let mut tmp = vec![R::ZERO; n];
     let mut blurred = |src: &[R]| {
@@ -241,12 +379,9 @@ fn ssim_plane<R: Real>(
         out
     };
     let mu_x = blurred(x);
-    let mu_y = blurred(y);
     let xx: Vec<R> = x.iter().map(|&v| v * v).collect();
-    let yy: Vec<R> = y.iter().map(|&v| v * v).collect();
     let xy: Vec<R> = x.iter().zip(y).map(|(&a, &b)| a * b).collect();
     let e_xx = blurred(&xx);
-    let e_yy = blurred(&yy);
     let e_xy = blurred(&xy);
 
     let (c1, c2) = (c::<R>(SSIM_C1), c::<R>(SSIM_C2));
@@ -254,7 +389,7 @@ fn ssim_plane<R: Real>(
     // s = A·B / (C·D) with A = 2μxμy + C1, B = 2σxy + C2, C = μx² + μy² + C1, D = σx² + σy² + C2, where
     // σx² = E[x²] − μx², σxy = E[xy] − μxμy. Partial derivatives with respect to the blurred maps μx, E[x²]
     // and E[xy] (written without dividing by A or B, which may vanish).
-    let mut sum = 0.0f64;
+    let mut map = vec![R::ZERO; n];
     let mut g_mu = vec![R::ZERO; n];
     let mut g_xx = vec![R::ZERO; n];
     let mut g_xy = vec![R::ZERO; n];
@@ -269,10 +404,15 @@ fn ssim_plane<R: Real>(
         let d = sxx + syy + c2;
         let cd = cc * d;
         let s = a * b / cd;
-        sum += s.to_f64();
+        map[i] = s;
         g_mu[i] = scale * (two * my * (b - a) / cd - two * mx * s * (d - cc) / cd);
         g_xx[i] = -scale * s / d;
         g_xy[i] = scale * two * a / cd;
+    }
+    // Summed in pixel order in f64 (apart from the loop above, which then vectorises).
+    let mut sum = 0.0f64;
+    for s in &map {
+        sum += s.to_f64();
     }
     let b_mu = blurred(&g_mu);
     let b_xx = blurred(&g_xx);
@@ -283,6 +423,8 @@ fn ssim_plane<R: Real>(
     sum
 }
 
+/// [`ssim_generic_to`] with the target's statistics made here (the tests' entry, in f64 too).
+#[cfg(test)]
 fn ssim_generic<R: Real>(
     pred: &[R],
     target: &[R],
@@ -290,21 +432,38 @@ fn ssim_generic<R: Real>(
     height: usize,
     channels: usize,
 ) -> (f64, Vec<R>) {
+    assert_eq!(
+        pred.len(),
+        width * height * channels,
+        "ssim: prediction size"
+    );
+    ssim_generic_to(pred, &SsimTarget::new(target, width, height, channels))
+}
+
+fn ssim_generic_to<R: Real>(pred: &[R], target: &SsimTarget<R>) -> (f64, Vec<R>) {
+    let (width, height, channels) = (target.width, target.height, target.channels);
     let n = width * height;
     assert_eq!(pred.len(), n * channels, "ssim: prediction size");
-    assert_eq!(target.len(), n * channels, "ssim: target size");
     if pred.is_empty() {
         return (1.0, Vec::new());
     }
     let total = (n * channels) as f64;
     let scale = c::<R>(1.0 / total);
-    let planes: Vec<(f64, Vec<R>)> = (0..channels)
-        .into_par_iter()
-        .map(|ch| {
+    let planes: Vec<(f64, Vec<R>)> = target
+        .planes
+        .par_iter()
+        .enumerate()
+        .map(|(ch, t)| {
             let x: Vec<R> = pred.iter().skip(ch).step_by(channels).copied().collect();
-            let y: Vec<R> = target.iter().skip(ch).step_by(channels).copied().collect();
             let mut g = vec![R::ZERO; n];
-            let s = ssim_plane(&x, &y, width, height, scale, &mut g);
+            let s = dispatch(SsimPlane {
+                x: &x,
+                t,
+                width,
+                height,
+                scale,
+                grad: &mut g,
+            });
             (s, g)
         })
         .collect();
@@ -503,6 +662,37 @@ mod tests {
         let gmax = g64.iter().fold(0.0f64, |m, v| m.max(v.abs()));
         for (a, b) in s.grad.iter().zip(&g64) {
             assert!((*a as f64 - b).abs() < 1e-3 * gmax);
+        }
+    }
+
+    /// The kept target statistics give the loss of [`ssim`] bit for bit, and the AVX2 build of the blur and
+    /// the SSIM map the portable one's (plain multiplies and adds, the taps in the same order).
+    #[test]
+    fn kept_target_and_vector_paths_match_bit_for_bit() {
+        let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+        // Wider than the window, narrower than it, and one the width of the demo's views.
+        for (w, h) in [(37, 21), (9, 14), (128, 16)] {
+            let x: Vec<f32> = pattern(w * h * 3, 37, 11, 101)
+                .into_iter()
+                .map(|v| v as f32)
+                .collect();
+            let y: Vec<f32> = pattern(w * h * 3, 53, 7, 97)
+                .into_iter()
+                .map(|v| v as f32)
+                .collect();
+            let fresh = ssim(&x, &y, w, h, 3);
+            let target = SsimTarget::new(&y, w, h, 3);
+            assert_eq!(target.shape(), (w, h, 3));
+            for _ in 0..2 {
+                let kept = ssim_to(&x, &target);
+                assert_eq!(kept.value.to_bits(), fresh.value.to_bits(), "{w}x{h}");
+                assert_eq!(bits(&kept.grad), bits(&fresh.grad), "{w}x{h}");
+            }
+            crate::render::cpu::force_portable(true);
+            let portable = ssim(&x, &y, w, h, 3);
+            crate::render::cpu::force_portable(false);
+            assert_eq!(portable.value.to_bits(), fresh.value.to_bits(), "{w}x{h}");
+            assert_eq!(bits(&portable.grad), bits(&fresh.grad), "{w}x{h}");
         }
     }
 
