@@ -120,14 +120,14 @@ pub fn ssim_to(pred: &[f32], target: &SsimTarget) -> Loss {
 }
 
 /// The target's side of SSIM for one image: per channel its plane, the plane's local means (μy) and the
-/// local means of its square (E[y²]). They depend on the target alone, so a fit computes them once per
+/// local means of its square (`E[y²]`). They depend on the target alone, so a fit computes them once per
 /// target image instead of at every step.
 #[derive(Clone, Debug)]
 pub struct SsimTarget<R = f32> {
     width: usize,
     height: usize,
     channels: usize,
-    /// Per channel: y, μy and E[y²], each `width*height`.
+    /// Per channel: y, μy and `E[y²]`, each `width*height`.
     planes: Vec<[Vec<R>; 3]>,
 }
 
@@ -332,7 +332,7 @@ impl<R: Real> Kernel for Blur<'_, R> {
     }
 }
 
-/// SSIM of one channel plane `x` against its target's plane `t` ([`SsimTarget`]: y, μy, E[y²]): the sum
+/// SSIM of one channel plane `x` against its target's plane `t` ([`SsimTarget`]: y, μy, `E[y²]`): the sum
 /// of the SSIM map, with d(sum)/d(x) · `scale` written into `grad` (compiled for AVX2 as well; no fused
 /// multiply-adds, so the bits are the same either way).
 struct SsimPlane<'a, R> {

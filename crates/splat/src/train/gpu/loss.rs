@@ -120,8 +120,8 @@ fn blur_rows(src: &[f32], taps: &[f32], width: u32, height: u32, planes: u32, ou
 }
 
 /// The vertical blur pass of the row-blurred SSIM inputs (5 planes per channel) finishes the local
-/// statistics μx, μy, E[x²], E[y²], E[xy]; from them the SSIM map and the scaled partial derivatives
-/// with respect to μx, E[x²], E[xy] (3 planes per channel).
+/// statistics μx, μy, `E[x²]`, `E[y²]`, `E[xy]`; from them the SSIM map and the scaled partial derivatives
+/// with respect to μx, `E[x²]`, `E[xy]` (3 planes per channel).
 /// Over `images` images as [`ssim_rows`].
 #[cube(launch)]
 fn ssim_terms(
