@@ -17,18 +17,8 @@ use edit::fit::{EditTrainer, ImageLoss};
 use edit::run::scene_extent;
 use splat::{GaussianScene, SplatDevice};
 
-fn arg_value(args: &[String], name: &str) -> Option<String> {
-    args.iter()
-        .position(|a| a == name)
-        .and_then(|i| args.get(i + 1).cloned())
-}
-
-fn number(args: &[String], name: &str, default: usize) -> usize {
-    arg_value(args, name).map_or(default, |v| {
-        v.parse()
-            .unwrap_or_else(|_| panic!("{name} takes a whole number"))
-    })
-}
+mod support;
+use support::number;
 
 /// Process CPU seconds (user + system) so far.
 fn cpu_seconds() -> f64 {

@@ -17,18 +17,8 @@ use edit::compute::Compute;
 use edit::fit::ImageLoss;
 use edit::run::{run_edit, IterationTimes, Quiet};
 
-fn arg_value(args: &[String], name: &str) -> Option<String> {
-    args.iter()
-        .position(|a| a == name)
-        .and_then(|i| args.get(i + 1).cloned())
-}
-
-fn number(args: &[String], name: &str, default: usize) -> usize {
-    arg_value(args, name).map_or(default, |v| {
-        v.parse()
-            .unwrap_or_else(|_| panic!("{name} takes a whole number"))
-    })
-}
+mod support;
+use support::{arg_value, number};
 
 fn main() {
     // As the `vcedit` binary does (edit and demo run with it).

@@ -135,6 +135,26 @@ impl Conv2d {
     }
 }
 
+impl Conv2d {
+    /// [`Self::forward_device_add`] followed by `act` (on the CPU under bf16 products a ReLU is applied
+    /// as the sums are stored).
+    pub fn forward_device_add_act(
+        &self,
+        x: &kernels::DeviceTensor,
+        addend: kernels::Addend<'_, kernels::DeviceTensor>,
+        act: kernels::Unary,
+    ) -> Result<kernels::DeviceTensor> {
+        x.conv2d_add_act(
+            &self.weight,
+            self.bias.as_ref(),
+            self.stride,
+            self.padding,
+            addend,
+            act,
+        )
+    }
+}
+
 impl Module for Conv2d {
     fn forward(&self, x: &Tensor) -> Result<Tensor> {
         kernels::conv2d(

@@ -29,7 +29,7 @@ use candle_core::{DType, Device, Tensor};
 use candle_nn::{Activation, VarBuilder};
 
 use crate::device;
-use crate::kernels::DeviceTensor;
+use crate::kernels::{Addend, DeviceTensor, Unary};
 use crate::layers::Conv2d;
 use serde::Deserialize;
 
@@ -229,10 +229,15 @@ impl TinyBlock {
     }
 
     fn forward(&self, x: &DeviceTensor) -> candle_core::Result<DeviceTensor> {
-        let h = self.convs[0].forward_device(x)?.activation(self.act)?;
-        let h = self.convs[1].forward_device(&h)?.activation(self.act)?;
-        let h = self.convs[2].forward_device(&h)?;
-        h.add(x)?.relu()
+        // A ReLU (TAESD's usual activation, and always the fuse after the skip) goes into the
+        // convolution's store.
+        let conv_act = |conv: &Conv2d, x: &DeviceTensor| match self.act {
+            Activation::Relu => conv.forward_device_add_act(x, Addend::None, Unary::Relu),
+            act => conv.forward_device(x)?.activation(act),
+        };
+        let h = conv_act(&self.convs[0], x)?;
+        let h = conv_act(&self.convs[1], &h)?;
+        self.convs[2].forward_device_add_act(&h, Addend::Residual(x), Unary::Relu)
     }
 }
 

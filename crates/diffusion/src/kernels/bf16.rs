@@ -28,8 +28,56 @@ use std::sync::{Arc, Mutex};
 use candle_core::{Tensor, TensorId};
 use rayon::prelude::*;
 
+mod direct;
 mod gemm;
+pub use direct::{conv as direct_conv, pack_conv_weight, unpack_conv_weight, ConvDims};
 pub use gemm::{bf16_products_available, gemm, Output, PackedPairs, MR, NR};
+
+/// How a product's weight is laid out in its bf16 pairs.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub(crate) enum WeightLayout {
+    /// A linear layer's `[out, in]` in [`NR`] panels (the product's right operand).
+    Linear,
+    /// A convolution's `[out, in, k, k]` tap-major in [`MR`] panels ([`pack_conv_weight`]), for
+    /// [`direct_conv`].
+    Conv,
+}
+
+impl WeightLayout {
+    /// Whether a weight of shape `dims` can be packed in this layout.
+    pub(crate) fn fits(self, dims: &[usize]) -> bool {
+        match (self, dims) {
+            (WeightLayout::Conv, &[_, _, kh, kw]) => kh == kw,
+            (WeightLayout::Conv, _) => false,
+            (WeightLayout::Linear, _) => dims.len() >= 2,
+        }
+    }
+
+    /// `values` (f32, row-major `dims`) packed in this layout.
+    pub(crate) fn pack(self, values: &[f32], dims: &[usize]) -> candle_core::Result<PackedPairs> {
+        match (self, dims) {
+            (WeightLayout::Conv, &[c_out, c_in, kh, kw]) if kh == kw => {
+                Ok(pack_conv_weight(values, c_out, c_in, kh))
+            }
+            (WeightLayout::Conv, _) => {
+                candle_core::bail!("a convolution weight of shape {dims:?} (square kernels only)")
+            }
+            (WeightLayout::Linear, _) => {
+                let lines = dims.first().copied().unwrap_or(0);
+                let k = values.len() / lines.max(1);
+                Ok(PackedPairs::pack(values, lines, k, k, 1, NR))
+            }
+        }
+    }
+
+    /// The f32 values (row-major `dims`) of pairs packed by [`Self::pack`]: the bf16 values exactly.
+    pub(crate) fn unpack(self, pairs: &PackedPairs, dims: &[usize]) -> Vec<f32> {
+        match (self, dims) {
+            (WeightLayout::Conv, &[c_out, c_in, k, _]) => unpack_conv_weight(pairs, c_out, c_in, k),
+            _ => pairs.unpack(),
+        }
+    }
+}
 
 /// How the CPU computes the networks' matrix products.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
@@ -177,7 +225,7 @@ pub(crate) fn linear(
     {
         return Ok(None);
     }
-    let Some(w) = weight.packed(NR)? else {
+    let Some(w) = weight.packed(WeightLayout::Linear)? else {
         return Ok(None);
     };
     let (out_dim, in_dim) = (weight.dims()[0], weight.dims()[1]);
@@ -230,18 +278,17 @@ struct CachedWeight {
     packed: Arc<PackedPairs>,
 }
 
-/// Packed weights by tensor id and panel width.
-static WEIGHTS: Mutex<Option<HashMap<(TensorId, usize), CachedWeight>>> = Mutex::new(None);
+/// Packed weights by tensor id and layout.
+static WEIGHTS: Mutex<Option<HashMap<(TensorId, WeightLayout), CachedWeight>>> = Mutex::new(None);
 
-/// The weight `weight` (f32, contiguous, [lines, k...] with k the product of the other dimensions) packed
-/// in panels of `width` lines, packed on first use and kept for the process (or until
-/// [`clear_weight_cache`]). Only immutable tensors may come here: a `Var`'s values change under the same
-/// id (callers skip tensors that track gradients).
+/// The weight `weight` (f32, contiguous) packed in `layout`, packed on first use and kept for the process
+/// (or until [`clear_weight_cache`]). Only immutable tensors may come here: a `Var`'s values change
+/// under the same id (callers skip tensors that track gradients).
 pub(crate) fn packed_weight(
     weight: &Tensor,
-    width: usize,
+    layout: WeightLayout,
 ) -> candle_core::Result<Arc<PackedPairs>> {
-    let key = (weight.id(), width);
+    let key = (weight.id(), layout);
     if let Some(hit) = WEIGHTS
         .lock()
         .unwrap_or_else(|e| e.into_inner())
@@ -250,10 +297,8 @@ pub(crate) fn packed_weight(
     {
         return Ok(hit.packed.clone());
     }
-    let lines = weight.dim(0)?;
-    let k = weight.elem_count() / lines.max(1);
     let values = weight.flatten_all()?.to_vec1::<f32>()?;
-    let packed = Arc::new(PackedPairs::pack(&values, lines, k, k, 1, width));
+    let packed = Arc::new(layout.pack(&values, weight.dims())?);
     WEIGHTS
         .lock()
         .unwrap_or_else(|e| e.into_inner())

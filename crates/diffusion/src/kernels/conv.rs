@@ -6,16 +6,17 @@
 //!   PyTorch. Here the input stays NCHW: each im2col row (input channel × kernel tap) is a run of contiguous
 //!   copies, built in parallel for a band of output rows, and a single parallel GEMM per band writes straight
 //!   into the NCHW output, whose rows were pre-filled with the bias. The weight [out, in, kh, kw] is already
-//!   the GEMM's left operand [out, in·kh·kw], so nothing is re-laid out.
+//!   the GEMM's left operand [out, in·kh·kw], so nothing is re-laid out. Under bf16 products it makes no
+//!   im2col matrix at all: [`bf16::direct_conv`] packs the input once and reads it at each tap's shift.
 //! - [`BatchedConv2d`] (training, with a backward pass): one image per rayon task with single-threaded
 //!   GEMMs, which suits training batches of small images far better than one parallel GEMM per image.
 
 use candle_core::{CpuStorage, CustomOp1, CustomOp2, CustomOp3, Layout, Result, Shape, Tensor};
 use rayon::prelude::*;
 
-use super::bf16::{self, PackedPairs};
+use super::bf16::{self, PackedPairs, WeightLayout};
 use super::ProductWeight;
-use super::{cpu_f32, f32_slices, needs_grad, split_grads, Grads3};
+use super::{cpu_f32, f32_slices, needs_grad, split_grads, Addend, Grads3, Unary};
 
 /// im2col band size in f32 elements (~32 MB): large enough for efficient GEMMs, small enough that a
 /// 512×512 SD-VAE layer does not need a >1 GB scratch matrix.
@@ -35,23 +36,102 @@ pub fn conv2d(
     stride: usize,
     padding: usize,
 ) -> Result<Tensor> {
+    conv2d_add(x, weight, bias, stride, padding, Addend::None)
+}
+
+/// [`conv2d`] plus `addend`. Under bf16 products the addend is written into the output with the bias,
+/// before the products accumulate onto it (no second pass over the output); the f32 path adds it
+/// afterwards, as it always has, so its results stay bit for bit.
+pub fn conv2d_add(
+    x: &Tensor,
+    weight: &ProductWeight,
+    bias: Option<&Tensor>,
+    stride: usize,
+    padding: usize,
+    addend: Addend<'_, Tensor>,
+) -> Result<Tensor> {
+    conv2d_add_act(x, weight, bias, stride, padding, addend, None)
+}
+
+/// [`conv2d_add`] followed by the activation `act`. Under bf16 products a ReLU is applied as the
+/// finished sums are stored (TAESD's convolutions are each followed by one); anything else runs as its
+/// own pass afterwards.
+pub fn conv2d_add_act(
+    x: &Tensor,
+    weight: &ProductWeight,
+    bias: Option<&Tensor>,
+    stride: usize,
+    padding: usize,
+    addend: Addend<'_, Tensor>,
+    act: Option<Unary>,
+) -> Result<Tensor> {
     let mut operands = vec![x];
     operands.extend(bias);
+    operands.extend(addend.term());
     if x.rank() == 4 && weight.dims().len() == 4 && cpu_f32(&operands) && !needs_grad(&operands) {
         // bf16 products use the weight packed once (kept packed, or packed on first use and cached).
-        if let Some(packed) = weight.packed(bf16::MR)? {
-            let op = BandedConv2d {
+        if let Some(pairs) = weight.packed(WeightLayout::Conv)? {
+            let (n, c_out) = (x.dim(0)?, weight.dims()[0]);
+            let mut per_channel = match bias {
+                Some(b) => b.to_vec1::<f32>()?.repeat(n),
+                None => Vec::new(),
+            };
+            if let Addend::PerChannel(t) = addend {
+                let t = t.reshape(n * c_out)?.to_vec1::<f32>()?;
+                per_channel.resize(n * c_out, 0.0);
+                per_channel.iter_mut().zip(t).for_each(|(b, t)| *b += t);
+            }
+            if !per_channel.is_empty() && per_channel.len() != n * c_out {
+                candle_core::bail!(
+                    "conv2d: {} biases for {c_out} outputs",
+                    per_channel.len() / n.max(1)
+                );
+            }
+            let relu = act == Some(Unary::Relu);
+            let op = Bf16Conv2d {
                 stride,
                 padding,
-                bias: bias.map(|b| b.to_vec1::<f32>()).transpose()?,
-                packed_weight: Some(PackedConvWeight {
-                    pairs: packed,
-                    shape: Shape::from(weight.dims()),
-                }),
+                per_channel,
+                pairs,
+                weight_shape: Shape::from(weight.dims()),
+                relu,
             };
-            return x.contiguous()?.apply_op1_no_bwd(&op);
+            let x = x.contiguous()?;
+            let y = match addend {
+                Addend::Residual(r) => x.apply_op2_no_bwd(&r.contiguous()?, &op)?,
+                _ => x.apply_op1_no_bwd(&op)?,
+            };
+            return match act {
+                Some(act) if !relu => super::cpu::unary(&y, act),
+                _ => Ok(y),
+            };
         }
     }
+    let y = conv2d_f32(x, weight, bias, stride, padding)?;
+    let y = match addend {
+        Addend::None => y,
+        Addend::Residual(r) => (y + r)?,
+        Addend::PerChannel(t) => {
+            let (n, c, _, _) = y.dims4()?;
+            y.broadcast_add(&t.reshape((n, c, 1, 1))?)?
+        }
+    };
+    match act {
+        Some(act) => super::cpu::unary(&y, act),
+        None => Ok(y),
+    }
+}
+
+/// [`conv2d`] with f32 products (the weight's f32 values, unpacked once where only pairs are kept).
+fn conv2d_f32(
+    x: &Tensor,
+    weight: &ProductWeight,
+    bias: Option<&Tensor>,
+    stride: usize,
+    padding: usize,
+) -> Result<Tensor> {
+    let mut operands = vec![x];
+    operands.extend(bias);
     let weight = weight.tensor()?;
     operands.push(&weight);
     if x.rank() == 4 && cpu_f32(&operands) {
@@ -60,7 +140,6 @@ pub fn conv2d(
                 stride,
                 padding,
                 bias: bias.map(|b| b.to_vec1::<f32>()).transpose()?,
-                packed_weight: None,
             };
             return x.contiguous()?.apply_op2_no_bwd(&weight.contiguous()?, &op);
         }
@@ -468,14 +547,6 @@ struct BandedConv2d {
     stride: usize,
     padding: usize,
     bias: Option<Vec<f32>>,
-    /// The weight as bf16 pairs when the products run in bf16 (the op then takes the input alone).
-    packed_weight: Option<PackedConvWeight>,
-}
-
-/// A convolution's weight as bf16 pairs ([`bf16::MR`] panels) and its shape [out, in, k, k].
-struct PackedConvWeight {
-    pairs: std::sync::Arc<PackedPairs>,
-    shape: Shape,
 }
 
 impl BandedConv2d {
@@ -521,53 +592,90 @@ impl BandedConv2d {
     }
 }
 
-impl BandedConv2d {
-    /// The bands' products in bf16: each band's im2col rows are rounded and packed as they are made
-    /// (no f32 im2col matrix), then multiplied by the packed weight onto `out` (holding the bias or 0).
-    fn bf16_products(
+/// The inference kernel under bf16 products: image by image the direct convolution over the packed
+/// input ([`bf16::direct_conv`]: no im2col matrix), accumulated onto the output pre-filled with the
+/// bias, the per-channel addend and the residual (the op's second operand), whichever there are.
+struct Bf16Conv2d {
+    stride: usize,
+    padding: usize,
+    /// Bias plus per-channel addend, [batch, out] (empty: none).
+    per_channel: Vec<f32>,
+    pairs: std::sync::Arc<PackedPairs>,
+    weight_shape: Shape,
+    /// A ReLU applied as the sums are stored.
+    relu: bool,
+}
+
+impl Bf16Conv2d {
+    fn forward(
         &self,
-        g: &ConvGeometry,
         xs: &[f32],
-        batch: usize,
-        weight: &PackedPairs,
-        out: &mut [f32],
-    ) {
-        let (c_out, k_rows, out_plane, out_w) = (g.c_out, g.k_rows(), g.out_plane(), g.out_w);
-        // Packed bands take half the f32 band's memory.
-        let band_rows = (2 * BAND_ELEMS / (k_rows * out_w).max(1)).clamp(1, g.out_h);
-        for n in 0..batch {
-            let input = &xs[n * g.in_image()..(n + 1) * g.in_image()];
-            let dst = &mut out[n * c_out * out_plane..(n + 1) * c_out * out_plane];
-            let mut oy0 = 0;
-            while oy0 < g.out_h {
-                let rows = band_rows.min(g.out_h - oy0);
-                let band = rows * out_w;
-                let rhs =
-                    PackedPairs::from_rows(band, k_rows, |r, buf| g.im2col_row(input, r, buf, oy0));
-                let out = bf16::Output {
-                    data: &mut dst[oy0 * out_w..],
-                    rows: c_out,
-                    cols: band,
-                    row_stride: out_plane,
-                };
-                bf16::gemm(weight, &rhs, out, self.bias.is_some());
-                oy0 += rows;
-            }
+        x_shape: &Shape,
+        residual: Option<&[f32]>,
+    ) -> Result<(CpuStorage, Shape)> {
+        let g = ConvGeometry::new(x_shape, &self.weight_shape, self.stride, self.padding)?;
+        let batch = x_shape.dims()[0];
+        let (c_out, plane) = (g.c_out, g.out_plane());
+        let shape = Shape::from((batch, c_out, g.out_h, g.out_w));
+        let mut out = match residual {
+            Some(r) if r.len() == shape.elem_count() => r.to_vec(),
+            Some(_) => candle_core::bail!("conv2d: residual does not fit the output {shape:?}"),
+            None => vec![0f32; shape.elem_count()],
+        };
+        if !self.per_channel.is_empty() {
+            out.par_chunks_mut(plane.max(1))
+                .zip(&self.per_channel)
+                .for_each(|(p, &b)| p.iter_mut().for_each(|v| *v += b));
         }
+        let accumulate = residual.is_some() || !self.per_channel.is_empty();
+        let dims = bf16::ConvDims {
+            c_in: g.c_in,
+            h: g.h,
+            w: g.w,
+            c_out,
+            kernel: g.kernel,
+            stride: g.stride,
+            padding: g.padding,
+            out_h: g.out_h,
+            out_w: g.out_w,
+        };
+        for (n, dst) in out
+            .chunks_mut((c_out * plane).max(1))
+            .enumerate()
+            .take(batch)
+        {
+            let input = &xs[n * g.in_image()..(n + 1) * g.in_image()];
+            bf16::direct_conv(&dims, &self.pairs, input, dst, accumulate, self.relu);
+        }
+        Ok((CpuStorage::F32(out), shape))
     }
 }
 
-impl CustomOp1 for BandedConv2d {
+impl CustomOp1 for Bf16Conv2d {
     fn name(&self) -> &'static str {
-        "banded-conv2d-bf16"
+        "conv2d-bf16"
     }
 
     fn cpu_fwd(&self, xs: &CpuStorage, xl: &Layout) -> Result<(CpuStorage, Shape)> {
-        let Some(weight) = &self.packed_weight else {
-            candle_core::bail!("banded-conv2d-bf16: no packed weight");
-        };
         let [xs] = f32_slices([(xs, xl)], CustomOp1::name(self))?;
-        self.forward(xs, xl.shape(), &weight.shape, None)
+        self.forward(xs, xl.shape(), None)
+    }
+}
+
+impl CustomOp2 for Bf16Conv2d {
+    fn name(&self) -> &'static str {
+        "conv2d-bf16-residual"
+    }
+
+    fn cpu_fwd(
+        &self,
+        xs: &CpuStorage,
+        xl: &Layout,
+        rs: &CpuStorage,
+        rl: &Layout,
+    ) -> Result<(CpuStorage, Shape)> {
+        let [xs, rs] = f32_slices([(xs, xl), (rs, rl)], CustomOp2::name(self))?;
+        self.forward(xs, xl.shape(), Some(rs))
     }
 }
 
@@ -584,19 +692,18 @@ impl CustomOp2 for BandedConv2d {
         wl: &Layout,
     ) -> Result<(CpuStorage, Shape)> {
         let [xs, ws] = f32_slices([(xs, xl), (ws, wl)], CustomOp2::name(self))?;
-        self.forward(xs, xl.shape(), wl.shape(), Some(ws))
+        self.forward(xs, xl.shape(), wl.shape(), ws)
     }
 }
 
 impl BandedConv2d {
-    /// The convolution of `xs` (contiguous, `x_shape`) by the packed weight, or else by the f32 weight
-    /// `ws` of `w_shape`.
+    /// The convolution of `xs` (contiguous, `x_shape`) by the f32 weight `ws` of `w_shape`.
     fn forward(
         &self,
         xs: &[f32],
         x_shape: &Shape,
         w_shape: &Shape,
-        ws: Option<&[f32]>,
+        ws: &[f32],
     ) -> Result<(CpuStorage, Shape)> {
         let g = ConvGeometry::new(x_shape, w_shape, self.stride, self.padding)?;
         let batch = x_shape.dims()[0];
@@ -615,17 +722,6 @@ impl BandedConv2d {
                 .enumerate()
                 .for_each(|(i, plane)| plane.fill(bias[i % c_out]));
         }
-        let ws = match (&self.packed_weight, ws) {
-            (Some(packed), _) => {
-                self.bf16_products(&g, xs, batch, &packed.pairs, &mut out);
-                return Ok((
-                    CpuStorage::F32(out),
-                    Shape::from((batch, c_out, g.out_h, out_w)),
-                ));
-            }
-            (None, Some(ws)) => ws,
-            (None, None) => candle_core::bail!("banded-conv2d: no weight"),
-        };
         let parallelism = gemm::Parallelism::Rayon(rayon::current_num_threads().max(1));
         let band_rows = (BAND_ELEMS / (k_rows * out_w).max(1)).clamp(1, g.out_h);
         let mut col = if g.pointwise() {

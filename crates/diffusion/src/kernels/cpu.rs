@@ -4,7 +4,7 @@
 
 use candle_core::{Module, Result, Tensor};
 
-use super::op_args::{Addend, Unary};
+use super::op_args::Unary;
 
 /// [`Unary`] `op` of `x`: one fused pass for inference with bf16 products where [`super::activation`]
 /// has a kernel.
@@ -19,18 +19,6 @@ pub(super) fn unary(x: &Tensor, op: Unary) -> Result<Tensor> {
         Unary::GeluErf => x.gelu_erf(),
         Unary::GeluTanh => x.gelu(),
         Unary::QuickGelu => x * candle_nn::ops::sigmoid(&(x * 1.702)?)?,
-    }
-}
-
-/// A convolution's output `out` plus its `addend`.
-pub(super) fn plus(out: Tensor, addend: Addend<'_, Tensor>) -> Result<Tensor> {
-    match addend {
-        Addend::None => Ok(out),
-        Addend::Residual(r) => out + r,
-        Addend::PerChannel(t) => {
-            let (n, c, _, _) = out.dims4()?;
-            out.broadcast_add(&t.reshape((n, c, 1, 1))?)
-        }
     }
 }
 

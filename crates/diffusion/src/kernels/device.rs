@@ -258,7 +258,7 @@ seam_ops! {
             padding: usize,
             addend: Addend<'_, Self>,
         ) -> Result<Self>
-            => cpu on_cpu::plus(super::conv2d(self, weight, bias, stride, padding)?, addend),
+            => cpu super::conv2d_add(self, weight, bias, stride, padding, addend),
                gpu ops::conv2d(
                    self,
                    &self.matrix_constant(&weight.tensor()?)?,
@@ -267,6 +267,27 @@ seam_ops! {
                    padding,
                    addend,
                );
+        /// [`Self::conv2d`] followed by `act` ([`super::conv2d_add_act`]: under the CPU's bf16
+        /// products a ReLU is applied as the sums are stored).
+        special fn conv2d_act(
+            &self,
+            weight: &ProductWeight,
+            bias: Option<&Tensor>,
+            stride: usize,
+            padding: usize,
+            addend: Addend<'_, Self>,
+            act: Unary,
+        ) -> Result<Self>
+            => cpu super::conv2d_add_act(self, weight, bias, stride, padding, addend, Some(act)),
+               gpu ops::conv2d(
+                   self,
+                   &self.matrix_constant(&weight.tensor()?)?,
+                   self.optional_constant(bias)?.as_ref(),
+                   stride,
+                   padding,
+                   addend,
+               )
+               .map(|y| on_gpu::unary(&y, act));
         /// `x·weightᵀ + bias` ([`Linear`]), plus `residual` (of the output's shape).
         special fn linear(&self, layer: &Linear, residual: Option<&Self>) -> Result<Self>
             => cpu on_cpu::linear(self, layer, residual),
@@ -531,6 +552,25 @@ impl DeviceTensor {
         };
         Ok(dispatch2!(self, term, (x, t) =>
             Storage::conv2d(x, weight, bias, stride, padding, addend.with(t))))
+    }
+
+    /// [`Self::conv2d_add`] followed by `act` (on the CPU under bf16 products a ReLU costs no pass of
+    /// its own).
+    pub fn conv2d_add_act(
+        &self,
+        weight: &ProductWeight,
+        bias: Option<&Tensor>,
+        stride: usize,
+        padding: usize,
+        addend: Addend<'_, DeviceTensor>,
+        act: Unary,
+    ) -> Result<DeviceTensor> {
+        let Some(term) = addend.term() else {
+            return Ok(dispatch!(self, x =>
+                Storage::conv2d_act(x, weight, bias, stride, padding, Addend::None, act)));
+        };
+        Ok(dispatch2!(self, term, (x, t) =>
+            Storage::conv2d_act(x, weight, bias, stride, padding, addend.with(t), act)))
     }
 
     /// A linear layer `x·weightᵀ + bias`.

@@ -12,7 +12,7 @@ use std::sync::{Arc, OnceLock};
 
 use candle_core::{DType, Module, Result, Tensor};
 
-use super::bf16::{self, PackedPairs};
+use super::bf16::{self, PackedPairs, WeightLayout};
 
 /// A matrix product's weight: f32, or packed bf16 pairs only (see the module).
 #[derive(Debug, Clone)]
@@ -28,6 +28,7 @@ enum Repr {
 #[derive(Debug)]
 struct PackedWeight {
     packed: Arc<PackedPairs>,
+    layout: WeightLayout,
     dims: Vec<usize>,
     /// The f32 values of the pairs, made on the first f32 product that needs them.
     unpacked: OnceLock<Tensor>,
@@ -36,30 +37,30 @@ struct PackedWeight {
 impl ProductWeight {
     /// A linear layer's weight `[out, in]` (the product's right operand).
     pub fn linear(weight: Tensor) -> Result<Self> {
-        Self::new(weight, bf16::NR)
+        Self::new(weight, WeightLayout::Linear)
     }
 
-    /// A convolution's weight `[out, in, k, k]` (the product's left operand).
+    /// A convolution's weight `[out, in, k, k]` (the product's left operand, tap-major).
     pub fn conv(weight: Tensor) -> Result<Self> {
-        Self::new(weight, bf16::MR)
+        Self::new(weight, WeightLayout::Conv)
     }
 
-    /// Packs `weight` in panels of `width` lines and drops its f32 values when the CPU's products run in
-    /// bf16 now and the weight is a plain f32 CPU tensor (not a variable being trained); else keeps it.
-    fn new(weight: Tensor, width: usize) -> Result<Self> {
+    /// Packs `weight` in `layout` and drops its f32 values when the CPU's products run in bf16 now and
+    /// the weight is a plain f32 CPU tensor (not a variable being trained) of the layout's shape; else
+    /// keeps it.
+    fn new(weight: Tensor, layout: WeightLayout) -> Result<Self> {
         let packable = bf16::bf16_active()
             && weight.dtype() == DType::F32
             && weight.device().is_cpu()
             && !weight.track_op()
-            && weight.rank() >= 2;
+            && layout.fits(weight.dims());
         if !packable {
             return Ok(Self(Repr::F32(weight)));
         }
-        let lines = weight.dim(0)?;
-        let k = weight.elem_count() / lines.max(1);
         let values = weight.flatten_all()?.to_vec1::<f32>()?;
         Ok(Self(Repr::Packed(Arc::new(PackedWeight {
-            packed: Arc::new(PackedPairs::pack(&values, lines, k, k, 1, width)),
+            packed: Arc::new(layout.pack(&values, weight.dims())?),
+            layout,
             dims: weight.dims().to_vec(),
             unpacked: OnceLock::new(),
         }))))
@@ -88,7 +89,7 @@ impl ProductWeight {
                     return Ok(t.clone());
                 }
                 let t = Tensor::from_vec(
-                    p.packed.unpack(),
+                    p.layout.unpack(&p.packed, &p.dims),
                     p.dims.as_slice(),
                     &candle_core::Device::Cpu,
                 )?;
@@ -105,29 +106,28 @@ impl ProductWeight {
         }
     }
 
-    /// The weight as bf16 pairs in panels of `width` lines when this thread's products run in bf16 now:
-    /// the kept pairs, or an f32 weight packed once (and cached beside it, [`bf16::packed_weight`]).
-    /// `None` for f32 products or a weight that cannot be packed (a variable, another dtype).
-    pub(crate) fn packed(&self, width: usize) -> Result<Option<Arc<PackedPairs>>> {
+    /// The weight as bf16 pairs in `layout` when this thread's products run in bf16 now: the kept
+    /// pairs, or an f32 weight packed once (and cached beside it, [`bf16::packed_weight`]). `None` for
+    /// f32 products or a weight that cannot be packed (a variable, another dtype or shape).
+    pub(crate) fn packed(&self, layout: WeightLayout) -> Result<Option<Arc<PackedPairs>>> {
         if !bf16::bf16_active() {
             return Ok(None);
         }
         match &self.0 {
-            Repr::Packed(p) if p.packed.width() == width => Ok(Some(p.packed.clone())),
-            Repr::Packed(p) => candle_core::bail!(
-                "a weight packed in panels of {} used with panels of {width}",
-                p.packed.width()
-            ),
+            Repr::Packed(p) if p.layout == layout => Ok(Some(p.packed.clone())),
+            Repr::Packed(p) => {
+                candle_core::bail!("a weight packed as {:?} used as {layout:?}", p.layout)
+            }
             Repr::F32(t) => {
                 if t.dtype() != DType::F32
                     || !t.device().is_cpu()
                     || t.track_op()
                     || !t.is_contiguous()
-                    || t.rank() < 2
+                    || !layout.fits(t.dims())
                 {
                     return Ok(None);
                 }
-                bf16::packed_weight(t, width).map(Some)
+                bf16::packed_weight(t, layout).map(Some)
             }
         }
     }

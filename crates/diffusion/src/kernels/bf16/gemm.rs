@@ -49,7 +49,7 @@ pub fn from_bf16_bits(b: u16) -> f32 {
 
 /// Two adjacent k values of one line as a bf16 pair (the lower k in the low half).
 #[inline(always)]
-fn pair(lo: f32, hi: f32) -> u32 {
+pub(super) fn pair(lo: f32, hi: f32) -> u32 {
     to_bf16_bits(lo) as u32 | ((to_bf16_bits(hi) as u32) << 16)
 }
 
@@ -109,58 +109,18 @@ impl PackedPairs {
         }
     }
 
-    /// The right operand ([`NR`] panels) of a product with `lines` columns whose k rows `fill_row(r, buf)`
-    /// writes (`buf` holds `lines` values): an im2col matrix packed without ever being stored in f32. Rows
-    /// are made two at a time, in parallel over k.
-    pub fn from_rows(lines: usize, k: usize, fill_row: impl Fn(usize, &mut [f32]) + Sync) -> Self {
-        let (width, kp) = (NR, k.div_ceil(2));
-        let panels = lines.div_ceil(width);
-        let panel_len = kp * width;
-        let mut data = vec![0u32; panels * panel_len];
-        let out = SharedWords(data.as_mut_ptr());
-        // Enough pairs per task to amortise the buffers, few enough to spread over the threads.
-        let pairs_per_task = (kp / (4 * rayon::current_num_threads().max(1))).clamp(1, 64);
-        (0..kp.div_ceil(pairs_per_task))
-            .into_par_iter()
-            .for_each(|task| {
-                let mut rows = vec![0f32; 2 * lines];
-                let mut pairs = vec![0u32; lines];
-                let q_end = ((task + 1) * pairs_per_task).min(kp);
-                for q in task * pairs_per_task..q_end {
-                    let (row0, row1) = rows.split_at_mut(lines);
-                    fill_row(2 * q, row0);
-                    if 2 * q + 1 < k {
-                        fill_row(2 * q + 1, row1);
-                    } else {
-                        row1.fill(0.0);
-                    }
-                    interleave_rows(row0, row1, &mut pairs);
-                    for (p, chunk) in pairs.chunks(width).enumerate() {
-                        // SAFETY: slot (panel p, pair q) lies inside `data` and only this task (the
-                        // one owning pair q) writes it.
-                        unsafe {
-                            std::ptr::copy_nonoverlapping(
-                                chunk.as_ptr(),
-                                out.at(p * panel_len + q * width),
-                                chunk.len(),
-                            );
-                        }
-                    }
-                }
-            });
-        Self {
-            data,
-            lines,
-            k,
-            width,
-        }
-    }
-
-    fn k_pairs(&self) -> usize {
+    /// Pairs along the summed dimension (k rounded up to even, halved).
+    pub(super) fn k_pairs(&self) -> usize {
         self.k.div_ceil(2)
     }
 
-    fn panel(&self, p: usize) -> &[u32] {
+    /// Lines (rows of the left operand, columns of the right one).
+    pub(super) fn lines(&self) -> usize {
+        self.lines
+    }
+
+    /// Panel `p`: `[k_pairs][width]` words.
+    pub(super) fn panel(&self, p: usize) -> &[u32] {
         let len = self.k_pairs() * self.width;
         &self.data[p * len..(p + 1) * len]
     }
@@ -291,7 +251,7 @@ unsafe fn pack_lines_avx512(lines: &[&[f32]], panel: &mut [u32], width: usize) {
 }
 
 /// `dst[i] = pair(row0[i], row1[i])`: 16 at a time with the hardware conversion (the same rounding).
-fn interleave_rows(row0: &[f32], row1: &[f32], dst: &mut [u32]) {
+pub(super) fn interleave_rows(row0: &[f32], row1: &[f32], dst: &mut [u32]) {
     #[cfg(target_arch = "x86_64")]
     if bf16_products_available() {
         // SAFETY: the CPU has the instructions (checked just above).
@@ -418,27 +378,9 @@ pub fn gemm(a: &PackedPairs, b: &PackedPairs, c: Output<'_>, accumulate: bool) {
         });
 }
 
-/// The packed words, shared by the tasks that write disjoint slots of them.
-#[derive(Clone, Copy)]
-struct SharedWords(*mut u32);
-// SAFETY: tasks write disjoint slots only (see `PackedPairs::from_rows`).
-unsafe impl Send for SharedWords {}
-unsafe impl Sync for SharedWords {}
-
-impl SharedWords {
-    /// The word `offset` words in.
-    ///
-    /// # Safety
-    /// `offset` lies inside the words.
-    unsafe fn at(self, offset: usize) -> *mut u32 {
-        // SAFETY: the caller's contract.
-        unsafe { self.0.add(offset) }
-    }
-}
-
 /// The output pointer, shared by the tasks that write disjoint tiles of it.
 #[derive(Clone, Copy)]
-struct SharedOut(*mut f32);
+pub(super) struct SharedOut(pub(super) *mut f32);
 // SAFETY: tasks write disjoint tiles only (see `gemm`).
 unsafe impl Send for SharedOut {}
 unsafe impl Sync for SharedOut {}
@@ -448,7 +390,7 @@ impl SharedOut {
     ///
     /// # Safety
     /// `offset` lies inside the output.
-    unsafe fn at(self, offset: usize) -> *mut f32 {
+    pub(super) unsafe fn at(self, offset: usize) -> *mut f32 {
         // SAFETY: the caller's contract.
         unsafe { self.0.add(offset) }
     }
@@ -658,19 +600,6 @@ mod tests {
                 assert!(rel < 5e-3, "{m}x{n}x{k}: relative L2 {rel}");
             }
         }
-    }
-
-    /// Packing rows as they are made equals packing the stored matrix (odd k, a partial panel).
-    #[test]
-    fn packing_from_rows_equals_packing_the_matrix() {
-        let (lines, k) = (45, 9);
-        let m = values(lines * k, 4); // [k, lines]
-        let stored = PackedPairs::pack(&m, lines, k, 1, lines, NR);
-        let made = PackedPairs::from_rows(lines, k, |r, buf| {
-            buf.copy_from_slice(&m[r * lines..(r + 1) * lines])
-        });
-        assert_eq!(stored.data, made.data);
-        assert_eq!((made.lines, made.k), (lines, k));
     }
 
     /// Unpacking gives back each value rounded to bf16, for both panel widths, odd k and partial panels,
