@@ -639,14 +639,7 @@ impl Bf16Conv2d {
             out_h: g.out_h,
             out_w: g.out_w,
         };
-        for (n, dst) in out
-            .chunks_mut((c_out * plane).max(1))
-            .enumerate()
-            .take(batch)
-        {
-            let input = &xs[n * g.in_image()..(n + 1) * g.in_image()];
-            bf16::direct_conv(&dims, &self.pairs, input, dst, accumulate, self.relu);
-        }
+        bf16::direct_conv(&dims, &self.pairs, xs, &mut out, accumulate, self.relu);
         Ok((CpuStorage::F32(out), shape))
     }
 }

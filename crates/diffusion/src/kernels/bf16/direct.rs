@@ -10,7 +10,7 @@
 //!   [`PackedPairs`]. A model loaded for bf16 products keeps its convolutions' weights in this order only.
 //! - **Input** ([`PackedInput`]): one image, zero-padded, split into `stride²` phase planes (plane
 //!   `(py, px)` holds the padded pixels `(s·y + py, s·x + px)`), each plane as bf16 pairs of adjacent
-//!   channels, `plane_words` pairs per channel pair.
+//!   channels, `ConvDims::plane_words` pairs per channel pair.
 //! - **Output positions** are counted row-major over a plane's width `Wq` instead of the output's width
 //!   (`o = oy·Wq + ox`): then for every tap `(ky, kx)` the inputs of NR consecutive positions are NR
 //!   consecutive pairs of plane `(ky mod s, kx mod s)` at offset `o + (ky div s)·Wq + kx div s`, one vector
@@ -136,7 +136,6 @@ pub fn unpack_conv_weight(
 /// `(s·y + py, s·x + px)`.
 pub struct PackedInput {
     data: Vec<u32>,
-    plane_words: usize,
 }
 
 impl PackedInput {
@@ -190,7 +189,7 @@ impl PackedInput {
                     }
                 }
             });
-        Self { data, plane_words }
+        Self { data }
     }
 }
 
@@ -203,7 +202,7 @@ impl PackedInput {
 pub fn conv(
     dims: &ConvDims,
     weight: &PackedPairs,
-    image: &[f32],
+    images: &[f32],
     out: &mut [f32],
     accumulate: bool,
     relu: bool,
@@ -222,12 +221,19 @@ pub fn conv(
         (dims.c_out, dims.k_pairs()),
         "conv: weight does not fit {dims:?}"
     );
-    let out_plane = dims.out_h * dims.out_w;
-    assert_eq!(out.len(), dims.c_out * out_plane, "conv: output shape");
+    let (in_image, out_plane) = (dims.c_in * dims.h * dims.w, dims.out_h * dims.out_w);
+    let out_image = dims.c_out * out_plane;
+    let batch = images.len() / in_image.max(1);
+    assert_eq!(images.len(), batch * in_image, "conv: input shape");
+    assert_eq!(out.len(), batch * out_image, "conv: output shape");
     if out.is_empty() {
         return;
     }
-    let input = PackedInput::new(dims, image);
+    let inputs: Vec<PackedInput> = images
+        .chunks(in_image)
+        .map(|image| PackedInput::new(dims, image))
+        .collect();
+    let plane_words = dims.plane_words();
     let pairs = dims.channel_pairs();
     let (_, wq) = dims.plane_hw();
     // Each k block's B offsets, one per pair: where its NR words start, from a tile's first position.
@@ -238,20 +244,28 @@ pub fn conv(
         .map(|q| {
             let (tap, c) = (q / pairs, q % pairs);
             let (phase, offset) = dims.tap(tap / dims.kernel, tap % dims.kernel);
-            (phase * pairs + c) * input.plane_words + offset
+            (phase * pairs + c) * plane_words + offset
         })
         .collect();
     let blocks: Vec<&[usize]> = offsets.chunks(block_len).collect();
     let (row_panels, tiles) = (dims.c_out.div_ceil(MR), dims.tiles());
     let row_blocks = row_panels.div_ceil(ROW_PANELS_PER_TASK);
-    let col_blocks = tiles.div_ceil(TILES_PER_TASK);
+    // Small images (a batch of 16² latents) get tasks of fewer tiles, so that both threads have work.
+    let threads = rayon::current_num_threads().max(1);
+    let tiles_per_task = (batch * row_blocks * tiles / (8 * threads)).clamp(1, TILES_PER_TASK);
+    let col_blocks = tiles.div_ceil(tiles_per_task);
     let dst = SharedOut(out.as_mut_ptr());
-    (0..row_blocks * col_blocks)
+    (0..batch * row_blocks * col_blocks)
         .into_par_iter()
         .for_each(|task| {
+            let (n, task) = (
+                task / (row_blocks * col_blocks),
+                task % (row_blocks * col_blocks),
+            );
             let (rb, cb) = (task / col_blocks, task % col_blocks);
+            let input = &inputs[n];
             let panels = rb * ROW_PANELS_PER_TASK..((rb + 1) * ROW_PANELS_PER_TASK).min(row_panels);
-            let task_tiles = cb * TILES_PER_TASK..((cb + 1) * TILES_PER_TASK).min(tiles);
+            let task_tiles = cb * tiles_per_task..((cb + 1) * tiles_per_task).min(tiles);
             let segments: Vec<Vec<Segment>> = task_tiles
                 .clone()
                 .map(|t| tile_segments(t * NR, wq, dims.out_w, dims.out_h))
@@ -278,7 +292,7 @@ pub fn conv(
                         let add = accumulate || b > 0;
                         let clamp = relu && b + 1 == blocks.len();
                         for (r, values) in tile.iter().enumerate().take(rows) {
-                            let channel = (pr * MR + r) * out_plane;
+                            let channel = n * out_image + (pr * MR + r) * out_plane;
                             for seg in segments {
                                 // SAFETY: the segment lies inside output channel `pr·MR + r`, and the
                                 // tasks' (channel, position) tiles are disjoint.
@@ -467,7 +481,7 @@ mod tests {
         out
     }
 
-    /// Over odd channel counts, output channels that leave 4- and 8-row panels, images narrower than a
+    /// Over batches of one and two images, odd channel counts, output channels that leave 4- and 8-row panels, images narrower than a
     /// tile, strides 1 and 2, paddings 0–2, 1×1 and 3×3 kernels and several k blocks: the direct
     /// convolution of bf16-rounded operands equals their exact convolution up to f32 summation;
     /// accumulating adds onto the output, and the fused ReLU clamps the sum of both.
@@ -491,19 +505,26 @@ mod tests {
         ];
         for (seed, &(ci, co, h, w, k, s, p)) in cases.iter().enumerate() {
             let d = dims(ci, co, h, w, k, s, p);
+            let batch = 1 + seed % 2;
             let weight = values(co * ci * k * k, 2 * seed as u64 + 1);
-            let image = values(ci * h * w, 2 * seed as u64 + 2);
+            let image = values(batch * ci * h * w, 2 * seed as u64 + 2);
             let packed = pack_conv_weight(&weight, co, ci, k);
             let plane = d.out_h * d.out_w;
+            // The reference image by image.
+            let per_image = |wt: &[f32], im: &[f32]| -> Vec<f64> {
+                im.chunks(ci * h * w)
+                    .flat_map(|one| reference(&d, wt, one))
+                    .collect()
+            };
             for (accumulate, relu) in [(false, false), (true, false), (true, true)] {
-                let mut out = vec![if accumulate { 0.25 } else { f32::NAN }; co * plane];
+                let mut out = vec![if accumulate { 0.25 } else { f32::NAN }; batch * co * plane];
                 conv(&d, &packed, &image, &mut out, accumulate, relu);
                 let wr: Vec<f32> = weight.iter().map(|&x| round(x)).collect();
                 let ir: Vec<f32> = image.iter().map(|&x| round(x)).collect();
-                let exact = reference(&d, &wr, &ir);
+                let exact = per_image(&wr, &ir);
                 let wa: Vec<f32> = weight.iter().map(|x| x.abs()).collect();
                 let ia: Vec<f32> = image.iter().map(|x| x.abs()).collect();
-                let scale = reference(&d, &wa, &ia);
+                let scale = per_image(&wa, &ia);
                 let base = if accumulate { 0.25 } else { 0.0 };
                 for (i, (&got, &want)) in out.iter().zip(&exact).enumerate() {
                     let want = if relu {
