@@ -36,26 +36,13 @@ pub fn conv2d(
     stride: usize,
     padding: usize,
 ) -> Result<Tensor> {
-    conv2d_add(x, weight, bias, stride, padding, Addend::None)
+    conv2d_add_act(x, weight, bias, stride, padding, Addend::None, None)
 }
 
-/// [`conv2d`] plus `addend`. Under bf16 products the addend is written into the output with the bias,
-/// before the products accumulate onto it (no second pass over the output); the f32 path adds it
-/// afterwards, as it always has, so its results stay bit for bit.
-pub fn conv2d_add(
-    x: &Tensor,
-    weight: &ProductWeight,
-    bias: Option<&Tensor>,
-    stride: usize,
-    padding: usize,
-    addend: Addend<'_, Tensor>,
-) -> Result<Tensor> {
-    conv2d_add_act(x, weight, bias, stride, padding, addend, None)
-}
-
-/// [`conv2d_add`] followed by the activation `act`. Under bf16 products a ReLU is applied as the
-/// finished sums are stored (TAESD's convolutions are each followed by one); anything else runs as its
-/// own pass afterwards.
+/// [`conv2d`] plus `addend`, then the activation `act`. Under bf16 products the addend is written into
+/// the output with the bias before the products accumulate onto it, and a ReLU is applied as the
+/// finished sums are stored (TAESD's convolutions are each followed by one): no pass of their own. The
+/// f32 path adds and activates afterwards, as it always has, so its results stay bit for bit.
 pub fn conv2d_add_act(
     x: &Tensor,
     weight: &ProductWeight,

@@ -249,7 +249,9 @@ seam_ops! {
             => cpu Tensor::cat(parts, dim), gpu ops::cat(parts, dim);
 
         // ---------------------------------------------------------------------- the `kernels` ops
-        /// [`super::conv2d`] (NCHW, OIHW weights), plus `addend`.
+        /// [`super::conv2d`] (NCHW, OIHW weights), plus `addend`, then `act` if any
+        /// ([`super::conv2d_add_act`]: under the CPU's bf16 products a ReLU is applied as the sums are
+        /// stored).
         special fn conv2d(
             &self,
             weight: &ProductWeight,
@@ -257,28 +259,9 @@ seam_ops! {
             stride: usize,
             padding: usize,
             addend: Addend<'_, Self>,
+            act: Option<Unary>,
         ) -> Result<Self>
-            => cpu super::conv2d_add(self, weight, bias, stride, padding, addend),
-               gpu ops::conv2d(
-                   self,
-                   &self.matrix_constant(&weight.tensor()?)?,
-                   self.optional_constant(bias)?.as_ref(),
-                   stride,
-                   padding,
-                   addend,
-               );
-        /// [`Self::conv2d`] followed by `act` ([`super::conv2d_add_act`]: under the CPU's bf16
-        /// products a ReLU is applied as the sums are stored).
-        special fn conv2d_act(
-            &self,
-            weight: &ProductWeight,
-            bias: Option<&Tensor>,
-            stride: usize,
-            padding: usize,
-            addend: Addend<'_, Self>,
-            act: Unary,
-        ) -> Result<Self>
-            => cpu super::conv2d_add_act(self, weight, bias, stride, padding, addend, Some(act)),
+            => cpu super::conv2d_add_act(self, weight, bias, stride, padding, addend, act),
                gpu ops::conv2d(
                    self,
                    &self.matrix_constant(&weight.tensor()?)?,
@@ -287,7 +270,10 @@ seam_ops! {
                    padding,
                    addend,
                )
-               .map(|y| on_gpu::unary(&y, act));
+               .map(|y| match act {
+                   Some(act) => on_gpu::unary(&y, act),
+                   None => y,
+               });
         /// `x·weightᵀ + bias` ([`Linear`]), plus `residual` (of the output's shape).
         special fn linear(&self, layer: &Linear, residual: Option<&Self>) -> Result<Self>
             => cpu on_cpu::linear(self, layer, residual),
@@ -545,13 +531,7 @@ impl DeviceTensor {
         padding: usize,
         addend: Addend<'_, DeviceTensor>,
     ) -> Result<DeviceTensor> {
-        let Some(term) = addend.term() else {
-            return Ok(
-                dispatch!(self, x => Storage::conv2d(x, weight, bias, stride, padding, Addend::None)),
-            );
-        };
-        Ok(dispatch2!(self, term, (x, t) =>
-            Storage::conv2d(x, weight, bias, stride, padding, addend.with(t))))
+        self.conv2d_with(weight, (bias, stride, padding), addend, None)
     }
 
     /// [`Self::conv2d_add`] followed by `act` (on the CPU under bf16 products a ReLU costs no pass of
@@ -565,12 +545,22 @@ impl DeviceTensor {
         addend: Addend<'_, DeviceTensor>,
         act: Unary,
     ) -> Result<DeviceTensor> {
+        self.conv2d_with(weight, (bias, stride, padding), addend, Some(act))
+    }
+
+    fn conv2d_with(
+        &self,
+        weight: &ProductWeight,
+        (bias, stride, padding): (Option<&Tensor>, usize, usize),
+        addend: Addend<'_, DeviceTensor>,
+        act: Option<Unary>,
+    ) -> Result<DeviceTensor> {
         let Some(term) = addend.term() else {
             return Ok(dispatch!(self, x =>
-                Storage::conv2d_act(x, weight, bias, stride, padding, Addend::None, act)));
+                Storage::conv2d(x, weight, bias, stride, padding, Addend::None, act)));
         };
         Ok(dispatch2!(self, term, (x, t) =>
-            Storage::conv2d_act(x, weight, bias, stride, padding, addend.with(t), act)))
+            Storage::conv2d(x, weight, bias, stride, padding, addend.with(t), act)))
     }
 
     /// A linear layer `x·weightᵀ + bias`.

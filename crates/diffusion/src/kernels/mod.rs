@@ -70,7 +70,7 @@ pub use bf16::{
     bf16_products_available, cpu_precision, set_cpu_precision, with_cpu_precision, Bf16Unavailable,
     CpuPrecision, CpuPrecisionError,
 };
-pub use conv::{conv2d, conv2d_add, conv2d_add_act};
+pub use conv::{conv2d, conv2d_add_act};
 pub use device::{Addend, Device, DeviceTensor, Storage, Unary};
 pub use geglu::geglu;
 pub use norm::{group_norm, layer_norm};

@@ -412,24 +412,8 @@ unsafe fn tap_tile<const R: usize>(_: &[u32], _: *const u32, _: &[usize], _: &mu
 
 #[cfg(test)]
 mod tests {
-    use super::super::gemm::{from_bf16_bits, to_bf16_bits};
+    use super::super::gemm::tests::{round, values};
     use super::*;
-
-    fn values(n: usize, seed: u64) -> Vec<f32> {
-        let mut s = seed.wrapping_mul(0x9E37_79B9_7F4A_7C15) | 1;
-        (0..n)
-            .map(|_| {
-                s ^= s << 13;
-                s ^= s >> 7;
-                s ^= s << 17;
-                (s >> 40) as f32 / (1u64 << 23) as f32 - 1.0
-            })
-            .collect()
-    }
-
-    fn round(x: f32) -> f32 {
-        from_bf16_bits(to_bf16_bits(x))
-    }
 
     fn dims(
         c_in: usize,

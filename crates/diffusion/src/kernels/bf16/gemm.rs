@@ -481,11 +481,11 @@ unsafe fn micro_tile(
 }
 
 #[cfg(test)]
-mod tests {
+pub(super) mod tests {
     use super::*;
 
     /// Deterministic values in [-1, 1).
-    fn values(n: usize, seed: u64) -> Vec<f32> {
+    pub(in super::super) fn values(n: usize, seed: u64) -> Vec<f32> {
         let mut s = seed.wrapping_mul(0x9E37_79B9_7F4A_7C15) | 1;
         (0..n)
             .map(|_| {
@@ -497,7 +497,8 @@ mod tests {
             .collect()
     }
 
-    fn round(x: f32) -> f32 {
+    /// `x` rounded to bf16 and back.
+    pub(in super::super) fn round(x: f32) -> f32 {
         from_bf16_bits(to_bf16_bits(x))
     }
 
