@@ -604,15 +604,24 @@ impl Bf16Conv2d {
         let batch = x_shape.dims()[0];
         let (c_out, plane) = (g.c_out, g.out_plane());
         let shape = Shape::from((batch, c_out, g.out_h, g.out_w));
-        let mut out = match residual {
-            Some(r) if r.len() == shape.elem_count() => r.to_vec(),
-            Some(_) => candle_core::bail!("conv2d: residual does not fit the output {shape:?}"),
-            None => vec![0f32; shape.elem_count()],
-        };
-        if !self.per_channel.is_empty() {
+        if residual.is_some_and(|r| r.len() != shape.elem_count()) {
+            candle_core::bail!("conv2d: residual does not fit the output {shape:?}");
+        }
+        // One pass writes each plane's residual plus its bias (or just one of them).
+        let mut out = vec![0f32; shape.elem_count()];
+        if residual.is_some() || !self.per_channel.is_empty() {
             out.par_chunks_mut(plane.max(1))
-                .zip(&self.per_channel)
-                .for_each(|(p, &b)| p.iter_mut().for_each(|v| *v += b));
+                .enumerate()
+                .for_each(|(i, p)| {
+                    let b = self.per_channel.get(i).copied().unwrap_or(0.0);
+                    match residual {
+                        Some(r) => p
+                            .iter_mut()
+                            .zip(&r[i * plane..])
+                            .for_each(|(o, r)| *o = r + b),
+                        None => p.fill(b),
+                    }
+                });
         }
         let accumulate = residual.is_some() || !self.per_channel.is_empty();
         let dims = bf16::ConvDims {

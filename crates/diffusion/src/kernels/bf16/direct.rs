@@ -15,7 +15,8 @@
 //!   (`o = oy·Wq + ox`): then for every tap `(ky, kx)` the inputs of NR consecutive positions are NR
 //!   consecutive pairs of plane `(ky mod s, kx mod s)` at offset `o + (ky div s)·Wq + kx div s`, one vector
 //!   load per channel pair. The positions with `ox ≥ out_w` (1–2 per row) are computed and dropped when the
-//!   tile is stored; everything else is the plain [`MR`]×[`NR`] microkernel of [`super::gemm`].
+//!   tile is stored; the register tile is [`super::gemm`]'s, [`MR`]×[`NR`], B read at each pair's offset
+//!   instead of from a packed panel.
 
 use rayon::prelude::*;
 
